@@ -1,0 +1,46 @@
+//! Importers for foreign files: reference PyTorch checkpoints, A-NeRF/DANBO
+//! `.h5`/`.npz` datasets and real motion.
+
+pub mod checkpoint;
+pub mod dataset;
+pub mod error;
+pub mod h5;
+pub mod motion;
+pub mod raw;
+pub mod torch;
+pub mod train_state;
+
+pub use error::{ConvertError, Result};
+pub use raw::RawTensor;
+
+use std::{io::Write, path::Path};
+
+/// Writes `bytes` to `path` through a temporary file in the same directory,
+/// so a reader never sees a half-written file.
+pub(crate) fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
+    let mut tmp = tempfile::NamedTempFile::new_in(dir).map_err(|e| ConvertError::io(dir, e))?;
+    tmp.write_all(bytes)
+        .map_err(|e| ConvertError::io(tmp.path(), e))?;
+    tmp.as_file()
+        .sync_all()
+        .map_err(|e| ConvertError::io(tmp.path(), e))?;
+    tmp.persist(path)
+        .map_err(|e| ConvertError::io(path, e.error))?;
+    set_readable(path)
+}
+
+/// Temporary files are created owner-only (0600); a converted file is an
+/// ordinary output, so give it the usual 0644 once it is in place.
+pub(crate) fn set_readable(path: &Path) -> Result<()> {
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        std::fs::set_permissions(path, std::fs::Permissions::from_mode(0o644))
+            .map_err(|e| ConvertError::io(path, e))?;
+    }
+    Ok(())
+}

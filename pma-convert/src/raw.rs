@@ -1,0 +1,115 @@
+//! A tensor as plain little-endian bytes, so that imported weights can be
+//! written out without ever passing through a float conversion.
+
+use std::borrow::Cow;
+
+use candle_core::{DType, Device, Tensor};
+use safetensors::{Dtype, View};
+
+/// A dense, C-ordered, little-endian tensor.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RawTensor {
+    pub dtype: Dtype,
+    pub shape: Vec<usize>,
+    pub data: Vec<u8>,
+}
+
+impl RawTensor {
+    pub fn numel(&self) -> usize {
+        self.shape.iter().product()
+    }
+
+    /// The values as f32, or `None` when the dtype is not F32.
+    pub fn to_f32_vec(&self) -> Option<Vec<f32>> {
+        (self.dtype == Dtype::F32).then(|| {
+            self.data
+                .chunks_exact(4)
+                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                .collect()
+        })
+    }
+
+    /// Builds an F32 tensor from values.
+    pub fn from_f32(shape: Vec<usize>, values: &[f32]) -> Self {
+        let data = values.iter().flat_map(|v| v.to_le_bytes()).collect();
+        Self {
+            dtype: Dtype::F32,
+            shape,
+            data,
+        }
+    }
+
+    /// A candle tensor holding the same bytes.
+    pub fn to_candle(&self, device: &Device) -> candle_core::Result<Tensor> {
+        let dtype = match self.dtype {
+            Dtype::F32 => DType::F32,
+            Dtype::F64 => DType::F64,
+            Dtype::F16 => DType::F16,
+            Dtype::BF16 => DType::BF16,
+            Dtype::I64 => DType::I64,
+            Dtype::U8 => DType::U8,
+            Dtype::U32 => DType::U32,
+            other => candle_core::bail!("dtype {other:?} has no candle equivalent"),
+        };
+        Tensor::from_raw_buffer(&self.data, dtype, &self.shape, device)
+    }
+
+    /// The bytes of a candle tensor (copied to the CPU, made contiguous).
+    pub fn from_candle(t: &Tensor) -> candle_core::Result<Self> {
+        let shape = t.dims().to_vec();
+        let flat = t.flatten_all()?.to_device(&Device::Cpu)?;
+        let (dtype, data): (Dtype, Vec<u8>) = match t.dtype() {
+            DType::F32 => (
+                Dtype::F32,
+                flat.to_vec1::<f32>()?
+                    .iter()
+                    .flat_map(|v| v.to_le_bytes())
+                    .collect(),
+            ),
+            DType::F64 => (
+                Dtype::F64,
+                flat.to_vec1::<f64>()?
+                    .iter()
+                    .flat_map(|v| v.to_le_bytes())
+                    .collect(),
+            ),
+            DType::I64 => (
+                Dtype::I64,
+                flat.to_vec1::<i64>()?
+                    .iter()
+                    .flat_map(|v| v.to_le_bytes())
+                    .collect(),
+            ),
+            DType::U32 => (
+                Dtype::U32,
+                flat.to_vec1::<u32>()?
+                    .iter()
+                    .flat_map(|v| v.to_le_bytes())
+                    .collect(),
+            ),
+            DType::U8 => (Dtype::U8, flat.to_vec1::<u8>()?),
+            other => {
+                candle_core::bail!("dtype {other:?} is not supported by RawTensor::from_candle")
+            }
+        };
+        Ok(Self { dtype, shape, data })
+    }
+}
+
+impl View for &RawTensor {
+    fn dtype(&self) -> Dtype {
+        self.dtype
+    }
+
+    fn shape(&self) -> &[usize] {
+        &self.shape
+    }
+
+    fn data(&self) -> Cow<'_, [u8]> {
+        Cow::Borrowed(&self.data)
+    }
+
+    fn data_len(&self) -> usize {
+        self.data.len()
+    }
+}

@@ -1,0 +1,216 @@
+//! `pma convert checkpoint`: the golden reference checkpoint and the Adam
+//! fixtures of fixtures/convert/gen_torch_fixtures.py.
+
+use std::path::{Path, PathBuf};
+
+use candle_core::Device;
+use pma_convert::{
+    checkpoint::{convert_checkpoint, reference_param_groups, CheckpointOptions},
+    train_state::{sidecar_path, TrainState},
+    ConvertError,
+};
+use pma_model::{checkpoint::load, error::ModelError, Config};
+use safetensors::SafeTensors;
+
+fn root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .unwrap()
+        .to_path_buf()
+}
+
+fn f32s(b: &[u8]) -> Vec<f32> {
+    b.chunks_exact(4)
+        .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
+        .collect()
+}
+
+/// The generator's `pattern(seed, n, scale)`: `scale * (((k + seed) % 17) - 8)` rounded to f32.
+fn pattern(seed: usize, n: usize, scale: f64) -> Vec<f32> {
+    (0..n)
+        .map(|k| (scale * (((k + seed) % 17) as f64 - 8.0)) as f32)
+        .collect()
+}
+
+#[test]
+fn golden_checkpoint_converts_to_identical_tensors_and_loads() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("ref.safetensors");
+    let rep = convert_checkpoint(
+        &root().join("fixtures/golden/ckpt.th"),
+        &out,
+        &CheckpointOptions::default(),
+    )
+    .unwrap();
+    assert_eq!(rep.n_tensors, 71);
+    assert_eq!(rep.n_parameters, 3_111_524);
+    assert!(rep.train_state.is_none());
+
+    let golden = std::fs::read(root().join("fixtures/golden/model.safetensors")).unwrap();
+    let golden = SafeTensors::deserialize(&golden).unwrap();
+    let ours = std::fs::read(&out).unwrap();
+    let (_, header) = SafeTensors::read_metadata(&ours).unwrap();
+    let ours = SafeTensors::deserialize(&ours).unwrap();
+    assert_eq!(ours.len(), golden.len());
+    for (name, view) in golden.tensors() {
+        let t = ours.tensor(&name).unwrap();
+        assert_eq!(
+            (t.dtype(), t.shape()),
+            (view.dtype(), view.shape()),
+            "{name}"
+        );
+        assert!(t.data() == view.data(), "{name}: bytes differ");
+    }
+    let meta = header.metadata().clone().unwrap();
+    assert_eq!(meta["format"], "pma-checkpoint");
+    assert_eq!(meta["n_framecodes"], "780");
+
+    let ck = load(&out, &Device::Cpu).unwrap();
+    let mut paper = Config::paper();
+    paper.n_framecodes = 780;
+    assert_eq!(ck.config, paper);
+    assert!(!ck.meta.config_inferred);
+    let rest = f32s(golden.tensor("rest_pose").unwrap().data());
+    let flat: Vec<f32> = ck.meta.rest_pose.iter().flatten().copied().collect();
+    assert_eq!(flat, rest);
+}
+
+#[test]
+fn optimizer_ids_follow_the_reference_grouping() {
+    let groups = reference_param_groups(&Config::paper());
+    assert_eq!((groups[0].len(), groups[1].len()), (39, 25));
+    // Spot checks against the id table of spec model.md §8.2.
+    let id = |i: usize| {
+        if i < 39 {
+            &groups[0][i]
+        } else {
+            &groups[1][i - 39]
+        }
+    };
+    assert_eq!(id(0), "pts_enc_pose.sin_lin0.layer.weight");
+    assert_eq!(id(4), "graph_net.axis_scale");
+    assert_eq!(id(7), "graph_net.layers.0.lin.weight");
+    assert_eq!(id(11), "graph_net.layers.2.weight");
+    assert_eq!(id(21), "win_fun.layer_pose.layer.weight");
+    assert_eq!(id(38), "pose_extractor.sin_lin3.layer.bias");
+    assert_eq!(id(39), "pts_linears.0.weight");
+    assert_eq!(id(55), "sigma_linear.weight");
+    assert_eq!(id(57), "views_linears.0.weight");
+    assert_eq!(id(59), "feature_linear.weight");
+    assert_eq!(id(63), "framecodes.codes.weight");
+}
+
+#[test]
+fn adam_state_is_exported_by_parameter_name_and_round_trips() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("resume.safetensors");
+    let input = root().join("fixtures/convert/ckpt_adam.th");
+    let rep = convert_checkpoint(
+        &input,
+        &out,
+        &CheckpointOptions {
+            with_optimizer: true,
+        },
+    )
+    .unwrap();
+    let side = dir.path().join("resume.optim.safetensors");
+    assert_eq!(rep.train_state.as_deref(), Some(side.as_path()));
+    assert_eq!(sidecar_path(&out), side);
+    assert_eq!(rep.n_moments, 64);
+    assert_eq!(rep.global_iter, Some(1234));
+
+    // Model tensors: large ones hold the generator's pattern, seeded by state_dict position.
+    let bytes = std::fs::read(&out).unwrap();
+    let st = SafeTensors::deserialize(&bytes).unwrap();
+    assert_eq!(
+        f32s(st.tensor("pts_linears.0.weight").unwrap().data()),
+        pattern(7, 256 * 768, 1e-3)
+    );
+
+    let state = TrainState::read(&side).unwrap();
+    assert_eq!(state.global_iter, 1234);
+    assert_eq!(state.param_groups.len(), 2);
+    assert_eq!(state.param_groups[0].lr, 9.4e-5);
+    assert_eq!(state.param_groups[1].lr, 4.7e-4);
+    assert_eq!(state.param_groups[1].betas, [0.9, 0.999]);
+    assert_eq!(state.param_groups[0].params.len(), 39);
+    assert_eq!(state.param_groups[1].params[24], "framecodes.codes.weight");
+    assert_eq!(state.moments.len(), 64);
+    assert!(state.moments.values().all(|m| m.step == 1234));
+    // Moments are seeded by optimiser id: id 4 = graph_net.axis_scale, id 63 = framecodes.
+    let axis = &state.moments["graph_net.axis_scale"];
+    assert_eq!(axis.exp_avg.shape, [24, 3]);
+    assert_eq!(axis.exp_avg.to_f32_vec().unwrap(), pattern(4, 72, 1e-4));
+    let codes = &state.moments["framecodes.codes.weight"];
+    let sq: Vec<f32> = pattern(163, 780 * 128, 1e-7)
+        .iter()
+        .map(|v| v.abs())
+        .collect();
+    assert_eq!(codes.exp_avg_sq.to_f32_vec().unwrap(), sq);
+
+    // Writing what was read gives the same state back.
+    let again = dir.path().join("again.optim.safetensors");
+    state.write(&again).unwrap();
+    assert_eq!(TrainState::read(&again).unwrap(), state);
+}
+
+#[test]
+fn checkpoint_of_another_architecture_is_rejected_with_the_tensor_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("bad.safetensors");
+    let err = convert_checkpoint(
+        &root().join("fixtures/convert/bad_config.th"),
+        &out,
+        &CheckpointOptions::default(),
+    )
+    .unwrap_err();
+    let msg = err.to_string();
+    assert!(
+        matches!(&err, ConvertError::Model(e) if matches!(**e, ModelError::Checkpoint { .. })),
+        "{msg}"
+    );
+    assert!(
+        msg.contains("pts_linears.5.weight") && msg.contains("[256, 1000]"),
+        "{msg}"
+    );
+    assert!(!out.exists());
+}
+
+#[test]
+fn optimizer_export_needs_an_optimizer_state() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("x.safetensors");
+    // The golden checkpoint has an (empty) Adam state: exporting it gives no moments.
+    let rep = convert_checkpoint(
+        &root().join("fixtures/golden/ckpt.th"),
+        &out,
+        &CheckpointOptions {
+            with_optimizer: true,
+        },
+    )
+    .unwrap();
+    assert_eq!(rep.n_moments, 0);
+    let state = TrainState::read(rep.train_state.as_ref().unwrap()).unwrap();
+    assert_eq!(
+        (state.param_groups[0].lr, state.param_groups[1].lr),
+        (1e-4, 5e-4)
+    );
+    assert_eq!(state.global_iter, 0);
+}
+
+#[test]
+fn a_pma_checkpoint_is_not_a_training_state() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("m.safetensors");
+    convert_checkpoint(
+        &root().join("fixtures/golden/ckpt.th"),
+        &out,
+        &CheckpointOptions::default(),
+    )
+    .unwrap();
+    let msg = TrainState::read(&out).unwrap_err().to_string();
+    assert!(
+        msg.contains("format") && msg.contains("pma-train-state") && msg.contains("pma-checkpoint"),
+        "{msg}"
+    );
+}

@@ -1,0 +1,480 @@
+//! Raw `.npz` members: zip (stored or deflated) around NPY payloads.
+//!
+//! npyz parses and writes the NPY headers; payloads are moved in bulk here
+//! because npyz's element-by-element path is far too slow for gigabytes of
+//! pixels. Only plain numeric dtypes are accepted: object/pickled, string,
+//! structured and complex members are rejected with the key named.
+
+use std::fs::File;
+use std::io::{self, BufReader, Read, Write};
+use std::path::Path;
+
+use npyz::{DType, Endianness, NpyFile, Order, TypeChar, TypeStr, WriterBuilder};
+
+use crate::error::{DataError, Result};
+
+/// Element type of a member.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ElemType {
+    F32,
+    F64,
+    I8,
+    I32,
+    I64,
+    U8,
+    Bool,
+}
+
+impl ElemType {
+    /// numpy's little-endian descriptor (`<f4`, `|u1`, ...).
+    pub fn descr(self) -> &'static str {
+        match self {
+            ElemType::F32 => "<f4",
+            ElemType::F64 => "<f8",
+            ElemType::I8 => "|i1",
+            ElemType::I32 => "<i4",
+            ElemType::I64 => "<i8",
+            ElemType::U8 => "|u1",
+            ElemType::Bool => "|b1",
+        }
+    }
+
+    pub fn size(self) -> usize {
+        match self {
+            ElemType::I8 | ElemType::U8 | ElemType::Bool => 1,
+            ElemType::F32 | ElemType::I32 => 4,
+            ElemType::F64 | ElemType::I64 => 8,
+        }
+    }
+}
+
+/// Header facts of one member, read without its payload.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MemberInfo {
+    pub key: String,
+    /// numpy descriptor as stored (e.g. `<f4`, `>f8`, `|O`).
+    pub descr: String,
+    /// `None` for dtypes pma cannot read.
+    pub elem: Option<ElemType>,
+    pub shape: Vec<usize>,
+    pub fortran_order: bool,
+    pub big_endian: bool,
+    /// Deflated rather than stored.
+    pub compressed: bool,
+    /// Uncompressed member size in bytes.
+    pub size: u64,
+}
+
+impl MemberInfo {
+    pub fn len(&self) -> usize {
+        self.shape.iter().product()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+/// Payload of a member, C order, native values.
+#[derive(Debug, Clone, PartialEq)]
+pub enum NpyData {
+    F32(Vec<f32>),
+    F64(Vec<f64>),
+    I8(Vec<i8>),
+    I32(Vec<i32>),
+    I64(Vec<i64>),
+    U8(Vec<u8>),
+    Bool(Vec<bool>),
+}
+
+impl NpyData {
+    pub fn elem(&self) -> ElemType {
+        match self {
+            NpyData::F32(_) => ElemType::F32,
+            NpyData::F64(_) => ElemType::F64,
+            NpyData::I8(_) => ElemType::I8,
+            NpyData::I32(_) => ElemType::I32,
+            NpyData::I64(_) => ElemType::I64,
+            NpyData::U8(_) => ElemType::U8,
+            NpyData::Bool(_) => ElemType::Bool,
+        }
+    }
+}
+
+/// One decoded member.
+#[derive(Debug, Clone, PartialEq)]
+pub struct NpyArray {
+    pub shape: Vec<usize>,
+    pub data: NpyData,
+    /// Conversions applied on the way in (byte order, Fortran order).
+    pub notes: Vec<String>,
+}
+
+fn elem_of(dtype: &DType) -> (String, Option<ElemType>, bool) {
+    match dtype {
+        DType::Plain(ts) => {
+            let descr = ts.to_string();
+            let big = ts.endianness() == Endianness::Big;
+            let elem = match (ts.type_char(), ts.size_field()) {
+                (TypeChar::Float, 4) => Some(ElemType::F32),
+                (TypeChar::Float, 8) => Some(ElemType::F64),
+                (TypeChar::Int, 1) => Some(ElemType::I8),
+                (TypeChar::Int, 4) => Some(ElemType::I32),
+                (TypeChar::Int, 8) => Some(ElemType::I64),
+                (TypeChar::Uint, 1) => Some(ElemType::U8),
+                (TypeChar::Bool, 1) => Some(ElemType::Bool),
+                _ => None,
+            };
+            (descr, elem, big)
+        }
+        DType::Array(..) => ("(sub-array dtype)".into(), None, false),
+        DType::Record(_) => ("(structured dtype)".into(), None, false),
+    }
+}
+
+/// Reader over an npz archive.
+pub struct NpzReader {
+    file: String,
+    zip: zip::ZipArchive<BufReader<File>>,
+    names: Vec<String>,
+}
+
+impl NpzReader {
+    pub fn open(path: &Path) -> Result<Self> {
+        let f = File::open(path).map_err(|e| DataError::io(path, e))?;
+        let zip = zip::ZipArchive::new(BufReader::new(f)).map_err(|e| DataError::Format {
+            file: path.display().to_string(),
+            key: "(archive)".into(),
+            msg: format!("not a readable npz/zip archive: {e}"),
+        })?;
+        let names = zip
+            .file_names()
+            .map(|n| n.map(|c| c.into_owned()))
+            .collect::<std::result::Result<Vec<_>, _>>()
+            .map_err(|e| DataError::Format {
+                file: path.display().to_string(),
+                key: "(archive)".into(),
+                msg: format!("unreadable member name: {e}"),
+            })?;
+        Ok(NpzReader {
+            file: path.display().to_string(),
+            zip,
+            names,
+        })
+    }
+
+    /// The file name used in messages.
+    pub fn file(&self) -> &str {
+        &self.file
+    }
+
+    /// Array keys (members named `<key>.npy`) in archive order.
+    pub fn keys(&self) -> Vec<String> {
+        self.names
+            .iter()
+            .filter_map(|n| n.strip_suffix(".npy").map(str::to_owned))
+            .collect()
+    }
+
+    /// Members that are not `.npy` files (ignored by readers).
+    pub fn other_members(&self) -> Vec<String> {
+        self.names
+            .iter()
+            .filter(|n| !n.ends_with(".npy") && !n.ends_with('/'))
+            .cloned()
+            .collect()
+    }
+
+    /// Open a member and parse its NPY header.
+    fn open_member(&mut self, key: &str) -> Result<(MemberInfo, NpyFile<zip::read::ZipFile<'_, BufReader<File>>>)> {
+        let file = self.file.clone();
+        let name = format!("{key}.npy");
+        let zf = self.zip.by_name(&name).map_err(|e| DataError::Format {
+            file: file.clone(),
+            key: key.into(),
+            msg: format!("cannot open member {name}: {e}"),
+        })?;
+        let compressed = zf.compression() != zip::CompressionMethod::Stored;
+        let size = zf.size();
+        let npy = NpyFile::new(zf).map_err(|e| DataError::Format {
+            file: file.clone(),
+            key: key.into(),
+            msg: format!("bad NPY header: {e}"),
+        })?;
+        let (descr, elem, big) = elem_of(&npy.dtype());
+        let info = MemberInfo {
+            key: key.into(),
+            descr,
+            elem: if npy.uses_pickled_array() { None } else { elem },
+            shape: npy.shape().iter().map(|&d| d as usize).collect(),
+            fortran_order: npy.order() == Order::Fortran,
+            big_endian: big,
+            compressed,
+            size,
+        };
+        Ok((info, npy))
+    }
+
+    /// Header facts of a member (reads only the NPY header).
+    pub fn info(&mut self, key: &str) -> Result<MemberInfo> {
+        Ok(self.open_member(key)?.0)
+    }
+
+    /// Decode a member. Big-endian and Fortran-ordered payloads are
+    /// converted (noted in [`NpyArray::notes`]); unsupported dtypes are an
+    /// error naming the key; a payload shorter than its header says is a
+    /// truncation error.
+    pub fn read(&mut self, key: &str) -> Result<NpyArray> {
+        let file = self.file.clone();
+        let (info, npy) = self.open_member(key)?;
+        let Some(elem) = info.elem else {
+            return Err(DataError::Dtype {
+                file,
+                key: key.into(),
+                expected: "a plain numeric dtype (<f4, <f8, <i4, <i8, |u1, |i1); object, pickled, string and structured members are not allowed".into(),
+                found: info.descr,
+            });
+        };
+        let n = info.len();
+        let nbytes = n.checked_mul(elem.size()).ok_or_else(|| DataError::Format {
+            file: file.clone(),
+            key: key.into(),
+            msg: format!("shape {:?} is too large", info.shape),
+        })?;
+        let mut reader = npy.into_inner();
+        let mut bytes = Vec::new();
+        bytes.try_reserve_exact(nbytes).map_err(|_| DataError::Format {
+            file: file.clone(),
+            key: key.into(),
+            msg: format!("cannot allocate {nbytes} bytes for shape {:?}", info.shape),
+        })?;
+        let got = (&mut reader)
+            .take(nbytes as u64)
+            .read_to_end(&mut bytes)
+            .map_err(|e| DataError::Format {
+                file: file.clone(),
+                key: key.into(),
+                msg: format!("cannot read payload (corrupt or truncated member): {e}"),
+            })?;
+        if got != nbytes {
+            return Err(DataError::Format {
+                file,
+                key: key.into(),
+                msg: format!(
+                    "truncated payload: header promises {nbytes} bytes ({:?} x {}), member holds {got}",
+                    info.shape,
+                    info.descr
+                ),
+            });
+        }
+        // Drain so the zip reader verifies the member's CRC.
+        io::copy(&mut reader, &mut io::sink()).map_err(|e| DataError::Format {
+            file: file.clone(),
+            key: key.into(),
+            msg: format!("corrupt member: {e}"),
+        })?;
+        let mut notes = Vec::new();
+        if info.big_endian && elem.size() > 1 {
+            for c in bytes.chunks_exact_mut(elem.size()) {
+                c.reverse();
+            }
+            notes.push(format!("converted from big-endian {}", info.descr));
+        }
+        let data = decode(elem, bytes).map_err(|m| DataError::Format {
+            file: file.clone(),
+            key: key.into(),
+            msg: m,
+        })?;
+        let mut arr = NpyArray {
+            shape: info.shape.clone(),
+            data,
+            notes,
+        };
+        if info.fortran_order && info.shape.len() > 1 {
+            arr = fortran_to_c(arr);
+            arr.notes.push("converted from Fortran order".into());
+        }
+        Ok(arr)
+    }
+}
+
+fn decode(elem: ElemType, bytes: Vec<u8>) -> std::result::Result<NpyData, String> {
+    fn le<const K: usize, T>(b: &[u8], f: fn([u8; K]) -> T) -> Vec<T> {
+        b.chunks_exact(K)
+            .map(|c| f(c.try_into().expect("chunk of K bytes")))
+            .collect()
+    }
+    Ok(match elem {
+        ElemType::U8 => NpyData::U8(bytes),
+        ElemType::I8 => NpyData::I8(bytes.into_iter().map(|b| b as i8).collect()),
+        ElemType::Bool => {
+            if let Some(b) = bytes.iter().find(|&&b| b > 1) {
+                return Err(format!("bool payload holds byte {b}, expected 0 or 1"));
+            }
+            NpyData::Bool(bytes.into_iter().map(|b| b == 1).collect())
+        }
+        ElemType::F32 => NpyData::F32(le(&bytes, f32::from_le_bytes)),
+        ElemType::F64 => NpyData::F64(le(&bytes, f64::from_le_bytes)),
+        ElemType::I32 => NpyData::I32(le(&bytes, i32::from_le_bytes)),
+        ElemType::I64 => NpyData::I64(le(&bytes, i64::from_le_bytes)),
+    })
+}
+
+fn fortran_to_c(arr: NpyArray) -> NpyArray {
+    use ndarray::{ArrayD, IxDyn, ShapeBuilder};
+    fn conv<T: Clone>(v: Vec<T>, shape: &[usize]) -> Vec<T> {
+        let a = ArrayD::from_shape_vec(IxDyn(shape).f(), v).expect("length matches shape");
+        a.as_standard_layout().iter().cloned().collect()
+    }
+    let s = arr.shape.clone();
+    let data = match arr.data {
+        NpyData::F32(v) => NpyData::F32(conv(v, &s)),
+        NpyData::F64(v) => NpyData::F64(conv(v, &s)),
+        NpyData::I8(v) => NpyData::I8(conv(v, &s)),
+        NpyData::I32(v) => NpyData::I32(conv(v, &s)),
+        NpyData::I64(v) => NpyData::I64(conv(v, &s)),
+        NpyData::U8(v) => NpyData::U8(conv(v, &s)),
+        NpyData::Bool(v) => NpyData::Bool(conv(v, &s)),
+    };
+    NpyArray {
+        shape: s,
+        data,
+        notes: arr.notes,
+    }
+}
+
+// ---------------------------------------------------------------------------
+// Writing
+
+/// A borrowed member to write: C-order data with its shape.
+pub enum MemberData<'a> {
+    F32(&'a [f32]),
+    F64(&'a [f64]),
+    I8(&'a [i8]),
+    I32(&'a [i32]),
+    I64(&'a [i64]),
+    U8(&'a [u8]),
+}
+
+impl MemberData<'_> {
+    fn elem(&self) -> ElemType {
+        match self {
+            MemberData::F32(_) => ElemType::F32,
+            MemberData::F64(_) => ElemType::F64,
+            MemberData::I8(_) => ElemType::I8,
+            MemberData::I32(_) => ElemType::I32,
+            MemberData::I64(_) => ElemType::I64,
+            MemberData::U8(_) => ElemType::U8,
+        }
+    }
+    fn len(&self) -> usize {
+        match self {
+            MemberData::F32(v) => v.len(),
+            MemberData::F64(v) => v.len(),
+            MemberData::I8(v) => v.len(),
+            MemberData::I32(v) => v.len(),
+            MemberData::I64(v) => v.len(),
+            MemberData::U8(v) => v.len(),
+        }
+    }
+}
+
+/// Writer of deterministic npz archives: members in call order, fixed
+/// timestamps (1980-01-01) and permissions, so equal inputs give equal bytes.
+pub struct NpzWriter<W: Write + io::Seek> {
+    zip: zip::ZipWriter<W>,
+    deflate: bool,
+    file: String,
+}
+
+impl<W: Write + io::Seek> NpzWriter<W> {
+    /// `file` names the destination in error messages.
+    pub fn new(inner: W, deflate: bool, file: impl Into<String>) -> Self {
+        NpzWriter {
+            zip: zip::ZipWriter::new(inner),
+            deflate,
+            file: file.into(),
+        }
+    }
+
+    /// Append `<key>.npy`. Panics never: a data length that does not match
+    /// the shape is an error.
+    pub fn add(&mut self, key: &str, shape: &[usize], data: MemberData<'_>) -> Result<()> {
+        let want: usize = shape.iter().product();
+        if data.len() != want {
+            return Err(DataError::arg(
+                key,
+                format!("{want} elements for shape {shape:?}"),
+                data.len(),
+            ));
+        }
+        let elem = data.elem();
+        let payload = want as u64 * elem.size() as u64;
+        let method = if self.deflate {
+            zip::CompressionMethod::Deflated
+        } else {
+            zip::CompressionMethod::Stored
+        };
+        let opts = zip::write::SimpleFileOptions::default()
+            .compression_method(method)
+            .last_modified_time(zip::DateTime::default())
+            .unix_permissions(0o644)
+            // Members over 4 GiB need zip64 records.
+            .large_file(payload + 4096 >= u32::MAX as u64);
+        let werr = |e: &dyn std::fmt::Display| DataError::Format {
+            file: self.file.clone(),
+            key: key.to_string(),
+            msg: format!("cannot write member: {e}"),
+        };
+        self.zip
+            .start_file(format!("{key}.npy"), opts)
+            .map_err(|e| werr(&e))?;
+        let ts: TypeStr = elem.descr().parse().expect("static dtype descriptor");
+        let shape64: Vec<u64> = shape.iter().map(|&d| d as u64).collect();
+        npyz::WriteOptions::new_header_only()
+            .dtype(DType::Plain(ts))
+            .shape(&shape64)
+            .writer(&mut self.zip)
+            .write_header_only()
+            .map_err(|e| werr(&e))?;
+        write_payload(&mut self.zip, &data).map_err(|e| werr(&e))?;
+        Ok(())
+    }
+
+    /// Finish the archive and return the inner writer.
+    pub fn finish(self) -> Result<W> {
+        let file = self.file.clone();
+        self.zip.finish().map_err(|e| DataError::Format {
+            file,
+            key: "(archive)".into(),
+            msg: format!("cannot finish zip: {e}"),
+        })
+    }
+}
+
+fn write_payload<W: Write>(w: &mut W, data: &MemberData<'_>) -> io::Result<()> {
+    // Chunked so that a multi-gigabyte f32 member never needs a second full copy.
+    const CHUNK: usize = 1 << 16;
+    fn chunks<T: Copy, const K: usize>(
+        w: &mut impl Write,
+        v: &[T],
+        f: fn(T) -> [u8; K],
+    ) -> io::Result<()> {
+        let mut buf = Vec::with_capacity(CHUNK * K);
+        for c in v.chunks(CHUNK) {
+            buf.clear();
+            for &x in c {
+                buf.extend_from_slice(&f(x));
+            }
+            w.write_all(&buf)?;
+        }
+        Ok(())
+    }
+    match data {
+        MemberData::U8(v) => w.write_all(v),
+        MemberData::I8(v) => chunks(w, v, |x: i8| x.to_le_bytes()),
+        MemberData::F32(v) => chunks(w, v, |x: f32| x.to_le_bytes()),
+        MemberData::F64(v) => chunks(w, v, |x: f64| x.to_le_bytes()),
+        MemberData::I32(v) => chunks(w, v, |x: i32| x.to_le_bytes()),
+        MemberData::I64(v) => chunks(w, v, |x: i64| x.to_le_bytes()),
+    }
+}

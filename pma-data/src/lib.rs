@@ -1,0 +1,15 @@
+//! pma data layer: the SMPL skeleton and its kinematics, cameras and rays,
+//! `pma-npz v1` datasets (read, validate, write), the training ray sampler,
+//! image metrics, real motion readers and the synthetic multi-view scene.
+
+pub mod camera;
+pub mod cylinder;
+pub mod dataset;
+pub mod error;
+pub mod metrics;
+pub mod motion;
+pub mod sampler;
+pub mod skeleton;
+pub mod synth;
+
+pub use error::DataError;

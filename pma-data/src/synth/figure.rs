@@ -1,0 +1,376 @@
+//! The articulated figure: one smooth closed primitive per body part, each
+//! rigidly attached to an SMPL joint's local frame, each with its own
+//! pattern.
+//!
+//! Limbs are capsules running from a joint to its child, so neighbouring
+//! parts share a sphere at the joint and stay attached in every pose. The
+//! torso and head are ellipsoids aligned with the joint axes (wider than
+//! deep). Leaf joints (feet, head, hands) carry a part of their own, so
+//! their rotations are visible.
+
+use glam::{DMat3, DVec3};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use super::primitive::Shape;
+use super::texture::{Rgb, TexPoint, Texture};
+use crate::skeleton::{bone_align_rotation, Joints, N_JOINTS};
+
+/// The SMPL rest joints hard-coded in A-NeRF (not metres: about 2.3× SMPL's
+/// metric bones), `[24][3]`, y up, +x the subject's left. Transcribed from
+/// `assets/skeleton/smpl_rest_pose_anerf.csv` (see its SOURCE.md).
+pub const ANERF_REST_POSE: Joints = [
+    [0.00000000e+00, 2.30003661e-09, -9.86228770e-08],
+    [1.63832515e-01, -2.17391014e-01, -2.89178602e-02],
+    [-1.57855421e-01, -2.14761734e-01, -2.09642015e-02],
+    [-7.04505108e-03, 2.50450850e-01, -4.11837511e-02],
+    [2.42021069e-01, -1.08830070e+00, -3.14962119e-02],
+    [-2.47206554e-01, -1.10715497e+00, -3.06970738e-02],
+    [3.95125849e-03, 5.94849110e-01, -4.03754264e-02],
+    [2.12680623e-01, -1.99382353e+00, -1.29327580e-01],
+    [-2.10857525e-01, -2.01218796e+00, -1.23002514e-01],
+    [9.39484313e-03, 7.19204426e-01, 2.06931755e-02],
+    [2.63385147e-01, -2.12222481e+00, 1.46775618e-01],
+    [-2.51970559e-01, -2.12153077e+00, 1.60450473e-01],
+    [3.83779174e-03, 1.22592449e+00, -9.78838727e-02],
+    [1.91201791e-01, 1.00385976e+00, -6.21964522e-02],
+    [-1.77145526e-01, 9.96228695e-01, -7.55542740e-02],
+    [1.68482102e-02, 1.38698268e+00, 2.44048554e-02],
+    [4.01985168e-01, 1.07928419e+00, -7.47655183e-02],
+    [-3.98825467e-01, 1.07523870e+00, -9.96334553e-02],
+    [1.00236952e+00, 1.05217218e+00, -1.35129794e-01],
+    [-9.86728609e-01, 1.04515052e+00, -1.40235111e-01],
+    [1.56646240e+00, 1.06961894e+00, -1.37338534e-01],
+    [-1.56946480e+00, 1.05935931e+00, -1.53905824e-01],
+    [1.75282109e+00, 1.04682994e+00, -1.68231070e-01],
+    [-1.75758195e+00, 1.04255080e+00, -1.77773550e-01],
+];
+
+/// Metres per A-NeRF table unit for the synthetic subject: the factor the
+/// golden reference case uses, giving a 1.65 m figure with a mean bone of
+/// 0.19 m (SMPL's metric skeleton).
+pub const REST_POSE_SCALE: f32 = 0.435;
+
+/// The synthetic subject's rest pose: [`ANERF_REST_POSE`] moved so the
+/// pelvis is exactly at the origin, times [`REST_POSE_SCALE`] (metres).
+pub fn rest_pose() -> Joints {
+    let r0 = ANERF_REST_POSE[0];
+    ANERF_REST_POSE.map(|r| std::array::from_fn(|c| (r[c] - r0[c]) * REST_POSE_SCALE))
+}
+
+/// One body part.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Part {
+    pub name: &'static str,
+    /// The joint whose local frame carries the part.
+    pub joint: usize,
+    /// Geometry in that joint's local frame (metres).
+    pub shape: Shape,
+    /// Part centre in the joint frame: the texture origin.
+    pub centre: DVec3,
+    /// Bone frame for textures, columns (across, across, along the bone).
+    pub bone_axes: DMat3,
+    /// Half the part's extent along its bone.
+    pub half_len: f64,
+    pub texture: Texture,
+}
+
+impl Part {
+    /// Texture coordinates of a point given in the joint frame.
+    pub fn tex_point(&self, p: DVec3) -> TexPoint {
+        let local = p - self.centre;
+        TexPoint {
+            local,
+            bone: self.bone_axes.transpose() * local,
+            half_len: self.half_len,
+        }
+    }
+}
+
+/// The whole figure.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Figure {
+    pub parts: Vec<Part>,
+}
+
+/// Bone frame whose third column points along `v`.
+fn bone_frame(v: DVec3) -> DMat3 {
+    bone_align_rotation(v).transpose()
+}
+
+fn v3(a: [f32; 3]) -> DVec3 {
+    DVec3::new(a[0] as f64, a[1] as f64, a[2] as f64)
+}
+
+/// The base palette, before the seed's jitter.
+struct Palette {
+    skin: Rgb,
+    hair: Rgb,
+    shirt: Rgb,
+    shirt_dark: Rgb,
+    accent: Rgb,
+    light: Rgb,
+    trousers: Rgb,
+    trousers_light: Rgb,
+    shoe: Rgb,
+    ink: Rgb,
+}
+
+impl Palette {
+    fn jittered(rng: &mut ChaCha8Rng) -> Palette {
+        let mut j = |c: Rgb| -> Rgb {
+            std::array::from_fn(|k| (c[k] + rng.gen_range(-0.06..0.06)).clamp(0.02, 0.98))
+        };
+        Palette {
+            skin: j([0.86, 0.66, 0.52]),
+            hair: j([0.18, 0.11, 0.07]),
+            shirt: j([0.20, 0.45, 0.78]),
+            shirt_dark: j([0.10, 0.22, 0.45]),
+            accent: j([0.92, 0.78, 0.18]),
+            light: j([0.93, 0.93, 0.88]),
+            trousers: j([0.55, 0.18, 0.20]),
+            trousers_light: j([0.85, 0.62, 0.45]),
+            shoe: j([0.12, 0.12, 0.14]),
+            ink: j([0.06, 0.06, 0.08]),
+        }
+    }
+}
+
+/// 15-bit glyph bitmaps with 5 to 10 inked cells, so every glyph shows.
+fn glyphs(rng: &mut ChaCha8Rng, n: usize) -> Vec<u16> {
+    (0..n)
+        .map(|_| loop {
+            let g: u16 = rng.gen::<u16>() & 0x7fff;
+            if (5..=10).contains(&g.count_ones()) {
+                break g;
+            }
+        })
+        .collect()
+}
+
+impl Figure {
+    /// Builds the figure on `rest` (metres, root-centred, y up). The seed
+    /// jitters colours and draws the glyphs; the geometry depends on `rest`
+    /// only.
+    pub fn new(rest: &Joints, seed: u64) -> Figure {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x5EED_F16E);
+        let pal = Palette::jittered(&mut rng);
+        let glyph_bits = glyphs(&mut rng, 6);
+        let r = |j: usize| v3(rest[j]);
+        let mut parts = Vec::with_capacity(N_JOINTS);
+
+        // Torso and head: ellipsoids in joint axes (x wide, z deep).
+        let ellipsoid = |name, joint, centre: DVec3, radii: DVec3, along, texture| Part {
+            name,
+            joint,
+            shape: Shape::Ellipsoid {
+                centre,
+                axes: DMat3::IDENTITY,
+                radii,
+            },
+            centre,
+            bone_axes: bone_frame(along),
+            half_len: radii.y,
+            texture,
+        };
+        parts.push(ellipsoid(
+            "pelvis",
+            0,
+            DVec3::new(0.0, -0.035, -0.01),
+            DVec3::new(0.16, 0.105, 0.11),
+            DVec3::Y,
+            Texture::Belt {
+                base: pal.trousers,
+                band: pal.accent,
+                y0: 0.045,
+                y1: 0.09,
+            },
+        ));
+        parts.push(ellipsoid(
+            "abdomen",
+            3,
+            (r(6) - r(3)) * 0.5,
+            DVec3::new(0.145, 0.10, 0.105),
+            r(6) - r(3),
+            Texture::Checker {
+                a: pal.shirt,
+                b: pal.light,
+                size: 0.045,
+            },
+        ));
+        parts.push(ellipsoid(
+            "lower_chest",
+            6,
+            (r(9) - r(6)) * 0.5,
+            DVec3::new(0.155, 0.09, 0.11),
+            r(9) - r(6),
+            Texture::Gradient {
+                a: pal.shirt_dark,
+                b: pal.shirt,
+            },
+        ));
+        parts.push(ellipsoid(
+            "chest",
+            9,
+            DVec3::new(0.0, 0.07, -0.02),
+            DVec3::new(0.17, 0.13, 0.11),
+            r(12) - r(9),
+            Texture::Glyphs {
+                base: pal.light,
+                base_low: pal.shirt,
+                ink: pal.ink,
+                cell: 0.018,
+                glyphs: glyph_bits,
+                per_row: 3,
+            },
+        ));
+        parts.push(ellipsoid(
+            "head",
+            15,
+            DVec3::new(0.0, 0.05, 0.0),
+            DVec3::new(0.085, 0.11, 0.095),
+            DVec3::Y,
+            Texture::Face {
+                skin: pal.skin,
+                hair: pal.hair,
+                features: pal.ink,
+            },
+        ));
+
+        // Limbs: capsules from a joint towards its child.
+        let capsule = |name, joint, a: DVec3, b: DVec3, radius, texture| Part {
+            name,
+            joint,
+            shape: Shape::Capsule { a, b, radius },
+            centre: (a + b) * 0.5,
+            bone_axes: bone_frame(b - a),
+            half_len: (b - a).length() * 0.5,
+            texture,
+        };
+        parts.push(capsule(
+            "neck",
+            12,
+            DVec3::new(0.0, -0.03, 0.0),
+            r(15) - r(12),
+            0.05,
+            Texture::Solid(pal.skin),
+        ));
+        for (side, [hip, knee, collar, shoulder, elbow, wrist, hand]) in
+            [("left", [1, 4, 13, 16, 18, 20, 22]), ("right", [2, 5, 14, 17, 19, 21, 23])]
+        {
+            let left = side == "left";
+            let bone = |j: usize, c: usize| r(c) - r(j);
+            parts.push(capsule(
+                if left { "left_thigh" } else { "right_thigh" },
+                hip,
+                DVec3::ZERO,
+                bone(hip, knee),
+                0.07,
+                Texture::Stripes {
+                    a: pal.trousers,
+                    b: pal.trousers_light,
+                    count: 10,
+                },
+            ));
+            parts.push(capsule(
+                if left { "left_shin" } else { "right_shin" },
+                knee,
+                DVec3::ZERO,
+                bone(knee, knee + 3),
+                0.052,
+                Texture::Gradient {
+                    a: pal.trousers,
+                    b: pal.trousers_light,
+                },
+            ));
+            parts.push(capsule(
+                if left { "left_collar" } else { "right_collar" },
+                collar,
+                DVec3::ZERO,
+                bone(collar, shoulder),
+                0.05,
+                Texture::Solid(pal.shirt),
+            ));
+            parts.push(capsule(
+                if left { "left_upper_arm" } else { "right_upper_arm" },
+                shoulder,
+                DVec3::ZERO,
+                bone(shoulder, elbow),
+                0.045,
+                Texture::Rings {
+                    a: pal.shirt,
+                    b: pal.accent,
+                    period: 0.06,
+                },
+            ));
+            parts.push(capsule(
+                if left { "left_forearm" } else { "right_forearm" },
+                elbow,
+                DVec3::ZERO,
+                bone(elbow, wrist),
+                0.037,
+                Texture::Gradient {
+                    a: pal.skin,
+                    b: pal.trousers_light,
+                },
+            ));
+            let palm = bone(wrist, hand);
+            parts.push(capsule(
+                if left { "left_palm" } else { "right_palm" },
+                wrist,
+                palm * 0.25,
+                palm,
+                0.03,
+                Texture::Solid(pal.skin),
+            ));
+            // Fingers hang off the hand joint (a leaf), along the palm.
+            let dir = palm.normalize();
+            parts.push(capsule(
+                if left { "left_fingers" } else { "right_fingers" },
+                hand,
+                DVec3::ZERO,
+                dir * 0.05,
+                0.024,
+                Texture::Solid(pal.skin),
+            ));
+        }
+        for (side, [ankle, foot]) in [("left", [7, 10]), ("right", [8, 11])] {
+            let left = side == "left";
+            let v = r(foot) - r(ankle);
+            let axes = bone_frame(v);
+            let centre = v * 0.5;
+            parts.push(Part {
+                name: if left { "left_foot" } else { "right_foot" },
+                joint: ankle,
+                shape: Shape::Ellipsoid {
+                    centre,
+                    axes,
+                    radii: DVec3::new(0.045, 0.045, v.length() * 0.5 + 0.03),
+                },
+                centre,
+                bone_axes: axes,
+                half_len: v.length() * 0.5 + 0.03,
+                texture: Texture::Shoe {
+                    upper: pal.shoe,
+                    sole: pal.light,
+                    sole_y: -0.02,
+                },
+            });
+            // Toe cap on the foot joint (a leaf), pointing along the foot.
+            let dir = v.normalize();
+            parts.push(capsule(
+                if left { "left_toes" } else { "right_toes" },
+                foot,
+                DVec3::ZERO,
+                dir * 0.04,
+                0.035,
+                Texture::Shoe {
+                    upper: pal.shoe,
+                    sole: pal.light,
+                    sole_y: -0.015,
+                },
+            ));
+        }
+        Figure { parts }
+    }
+}

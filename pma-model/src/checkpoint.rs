@@ -1,0 +1,400 @@
+//! The pma checkpoint: a safetensors file holding the reference's 71 tensors under the
+//! reference's names (spec `model.md` §8.1), plus metadata that makes the file
+//! self-describing:
+//!
+//! | key | value |
+//! | --- | --- |
+//! | `format` | `"pma-checkpoint"` |
+//! | `format_version` | `"1"` |
+//! | `config` | the [`Config`] as JSON |
+//! | `skeleton` | `{"names": [...], "parents": [...]}` |
+//! | `rest_pose` | `[[x,y,z]; J]` (equals the `rest_pose` tensor) |
+//! | `n_framecodes` | decimal string (equals `config.n_framecodes`) |
+//!
+//! A safetensors file without this metadata (e.g. one exported straight from a PyTorch
+//! state_dict, like `fixtures/golden/model.safetensors`) is accepted too: its config is the
+//! paper config with `n_framecodes` read from `framecodes.codes.weight`, and then checked
+//! against every tensor like any other.
+//!
+//! Loading is strict. All problems (missing, unexpected, mis-shaped or non-f32 tensors, bad
+//! metadata) are collected and reported together in one [`ModelError::Checkpoint`].
+
+use std::collections::HashMap;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use candle_core::{DType, Device, Tensor};
+use serde::{Deserialize, Serialize};
+
+use crate::config::Config;
+use crate::error::{ModelError, Result};
+
+pub const FORMAT: &str = "pma-checkpoint";
+pub const FORMAT_VERSION: u32 = 1;
+
+/// Whether a tensor is optimised (a reference `nn.Parameter`) or a fixed buffer.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TensorKind {
+    Param,
+    Buffer,
+}
+
+/// Name, shape and kind of one state_dict entry.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct TensorSpec {
+    pub name: String,
+    pub shape: Vec<usize>,
+    pub kind: TensorKind,
+}
+
+/// Every tensor of the model for `cfg`, in the reference's state_dict order (§8.1).
+///
+/// Filtering to [`TensorKind::Param`] gives the reference's `named_parameters()` order,
+/// i.e. the golden manifest's `param_names` (64 entries for the paper config).
+pub fn tensor_layout(cfg: &Config) -> Vec<TensorSpec> {
+    let mut out = Vec::with_capacity(72);
+    let j = cfg.n_joints;
+    let ce = cfg.point_enc_dim;
+    let w = cfg.trunk_width;
+    let s_dim = cfg.n_pm * cfg.freq_dim;
+    let gw = cfg.gnn_width;
+    let wh = cfg.win_hidden;
+    let ph = cfg.pose_extractor_hidden;
+    let view_in = w + cfg.sh_degree * cfg.sh_degree + if cfg.use_framecodes { cfg.framecode_ch } else { 0 };
+
+    let mut push = |name: &str, shape: &[usize], kind: TensorKind| {
+        out.push(TensorSpec { name: name.to_string(), shape: shape.to_vec(), kind })
+    };
+    use TensorKind::{Buffer as B, Param as P};
+
+    push("rest_pose", &[j, 3], B);
+    push("pts_embedder.transforms", &[j, 4, 4], B);
+    for enc in ["pts_enc_pose", "pts_enc_point"] {
+        push(&format!("{enc}.sin_lin0.layer.weight"), &[ce, 3], P);
+        push(&format!("{enc}.sin_lin0.layer.bias"), &[ce], P);
+    }
+    push("raycast.transforms", &[j, 4, 4], B);
+    for i in 0..cfg.trunk_depth {
+        let fan_in = if i == 0 {
+            s_dim
+        } else if cfg.skips.contains(&(i - 1)) {
+            w + s_dim
+        } else {
+            w
+        };
+        push(&format!("pts_linears.{i}.weight"), &[w, fan_in], P);
+        push(&format!("pts_linears.{i}.bias"), &[w], P);
+    }
+    push("sigma_linear.weight", &[1, w], P);
+    push("sigma_linear.bias", &[1], P);
+    push("views_linears.0.weight", &[cfg.view_width, view_in], P);
+    push("views_linears.0.bias", &[cfg.view_width], P);
+    push("feature_linear.weight", &[w, w], P);
+    push("feature_linear.bias", &[w], P);
+    push("rgb_linear.weight", &[3, cfg.view_width], P);
+    push("rgb_linear.bias", &[3], P);
+    if cfg.use_framecodes {
+        push("framecodes.codes.weight", &[cfg.n_framecodes, cfg.framecode_ch], P);
+    }
+    push("graph_net.axis_scale", &[j, 3], P);
+    push("graph_net.mask", &[1, j, 1], B);
+    push("graph_net.base_scale", &[j, 3], B);
+    for l in 0..cfg.gnn_graph_layers {
+        let fan_in = if l == 0 { 6 } else { gw };
+        push(&format!("graph_net.layers.{l}.bias"), &[gw], P);
+        push(&format!("graph_net.layers.{l}.adj_w"), &[1, j, j], P);
+        push(&format!("graph_net.layers.{l}.adj"), &[1, j, j], B);
+        push(&format!("graph_net.layers.{l}.lin.weight"), &[j, fan_in, gw], P);
+    }
+    for l in cfg.gnn_graph_layers..cfg.gnn_graph_layers + cfg.gnn_fc_layers {
+        let fan_in = if l == 0 { 6 } else { gw };
+        push(&format!("graph_net.layers.{l}.weight"), &[j, fan_in, gw], P);
+        push(&format!("graph_net.layers.{l}.bias"), &[1, j, gw], P);
+    }
+    for k in 0..cfg.n_pm {
+        let fan_in = if k == 0 { j * ce } else { cfg.freq_dim };
+        push(&format!("modulator.sin_lin{k}.layer.weight"), &[cfg.freq_dim, fan_in], P);
+        push(&format!("modulator.sin_lin{k}.layer.bias"), &[cfg.freq_dim], P);
+    }
+    for (name, out_dim, in_dim) in [
+        ("layer_pose", wh, gw),
+        ("layer_point", wh, ce),
+        ("sin_lin0", wh, wh),
+        ("sin_lin1", wh, wh),
+        ("last_layer", j, wh),
+    ] {
+        push(&format!("win_fun.{name}.layer.weight"), &[out_dim, in_dim], P);
+        push(&format!("win_fun.{name}.layer.bias"), &[out_dim], P);
+    }
+    for l in 0..=cfg.pose_extractor_depth {
+        let fan_in = if l == 0 { wh } else { ph };
+        let out_dim = if l == cfg.pose_extractor_depth { 2 * cfg.n_pm * cfg.freq_dim } else { ph };
+        push(&format!("pose_extractor.sin_lin{l}.layer.weight"), &[out_dim, fan_in], P);
+        push(&format!("pose_extractor.sin_lin{l}.layer.bias"), &[out_dim], P);
+    }
+    out
+}
+
+/// Names of the trainable tensors in reference order (`named_parameters()`).
+pub fn param_names(cfg: &Config) -> Vec<String> {
+    tensor_layout(cfg).into_iter().filter(|t| t.kind == TensorKind::Param).map(|t| t.name).collect()
+}
+
+// TODO(M1): take these from pma_data::skeleton once it lands.
+const SMPL_NAMES_TMP: [&str; 24] = [
+    "pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2", "left_ankle",
+    "right_ankle", "spine3", "left_foot", "right_foot", "neck", "left_collar", "right_collar", "head",
+    "left_shoulder", "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist", "left_hand",
+    "right_hand",
+];
+const SMPL_PARENTS_TMP: [usize; 24] = [0, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21];
+
+/// Skeleton description stored in the metadata.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct SkeletonMeta {
+    pub names: Vec<String>,
+    pub parents: Vec<usize>,
+}
+
+impl SkeletonMeta {
+    /// The SMPL 24-joint skeleton the model is built for.
+    pub fn smpl() -> Self {
+        Self {
+            names: SMPL_NAMES_TMP.iter().map(|s| s.to_string()).collect(),
+            parents: SMPL_PARENTS_TMP.to_vec(),
+        }
+    }
+}
+
+/// What a checkpoint says about itself besides its tensors.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CheckpointMeta {
+    /// `Some(1)` for a pma checkpoint, `None` for a plain safetensors state_dict.
+    pub format_version: Option<u32>,
+    pub skeleton: SkeletonMeta,
+    /// `[J]` joint positions of the rest pose (from the metadata, or from the tensor).
+    pub rest_pose: Vec<[f32; 3]>,
+    /// `true` when the config was inferred from tensor shapes (no pma metadata).
+    pub config_inferred: bool,
+}
+
+/// A loaded, validated checkpoint: every tensor of [`tensor_layout`] is present with the
+/// right shape and dtype f32, and nothing else is.
+#[derive(Debug, Clone)]
+pub struct Checkpoint {
+    pub config: Config,
+    pub tensors: HashMap<String, Tensor>,
+    pub meta: CheckpointMeta,
+}
+
+/// Compare `(name, shape, dtype)` triples against the layout of `cfg`; one line per problem.
+pub fn check_tensors<'a>(cfg: &Config, found: impl IntoIterator<Item = (&'a str, &'a [usize], DType)>) -> Vec<String> {
+    let layout = tensor_layout(cfg);
+    let mut found: HashMap<&str, (&[usize], DType)> = found.into_iter().map(|(n, s, d)| (n, (s, d))).collect();
+    let mut problems = Vec::new();
+    for spec in &layout {
+        match found.remove(spec.name.as_str()) {
+            None => problems.push(format!("missing tensor `{}` (expected shape {:?})", spec.name, spec.shape)),
+            Some((shape, dtype)) => {
+                if shape != spec.shape.as_slice() {
+                    problems.push(format!(
+                        "tensor `{}`: expected shape {:?}, found {:?}",
+                        spec.name, spec.shape, shape
+                    ));
+                }
+                if dtype != DType::F32 {
+                    problems.push(format!("tensor `{}`: expected dtype f32, found {dtype:?}", spec.name));
+                }
+            }
+        }
+    }
+    let mut unexpected: Vec<_> = found.into_iter().collect();
+    unexpected.sort_by(|a, b| a.0.cmp(b.0));
+    for (name, (shape, _)) in unexpected {
+        problems.push(format!("unexpected tensor `{name}` (shape {shape:?})"));
+    }
+    problems
+}
+
+/// Write a checkpoint atomically (temporary file in the target directory, then rename).
+///
+/// `tensors` must be exactly the tensors of [`tensor_layout`]`(cfg)`, f32. The `rest_pose`
+/// metadata is taken from the `rest_pose` tensor so the two cannot disagree.
+pub fn save(path: &Path, tensors: &HashMap<String, Tensor>, cfg: &Config) -> Result<()> {
+    cfg.validate()?;
+    let problems = check_tensors(cfg, tensors.iter().map(|(n, t)| (n.as_str(), t.dims(), t.dtype())));
+    if !problems.is_empty() {
+        return Err(ModelError::Checkpoint { path: path.to_path_buf(), problems });
+    }
+    let rest_pose: Vec<[f32; 3]> = tensors["rest_pose"]
+        .to_vec2::<f32>()?
+        .into_iter()
+        .map(|r| [r[0], r[1], r[2]])
+        .collect();
+    let mut meta = HashMap::new();
+    meta.insert("format".to_string(), FORMAT.to_string());
+    meta.insert("format_version".to_string(), FORMAT_VERSION.to_string());
+    meta.insert("config".to_string(), to_json(cfg)?);
+    meta.insert("skeleton".to_string(), to_json(&SkeletonMeta::smpl())?);
+    meta.insert("rest_pose".to_string(), to_json(&rest_pose)?);
+    meta.insert("n_framecodes".to_string(), cfg.n_framecodes.to_string());
+
+    // safetensors views need contiguous CPU-readable data; candle's `View` impl copies as needed.
+    let bytes = safetensors::serialize(tensors.iter().map(|(n, t)| (n.as_str(), t)), Some(meta))
+        .map_err(|source| ModelError::Safetensors { path: path.to_path_buf(), source })?;
+    write_atomic(path, &bytes)
+}
+
+/// Write `bytes` to `path` through a temporary file in the same directory.
+pub(crate) fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    let io = |source| ModelError::Io { path: path.to_path_buf(), source };
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
+    let mut tmp = tempfile::NamedTempFile::new_in(dir).map_err(io)?;
+    tmp.write_all(bytes).map_err(io)?;
+    tmp.as_file().sync_all().map_err(io)?;
+    tmp.persist(path).map_err(|e| io(e.error))?;
+    Ok(())
+}
+
+/// Read and validate a checkpoint (see the module docs for what is checked).
+pub fn load(path: &Path, device: &Device) -> Result<Checkpoint> {
+    let bytes = std::fs::read(path).map_err(|source| ModelError::Io { path: path.to_path_buf(), source })?;
+    let st_err = |source| ModelError::Safetensors { path: path.to_path_buf(), source };
+    let (_, header) = safetensors::SafeTensors::read_metadata(&bytes).map_err(st_err)?;
+    let st = safetensors::SafeTensors::deserialize(&bytes).map_err(st_err)?;
+    let fail = |problems: Vec<String>| ModelError::Checkpoint { path: path.to_path_buf(), problems };
+
+    let mut problems = Vec::new();
+    let meta_map = header.metadata().clone().unwrap_or_default();
+    let views = st.tensors();
+    let dtype_of = |d: safetensors::Dtype| match d {
+        safetensors::Dtype::F32 => DType::F32,
+        safetensors::Dtype::F64 => DType::F64,
+        safetensors::Dtype::F16 => DType::F16,
+        safetensors::Dtype::BF16 => DType::BF16,
+        safetensors::Dtype::I64 => DType::I64,
+        safetensors::Dtype::U32 => DType::U32,
+        // Any other dtype is reported as a dtype problem through this stand-in.
+        _ => DType::U8,
+    };
+    let found: Vec<(&str, &[usize], DType)> =
+        views.iter().map(|(n, v)| (n.as_str(), v.shape(), dtype_of(v.dtype()))).collect();
+
+    let (config, format_version, skeleton, meta_rest) = match meta_map.get("format").map(String::as_str) {
+        Some(FORMAT) => {
+            let mut get = |key: &str| -> Option<String> {
+                let v = meta_map.get(key).cloned();
+                if v.is_none() {
+                    problems.push(format!("metadata key `{key}` is missing"));
+                }
+                v
+            };
+            let version = get("format_version");
+            let config = get("config");
+            let skeleton = get("skeleton");
+            let rest = get("rest_pose");
+            let n_codes = get("n_framecodes");
+            if !problems.is_empty() {
+                return Err(fail(problems));
+            }
+            let (version, config, skeleton, rest, n_codes) =
+                (version.unwrap(), config.unwrap(), skeleton.unwrap(), rest.unwrap(), n_codes.unwrap());
+            if version != FORMAT_VERSION.to_string() {
+                problems.push(format!("metadata `format_version`: expected \"{FORMAT_VERSION}\", found {version:?}"));
+            }
+            let config: Option<Config> = serde_json::from_str(&config)
+                .map_err(|e| problems.push(format!("metadata `config` is not a valid config: {e}")))
+                .ok();
+            let skeleton: Option<SkeletonMeta> = serde_json::from_str(&skeleton)
+                .map_err(|e| problems.push(format!("metadata `skeleton` is not {{names, parents}}: {e}")))
+                .ok();
+            let rest: Option<Vec<[f32; 3]>> = serde_json::from_str(&rest)
+                .map_err(|e| problems.push(format!("metadata `rest_pose` is not [[x,y,z],...]: {e}")))
+                .ok();
+            if let Some(cfg) = &config {
+                if n_codes != cfg.n_framecodes.to_string() {
+                    problems.push(format!(
+                        "metadata `n_framecodes` = {n_codes:?} disagrees with config.n_framecodes = {}",
+                        cfg.n_framecodes
+                    ));
+                }
+                if let Err(e) = cfg.validate() {
+                    problems.push(format!("metadata `config`: {e}"));
+                }
+            }
+            if let Some(sk) = &skeleton {
+                if *sk != SkeletonMeta::smpl() {
+                    problems.push(format!(
+                        "metadata `skeleton`: expected the SMPL 24-joint skeleton, found {} joints {:?}",
+                        sk.names.len(),
+                        sk.names
+                    ));
+                }
+            }
+            match (config, skeleton, rest) {
+                (Some(c), Some(s), Some(r)) if problems.is_empty() => (c, Some(FORMAT_VERSION), s, Some(r)),
+                _ => return Err(fail(problems)),
+            }
+        }
+        Some(other) if meta_map.contains_key("format_version") => {
+            return Err(fail(vec![format!("metadata `format`: expected \"{FORMAT}\", found {other:?}")]));
+        }
+        _ => {
+            let mut cfg = Config::paper();
+            match found.iter().find(|(n, _, _)| *n == "framecodes.codes.weight") {
+                Some((_, [n, _], _)) => cfg.n_framecodes = *n,
+                Some((_, shape, _)) => {
+                    problems.push(format!("tensor `framecodes.codes.weight`: expected shape [n, 128], found {shape:?}"))
+                }
+                None => {} // reported as missing below
+            }
+            (cfg, None, SkeletonMeta::smpl(), None)
+        }
+    };
+
+    problems.extend(check_tensors(&config, found.iter().copied()));
+    if !problems.is_empty() {
+        if format_version.is_some() {
+            problems.push(format!(
+                "(shapes are checked against the config stored in the file: n_joints {}, n_framecodes {})",
+                config.n_joints, config.n_framecodes
+            ));
+        }
+        return Err(fail(problems));
+    }
+
+    let mut tensors = HashMap::with_capacity(views.len());
+    for (name, view) in &views {
+        let t = candle_core::safetensors::Load::load(view, device)?;
+        tensors.insert(name.clone(), t);
+    }
+    let rest_pose: Vec<[f32; 3]> =
+        tensors["rest_pose"].to_vec2::<f32>()?.into_iter().map(|r| [r[0], r[1], r[2]]).collect();
+    if let Some(meta_rest) = meta_rest {
+        if meta_rest != rest_pose {
+            return Err(fail(vec!["metadata `rest_pose` differs from the `rest_pose` tensor".to_string()]));
+        }
+    }
+    Ok(Checkpoint {
+        config,
+        tensors,
+        meta: CheckpointMeta { format_version, skeleton, rest_pose, config_inferred: format_version.is_none() },
+    })
+}
+
+/// Read tensors from a plain safetensors file (no checks): e.g. a partial override such as
+/// `sigma_override.safetensors`.
+pub fn load_tensors(path: &Path, device: &Device) -> Result<HashMap<String, Tensor>> {
+    let bytes = std::fs::read(path).map_err(|source| ModelError::Io { path: path.to_path_buf(), source })?;
+    candle_core::safetensors::load_buffer(&bytes, device).map_err(|e| ModelError::Checkpoint {
+        path: PathBuf::from(path),
+        problems: vec![e.to_string()],
+    })
+}
+
+fn to_json<T: Serialize>(v: &T) -> Result<String> {
+    serde_json::to_string(v).map_err(|e| ModelError::Config(format!("cannot serialise checkpoint metadata: {e}")))
+}

@@ -1,0 +1,22 @@
+//! The PM-Avatar network in candle.
+//!
+//! Modules follow the paper's concepts; `avatar.rs` wires them together top-down.
+
+pub mod avatar;
+pub mod checkpoint;
+pub mod config;
+pub mod encoders;
+pub mod error;
+pub mod field;
+pub mod gnn;
+pub mod image;
+pub mod modulator;
+pub mod presets;
+pub mod raycast;
+pub mod render;
+pub mod window;
+
+#[cfg(feature = "train")]
+pub mod train;
+
+pub use config::Config;

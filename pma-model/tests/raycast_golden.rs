@@ -1,0 +1,227 @@
+//! Ray caster against the reference outputs in fixtures/golden (standard and dense cases).
+//!
+//! Inputs are the reference's own: rays, one pose's skts and cylinder, the effective axis
+//! scales it used and its `raycast.transforms`; importance sampling is fed the reference's
+//! coarse weights so that only the ray caster is under test.
+
+use std::collections::HashMap;
+use std::path::PathBuf;
+
+use candle_core::{DType, Device, Tensor};
+use pma_model::config::Config;
+use pma_model::raycast::{merge_sorted, sample_points, RayCaster, N_JOINTS};
+
+/// Max abs error allowed on every float output (the reference's own float32 results).
+const TOL: f32 = 1e-4;
+
+fn golden_dir() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../fixtures/golden")
+}
+
+fn load(rel: &str) -> HashMap<String, Tensor> {
+    let path = golden_dir().join(rel);
+    candle_core::safetensors::load(&path, &Device::Cpu)
+        .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+}
+
+fn f32s(g: &HashMap<String, Tensor>, key: &str) -> Vec<f32> {
+    let t = g
+        .get(key)
+        .unwrap_or_else(|| panic!("golden key {key} missing"));
+    t.flatten_all()
+        .unwrap()
+        .to_dtype(DType::F32)
+        .unwrap()
+        .to_vec1()
+        .unwrap()
+}
+
+fn ints(g: &HashMap<String, Tensor>, key: &str) -> Vec<i64> {
+    let t = g
+        .get(key)
+        .unwrap_or_else(|| panic!("golden key {key} missing"));
+    t.flatten_all()
+        .unwrap()
+        .to_dtype(DType::I64)
+        .unwrap()
+        .to_vec1()
+        .unwrap()
+}
+
+/// Max abs difference, NaN anywhere counting as infinite.
+fn max_abs(a: &[f32], b: &[f32]) -> f32 {
+    assert_eq!(a.len(), b.len(), "length mismatch");
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| {
+            if x.is_nan() || y.is_nan() {
+                f32::INFINITY
+            } else {
+                (x - y).abs()
+            }
+        })
+        .fold(0.0, f32::max)
+}
+
+fn assert_close(what: &str, got: &[f32], want: &[f32]) {
+    let err = max_abs(got, want);
+    let exact = got
+        .iter()
+        .zip(want)
+        .filter(|(x, y)| x.to_bits() == y.to_bits())
+        .count();
+    eprintln!(
+        "{what}: max abs err {err:e}, bit-exact {exact}/{}",
+        want.len()
+    );
+    assert!(err <= TOL, "{what}: max abs error {err} > {TOL}");
+}
+
+/// The reference batch carries per-ray copies of one pose: check that and keep one copy.
+fn one_pose(per_ray: &[f32], n_rays: usize) -> Vec<f32> {
+    let n = per_ray.len() / n_rays;
+    for r in 1..n_rays {
+        assert_eq!(
+            &per_ray[r * n..(r + 1) * n],
+            &per_ray[..n],
+            "ray {r} carries a different pose"
+        );
+    }
+    per_ray[..n].to_vec()
+}
+
+fn check_case(case: &str) {
+    let g = load(&format!("{case}golden.safetensors"));
+    let model = load("model.safetensors");
+    let cfg = Config::paper();
+    let caster = RayCaster::new(&cfg, &f32s(&model, "raycast.transforms")).unwrap();
+    let (sc, sf) = (cfg.n_samples, cfg.n_importance);
+
+    let rays_o = f32s(&g, "input/rays_o");
+    let rays_d = f32s(&g, "input/rays_d");
+    let n_rays = rays_o.len() / 3;
+    let skts = one_pose(&f32s(&g, "input/skts"), n_rays);
+    let cyls = one_pose(&f32s(&g, "input/cyls"), n_rays);
+    let scales = f32s(&g, "coarse/axis_scale");
+
+    let b = caster
+        .near_far(&rays_o, &rays_d, &cyls, &skts, &scales)
+        .unwrap();
+    assert_close(&format!("{case}near"), &b.near, &f32s(&g, "raycast/near"));
+    assert_close(&format!("{case}far"), &b.far, &f32s(&g, "raycast/far"));
+    let box_hit: Vec<i64> = b.box_hit.iter().map(|&h| h as i64).collect();
+    assert_eq!(box_hit, ints(&g, "raycast/box_hit"), "{case}box_hit");
+    let hits_body: Vec<i64> = b.ray_hits_body.iter().map(|&h| h as i64).collect();
+    assert_eq!(
+        hits_body,
+        ints(&g, "raycast/ray_hits_body"),
+        "{case}ray_hits_body"
+    );
+    // The fixture's ray kinds: 0 = hits a box; 1 and 2 must not.
+    for (r, kind) in ints(&g, "input/ray_kind").into_iter().enumerate() {
+        assert_eq!(
+            b.ray_hits_body[r],
+            kind == 0,
+            "{case}ray {r} of kind {kind}"
+        );
+    }
+    assert_eq!(b.box_hit.len(), n_rays * N_JOINTS);
+
+    let z = caster.coarse_z(&b.near, &b.far).unwrap();
+    assert_close(
+        &format!("{case}z_vals_coarse"),
+        &z,
+        &f32s(&g, "raycast/z_vals_coarse"),
+    );
+    let pts = sample_points(&rays_o, &rays_d, &z, sc).unwrap();
+    assert_close(
+        &format!("{case}pts_coarse"),
+        &pts,
+        &f32s(&g, "raycast/pts_coarse"),
+    );
+
+    // Importance sampling from the reference's own coarse z and weights.
+    let z_ref = f32s(&g, "raycast/z_vals_coarse");
+    let w_ref = f32s(&g, "render_coarse/weights");
+    let z_is = caster.importance_z(&z_ref, &w_ref).unwrap();
+    let pts_is = sample_points(&rays_o, &rays_d, &z_is, sf).unwrap();
+    assert_close(
+        &format!("{case}pts_is"),
+        &pts_is,
+        &f32s(&g, "raycast/pts_is"),
+    );
+
+    let (z_all, perm) = merge_sorted(&z_ref, sc, &z_is, sf).unwrap();
+    assert_close(
+        &format!("{case}z_vals_merged"),
+        &z_all,
+        &f32s(&g, "raycast/z_vals_merged"),
+    );
+    let perm: Vec<i64> = perm.into_iter().map(i64::from).collect();
+    let want = ints(&g, "raycast/sorted_idxs");
+    let m = sc + sf;
+    let bad: Vec<usize> = (0..n_rays)
+        .filter(|&r| perm[r * m..(r + 1) * m] != want[r * m..(r + 1) * m])
+        .collect();
+    assert!(bad.is_empty(), "{case}sorted_idxs differ on rays {bad:?}");
+}
+
+#[test]
+fn standard_case_matches_reference() {
+    check_case("");
+}
+
+#[test]
+fn dense_case_matches_reference() {
+    check_case("dense/");
+}
+
+#[test]
+fn tensor_entry_points_match_host_code() {
+    let g = load("dense/golden.safetensors");
+    let model = load("model.safetensors");
+    let cfg = Config::paper();
+    let caster = RayCaster::from_tensor(&cfg, model.get("raycast.transforms").unwrap()).unwrap();
+    let rays_o = g["input/rays_o"].clone();
+    let rays_d = g["input/rays_d"].clone();
+    let n_rays = rays_o.dims()[0];
+    let skts = g["input/skts"].narrow(0, 0, 1).unwrap();
+    let cyls = g["input/cyls"].narrow(0, 0, 1).unwrap();
+    let scales = g["coarse/axis_scale"].clone();
+    let coarse = caster
+        .cast(&rays_o, &rays_d, &cyls, &skts, &scales)
+        .unwrap();
+    assert_eq!(coarse.z.dims(), [n_rays, cfg.n_samples]);
+    assert_eq!(coarse.pts.dims(), [n_rays, cfg.n_samples, 3]);
+    let pts: Vec<f32> = coarse.pts.flatten_all().unwrap().to_vec1().unwrap();
+    assert!(max_abs(&pts, &f32s(&g, "raycast/pts_coarse")) <= TOL);
+
+    let fine = caster
+        .resample(
+            &rays_o,
+            &rays_d,
+            &g["raycast/z_vals_coarse"],
+            &g["render_coarse/weights"],
+        )
+        .unwrap();
+    let pts_is: Vec<f32> = fine.pts.flatten_all().unwrap().to_vec1().unwrap();
+    assert!(max_abs(&pts_is, &f32s(&g, "raycast/pts_is")) <= TOL);
+    let perm: Vec<u32> = fine.perm.flatten_all().unwrap().to_vec1().unwrap();
+    let want: Vec<u32> = ints(&g, "raycast/sorted_idxs")
+        .into_iter()
+        .map(|v| v as u32)
+        .collect();
+    assert_eq!(perm, want);
+
+    // merge_raw applied to the z values themselves must reproduce the merged list.
+    let zc = g["raycast/z_vals_coarse"].unsqueeze(2).unwrap();
+    let zf = fine.z.unsqueeze(2).unwrap();
+    let merged = pma_model::raycast::merge_raw(&zc, &zf, &fine.perm)
+        .unwrap()
+        .squeeze(2)
+        .unwrap();
+    let merged: Vec<f32> = merged.flatten_all().unwrap().to_vec1().unwrap();
+    let z_all: Vec<f32> = fine.z_all.flatten_all().unwrap().to_vec1().unwrap();
+    assert_eq!(merged, z_all);
+    assert!(max_abs(&z_all, &f32s(&g, "raycast/z_vals_merged")) <= TOL);
+}

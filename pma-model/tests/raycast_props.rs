@@ -1,0 +1,287 @@
+//! Ray caster on hand-made scenes with known answers: cylinder bounds and the miss fallback,
+//! box bounds (scaled, unnormalised directions, edge hits), per-pose grouping, importance
+//! sampling of a uniform and a peaked pdf, merge gradients, and input errors.
+
+use candle_core::{Device, Tensor, Var};
+use pma_model::config::Config;
+use pma_model::raycast::{
+    box_near_far, cylinder_near_far, fill_cylinder_misses, merge_raw, RayCaster, N_JOINTS,
+};
+
+fn identity4() -> Vec<f32> {
+    (0..16)
+        .map(|i| if i % 5 == 0 { 1.0 } else { 0.0 })
+        .collect()
+}
+
+fn identities(n: usize) -> Vec<f32> {
+    (0..n).flat_map(|_| identity4()).collect()
+}
+
+/// World-to-joint transform of a joint at `x` on the world x axis (no rotation).
+fn translate_x(x: f32) -> Vec<f32> {
+    let mut m = identity4();
+    m[3] = -x;
+    m
+}
+
+fn caster(cfg: &Config) -> RayCaster {
+    RayCaster::new(cfg, &identities(N_JOINTS)).unwrap()
+}
+
+fn close(a: f32, b: f32, tol: f32) -> bool {
+    (a - b).abs() <= tol
+}
+
+#[test]
+fn cylinder_bounds_for_known_rays() {
+    // Circle of radius 1 at the origin of the x-z plane.
+    let cyl = |_: usize| [0.0f32, 0.0, 1.0];
+    let rays_o = [
+        -5.0f32, 0.3, 0.0, 0.2, 0.0, 0.0, -5.0, 0.0, 3.0, 0.5, -3.0, 0.5,
+    ];
+    // Ray 0: along +x through the centre; ray 1: starts inside; ray 2: misses (passes at z = 3);
+    // ray 3: vertical (no ground-plane component).
+    let rays_d = [
+        2.0f32, 0.1, 0.0, 1.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0,
+    ];
+    let (near, far) = cylinder_near_far(&rays_o, &rays_d, cyl);
+    // Ray 0 enters at x = -1 and leaves at x = 1: distances 4 and 6 along |d_xz| = 2.
+    assert!(
+        close(near[0], 2.0, 1e-5) && close(far[0], 3.0, 1e-5),
+        "{near:?} {far:?}"
+    );
+    assert!(
+        near[1] == 0.0 && close(far[1], 0.8, 1e-5),
+        "{near:?} {far:?}"
+    );
+    assert!(near[2].is_nan() && far[2].is_nan());
+    assert!(near[3].is_nan() && far[3].is_nan());
+
+    // Reference fallback: the mean of the rays that hit; quirk off: the config's near/far.
+    let (mut n, mut f) = (near.clone(), far.clone());
+    fill_cylinder_misses(&mut n, &mut f, 0.0, 100.0, false);
+    assert!(close(n[2], 1.0, 1e-6) && close(f[2], 1.9, 1e-5) && n[3] == n[2] && f[3] == f[2]);
+    let (mut n, mut f) = (near.clone(), far.clone());
+    fill_cylinder_misses(&mut n, &mut f, 0.5, 50.0, true);
+    assert_eq!((n[2], f[2], n[3], f[3]), (0.5, 50.0, 0.5, 50.0));
+    assert_eq!((n[0], f[0]), (near[0], far[0]));
+    // A batch where every ray misses falls back to near0/far0 in both modes.
+    let (mut n, mut f) = (vec![f32::NAN; 2], vec![f32::NAN; 2]);
+    fill_cylinder_misses(&mut n, &mut f, 0.0, 100.0, false);
+    assert_eq!((n, f), (vec![0.0; 2], vec![100.0; 2]));
+}
+
+#[test]
+fn box_bounds_scale_and_direction_length() {
+    let id = identity4();
+    // Unit half-extents enlarged by 1.1: the ray along +x from x = -5 crosses x = ±1.1.
+    let (n, f) = box_near_far(&id, [1.0; 3], [-5.0, 0.2, -0.3], [1.0, 0.0, 0.0], 1.1).unwrap();
+    assert!(close(n, 3.9, 1e-5) && close(f, 6.1, 1e-5), "{n} {f}");
+    // Half-extent 2 along x: faces at ±2.2.
+    let (n, f) = box_near_far(
+        &id,
+        [2.0, 1.0, 1.0],
+        [-5.0, 0.2, -0.3],
+        [1.0, 0.0, 0.0],
+        1.1,
+    )
+    .unwrap();
+    assert!(close(n, 2.8, 1e-5) && close(f, 7.2, 1e-5), "{n} {f}");
+    // Ray parameters, not distances: doubling |d| halves them.
+    let (n, f) = box_near_far(&id, [1.0; 3], [-5.0, 0.2, -0.3], [2.0, 0.0, 0.0], 1.1).unwrap();
+    assert!(close(n, 1.95, 1e-5) && close(f, 3.05, 1e-5), "{n} {f}");
+    // A miss.
+    assert!(box_near_far(&id, [1.0; 3], [-5.0, 2.0, 0.0], [1.0, 0.0, 0.0], 1.1).is_none());
+    // Through two opposite edges: four valid face hits, so the box does not count (hazard 7).
+    assert!(box_near_far(&id, [1.0; 3], [-5.0, -5.0, 0.0], [1.0, 1.0, 0.0], 1.1).is_none());
+    // A rotated and translated frame: joint at (0, 0, 10), box axes swapped (x <-> z).
+    let m = [
+        0.0f32, 0., 1., -10., 0., 1., 0., 0., 1., 0., 0., 0., 0., 0., 0., 1.,
+    ];
+    let (n, f) = box_near_far(&m, [0.5, 1.0, 2.0], [0.0, 0.0, 0.0], [0.0, 0.0, 1.0], 1.1).unwrap();
+    // Along world z the box extends ±0.5·1.1 around z = 10.
+    assert!(close(n, 9.45, 1e-5) && close(f, 10.55, 1e-5), "{n} {f}");
+}
+
+#[test]
+fn near_far_groups_rays_by_pose_and_reports_hits() {
+    let cfg = Config::paper();
+    let rc = caster(&cfg);
+    // Pose 0: every part at the origin; pose 1: every part at x = 10.
+    let mut skts = identities(N_JOINTS);
+    skts.extend((0..N_JOINTS).flat_map(|_| translate_x(10.0)));
+    let cyls = [0.0f32, 0.0, 20.0, 0.0, 0.0, 0.0, 0.0, 20.0, 0.0, 0.0];
+    let scales = vec![1.0f32; N_JOINTS * 3];
+    // Two rays per pose: the same ray along +x, and one passing far above every box.
+    let rays_o = [-5.0f32, 0., 0., -30., 50., 0., -5., 0., 0., -30., 50., 0.];
+    let rays_d = [1.0f32, 0., 0., 1., 0., 0., 1., 0., 0., 1., 0., 0.];
+    let b = rc
+        .near_far(&rays_o, &rays_d, &cyls, &skts, &scales)
+        .unwrap();
+    assert!(
+        close(b.near[0], 3.9, 1e-5) && close(b.far[0], 6.1, 1e-5),
+        "{:?} {:?}",
+        b.near,
+        b.far
+    );
+    assert!(
+        close(b.near[2], 13.9, 1e-5) && close(b.far[2], 16.1, 1e-5),
+        "{:?} {:?}",
+        b.near,
+        b.far
+    );
+    assert_eq!(b.ray_hits_body, vec![true, false, true, false]);
+    assert!(b.box_hit[..N_JOINTS].iter().all(|&h| h));
+    assert!(b.box_hit[N_JOINTS..2 * N_JOINTS].iter().all(|&h| !h));
+    // The rays above the boxes keep their cylinder bounds: radius 20 around the origin (the
+    // cylinder's height is not used), so x runs from -20 to 20, i.e. t from 10 to 50.
+    for r in [1, 3] {
+        assert!(
+            close(b.near[r], 10.0, 1e-4) && close(b.far[r], 50.0, 1e-4),
+            "ray {r}: {} {}",
+            b.near[r],
+            b.far[r]
+        );
+    }
+}
+
+#[test]
+fn coarse_z_spans_near_to_far_evenly() {
+    let cfg = Config::paper();
+    let z = caster(&cfg).coarse_z(&[2.0, 0.5], &[6.0, 0.5]).unwrap();
+    let s = cfg.n_samples;
+    assert_eq!(z.len(), 2 * s);
+    assert_eq!((z[0], z[s - 1]), (2.0, 6.0));
+    for k in 0..s {
+        assert!(
+            close(z[k], 2.0 + 4.0 * k as f32 / (s - 1) as f32, 2e-6),
+            "z[{k}] = {}",
+            z[k]
+        );
+        assert_eq!(z[s + k], 0.5);
+    }
+}
+
+#[test]
+fn importance_samples_follow_the_pdf() {
+    let cfg = Config::paper();
+    let rc = caster(&cfg);
+    let (sc, sf) = (cfg.n_samples, cfg.n_importance);
+    let zc = rc.coarse_z(&[2.0, 2.0], &[6.0, 6.0]).unwrap();
+    // Ray 0: zero weights -> flat blurred pdf -> samples evenly from the first to the last
+    // bin midpoint. Ray 1: all weight on sample 20 -> samples crowd around z[20].
+    let mut w = vec![0.0f32; 2 * sc];
+    w[sc + 20] = 1.0;
+    let zf = rc.importance_z(&zc, &w).unwrap();
+    assert_eq!(zf.len(), 2 * sf);
+    let step = 4.0 / (sc - 1) as f32;
+    let (lo, hi) = (2.0 + 0.5 * step, 6.0 - 0.5 * step);
+    for (m, &z) in zf[..sf].iter().enumerate() {
+        let want = lo + (hi - lo) * m as f32 / (sf - 1) as f32;
+        assert!(close(z, want, 1e-4), "uniform sample {m}: {z} vs {want}");
+    }
+    let near_peak = zf[sf..]
+        .iter()
+        .filter(|&&z| (z - zc[20]).abs() <= 1.5 * step)
+        .count();
+    assert!(
+        near_peak >= sf / 2,
+        "only {near_peak} of {sf} samples near the peak: {:?}",
+        &zf[sf..]
+    );
+    for row in zf.chunks(sf) {
+        assert!(
+            row.windows(2).all(|p| p[0] <= p[1]),
+            "not ascending: {row:?}"
+        );
+        assert!(row.iter().all(|&z| (lo..=hi).contains(&z)));
+    }
+}
+
+#[test]
+fn merge_raw_routes_gradients_to_both_passes() {
+    let dev = Device::Cpu;
+    let coarse = Var::from_tensor(&Tensor::new(&[[[1f32], [3.], [5.]]], &dev).unwrap()).unwrap();
+    let fine = Var::from_tensor(&Tensor::new(&[[[2f32], [4.]]], &dev).unwrap()).unwrap();
+    let perm = Tensor::new(&[[0u32, 3, 1, 4, 2]], &dev).unwrap();
+    let merged = merge_raw(coarse.as_tensor(), fine.as_tensor(), &perm).unwrap();
+    let values: Vec<f32> = merged.flatten_all().unwrap().to_vec1().unwrap();
+    assert_eq!(values, vec![1., 2., 3., 4., 5.]);
+    let weights = Tensor::new(&[[[10f32], [20.], [30.], [40.], [50.]]], &dev).unwrap();
+    let grads = (merged * weights)
+        .unwrap()
+        .sum_all()
+        .unwrap()
+        .backward()
+        .unwrap();
+    let gc: Vec<f32> = grads
+        .get(coarse.as_tensor())
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .to_vec1()
+        .unwrap();
+    let gf: Vec<f32> = grads
+        .get(fine.as_tensor())
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .to_vec1()
+        .unwrap();
+    assert_eq!((gc, gf), (vec![10., 30., 50.], vec![20., 40.]));
+}
+
+#[test]
+fn bad_inputs_are_errors() {
+    let cfg = Config::paper();
+    let rc = caster(&cfg);
+    let skts = identities(N_JOINTS);
+    let cyls = [0.0f32, 0.0, 1.0, 0.0, 0.0];
+    let scales = vec![1.0f32; N_JOINTS * 3];
+    let o = [0.0f32, 0.0, -5.0, 0.0, 0.0, -5.0, 0.0, 0.0, -5.0];
+    let d = [0.0f32, 0.0, 1.0, 0.0, 0.0, 1.0, 0.0, 0.0, 1.0];
+    assert!(rc.near_far(&o, &d, &cyls, &skts, &scales).is_ok());
+    let err = |r: Result<_, pma_model::error::ModelError>| {
+        r.map(|_: pma_model::raycast::RayBounds| ())
+            .unwrap_err()
+            .to_string()
+    };
+    // 3 rays cannot be split into 2 poses.
+    let two = identities(2 * N_JOINTS);
+    assert!(err(rc.near_far(&o, &d, &[cyls, cyls].concat(), &two, &scales)).contains("3 rays"));
+    assert!(err(rc.near_far(&o[..8], &d, &cyls, &skts, &scales)).contains("rays_o"));
+    assert!(err(rc.near_far(&o, &d, &cyls[..3], &skts, &scales)).contains("cyls"));
+    let mut zero = scales.clone();
+    zero[7] = 0.0;
+    assert!(err(rc.near_far(&o, &d, &cyls, &skts, &zero)).contains("joint 2 axis 1"));
+    let mut nan_d = d;
+    nan_d[4] = f32::NAN;
+    assert!(err(rc.near_far(&o, &nan_d, &cyls, &skts, &scales)).contains("rays_d"));
+    let mut zero_d = d;
+    zero_d[3..6].fill(0.0);
+    assert!(err(rc.near_far(&o, &zero_d, &cyls, &skts, &scales)).contains("ray 1"));
+    let w_nan = vec![f32::NAN; cfg.n_samples];
+    let zc = rc.coarse_z(&[1.0], &[2.0]).unwrap();
+    assert!(rc.importance_z(&zc, &w_nan).is_err());
+    assert!(rc.importance_z(&zc, &w_nan[1..]).is_err());
+    assert!(RayCaster::new(&cfg, &identities(23)).is_err());
+    let few = Config {
+        n_samples: 2,
+        ..Config::paper()
+    };
+    assert!(RayCaster::new(&few, &identities(N_JOINTS)).is_err());
+    // Tensor entry point: wrong shapes are named.
+    let t = |v: &[f32], s: &[usize]| Tensor::from_vec(v.to_vec(), s, &Device::Cpu).unwrap();
+    let msg = rc
+        .cast(
+            &t(&o, &[3, 3]),
+            &t(&d, &[3, 3]),
+            &t(&cyls, &[1, 5]),
+            &t(&skts, &[24, 4, 4]),
+            &t(&scales, &[24, 3]),
+        )
+        .unwrap_err()
+        .to_string();
+    assert!(msg.contains("skts"), "{msg}");
+}

@@ -1,0 +1,275 @@
+//! `pma convert`: reference checkpoints, A-NeRF/DANBO datasets and real motion
+//! into pma formats. Parsing and reporting only; the work is in `pma-convert`.
+
+use std::{ops::Range, path::PathBuf};
+
+use anyhow::Context;
+use clap::{Subcommand, ValueEnum};
+use indicatif::{ProgressBar, ProgressStyle};
+use pma_convert::{
+    checkpoint::{convert_checkpoint, CheckpointOptions},
+    dataset::{convert_dataset, DatasetOptions, Layout},
+    motion::{convert_motion, read_rest_pose, MotionOptions, DEFAULT_NPZ_FPS},
+};
+use pma_data::dataset::{Compression, Profile};
+
+#[derive(clap::Args)]
+pub struct Args {
+    #[command(subcommand)]
+    what: What,
+}
+
+#[derive(Subcommand)]
+enum What {
+    /// A reference `torch.save` checkpoint (.th) → pma checkpoint (.safetensors).
+    ///
+    /// Tensors are copied byte for byte; the config is inferred from their
+    /// shapes and checked. The pickle is interpreted without running code:
+    /// anything but tensors and plain containers is refused.
+    Checkpoint {
+        /// The reference checkpoint (`{'model', 'optimizer', 'global_iter'}`).
+        input: PathBuf,
+        /// Output pma checkpoint.
+        #[arg(short, long)]
+        output: PathBuf,
+        /// Also write the Adam state as a training state (`<OUT stem>.optim.safetensors`),
+        /// so training can resume from the reference checkpoint.
+        #[arg(long)]
+        with_optimizer: bool,
+    },
+    /// A processed .h5 (h36m_zju, perfcap, surreal, mixamo, aist) or a pma-npz → validated pma-npz v1.
+    Dataset {
+        /// Input `.h5`/`.hdf5` or `.npz`.
+        input: PathBuf,
+        /// Output `.npz`.
+        #[arg(short, long)]
+        output: PathBuf,
+        /// What the output must support; also what it keeps (motion: poses;
+        /// render: + cameras and backgrounds; eval/train: + images and masks).
+        #[arg(long, value_enum, default_value_t = ProfileArg::Train)]
+        profile: ProfileArg,
+        /// The .h5 layout (detected from the keys when omitted).
+        #[arg(long, value_enum)]
+        layout: Option<LayoutArg>,
+        /// Deflate the members (smaller, but no memory-mapped pixel access).
+        #[arg(long)]
+        compress: bool,
+        /// Accept a rest pose whose root is not at the origin.
+        #[arg(long)]
+        allow_offset_root: bool,
+        /// Accept 0/255 masks and store them as {0,1}.
+        #[arg(long)]
+        binarize_masks: bool,
+        /// Accept RGBA images and drop alpha.
+        #[arg(long)]
+        drop_alpha: bool,
+    },
+    /// Real motion (AIST++/SMPL npz or CMU BVH) → a motion-profile npz for retargeting.
+    Motion {
+        /// SMPL npz (`poses (T,72)` + `trans (T,3)`) or CMU `.bvh`.
+        input: PathBuf,
+        /// Output `.npz` (`bones`, `root_locs`, `kp3d`, `skts`, `cyls`, `rest_pose`).
+        #[arg(short, long)]
+        output: PathBuf,
+        /// Resample to this frame rate.
+        #[arg(long)]
+        fps: Option<f64>,
+        /// Keep source frames a..b (end exclusive), before resampling: `a:b`, `a:` or `:b`.
+        #[arg(long, value_parser = parse_range)]
+        frames: Option<RangeArg>,
+        /// Up-axis convention of the dataset the motion will drive.
+        #[arg(long, value_enum, default_value_t = TargetArg::H36mZju)]
+        target: TargetArg,
+        /// Rest pose for kinematics: a pma checkpoint (.safetensors) or dataset (.npz).
+        /// Default: the synthetic scene's SMPL rest pose.
+        #[arg(long)]
+        rest_pose: Option<PathBuf>,
+        /// Frame rate of an SMPL npz that stores none.
+        #[arg(long, default_value_t = DEFAULT_NPZ_FPS)]
+        npz_fps: f64,
+    },
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum ProfileArg {
+    Train,
+    Eval,
+    Render,
+    Motion,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum LayoutArg {
+    H36mZju,
+    Perfcap,
+    Surreal,
+    Mixamo,
+    Aist,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum TargetArg {
+    H36mZju,
+    Aist,
+}
+
+#[derive(Clone, Debug)]
+struct RangeArg {
+    start: usize,
+    end: Option<usize>,
+}
+
+fn parse_range(s: &str) -> Result<RangeArg, String> {
+    let (a, b) = s
+        .split_once(':')
+        .ok_or_else(|| format!("expected a:b, found {s:?}"))?;
+    let num = |x: &str, what: &str| -> Result<Option<usize>, String> {
+        if x.is_empty() {
+            Ok(None)
+        } else {
+            x.parse()
+                .map(Some)
+                .map_err(|_| format!("{what} of {s:?} is not a frame number"))
+        }
+    };
+    let start = num(a, "start")?.unwrap_or(0);
+    let end = num(b, "end")?;
+    if end.is_some_and(|e| e <= start) {
+        return Err(format!("empty frame range {s:?}"));
+    }
+    Ok(RangeArg { start, end })
+}
+
+fn profile(p: ProfileArg) -> Profile {
+    match p {
+        ProfileArg::Train => Profile::Train,
+        ProfileArg::Eval => Profile::Eval,
+        ProfileArg::Render => Profile::Render,
+        ProfileArg::Motion => Profile::Motion,
+    }
+}
+
+fn layout(l: LayoutArg) -> Layout {
+    match l {
+        LayoutArg::H36mZju => Layout::H36mZju,
+        LayoutArg::Perfcap => Layout::PerfCap,
+        LayoutArg::Surreal => Layout::Surreal,
+        LayoutArg::Mixamo => Layout::Mixamo,
+        LayoutArg::Aist => Layout::Aist,
+    }
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    match args.what {
+        What::Checkpoint {
+            input,
+            output,
+            with_optimizer,
+        } => {
+            let rep = convert_checkpoint(&input, &output, &CheckpointOptions { with_optimizer })
+                .with_context(|| format!("converting checkpoint {}", input.display()))?;
+            println!(
+                "{}: {} tensors, {} parameters, n_framecodes {}, global_iter {}",
+                output.display(),
+                rep.n_tensors,
+                rep.n_parameters,
+                rep.config.n_framecodes,
+                rep.global_iter.map_or("-".into(), |g| g.to_string())
+            );
+            if let Some(side) = rep.train_state {
+                println!(
+                    "{}: Adam state of {} parameters",
+                    side.display(),
+                    rep.n_moments
+                );
+            }
+        }
+        What::Dataset {
+            input,
+            output,
+            profile: p,
+            layout: l,
+            compress,
+            allow_offset_root,
+            binarize_masks,
+            drop_alpha,
+        } => {
+            let mut opts = DatasetOptions::new(profile(p));
+            opts.layout = l.map(layout);
+            opts.compression = if compress {
+                Compression::Deflated
+            } else {
+                Compression::Stored
+            };
+            opts.allow_offset_root = allow_offset_root;
+            opts.binarize_masks = binarize_masks;
+            opts.drop_alpha = drop_alpha;
+            let bar = ProgressBar::new(0).with_style(
+                ProgressStyle::with_template("{msg} {bar:40} {pos}/{len} images ({eta})")
+                    .expect("static progress template"),
+            );
+            bar.set_message("pixels");
+            let rep = convert_dataset(&input, &output, &opts, &mut |done, total| {
+                bar.set_length(total);
+                bar.set_position(done);
+            })
+            .with_context(|| format!("converting dataset {}", input.display()))?;
+            bar.finish_and_clear();
+            for w in &rep.warnings {
+                eprintln!("warning: {w}");
+            }
+            println!(
+                "{}: {}{} poses, {} cameras, {} images",
+                output.display(),
+                rep.layout
+                    .map_or(String::new(), |l| format!("{l} layout, ")),
+                rep.n_poses,
+                rep.n_cameras,
+                rep.n_images
+            );
+            for d in &rep.derived {
+                println!("  derived: {d}");
+            }
+        }
+        What::Motion {
+            input,
+            output,
+            fps,
+            frames,
+            target,
+            rest_pose,
+            npz_fps,
+        } => {
+            let rest = rest_pose
+                .as_deref()
+                .map(read_rest_pose)
+                .transpose()
+                .context("reading the rest pose")?;
+            let frames: Option<Range<usize>> = frames.map(|r| r.start..r.end.unwrap_or(usize::MAX));
+            let opts = MotionOptions {
+                frames,
+                fps,
+                target: match target {
+                    TargetArg::H36mZju => Layout::H36mZju,
+                    TargetArg::Aist => Layout::Aist,
+                },
+                rest_pose: rest,
+                npz_fps,
+                ..Default::default()
+            };
+            let rep = convert_motion(&input, &output, &opts)
+                .with_context(|| format!("converting motion {}", input.display()))?;
+            println!(
+                "{}: {} frames at {} fps (from {} at {} fps), head {:?} (source {:?})",
+                output.display(),
+                rep.frames,
+                rep.fps,
+                rep.source_frames,
+                rep.source_fps,
+                rep.up,
+                rep.source_up
+            );
+        }
+    }
+    Ok(())
+}

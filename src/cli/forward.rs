@@ -1,0 +1,8 @@
+//! `pma forward` (placeholder until its issue lands; replaced by the owner of this subcommand).
+
+#[derive(clap::Args)]
+pub struct Args {}
+
+pub fn run(_args: Args) -> anyhow::Result<()> {
+    anyhow::bail!("`pma forward` is not implemented yet")
+}
