@@ -8,21 +8,18 @@
 //! `rest_pose` come from the `framecodes.codes.weight` and `rest_pose` tensors.
 //!
 //! With the optimiser, the torch Adam state is written as a pma training state
-//! (see [`crate::train_state`]): optimiser ids are mapped to parameter names by
-//! the reference's grouping (model.md §6, §8.2): the parameters are taken in
-//! `named_parameters()` order and split into group 0 (name contains
-//! `graph_net`, `pose_extractor`, `win_fun`, `modulator`, `pts_enc_point` or
-//! `pts_enc_pose`) and group 1 (the rest); torch numbers group 0 first.
+//! beside the checkpoint (see [`crate::train_state`]).
 
 use std::{
-    collections::{BTreeMap, HashMap},
+    collections::HashMap,
     path::{Path, PathBuf},
 };
 
 use candle_core::{Device, Tensor};
 use pma_model::{
-    checkpoint::{check_tensors, param_names, save, tensor_layout},
+    checkpoint::{check_tensors, param_names, save},
     error::ModelError,
+    train::state::fingerprint,
     Config,
 };
 use safetensors::Dtype;
@@ -30,37 +27,9 @@ use safetensors::Dtype;
 use crate::{
     error::{ConvertError, Result},
     raw::RawTensor,
-    torch::{read_reference_checkpoint, ReferenceCheckpoint},
-    train_state::{sidecar_path, Moments, ParamGroup, TrainState},
+    torch::read_reference_checkpoint,
+    train_state::{sidecar_path, train_state_from_torch},
 };
-
-/// Name substrings that put a parameter in the reference's group 0 ("freq", lr 1e-4).
-pub const FREQ_GROUP_KEYS: [&str; 6] = [
-    "graph_net",
-    "pose_extractor",
-    "win_fun",
-    "modulator",
-    "pts_enc_point",
-    "pts_enc_pose",
-];
-
-/// The reference's parameter group of a parameter name (0 = freq, 1 = other).
-pub fn reference_param_group(name: &str) -> usize {
-    if FREQ_GROUP_KEYS.iter().any(|k| name.contains(k)) {
-        0
-    } else {
-        1
-    }
-}
-
-/// The parameter names of each reference Adam group, in optimiser-id order.
-pub fn reference_param_groups(cfg: &Config) -> [Vec<String>; 2] {
-    let mut groups = [Vec::new(), Vec::new()];
-    for n in param_names(cfg) {
-        groups[reference_param_group(&n)].push(n);
-    }
-    groups
-}
 
 /// Options of [`convert_checkpoint`].
 #[derive(Clone, Debug, Default)]
@@ -78,7 +47,7 @@ pub struct CheckpointReport {
     pub global_iter: Option<i64>,
     /// The training-state file, when written.
     pub train_state: Option<PathBuf>,
-    /// Parameters that had Adam moments.
+    /// Parameters that had Adam state in the `.th` (the others start from zero).
     pub n_moments: usize,
 }
 
@@ -216,108 +185,6 @@ pub fn checked_config(path: &Path, model: &[(String, RawTensor)]) -> Result<Conf
     Ok(cfg)
 }
 
-/// Maps the torch Adam state onto parameter names (see the module docs).
-pub fn train_state_from_torch(ck: &ReferenceCheckpoint, cfg: &Config) -> Result<TrainState> {
-    let path = &ck.path;
-    let adam = ck.optimizer.as_ref().ok_or_else(|| {
-        ConvertError::missing(path, "optimizer", " (needed for --with-optimizer)")
-    })?;
-    let global_iter = ck.global_iter.ok_or_else(|| {
-        ConvertError::missing(path, "global_iter", " (needed for --with-optimizer)")
-    })?;
-    let global_iter = u64::try_from(global_iter).map_err(|_| {
-        ConvertError::invalid(path, "global_iter", format!("negative value {global_iter}"))
-    })?;
-
-    let names = reference_param_groups(cfg);
-    if adam.param_groups.len() != names.len() {
-        return Err(ConvertError::mismatch(
-            path,
-            "optimizer.param_groups",
-            format!("{} groups (freq, other)", names.len()),
-            format!("{} groups", adam.param_groups.len()),
-        ));
-    }
-    let shapes: HashMap<String, Vec<usize>> = tensor_layout(cfg)
-        .into_iter()
-        .map(|t| (t.name, t.shape))
-        .collect();
-    let mut id_to_name: HashMap<usize, &str> = HashMap::new();
-    let mut param_groups = Vec::new();
-    for (g, (group, names)) in adam.param_groups.iter().zip(&names).enumerate() {
-        if group.params.len() != names.len() {
-            return Err(ConvertError::mismatch(
-                path,
-                format!("optimizer.param_groups[{g}].params"),
-                format!("{} parameters ({}…)", names.len(), names[0]),
-                format!("{} ids", group.params.len()),
-            ));
-        }
-        if group.amsgrad {
-            return Err(ConvertError::invalid(
-                path,
-                format!("optimizer.param_groups[{g}].amsgrad"),
-                "AMSGrad state (max_exp_avg_sq) is not supported by pma's Adam",
-            ));
-        }
-        for (&id, name) in group.params.iter().zip(names) {
-            if id_to_name.insert(id, name).is_some() {
-                return Err(ConvertError::invalid(
-                    path,
-                    "optimizer.param_groups",
-                    format!("optimiser id {id} is listed twice"),
-                ));
-            }
-        }
-        param_groups.push(ParamGroup {
-            lr: group.lr,
-            betas: [group.betas.0, group.betas.1],
-            eps: group.eps,
-            weight_decay: group.weight_decay,
-            params: names.clone(),
-        });
-    }
-
-    let mut moments = BTreeMap::new();
-    for (id, st) in &adam.state {
-        let key = format!("optimizer.state[{id}]");
-        let name = *id_to_name.get(id).ok_or_else(|| {
-            ConvertError::invalid(path, &key, "optimiser id is in no parameter group")
-        })?;
-        let shape = &shapes[name];
-        for (what, t) in [("exp_avg", &st.exp_avg), ("exp_avg_sq", &st.exp_avg_sq)] {
-            if &t.shape != shape || t.dtype != Dtype::F32 {
-                return Err(ConvertError::mismatch(
-                    path,
-                    format!("{key}.{what} (parameter `{name}`)"),
-                    format!("F32 of shape {shape:?}"),
-                    format!("{:?} of shape {:?}", t.dtype, t.shape),
-                ));
-            }
-        }
-        if !(st.step >= 0.0 && st.step.fract() == 0.0 && st.step < 9.0e15) {
-            return Err(ConvertError::invalid(
-                path,
-                format!("{key}.step"),
-                format!("{} is not a step count", st.step),
-            ));
-        }
-        moments.insert(
-            name.to_string(),
-            Moments {
-                step: st.step as u64,
-                exp_avg: st.exp_avg.clone(),
-                exp_avg_sq: st.exp_avg_sq.clone(),
-            },
-        );
-    }
-    Ok(TrainState {
-        global_iter,
-        param_groups,
-        moments,
-    })
-}
-
 /// `pma convert checkpoint`: reads `input` (`.th`), writes a pma checkpoint to
 /// `output` and, with `opts.with_optimizer`, the training state beside it.
 /// Both files are written atomically; nothing is written if any check fails.
@@ -328,8 +195,9 @@ pub fn convert_checkpoint(
 ) -> Result<CheckpointReport> {
     let ck = read_reference_checkpoint(input)?;
     let cfg = checked_config(input, &ck.model)?;
+    // Checked before anything is written; the fingerprint of the written model is added below.
     let state = if opts.with_optimizer {
-        Some(train_state_from_torch(&ck, &cfg)?)
+        Some(train_state_from_torch(&ck, &cfg, None)?)
     } else {
         None
     };
@@ -354,10 +222,13 @@ pub fn convert_checkpoint(
         train_state: None,
         n_moments: 0,
     };
-    if let Some(state) = state {
+    if let Some(mut state) = state {
+        let model_bytes = std::fs::read(output).map_err(|e| ConvertError::io(output, e))?;
+        state.model_fingerprint = Some(fingerprint(&model_bytes));
         let side = sidecar_path(output);
-        state.write(&side)?;
-        report.n_moments = state.moments.len();
+        state.save(&side)?;
+        crate::set_readable(&side)?;
+        report.n_moments = ck.optimizer.as_ref().map_or(0, |o| o.state.len());
         report.train_state = Some(side);
     }
     Ok(report)

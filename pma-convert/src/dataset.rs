@@ -473,6 +473,11 @@ fn read_h5_scene(h5: &H5File, layout: Layout) -> Result<(Dataset, PixelPlan)> {
                 k,
                 "Mixamo frame numbers, not pose rows; replaced by the image index",
             ));
+        } else if k == "bkgds" && layout == Layout::Mixamo {
+            ds.warnings.push(warn(
+                k,
+                "Mixamo images are composited on white; replaced by one white plate",
+            ));
         }
     }
 
@@ -631,9 +636,12 @@ fn convert_h5(
 
     // Pixels are not in `ds`; the data layer validates everything else at the
     // render level, and the pixel requirements of eval/train are checked here
-    // and while streaming.
+    // and while streaming. Background indices are checked against the plates
+    // in the file (`check_background_rows`), which `ds` does not hold.
     let scene_profile = opts.profile.min(Profile::Render);
+    let bkgd_idxs = ds.bkgd_idxs.take();
     ds.validate(&opts.read_options(scene_profile))?;
+    ds.bkgd_idxs = bkgd_idxs;
     let source = ds.source.clone();
     let missing = |key: &str| DataError::MissingKey {
         file: source.clone(),
@@ -799,7 +807,7 @@ fn prepare_row(
 ) -> Result<Vec<u8>> {
     let mut px = if m.channels_in != m.channels_out {
         raw.chunks_exact(m.channels_in)
-            .flat_map(|c| c[..m.channels_out].to_vec())
+            .flat_map(|c| c[..m.channels_out].iter().copied())
             .collect()
     } else {
         raw

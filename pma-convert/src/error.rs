@@ -91,6 +91,10 @@ pub enum ConvertError {
     #[error(transparent)]
     Motion(Box<pma_data::motion::MotionError>),
 
+    /// The trainer's train-state file errors.
+    #[error(transparent)]
+    Train(Box<pma_model::train::TrainError>),
+
     /// The model crate's checkpoint errors already name the file and tensor.
     #[error(transparent)]
     Model(Box<pma_model::error::ModelError>),
@@ -112,6 +116,12 @@ impl From<pma_data::DataError> for ConvertError {
 impl From<pma_data::motion::MotionError> for ConvertError {
     fn from(e: pma_data::motion::MotionError) -> Self {
         Self::Motion(Box::new(e))
+    }
+}
+
+impl From<pma_model::train::TrainError> for ConvertError {
+    fn from(e: pma_model::train::TrainError) -> Self {
+        Self::Train(Box::new(e))
     }
 }
 

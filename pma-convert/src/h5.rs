@@ -99,9 +99,7 @@ impl H5File {
 
     fn dataset(&self, key: &str) -> Result<hdf5_reader::Dataset> {
         self.file.dataset(key).map_err(|e| match e {
-            hdf5_reader::error::Error::DatasetNotFound(_) => {
-                ConvertError::missing(&self.path, key, "")
-            }
+            e if not_found(&e) => ConvertError::missing(&self.path, key, ""),
             source => ConvertError::Hdf5 {
                 path: self.path.clone(),
                 key: key.to_string(),
@@ -316,4 +314,13 @@ fn flat<T: Clone>(a: ndarray::ArrayD<T>) -> Vec<T> {
     }
     v.truncate(len);
     v
+}
+
+fn not_found(e: &hdf5_reader::error::Error) -> bool {
+    use hdf5_reader::error::Error as E;
+    match e {
+        E::DatasetNotFound(_) => true,
+        E::Context { source, .. } => not_found(source),
+        _ => false,
+    }
 }

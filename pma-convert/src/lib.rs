@@ -13,25 +13,7 @@ pub mod train_state;
 pub use error::{ConvertError, Result};
 pub use raw::RawTensor;
 
-use std::{io::Write, path::Path};
-
-/// Writes `bytes` to `path` through a temporary file in the same directory,
-/// so a reader never sees a half-written file.
-pub(crate) fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d,
-        _ => Path::new("."),
-    };
-    let mut tmp = tempfile::NamedTempFile::new_in(dir).map_err(|e| ConvertError::io(dir, e))?;
-    tmp.write_all(bytes)
-        .map_err(|e| ConvertError::io(tmp.path(), e))?;
-    tmp.as_file()
-        .sync_all()
-        .map_err(|e| ConvertError::io(tmp.path(), e))?;
-    tmp.persist(path)
-        .map_err(|e| ConvertError::io(path, e.error))?;
-    set_readable(path)
-}
+use std::path::Path;
 
 /// Temporary files are created owner-only (0600); a converted file is an
 /// ordinary output, so give it the usual 0644 once it is in place.

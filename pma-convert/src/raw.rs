@@ -29,16 +29,6 @@ impl RawTensor {
         })
     }
 
-    /// Builds an F32 tensor from values.
-    pub fn from_f32(shape: Vec<usize>, values: &[f32]) -> Self {
-        let data = values.iter().flat_map(|v| v.to_le_bytes()).collect();
-        Self {
-            dtype: Dtype::F32,
-            shape,
-            data,
-        }
-    }
-
     /// A candle tensor holding the same bytes.
     pub fn to_candle(&self, device: &Device) -> candle_core::Result<Tensor> {
         let dtype = match self.dtype {
@@ -52,47 +42,6 @@ impl RawTensor {
             other => candle_core::bail!("dtype {other:?} has no candle equivalent"),
         };
         Tensor::from_raw_buffer(&self.data, dtype, &self.shape, device)
-    }
-
-    /// The bytes of a candle tensor (copied to the CPU, made contiguous).
-    pub fn from_candle(t: &Tensor) -> candle_core::Result<Self> {
-        let shape = t.dims().to_vec();
-        let flat = t.flatten_all()?.to_device(&Device::Cpu)?;
-        let (dtype, data): (Dtype, Vec<u8>) = match t.dtype() {
-            DType::F32 => (
-                Dtype::F32,
-                flat.to_vec1::<f32>()?
-                    .iter()
-                    .flat_map(|v| v.to_le_bytes())
-                    .collect(),
-            ),
-            DType::F64 => (
-                Dtype::F64,
-                flat.to_vec1::<f64>()?
-                    .iter()
-                    .flat_map(|v| v.to_le_bytes())
-                    .collect(),
-            ),
-            DType::I64 => (
-                Dtype::I64,
-                flat.to_vec1::<i64>()?
-                    .iter()
-                    .flat_map(|v| v.to_le_bytes())
-                    .collect(),
-            ),
-            DType::U32 => (
-                Dtype::U32,
-                flat.to_vec1::<u32>()?
-                    .iter()
-                    .flat_map(|v| v.to_le_bytes())
-                    .collect(),
-            ),
-            DType::U8 => (Dtype::U8, flat.to_vec1::<u8>()?),
-            other => {
-                candle_core::bail!("dtype {other:?} is not supported by RawTensor::from_candle")
-            }
-        };
-        Ok(Self { dtype, shape, data })
     }
 }
 

@@ -278,3 +278,101 @@ fn progress_reports_every_image_of_every_pixel_key() {
     assert_eq!(calls.last(), Some(&(22, 22)));
     assert_eq!(calls.len(), 23);
 }
+
+#[test]
+fn a_missing_h5_key_is_named() {
+    let h5 = pma_convert::h5::H5File::open(&fixture("h36m_zju.h5")).unwrap();
+    let err = h5.read_f32("no_such_key").unwrap_err();
+    let msg = err.to_string();
+    assert!(
+        matches!(err, pma_convert::ConvertError::MissingKey { .. }),
+        "{msg}"
+    );
+    assert!(
+        msg.contains("h36m_zju.h5") && msg.contains("no_such_key"),
+        "{msg}"
+    );
+    // Pixels are uint8; asking for floats names the key and both types.
+    let msg = h5.read_f32("imgs").unwrap_err().to_string();
+    assert!(
+        msg.contains("imgs") && msg.contains("float32") && msg.contains("uint8"),
+        "{msg}"
+    );
+}
+
+/// Rewrites the h36m_zju fixture with 4-channel (RGBA) images.
+fn write_rgba_copy(path: &Path) -> Vec<u8> {
+    use hdf5_reader::Datatype;
+    use hdf5_writer::{DatasetBuilder, Hdf5Builder, Hdf5Writer, WriteOptions};
+    let src = Hdf5File::open(fixture("h36m_zju.h5")).unwrap();
+    let (_, names) = src.root_group().unwrap().member_names().unwrap();
+    let mut b = Hdf5Builder::new();
+    let mut rgba = Vec::new();
+    for name in names {
+        let d = src.dataset(&name).unwrap();
+        let shape = d.shape().to_vec();
+        let ds = match d.dtype() {
+            Datatype::FloatingPoint { .. } => {
+                let v: Vec<f32> = d.read_array::<f32>().unwrap().iter().copied().collect();
+                DatasetBuilder::typed_data(&name, shape, &v).unwrap()
+            }
+            Datatype::FixedPoint { size: 8, .. } => {
+                let v: Vec<i64> = d.read_array::<i64>().unwrap().iter().copied().collect();
+                DatasetBuilder::typed_data(&name, shape, &v).unwrap()
+            }
+            Datatype::FixedPoint { size: 4, .. } => {
+                let v: Vec<i32> = d.read_array::<i32>().unwrap().iter().copied().collect();
+                DatasetBuilder::typed_data(&name, shape, &v).unwrap()
+            }
+            _ if name == "imgs" => {
+                let v: Vec<u8> = d.read_array::<u8>().unwrap().iter().copied().collect();
+                rgba = v
+                    .chunks_exact(3)
+                    .flat_map(|p| [p[0], p[1], p[2], 200])
+                    .collect();
+                DatasetBuilder::typed_data(&name, vec![shape[0], shape[1], 4], &rgba).unwrap()
+            }
+            _ => {
+                let v: Vec<u8> = d.read_array::<u8>().unwrap().iter().copied().collect();
+                DatasetBuilder::typed_data(&name, shape, &v).unwrap()
+            }
+        };
+        b = b.dataset(ds);
+    }
+    let file = std::fs::File::create(path).unwrap();
+    Hdf5Writer::new(file, WriteOptions::default())
+        .finish(b.into_plan().unwrap())
+        .unwrap();
+    rgba
+}
+
+#[test]
+fn rgba_images_need_drop_alpha() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join("rgba.h5");
+    let rgba = write_rgba_copy(&input);
+    let out = dir.path().join("out.npz");
+    let msg = convert_dataset(
+        &input,
+        &out,
+        &DatasetOptions::new(Profile::Train),
+        &mut |_, _| {},
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(
+        msg.contains("imgs") && msg.contains("4 channels") && msg.contains("--drop-alpha"),
+        "{msg}"
+    );
+
+    let mut opts = DatasetOptions::new(Profile::Train);
+    opts.drop_alpha = true;
+    opts.layout = Some(Layout::H36mZju);
+    convert_dataset(&input, &out, &opts, &mut |_, _| {}).unwrap();
+    let ds = Dataset::read(&out, &ReadOptions::new(Profile::Train)).unwrap();
+    let rgb: Vec<u8> = rgba
+        .chunks_exact(4)
+        .flat_map(|p| [p[0], p[1], p[2]])
+        .collect();
+    assert_eq!(ds.imgs.unwrap().into_raw_vec_and_offset().0, rgb);
+}

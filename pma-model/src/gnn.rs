@@ -1,1 +1,126 @@
-//! gnn
+//! The pose graph network `GNN_Sine` (spec model.md §3.2) and the learnable per-part
+//! box half-extents ("axis scales", §2.6) it owns.
+//!
+//! Input: the 6D rotation of every joint of every distinct pose in the batch; output: one
+//! feature vector G_j per joint. All of this is per-pose work, computed once per pose.
+
+use candle_core::Tensor;
+use candle_nn::VarBuilder;
+
+use crate::config::Config;
+use crate::error::Result;
+use crate::nn::per_joint_matmul;
+
+/// Graph convolution with per-node weights: `Y_j = Σ_k (E ⊙ A)_jk (X_k W_k) + β`.
+#[derive(Debug, Clone)]
+struct GraphConv {
+    /// lin.weight: [J,in,out]
+    weight: Tensor,
+    /// adj_w ⊙ adj: the learnable edge weights masked by the skeleton graph, [1,J,J].
+    adj_w: Tensor,
+    adj: Tensor,
+    /// bias: [out] shared by all nodes.
+    bias: Tensor,
+}
+
+/// Per-node linear layer: `Y_j = X_j W_j + b_j`.
+#[derive(Debug, Clone)]
+struct ParallelLinear {
+    /// weight: [J,in,out]
+    weight: Tensor,
+    /// bias: [1,J,out]
+    bias: Tensor,
+}
+
+#[derive(Debug, Clone)]
+enum Layer {
+    Graph(GraphConv),
+    Node(ParallelLinear),
+}
+
+impl Layer {
+    /// x: [P,J,in] -> [P,J,out] (before the sine).
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        match self {
+            Layer::Graph(g) => {
+                let xw = per_joint_matmul(x, &g.weight)?;
+                let e = g.adj_w.mul(&g.adj)?;
+                Ok(e.broadcast_matmul(&xw)?.broadcast_add(&g.bias)?)
+            }
+            Layer::Node(l) => Ok(per_joint_matmul(x, &l.weight)?.broadcast_add(&l.bias)?),
+        }
+    }
+}
+
+/// Per-layer outputs before the sine, for parity tests.
+pub type GnnTrace = Vec<Tensor>;
+
+#[derive(Debug, Clone)]
+pub struct GnnSine {
+    layers: Vec<Layer>,
+    /// mask: [1,J,1], 0 at the root: the graph sees relative rotations only.
+    mask: Tensor,
+    /// axis_scale: [J,3], the learnable half-extents (raw, may go negative).
+    axis_scale: Tensor,
+    /// base_scale: [J,3], their initial values (the floor is a fraction of these).
+    base_scale: Tensor,
+    w0: f64,
+    scale_floor: f64,
+}
+
+impl GnnSine {
+    /// Loads `graph_net.*` (pass `vb.pp("graph_net")`).
+    pub fn load(vb: VarBuilder, cfg: &Config) -> Result<Self> {
+        let j = cfg.n_joints;
+        let gw = cfg.gnn_width;
+        let mut layers = Vec::new();
+        for l in 0..cfg.gnn_graph_layers + cfg.gnn_fc_layers {
+            let vl = vb.pp(format!("layers.{l}"));
+            let fan_in = if l == 0 { 6 } else { gw };
+            layers.push(if l < cfg.gnn_graph_layers {
+                Layer::Graph(GraphConv {
+                    weight: vl.get((j, fan_in, gw), "lin.weight")?,
+                    adj_w: vl.get((1, j, j), "adj_w")?,
+                    adj: vl.get((1, j, j), "adj")?.detach(),
+                    bias: vl.get(gw, "bias")?,
+                })
+            } else {
+                Layer::Node(ParallelLinear {
+                    weight: vl.get((j, fan_in, gw), "weight")?,
+                    bias: vl.get((1, j, gw), "bias")?,
+                })
+            });
+        }
+        Ok(Self {
+            layers,
+            mask: vb.get((1, j, 1), "mask")?.detach(),
+            axis_scale: vb.get((j, 3), "axis_scale")?,
+            base_scale: vb.get((j, 3), "base_scale")?.detach(),
+            w0: cfg.sin_w0_pose,
+            scale_floor: cfg.scale_floor,
+        })
+    }
+
+    /// pose6d: [P,J,6] -> G: [P,J,C]. With `trace`, also returns every layer's pre-sine output.
+    pub fn forward(&self, pose6d: &Tensor, mut trace: Option<&mut GnnTrace>) -> Result<Tensor> {
+        let mut h = pose6d.broadcast_mul(&self.mask)?;
+        for layer in &self.layers {
+            let pre = layer.forward(&h)?;
+            if let Some(t) = trace.as_deref_mut() {
+                t.push(pre.clone());
+            }
+            h = (pre * self.w0)?.sin()?;
+        }
+        Ok(h)
+    }
+
+    /// Effective half-extents s: [J,3]. The value is `max(|a|, floor·b0)` but the gradient
+    /// w.r.t. |a| is always 1 (the reference's straight-through floor), so the size
+    /// regulariser can keep pushing the raw parameter while the value stays at the floor.
+    pub fn axis_scale(&self) -> Result<Tensor> {
+        let a = self.axis_scale.abs()?;
+        let floor = (&self.base_scale * self.scale_floor)?;
+        let clamped = a.maximum(&floor)?;
+        Ok((&a + (clamped - &a)?.detach())?)
+    }
+}

@@ -1,1 +1,129 @@
-//! modulator
+//! Pose-dependent frequency modulation (spec model.md §3.7, §3.9): the `PoseExtractor`
+//! predicts per-layer frequencies Θ and phases Φ from the aggregated pose feature f^m,
+//! and the FiLM-SIREN `Modulator` runs the windowed point encoding through sine layers
+//! whose frequencies and phases are those predictions.
+
+use candle_core::Tensor;
+use candle_nn::VarBuilder;
+
+use crate::config::Config;
+use crate::error::Result;
+use crate::nn::{Linear, SineLayer};
+
+/// Frequencies Θ and phases Φ of the modulated layers, one [N,F] tensor per layer.
+#[derive(Debug, Clone)]
+pub struct Modulation {
+    pub freq: Vec<Tensor>,
+    pub phase: Vec<Tensor>,
+}
+
+#[derive(Debug, Clone)]
+pub struct PoseExtractor {
+    hidden: Vec<SineLayer>,
+    head: Linear,
+    n_pm: usize,
+    freq_dim: usize,
+}
+
+impl PoseExtractor {
+    /// Loads `pose_extractor.*`.
+    pub fn load(vb: VarBuilder, cfg: &Config) -> Result<Self> {
+        let h = cfg.pose_extractor_hidden;
+        let mut hidden = Vec::new();
+        for l in 0..cfg.pose_extractor_depth {
+            let fan_in = if l == 0 { cfg.win_hidden } else { h };
+            hidden.push(SineLayer::load(
+                vb.pp(format!("sin_lin{l}")),
+                fan_in,
+                h,
+                cfg.sin_w0_pose,
+            )?);
+        }
+        let fan_in = if cfg.pose_extractor_depth == 0 {
+            cfg.win_hidden
+        } else {
+            h
+        };
+        let head = Linear::load(
+            vb.pp(format!("sin_lin{}.layer", cfg.pose_extractor_depth)),
+            fan_in,
+            2 * cfg.n_pm * cfg.freq_dim,
+        )?;
+        Ok(Self {
+            hidden,
+            head,
+            n_pm: cfg.n_pm,
+            freq_dim: cfg.freq_dim,
+        })
+    }
+
+    /// f_m: [N,H] -> Θ, Φ. The head's output is laid out as [Θ_0..Θ_{K-1}, Φ_0..Φ_{K-1}],
+    /// each block F wide.
+    pub fn forward(&self, f_m: &Tensor) -> Result<Modulation> {
+        let mut h = f_m.clone();
+        for layer in &self.hidden {
+            h = layer.forward(&h)?;
+        }
+        let o = self.head.forward(&h)?;
+        let (k, f) = (self.n_pm, self.freq_dim);
+        let freq = (0..k)
+            .map(|i| o.narrow(1, i * f, f))
+            .collect::<candle_core::Result<Vec<_>>>()?;
+        let phase = (0..k)
+            .map(|i| o.narrow(1, (k + i) * f, f))
+            .collect::<candle_core::Result<Vec<_>>>()?;
+        Ok(Modulation { freq, phase })
+    }
+}
+
+#[derive(Debug, Clone)]
+pub struct Modulator {
+    layers: Vec<Linear>,
+    w0: f64,
+}
+
+impl Modulator {
+    /// Loads `modulator.sin_lin{k}.layer.*`.
+    pub fn load(vb: VarBuilder, cfg: &Config) -> Result<Self> {
+        let mut layers = Vec::new();
+        for k in 0..cfg.n_pm {
+            let fan_in = if k == 0 {
+                cfg.n_joints * cfg.point_enc_dim
+            } else {
+                cfg.freq_dim
+            };
+            layers.push(Linear::load(
+                vb.pp(format!("sin_lin{k}.layer")),
+                fan_in,
+                cfg.freq_dim,
+            )?);
+        }
+        Ok(Self {
+            layers,
+            w0: cfg.sin_w0_point,
+        })
+    }
+
+    /// Map raw predictions Θ to frequencies γ. pi-GAN's `15Θ + 30` is what the reference
+    /// takes whenever ω > 15 (ω = 16 by default); otherwise `ωΘ + 2ω`.
+    pub fn gamma(&self, theta: &Tensor) -> Result<Tensor> {
+        Ok(if self.w0 > 15.0 {
+            theta.affine(15.0, 30.0)?
+        } else {
+            theta.affine(self.w0, 2.0 * self.w0)?
+        })
+    }
+
+    /// x_tilde: [N,J·Ce] windowed point encodings -> S: [N,K·F], the concatenated outputs
+    /// `h_k = sin(γ_k ⊙ (M_k h_{k-1} + ν_k) + Φ_k)` of all modulated layers.
+    pub fn forward(&self, x_tilde: &Tensor, m: &Modulation) -> Result<Tensor> {
+        let mut h = x_tilde.clone();
+        let mut outs = Vec::with_capacity(self.layers.len());
+        for (k, layer) in self.layers.iter().enumerate() {
+            let pre = layer.forward(&h)?;
+            h = (pre * self.gamma(&m.freq[k])?)?.add(&m.phase[k])?.sin()?;
+            outs.push(h.clone());
+        }
+        Ok(Tensor::cat(&outs, 1)?)
+    }
+}

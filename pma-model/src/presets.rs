@@ -354,6 +354,11 @@ mod train_presets {
             self.model.validate()?;
             self.train.validate()
         }
+
+        /// The full configuration as TOML; [`Self::from_toml_str`] reads it back unchanged.
+        pub fn to_toml_string(&self) -> Result<String, TrainError> {
+            toml::to_string(self).map_err(|e| TrainError::Config(format!("cannot write the run config as TOML: {e}")))
+        }
     }
 
     fn take_table(root: &mut toml::Table, key: &str) -> Result<toml::Table, TrainError> {
@@ -416,6 +421,15 @@ mod tests {
         assert_eq!(run.model.view_width, Config::cpu_small().view_width);
         assert_eq!(run.train.rays_per_step, 256);
         assert_eq!(run.train.images_per_step, TrainConfig::cpu_small().images_per_step);
+    }
+
+    #[test]
+    fn toml_roundtrip_is_exact() {
+        for p in Preset::ALL {
+            let run = RunConfig::from_preset(p);
+            let back = RunConfig::from_toml_str(&run.to_toml_string().unwrap()).unwrap();
+            assert_eq!(back, run, "{p}");
+        }
     }
 
     #[test]

@@ -95,9 +95,9 @@ pub fn raw2outputs(
     // (rather than selecting) also zeroes the gradient of empty rays.
     let nonempty = w_sum.abs()?.gt(1e-8)?.to_dtype(dtype)?;
     let disp = (disp * nonempty)?;
-    // Where Σw is exactly 1 the gradient is split ½/½ between Σw and the constant, as with
-    // torch.minimum (torch.clamp would pass all of it).
-    let acc = w_sum.minimum(1.0)?;
+    // min(Σw, 1) with torch.clamp's gradient: all of it passes where Σw ≤ 1, including the
+    // exact ties of opaque rays (candle's `minimum` would halve it there).
+    let acc = w_sum.gt(1.0)?.where_cond(&w_sum.ones_like()?, &w_sum)?;
     if let Some(bg) = bgs {
         let see_through = acc.affine(-1.0, 1.0)?.unsqueeze(1)?;
         rgb_map = (rgb_map + see_through.broadcast_mul(bg)?)?;

@@ -1,1 +1,92 @@
-//! window
+//! The two-stage window (spec model.md §3.4, §3.6): the spatial window w^p from the
+//! bone-normalised point x̄, and the learned feature window w^f from a max-pool over the
+//! joints' part features. Their product w selects which parts describe a point.
+
+use candle_core::{Tensor, D};
+use candle_nn::VarBuilder;
+
+use crate::config::Config;
+use crate::error::Result;
+use crate::nn::{Linear, SineLayer};
+
+/// Spatial window `w^p = exp(−α Σ_k x̄_k^β)`: x_bar: [N,J,3] -> [N,J], detached as in the
+/// reference (it does not train the box sizes). The power is computed by repeated squaring
+/// (never exp/log), so negative components and huge |x̄| stay exact or underflow to 0.
+pub fn spatial_window(x_bar: &Tensor, alpha: f64, beta: u32) -> Result<Tensor> {
+    let x = x_bar.detach();
+    let sq = x.sqr()?;
+    let mut p = sq.clone();
+    for _ in 1..beta / 2 {
+        p = (p * &sq)?;
+    }
+    Ok((p.sum(D::Minus1)? * -alpha)?.exp()?)
+}
+
+/// Outputs of the window for one pose group of points.
+#[derive(Debug, Clone)]
+pub struct Window {
+    /// w: [N,J] = w^p · w^f
+    pub w: Tensor,
+    /// w_f: [N,J] feature window
+    pub w_f: Tensor,
+    /// logits: [N,J] before the sigmoid
+    pub logits: Tensor,
+    /// pooled: [N,H] max over joints of the attenuated part features
+    pub pooled: Tensor,
+}
+
+/// `WinFun`: part features `f^p_j = layer_pose(G_j) + layer_point(e_j)`, attenuated by
+/// w^p, max-pooled over joints, then two sine layers, a linear layer and a sigmoid.
+#[derive(Debug, Clone)]
+pub struct WinFun {
+    layer_pose: Linear,
+    layer_point: Linear,
+    sin0: SineLayer,
+    sin1: SineLayer,
+    last: Linear,
+}
+
+impl WinFun {
+    /// Loads `win_fun.*`.
+    pub fn load(vb: VarBuilder, cfg: &Config) -> Result<Self> {
+        let h = cfg.win_hidden;
+        Ok(Self {
+            layer_pose: Linear::load(vb.pp("layer_pose.layer"), cfg.gnn_width, h)?,
+            layer_point: Linear::load(vb.pp("layer_point.layer"), cfg.point_enc_dim, h)?,
+            sin0: SineLayer::load(vb.pp("sin_lin0"), h, h, cfg.sin_w0_pose)?,
+            sin1: SineLayer::load(vb.pp("sin_lin1"), h, h, cfg.sin_w0_pose)?,
+            last: Linear::load(vb.pp("last_layer.layer"), h, cfg.n_joints)?,
+        })
+    }
+
+    /// Per-pose projection g = layer_pose(G): [P,J,C] -> [P,J,H]. Computed once per pose;
+    /// it also is the feature that f^m aggregates.
+    pub fn project_pose(&self, g_feat: &Tensor) -> Result<Tensor> {
+        self.layer_pose.forward(g_feat)
+    }
+
+    /// One pose group: g: [J,H] (that pose's projection), e: [N,J,Ce] pose-branch point
+    /// encodings, w_p: [N,J] spatial window.
+    pub fn forward(&self, g: &Tensor, e: &Tensor, w_p: &Tensor) -> Result<Window> {
+        let q = self.layer_point.forward(e)?;
+        let part = q.broadcast_add(&g.unsqueeze(0)?)?;
+        let attenuated = part.broadcast_mul(&w_p.unsqueeze(D::Minus1)?)?;
+        let pooled = attenuated.max(1)?;
+        let h = self.sin1.forward(&self.sin0.forward(&pooled)?)?;
+        let logits = self.last.forward(&h)?;
+        let w_f = candle_nn::ops::sigmoid(&logits)?;
+        let w = (w_p * &w_f)?;
+        Ok(Window {
+            w,
+            w_f,
+            logits,
+            pooled,
+        })
+    }
+}
+
+/// Aggregated pose feature `f^m = Σ_j w_j g_j` (a plain sum, not normalised):
+/// w: [N,J], g: [J,H] -> [N,H].
+pub fn aggregate(w: &Tensor, g: &Tensor) -> Result<Tensor> {
+    Ok(w.matmul(g)?)
+}

@@ -317,7 +317,7 @@ fn raycast_mixed_case_covers_every_ray_kind() {
     // Guards the fixture itself: hits, cylinder-only rays and cylinder misses must all occur.
     let fx = fixture("raycast");
     let hits = fx.host("mixed", "out/ray_hits_body");
-    assert!(hits.iter().any(|&h| h == 1.0) && hits.iter().any(|&h| h == 0.0));
+    assert!(hits.contains(&1.0) && hits.contains(&0.0));
 }
 
 #[test]

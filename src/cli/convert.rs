@@ -178,7 +178,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             );
             if let Some(side) = rep.train_state {
                 println!(
-                    "{}: Adam state of {} parameters",
+                    "{}: Adam state ({} parameters had moments in the source; the others start from zero)",
                     side.display(),
                     rep.n_moments
                 );

@@ -157,16 +157,397 @@ pub fn plot_psnr_vs_time(
 
 #[cfg(feature = "train")]
 mod imp {
+    use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+    use std::sync::Arc;
+    use std::time::{Duration, Instant};
+
+    use anyhow::{bail, Context as _};
+    use candle_core::Device;
+    use pma_data::dataset::{Dataset, Profile};
+    use pma_model::train::{
+        LogRow, Preset, RunConfig, StepStats, TrainError, TrainLog, Trainer, MODEL_FILE, STATE_FILE,
+    };
+
+    use super::super::eval::{evaluate, read_dataset, spread, EvalOptions};
     use super::*;
 
-    pub struct TrainRequest;
-    pub struct TrainOutcome;
+    /// File names inside a run directory.
+    pub const CONFIG_FILE: &str = "config.toml";
+    pub const LOG_FILE: &str = "log.csv";
+    pub const PLOT_FILE: &str = "psnr_vs_time.png";
 
-    pub fn run(_args: Args) -> anyhow::Result<TrainOutcome> {
-        anyhow::bail!("`pma train` is being written")
+    /// What to train (the library-level form of the `pma train` flags, shared with `pma demo`).
+    #[derive(Debug, Clone)]
+    pub struct TrainRequest {
+        pub data: PathBuf,
+        pub out: PathBuf,
+        /// `None`: the run directory's `config.toml` (resume) or the `default` preset.
+        pub run: Option<RunConfig>,
+        pub resume: bool,
+        /// Start afresh even if `out` holds a run (its files are replaced); otherwise refuse.
+        pub overwrite: bool,
+        pub iters: Option<u64>,
+        pub minutes: Option<f64>,
+        /// Held-out data for the periodic evaluation (images with `eval_tag` 1 if tagged).
+        pub eval_data: Option<PathBuf>,
+        pub quiet: bool,
+        /// Plot title.
+        pub title: String,
     }
 
-    pub fn train_run(_req: TrainRequest) -> anyhow::Result<TrainOutcome> {
-        anyhow::bail!("`pma train` is being written")
+    /// What a training session did.
+    #[derive(Debug, Clone)]
+    pub struct TrainOutcome {
+        /// Completed iterations of the run (all sessions).
+        pub iterations: u64,
+        /// Iterations done by this session.
+        pub session_iterations: u64,
+        /// Wall-clock seconds of the run (all sessions), including held-out evaluations.
+        pub wall_s: f64,
+        /// Seconds of this session.
+        pub session_s: f64,
+        /// Seconds of this session spent in held-out evaluation.
+        pub eval_s: f64,
+        pub skipped: u64,
+        pub interrupted: bool,
+        pub model: PathBuf,
+        pub log: TrainLog,
+        pub plot: PathBuf,
+    }
+
+    pub fn run(args: Args) -> anyhow::Result<TrainOutcome> {
+        let mut run = match &args.config {
+            Some(path) => Some(RunConfig::from_toml_file(path)?),
+            None if args.resume => None,
+            None => Some(RunConfig::from_preset(args.preset.parse::<Preset>()?)),
+        };
+        if let (Some(seed), Some(run)) = (args.seed, run.as_mut()) {
+            run.train.seed = seed;
+        } else if args.seed.is_some() {
+            bail!("--seed cannot change a resumed run (its seed is in {CONFIG_FILE})");
+        }
+        let eval_data = args.eval_data.clone().or_else(|| {
+            let beside = args.data.parent()?.join("novel_view.npz");
+            (beside.is_file() && beside != args.data).then_some(beside)
+        });
+        let outcome = train_run(TrainRequest {
+            data: args.data,
+            out: args.out,
+            run,
+            resume: args.resume,
+            overwrite: false,
+            iters: args.iters,
+            minutes: args.minutes,
+            eval_data,
+            quiet: args.quiet,
+            title: "pma train: held-out PSNR vs wall-clock time".into(),
+        })?;
+        println!(
+            "{} at iteration {} ({} this session, {:.1} it/s, {} skipped); model: {}",
+            if outcome.interrupted { "stopped" } else { "done" },
+            outcome.iterations,
+            outcome.session_iterations,
+            outcome.session_iterations as f64 / (outcome.session_s - outcome.eval_s).max(1e-9),
+            outcome.skipped,
+            outcome.model.display()
+        );
+        Ok(outcome)
+    }
+
+    /// Set once per process: the first Ctrl-C asks the loop to checkpoint and stop, a second
+    /// one exits at once.
+    fn interrupt_flag() -> Arc<AtomicBool> {
+        static FLAG: std::sync::OnceLock<Arc<AtomicBool>> = std::sync::OnceLock::new();
+        FLAG.get_or_init(|| {
+            let flag = Arc::new(AtomicBool::new(false));
+            let presses = Arc::new(AtomicUsize::new(0));
+            let f = flag.clone();
+            let handler = ctrlc::set_handler(move || {
+                if presses.fetch_add(1, Ordering::SeqCst) > 0 {
+                    eprintln!("\nsecond Ctrl-C: exiting without a checkpoint");
+                    std::process::exit(130);
+                }
+                eprintln!("\nCtrl-C: writing a checkpoint, then stopping (press again to exit at once)");
+                f.store(true, Ordering::SeqCst);
+            });
+            if let Err(e) = handler {
+                eprintln!("warning: cannot install the Ctrl-C handler ({e}); Ctrl-C will not checkpoint");
+            }
+            flag
+        })
+        .clone()
+    }
+
+    fn resolve_run(req: &TrainRequest) -> anyhow::Result<RunConfig> {
+        let saved = req.out.join(CONFIG_FILE);
+        let mut run = if req.resume {
+            let from_dir = RunConfig::from_toml_file(&saved)
+                .with_context(|| format!("--resume needs the run's {CONFIG_FILE}"))?;
+            if let Some(given) = &req.run {
+                let mut a = given.clone();
+                let mut b = from_dir.clone();
+                // Only the length of the run may change on resume.
+                a.train.iters = 0;
+                b.train.iters = 0;
+                if a != b {
+                    bail!(
+                        "the configuration given differs from the run's {} (beyond `iters`); a resumed run keeps its configuration",
+                        saved.display()
+                    );
+                }
+            }
+            from_dir
+        } else {
+            req.run.clone().unwrap_or_else(|| RunConfig::from_preset(Preset::Paper))
+        };
+        if let Some(n) = req.iters {
+            run.train.iters = n;
+        }
+        run.validate()?;
+        Ok(run)
+    }
+
+    fn write_config(run: &RunConfig, path: &Path) -> anyhow::Result<()> {
+        let text = format!(
+            "# Resolved run configuration, written by `pma train`; `--resume` reads it back.\n{}",
+            run.to_toml_string()?
+        );
+        super::super::eval::write_atomic(path, text.as_bytes())
+    }
+
+    struct Interval {
+        loss: f64,
+        psnr: f64,
+        n: u64,
+    }
+
+    impl Interval {
+        fn take(&mut self) -> (f64, f64) {
+            let out = if self.n == 0 {
+                (f64::NAN, f64::NAN)
+            } else {
+                (self.loss / self.n as f64, self.psnr / self.n as f64)
+            };
+            *self = Interval { loss: 0.0, psnr: 0.0, n: 0 };
+            out
+        }
+    }
+
+    /// Train until `iters` or the time budget or Ctrl-C, checkpointing as configured.
+    pub fn train_run(req: TrainRequest) -> anyhow::Result<TrainOutcome> {
+        let run = resolve_run(&req)?;
+        let device = Device::Cpu;
+        std::fs::create_dir_all(&req.out).with_context(|| format!("creating {}", req.out.display()))?;
+        if !req.resume && !req.overwrite && req.out.join(STATE_FILE).exists() {
+            bail!(
+                "{} already holds a run (pass --resume to continue it, or choose another --out)",
+                req.out.display()
+            );
+        }
+        let data = Arc::new(read_dataset(&req.data, Profile::Train)?);
+        let held_out = match &req.eval_data {
+            Some(p) => Some(read_dataset(p, Profile::Eval)?),
+            None => None,
+        };
+        let eval_images: Vec<usize> = match &held_out {
+            Some(d) => {
+                let tagged: Vec<usize> = match &d.eval_tag {
+                    Some(t) if t.iter().any(|&v| v == 1) => (0..d.n_images()).filter(|&i| t[i] == 1).collect(),
+                    _ => (0..d.n_images()).collect(),
+                };
+                spread(&tagged, run.train.eval_images.max(1))
+            }
+            None => Vec::new(),
+        };
+
+        let mut trainer = if req.resume {
+            Trainer::resume(&req.out, run.clone(), data.clone(), &device)?
+        } else {
+            write_config(&run, &req.out.join(CONFIG_FILE))?;
+            Trainer::new(run.clone(), data.clone(), &device)?
+        };
+        let log_path = req.out.join(LOG_FILE);
+        let plot_path = req.out.join(PLOT_FILE);
+        let mut log = if req.resume { TrainLog::read(&log_path)? } else { TrainLog::default() };
+        log.truncate_after(trainer.iteration());
+
+        let cfg = run.train.clone();
+        let target = cfg.iters;
+        let start_iter = trainer.iteration();
+        let base_wall = trainer.progress().wall_s;
+        let session = Instant::now();
+        let budget = req.minutes.map(|m| Duration::from_secs_f64((m * 60.0).max(0.0)));
+        let stop = interrupt_flag();
+        let bar = progress_bar(req.quiet, start_iter, target);
+        let mut eval_s = 0.0f64;
+        let mut interval = Interval { loss: 0.0, psnr: 0.0, n: 0 };
+        let mut ema: Option<(f64, f64)> = None;
+
+        let eval_opts = EvalOptions::quick(cfg.render_chunk);
+        let mut evaluate_now = |trainer: &Trainer, eval_s: &mut f64| -> anyhow::Result<Option<(f64, f64)>> {
+            let Some(d) = &held_out else { return Ok(None) };
+            let t = Instant::now();
+            let r = evaluate(trainer.avatar(), d, "held-out", &eval_images, &eval_opts, &mut |_, _| {})?;
+            *eval_s += t.elapsed().as_secs_f64();
+            Ok(Some((r.psnr, r.ssim)))
+        };
+        let wall = |session: &Instant| base_wall + session.elapsed().as_secs_f64();
+
+        // The curve starts at the initial model.
+        if start_iter == 0 && held_out.is_some() {
+            let e = evaluate_now(&trainer, &mut eval_s)?;
+            log.push(LogRow {
+                iter: 0,
+                wall_s: wall(&session),
+                loss: f64::NAN,
+                train_psnr: f64::NAN,
+                eval_psnr: e.map(|v| v.0),
+                eval_ssim: e.map(|v| v.1),
+                lr: trainer.lrs().last().copied().unwrap_or(f64::NAN),
+                skipped: 0,
+            });
+        }
+
+        let mut interrupted = false;
+        let mut last_logged = trainer.iteration();
+        let mut failure: Option<TrainError> = None;
+        while trainer.iteration() < target {
+            if stop.load(Ordering::SeqCst) {
+                interrupted = true;
+                break;
+            }
+            if budget.is_some_and(|b| session.elapsed() >= b) {
+                break;
+            }
+            let stats = match trainer.step() {
+                Ok(s) => s,
+                Err(e @ TrainError::Diverged { .. }) => {
+                    failure = Some(e);
+                    break;
+                }
+                Err(e) => return Err(e.into()),
+            };
+            trainer.set_wall_s(wall(&session));
+            let it = stats.iter;
+            if let Some(reason) = stats.skipped {
+                bar.println(format!("iteration {it}: {reason}; step skipped (weights unchanged)"));
+            } else {
+                interval.loss += stats.loss.total;
+                interval.psnr += stats.loss.psnr;
+                interval.n += 1;
+                ema = Some(match ema {
+                    None => (stats.loss.total, stats.loss.psnr),
+                    Some((l, p)) => (0.9 * l + 0.1 * stats.loss.total, 0.9 * p + 0.1 * stats.loss.psnr),
+                });
+            }
+            update_bar(&bar, &stats, ema, &session, start_iter, target, budget, eval_s);
+
+            let eval_due = cfg.eval_every > 0 && it % cfg.eval_every == 0;
+            if it % cfg.log_every == 0 || eval_due {
+                let e = if eval_due { evaluate_now(&trainer, &mut eval_s)? } else { None };
+                let (loss, psnr) = interval.take();
+                log.push(LogRow {
+                    iter: it,
+                    wall_s: wall(&session),
+                    loss,
+                    train_psnr: psnr,
+                    eval_psnr: e.map(|v| v.0),
+                    eval_ssim: e.map(|v| v.1),
+                    lr: trainer.lrs().last().copied().unwrap_or(f64::NAN),
+                    skipped: trainer.progress().skipped,
+                });
+                last_logged = it;
+                if let Some((p, s)) = e {
+                    bar.println(format!("iteration {it}: held-out PSNR {p:.2} dB, SSIM {s:.4}"));
+                }
+                log.write(&log_path)?;
+            }
+            if it % cfg.ckpt_every == 0 {
+                trainer.set_wall_s(wall(&session));
+                trainer.save_checkpoint(&req.out)?;
+                plot_psnr_vs_time(&log.eval_curve(), &log.train_curve(), &req.title, &plot_path)?;
+            }
+        }
+
+        // Final row (with a held-out evaluation), checkpoint, log and plot.
+        let it = trainer.iteration();
+        let evaluated_here = log.rows.last().is_some_and(|r| r.iter == it && r.eval_psnr.is_some());
+        if failure.is_none() && !evaluated_here && (it > last_logged || held_out.is_some()) {
+            let e = evaluate_now(&trainer, &mut eval_s)?;
+            let (loss, psnr) = interval.take();
+            log.push(LogRow {
+                iter: it,
+                wall_s: wall(&session),
+                loss,
+                train_psnr: psnr,
+                eval_psnr: e.map(|v| v.0),
+                eval_ssim: e.map(|v| v.1),
+                lr: trainer.lrs().last().copied().unwrap_or(f64::NAN),
+                skipped: trainer.progress().skipped,
+            });
+        }
+        trainer.set_wall_s(wall(&session));
+        trainer.save_checkpoint(&req.out)?;
+        log.write(&log_path)?;
+        plot_psnr_vs_time(&log.eval_curve(), &log.train_curve(), &req.title, &plot_path)?;
+        bar.finish_and_clear();
+        if let Some(e) = failure {
+            return Err(e).context(format!("training stopped; checkpoint of iteration {it} written to {}", req.out.display()));
+        }
+        if interrupted {
+            eprintln!("interrupted at iteration {it}; continue with `pma train --resume --out {}`", req.out.display());
+        }
+        Ok(TrainOutcome {
+            iterations: it,
+            session_iterations: it - start_iter,
+            wall_s: wall(&session),
+            session_s: session.elapsed().as_secs_f64(),
+            eval_s,
+            skipped: trainer.progress().skipped,
+            interrupted,
+            model: req.out.join(MODEL_FILE),
+            log,
+            plot: plot_path,
+        })
+    }
+
+    fn progress_bar(quiet: bool, pos: u64, len: u64) -> indicatif::ProgressBar {
+        if quiet {
+            return indicatif::ProgressBar::hidden();
+        }
+        let bar = indicatif::ProgressBar::new(len);
+        bar.set_style(
+            indicatif::ProgressStyle::with_template("[{elapsed_precise}] {bar:30} {pos}/{len} {msg}")
+                .expect("static template")
+                .progress_chars("=> "),
+        );
+        bar.set_position(pos);
+        bar
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn update_bar(
+        bar: &indicatif::ProgressBar,
+        stats: &StepStats,
+        ema: Option<(f64, f64)>,
+        session: &Instant,
+        start_iter: u64,
+        target: u64,
+        budget: Option<Duration>,
+        eval_s: f64,
+    ) {
+        bar.set_position(stats.iter);
+        let elapsed = session.elapsed().as_secs_f64();
+        let done = (stats.iter - start_iter) as f64;
+        let rate = done / (elapsed - eval_s).max(1e-9);
+        let mut eta = (target - stats.iter) as f64 / rate.max(1e-9);
+        if let Some(b) = budget {
+            eta = eta.min((b.as_secs_f64() - elapsed).max(0.0));
+        }
+        let (loss, psnr) = ema.unwrap_or((f64::NAN, f64::NAN));
+        bar.set_message(format!(
+            "{rate:.2} it/s  loss {loss:.4}  train PSNR {psnr:.2} dB  ETA {}",
+            indicatif::HumanDuration(Duration::from_secs_f64(eta.min(1e9)))
+        ));
     }
 }

@@ -2,14 +2,30 @@
 //! forward, loss, backward, global-norm clip, Adam, then the learning rates for the next step.
 //!
 //! [`Optimization`] is the model-agnostic half (clip, skip, Adam, schedule, counters);
-//! [`Trainer`] adds the avatar, the ray sampler and the noise generator.
+//! [`Trainer`] adds the avatar, a [`BatchSource`] (the pma-data ray sampler in real runs) and
+//! the density-noise generator.
+//!
+//! Everything random in training comes from seeded ChaCha generators whose positions are
+//! saved in the train state, and candle's CPU kernels are deterministic, so a run resumed
+//! from a checkpoint continues bit for bit like one that never stopped.
 
-use candle_core::Tensor;
+use std::path::Path;
+
+use candle_core::{Device, Tensor, Var};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
 
 use super::adam::{clip_grad_norm, global_norm, Adam};
-use super::state::Progress;
+use super::state::{fingerprint, Progress, RngState, TrainState};
 use super::TrainError;
-use crate::presets::TrainConfig;
+use crate::avatar::{Avatar, ForwardOptions, Outputs, Poses, Rays};
+use crate::loss::LossWeights;
+use crate::presets::{RunConfig, TrainConfig};
+
+/// Model file of a run directory (a pma checkpoint).
+pub const MODEL_FILE: &str = "model.safetensors";
+/// Train-state file of a run directory.
+pub const STATE_FILE: &str = "train_state.safetensors";
 
 /// Loss terms of one step (spec §5), as plain numbers for logging.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -118,6 +134,252 @@ impl Optimization {
 /// PSNR from a mean squared error (`-10 log10 mse`; +inf for a perfect match).
 pub fn psnr_from_mse(mse: f64) -> f64 {
     -10.0 * mse.log10()
+}
+
+/// One training batch: rays grouped by pose in equal contiguous blocks, their targets.
+#[derive(Debug, Clone)]
+pub struct TrainBatch {
+    /// Unit directions, per-ray backgrounds (random noise on background pixels), and the
+    /// training-image index of each ray as its frame code.
+    pub rays: Rays,
+    pub poses: Poses,
+    /// target: [R,3] pixel colour composited over the ray's background.
+    pub target: Tensor,
+}
+
+/// Where training batches come from. Its state is saved with every checkpoint, so it must
+/// capture everything that decides the next batches (permutation, cursor, RNG position).
+pub trait BatchSource {
+    fn next_batch(&mut self) -> Result<TrainBatch, TrainError>;
+    /// JSON state for the train-state file (`Value::Null` if stateless).
+    fn state(&self) -> serde_json::Value;
+    fn restore(&mut self, state: &serde_json::Value) -> Result<(), TrainError>;
+}
+
+/// The same batch every step (parity tests, overfitting a fixed batch).
+pub struct FixedBatch(pub TrainBatch);
+
+impl BatchSource for FixedBatch {
+    fn next_batch(&mut self) -> Result<TrainBatch, TrainError> {
+        Ok(self.0.clone())
+    }
+    fn state(&self) -> serde_json::Value {
+        serde_json::Value::Null
+    }
+    fn restore(&mut self, _: &serde_json::Value) -> Result<(), TrainError> {
+        Ok(())
+    }
+}
+
+/// The differentiated loss (spec §5, [`crate::loss`]) and its parts as numbers.
+pub fn training_loss(out: &Outputs, target: &Tensor, cfg: &TrainConfig) -> Result<(Tensor, LossParts), TrainError> {
+    let weights = LossWeights { fine: cfg.loss_fine, coarse: cfg.loss_coarse, scale: cfg.loss_scale };
+    let loss = crate::loss::training_loss(out, target, &weights)?;
+    let mse = (&out.fine.rgb.detach() - target)?.sqr()?.mean_all()?.to_scalar::<f32>()? as f64;
+    let scalar = |t: &Tensor| -> Result<f64, TrainError> { Ok(t.to_scalar::<f32>()? as f64) };
+    let parts = LossParts {
+        total: scalar(&loss.total)?,
+        fine: scalar(&loss.fine)?,
+        coarse: scalar(&loss.coarse)?,
+        scale: scalar(&loss.scale)?,
+        psnr: psnr_from_mse(mse),
+    };
+    Ok((loss.total, parts))
+}
+
+/// Gradient hook: sees (and may change) the gradients of a step before clipping, aligned
+/// with [`Trainer::param_names`].
+pub type GradHook<'a> = &'a mut dyn FnMut(&mut [Option<Tensor>]);
+
+/// The training loop's state: avatar, optimizer, batch source, noise generator.
+pub struct Trainer {
+    run: RunConfig,
+    avatar: Avatar,
+    /// Parameters aligned with `opt.adam.param_names()`.
+    params: Vec<Var>,
+    names: Vec<String>,
+    opt: Optimization,
+    source: Box<dyn BatchSource>,
+    noise_rng: ChaCha8Rng,
+}
+
+/// The density-noise stream is seeded from the run seed on its own ChaCha stream, so it
+/// never overlaps the sampler's or the initialisation's draws.
+const NOISE_STREAM: u64 = 0x6e6f_6973_65;
+
+impl Trainer {
+    /// Train `avatar` on batches from `source`. `run.model` must be the avatar's config.
+    pub fn with_source(run: RunConfig, avatar: Avatar, source: Box<dyn BatchSource>) -> Result<Self, TrainError> {
+        run.train.validate()?;
+        if avatar.config() != &run.model {
+            return Err(TrainError::Config(
+                "the avatar's config differs from the run's model config".to_string(),
+            ));
+        }
+        let vars = avatar.trainable();
+        let t = &run.train;
+        let adam = Adam::reference(&vars, t.lr_freq, t.lr, t.betas, t.eps)?;
+        let names: Vec<String> = adam.param_names().map(str::to_string).collect();
+        let by_name: std::collections::HashMap<&str, &Var> = vars.iter().map(|(n, v)| (n.as_str(), v)).collect();
+        let params = names.iter().map(|n| by_name[n.as_str()].clone()).collect();
+        let mut noise_rng = ChaCha8Rng::seed_from_u64(t.seed);
+        noise_rng.set_stream(NOISE_STREAM);
+        let opt = Optimization::new(adam, run.train.clone());
+        Ok(Self { run, avatar, params, names, opt, source, noise_rng })
+    }
+
+    pub fn run_config(&self) -> &RunConfig {
+        &self.run
+    }
+
+    pub fn avatar(&self) -> &Avatar {
+        &self.avatar
+    }
+
+    /// Completed iterations.
+    pub fn iteration(&self) -> u64 {
+        self.opt.iter
+    }
+
+    pub fn progress(&self) -> &Progress {
+        &self.opt.progress
+    }
+
+    /// Record the run's wall-clock time (saved with the next checkpoint).
+    pub fn set_wall_s(&mut self, wall_s: f64) {
+        self.opt.progress.wall_s = wall_s;
+    }
+
+    /// Rates of the next step per group (freq, other).
+    pub fn lrs(&self) -> Vec<f64> {
+        self.opt.lrs()
+    }
+
+    pub fn optimizer(&self) -> &Adam {
+        &self.opt.adam
+    }
+
+    /// Trainable parameter names in optimizer order (the order of gradients in a [`GradHook`]).
+    pub fn param_names(&self) -> &[String] {
+        &self.names
+    }
+
+    /// One iteration on the next batch of the source.
+    pub fn step(&mut self) -> Result<StepStats, TrainError> {
+        let batch = self.source.next_batch()?;
+        self.step_on(&batch, None)
+    }
+
+    /// One iteration on `batch`: forward (training mode, density noise), loss, backward,
+    /// `hook`, clip, Adam, schedule. A non-finite loss skips the backward pass too.
+    pub fn step_on(&mut self, batch: &TrainBatch, hook: Option<GradHook>) -> Result<StepStats, TrainError> {
+        let (loss, parts) = self.loss_on(batch)?;
+        let mut grads: Vec<Option<Tensor>> = if parts.total.is_finite() {
+            let store = loss.backward()?;
+            self.params.iter().map(|v| store.get(v.as_tensor()).cloned()).collect()
+        } else {
+            vec![None; self.params.len()]
+        };
+        if let Some(h) = hook {
+            h(&mut grads);
+        }
+        self.opt.apply(parts, grads)
+    }
+
+    /// Forward pass and loss on `batch` in training mode (consumes density noise).
+    pub fn loss_on(&mut self, batch: &TrainBatch) -> Result<(Tensor, LossParts), TrainError> {
+        let device = self.avatar.device().clone();
+        let rng = &mut self.noise_rng;
+        let mut noise = |n: usize| -> crate::error::Result<Tensor> {
+            use rand_distr::Distribution;
+            let v: Vec<f32> = (0..n).map(|_| rand_distr::StandardNormal.sample(&mut *rng)).collect();
+            Ok(Tensor::from_vec(v, n, &device)?)
+        };
+        let mut opts = ForwardOptions { training: true, noise: Some(&mut noise) };
+        let out = self.avatar.forward(&batch.rays, &batch.poses, &mut opts, None)?;
+        training_loss(&out, &batch.target, &self.run.train)
+    }
+
+    /// Write `dir/model.safetensors` and then `dir/train_state.safetensors`, each atomically;
+    /// the state carries a fingerprint of the model file so a crash between the two writes
+    /// is detected on resume.
+    pub fn save_checkpoint(&self, dir: &Path) -> Result<(), TrainError> {
+        let model_path = dir.join(MODEL_FILE);
+        self.avatar.save(&model_path)?;
+        let bytes =
+            std::fs::read(&model_path).map_err(|source| TrainError::Io { path: model_path.clone(), source })?;
+        let state = TrainState {
+            global_iter: self.opt.iter,
+            groups: self.opt.adam.groups().to_vec(),
+            params: self.opt.adam.states().map(|(n, s)| (n.to_string(), s.clone())).collect(),
+            rng: Some(RngState::capture(&self.noise_rng)),
+            sampler: Some(self.source.state()),
+            progress: Some(self.opt.progress.clone()),
+            run_config: Some(
+                serde_json::to_value(&self.run).map_err(|e| TrainError::Config(format!("run config: {e}")))?,
+            ),
+            model_fingerprint: Some(fingerprint(&bytes)),
+        };
+        state.save(&dir.join(STATE_FILE))
+    }
+
+    /// Continue the run saved in `dir` with batches from `source` (built exactly as for the
+    /// original run; its position is restored from the state). `run` must equal the saved
+    /// run's configuration except for `train.iters`.
+    pub fn resume_with_source(
+        dir: &Path,
+        run: RunConfig,
+        source: Box<dyn BatchSource>,
+        device: &Device,
+    ) -> Result<Self, TrainError> {
+        let fail = |reason: String| TrainError::Resume { dir: dir.to_path_buf(), reason };
+        let state_path = dir.join(STATE_FILE);
+        let model_path = dir.join(MODEL_FILE);
+        for p in [&state_path, &model_path] {
+            if !p.is_file() {
+                return Err(fail(format!("{} is missing", p.display())));
+            }
+        }
+        let state = TrainState::load(&state_path, device)?;
+        if let Some(saved) = &state.run_config {
+            let saved: RunConfig = serde_json::from_value(saved.clone())
+                .map_err(|e| fail(format!("the saved run config is unreadable: {e}")))?;
+            let (mut a, mut b) = (saved, run.clone());
+            a.train.iters = 0;
+            b.train.iters = 0;
+            if a != b {
+                return Err(fail("the run configuration differs from the one the checkpoint was trained with".into()));
+            }
+        }
+        let bytes = std::fs::read(&model_path).map_err(|source| TrainError::Io { path: model_path.clone(), source })?;
+        if let Some(fp) = &state.model_fingerprint {
+            if *fp != fingerprint(&bytes) {
+                return Err(fail(format!(
+                    "{} does not belong to {} (interrupted while checkpointing?)",
+                    model_path.display(),
+                    state_path.display()
+                )));
+            }
+        }
+        let avatar = Avatar::load(&model_path, device)?;
+        let mut trainer = Self::with_source(run, avatar, source)?;
+        let lrs: Vec<f64> = state.groups.iter().map(|g| g.lr).collect();
+        let saved_names: Vec<&String> = state.groups.iter().flat_map(|g| &g.params).collect();
+        if saved_names.len() != trainer.names.len() || saved_names.iter().zip(&trainer.names).any(|(a, b)| *a != b) {
+            return Err(fail("the optimizer's parameter groups differ from the model's".into()));
+        }
+        trainer.opt.adam.load_states(state.params, &lrs)?;
+        trainer.opt.iter = state.global_iter;
+        // Rates follow from the iteration; recomputing avoids trusting JSON float parsing.
+        let c = &trainer.run.train;
+        trainer.opt.adam.apply_schedule(state.global_iter, c.lr_decay, c.lr_decay_steps, c.lr_floor);
+        trainer.opt.progress = state.progress.unwrap_or_default();
+        if let Some(r) = &state.rng {
+            trainer.noise_rng = r.restore()?;
+        }
+        trainer.source.restore(state.sampler.as_ref().unwrap_or(&serde_json::Value::Null))?;
+        Ok(trainer)
+    }
 }
 
 #[cfg(test)]

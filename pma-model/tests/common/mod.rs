@@ -1,0 +1,225 @@
+//! Shared helpers for the golden-case tests.
+#![allow(dead_code)]
+
+use std::collections::HashMap;
+use std::path::PathBuf;
+
+use candle_core::{DType, Device, Tensor};
+use pma_model::avatar::{Avatar, ForwardOptions, Outputs, Poses, Rays, Trace};
+use pma_model::checkpoint;
+
+pub fn fixtures() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../fixtures")
+}
+
+pub struct Golden(pub HashMap<String, Tensor>);
+
+impl Golden {
+    pub fn has(&self, k: &str) -> bool {
+        self.0.contains_key(k)
+    }
+    pub fn t(&self, k: &str) -> &Tensor {
+        self.0
+            .get(k)
+            .unwrap_or_else(|| panic!("golden array {k} missing"))
+    }
+    pub fn f32(&self, k: &str) -> Vec<f32> {
+        flat(&self.t(k).to_dtype(DType::F32).unwrap())
+    }
+    pub fn i64_as_f32(&self, k: &str) -> Vec<f32> {
+        self.t(k)
+            .to_vec1::<i64>()
+            .map(|v| v.into_iter().map(|x| x as f32).collect())
+            .unwrap_or_else(|_| {
+                self.t(k)
+                    .flatten_all()
+                    .unwrap()
+                    .to_vec1::<i64>()
+                    .unwrap()
+                    .into_iter()
+                    .map(|x| x as f32)
+                    .collect()
+            })
+    }
+}
+
+pub fn flat(t: &Tensor) -> Vec<f32> {
+    t.to_dtype(DType::F32)
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .to_vec1::<f32>()
+        .unwrap()
+}
+
+/// Rows `ray*S + s` of the subset rays from a [R*S, ...] tensor.
+pub fn subset_rows(t: &Tensor, rays: &[usize], s: usize) -> Tensor {
+    let idx: Vec<u32> = rays
+        .iter()
+        .flat_map(|&r| (0..s).map(move |k| (r * s + k) as u32))
+        .collect();
+    let idx = Tensor::from_vec(idx.clone(), idx.len(), t.device()).unwrap();
+    t.contiguous().unwrap().index_select(&idx, 0).unwrap()
+}
+
+/// Same along dim 1 of a [K, R*S, F] tensor.
+pub fn subset_rows_dim1(t: &Tensor, rays: &[usize], s: usize) -> Tensor {
+    let idx: Vec<u32> = rays
+        .iter()
+        .flat_map(|&r| (0..s).map(move |k| (r * s + k) as u32))
+        .collect();
+    let idx = Tensor::from_vec(idx.clone(), idx.len(), t.device()).unwrap();
+    t.contiguous().unwrap().index_select(&idx, 1).unwrap()
+}
+
+/// Per-ray features [R,F] repeated for each of the S samples of the subset rays.
+pub fn per_sample(t: &Tensor, rays: &[usize], s: usize) -> Tensor {
+    let idx: Vec<u32> = rays
+        .iter()
+        .flat_map(|&r| std::iter::repeat_n(r as u32, s))
+        .collect();
+    let idx = Tensor::from_vec(idx.clone(), idx.len(), t.device()).unwrap();
+    t.contiguous().unwrap().index_select(&idx, 0).unwrap()
+}
+
+pub struct GoldenCase {
+    pub golden: Golden,
+    pub avatar: Avatar,
+    pub rays: Rays,
+    pub poses: Poses,
+}
+
+impl GoldenCase {
+    /// dir: "golden" or "golden/dense" under fixtures/.
+    pub fn load(dir: &str, sigma_override: bool) -> Self {
+        let dev = Device::Cpu;
+        let base = fixtures().join(dir);
+        let golden =
+            Golden(candle_core::safetensors::load(base.join("golden.safetensors"), &dev).unwrap());
+        let ck = checkpoint::load(&fixtures().join("golden/model.safetensors"), &dev).unwrap();
+        let mut tensors = ck.tensors;
+        if sigma_override {
+            let o = candle_core::safetensors::load(base.join("sigma_override.safetensors"), &dev)
+                .unwrap();
+            for (k, v) in o {
+                assert!(
+                    tensors.contains_key(&k),
+                    "override {k} is not a model tensor"
+                );
+                tensors.insert(k, v);
+            }
+        }
+        let avatar = Avatar::from_tensors(ck.config, tensors, &dev).unwrap();
+        let (rays, poses) = golden_batch(&golden, &dev);
+        Self {
+            golden,
+            avatar,
+            rays,
+            poses,
+        }
+    }
+
+    pub fn subset_rays(&self) -> Vec<usize> {
+        self.golden
+            .t("input/subset_rays")
+            .to_vec1::<i64>()
+            .unwrap()
+            .into_iter()
+            .map(|x| x as usize)
+            .collect()
+    }
+
+    /// Train-mode forward with density noise off, as the golden run.
+    pub fn forward(&self, trace: Option<&mut Trace>) -> Outputs {
+        let mut opts = ForwardOptions {
+            training: true,
+            noise: None,
+        };
+        self.avatar
+            .forward(&self.rays, &self.poses, &mut opts, trace)
+            .unwrap()
+    }
+}
+
+/// The golden batch: per-ray copies of one pose, reduced to one pose as the reference's
+/// striding does (N_unique = 1).
+pub fn golden_batch(g: &Golden, dev: &Device) -> (Rays, Poses) {
+    let bones = g.t("input/bones").get(0).unwrap().to_vec2::<f32>().unwrap();
+    let mut joints = [[0f32; 3]; 24];
+    for (d, s) in joints.iter_mut().zip(bones) {
+        d.copy_from_slice(&s);
+    }
+    let poses = Poses {
+        bones: vec![joints],
+        skts: g
+            .t("input/skts")
+            .narrow(0, 0, 1)
+            .unwrap()
+            .to_device(dev)
+            .unwrap(),
+        cyls: g
+            .t("input/cyls")
+            .narrow(0, 0, 1)
+            .unwrap()
+            .to_device(dev)
+            .unwrap(),
+    };
+    let rays = Rays {
+        origins: g.t("input/rays_o").clone(),
+        dirs: g.t("input/rays_d").clone(),
+        bgs: Some(g.t("input/bgs").clone()),
+        framecodes: g.t("input/cam_idxs").to_vec1::<i64>().unwrap(),
+    };
+    (rays, poses)
+}
+
+/// Collects per-array max errors and fails at the end with every violation listed.
+#[derive(Default)]
+pub struct Report {
+    rows: Vec<(String, f32, f32, bool)>,
+}
+
+impl Report {
+    /// Passes when |a−b| ≤ 1e-4·max(1, |b|) element-wise.
+    pub fn cmp(&mut self, name: &str, ours: &[f32], reference: &[f32]) {
+        assert_eq!(
+            ours.len(),
+            reference.len(),
+            "{name}: {} values vs reference {}",
+            ours.len(),
+            reference.len()
+        );
+        let mut max_abs = 0f32;
+        let mut max_scaled = 0f32;
+        for (a, b) in ours.iter().zip(reference) {
+            let d = (a - b).abs();
+            let d = if d.is_nan() { f32::INFINITY } else { d };
+            max_abs = max_abs.max(d);
+            max_scaled = max_scaled.max(d / b.abs().max(1.0));
+        }
+        self.rows
+            .push((name.to_string(), max_abs, max_scaled, max_scaled <= 1e-4));
+    }
+
+    pub fn finish(self, case: &str) {
+        println!(
+            "{:<40} {:>12} {:>12}",
+            format!("[{case}] array"),
+            "max abs",
+            "max scaled"
+        );
+        for (n, a, s, ok) in &self.rows {
+            println!(
+                "{n:<40} {a:>12.3e} {s:>12.3e} {}",
+                if *ok { "" } else { "FAIL" }
+            );
+        }
+        let bad: Vec<_> = self
+            .rows
+            .iter()
+            .filter(|r| !r.3)
+            .map(|r| format!("{} ({:.3e})", r.0, r.2))
+            .collect();
+        assert!(bad.is_empty(), "{case}: arrays beyond tolerance: {bad:?}");
+    }
+}
