@@ -1,8 +1,234 @@
-//! `pma forward` (placeholder until its issue lands; replaced by the owner of this subcommand).
+//! `pma forward`: run the model on a ray batch stored as npz (the parity hook for outside
+//! tools). The batch holds the golden `input/*` arrays without the prefix: per-ray copies of
+//! the pose data, as the reference's data loader delivers them.
+
+use std::collections::HashMap;
+use std::io::BufWriter;
+use std::path::PathBuf;
+
+use anyhow::{bail, Context, Result};
+use candle_core::{Device, Tensor};
+use pma_data::dataset::npz::{MemberData, NpyData, NpzReader, NpzWriter};
+use pma_model::avatar::{Avatar, ForwardOptions, Poses, Rays};
+use pma_model::checkpoint;
 
 #[derive(clap::Args)]
-pub struct Args {}
+pub struct Args {
+    /// Model checkpoint (.safetensors).
+    #[arg(long)]
+    model: PathBuf,
+    /// Ray batch npz: rays_o, rays_d [R,3], kp3d [R,24,3], skts [R,24,4,4], bones [R,24,3],
+    /// cyls [R,5], cam_idxs [R], bgs [R,3], rest_pose [24,3]; optional N_unique.
+    #[arg(long)]
+    batch: PathBuf,
+    /// Output npz.
+    #[arg(long)]
+    out: PathBuf,
+    /// safetensors whose tensors replace the model's (e.g. the golden `dense` case's sigma head).
+    #[arg(long)]
+    sigma_override: Option<PathBuf>,
+    /// Evaluate in training mode (frame codes looked up directly; no density noise).
+    #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
+    train_mode: bool,
+}
 
-pub fn run(_args: Args) -> anyhow::Result<()> {
-    anyhow::bail!("`pma forward` is not implemented yet")
+struct Batch {
+    file: String,
+    arrays: HashMap<String, (Vec<usize>, NpyData)>,
+}
+
+impl Batch {
+    fn get(&self, key: &str, shape: &[Option<usize>]) -> Result<(&[usize], &NpyData)> {
+        let (s, d) = self
+            .arrays
+            .get(key)
+            .with_context(|| format!("{}: missing key `{key}`", self.file))?;
+        let ok = s.len() == shape.len()
+            && s.iter()
+                .zip(shape)
+                .all(|(a, b)| b.map_or(true, |b| *a == b));
+        if !ok {
+            let want: Vec<String> = shape
+                .iter()
+                .map(|d| d.map_or("*".into(), |v| v.to_string()))
+                .collect();
+            bail!(
+                "{}: key `{key}`: expected shape [{}], found {s:?}",
+                self.file,
+                want.join(",")
+            );
+        }
+        Ok((s, d))
+    }
+
+    fn f32(&self, key: &str, shape: &[Option<usize>]) -> Result<Vec<f32>> {
+        let (_, d) = self.get(key, shape)?;
+        let v = match d {
+            NpyData::F32(v) => v.clone(),
+            NpyData::F64(v) => v.iter().map(|x| *x as f32).collect(),
+            other => bail!(
+                "{}: key `{key}`: expected float32, found {:?}",
+                self.file,
+                other.elem()
+            ),
+        };
+        if let Some(i) = v.iter().position(|x| !x.is_finite()) {
+            bail!(
+                "{}: key `{key}`: non-finite value at flat index {i}",
+                self.file
+            );
+        }
+        Ok(v)
+    }
+
+    fn i64(&self, key: &str, shape: &[Option<usize>]) -> Result<Vec<i64>> {
+        let (_, d) = self.get(key, shape)?;
+        Ok(match d {
+            NpyData::I64(v) => v.clone(),
+            NpyData::I32(v) => v.iter().map(|x| *x as i64).collect(),
+            other => bail!(
+                "{}: key `{key}`: expected an integer array, found {:?}",
+                self.file,
+                other.elem()
+            ),
+        })
+    }
+}
+
+pub fn run(args: Args) -> Result<()> {
+    let dev = Device::Cpu;
+    let file = args.batch.display().to_string();
+    let mut reader = NpzReader::open(&args.batch)?;
+    let mut arrays = HashMap::new();
+    for key in reader.keys() {
+        let a = reader.read(&key)?;
+        arrays.insert(key, (a.shape, a.data));
+    }
+    let b = Batch {
+        file: file.clone(),
+        arrays,
+    };
+
+    let rays_o = b.f32("rays_o", &[None, Some(3)])?;
+    let r = rays_o.len() / 3;
+    let n = Some(r);
+    let rays_d = b.f32("rays_d", &[n, Some(3)])?;
+    let bones = b.f32("bones", &[n, Some(24), Some(3)])?;
+    let skts = b.f32("skts", &[n, Some(24), Some(4), Some(4)])?;
+    let cyls = b.f32("cyls", &[n, Some(5)])?;
+    let bgs = b.f32("bgs", &[n, Some(3)])?;
+    let cam_idxs = b.i64("cam_idxs", &[n])?;
+    let rest = b.f32("rest_pose", &[Some(24), Some(3)])?;
+    let n_unique = match b.arrays.get("N_unique") {
+        Some(_) => b
+            .i64("N_unique", &[Some(1)])
+            .or_else(|_| b.i64("N_unique", &[]))?[0] as usize,
+        None => 1,
+    };
+    if r == 0 || n_unique == 0 || r % n_unique != 0 {
+        bail!("{file}: {r} rays cannot be split into N_unique = {n_unique} equal per-pose blocks");
+    }
+    let stride = r / n_unique;
+
+    let ck = checkpoint::load(&args.model, &dev)?;
+    let model_rest: Vec<f32> = ck.meta.rest_pose.iter().flatten().copied().collect();
+    let rest_err = model_rest
+        .iter()
+        .zip(&rest)
+        .fold(0f32, |m, (a, b)| m.max((a - b).abs()));
+    if rest_err > 1e-5 {
+        bail!("{file}: key `rest_pose` differs from the model's rest pose by {rest_err:.2e} (the batch was made for another subject)");
+    }
+    let mut tensors = ck.tensors;
+    if let Some(path) = &args.sigma_override {
+        for (k, v) in candle_core::safetensors::load(path, &dev)
+            .with_context(|| format!("reading {}", path.display()))?
+        {
+            match tensors.get(&k) {
+                Some(old) if old.dims() == v.dims() => {
+                    tensors.insert(k, v);
+                }
+                Some(old) => bail!(
+                    "{}: tensor `{k}`: expected shape {:?}, found {:?}",
+                    path.display(),
+                    old.dims(),
+                    v.dims()
+                ),
+                None => bail!("{}: tensor `{k}` is not a model tensor", path.display()),
+            }
+        }
+    }
+    let avatar = Avatar::from_tensors(ck.config, tensors, &dev)?;
+
+    // Unique poses by striding, as the reference does.
+    let pick = |v: &[f32], per: usize| -> Vec<f32> {
+        (0..n_unique)
+            .flat_map(|p| v[p * stride * per..(p * stride + 1) * per].to_vec())
+            .collect()
+    };
+    let mut pose_bones = Vec::new();
+    for p in 0..n_unique {
+        let mut j = [[0f32; 3]; 24];
+        for (k, row) in j.iter_mut().enumerate() {
+            row.copy_from_slice(&bones[(p * stride * 24 + k) * 3..(p * stride * 24 + k) * 3 + 3]);
+        }
+        pose_bones.push(j);
+    }
+    let poses = Poses {
+        bones: pose_bones,
+        skts: Tensor::from_vec(pick(&skts, 24 * 16), (n_unique, 24, 4, 4), &dev)?,
+        cyls: Tensor::from_vec(pick(&cyls, 5), (n_unique, 5), &dev)?,
+    };
+    let rays = Rays {
+        origins: Tensor::from_vec(rays_o, (r, 3), &dev)?,
+        dirs: Tensor::from_vec(rays_d, (r, 3), &dev)?,
+        bgs: Some(Tensor::from_vec(bgs, (r, 3), &dev)?),
+        framecodes: cam_idxs,
+    };
+    let mut opts = ForwardOptions {
+        training: args.train_mode,
+        noise: None,
+    };
+    let out = avatar.forward(&rays, &poses, &mut opts, None)?;
+
+    let outputs: Vec<(&str, &Tensor)> = vec![
+        ("rgb_map", &out.fine.rgb),
+        ("acc_map", &out.fine.acc),
+        ("disp_map", &out.fine.disp),
+        ("weights", &out.fine.weights),
+        ("alpha", &out.fine.alpha),
+        ("rgb0", &out.coarse.rgb),
+        ("acc0", &out.coarse.acc),
+        ("disp0", &out.coarse.disp),
+        ("alpha0", &out.coarse.alpha),
+        ("z_vals", &out.z_vals),
+        ("z_vals_coarse", &out.z_coarse),
+        ("raw", &out.raw_coarse),
+        ("raw_merged", &out.raw),
+        ("vol_scale", &out.vol_scale),
+    ];
+    let dir = args
+        .out
+        .parent()
+        .filter(|d| !d.as_os_str().is_empty())
+        .unwrap_or(std::path::Path::new("."));
+    let tmp = tempfile::NamedTempFile::new_in(dir)
+        .with_context(|| format!("creating a temporary file in {}", dir.display()))?;
+    let mut w = NpzWriter::new(
+        BufWriter::new(tmp.reopen()?),
+        false,
+        args.out.display().to_string(),
+    );
+    for (name, t) in outputs {
+        let data = t.flatten_all()?.to_vec1::<f32>()?;
+        w.add(name, t.dims(), MemberData::F32(&data))?;
+    }
+    w.finish()?;
+    tmp.persist(&args.out)
+        .with_context(|| format!("writing {}", args.out.display()))?;
+    println!(
+        "wrote {} ({r} rays, {n_unique} pose(s))",
+        args.out.display()
+    );
+    Ok(())
 }

@@ -4,6 +4,7 @@
 //! * [`adam`]: Adam with parameter groups, the lr schedule, global-norm clipping.
 //! * [`state`]: the train-state file (optimizer moments, RNG, sampler, iteration).
 //! * [`log`]: `log.csv`.
+//! * [`source`]: training batches from a dataset (spec data.md §7).
 //! * [`trainer`]: one training step (forward, loss, backward, clip, Adam, schedule), non-finite
 //!   step skipping, checkpoint and resume.
 //!
@@ -11,6 +12,7 @@
 
 pub mod adam;
 pub mod log;
+pub mod source;
 pub mod state;
 pub mod trainer;
 
@@ -19,6 +21,7 @@ use std::path::{Path, PathBuf};
 
 pub use adam::{clip_grad_norm, decayed_lr, global_norm, Adam, ParamGroup, ParamState};
 pub use log::{LogRow, TrainLog};
+pub use source::DatasetSource;
 pub use state::{Progress, RngState, TrainState};
 pub use trainer::*;
 

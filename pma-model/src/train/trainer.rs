@@ -10,17 +10,20 @@
 //! from a checkpoint continues bit for bit like one that never stopped.
 
 use std::path::Path;
+use std::sync::Arc;
 
 use candle_core::{Device, Tensor, Var};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
 use super::adam::{clip_grad_norm, global_norm, Adam};
+use super::source::DatasetSource;
 use super::state::{fingerprint, Progress, RngState, TrainState};
 use super::TrainError;
 use crate::avatar::{Avatar, ForwardOptions, Outputs, Poses, Rays};
 use crate::loss::LossWeights;
 use crate::presets::{RunConfig, TrainConfig};
+use pma_data::dataset::Dataset;
 
 /// Model file of a run directory (a pma checkpoint).
 pub const MODEL_FILE: &str = "model.safetensors";
@@ -226,6 +229,32 @@ impl Trainer {
         noise_rng.set_stream(NOISE_STREAM);
         let opt = Optimization::new(adam, run.train.clone());
         Ok(Self { run, avatar, params, names, opt, source, noise_rng })
+    }
+
+    /// A fresh run on `data` (train profile): the avatar is initialised from the dataset's
+    /// rest pose with one frame code per training image, and batches come from
+    /// [`DatasetSource`]. `run.model.n_framecodes` is set to the number of images.
+    pub fn new(mut run: RunConfig, data: Arc<Dataset>, device: &Device) -> Result<Self, TrainError> {
+        run.model.n_framecodes = data.n_images();
+        run.validate()?;
+        let rest = data.rest_pose.ok_or_else(|| {
+            TrainError::Config(format!("{}: no rest_pose (required for training)", data.source))
+        })?;
+        let source = Self::dataset_source(&run, data, device)?;
+        let avatar = Avatar::new(run.model.clone(), &rest, run.train.seed, device)?;
+        Self::with_source(run, avatar, source)
+    }
+
+    /// Continue the run in `dir` on the same `data` (see [`Self::resume_with_source`]).
+    pub fn resume(dir: &Path, mut run: RunConfig, data: Arc<Dataset>, device: &Device) -> Result<Self, TrainError> {
+        run.model.n_framecodes = data.n_images();
+        let source = Self::dataset_source(&run, data, device)?;
+        Self::resume_with_source(dir, run, source, device)
+    }
+
+    fn dataset_source(run: &RunConfig, data: Arc<Dataset>, device: &Device) -> Result<Box<dyn BatchSource>, TrainError> {
+        let t = &run.train;
+        Ok(Box::new(DatasetSource::new(data, t.rays_per_step, t.images_per_step, t.perturb_bg, t.seed, device)?))
     }
 
     pub fn run_config(&self) -> &RunConfig {
