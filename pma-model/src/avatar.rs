@@ -78,7 +78,15 @@ pub struct ForwardOptions<'a> {
     /// `noise` is given.
     pub training: bool,
     pub noise: Option<NoiseFn<'a>>,
+    /// Inference: no gradient is needed, so the network runs on bounded chunks of points
+    /// whose outputs are detached (their intermediates are freed at once). Memory then no
+    /// longer grows with the number of rays.
+    pub inference: bool,
 }
+
+/// Points per network call in inference: the largest per-point tensors are [n,24,128] f32,
+/// 16,384 × 24 × 128 × 4 B = 192 MiB each, a handful of them alive at a time.
+pub const INFERENCE_POINT_CHUNK: usize = 16_384;
 
 /// Everything a forward pass returns.
 #[derive(Debug, Clone)]
@@ -435,6 +443,19 @@ impl Avatar {
                 .unsqueeze(1)?
                 .broadcast_as((k, s, vdim))?
                 .reshape((k * s, vdim))?;
+            if opts.inference {
+                let n = k * s;
+                let mut start = 0;
+                while start < n {
+                    let len = INFERENCE_POINT_CHUNK.min(n - start);
+                    let (rgb, sigma_raw) =
+                        self.eval_points(pose, p, &pts_p.narrow(0, start, len)?, &view_p.narrow(0, start, len)?, None)?;
+                    rgbs.push(rgb.detach());
+                    sigmas.push(sigma_raw.detach());
+                    start += len;
+                }
+                continue;
+            }
             let mut tp = Trace::default();
             let (rgb, sigma_raw) = self.eval_points(
                 pose,
@@ -561,11 +582,32 @@ impl Avatar {
         })
     }
 
-    /// Inference: render rays (eval mode, no noise, no gradient).
+    /// Inference: render rays (eval mode, no noise, no gradient, bounded memory).
     pub fn render_rays(&self, rays: &Rays, poses: &Poses) -> Result<Outputs> {
-        let mut opts = ForwardOptions::default();
-        let out = self.forward(rays, poses, &mut opts, None)?;
-        Ok(out)
+        let mut opts = ForwardOptions { inference: true, ..Default::default() };
+        self.forward(rays, poses, &mut opts, None)
+    }
+
+    /// Render a whole image of one pose (eval mode, mean frame code, black or given
+    /// background), in chunks of rays inside the body's 2-D box: memory stays bounded at any
+    /// resolution. `kp3d` are the pose's joint positions (for the box).
+    pub fn render_image(
+        &self,
+        poses: &Poses,
+        kp3d: &Joints,
+        cam: &pma_data::camera::Camera,
+        background: Option<&[f32]>,
+        opts: &crate::image::ImageOptions,
+    ) -> Result<crate::image::RenderedImage> {
+        if poses.bones.len() != 1 {
+            return Err(ModelError::Input(format!("render_image takes one pose, found {}", poses.bones.len())));
+        }
+        let mut renderer = |o: &Tensor, d: &Tensor, bg: &Tensor| -> Result<crate::image::ChunkRender> {
+            let rays = Rays { origins: o.clone(), dirs: d.clone(), bgs: Some(bg.clone()), framecodes: vec![-1; o.dim(0)?] };
+            let out = self.render_rays(&rays, poses)?;
+            Ok(crate::image::ChunkRender { rgb: out.fine.rgb, acc: out.fine.acc, disp: out.fine.disp })
+        };
+        crate::image::render_image(&mut renderer, cam, kp3d, background, opts)
     }
 
     /// Per-pose data for one pose given only its bones and root location: FK with the

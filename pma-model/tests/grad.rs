@@ -44,6 +44,7 @@ fn gradients(
     let mut opts = pma_model::avatar::ForwardOptions {
         training: true,
         noise: None,
+        inference: false,
     };
     let out = case
         .avatar

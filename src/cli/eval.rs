@@ -19,8 +19,8 @@ use anyhow::{bail, Context as _};
 use candle_core::Device;
 use pma_data::dataset::{Dataset, Profile, ReadOptions};
 use candle_core::Tensor;
-use pma_model::avatar::{Avatar, Poses, Rays};
-use pma_model::image::{render_image, ChunkRender, ImageOptions};
+use pma_model::avatar::{Avatar, Poses};
+use pma_model::image::ImageOptions;
 use serde::Serialize;
 
 #[derive(clap::Args, Debug, Clone)]
@@ -348,13 +348,8 @@ pub fn render_dataset_image(
         skts: Tensor::from_vec(skts, (1, 24, 4, 4), &device)?,
         cyls: Tensor::from_vec(cyl, (1, 5), &device)?,
     };
-    let mut renderer = |o: &Tensor, d: &Tensor, bg: &Tensor| -> pma_model::error::Result<ChunkRender> {
-        let rays = Rays { origins: o.clone(), dirs: d.clone(), bgs: Some(bg.clone()), framecodes: vec![-1; o.dim(0)?] };
-        let out = avatar.render_rays(&rays, &poses)?;
-        Ok(ChunkRender { rgb: out.fine.rgb.detach(), acc: out.fine.acc.detach(), disp: out.fine.disp.detach() })
-    };
     let opts = ImageOptions { chunk, head: data.head()?, device };
-    Ok(render_image(&mut renderer, &cam, &kp3d, None, &opts)?)
+    Ok(avatar.render_image(&poses, &kp3d, &cam, None, &opts)?)
 }
 
 /// `uint8(truncate(255·clamp(rgb, 0, 1))) / 255`, what the reference scores after writing PNGs.
@@ -380,7 +375,7 @@ pub fn ground_truth(data: &Dataset, n: usize) -> anyhow::Result<(Vec<f32>, Vec<u
     Ok((gt, mask))
 }
 
-/// (PSNR, SSIM) of `pred` against `gt`; `None` when the mask is empty.
+/// (PSNR, SSIM) of `pred` against `gt` ([H·W·3] in [0,1]); `None` when the mask is empty.
 fn score(
     pred: &[f32],
     gt: &[f32],
@@ -389,8 +384,108 @@ fn score(
     w: usize,
     opts: &EvalOptions,
 ) -> anyhow::Result<Option<(f64, f64)>> {
-    let _ = (pred, gt, mask, h, w, opts);
-    bail!("metrics are being integrated")
+    let Some(b) = tight_box(mask, h, w) else { return Ok(None) };
+    let in_box = |p: usize| (b.0..b.2).contains(&(p / w)) && (b.1..b.3).contains(&(p % w));
+    let (mut se, mut count) = (0f64, 0usize);
+    for p in 0..h * w {
+        let use_px = match opts.region {
+            PsnrRegion::Mask => mask[p] > 0,
+            PsnrRegion::Bbox => in_box(p),
+        };
+        if use_px {
+            for c in 0..3 {
+                let e = pred[3 * p + c] as f64 - gt[3 * p + c] as f64;
+                se += e * e;
+            }
+            count += 3;
+        }
+    }
+    let psnr = -10.0 * (se / count as f64).log10();
+    // scikit-image refuses crops under 7×7 (a thin limb seen edge-on in a tiny image); grow
+    // such a box symmetrically inside the image instead of dropping the image.
+    let grow = |lo: usize, hi: usize, n: usize| -> (usize, usize) {
+        if hi - lo >= 7 || n < 7 {
+            return (lo, hi);
+        }
+        let lo = lo.saturating_sub((7 - (hi - lo)).div_ceil(2)).min(n - 7);
+        (lo, lo + 7)
+    };
+    let ((y0, y1), (x0, x1)) = (grow(b.0, b.2, h), grow(b.1, b.3, w));
+    let b = (y0, x0, y1, x1);
+    let crop = |img: &[f32]| -> Vec<f64> {
+        let mut out = Vec::with_capacity((b.2 - b.0) * (b.3 - b.1) * 3);
+        for y in b.0..b.2 {
+            for x in b.1..b.3 {
+                out.extend((0..3).map(|c| img[3 * (y * w + x) + c] as f64));
+            }
+        }
+        out
+    };
+    let ssim = ssim_skimage(&crop(pred), &crop(gt), b.2 - b.0, b.3 - b.1, opts.ssim_data_range)?;
+    Ok(Some((psnr, ssim)))
+}
+
+/// Inclusive-exclusive tight box `(y0, x0, y1, x1)` of the nonzero mask pixels (OpenCV
+/// `boundingRect`), or `None` for an empty mask.
+fn tight_box(mask: &[u8], h: usize, w: usize) -> Option<(usize, usize, usize, usize)> {
+    let mut b: Option<(usize, usize, usize, usize)> = None;
+    for y in 0..h {
+        for x in 0..w {
+            if mask[y * w + x] > 0 {
+                b = Some(match b {
+                    None => (y, x, y + 1, x + 1),
+                    Some((y0, x0, y1, x1)) => (y0.min(y), x0.min(x), y1.max(y + 1), x1.max(x + 1)),
+                });
+            }
+        }
+    }
+    b
+}
+
+/// scikit-image `structural_similarity` with its defaults as the reference called it
+/// (spec data.md §8.3 a): 7×7 uniform window, sample covariance (×49/48), K1 0.01, K2 0.03,
+/// the given data range, per-channel mean over the map without a 3-pixel border, then the
+/// mean over channels. a, b: [h·w·3] channels last.
+pub fn ssim_skimage(a: &[f64], b: &[f64], h: usize, w: usize, data_range: f64) -> anyhow::Result<f64> {
+    const WIN: usize = 7;
+    if h < WIN || w < WIN {
+        bail!("SSIM needs a crop of at least 7x7 pixels, found {w}x{h}");
+    }
+    let (c1, c2) = ((0.01 * data_range).powi(2), (0.03 * data_range).powi(2));
+    let np = (WIN * WIN) as f64;
+    let cov_norm = np / (np - 1.0);
+    let pad = (WIN - 1) / 2;
+    let mut total = 0.0;
+    for c in 0..3 {
+        let at = |img: &[f64], y: usize, x: usize| img[3 * (y * w + x) + c];
+        let (mut sum, mut n) = (0.0, 0usize);
+        // Only windows fully inside the image survive the border crop, so no padding rule
+        // is needed.
+        for y in pad..h - pad {
+            for x in pad..w - pad {
+                let (mut ux, mut uy, mut uxx, mut uyy, mut uxy) = (0.0, 0.0, 0.0, 0.0, 0.0);
+                for yy in y - pad..=y + pad {
+                    for xx in x - pad..=x + pad {
+                        let (p, q) = (at(a, yy, xx), at(b, yy, xx));
+                        ux += p;
+                        uy += q;
+                        uxx += p * p;
+                        uyy += q * q;
+                        uxy += p * q;
+                    }
+                }
+                let (ux, uy, uxx, uyy, uxy) = (ux / np, uy / np, uxx / np, uyy / np, uxy / np);
+                let vx = cov_norm * (uxx - ux * ux);
+                let vy = cov_norm * (uyy - uy * uy);
+                let vxy = cov_norm * (uxy - ux * uy);
+                let s = ((2.0 * ux * uy + c1) * (2.0 * vxy + c2)) / ((ux * ux + uy * uy + c1) * (vx + vy + c2));
+                sum += s;
+                n += 1;
+            }
+        }
+        total += sum / n as f64;
+    }
+    Ok(total / 3.0)
 }
 
 /// [GT | render | error heat map], upscaled so small images stay readable.
@@ -497,6 +592,54 @@ mod tests {
             last = l;
         }
         assert_eq!(heat(f32::NAN), heat(1.0));
+    }
+
+    #[test]
+    fn ssim_is_one_for_identical_images_and_drops_with_noise() {
+        let (h, w) = (12, 10);
+        let a: Vec<f64> = (0..h * w * 3).map(|i| ((i * 37) % 101) as f64 / 100.0).collect();
+        assert!((ssim_skimage(&a, &a, h, w, 2.0).unwrap() - 1.0).abs() < 1e-12);
+        let b: Vec<f64> = a.iter().enumerate().map(|(i, v)| v + if i % 2 == 0 { 0.2 } else { -0.2 }).collect();
+        let s = ssim_skimage(&a, &b, h, w, 2.0).unwrap();
+        assert!(s < 0.95, "{s}");
+        // A smaller data range makes the same error count more.
+        assert!(ssim_skimage(&a, &b, h, w, 1.0).unwrap() < s);
+        assert!(ssim_skimage(&a, &b, 6, w, 2.0).is_err());
+    }
+
+    /// A hand-computed case: constant images a, b in one 7×7 window (all variances 0), so
+    /// SSIM = (2ab + C1) / (a² + b² + C1).
+    #[test]
+    fn ssim_constant_windows_reduce_to_the_luminance_term() {
+        let (a, b) = (0.5f64, 0.25f64);
+        let c1 = (0.01f64 * 2.0).powi(2);
+        let want = (2.0 * a * b + c1) / (a * a + b * b + c1);
+        let got = ssim_skimage(&vec![a; 7 * 7 * 3], &vec![b; 7 * 7 * 3], 7, 7, 2.0).unwrap();
+        assert!((got - want).abs() < 1e-12, "{got} vs {want}");
+    }
+
+    #[test]
+    fn psnr_regions_and_empty_masks() {
+        let (h, w) = (8, 8);
+        let mut mask = vec![0u8; h * w];
+        for y in 1..8 {
+            for x in 0..7 {
+                if (x + y) % 3 != 0 {
+                    mask[y * w + x] = 1;
+                }
+            }
+        }
+        let gt = vec![0.5f32; h * w * 3];
+        // Error 0.1 on foreground pixels only: mask PSNR = 20 dB, box PSNR higher.
+        let pred: Vec<f32> = (0..h * w * 3).map(|i| if mask[i / 3] > 0 { 0.6 } else { 0.5 }).collect();
+        let mut opts = EvalOptions::quick(16);
+        let (p_mask, _) = score(&pred, &gt, &mask, h, w, &opts).unwrap().unwrap();
+        assert!((p_mask - 20.0).abs() < 1e-4, "{p_mask}");
+        opts.region = PsnrRegion::Bbox;
+        let (p_box, _) = score(&pred, &gt, &mask, h, w, &opts).unwrap().unwrap();
+        assert!(p_box > p_mask);
+        assert!(score(&pred, &gt, &vec![0; h * w], h, w, &opts).unwrap().is_none());
+        assert_eq!(tight_box(&mask, h, w), Some((1, 0, 8, 7)));
     }
 
     #[test]

@@ -188,6 +188,7 @@ pub fn run(args: Args) -> Result<()> {
     let mut opts = ForwardOptions {
         training: args.train_mode,
         noise: None,
+        inference: false,
     };
     let out = avatar.forward(&rays, &poses, &mut opts, None)?;
 

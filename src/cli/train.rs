@@ -65,7 +65,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 }
 
 #[cfg(feature = "train")]
-pub use imp::{train_run, TrainOutcome, TrainRequest};
+pub use imp::{train_run, TrainRequest};
 
 /// Bundled font for plot text: plotters has no fonts of its own without system libraries.
 static FONT: &[u8] = include_bytes!("../../assets/fonts/DejaVuSans.ttf");
@@ -163,7 +163,7 @@ mod imp {
 
     use anyhow::{bail, Context as _};
     use candle_core::Device;
-    use pma_data::dataset::{Dataset, Profile};
+    use pma_data::dataset::Profile;
     use pma_model::train::{
         LogRow, Preset, RunConfig, StepStats, TrainError, TrainLog, Trainer, MODEL_FILE, STATE_FILE,
     };
@@ -286,9 +286,11 @@ mod imp {
             if let Some(given) = &req.run {
                 let mut a = given.clone();
                 let mut b = from_dir.clone();
-                // Only the length of the run may change on resume.
+                // Only the length of the run may change on resume (the frame-code count
+                // comes from the data).
                 a.train.iters = 0;
                 b.train.iters = 0;
+                a.model.n_framecodes = b.model.n_framecodes;
                 if a != b {
                     bail!(
                         "the configuration given differs from the run's {} (beyond `iters`); a resumed run keeps its configuration",
@@ -337,7 +339,6 @@ mod imp {
     pub fn train_run(req: TrainRequest) -> anyhow::Result<TrainOutcome> {
         let run = resolve_run(&req)?;
         let device = Device::Cpu;
-        std::fs::create_dir_all(&req.out).with_context(|| format!("creating {}", req.out.display()))?;
         if !req.resume && !req.overwrite && req.out.join(STATE_FILE).exists() {
             bail!(
                 "{} already holds a run (pass --resume to continue it, or choose another --out)",
@@ -345,6 +346,7 @@ mod imp {
             );
         }
         let data = Arc::new(read_dataset(&req.data, Profile::Train)?);
+        std::fs::create_dir_all(&req.out).with_context(|| format!("creating {}", req.out.display()))?;
         let held_out = match &req.eval_data {
             Some(p) => Some(read_dataset(p, Profile::Eval)?),
             None => None,
@@ -363,8 +365,10 @@ mod imp {
         let mut trainer = if req.resume {
             Trainer::resume(&req.out, run.clone(), data.clone(), &device)?
         } else {
-            write_config(&run, &req.out.join(CONFIG_FILE))?;
-            Trainer::new(run.clone(), data.clone(), &device)?
+            let t = Trainer::new(run.clone(), data.clone(), &device)?;
+            // Written after construction: the trainer sets the frame-code count from the data.
+            write_config(t.run_config(), &req.out.join(CONFIG_FILE))?;
+            t
         };
         let log_path = req.out.join(LOG_FILE);
         let plot_path = req.out.join(PLOT_FILE);
@@ -384,7 +388,7 @@ mod imp {
         let mut ema: Option<(f64, f64)> = None;
 
         let eval_opts = EvalOptions::quick(cfg.render_chunk);
-        let mut evaluate_now = |trainer: &Trainer, eval_s: &mut f64| -> anyhow::Result<Option<(f64, f64)>> {
+        let evaluate_now = |trainer: &Trainer, eval_s: &mut f64| -> anyhow::Result<Option<(f64, f64)>> {
             let Some(d) = &held_out else { return Ok(None) };
             let t = Instant::now();
             let r = evaluate(trainer.avatar(), d, "held-out", &eval_images, &eval_opts, &mut |_, _| {})?;

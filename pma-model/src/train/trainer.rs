@@ -299,6 +299,12 @@ impl Trainer {
         self.step_on(&batch, None)
     }
 
+    /// [`Self::step`] with a gradient hook (e.g. to inject a fault in tests).
+    pub fn step_hooked(&mut self, hook: GradHook) -> Result<StepStats, TrainError> {
+        let batch = self.source.next_batch()?;
+        self.step_on(&batch, Some(hook))
+    }
+
     /// One iteration on `batch`: forward (training mode, density noise), loss, backward,
     /// `hook`, clip, Adam, schedule. A non-finite loss skips the backward pass too.
     pub fn step_on(&mut self, batch: &TrainBatch, hook: Option<GradHook>) -> Result<StepStats, TrainError> {
@@ -324,7 +330,7 @@ impl Trainer {
             let v: Vec<f32> = (0..n).map(|_| rand_distr::StandardNormal.sample(&mut *rng)).collect();
             Ok(Tensor::from_vec(v, n, &device)?)
         };
-        let mut opts = ForwardOptions { training: true, noise: Some(&mut noise) };
+        let mut opts = ForwardOptions { training: true, noise: Some(&mut noise), inference: false };
         let out = self.avatar.forward(&batch.rays, &batch.poses, &mut opts, None)?;
         training_loss(&out, &batch.target, &self.run.train)
     }

@@ -1,0 +1,89 @@
+//! A run stopped after N iterations, checkpointed and resumed for M more ends bit for bit
+//! where an uninterrupted run of N + M iterations ends (CPU): weights, optimizer moments and
+//! steps, and the loss of every resumed step.
+#![cfg(feature = "train")]
+
+mod train_support;
+
+use candle_core::Device;
+use pma_model::train::{Trainer, TrainError, MODEL_FILE, STATE_FILE};
+use train_support::*;
+
+#[test]
+fn resume_equals_uninterrupted_run() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tiny_scene(&tmp.path().join("scene"));
+    let (n, m) = (3, 3);
+
+    let mut full = tiny_trainer(&data);
+    let mut full_losses = Vec::new();
+    for _ in 0..n + m {
+        full_losses.push(full.step().unwrap().loss.total.to_bits());
+    }
+
+    let ckpt = tmp.path().join("run");
+    std::fs::create_dir_all(&ckpt).unwrap();
+    let mut first = tiny_trainer(&data);
+    for _ in 0..n {
+        first.step().unwrap();
+    }
+    first.set_wall_s(12.5);
+    first.save_checkpoint(&ckpt).unwrap();
+    drop(first);
+
+    let mut resumed = Trainer::resume(&ckpt, tiny_run(), data.clone(), &Device::Cpu).unwrap();
+    assert_eq!(resumed.iteration(), n as u64);
+    assert_eq!(resumed.progress().wall_s, 12.5);
+    let mut resumed_losses = Vec::new();
+    for _ in 0..m {
+        resumed_losses.push(resumed.step().unwrap().loss.total.to_bits());
+    }
+
+    assert_eq!(resumed_losses, full_losses[n..], "losses of the resumed steps differ");
+    assert_eq!(resumed.iteration(), full.iteration());
+    assert_eq!(resumed.lrs(), full.lrs());
+    let (a, b) = (param_bits(&full), param_bits(&resumed));
+    assert_eq!(a.len(), b.len());
+    for ((na, va), (nb, vb)) in a.iter().zip(&b) {
+        assert_eq!(na, nb);
+        assert!(va == vb, "parameter {na} differs after resume");
+    }
+    assert!(adam_bits(&full) == adam_bits(&resumed), "optimizer state differs after resume");
+}
+
+#[test]
+fn resume_rejects_a_changed_config_and_a_mismatched_model() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tiny_scene(&tmp.path().join("scene"));
+    let ckpt = tmp.path().join("run");
+    std::fs::create_dir_all(&ckpt).unwrap();
+    let mut t = tiny_trainer(&data);
+    t.step().unwrap();
+    t.save_checkpoint(&ckpt).unwrap();
+
+    // Only `iters` may change.
+    let mut longer = tiny_run();
+    longer.train.iters += 100;
+    Trainer::resume(&ckpt, longer, data.clone(), &Device::Cpu).unwrap();
+    let mut other = tiny_run();
+    other.train.lr *= 2.0;
+    let err = Trainer::resume(&ckpt, other, data.clone(), &Device::Cpu).err().unwrap();
+    assert!(matches!(err, TrainError::Resume { .. }), "{err}");
+    assert!(err.to_string().contains("configuration differs"), "{err}");
+
+    // A model file from another iteration than the state (crash between the two writes).
+    let mut later = tiny_trainer(&data);
+    later.step().unwrap();
+    later.step().unwrap();
+    let elsewhere = tmp.path().join("later");
+    std::fs::create_dir_all(&elsewhere).unwrap();
+    later.save_checkpoint(&elsewhere).unwrap();
+    std::fs::copy(elsewhere.join(MODEL_FILE), ckpt.join(MODEL_FILE)).unwrap();
+    let err = Trainer::resume(&ckpt, tiny_run(), data.clone(), &Device::Cpu).err().unwrap();
+    assert!(err.to_string().contains("does not belong to"), "{err}");
+
+    // Nothing to resume.
+    std::fs::remove_file(ckpt.join(STATE_FILE)).unwrap();
+    let err = Trainer::resume(&ckpt, tiny_run(), data, &Device::Cpu).err().unwrap();
+    assert!(err.to_string().contains("is missing"), "{err}");
+}
