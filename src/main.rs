@@ -11,7 +11,11 @@ mod cli;
 static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 #[derive(Parser)]
-#[command(name = "pma", version, about = "Pose Modulated Avatars (PM-Avatar, ICLR 2024) in Rust")]
+#[command(
+    name = "pma",
+    version,
+    about = "Pose Modulated Avatars (PM-Avatar, ICLR 2024) in Rust"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,

@@ -63,7 +63,11 @@ pub fn check_rigid(m: &[[f32; 4]; 4]) -> std::result::Result<(), RigidDefect> {
     }
     let r = DMat3::from_mat4(mat4_from_rows(m));
     let e = r.transpose() * r - DMat3::IDENTITY;
-    let err = e.to_cols_array().iter().map(|v| v.abs()).fold(0.0, f64::max);
+    let err = e
+        .to_cols_array()
+        .iter()
+        .map(|v| v.abs())
+        .fold(0.0, f64::max);
     if err > ORTHONORMAL_TOL {
         return Err(RigidDefect {
             problem: "rotation block is not orthonormal".into(),
@@ -124,7 +128,11 @@ impl Camera {
         }
         for (name, f) in [("fx", self.fx), ("fy", self.fy)] {
             if !(f.is_finite() && f > 0.0) {
-                return Err(bad("focal length", "finite and > 0", format!("{name} = {f}")));
+                return Err(bad(
+                    "focal length",
+                    "finite and > 0",
+                    format!("{name} = {f}"),
+                ));
             }
         }
         for (name, c) in [("cx", self.cx), ("cy", self.cy)] {

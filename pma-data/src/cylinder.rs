@@ -99,7 +99,13 @@ pub fn cylinder_from_joints(kp: &Joints, params: &CylinderParams) -> [f32; 5] {
     }
     let top = s * (hmax + e * params.top_ratio);
     let bot = s * (hmin - e * params.bottom_ratio);
-    [root.x as f32, root.z as f32, (r + e) as f32, top as f32, bot as f32]
+    [
+        root.x as f32,
+        root.z as f32,
+        (r + e) as f32,
+        top as f32,
+        bot as f32,
+    ]
 }
 
 /// A pixel rectangle: columns `x0 ≤ x < x1`, rows `y0 ≤ y < y1`. The

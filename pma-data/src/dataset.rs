@@ -268,11 +268,7 @@ impl Dataset {
     pub fn write_split(&self, scene_path: impl AsRef<Path>, opts: &WriteOptions) -> Result<()> {
         let scene = scene_path.as_ref();
         let frames = frames_path_for(scene).ok_or_else(|| {
-            DataError::arg(
-                "scene_path",
-                "a path ending in .scene.npz",
-                scene.display(),
-            )
+            DataError::arg("scene_path", "a path ending in .scene.npz", scene.display())
         })?;
         write::write_npz(self, scene, opts, write::Members::Scene)?;
         write::write_npz(self, &frames, opts, write::Members::Frames)
@@ -318,7 +314,13 @@ impl Dataset {
 
     // --- per-image index maps --------------------------------------------
 
-    fn lookup(&self, key: &str, arr: &Option<Array1<i64>>, n: usize, bound: usize) -> Result<usize> {
+    fn lookup(
+        &self,
+        key: &str,
+        arr: &Option<Array1<i64>>,
+        n: usize,
+        bound: usize,
+    ) -> Result<usize> {
         let v = match arr {
             Some(a) => *a.get(n).ok_or_else(|| DataError::Index {
                 file: self.source.clone(),
@@ -349,7 +351,12 @@ impl Dataset {
 
     /// Camera row of image n.
     pub fn camera_row(&self, n: usize) -> Result<usize> {
-        self.lookup("img_pose_indices", &self.img_pose_indices, n, self.n_cameras())
+        self.lookup(
+            "img_pose_indices",
+            &self.img_pose_indices,
+            n,
+            self.n_cameras(),
+        )
     }
 
     /// Background row of image n, or `None` for the default black plate.

@@ -62,7 +62,9 @@ pub enum MotionError {
         msg: String,
     },
     /// A joint the retargeting map needs is absent from the BVH hierarchy.
-    #[error("{file}: the BVH has no joint `{joint}` (needed for SMPL joint {smpl_joint} `{smpl_name}`)")]
+    #[error(
+        "{file}: the BVH has no joint `{joint}` (needed for SMPL joint {smpl_joint} `{smpl_name}`)"
+    )]
     MissingJoint {
         file: String,
         joint: String,

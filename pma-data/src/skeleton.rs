@@ -91,7 +91,10 @@ pub fn axis_angle_to_matrix(w: DVec3) -> DMat3 {
     let t2 = w.length_squared();
     let t = t2.sqrt();
     let (a, b) = if t < 1e-4 {
-        (1.0 - t2 / 6.0 + t2 * t2 / 120.0, 0.5 - t2 / 24.0 + t2 * t2 / 720.0)
+        (
+            1.0 - t2 / 6.0 + t2 * t2 / 120.0,
+            0.5 - t2 / 24.0 + t2 * t2 / 720.0,
+        )
     } else {
         (t.sin() / t, (1.0 - t.cos()) / t2)
     };
@@ -147,9 +150,7 @@ pub fn matrix_from_rot6d(x: [f64; 6]) -> Result<DMat3> {
     let nu = u.length();
     if nu < EPS {
         return Err(DataError::DegenerateRotation {
-            reason: format!(
-                "second column is (anti)parallel to the first: |u| = {nu:e} < {EPS:e}"
-            ),
+            reason: format!("second column is (anti)parallel to the first: |u| = {nu:e} < {EPS:e}"),
         });
     }
     let b2 = u / nu;
@@ -211,10 +212,30 @@ pub(crate) fn vec3(v: &[f32; 3]) -> DVec3 {
 /// Row-major f32 4×4 → glam (column-major) f64.
 pub fn mat4_from_rows(m: &[[f32; 4]; 4]) -> DMat4 {
     DMat4::from_cols_array_2d(&[
-        [m[0][0] as f64, m[1][0] as f64, m[2][0] as f64, m[3][0] as f64],
-        [m[0][1] as f64, m[1][1] as f64, m[2][1] as f64, m[3][1] as f64],
-        [m[0][2] as f64, m[1][2] as f64, m[2][2] as f64, m[3][2] as f64],
-        [m[0][3] as f64, m[1][3] as f64, m[2][3] as f64, m[3][3] as f64],
+        [
+            m[0][0] as f64,
+            m[1][0] as f64,
+            m[2][0] as f64,
+            m[3][0] as f64,
+        ],
+        [
+            m[0][1] as f64,
+            m[1][1] as f64,
+            m[2][1] as f64,
+            m[3][1] as f64,
+        ],
+        [
+            m[0][2] as f64,
+            m[1][2] as f64,
+            m[2][2] as f64,
+            m[3][2] as f64,
+        ],
+        [
+            m[0][3] as f64,
+            m[1][3] as f64,
+            m[2][3] as f64,
+            m[3][3] as f64,
+        ],
     ])
 }
 
@@ -459,7 +480,10 @@ pub fn bone_align(rest: &Joints) -> Result<BoneAlign> {
             let c = ch[0];
             out.child[j] = c;
             let d = vec3(&rest[c]) - vec3(&rest[j]);
-            rigid(bone_align_rotation(d), DVec3::new(0.0, 0.0, -0.5 * d.length()))
+            rigid(
+                bone_align_rotation(d),
+                DVec3::new(0.0, 0.0, -0.5 * d.length()),
+            )
         } else {
             out.child[j] = j;
             DMat4::IDENTITY
@@ -498,8 +522,7 @@ pub fn skeleton_profile(rest: &Joints) -> Result<SkeletonProfile> {
         }
         let ch = children(j);
         if !ch.is_empty() {
-            to_child[j] =
-                ch.iter().map(|&c| (p(c) - p(j)).length()).sum::<f64>() / ch.len() as f64;
+            to_child[j] = ch.iter().map(|&c| (p(c) - p(j)).length()).sum::<f64>() / ch.len() as f64;
         }
     }
     Ok(SkeletonProfile {
@@ -582,7 +605,10 @@ mod tests {
             DVec3::new(0.0, 0.3, -0.4),
         ] {
             let v = bone_align_rotation(d) * d;
-            assert!((v - DVec3::new(0.0, 0.0, d.length())).length() < 1e-12, "{d} -> {v}");
+            assert!(
+                (v - DVec3::new(0.0, 0.0, d.length())).length() < 1e-12,
+                "{d} -> {v}"
+            );
         }
     }
 }

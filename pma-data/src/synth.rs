@@ -209,7 +209,12 @@ fn treadmill(m: &Motion) -> Motion {
     out
 }
 
-fn check(cond: bool, name: &'static str, expected: &str, found: impl ToString) -> Result<(), SynthError> {
+fn check(
+    cond: bool,
+    name: &'static str,
+    expected: &str,
+    found: impl ToString,
+) -> Result<(), SynthError> {
     if cond {
         Ok(())
     } else {
@@ -239,8 +244,18 @@ fn held_out(n: usize, m: usize) -> Vec<usize> {
 
 /// Chooses cameras, poses and splits.
 pub fn plan(cfg: &SynthConfig) -> Result<ScenePlan, SynthError> {
-    check((8..=1024).contains(&cfg.res), "res", "8..=1024 pixels", cfg.res)?;
-    check(cfg.train_cams >= 1, "train_cams", "at least 1", cfg.train_cams)?;
+    check(
+        (8..=1024).contains(&cfg.res),
+        "res",
+        "8..=1024 pixels",
+        cfg.res,
+    )?;
+    check(
+        cfg.train_cams >= 1,
+        "train_cams",
+        "at least 1",
+        cfg.train_cams,
+    )?;
     check(cfg.test_cams >= 1, "test_cams", "at least 1", cfg.test_cams)?;
     check(
         cfg.train_cams + cfg.test_cams <= 64,
@@ -249,10 +264,30 @@ pub fn plan(cfg: &SynthConfig) -> Result<ScenePlan, SynthError> {
         cfg.train_cams + cfg.test_cams,
     )?;
     check(cfg.frames >= 1, "frames", "at least 1", cfg.frames)?;
-    check(cfg.frame_stride >= 1, "frame_stride", "at least 1", cfg.frame_stride)?;
-    check(cfg.novel_view_stride >= 1, "novel_view_stride", "at least 1", cfg.novel_view_stride)?;
-    check(cfg.novel_pose_walk + cfg.novel_pose_dance >= 1, "novel_pose_walk + novel_pose_dance", "at least 1", 0)?;
-    check(cfg.sampling_margin <= 64, "sampling_margin", "at most 64 pixels", cfg.sampling_margin)?;
+    check(
+        cfg.frame_stride >= 1,
+        "frame_stride",
+        "at least 1",
+        cfg.frame_stride,
+    )?;
+    check(
+        cfg.novel_view_stride >= 1,
+        "novel_view_stride",
+        "at least 1",
+        cfg.novel_view_stride,
+    )?;
+    check(
+        cfg.novel_pose_walk + cfg.novel_pose_dance >= 1,
+        "novel_pose_walk + novel_pose_dance",
+        "at least 1",
+        0,
+    )?;
+    check(
+        cfg.sampling_margin <= 64,
+        "sampling_margin",
+        "at most 64 pixels",
+        cfg.sampling_margin,
+    )?;
 
     let rest = rest_pose();
     let walk = walk_motion(&rest)?;
@@ -285,7 +320,11 @@ pub fn plan(cfg: &SynthConfig) -> Result<ScenePlan, SynthError> {
     let train_poses: Vec<PoseRow> = (0..cfg.frames)
         .map(|k| row(&walk, MotionSource::Walk, k * cfg.frame_stride))
         .collect();
-    let view_poses: Vec<PoseRow> = train_poses.iter().step_by(cfg.novel_view_stride).cloned().collect();
+    let view_poses: Vec<PoseRow> = train_poses
+        .iter()
+        .step_by(cfg.novel_view_stride)
+        .cloned()
+        .collect();
     let mut pose_poses: Vec<PoseRow> = spread(span, walk.len(), cfg.novel_pose_walk)
         .into_iter()
         .map(|f| row(&walk, MotionSource::Walk, f))
@@ -368,7 +407,10 @@ pub fn render_split(
         for k in 0..3 {
             roots[[i, k]] = pose.root[k];
         }
-        for (k, v) in cylinder_from_joints(&posed.kp3d, &cyl_params).iter().enumerate() {
+        for (k, v) in cylinder_from_joints(&posed.kp3d, &cyl_params)
+            .iter()
+            .enumerate()
+        {
             cyls[[i, k]] = *v;
         }
     }
@@ -395,7 +437,11 @@ pub fn render_split(
     let mut cam_idxs = Array1::<i64>::zeros(n);
     let mut image = 0;
     for (i, pose) in split.poses.iter().enumerate() {
-        let l2w = local_to_world(&plan.rest, &pose.bones, glam::DVec3::from(pose.root.map(f64::from)));
+        let l2w = local_to_world(
+            &plan.rest,
+            &pose.bones,
+            glam::DVec3::from(pose.root.map(f64::from)),
+        );
         for &cam in &split.cams {
             let out = render(&plan.figure, &l2w, &plan.cameras[cam], &plan.light);
             let grown = dilate(&out.mask, cfg.res, cfg.res, cfg.sampling_margin);

@@ -81,11 +81,19 @@ fn bvh_kinematics_follow_channel_order() {
 #[test]
 fn bvh_errors_name_the_line() {
     let cases = [
-        (TINY.replace("Xrotation Yrotation\n", "Wrotation Yrotation\n"), 8, "Wrotation"),
-        (TINY.replace("0 90 90\n", "0 90\n"), 19, "ends inside frame 1"),
-        (TINY.replace("1 2 3 90", "1 2 x 90"), 19, "`x`"),
+        (
+            TINY.replace("Xrotation Yrotation\n", "Wrotation Yrotation\n"),
+            9,
+            "Wrotation",
+        ),
+        (
+            TINY.replace("0 90 90\n", "0 90\n"),
+            20,
+            "ends inside frame 1",
+        ),
+        (TINY.replace("1 2 3 90", "1 2 x 90"), 20, "`x`"),
         (TINY.replace("Frames: 2", "Frames: 0"), 17, "frame count"),
-        (format!("{TINY}5\n"), 20, "after the 2 announced frames"),
+        (format!("{TINY}5\n"), 21, "after the 2 announced frames"),
     ];
     for (text, line, needle) in cases {
         let err = Bvh::parse(&text, "tiny.bvh").unwrap_err();
@@ -113,8 +121,14 @@ fn cmu_asset_has_the_documented_layout() {
 /// Retargets `bvh` and checks that every Bone-sourced SMPL bone points
 /// along its BVH segment in every frame.
 fn check_bone_directions(bvh: &Bvh) -> f64 {
-    let m = retarget_bvh(bvh, "cmu", &CMU_TO_SMPL, &ANERF_REST_POSE, &Default::default())
-        .unwrap();
+    let m = retarget_bvh(
+        bvh,
+        "cmu",
+        &CMU_TO_SMPL,
+        &ANERF_REST_POSE,
+        &Default::default(),
+    )
+    .unwrap();
     assert_eq!(m.up, HeadDir::PosY);
     let mut worst = 0.0f64;
     let mut checked = 0;
@@ -127,13 +141,25 @@ fn check_bone_directions(bvh: &Bvh) -> f64 {
             };
             let c = (1..24).find(|&c| PARENTS[c] == j).unwrap();
             let smpl_dir = v(smpl.kp3d[c]) - v(smpl.kp3d[j]);
-            let bvh_dir = pose.position[bvh.joint(to).unwrap()]
-                - pose.position[bvh.joint(from).unwrap()];
+            let bvh_dir =
+                pose.position[bvh.joint(to).unwrap()] - pose.position[bvh.joint(from).unwrap()];
             worst = worst.max(angle(smpl_dir, bvh_dir));
             checked += 1;
         }
     }
-    assert_eq!(checked, 19 * bvh.n_frames());
+    // Every bone-sourced SMPL joint with a child is checked in every frame.
+    let per_frame = CMU_TO_SMPL
+        .iter()
+        .enumerate()
+        .filter(|(j, e)| {
+            matches!(e.source, Source::Bone { .. }) && (1..24).any(|c| PARENTS[c] == *j)
+        })
+        .count();
+    assert!(
+        per_frame >= 15,
+        "only {per_frame} bones are retargeted by direction"
+    );
+    assert_eq!(checked, per_frame * bvh.n_frames());
     worst
 }
 
@@ -151,7 +177,10 @@ fn retargeted_torso_and_root_follow_the_bvh() {
     let m = retarget_bvh(&bvh, "cmu", &CMU_TO_SMPL, &ANERF_REST_POSE, &opts).unwrap();
     let hips = bvh.joint("Hips").unwrap();
     let (chest2, neck) = (bvh.joint("Chest2").unwrap(), bvh.joint("Neck").unwrap());
-    let (lhip, rhip) = (bvh.joint("LeftHip").unwrap(), bvh.joint("RightHip").unwrap());
+    let (lhip, rhip) = (
+        bvh.joint("LeftHip").unwrap(),
+        bvh.joint("RightHip").unwrap(),
+    );
     for f in (0..bvh.n_frames()).step_by(7) {
         let pose = bvh.pose(f);
         let smpl = forward_kinematics(&ANERF_REST_POSE, &m.bones[f], m.root[f]);
@@ -188,8 +217,14 @@ fn cmu_rest_bvh() -> Bvh {
 #[test]
 fn bvh_rest_pose_lowers_the_smpl_t_pose_arms() {
     let bvh = cmu_rest_bvh();
-    let m = retarget_bvh(&bvh, "rest", &CMU_TO_SMPL, &ANERF_REST_POSE, &Default::default())
-        .unwrap();
+    let m = retarget_bvh(
+        &bvh,
+        "rest",
+        &CMU_TO_SMPL,
+        &ANERF_REST_POSE,
+        &Default::default(),
+    )
+    .unwrap();
     let smpl = forward_kinematics(&ANERF_REST_POSE, &m.bones[0], [0.0; 3]);
     for (shoulder, elbow, wrist) in [(16, 18, 20), (17, 19, 21)] {
         let upper = v(smpl.kp3d[elbow]) - v(smpl.kp3d[shoulder]);
@@ -207,8 +242,14 @@ fn bvh_rest_pose_lowers_the_smpl_t_pose_arms() {
 fn retarget_names_a_missing_joint() {
     let text = TINY.replace("Base", "Hips");
     let bvh = Bvh::parse(&text, "tiny.bvh").unwrap();
-    let err = retarget_bvh(&bvh, "tiny.bvh", &CMU_TO_SMPL, &ANERF_REST_POSE, &Default::default())
-        .unwrap_err();
+    let err = retarget_bvh(
+        &bvh,
+        "tiny.bvh",
+        &CMU_TO_SMPL,
+        &ANERF_REST_POSE,
+        &Default::default(),
+    )
+    .unwrap_err();
     assert!(
         matches!(&err, MotionError::MissingJoint { joint, smpl_joint: 0, .. } if joint == "Chest"),
         "{err}"
@@ -228,7 +269,8 @@ fn aist_npz_matches_the_csv_export() {
         assert!((m.bones[0][0][c] - first[c]).abs() < 1e-6);
         assert!((m.bones[319][1][c] - last_left_hip[c]).abs() < 1e-6);
     }
-    assert_eq!(m.bones[0][2][0], -0.1137236);
+    // The CSV keeps 7 significant digits.
+    assert!((m.bones[0][2][0] - -0.1137236).abs() < 1e-7);
     let t0 = [0.07914753f32, 1.977826, -0.8184864];
     let t_last = [0.007994803f32, 1.944203, -0.8973989];
     for c in 0..3 {
@@ -265,6 +307,7 @@ fn smpl_npz_rejects_bad_members() {
         }
         p
     };
+    #[allow(clippy::type_complexity)]
     let cases: Vec<(&str, Vec<(&str, Vec<u64>, Vec<f32>)>, &str)> = vec![
         (
             "short_poses.npz",

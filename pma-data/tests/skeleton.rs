@@ -37,7 +37,8 @@ fn joints(v: &[f32]) -> Joints {
 
 /// The A-NeRF canonical rest pose (fixtures/data, copied from shared/data).
 fn fixture_rest_pose() -> Joints {
-    let text = std::fs::read_to_string(root().join("fixtures/data/smpl_rest_pose_anerf.csv")).unwrap();
+    let text =
+        std::fs::read_to_string(root().join("fixtures/data/smpl_rest_pose_anerf.csv")).unwrap();
     let mut out = [[0.0f32; 3]; N_JOINTS];
     for (i, line) in text.lines().skip(1).enumerate() {
         let f: Vec<&str> = line.split(',').collect();
@@ -51,7 +52,10 @@ fn fixture_rest_pose() -> Joints {
 
 fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
     assert_eq!(a.len(), b.len());
-    a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max)
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max)
 }
 
 /// FK from `input/bones`, `input/rest_pose` and root = kp3d[0] − rest[0]
@@ -86,17 +90,29 @@ fn bone_align_matches_spec_vectors() {
     let cases: [(usize, [[f32; 3]; 3], f32); 3] = [
         (
             1,
-            [[-0.032958, 0.0, -0.999457], [0.995449, 0.089467, -0.032826], [0.089418, -0.995990, -0.002949]],
+            [
+                [-0.032958, 0.0, -0.999457],
+                [0.995449, 0.089467, -0.032826],
+                [0.089418, -0.995990, -0.002949],
+            ],
             -0.437208,
         ),
         (
             16,
-            [[-0.100038, 0.0, -0.994984], [0.044662, 0.998992, -0.004490], [0.993981, -0.044887, -0.099938]],
+            [
+                [-0.100038, 0.0, -0.994984],
+                [0.044662, 0.998992, -0.004490],
+                [0.993981, -0.044887, -0.099938],
+            ],
             -0.302010,
         ),
         (
             12,
-            [[0.994388, 0.0, -0.105794], [-0.084084, 0.606879, -0.790334], [0.064204, 0.794794, 0.603474]],
+            [
+                [0.994388, 0.0, -0.105794],
+                [-0.084084, 0.606879, -0.790334],
+                [0.064204, 0.794794, 0.603474],
+            ],
             -0.101321,
         ),
     ];
@@ -104,11 +120,23 @@ fn bone_align_matches_spec_vectors() {
         let m = ba.transforms[j];
         for i in 0..3 {
             for k in 0..3 {
-                assert!((m[i][k] - r[i][k]).abs() < 2e-6, "joint {j} R[{i}][{k}] = {} vs {}", m[i][k], r[i][k]);
+                assert!(
+                    (m[i][k] - r[i][k]).abs() < 2e-6,
+                    "joint {j} R[{i}][{k}] = {} vs {}",
+                    m[i][k],
+                    r[i][k]
+                );
             }
         }
-        assert!(m[0][3].abs() < 1e-7 && m[1][3].abs() < 1e-7, "joint {j} translation x/y");
-        assert!((m[2][3] - tz).abs() < 2e-6, "joint {j} t_z = {} vs {tz}", m[2][3]);
+        assert!(
+            m[0][3].abs() < 1e-7 && m[1][3].abs() < 1e-7,
+            "joint {j} translation x/y"
+        );
+        assert!(
+            (m[2][3] - tz).abs() < 2e-6,
+            "joint {j} t_z = {} vs {tz}",
+            m[2][3]
+        );
         assert_eq!(m[3], [0.0, 0.0, 0.0, 1.0]);
     }
     assert_eq!(ba.child[1], 4);
@@ -117,7 +145,11 @@ fn bone_align_matches_spec_vectors() {
         assert_eq!(ba.child[j], j);
         for i in 0..4 {
             for k in 0..4 {
-                assert_eq!(ba.transforms[j][i][k], if i == k { 1.0 } else { 0.0 }, "joint {j}");
+                assert_eq!(
+                    ba.transforms[j][i][k],
+                    if i == k { 1.0 } else { 0.0 },
+                    "joint {j}"
+                );
             }
         }
     }
@@ -130,8 +162,8 @@ fn init_half_extents_match_spec_table() {
     assert!((prof.shoulder_width - 0.801207).abs() < 1e-6);
     assert!((prof.knee_width - 0.489591).abs() < 1e-6);
     let l = [
-        0.2650, 0.8744, 0.8969, 0.3446, 0.9113, 0.9105, 0.1386, 0.3087, 0.3066, 0.4053, -1.0, -1.0, 0.2026,
-        0.2242, 0.2366, -1.0, 0.6040, 0.5901, 0.5644, 0.5831, 0.1903, 0.1904, -1.0, -1.0,
+        0.2650, 0.8744, 0.8969, 0.3446, 0.9113, 0.9105, 0.1386, 0.3087, 0.3066, 0.4053, -1.0, -1.0,
+        0.2026, 0.2242, 0.2366, -1.0, 0.6040, 0.5901, 0.5644, 0.5831, 0.1903, 0.1904, -1.0, -1.0,
     ];
     for (j, &want) in l.iter().enumerate() {
         assert!((prof.bone_lens_to_child[j] - want).abs() < 6e-5, "L[{j}]");
@@ -148,7 +180,12 @@ fn init_half_extents_match_spec_table() {
     let got = init_half_extents(&rest).unwrap();
     for j in 0..24 {
         for k in 0..3 {
-            assert!((got[j][k] - table[j][k]).abs() < 6e-5, "joint {j} axis {k}: {} vs {}", got[j][k], table[j][k]);
+            assert!(
+                (got[j][k] - table[j][k]).abs() < 6e-5,
+                "joint {j} axis {k}: {} vs {}",
+                got[j][k],
+                table[j][k]
+            );
         }
     }
 }
@@ -163,7 +200,12 @@ fn golden_model_buffers_match_rest_pose() {
     let (_, rest) = f32s(&st, "rest_pose");
     let rest = joints(&rest);
     let (_, base) = f32s(&st, "graph_net.base_scale");
-    let got: Vec<f32> = init_half_extents(&rest).unwrap().iter().flatten().copied().collect();
+    let got: Vec<f32> = init_half_extents(&rest)
+        .unwrap()
+        .iter()
+        .flatten()
+        .copied()
+        .collect();
     let d = max_abs_diff(&got, &base);
     assert!(d < 1e-6, "base_scale max diff {d}");
     let (_, tr) = f32s(&st, "pts_embedder.transforms");
@@ -176,7 +218,9 @@ fn golden_model_buffers_match_rest_pose() {
         .copied()
         .collect();
     let d = max_abs_diff(&got, &tr);
-    assert!(d < 1e-6, "transforms max diff {d}");
+    // The reference builds A_j in float32 (arccos, sin, cos of float32 angles); ours is f64
+    // rounded once, so they differ by a few dozen float32 ulps of values ~1.
+    assert!(d < 5e-6, "transforms max diff {d}");
 }
 
 #[test]
@@ -201,7 +245,10 @@ fn degenerate_6d_is_an_error() {
 }
 
 fn mat_close(a: DMat3, b: DMat3, tol: f64) -> bool {
-    a.to_cols_array().iter().zip(b.to_cols_array()).all(|(x, y)| (x - y).abs() < tol)
+    a.to_cols_array()
+        .iter()
+        .zip(b.to_cols_array())
+        .all(|(x, y)| (x - y).abs() < tol)
 }
 
 fn unit_axis() -> impl Strategy<Value = DVec3> {
@@ -227,8 +274,10 @@ proptest! {
     fn axis_angle_round_trip_near_zero(axis in unit_axis(), e in -12.0f64..-3.0) {
         let w = axis * 10f64.powf(e);
         let m = axis_angle_to_matrix(w);
-        // First-order check independent of the implementation: R ≈ I + [w]×.
-        prop_assert!((m.col(0).y - w.z).abs() < 1e-9 && (m.col(1).x + w.z).abs() < 1e-9);
+        // First-order check independent of the implementation: R ≈ I + [w]× up to the
+        // second-order term, whose entries are bounded by |w|².
+        let tol = 1e-12 + w.length_squared();
+        prop_assert!((m.col(0).y - w.z).abs() < tol && (m.col(1).x + w.z).abs() < tol);
         let back = matrix_to_axis_angle(m);
         prop_assert!((back - w).length() < 1e-14 + 1e-9 * w.length(), "{w} -> {back}");
     }

@@ -19,7 +19,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     for (d, s) in joints.iter_mut().zip(bones) {
         d.copy_from_slice(&s);
     }
-    let poses = Poses { bones: vec![joints], skts: g["input/skts"].narrow(0, 0, 1)?, cyls: g["input/cyls"].narrow(0, 0, 1)? };
+    let poses = Poses {
+        bones: vec![joints],
+        skts: g["input/skts"].narrow(0, 0, 1)?,
+        cyls: g["input/cyls"].narrow(0, 0, 1)?,
+    };
     let rays = Rays {
         origins: g["input/rays_o"].clone(),
         dirs: g["input/rays_d"].clone(),
@@ -34,10 +38,28 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let (mut fwd, mut bwd) = (Vec::new(), Vec::new());
     for i in 0..7 {
         let t = Instant::now();
-        let out = avatar.forward(&rays, &poses, &mut ForwardOptions { training: true, noise: None, inference: false }, None)?;
+        let out = avatar.forward(
+            &rays,
+            &poses,
+            &mut ForwardOptions {
+                training: true,
+                noise: None,
+                inference: false,
+            },
+            None,
+        )?;
         let f = t.elapsed().as_secs_f64();
         let t = Instant::now();
-        let out2 = avatar.forward(&rays, &poses, &mut ForwardOptions { training: true, noise: None, inference: false }, None)?;
+        let out2 = avatar.forward(
+            &rays,
+            &poses,
+            &mut ForwardOptions {
+                training: true,
+                noise: None,
+                inference: false,
+            },
+            None,
+        )?;
         let loss = training_loss(&out2, &target, &LossWeights::default())?;
         loss.total.backward()?;
         let b = t.elapsed().as_secs_f64();
@@ -47,7 +69,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             bwd.push(b);
         }
     }
-    println!("golden 64 rays x (48 + 24) samples, paper config, {} threads", candle_core::utils::get_num_threads());
+    println!(
+        "golden 64 rays x (48 + 24) samples, paper config, {} threads",
+        candle_core::utils::get_num_threads()
+    );
     println!("forward          median {:.1} ms", 1e3 * median(fwd));
     println!("forward+backward median {:.1} ms", 1e3 * median(bwd));
     Ok(())

@@ -427,7 +427,7 @@ impl Avatar {
         view: &Tensor,
         opts: &mut ForwardOptions,
         stage: &str,
-        mut trace: Option<&mut Trace>,
+        trace: Option<&mut Trace>,
     ) -> Result<Tensor> {
         let (r, s, _) = pts.dims3()?;
         let n_poses = pose.g.dim(0)?;
@@ -448,8 +448,13 @@ impl Avatar {
                 let mut start = 0;
                 while start < n {
                     let len = INFERENCE_POINT_CHUNK.min(n - start);
-                    let (rgb, sigma_raw) =
-                        self.eval_points(pose, p, &pts_p.narrow(0, start, len)?, &view_p.narrow(0, start, len)?, None)?;
+                    let (rgb, sigma_raw) = self.eval_points(
+                        pose,
+                        p,
+                        &pts_p.narrow(0, start, len)?,
+                        &view_p.narrow(0, start, len)?,
+                        None,
+                    )?;
                     rgbs.push(rgb.detach());
                     sigmas.push(sigma_raw.detach());
                     start += len;
@@ -470,7 +475,7 @@ impl Avatar {
         }
         let rgb = Tensor::cat(&rgbs, 0)?;
         let sigma_raw = Tensor::cat(&sigmas, 0)?;
-        if let Some(t) = trace.as_deref_mut() {
+        if let Some(t) = trace {
             // Per-pose traces are concatenated in ray order (poses are contiguous blocks).
             let keys: Vec<String> = traces
                 .first()
@@ -584,7 +589,10 @@ impl Avatar {
 
     /// Inference: render rays (eval mode, no noise, no gradient, bounded memory).
     pub fn render_rays(&self, rays: &Rays, poses: &Poses) -> Result<Outputs> {
-        let mut opts = ForwardOptions { inference: true, ..Default::default() };
+        let mut opts = ForwardOptions {
+            inference: true,
+            ..Default::default()
+        };
         self.forward(rays, poses, &mut opts, None)
     }
 
@@ -600,13 +608,26 @@ impl Avatar {
         opts: &crate::image::ImageOptions,
     ) -> Result<crate::image::RenderedImage> {
         if poses.bones.len() != 1 {
-            return Err(ModelError::Input(format!("render_image takes one pose, found {}", poses.bones.len())));
+            return Err(ModelError::Input(format!(
+                "render_image takes one pose, found {}",
+                poses.bones.len()
+            )));
         }
-        let mut renderer = |o: &Tensor, d: &Tensor, bg: &Tensor| -> Result<crate::image::ChunkRender> {
-            let rays = Rays { origins: o.clone(), dirs: d.clone(), bgs: Some(bg.clone()), framecodes: vec![-1; o.dim(0)?] };
-            let out = self.render_rays(&rays, poses)?;
-            Ok(crate::image::ChunkRender { rgb: out.fine.rgb, acc: out.fine.acc, disp: out.fine.disp })
-        };
+        let mut renderer =
+            |o: &Tensor, d: &Tensor, bg: &Tensor| -> Result<crate::image::ChunkRender> {
+                let rays = Rays {
+                    origins: o.clone(),
+                    dirs: d.clone(),
+                    bgs: Some(bg.clone()),
+                    framecodes: vec![-1; o.dim(0)?],
+                };
+                let out = self.render_rays(&rays, poses)?;
+                Ok(crate::image::ChunkRender {
+                    rgb: out.fine.rgb,
+                    acc: out.fine.acc,
+                    disp: out.fine.disp,
+                })
+            };
         crate::image::render_image(&mut renderer, cam, kp3d, background, opts)
     }
 

@@ -60,10 +60,20 @@ pub fn tensor_layout(cfg: &Config) -> Vec<TensorSpec> {
     let gw = cfg.gnn_width;
     let wh = cfg.win_hidden;
     let ph = cfg.pose_extractor_hidden;
-    let view_in = w + cfg.sh_degree * cfg.sh_degree + if cfg.use_framecodes { cfg.framecode_ch } else { 0 };
+    let view_in = w
+        + cfg.sh_degree * cfg.sh_degree
+        + if cfg.use_framecodes {
+            cfg.framecode_ch
+        } else {
+            0
+        };
 
     let mut push = |name: &str, shape: &[usize], kind: TensorKind| {
-        out.push(TensorSpec { name: name.to_string(), shape: shape.to_vec(), kind })
+        out.push(TensorSpec {
+            name: name.to_string(),
+            shape: shape.to_vec(),
+            kind,
+        })
     };
     use TensorKind::{Buffer as B, Param as P};
 
@@ -94,7 +104,11 @@ pub fn tensor_layout(cfg: &Config) -> Vec<TensorSpec> {
     push("rgb_linear.weight", &[3, cfg.view_width], P);
     push("rgb_linear.bias", &[3], P);
     if cfg.use_framecodes {
-        push("framecodes.codes.weight", &[cfg.n_framecodes, cfg.framecode_ch], P);
+        push(
+            "framecodes.codes.weight",
+            &[cfg.n_framecodes, cfg.framecode_ch],
+            P,
+        );
     }
     push("graph_net.axis_scale", &[j, 3], P);
     push("graph_net.mask", &[1, j, 1], B);
@@ -104,7 +118,11 @@ pub fn tensor_layout(cfg: &Config) -> Vec<TensorSpec> {
         push(&format!("graph_net.layers.{l}.bias"), &[gw], P);
         push(&format!("graph_net.layers.{l}.adj_w"), &[1, j, j], P);
         push(&format!("graph_net.layers.{l}.adj"), &[1, j, j], B);
-        push(&format!("graph_net.layers.{l}.lin.weight"), &[j, fan_in, gw], P);
+        push(
+            &format!("graph_net.layers.{l}.lin.weight"),
+            &[j, fan_in, gw],
+            P,
+        );
     }
     for l in cfg.gnn_graph_layers..cfg.gnn_graph_layers + cfg.gnn_fc_layers {
         let fan_in = if l == 0 { 6 } else { gw };
@@ -113,8 +131,16 @@ pub fn tensor_layout(cfg: &Config) -> Vec<TensorSpec> {
     }
     for k in 0..cfg.n_pm {
         let fan_in = if k == 0 { j * ce } else { cfg.freq_dim };
-        push(&format!("modulator.sin_lin{k}.layer.weight"), &[cfg.freq_dim, fan_in], P);
-        push(&format!("modulator.sin_lin{k}.layer.bias"), &[cfg.freq_dim], P);
+        push(
+            &format!("modulator.sin_lin{k}.layer.weight"),
+            &[cfg.freq_dim, fan_in],
+            P,
+        );
+        push(
+            &format!("modulator.sin_lin{k}.layer.bias"),
+            &[cfg.freq_dim],
+            P,
+        );
     }
     for (name, out_dim, in_dim) in [
         ("layer_pose", wh, gw),
@@ -123,31 +149,73 @@ pub fn tensor_layout(cfg: &Config) -> Vec<TensorSpec> {
         ("sin_lin1", wh, wh),
         ("last_layer", j, wh),
     ] {
-        push(&format!("win_fun.{name}.layer.weight"), &[out_dim, in_dim], P);
+        push(
+            &format!("win_fun.{name}.layer.weight"),
+            &[out_dim, in_dim],
+            P,
+        );
         push(&format!("win_fun.{name}.layer.bias"), &[out_dim], P);
     }
     for l in 0..=cfg.pose_extractor_depth {
         let fan_in = if l == 0 { wh } else { ph };
-        let out_dim = if l == cfg.pose_extractor_depth { 2 * cfg.n_pm * cfg.freq_dim } else { ph };
-        push(&format!("pose_extractor.sin_lin{l}.layer.weight"), &[out_dim, fan_in], P);
-        push(&format!("pose_extractor.sin_lin{l}.layer.bias"), &[out_dim], P);
+        let out_dim = if l == cfg.pose_extractor_depth {
+            2 * cfg.n_pm * cfg.freq_dim
+        } else {
+            ph
+        };
+        push(
+            &format!("pose_extractor.sin_lin{l}.layer.weight"),
+            &[out_dim, fan_in],
+            P,
+        );
+        push(
+            &format!("pose_extractor.sin_lin{l}.layer.bias"),
+            &[out_dim],
+            P,
+        );
     }
     out
 }
 
 /// Names of the trainable tensors in reference order (`named_parameters()`).
 pub fn param_names(cfg: &Config) -> Vec<String> {
-    tensor_layout(cfg).into_iter().filter(|t| t.kind == TensorKind::Param).map(|t| t.name).collect()
+    tensor_layout(cfg)
+        .into_iter()
+        .filter(|t| t.kind == TensorKind::Param)
+        .map(|t| t.name)
+        .collect()
 }
 
 // TODO(M1): take these from pma_data::skeleton once it lands.
 const SMPL_NAMES_TMP: [&str; 24] = [
-    "pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2", "left_ankle",
-    "right_ankle", "spine3", "left_foot", "right_foot", "neck", "left_collar", "right_collar", "head",
-    "left_shoulder", "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist", "left_hand",
+    "pelvis",
+    "left_hip",
+    "right_hip",
+    "spine1",
+    "left_knee",
+    "right_knee",
+    "spine2",
+    "left_ankle",
+    "right_ankle",
+    "spine3",
+    "left_foot",
+    "right_foot",
+    "neck",
+    "left_collar",
+    "right_collar",
+    "head",
+    "left_shoulder",
+    "right_shoulder",
+    "left_elbow",
+    "right_elbow",
+    "left_wrist",
+    "right_wrist",
+    "left_hand",
     "right_hand",
 ];
-const SMPL_PARENTS_TMP: [usize; 24] = [0, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21];
+const SMPL_PARENTS_TMP: [usize; 24] = [
+    0, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21,
+];
 
 /// Skeleton description stored in the metadata.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
@@ -188,13 +256,20 @@ pub struct Checkpoint {
 }
 
 /// Compare `(name, shape, dtype)` triples against the layout of `cfg`; one line per problem.
-pub fn check_tensors<'a>(cfg: &Config, found: impl IntoIterator<Item = (&'a str, &'a [usize], DType)>) -> Vec<String> {
+pub fn check_tensors<'a>(
+    cfg: &Config,
+    found: impl IntoIterator<Item = (&'a str, &'a [usize], DType)>,
+) -> Vec<String> {
     let layout = tensor_layout(cfg);
-    let mut found: HashMap<&str, (&[usize], DType)> = found.into_iter().map(|(n, s, d)| (n, (s, d))).collect();
+    let mut found: HashMap<&str, (&[usize], DType)> =
+        found.into_iter().map(|(n, s, d)| (n, (s, d))).collect();
     let mut problems = Vec::new();
     for spec in &layout {
         match found.remove(spec.name.as_str()) {
-            None => problems.push(format!("missing tensor `{}` (expected shape {:?})", spec.name, spec.shape)),
+            None => problems.push(format!(
+                "missing tensor `{}` (expected shape {:?})",
+                spec.name, spec.shape
+            )),
             Some((shape, dtype)) => {
                 if shape != spec.shape.as_slice() {
                     problems.push(format!(
@@ -203,7 +278,10 @@ pub fn check_tensors<'a>(cfg: &Config, found: impl IntoIterator<Item = (&'a str,
                     ));
                 }
                 if dtype != DType::F32 {
-                    problems.push(format!("tensor `{}`: expected dtype f32, found {dtype:?}", spec.name));
+                    problems.push(format!(
+                        "tensor `{}`: expected dtype f32, found {dtype:?}",
+                        spec.name
+                    ));
                 }
             }
         }
@@ -222,9 +300,17 @@ pub fn check_tensors<'a>(cfg: &Config, found: impl IntoIterator<Item = (&'a str,
 /// metadata is taken from the `rest_pose` tensor so the two cannot disagree.
 pub fn save(path: &Path, tensors: &HashMap<String, Tensor>, cfg: &Config) -> Result<()> {
     cfg.validate()?;
-    let problems = check_tensors(cfg, tensors.iter().map(|(n, t)| (n.as_str(), t.dims(), t.dtype())));
+    let problems = check_tensors(
+        cfg,
+        tensors
+            .iter()
+            .map(|(n, t)| (n.as_str(), t.dims(), t.dtype())),
+    );
     if !problems.is_empty() {
-        return Err(ModelError::Checkpoint { path: path.to_path_buf(), problems });
+        return Err(ModelError::Checkpoint {
+            path: path.to_path_buf(),
+            problems,
+        });
     }
     let rest_pose: Vec<[f32; 3]> = tensors["rest_pose"]
         .to_vec2::<f32>()?
@@ -241,13 +327,19 @@ pub fn save(path: &Path, tensors: &HashMap<String, Tensor>, cfg: &Config) -> Res
 
     // safetensors views need contiguous CPU-readable data; candle's `View` impl copies as needed.
     let bytes = safetensors::serialize(tensors.iter().map(|(n, t)| (n.as_str(), t)), Some(meta))
-        .map_err(|source| ModelError::Safetensors { path: path.to_path_buf(), source })?;
+        .map_err(|source| ModelError::Safetensors {
+            path: path.to_path_buf(),
+            source,
+        })?;
     write_atomic(path, &bytes)
 }
 
 /// Write `bytes` to `path` through a temporary file in the same directory.
 pub(crate) fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    let io = |source| ModelError::Io { path: path.to_path_buf(), source };
+    let io = |source| ModelError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
     let dir = match path.parent() {
         Some(d) if !d.as_os_str().is_empty() => d,
         _ => Path::new("."),
@@ -261,11 +353,20 @@ pub(crate) fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
 
 /// Read and validate a checkpoint (see the module docs for what is checked).
 pub fn load(path: &Path, device: &Device) -> Result<Checkpoint> {
-    let bytes = std::fs::read(path).map_err(|source| ModelError::Io { path: path.to_path_buf(), source })?;
-    let st_err = |source| ModelError::Safetensors { path: path.to_path_buf(), source };
+    let bytes = std::fs::read(path).map_err(|source| ModelError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let st_err = |source| ModelError::Safetensors {
+        path: path.to_path_buf(),
+        source,
+    };
     let (_, header) = safetensors::SafeTensors::read_metadata(&bytes).map_err(st_err)?;
     let st = safetensors::SafeTensors::deserialize(&bytes).map_err(st_err)?;
-    let fail = |problems: Vec<String>| ModelError::Checkpoint { path: path.to_path_buf(), problems };
+    let fail = |problems: Vec<String>| ModelError::Checkpoint {
+        path: path.to_path_buf(),
+        problems,
+    };
 
     let mut problems = Vec::new();
     let meta_map = header.metadata().clone().unwrap_or_default();
@@ -280,10 +381,15 @@ pub fn load(path: &Path, device: &Device) -> Result<Checkpoint> {
         // Any other dtype is reported as a dtype problem through this stand-in.
         _ => DType::U8,
     };
-    let found: Vec<(&str, &[usize], DType)> =
-        views.iter().map(|(n, v)| (n.as_str(), v.shape(), dtype_of(v.dtype()))).collect();
+    let found: Vec<(&str, &[usize], DType)> = views
+        .iter()
+        .map(|(n, v)| (n.as_str(), v.shape(), dtype_of(v.dtype())))
+        .collect();
 
-    let (config, format_version, skeleton, meta_rest) = match meta_map.get("format").map(String::as_str) {
+    let (config, format_version, skeleton, meta_rest) = match meta_map
+        .get("format")
+        .map(String::as_str)
+    {
         Some(FORMAT) => {
             let mut get = |key: &str| -> Option<String> {
                 let v = meta_map.get(key).cloned();
@@ -300,19 +406,32 @@ pub fn load(path: &Path, device: &Device) -> Result<Checkpoint> {
             if !problems.is_empty() {
                 return Err(fail(problems));
             }
-            let (version, config, skeleton, rest, n_codes) =
-                (version.unwrap(), config.unwrap(), skeleton.unwrap(), rest.unwrap(), n_codes.unwrap());
+            let (version, config, skeleton, rest, n_codes) = (
+                version.unwrap(),
+                config.unwrap(),
+                skeleton.unwrap(),
+                rest.unwrap(),
+                n_codes.unwrap(),
+            );
             if version != FORMAT_VERSION.to_string() {
-                problems.push(format!("metadata `format_version`: expected \"{FORMAT_VERSION}\", found {version:?}"));
+                problems.push(format!(
+                    "metadata `format_version`: expected \"{FORMAT_VERSION}\", found {version:?}"
+                ));
             }
             let config: Option<Config> = serde_json::from_str(&config)
                 .map_err(|e| problems.push(format!("metadata `config` is not a valid config: {e}")))
                 .ok();
             let skeleton: Option<SkeletonMeta> = serde_json::from_str(&skeleton)
-                .map_err(|e| problems.push(format!("metadata `skeleton` is not {{names, parents}}: {e}")))
+                .map_err(|e| {
+                    problems.push(format!(
+                        "metadata `skeleton` is not {{names, parents}}: {e}"
+                    ))
+                })
                 .ok();
             let rest: Option<Vec<[f32; 3]>> = serde_json::from_str(&rest)
-                .map_err(|e| problems.push(format!("metadata `rest_pose` is not [[x,y,z],...]: {e}")))
+                .map_err(|e| {
+                    problems.push(format!("metadata `rest_pose` is not [[x,y,z],...]: {e}"))
+                })
                 .ok();
             if let Some(cfg) = &config {
                 if n_codes != cfg.n_framecodes.to_string() {
@@ -335,20 +454,27 @@ pub fn load(path: &Path, device: &Device) -> Result<Checkpoint> {
                 }
             }
             match (config, skeleton, rest) {
-                (Some(c), Some(s), Some(r)) if problems.is_empty() => (c, Some(FORMAT_VERSION), s, Some(r)),
+                (Some(c), Some(s), Some(r)) if problems.is_empty() => {
+                    (c, Some(FORMAT_VERSION), s, Some(r))
+                }
                 _ => return Err(fail(problems)),
             }
         }
         Some(other) if meta_map.contains_key("format_version") => {
-            return Err(fail(vec![format!("metadata `format`: expected \"{FORMAT}\", found {other:?}")]));
+            return Err(fail(vec![format!(
+                "metadata `format`: expected \"{FORMAT}\", found {other:?}"
+            )]));
         }
         _ => {
             let mut cfg = Config::paper();
-            match found.iter().find(|(n, _, _)| *n == "framecodes.codes.weight") {
+            match found
+                .iter()
+                .find(|(n, _, _)| *n == "framecodes.codes.weight")
+            {
                 Some((_, [n, _], _)) => cfg.n_framecodes = *n,
-                Some((_, shape, _)) => {
-                    problems.push(format!("tensor `framecodes.codes.weight`: expected shape [n, 128], found {shape:?}"))
-                }
+                Some((_, shape, _)) => problems.push(format!(
+                    "tensor `framecodes.codes.weight`: expected shape [n, 128], found {shape:?}"
+                )),
                 None => {} // reported as missing below
             }
             (cfg, None, SkeletonMeta::smpl(), None)
@@ -371,24 +497,37 @@ pub fn load(path: &Path, device: &Device) -> Result<Checkpoint> {
         let t = candle_core::safetensors::Load::load(view, device)?;
         tensors.insert(name.clone(), t);
     }
-    let rest_pose: Vec<[f32; 3]> =
-        tensors["rest_pose"].to_vec2::<f32>()?.into_iter().map(|r| [r[0], r[1], r[2]]).collect();
+    let rest_pose: Vec<[f32; 3]> = tensors["rest_pose"]
+        .to_vec2::<f32>()?
+        .into_iter()
+        .map(|r| [r[0], r[1], r[2]])
+        .collect();
     if let Some(meta_rest) = meta_rest {
         if meta_rest != rest_pose {
-            return Err(fail(vec!["metadata `rest_pose` differs from the `rest_pose` tensor".to_string()]));
+            return Err(fail(vec![
+                "metadata `rest_pose` differs from the `rest_pose` tensor".to_string(),
+            ]));
         }
     }
     Ok(Checkpoint {
         config,
         tensors,
-        meta: CheckpointMeta { format_version, skeleton, rest_pose, config_inferred: format_version.is_none() },
+        meta: CheckpointMeta {
+            format_version,
+            skeleton,
+            rest_pose,
+            config_inferred: format_version.is_none(),
+        },
     })
 }
 
 /// Read tensors from a plain safetensors file (no checks): e.g. a partial override such as
 /// `sigma_override.safetensors`.
 pub fn load_tensors(path: &Path, device: &Device) -> Result<HashMap<String, Tensor>> {
-    let bytes = std::fs::read(path).map_err(|source| ModelError::Io { path: path.to_path_buf(), source })?;
+    let bytes = std::fs::read(path).map_err(|source| ModelError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
     candle_core::safetensors::load_buffer(&bytes, device).map_err(|e| ModelError::Checkpoint {
         path: PathBuf::from(path),
         problems: vec![e.to_string()],
@@ -396,5 +535,6 @@ pub fn load_tensors(path: &Path, device: &Device) -> Result<HashMap<String, Tens
 }
 
 fn to_json<T: Serialize>(v: &T) -> Result<String> {
-    serde_json::to_string(v).map_err(|e| ModelError::Config(format!("cannot serialise checkpoint metadata: {e}")))
+    serde_json::to_string(v)
+        .map_err(|e| ModelError::Config(format!("cannot serialise checkpoint metadata: {e}")))
 }

@@ -144,13 +144,22 @@ impl Config {
     pub fn validate(&self) -> Result<(), crate::error::ModelError> {
         let mut bad = Vec::new();
         if self.n_joints != 24 {
-            bad.push(format!("n_joints must be 24 (SMPL skeleton), found {}", self.n_joints));
+            bad.push(format!(
+                "n_joints must be 24 (SMPL skeleton), found {}",
+                self.n_joints
+            ));
         }
         if self.window_beta == 0 || self.window_beta % 2 != 0 {
-            bad.push(format!("window_beta must be even and > 0, found {}", self.window_beta));
+            bad.push(format!(
+                "window_beta must be even and > 0, found {}",
+                self.window_beta
+            ));
         }
         if !(1..=4).contains(&self.sh_degree) {
-            bad.push(format!("sh_degree must be in 1..=4, found {}", self.sh_degree));
+            bad.push(format!(
+                "sh_degree must be in 1..=4, found {}",
+                self.sh_degree
+            ));
         }
         if self.trunk_depth == 0 || self.skips.iter().any(|&s| s + 1 >= self.trunk_depth) {
             bad.push(format!(
@@ -170,7 +179,10 @@ impl Config {
                 self.n_samples, self.n_importance
             ));
         }
-        for (name, v) in [("sin_w0_point", self.sin_w0_point), ("sin_w0_pose", self.sin_w0_pose)] {
+        for (name, v) in [
+            ("sin_w0_point", self.sin_w0_point),
+            ("sin_w0_pose", self.sin_w0_pose),
+        ] {
             if !(v.is_finite() && v > 0.0) {
                 bad.push(format!("{name} must be finite and > 0, found {v}"));
             }

@@ -17,7 +17,10 @@ pub enum ModelError {
     /// A checkpoint is unusable; `problems` lists every issue found (missing, unexpected and
     /// mis-shaped tensors, bad metadata), not just the first.
     #[error("checkpoint {path}: {} problem(s):\n  - {}", problems.len(), problems.join("\n  - "))]
-    Checkpoint { path: PathBuf, problems: Vec<String> },
+    Checkpoint {
+        path: PathBuf,
+        problems: Vec<String>,
+    },
 
     /// The safetensors container itself could not be parsed or written.
     #[error("safetensors {path}: {source}")]
@@ -33,7 +36,11 @@ pub enum ModelError {
 
     /// A tensor handed to the model has the wrong shape or dtype.
     #[error("{what}: expected {expected}, found {found}")]
-    Shape { what: String, expected: String, found: String },
+    Shape {
+        what: String,
+        expected: String,
+        found: String,
+    },
 
     /// Bad caller input that is not a shape problem (e.g. rays not grouped by pose).
     #[error("invalid input: {0}")]
@@ -48,8 +55,16 @@ pub enum ModelError {
 
 impl ModelError {
     /// Shape error helper: `what` names the tensor (and its source, if any).
-    pub fn shape(what: impl Into<String>, expected: impl std::fmt::Debug, found: impl std::fmt::Debug) -> Self {
-        Self::Shape { what: what.into(), expected: format!("{expected:?}"), found: format!("{found:?}") }
+    pub fn shape(
+        what: impl Into<String>,
+        expected: impl std::fmt::Debug,
+        found: impl std::fmt::Debug,
+    ) -> Self {
+        Self::Shape {
+            what: what.into(),
+            expected: format!("{expected:?}"),
+            found: format!("{found:?}"),
+        }
     }
 }
 

@@ -118,7 +118,9 @@ impl GnnSine {
     /// w.r.t. |a| is always 1 (the reference's straight-through floor), so the size
     /// regulariser can keep pushing the raw parameter while the value stays at the floor.
     pub fn axis_scale(&self) -> Result<Tensor> {
-        let a = self.axis_scale.abs()?;
+        // |a| written as relu(a) + relu(−a): same value, but its gradient at exactly 0 is 0
+        // (torch's sign(0)), where candle's `abs` would give ±1.
+        let a = (self.axis_scale.relu()? + self.axis_scale.neg()?.relu()?)?;
         let floor = (&self.base_scale * self.scale_floor)?;
         let clamped = a.maximum(&floor)?;
         Ok((&a + (clamped - &a)?.detach())?)

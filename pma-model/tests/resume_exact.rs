@@ -6,7 +6,7 @@
 mod train_support;
 
 use candle_core::Device;
-use pma_model::train::{Trainer, TrainError, MODEL_FILE, STATE_FILE};
+use pma_model::train::{TrainError, Trainer, MODEL_FILE, STATE_FILE};
 use train_support::*;
 
 #[test]
@@ -39,7 +39,11 @@ fn resume_equals_uninterrupted_run() {
         resumed_losses.push(resumed.step().unwrap().loss.total.to_bits());
     }
 
-    assert_eq!(resumed_losses, full_losses[n..], "losses of the resumed steps differ");
+    assert_eq!(
+        resumed_losses,
+        full_losses[n..],
+        "losses of the resumed steps differ"
+    );
     assert_eq!(resumed.iteration(), full.iteration());
     assert_eq!(resumed.lrs(), full.lrs());
     let (a, b) = (param_bits(&full), param_bits(&resumed));
@@ -48,7 +52,10 @@ fn resume_equals_uninterrupted_run() {
         assert_eq!(na, nb);
         assert!(va == vb, "parameter {na} differs after resume");
     }
-    assert!(adam_bits(&full) == adam_bits(&resumed), "optimizer state differs after resume");
+    assert!(
+        adam_bits(&full) == adam_bits(&resumed),
+        "optimizer state differs after resume"
+    );
 }
 
 #[test]
@@ -67,7 +74,9 @@ fn resume_rejects_a_changed_config_and_a_mismatched_model() {
     Trainer::resume(&ckpt, longer, data.clone(), &Device::Cpu).unwrap();
     let mut other = tiny_run();
     other.train.lr *= 2.0;
-    let err = Trainer::resume(&ckpt, other, data.clone(), &Device::Cpu).err().unwrap();
+    let err = Trainer::resume(&ckpt, other, data.clone(), &Device::Cpu)
+        .err()
+        .unwrap();
     assert!(matches!(err, TrainError::Resume { .. }), "{err}");
     assert!(err.to_string().contains("configuration differs"), "{err}");
 
@@ -79,11 +88,15 @@ fn resume_rejects_a_changed_config_and_a_mismatched_model() {
     std::fs::create_dir_all(&elsewhere).unwrap();
     later.save_checkpoint(&elsewhere).unwrap();
     std::fs::copy(elsewhere.join(MODEL_FILE), ckpt.join(MODEL_FILE)).unwrap();
-    let err = Trainer::resume(&ckpt, tiny_run(), data.clone(), &Device::Cpu).err().unwrap();
+    let err = Trainer::resume(&ckpt, tiny_run(), data.clone(), &Device::Cpu)
+        .err()
+        .unwrap();
     assert!(err.to_string().contains("does not belong to"), "{err}");
 
     // Nothing to resume.
     std::fs::remove_file(ckpt.join(STATE_FILE)).unwrap();
-    let err = Trainer::resume(&ckpt, tiny_run(), data, &Device::Cpu).err().unwrap();
+    let err = Trainer::resume(&ckpt, tiny_run(), data, &Device::Cpu)
+        .err()
+        .unwrap();
     assert!(err.to_string().contains("is missing"), "{err}");
 }

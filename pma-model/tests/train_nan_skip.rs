@@ -32,10 +32,20 @@ fn non_finite_gradient_is_skipped_and_counted() {
         assert_eq!(s.skipped, Some(SkipReason::NonFiniteGradNorm), "{bad}");
         assert!(!s.grad_norm.is_finite());
         assert_eq!(t.progress().skipped, i as u64 + 1);
-        assert!(param_bits(&t) == params, "a skipped step changed the weights");
-        assert!(adam_bits(&t) == adam, "a skipped step changed the optimizer state");
+        assert!(
+            param_bits(&t) == params,
+            "a skipped step changed the weights"
+        );
+        assert!(
+            adam_bits(&t) == adam,
+            "a skipped step changed the optimizer state"
+        );
     }
-    assert_eq!(t.iteration(), 3, "skipped iterations still count as iterations");
+    assert_eq!(
+        t.iteration(),
+        3,
+        "skipped iterations still count as iterations"
+    );
 
     // Training goes on, and every weight stays finite.
     let s = t.step().unwrap();
@@ -53,11 +63,15 @@ fn non_finite_loss_is_skipped_without_backward() {
     let tmp = tempfile::tempdir().unwrap();
     let data = tiny_scene(&tmp.path().join("scene"));
     let mut t = tiny_trainer(&data);
-    let mut src = pma_model::train::DatasetSource::new(data.clone(), 64, 2, true, 1, &Device::Cpu).unwrap();
+    let mut src =
+        pma_model::train::DatasetSource::new(data.clone(), 64, 2, true, 1, &Device::Cpu).unwrap();
     use pma_model::train::BatchSource;
     let good = src.next_batch().unwrap();
     let nan_target = (good.target.clone() * f64::NAN).unwrap();
-    let bad = TrainBatch { target: nan_target, ..good };
+    let bad = TrainBatch {
+        target: nan_target,
+        ..good
+    };
     let params = param_bits(&t);
     let s = t.step_on(&bad, None).unwrap();
     assert_eq!(s.skipped, Some(SkipReason::NonFiniteLoss));
@@ -75,5 +89,8 @@ fn a_streak_of_non_finite_steps_stops_the_run() {
     let mut hook = poison(f32::NAN);
     t.step_hooked(&mut hook).unwrap();
     let err = t.step_hooked(&mut hook).unwrap_err();
-    assert!(matches!(err, TrainError::Diverged { count: 2, iter: 2 }), "{err}");
+    assert!(
+        matches!(err, TrainError::Diverged { count: 2, iter: 2 }),
+        "{err}"
+    );
 }

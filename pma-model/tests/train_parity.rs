@@ -21,7 +21,12 @@ fn load(name: &str) -> HashMap<String, Tensor> {
 }
 
 fn flat64(t: &Tensor) -> Vec<f64> {
-    t.to_dtype(DType::F64).unwrap().flatten_all().unwrap().to_vec1::<f64>().unwrap()
+    t.to_dtype(DType::F64)
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .to_vec1::<f64>()
+        .unwrap()
 }
 
 fn scalar(t: &HashMap<String, Tensor>, k: &str) -> f64 {
@@ -31,7 +36,12 @@ fn scalar(t: &HashMap<String, Tensor>, k: &str) -> f64 {
 /// ||a − b|| / ||b||.
 fn rel_err(a: &[f64], b: &[f64]) -> f64 {
     assert_eq!(a.len(), b.len());
-    let num: f64 = a.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum::<f64>().sqrt();
+    let num: f64 = a
+        .iter()
+        .zip(b)
+        .map(|(x, y)| (x - y) * (x - y))
+        .sum::<f64>()
+        .sqrt();
     let den: f64 = b.iter().map(|y| y * y).sum::<f64>().sqrt();
     num / den.max(1e-30)
 }
@@ -65,20 +75,34 @@ fn one_step_on_the_golden_batch_matches_the_reference() {
     let dev = Device::Cpu;
     let golden = load("golden.safetensors");
     let want = load("train_step.safetensors");
-    let manifest: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(golden_dir().join("train_step.json")).unwrap()).unwrap();
-    let ref_names: Vec<String> =
-        manifest["param_names"].as_array().unwrap().iter().map(|v| v.as_str().unwrap().to_string()).collect();
+    let manifest: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(golden_dir().join("train_step.json")).unwrap(),
+    )
+    .unwrap();
+    let ref_names: Vec<String> = manifest["param_names"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_str().unwrap().to_string())
+        .collect();
 
     let ck = checkpoint::load(&golden_dir().join("model.safetensors"), &dev).unwrap();
     let mut cfg = ck.config.clone();
     cfg.density_noise_std = 0.0;
     let avatar = Avatar::from_tensors(cfg.clone(), ck.tensors.clone(), &dev).unwrap();
-    let run = RunConfig { preset: pma_model::train::Preset::Paper, model: cfg, train: TrainConfig::paper() };
+    let run = RunConfig {
+        preset: pma_model::train::Preset::Paper,
+        model: cfg,
+        train: TrainConfig::paper(),
+    };
     let batch = golden_batch(&golden);
     let mut trainer = Trainer::with_source(run, avatar, Box::new(FixedBatch(batch))).unwrap();
-    let before: HashMap<String, Vec<f64>> =
-        trainer.avatar().trainable().into_iter().map(|(n, v)| (n, flat64(v.as_tensor()))).collect();
+    let before: HashMap<String, Vec<f64>> = trainer
+        .avatar()
+        .trainable()
+        .into_iter()
+        .map(|(n, v)| (n, flat64(v.as_tensor())))
+        .collect();
 
     let stats = trainer.step().unwrap();
     assert_eq!(stats.skipped, None);
@@ -86,21 +110,56 @@ fn one_step_on_the_golden_batch_matches_the_reference() {
 
     let close = |what: &str, got: f64, want: f64| {
         let rel = (got - want).abs() / want.abs();
-        assert!(rel <= 1e-5, "{what}: got {got}, reference {want} (rel {rel:.2e})");
+        assert!(
+            rel <= 1e-5,
+            "{what}: got {got}, reference {want} (rel {rel:.2e})"
+        );
     };
-    close("loss_fine", stats.loss.fine, scalar(&want, "train_step/loss_fine"));
-    close("loss_coarse", stats.loss.coarse, scalar(&want, "train_step/loss_coarse"));
-    close("scaleL", 0.001 * stats.loss.scale, scalar(&want, "train_step/scaleL"));
-    close("total_loss", stats.loss.total, scalar(&want, "train_step/total_loss"));
+    close(
+        "loss_fine",
+        stats.loss.fine,
+        scalar(&want, "train_step/loss_fine"),
+    );
+    close(
+        "loss_coarse",
+        stats.loss.coarse,
+        scalar(&want, "train_step/loss_coarse"),
+    );
+    close(
+        "scaleL",
+        0.001 * stats.loss.scale,
+        scalar(&want, "train_step/scaleL"),
+    );
+    close(
+        "total_loss",
+        stats.loss.total,
+        scalar(&want, "train_step/total_loss"),
+    );
     close("psnr", stats.loss.psnr, scalar(&want, "train_step/psnr"));
     // avg_norm = sqrt(mean over parameters of |grad_p|²), before clipping.
-    close("avg_norm", stats.grad_norm / (ref_names.len() as f64).sqrt(), scalar(&want, "train_step/avg_norm"));
+    close(
+        "avg_norm",
+        stats.grad_norm / (ref_names.len() as f64).sqrt(),
+        scalar(&want, "train_step/avg_norm"),
+    );
     let lrs = trainer.lrs();
-    close("lr (other group, after the step)", lrs[1], scalar(&want, "train_step/lr"));
-    close("lr2 (freq group, after the step)", lrs[0], scalar(&want, "train_step/lr2"));
+    close(
+        "lr (other group, after the step)",
+        lrs[1],
+        scalar(&want, "train_step/lr"),
+    );
+    close(
+        "lr2 (freq group, after the step)",
+        lrs[0],
+        scalar(&want, "train_step/lr2"),
+    );
 
-    let after: HashMap<String, Vec<f64>> =
-        trainer.avatar().trainable().into_iter().map(|(n, v)| (n, flat64(v.as_tensor()))).collect();
+    let after: HashMap<String, Vec<f64>> = trainer
+        .avatar()
+        .trainable()
+        .into_iter()
+        .map(|(n, v)| (n, flat64(v.as_tensor())))
+        .collect();
     assert_eq!(after.len(), ref_names.len());
 
     // The target is 1e-5 relative everywhere. The parameter values meet it. An update norm
@@ -130,12 +189,18 @@ fn one_step_on_the_golden_batch_matches_the_reference() {
     // so it is judged like an update norm.
     let mut checked = 0;
     for (key, t) in &want {
-        let Some(name) = key.strip_prefix("train_step/param_after/") else { continue };
+        let Some(name) = key.strip_prefix("train_step/param_after/") else {
+            continue;
+        };
         let reference = flat64(t);
         let base = name.strip_suffix("[0:3]").unwrap_or(name);
         let k = reference.len();
         let zero_init = before[base][..k].iter().all(|&v| v == 0.0);
-        judge(format!("{name} after the step"), rel_err(&after[base][..k], &reference), zero_init);
+        judge(
+            format!("{name} after the step"),
+            rel_err(&after[base][..k], &reference),
+            zero_init,
+        );
         checked += 1;
     }
     assert_eq!(checked, 11);
@@ -144,13 +209,34 @@ fn one_step_on_the_golden_batch_matches_the_reference() {
     let norms = flat64(&want["train_step/param_delta_norms"]);
     assert_eq!(norms.len(), ref_names.len());
     for (name, &reference) in ref_names.iter().zip(&norms) {
-        let delta: f64 = after[name].iter().zip(&before[name]).map(|(a, b)| (a - b) * (a - b)).sum::<f64>().sqrt();
-        judge(format!("update norm of {name}"), (delta - reference).abs() / reference, true);
+        let delta: f64 = after[name]
+            .iter()
+            .zip(&before[name])
+            .map(|(a, b)| (a - b) * (a - b))
+            .sum::<f64>()
+            .sqrt();
+        judge(
+            format!("update norm of {name}"),
+            (delta - reference).abs() / reference,
+            true,
+        );
     }
-    eprintln!("above 1e-5 (gradient-limited, bounded by 2e-4): {}", over_target.join(", "));
-    assert!(problems.is_empty(), "{} mismatch(es):\n{}", problems.len(), problems.join("\n"));
+    eprintln!(
+        "above 1e-5 (gradient-limited, bounded by 2e-4): {}",
+        over_target.join(", ")
+    );
+    assert!(
+        problems.is_empty(),
+        "{} mismatch(es):\n{}",
+        problems.len(),
+        problems.join("\n")
+    );
     // Most of the step meets the target outright.
-    assert!(over_target.len() <= 8, "{} values above 1e-5: {over_target:?}", over_target.len());
+    assert!(
+        over_target.len() <= 8,
+        "{} values above 1e-5: {over_target:?}",
+        over_target.len()
+    );
 }
 
 /// The optimizer alone: Adam (torch defaults, two groups) on the reference's own gradients
@@ -166,18 +252,29 @@ fn adam_on_reference_gradients_matches_exactly() {
     let ck = checkpoint::load(&golden_dir().join("model.safetensors"), &dev).unwrap();
     let mut checked = 0;
     for (key, t) in &want {
-        let Some(name) = key.strip_prefix("train_step/param_after/") else { continue };
+        let Some(name) = key.strip_prefix("train_step/param_after/") else {
+            continue;
+        };
         if name.ends_with("[0:3]") {
             continue; // only three rows of the frame-code gradient are stored
         }
         let g = golden[&format!("grad_full/grad/{name}")].clone();
         let v = Var::from_tensor(&ck.tensors[name].copy().unwrap()).unwrap();
-        let mut adam = Adam::reference(&[(name.to_string(), v.clone())], 1e-4, 5e-4, [0.9, 0.999], 1e-8).unwrap();
+        let mut adam = Adam::reference(
+            &[(name.to_string(), v.clone())],
+            1e-4,
+            5e-4,
+            [0.9, 0.999],
+            1e-8,
+        )
+        .unwrap();
         adam.step(&[Some(g)]).unwrap();
         let rel = rel_err(&flat64(v.as_tensor()), &flat64(t));
-        assert!(rel <= 1e-5, "{name} after the step: relative error {rel:.2e}");
+        assert!(
+            rel <= 1e-5,
+            "{name} after the step: relative error {rel:.2e}"
+        );
         checked += 1;
     }
     assert_eq!(checked, 10);
 }
-

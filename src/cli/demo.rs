@@ -58,6 +58,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 }
 
 /// The part of `summary.json` other tools read.
+#[cfg(feature = "train")]
 #[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 pub struct SplitSummary {
     pub psnr: f64,
@@ -66,6 +67,7 @@ pub struct SplitSummary {
     pub images: usize,
 }
 
+#[cfg(feature = "train")]
 #[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 pub struct Summary {
     pub iterations: u64,
@@ -96,8 +98,8 @@ mod imp {
     use pma_model::train::{Preset, RunConfig};
 
     use super::super::eval::{
-        evaluate, mean_foreground_colour, read_dataset, split_images, spread, write_json_atomic, EvalOptions,
-        PsnrRegion, Split, LPIPS_NOTE,
+        evaluate, mean_foreground_colour, read_dataset, split_images, spread, write_json_atomic,
+        EvalOptions, PsnrRegion, Split, LPIPS_NOTE,
     };
     use super::super::train::{train_run, TrainRequest};
     use super::*;
@@ -129,7 +131,12 @@ mod imp {
             .context("synthesising the demo scene")?;
             bar.finish_and_clear();
             for s in &summary.splits {
-                println!("      {}: {} images, {} poses", s.path.display(), s.images, s.poses);
+                println!(
+                    "      {}: {} images, {} poses",
+                    s.path.display(),
+                    s.images,
+                    s.poses
+                );
             }
         }
         let train_npz = scene.join("train.npz");
@@ -165,13 +172,20 @@ mod imp {
         let avatar = Avatar::load(&outcome.model, &device)?;
         let baseline = mean_foreground_colour(&read_dataset(&train_npz, Profile::Eval)?)?;
         let renders = out.join("renders");
-        std::fs::create_dir_all(&renders).with_context(|| format!("creating {}", renders.display()))?;
+        std::fs::create_dir_all(&renders)
+            .with_context(|| format!("creating {}", renders.display()))?;
         let chunk = RunConfig::from_preset(preset).train.render_chunk;
         let mut splits = BTreeMap::new();
         for name in ["novel_view", "novel_pose"] {
             let path = scene.join(format!("{name}.npz"));
             let data = read_dataset(&path, Profile::Eval)?;
-            let images = split_images(&data, &Split { name: name.into(), tag: None })?;
+            let images = split_images(
+                &data,
+                &Split {
+                    name: name.into(),
+                    tag: None,
+                },
+            )?;
             let images = spread(&images, args.max_eval_images.unwrap_or(usize::MAX));
             let opts = EvalOptions {
                 region: PsnrRegion::Mask,
@@ -195,13 +209,19 @@ mod imp {
             );
             splits.insert(
                 name.to_string(),
-                SplitSummary { psnr: report.psnr, ssim: report.ssim, baseline_psnr, images: report.images },
+                SplitSummary {
+                    psnr: report.psnr,
+                    ssim: report.ssim,
+                    baseline_psnr,
+                    images: report.images,
+                },
             );
         }
 
         // 4. Summary.
         let plot = out.join("psnr_vs_time.png");
-        std::fs::copy(&outcome.plot, &plot).with_context(|| format!("copying the plot to {}", plot.display()))?;
+        std::fs::copy(&outcome.plot, &plot)
+            .with_context(|| format!("copying the plot to {}", plot.display()))?;
         let summary = Summary {
             iterations: outcome.iterations,
             wall_s: outcome.wall_s,
@@ -226,9 +246,15 @@ mod imp {
 
     /// The scene directory holds all three splits made with exactly `cfg`.
     fn scene_matches(dir: &Path, cfg: &SynthConfig) -> bool {
-        let files_there = ["train.npz", "novel_view.npz", "novel_pose.npz"].iter().all(|f| dir.join(f).is_file());
-        let Ok(text) = std::fs::read_to_string(dir.join("scene.json")) else { return false };
-        let Ok(json) = serde_json::from_str::<serde_json::Value>(&text) else { return false };
+        let files_there = ["train.npz", "novel_view.npz", "novel_pose.npz"]
+            .iter()
+            .all(|f| dir.join(f).is_file());
+        let Ok(text) = std::fs::read_to_string(dir.join("scene.json")) else {
+            return false;
+        };
+        let Ok(json) = serde_json::from_str::<serde_json::Value>(&text) else {
+            return false;
+        };
         files_there && serde_json::to_value(cfg).ok().as_ref() == json.get("config")
     }
 
@@ -238,8 +264,10 @@ mod imp {
         } else {
             let b = indicatif::ProgressBar::new(0);
             b.set_style(
-                indicatif::ProgressStyle::with_template("      [{elapsed_precise}] {bar:30} {pos}/{len} {eta}")
-                    .expect("static template"),
+                indicatif::ProgressStyle::with_template(
+                    "      [{elapsed_precise}] {bar:30} {pos}/{len} {eta}",
+                )
+                .expect("static template"),
             );
             b
         }

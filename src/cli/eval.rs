@@ -17,8 +17,8 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context as _};
 use candle_core::Device;
-use pma_data::dataset::{Dataset, Profile, ReadOptions};
 use candle_core::Tensor;
+use pma_data::dataset::{Dataset, Profile, ReadOptions};
 use pma_model::avatar::{Avatar, Poses};
 use pma_model::image::ImageOptions;
 use serde::Serialize;
@@ -62,13 +62,17 @@ pub struct Args {
 
 pub fn run(args: Args) -> anyhow::Result<()> {
     let device = Device::Cpu;
-    let avatar = Avatar::load(&args.model, &device).with_context(|| format!("loading model {}", args.model.display()))?;
+    let avatar = Avatar::load(&args.model, &device)
+        .with_context(|| format!("loading model {}", args.model.display()))?;
     let (data_path, split) = resolve_split(&args.data, &args.split)?;
     let data = read_dataset(&data_path, Profile::Eval)?;
     let images = split_images(&data, &split)?;
     let images = spread(&images, args.max_images.unwrap_or(usize::MAX));
     let out = args.out.clone().unwrap_or_else(|| {
-        args.model.parent().unwrap_or(Path::new(".")).join(format!("eval_{}", split.name))
+        args.model
+            .parent()
+            .unwrap_or(Path::new("."))
+            .join(format!("eval_{}", split.name))
     });
     std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
     let baseline = match baseline_source(&args, &data_path) {
@@ -87,7 +91,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     print_table(&report);
     let json = out.join("eval.json");
     write_json_atomic(&report, &json)?;
-    println!("wrote {} and {} side-by-side PNG(s) to {}", json.display(), report.pngs.len(), out.display());
+    println!(
+        "wrote {} and {} side-by-side PNG(s) to {}",
+        json.display(),
+        report.pngs.len(),
+        out.display()
+    );
     Ok(())
 }
 
@@ -116,14 +125,29 @@ pub fn resolve_split(data: &Path, split: &str) -> anyhow::Result<(PathBuf, Split
     if data.is_dir() {
         let path = data.join(format!("{split}.npz"));
         if !path.is_file() {
-            bail!("{} is a directory without {split}.npz (pass the npz file itself?)", data.display());
+            bail!(
+                "{} is a directory without {split}.npz (pass the npz file itself?)",
+                data.display()
+            );
         }
-        return Ok((path, Split { name: split.to_string(), tag: None }));
+        return Ok((
+            path,
+            Split {
+                name: split.to_string(),
+                tag: None,
+            },
+        ));
     }
     if !data.is_file() {
         bail!("dataset {} does not exist", data.display());
     }
-    Ok((data.to_path_buf(), Split { name: split.to_string(), tag: Some(tag) }))
+    Ok((
+        data.to_path_buf(),
+        Split {
+            name: split.to_string(),
+            tag: Some(tag),
+        },
+    ))
 }
 
 pub fn read_dataset(path: &Path, profile: Profile) -> anyhow::Result<Dataset> {
@@ -159,7 +183,9 @@ pub fn spread(items: &[usize], k: usize) -> Vec<usize> {
     if k == 1 {
         return vec![items[0]];
     }
-    let mut out: Vec<usize> = (0..k).map(|i| items[i * (items.len() - 1) / (k - 1)]).collect();
+    let mut out: Vec<usize> = (0..k)
+        .map(|i| items[i * (items.len() - 1) / (k - 1)])
+        .collect();
     out.dedup();
     out
 }
@@ -228,8 +254,16 @@ pub struct EvalOptions {
 
 impl EvalOptions {
     /// Protocol defaults, no files.
+    #[cfg(feature = "train")]
     pub fn quick(chunk: usize) -> Self {
-        Self { region: PsnrRegion::Mask, ssim_data_range: 2.0, chunk, png_dir: None, pngs: 0, baseline_colour: None }
+        Self {
+            region: PsnrRegion::Mask,
+            ssim_data_range: 2.0,
+            chunk,
+            png_dir: None,
+            pngs: 0,
+            baseline_colour: None,
+        }
     }
 }
 
@@ -273,7 +307,11 @@ pub fn evaluate(
     opts: &EvalOptions,
     progress: &mut dyn FnMut(usize, usize),
 ) -> anyhow::Result<EvalReport> {
-    let png_set: Vec<usize> = if opts.png_dir.is_some() { spread(images, opts.pngs) } else { Vec::new() };
+    let png_set: Vec<usize> = if opts.png_dir.is_some() {
+        spread(images, opts.pngs)
+    } else {
+        Vec::new()
+    };
     let (h, w) = (data.height(), data.width());
     let start = std::time::Instant::now();
     let mut per_image = Vec::with_capacity(images.len());
@@ -283,18 +321,28 @@ pub fn evaluate(
         let pred = quantize(&rendered);
         let (gt, mask) = ground_truth(data, n)?;
         let Some(scores) = score(&pred, &gt, &mask, h, w, opts)? else {
-            eprintln!("warning: {}: image {n} has an empty mask; skipped (spec data.md §10.23)", data.source);
+            eprintln!(
+                "warning: {}: image {n} has an empty mask; skipped (spec data.md §10.23)",
+                data.source
+            );
             continue;
         };
         let baseline_psnr = match opts.baseline_colour {
             Some(c) => {
-                let base: Vec<f32> =
-                    mask.iter().flat_map(|&m| if m > 0 { c.map(|v| v as f32) } else { [0.0; 3] }).collect();
+                let base: Vec<f32> = mask
+                    .iter()
+                    .flat_map(|&m| if m > 0 { c.map(|v| v as f32) } else { [0.0; 3] })
+                    .collect();
                 score(&quantize_f32(&base), &gt, &mask, h, w, opts)?.map(|s| s.0)
             }
             None => None,
         };
-        per_image.push(ImageScore { index: n, psnr: scores.0, ssim: scores.1, baseline_psnr });
+        per_image.push(ImageScore {
+            index: n,
+            psnr: scores.0,
+            ssim: scores.1,
+            baseline_psnr,
+        });
         if let (Some(dir), true) = (&opts.png_dir, png_set.contains(&n)) {
             let path = dir.join(format!("{split}_{n:04}.png"));
             write_png_atomic(&side_by_side(&gt, &pred, h, w), &path)?;
@@ -303,14 +351,20 @@ pub fn evaluate(
         progress(k + 1, images.len());
     }
     if per_image.is_empty() {
-        bail!("{}: no image of split {split:?} could be scored", data.source);
+        bail!(
+            "{}: no image of split {split:?} could be scored",
+            data.source
+        );
     }
-    let mean = |f: &dyn Fn(&ImageScore) -> f64| per_image.iter().map(f).sum::<f64>() / per_image.len() as f64;
-    let baseline_psnr = if per_image.iter().all(|s| s.baseline_psnr.is_some()) && opts.baseline_colour.is_some() {
-        Some(mean(&|s| s.baseline_psnr.unwrap_or(f64::NAN)))
-    } else {
-        None
+    let mean = |f: &dyn Fn(&ImageScore) -> f64| {
+        per_image.iter().map(f).sum::<f64>() / per_image.len() as f64
     };
+    let baseline_psnr =
+        if per_image.iter().all(|s| s.baseline_psnr.is_some()) && opts.baseline_colour.is_some() {
+            Some(mean(&|s| s.baseline_psnr.unwrap_or(f64::NAN)))
+        } else {
+            None
+        };
     Ok(EvalReport {
         split: split.to_string(),
         psnr: mean(&|s| s.psnr),
@@ -339,16 +393,27 @@ pub fn render_dataset_image(
     let p = data.pose_row(n)?;
     let cam = data.image_camera(n)?;
     let (Some(skts), Some(cyls), Some(kp3d)) = (&data.skts, &data.cyls, data.pose_kp3d(p)) else {
-        bail!("{}: pose {p} lacks skts/cyls/kp3d (derived on import; is the file valid?)", data.source);
+        bail!(
+            "{}: pose {p} lacks skts/cyls/kp3d (derived on import; is the file valid?)",
+            data.source
+        );
     };
-    let skts: Vec<f32> = skts.outer_iter().nth(p).map(|m| m.iter().copied().collect()).unwrap_or_default();
+    let skts: Vec<f32> = skts
+        .outer_iter()
+        .nth(p)
+        .map(|m| m.iter().copied().collect())
+        .unwrap_or_default();
     let cyl: Vec<f32> = cyls.row(p).to_vec();
     let poses = Poses {
         bones: vec![data.pose_bones(p)],
         skts: Tensor::from_vec(skts, (1, 24, 4, 4), &device)?,
         cyls: Tensor::from_vec(cyl, (1, 5), &device)?,
     };
-    let opts = ImageOptions { chunk, head: data.head()?, device };
+    let opts = ImageOptions {
+        chunk,
+        head: data.head()?,
+        device,
+    };
     Ok(avatar.render_image(&poses, &kp3d, &cam, None, &opts)?)
 }
 
@@ -358,13 +423,18 @@ pub fn quantize(img: &pma_model::image::RenderedImage) -> Vec<f32> {
 }
 
 fn quantize_f32(rgb: &[f32]) -> Vec<f32> {
-    rgb.iter().map(|&v| ((v.clamp(0.0, 1.0) * 255.0) as u8) as f32 / 255.0).collect()
+    rgb.iter()
+        .map(|&v| ((v.clamp(0.0, 1.0) * 255.0) as u8) as f32 / 255.0)
+        .collect()
 }
 
 /// Ground truth of image `n` composited on black ([H·W·3] in [0,1]) and its mask ([H·W]).
 pub fn ground_truth(data: &Dataset, n: usize) -> anyhow::Result<(Vec<f32>, Vec<u8>)> {
     let (Some(img), Some(mask)) = (data.image(n), data.mask(n)) else {
-        bail!("{}: image {n} has no pixels or mask (eval profile)", data.source);
+        bail!(
+            "{}: image {n} has no pixels or mask (eval profile)",
+            data.source
+        );
     };
     let mask: Vec<u8> = mask.outer_iter().map(|m| (m[0] > 0) as u8).collect();
     let gt = img
@@ -384,7 +454,9 @@ fn score(
     w: usize,
     opts: &EvalOptions,
 ) -> anyhow::Result<Option<(f64, f64)>> {
-    let Some(b) = tight_box(mask, h, w) else { return Ok(None) };
+    let Some(b) = tight_box(mask, h, w) else {
+        return Ok(None);
+    };
     let in_box = |p: usize| (b.0..b.2).contains(&(p / w)) && (b.1..b.3).contains(&(p % w));
     let (mut se, mut count) = (0f64, 0usize);
     for p in 0..h * w {
@@ -421,7 +493,13 @@ fn score(
         }
         out
     };
-    let ssim = ssim_skimage(&crop(pred), &crop(gt), b.2 - b.0, b.3 - b.1, opts.ssim_data_range)?;
+    let ssim = ssim_skimage(
+        &crop(pred),
+        &crop(gt),
+        b.2 - b.0,
+        b.3 - b.1,
+        opts.ssim_data_range,
+    )?;
     Ok(Some((psnr, ssim)))
 }
 
@@ -446,7 +524,13 @@ fn tight_box(mask: &[u8], h: usize, w: usize) -> Option<(usize, usize, usize, us
 /// (spec data.md §8.3 a): 7×7 uniform window, sample covariance (×49/48), K1 0.01, K2 0.03,
 /// the given data range, per-channel mean over the map without a 3-pixel border, then the
 /// mean over channels. a, b: [h·w·3] channels last.
-pub fn ssim_skimage(a: &[f64], b: &[f64], h: usize, w: usize, data_range: f64) -> anyhow::Result<f64> {
+pub fn ssim_skimage(
+    a: &[f64],
+    b: &[f64],
+    h: usize,
+    w: usize,
+    data_range: f64,
+) -> anyhow::Result<f64> {
     const WIN: usize = 7;
     if h < WIN || w < WIN {
         bail!("SSIM needs a crop of at least 7x7 pixels, found {w}x{h}");
@@ -478,7 +562,8 @@ pub fn ssim_skimage(a: &[f64], b: &[f64], h: usize, w: usize, data_range: f64) -
                 let vx = cov_norm * (uxx - ux * ux);
                 let vy = cov_norm * (uyy - uy * uy);
                 let vxy = cov_norm * (uxy - ux * uy);
-                let s = ((2.0 * ux * uy + c1) * (2.0 * vxy + c2)) / ((ux * ux + uy * uy + c1) * (vx + vy + c2));
+                let s = ((2.0 * ux * uy + c1) * (2.0 * vxy + c2))
+                    / ((ux * ux + uy * uy + c1) * (vx + vy + c2));
                 sum += s;
                 n += 1;
             }
@@ -517,9 +602,18 @@ pub fn side_by_side(gt: &[f32], pred: &[f32], h: usize, w: usize) -> image::RgbI
 
 /// Black → purple → orange → yellow-white colour ramp for t in [0,1] (clamped).
 pub fn heat(t: f32) -> [u8; 3] {
-    const STOPS: [[f32; 3]; 5] =
-        [[0.0, 0.0, 0.02], [0.32, 0.07, 0.5], [0.8, 0.2, 0.35], [0.98, 0.6, 0.1], [1.0, 1.0, 0.85]];
-    let t = if t.is_finite() { t.clamp(0.0, 1.0) } else { 1.0 };
+    const STOPS: [[f32; 3]; 5] = [
+        [0.0, 0.0, 0.02],
+        [0.32, 0.07, 0.5],
+        [0.8, 0.2, 0.35],
+        [0.98, 0.6, 0.1],
+        [1.0, 1.0, 0.85],
+    ];
+    let t = if t.is_finite() {
+        t.clamp(0.0, 1.0)
+    } else {
+        1.0
+    };
     let s = t * (STOPS.len() - 1) as f32;
     let i = (s.floor() as usize).min(STOPS.len() - 2);
     let f = s - i as f32;
@@ -537,14 +631,20 @@ pub fn print_table(report: &EvalReport) {
     if let Some(b) = report.baseline_psnr {
         println!("baseline (mean training colour inside the mask): PSNR {b:.3}");
     }
-    println!("LPIPS: n/a ({})", LPIPS_NOTE.trim_start_matches("LPIPS not computed: "));
+    println!(
+        "LPIPS: n/a ({})",
+        LPIPS_NOTE.trim_start_matches("LPIPS not computed: ")
+    );
 }
 
 /// Encode `img` as PNG and replace `path` atomically.
 pub fn write_png_atomic(img: &image::RgbImage, path: &Path) -> anyhow::Result<()> {
     let mut bytes = Vec::new();
-    img.write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Png)
-        .with_context(|| format!("encoding {}", path.display()))?;
+    img.write_to(
+        &mut std::io::Cursor::new(&mut bytes),
+        image::ImageFormat::Png,
+    )
+    .with_context(|| format!("encoding {}", path.display()))?;
     write_atomic(path, &bytes)
 }
 
@@ -561,11 +661,15 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
         Some(d) if !d.as_os_str().is_empty() => d,
         _ => Path::new("."),
     };
-    let mut tmp =
-        tempfile::NamedTempFile::new_in(dir).with_context(|| format!("creating a file in {}", dir.display()))?;
-    tmp.write_all(bytes).with_context(|| format!("writing {}", path.display()))?;
-    tmp.as_file().sync_all().with_context(|| format!("writing {}", path.display()))?;
-    tmp.persist(path).with_context(|| format!("replacing {}", path.display()))?;
+    let mut tmp = tempfile::NamedTempFile::new_in(dir)
+        .with_context(|| format!("creating a file in {}", dir.display()))?;
+    tmp.write_all(bytes)
+        .with_context(|| format!("writing {}", path.display()))?;
+    tmp.as_file()
+        .sync_all()
+        .with_context(|| format!("writing {}", path.display()))?;
+    tmp.persist(path)
+        .with_context(|| format!("replacing {}", path.display()))?;
     Ok(())
 }
 
@@ -597,9 +701,15 @@ mod tests {
     #[test]
     fn ssim_is_one_for_identical_images_and_drops_with_noise() {
         let (h, w) = (12, 10);
-        let a: Vec<f64> = (0..h * w * 3).map(|i| ((i * 37) % 101) as f64 / 100.0).collect();
+        let a: Vec<f64> = (0..h * w * 3)
+            .map(|i| ((i * 37) % 101) as f64 / 100.0)
+            .collect();
         assert!((ssim_skimage(&a, &a, h, w, 2.0).unwrap() - 1.0).abs() < 1e-12);
-        let b: Vec<f64> = a.iter().enumerate().map(|(i, v)| v + if i % 2 == 0 { 0.2 } else { -0.2 }).collect();
+        let b: Vec<f64> = a
+            .iter()
+            .enumerate()
+            .map(|(i, v)| v + if i % 2 == 0 { 0.2 } else { -0.2 })
+            .collect();
         let s = ssim_skimage(&a, &b, h, w, 2.0).unwrap();
         assert!(s < 0.95, "{s}");
         // A smaller data range makes the same error count more.
@@ -631,19 +741,33 @@ mod tests {
         }
         let gt = vec![0.5f32; h * w * 3];
         // Error 0.1 on foreground pixels only: mask PSNR = 20 dB, box PSNR higher.
-        let pred: Vec<f32> = (0..h * w * 3).map(|i| if mask[i / 3] > 0 { 0.6 } else { 0.5 }).collect();
-        let mut opts = EvalOptions::quick(16);
+        let pred: Vec<f32> = (0..h * w * 3)
+            .map(|i| if mask[i / 3] > 0 { 0.6 } else { 0.5 })
+            .collect();
+        let mut opts = EvalOptions {
+            region: PsnrRegion::Mask,
+            ssim_data_range: 2.0,
+            chunk: 16,
+            png_dir: None,
+            pngs: 0,
+            baseline_colour: None,
+        };
         let (p_mask, _) = score(&pred, &gt, &mask, h, w, &opts).unwrap().unwrap();
         assert!((p_mask - 20.0).abs() < 1e-4, "{p_mask}");
         opts.region = PsnrRegion::Bbox;
         let (p_box, _) = score(&pred, &gt, &mask, h, w, &opts).unwrap().unwrap();
         assert!(p_box > p_mask);
-        assert!(score(&pred, &gt, &vec![0; h * w], h, w, &opts).unwrap().is_none());
+        assert!(score(&pred, &gt, &vec![0; h * w], h, w, &opts)
+            .unwrap()
+            .is_none());
         assert_eq!(tight_box(&mask, h, w), Some((1, 0, 8, 7)));
     }
 
     #[test]
     fn quantization_truncates_like_the_reference() {
-        assert_eq!(quantize_f32(&[1.001, -0.001, 0.5, 0.99999]), vec![1.0, 0.0, 127.0 / 255.0, 254.0 / 255.0]);
+        assert_eq!(
+            quantize_f32(&[1.001, -0.001, 0.5, 0.99999]),
+            vec![1.0, 0.0, 127.0 / 255.0, 254.0 / 255.0]
+        );
     }
 }

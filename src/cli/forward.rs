@@ -43,10 +43,8 @@ impl Batch {
             .arrays
             .get(key)
             .with_context(|| format!("{}: missing key `{key}`", self.file))?;
-        let ok = s.len() == shape.len()
-            && s.iter()
-                .zip(shape)
-                .all(|(a, b)| b.map_or(true, |b| *a == b));
+        let ok =
+            s.len() == shape.len() && s.iter().zip(shape).all(|(a, b)| b.is_none_or(|b| *a == b));
         if !ok {
             let want: Vec<String> = shape
                 .iter()

@@ -13,9 +13,7 @@
 //! Checkpoints are written every `ckpt_every` iterations, at the end, and on Ctrl-C; every
 //! file is replaced atomically.
 
-use std::path::{Path, PathBuf};
-
-use anyhow::Context as _;
+use std::path::PathBuf;
 
 /// Arguments of `pma train`.
 #[derive(clap::Args, Debug, Clone)]
@@ -67,99 +65,127 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 #[cfg(feature = "train")]
 pub use imp::{train_run, TrainRequest};
 
-/// Bundled font for plot text: plotters has no fonts of its own without system libraries.
-static FONT: &[u8] = include_bytes!("../../assets/fonts/DejaVuSans.ttf");
+#[cfg(feature = "train")]
+mod plot {
+    use std::path::Path;
 
-/// Plot held-out PSNR (and, lighter, training PSNR) against wall-clock time and write it
-/// atomically as a PNG.
-pub fn plot_psnr_vs_time(
-    eval: &[(f64, f64)],
-    train: &[(f64, f64)],
-    title: &str,
-    path: &Path,
-) -> anyhow::Result<()> {
-    use plotters::prelude::*;
+    use anyhow::Context as _;
 
-    static REGISTER: std::sync::Once = std::sync::Once::new();
-    REGISTER.call_once(|| {
-        // A font that fails to parse leaves text unrendered; the curves are still drawn.
-        let _ = plotters::style::register_font("sans-serif", FontStyle::Normal, FONT);
-    });
+    /// Bundled font for plot text: plotters has no fonts of its own without system libraries.
+    static FONT: &[u8] = include_bytes!("../../assets/fonts/DejaVuSans.ttf");
 
-    let (w, h) = (900u32, 540u32);
-    let mut buf = vec![0u8; (w * h * 3) as usize];
-    {
-        let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
-        root.fill(&WHITE).map_err(|e| anyhow::anyhow!("plot: {e}"))?;
-        let finite = |v: &&(f64, f64)| v.0.is_finite() && v.1.is_finite();
-        let all: Vec<(f64, f64)> = eval.iter().chain(train).filter(finite).copied().collect();
-        let minutes = |s: f64| s / 60.0;
-        let x_max = all.iter().map(|p| minutes(p.0)).fold(0.0f64, f64::max).max(1e-3) * 1.02;
-        let (mut y_min, mut y_max) = all
-            .iter()
-            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| (lo.min(p.1), hi.max(p.1)));
-        if !y_min.is_finite() {
-            (y_min, y_max) = (0.0, 30.0);
-        }
-        let pad = ((y_max - y_min) * 0.08).max(0.5);
-        let mut chart = ChartBuilder::on(&root)
-            .caption(title, ("sans-serif", 22))
-            .margin(16)
-            .x_label_area_size(44)
-            .y_label_area_size(56)
-            .build_cartesian_2d(0.0..x_max, (y_min - pad)..(y_max + pad))
-            .map_err(|e| anyhow::anyhow!("plot: {e}"))?;
-        chart
-            .configure_mesh()
-            .x_desc("wall-clock time [min]")
-            .y_desc("PSNR [dB]")
-            .label_style(("sans-serif", 15))
-            .draw()
-            .map_err(|e| anyhow::anyhow!("plot: {e}"))?;
-        let train_colour = RGBColor(150, 150, 150);
-        if !train.is_empty() {
-            chart
-                .draw_series(LineSeries::new(
-                    train.iter().filter(finite).map(|p| (minutes(p.0), p.1)),
-                    train_colour.stroke_width(1),
-                ))
-                .map_err(|e| anyhow::anyhow!("plot: {e}"))?
-                .label("training batch PSNR")
-                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], train_colour));
-        }
-        if !eval.is_empty() {
-            let blue = RGBColor(31, 90, 180);
-            chart
-                .draw_series(LineSeries::new(
-                    eval.iter().filter(finite).map(|p| (minutes(p.0), p.1)),
-                    blue.stroke_width(2),
-                ))
-                .map_err(|e| anyhow::anyhow!("plot: {e}"))?
-                .label("held-out PSNR")
-                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], blue.stroke_width(2)));
-            chart
-                .draw_series(eval.iter().filter(finite).map(|p| Circle::new((minutes(p.0), p.1), 3, blue.filled())))
+    /// Plot held-out PSNR (and, lighter, training PSNR) against wall-clock time and write it
+    /// atomically as a PNG.
+    pub fn plot_psnr_vs_time(
+        eval: &[(f64, f64)],
+        train: &[(f64, f64)],
+        title: &str,
+        path: &Path,
+    ) -> anyhow::Result<()> {
+        use plotters::prelude::*;
+
+        static REGISTER: std::sync::Once = std::sync::Once::new();
+        REGISTER.call_once(|| {
+            // A font that fails to parse leaves text unrendered; the curves are still drawn.
+            let _ = plotters::style::register_font("sans-serif", FontStyle::Normal, FONT);
+        });
+
+        let (w, h) = (900u32, 540u32);
+        let mut buf = vec![0u8; (w * h * 3) as usize];
+        {
+            let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
+            root.fill(&WHITE)
                 .map_err(|e| anyhow::anyhow!("plot: {e}"))?;
+            let finite = |v: &&(f64, f64)| v.0.is_finite() && v.1.is_finite();
+            let all: Vec<(f64, f64)> = eval.iter().chain(train).filter(finite).copied().collect();
+            let minutes = |s: f64| s / 60.0;
+            let x_max = all
+                .iter()
+                .map(|p| minutes(p.0))
+                .fold(0.0f64, f64::max)
+                .max(1e-3)
+                * 1.02;
+            let (mut y_min, mut y_max) = all
+                .iter()
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| {
+                    (lo.min(p.1), hi.max(p.1))
+                });
+            if !y_min.is_finite() {
+                (y_min, y_max) = (0.0, 30.0);
+            }
+            let pad = ((y_max - y_min) * 0.08).max(0.5);
+            let mut chart = ChartBuilder::on(&root)
+                .caption(title, ("sans-serif", 22))
+                .margin(16)
+                .x_label_area_size(44)
+                .y_label_area_size(56)
+                .build_cartesian_2d(0.0..x_max, (y_min - pad)..(y_max + pad))
+                .map_err(|e| anyhow::anyhow!("plot: {e}"))?;
+            chart
+                .configure_mesh()
+                .x_desc("wall-clock time [min]")
+                .y_desc("PSNR [dB]")
+                .label_style(("sans-serif", 15))
+                .draw()
+                .map_err(|e| anyhow::anyhow!("plot: {e}"))?;
+            let train_colour = RGBColor(150, 150, 150);
+            if !train.is_empty() {
+                chart
+                    .draw_series(LineSeries::new(
+                        train.iter().filter(finite).map(|p| (minutes(p.0), p.1)),
+                        train_colour.stroke_width(1),
+                    ))
+                    .map_err(|e| anyhow::anyhow!("plot: {e}"))?
+                    .label("training batch PSNR")
+                    .legend(move |(x, y)| {
+                        PathElement::new(vec![(x, y), (x + 20, y)], train_colour)
+                    });
+            }
+            if !eval.is_empty() {
+                let blue = RGBColor(31, 90, 180);
+                chart
+                    .draw_series(LineSeries::new(
+                        eval.iter().filter(finite).map(|p| (minutes(p.0), p.1)),
+                        blue.stroke_width(2),
+                    ))
+                    .map_err(|e| anyhow::anyhow!("plot: {e}"))?
+                    .label("held-out PSNR")
+                    .legend(move |(x, y)| {
+                        PathElement::new(vec![(x, y), (x + 20, y)], blue.stroke_width(2))
+                    });
+                chart
+                    .draw_series(
+                        eval.iter()
+                            .filter(finite)
+                            .map(|p| Circle::new((minutes(p.0), p.1), 3, blue.filled())),
+                    )
+                    .map_err(|e| anyhow::anyhow!("plot: {e}"))?;
+            }
+            chart
+                .configure_series_labels()
+                .position(SeriesLabelPosition::LowerRight)
+                .background_style(WHITE.mix(0.85))
+                .border_style(BLACK)
+                .label_font(("sans-serif", 15))
+                .draw()
+                .map_err(|e| anyhow::anyhow!("plot: {e}"))?;
+            root.present().map_err(|e| anyhow::anyhow!("plot: {e}"))?;
         }
-        chart
-            .configure_series_labels()
-            .position(SeriesLabelPosition::LowerRight)
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK)
-            .label_font(("sans-serif", 15))
-            .draw()
-            .map_err(|e| anyhow::anyhow!("plot: {e}"))?;
-        root.present().map_err(|e| anyhow::anyhow!("plot: {e}"))?;
+        let img = image::RgbImage::from_raw(w, h, buf).context("plot buffer has the wrong size")?;
+        super::super::eval::write_png_atomic(&img, path)
     }
-    let img = image::RgbImage::from_raw(w, h, buf).context("plot buffer has the wrong size")?;
-    super::eval::write_png_atomic(&img, path)
 }
+
+#[cfg(feature = "train")]
+pub use plot::plot_psnr_vs_time;
 
 #[cfg(feature = "train")]
 mod imp {
     use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
     use std::sync::Arc;
     use std::time::{Duration, Instant};
+
+    use std::path::Path;
 
     use anyhow::{bail, Context as _};
     use candle_core::Device;
@@ -211,7 +237,7 @@ mod imp {
         pub skipped: u64,
         pub interrupted: bool,
         pub model: PathBuf,
-        pub log: TrainLog,
+        #[allow(dead_code)]
         pub plot: PathBuf,
     }
 
@@ -244,7 +270,11 @@ mod imp {
         })?;
         println!(
             "{} at iteration {} ({} this session, {:.1} it/s, {} skipped); model: {}",
-            if outcome.interrupted { "stopped" } else { "done" },
+            if outcome.interrupted {
+                "stopped"
+            } else {
+                "done"
+            },
             outcome.iterations,
             outcome.session_iterations,
             outcome.session_iterations as f64 / (outcome.session_s - outcome.eval_s).max(1e-9),
@@ -267,11 +297,15 @@ mod imp {
                     eprintln!("\nsecond Ctrl-C: exiting without a checkpoint");
                     std::process::exit(130);
                 }
-                eprintln!("\nCtrl-C: writing a checkpoint, then stopping (press again to exit at once)");
+                eprintln!(
+                    "\nCtrl-C: writing a checkpoint, then stopping (press again to exit at once)"
+                );
                 f.store(true, Ordering::SeqCst);
             });
             if let Err(e) = handler {
-                eprintln!("warning: cannot install the Ctrl-C handler ({e}); Ctrl-C will not checkpoint");
+                eprintln!(
+                    "warning: cannot install the Ctrl-C handler ({e}); Ctrl-C will not checkpoint"
+                );
             }
             flag
         })
@@ -300,7 +334,9 @@ mod imp {
             }
             from_dir
         } else {
-            req.run.clone().unwrap_or_else(|| RunConfig::from_preset(Preset::Paper))
+            req.run
+                .clone()
+                .unwrap_or_else(|| RunConfig::from_preset(Preset::Paper))
         };
         if let Some(n) = req.iters {
             run.train.iters = n;
@@ -330,7 +366,11 @@ mod imp {
             } else {
                 (self.loss / self.n as f64, self.psnr / self.n as f64)
             };
-            *self = Interval { loss: 0.0, psnr: 0.0, n: 0 };
+            *self = Interval {
+                loss: 0.0,
+                psnr: 0.0,
+                n: 0,
+            };
             out
         }
     }
@@ -346,7 +386,8 @@ mod imp {
             );
         }
         let data = Arc::new(read_dataset(&req.data, Profile::Train)?);
-        std::fs::create_dir_all(&req.out).with_context(|| format!("creating {}", req.out.display()))?;
+        std::fs::create_dir_all(&req.out)
+            .with_context(|| format!("creating {}", req.out.display()))?;
         let held_out = match &req.eval_data {
             Some(p) => Some(read_dataset(p, Profile::Eval)?),
             None => None,
@@ -354,7 +395,9 @@ mod imp {
         let eval_images: Vec<usize> = match &held_out {
             Some(d) => {
                 let tagged: Vec<usize> = match &d.eval_tag {
-                    Some(t) if t.iter().any(|&v| v == 1) => (0..d.n_images()).filter(|&i| t[i] == 1).collect(),
+                    Some(t) if t.iter().any(|&v| v == 1) => {
+                        (0..d.n_images()).filter(|&i| t[i] == 1).collect()
+                    }
                     _ => (0..d.n_images()).collect(),
                 };
                 spread(&tagged, run.train.eval_images.max(1))
@@ -372,7 +415,11 @@ mod imp {
         };
         let log_path = req.out.join(LOG_FILE);
         let plot_path = req.out.join(PLOT_FILE);
-        let mut log = if req.resume { TrainLog::read(&log_path)? } else { TrainLog::default() };
+        let mut log = if req.resume {
+            TrainLog::read(&log_path)?
+        } else {
+            TrainLog::default()
+        };
         log.truncate_after(trainer.iteration());
 
         let cfg = run.train.clone();
@@ -380,21 +427,35 @@ mod imp {
         let start_iter = trainer.iteration();
         let base_wall = trainer.progress().wall_s;
         let session = Instant::now();
-        let budget = req.minutes.map(|m| Duration::from_secs_f64((m * 60.0).max(0.0)));
+        let budget = req
+            .minutes
+            .map(|m| Duration::from_secs_f64((m * 60.0).max(0.0)));
         let stop = interrupt_flag();
         let bar = progress_bar(req.quiet, start_iter, target);
         let mut eval_s = 0.0f64;
-        let mut interval = Interval { loss: 0.0, psnr: 0.0, n: 0 };
+        let mut interval = Interval {
+            loss: 0.0,
+            psnr: 0.0,
+            n: 0,
+        };
         let mut ema: Option<(f64, f64)> = None;
 
         let eval_opts = EvalOptions::quick(cfg.render_chunk);
-        let evaluate_now = |trainer: &Trainer, eval_s: &mut f64| -> anyhow::Result<Option<(f64, f64)>> {
-            let Some(d) = &held_out else { return Ok(None) };
-            let t = Instant::now();
-            let r = evaluate(trainer.avatar(), d, "held-out", &eval_images, &eval_opts, &mut |_, _| {})?;
-            *eval_s += t.elapsed().as_secs_f64();
-            Ok(Some((r.psnr, r.ssim)))
-        };
+        let evaluate_now =
+            |trainer: &Trainer, eval_s: &mut f64| -> anyhow::Result<Option<(f64, f64)>> {
+                let Some(d) = &held_out else { return Ok(None) };
+                let t = Instant::now();
+                let r = evaluate(
+                    trainer.avatar(),
+                    d,
+                    "held-out",
+                    &eval_images,
+                    &eval_opts,
+                    &mut |_, _| {},
+                )?;
+                *eval_s += t.elapsed().as_secs_f64();
+                Ok(Some((r.psnr, r.ssim)))
+            };
         let wall = |session: &Instant| base_wall + session.elapsed().as_secs_f64();
 
         // The curve starts at the initial model.
@@ -434,21 +495,32 @@ mod imp {
             trainer.set_wall_s(wall(&session));
             let it = stats.iter;
             if let Some(reason) = stats.skipped {
-                bar.println(format!("iteration {it}: {reason}; step skipped (weights unchanged)"));
+                bar.println(format!(
+                    "iteration {it}: {reason}; step skipped (weights unchanged)"
+                ));
             } else {
                 interval.loss += stats.loss.total;
                 interval.psnr += stats.loss.psnr;
                 interval.n += 1;
                 ema = Some(match ema {
                     None => (stats.loss.total, stats.loss.psnr),
-                    Some((l, p)) => (0.9 * l + 0.1 * stats.loss.total, 0.9 * p + 0.1 * stats.loss.psnr),
+                    Some((l, p)) => (
+                        0.9 * l + 0.1 * stats.loss.total,
+                        0.9 * p + 0.1 * stats.loss.psnr,
+                    ),
                 });
             }
-            update_bar(&bar, &stats, ema, &session, start_iter, target, budget, eval_s);
+            update_bar(
+                &bar, &stats, ema, &session, start_iter, target, budget, eval_s,
+            );
 
             let eval_due = cfg.eval_every > 0 && it % cfg.eval_every == 0;
             if it % cfg.log_every == 0 || eval_due {
-                let e = if eval_due { evaluate_now(&trainer, &mut eval_s)? } else { None };
+                let e = if eval_due {
+                    evaluate_now(&trainer, &mut eval_s)?
+                } else {
+                    None
+                };
                 let (loss, psnr) = interval.take();
                 log.push(LogRow {
                     iter: it,
@@ -462,20 +534,30 @@ mod imp {
                 });
                 last_logged = it;
                 if let Some((p, s)) = e {
-                    bar.println(format!("iteration {it}: held-out PSNR {p:.2} dB, SSIM {s:.4}"));
+                    bar.println(format!(
+                        "iteration {it}: held-out PSNR {p:.2} dB, SSIM {s:.4}"
+                    ));
                 }
                 log.write(&log_path)?;
             }
             if it % cfg.ckpt_every == 0 {
                 trainer.set_wall_s(wall(&session));
                 trainer.save_checkpoint(&req.out)?;
-                plot_psnr_vs_time(&log.eval_curve(), &log.train_curve(), &req.title, &plot_path)?;
+                plot_psnr_vs_time(
+                    &log.eval_curve(),
+                    &log.train_curve(),
+                    &req.title,
+                    &plot_path,
+                )?;
             }
         }
 
         // Final row (with a held-out evaluation), checkpoint, log and plot.
         let it = trainer.iteration();
-        let evaluated_here = log.rows.last().is_some_and(|r| r.iter == it && r.eval_psnr.is_some());
+        let evaluated_here = log
+            .rows
+            .last()
+            .is_some_and(|r| r.iter == it && r.eval_psnr.is_some());
         if failure.is_none() && !evaluated_here && (it > last_logged || held_out.is_some()) {
             let e = evaluate_now(&trainer, &mut eval_s)?;
             let (loss, psnr) = interval.take();
@@ -493,13 +575,24 @@ mod imp {
         trainer.set_wall_s(wall(&session));
         trainer.save_checkpoint(&req.out)?;
         log.write(&log_path)?;
-        plot_psnr_vs_time(&log.eval_curve(), &log.train_curve(), &req.title, &plot_path)?;
+        plot_psnr_vs_time(
+            &log.eval_curve(),
+            &log.train_curve(),
+            &req.title,
+            &plot_path,
+        )?;
         bar.finish_and_clear();
         if let Some(e) = failure {
-            return Err(e).context(format!("training stopped; checkpoint of iteration {it} written to {}", req.out.display()));
+            return Err(e).context(format!(
+                "training stopped; checkpoint of iteration {it} written to {}",
+                req.out.display()
+            ));
         }
         if interrupted {
-            eprintln!("interrupted at iteration {it}; continue with `pma train --resume --out {}`", req.out.display());
+            eprintln!(
+                "interrupted at iteration {it}; continue with `pma train --resume --out {}`",
+                req.out.display()
+            );
         }
         Ok(TrainOutcome {
             iterations: it,
@@ -510,7 +603,6 @@ mod imp {
             skipped: trainer.progress().skipped,
             interrupted,
             model: req.out.join(MODEL_FILE),
-            log,
             plot: plot_path,
         })
     }
@@ -521,9 +613,11 @@ mod imp {
         }
         let bar = indicatif::ProgressBar::new(len);
         bar.set_style(
-            indicatif::ProgressStyle::with_template("[{elapsed_precise}] {bar:30} {pos}/{len} {msg}")
-                .expect("static template")
-                .progress_chars("=> "),
+            indicatif::ProgressStyle::with_template(
+                "[{elapsed_precise}] {bar:30} {pos}/{len} {msg}",
+            )
+            .expect("static template")
+            .progress_chars("=> "),
         );
         bar.set_position(pos);
         bar

@@ -29,7 +29,8 @@ pub(crate) fn derive(ds: &mut Dataset, rest: Option<&Joints>) -> Result<()> {
                     }
                 }
                 ds.root_locs = Some(roots);
-                ds.derived.push("root_locs (kp3d[:,0] - rest_pose[0])".into());
+                ds.derived
+                    .push("root_locs (kp3d[:,0] - rest_pose[0])".into());
             }
         }
     }
@@ -45,7 +46,8 @@ pub(crate) fn derive(ds: &mut Dataset, rest: Option<&Joints>) -> Result<()> {
                 }
                 if ds.skts.is_none() {
                     ds.skts = Some(skts);
-                    ds.derived.push("skts (inverse of forward kinematics)".into());
+                    ds.derived
+                        .push("skts (inverse of forward kinematics)".into());
                 }
             }
         }
@@ -55,7 +57,8 @@ pub(crate) fn derive(ds: &mut Dataset, rest: Option<&Joints>) -> Result<()> {
     if ds.cyls.is_none() {
         if let (Some(kp), Some(head)) = (&ds.kp3d, HeadDir::from_vector(ds.head_dir)) {
             ds.cyls = Some(cylinders(kp, head));
-            ds.derived.push("cyls (E 0.25, top 1.0, bottom 0.25)".into());
+            ds.derived
+                .push("cyls (E 0.25, top 1.0, bottom 0.25)".into());
         }
     }
 

@@ -185,7 +185,10 @@ impl NpzReader {
     }
 
     /// Open a member and parse its NPY header.
-    fn open_member(&mut self, key: &str) -> Result<(MemberInfo, NpyFile<zip::read::ZipFile<'_, BufReader<File>>>)> {
+    fn open_member(
+        &mut self,
+        key: &str,
+    ) -> Result<(MemberInfo, NpyFile<zip::read::ZipFile<'_, BufReader<File>>>)> {
         let file = self.file.clone();
         let name = format!("{key}.npy");
         let zf = self.zip.by_name(&name).map_err(|e| DataError::Format {
@@ -235,18 +238,22 @@ impl NpzReader {
             });
         };
         let n = info.len();
-        let nbytes = n.checked_mul(elem.size()).ok_or_else(|| DataError::Format {
-            file: file.clone(),
-            key: key.into(),
-            msg: format!("shape {:?} is too large", info.shape),
-        })?;
+        let nbytes = n
+            .checked_mul(elem.size())
+            .ok_or_else(|| DataError::Format {
+                file: file.clone(),
+                key: key.into(),
+                msg: format!("shape {:?} is too large", info.shape),
+            })?;
         let mut reader = npy.into_inner();
         let mut bytes = Vec::new();
-        bytes.try_reserve_exact(nbytes).map_err(|_| DataError::Format {
-            file: file.clone(),
-            key: key.into(),
-            msg: format!("cannot allocate {nbytes} bytes for shape {:?}", info.shape),
-        })?;
+        bytes
+            .try_reserve_exact(nbytes)
+            .map_err(|_| DataError::Format {
+                file: file.clone(),
+                key: key.into(),
+                msg: format!("cannot allocate {nbytes} bytes for shape {:?}", info.shape),
+            })?;
         let got = (&mut reader)
             .take(nbytes as u64)
             .read_to_end(&mut bytes)

@@ -90,7 +90,12 @@ impl Ctx<'_> {
 
     /// Integer payload; float payloads only when `allow_integral_float` and
     /// every value is integral (the PerfCap `bkgd_idxs` case).
-    fn i64s(&mut self, key: &str, a: NpyArray, allow_integral_float: bool) -> Result<(Vec<usize>, Vec<i64>)> {
+    fn i64s(
+        &mut self,
+        key: &str,
+        a: NpyArray,
+        allow_integral_float: bool,
+    ) -> Result<(Vec<usize>, Vec<i64>)> {
         let shape = a.shape;
         let v = match a.data {
             NpyData::I64(v) => v,
@@ -172,7 +177,11 @@ fn bones_from_6d(ctx: &Ctx<'_>, p: usize, v: &[f32]) -> Result<Vec<f32>> {
         let m = matrix_from_rot6d(x6).map_err(|e| DataError::Value {
             file: ctx.file.clone(),
             key: "bones".into(),
-            problem: format!("6D rotation of pose {} joint {}", i / N_JOINTS, i % N_JOINTS),
+            problem: format!(
+                "6D rotation of pose {} joint {}",
+                i / N_JOINTS,
+                i % N_JOINTS
+            ),
             expected: "two linearly independent columns (|a1| >= 1e-6, |u| >= 1e-6)".into(),
             found: e.to_string(),
         })?;
@@ -210,7 +219,9 @@ fn pixel_array(
             return Err(DataError::Dtype {
                 file: ctx.file.clone(),
                 key: key.into(),
-                expected: "3-channel RGB (4-channel RGBA is accepted only with drop_alpha / --drop-alpha)".into(),
+                expected:
+                    "3-channel RGB (4-channel RGBA is accepted only with drop_alpha / --drop-alpha)"
+                        .into(),
                 found: format!("{c} channels, shape {shape:?}"),
             });
         }
@@ -245,7 +256,9 @@ pub(crate) fn read_npz(path: &Path, opts: &ReadOptions) -> Result<Dataset> {
         }
         members.push((key.clone(), reader.read(&key)?));
     }
-    let have_pixels = members.iter().any(|(k, _)| PIXEL_KEYS.contains(&k.as_str()));
+    let have_pixels = members
+        .iter()
+        .any(|(k, _)| PIXEL_KEYS.contains(&k.as_str()));
     if !have_pixels {
         if let Some(frames) = frames_path_for(path) {
             if frames.exists() {
@@ -256,7 +269,10 @@ pub(crate) fn read_npz(path: &Path, opts: &ReadOptions) -> Result<Dataset> {
                     } else {
                         ctx.warn(
                             &key,
-                            format!("{}: only pixel keys are read from a frames file; ignored", fr.file()),
+                            format!(
+                                "{}: only pixel keys are read from a frames file; ignored",
+                                fr.file()
+                            ),
                         );
                     }
                 }
@@ -334,7 +350,8 @@ pub(crate) fn read_npz(path: &Path, opts: &ReadOptions) -> Result<Dataset> {
                 if s.len() != 4 || s[1] != N_JOINTS || s[2] != 4 || s[3] != 4 {
                     return Err(ctx.shape_err(k, "(P,24,4,4)", &s));
                 }
-                ds.skts = Some(Array4::from_shape_vec([s[0], N_JOINTS, 4, 4], v).expect("shape checked"));
+                ds.skts =
+                    Some(Array4::from_shape_vec([s[0], N_JOINTS, 4, 4], v).expect("shape checked"));
             }
             "cyls" => {
                 let (s, v) = ctx.f32s(k, a)?;
@@ -387,7 +404,8 @@ pub(crate) fn read_npz(path: &Path, opts: &ReadOptions) -> Result<Dataset> {
                     [c] => {
                         let v2 = v.iter().flat_map(|&f| [f, f]).collect();
                         ds.focals = Some(arr2([*c, 2], v2));
-                        ctx.derived.push("focals (expanded from (C,) to (C,2))".into());
+                        ctx.derived
+                            .push("focals (expanded from (C,) to (C,2))".into());
                     }
                     _ => return Err(ctx.shape_err(k, "(C,2) or (C,)", &s)),
                 }

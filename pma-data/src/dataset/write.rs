@@ -32,7 +32,12 @@ pub(crate) enum Members {
     Frames,
 }
 
-pub(crate) fn write_npz(ds: &Dataset, path: &Path, opts: &WriteOptions, which: Members) -> Result<()> {
+pub(crate) fn write_npz(
+    ds: &Dataset,
+    path: &Path,
+    opts: &WriteOptions,
+    which: Members,
+) -> Result<()> {
     let dir = match path.parent() {
         Some(d) if !d.as_os_str().is_empty() => d,
         _ => Path::new("."),
@@ -54,12 +59,18 @@ pub(crate) fn write_npz(ds: &Dataset, path: &Path, opts: &WriteOptions, which: M
         let mut buf = w.finish()?;
         buf.flush().map_err(|e| DataError::io(path, e))?;
     }
-    tmp.as_file().sync_all().map_err(|e| DataError::io(path, e))?;
-    tmp.persist(path).map_err(|e| DataError::io(path, e.error))?;
+    tmp.as_file()
+        .sync_all()
+        .map_err(|e| DataError::io(path, e))?;
+    tmp.persist(path)
+        .map_err(|e| DataError::io(path, e.error))?;
     Ok(())
 }
 
-fn std_slice<'a, T, D: ndarray::Dimension>(a: &'a ndarray::Array<T, D>, key: &str) -> Result<&'a [T]> {
+fn std_slice<'a, T, D: ndarray::Dimension>(
+    a: &'a ndarray::Array<T, D>,
+    key: &str,
+) -> Result<&'a [T]> {
     a.as_slice()
         .ok_or_else(|| DataError::arg(key, "a C-contiguous array", "a non-contiguous view"))
 }
@@ -70,12 +81,20 @@ fn scene_members<W: Write + std::io::Seek>(ds: &Dataset, w: &mut NpzWriter<W>) -
         let flat: Vec<f32> = r.iter().flatten().copied().collect();
         w.add("rest_pose", &[24, 3], MemberData::F32(&flat))?;
     }
-    w.add("bones", ds.bones.shape(), MemberData::F32(std_slice(&ds.bones, "bones")?))?;
+    w.add(
+        "bones",
+        ds.bones.shape(),
+        MemberData::F32(std_slice(&ds.bones, "bones")?),
+    )?;
     if let Some(a) = &ds.kp3d {
         w.add("kp3d", a.shape(), MemberData::F32(std_slice(a, "kp3d")?))?;
     }
     if let Some(a) = &ds.root_locs {
-        w.add("root_locs", a.shape(), MemberData::F32(std_slice(a, "root_locs")?))?;
+        w.add(
+            "root_locs",
+            a.shape(),
+            MemberData::F32(std_slice(a, "root_locs")?),
+        )?;
     }
     if let Some(a) = &ds.skts {
         w.add("skts", a.shape(), MemberData::F32(std_slice(a, "skts")?))?;
@@ -87,10 +106,18 @@ fn scene_members<W: Write + std::io::Seek>(ds: &Dataset, w: &mut NpzWriter<W>) -
         w.add("betas", a.shape(), MemberData::F32(std_slice(a, "betas")?))?;
     }
     if let Some(a) = &ds.gt_kp3d {
-        w.add("gt_kp3d", a.shape(), MemberData::F32(std_slice(a, "gt_kp3d")?))?;
+        w.add(
+            "gt_kp3d",
+            a.shape(),
+            MemberData::F32(std_slice(a, "gt_kp3d")?),
+        )?;
     }
     if let Some(a) = &ds.frame_ids {
-        w.add("frame_ids", a.shape(), MemberData::I64(std_slice(a, "frame_ids")?))?;
+        w.add(
+            "frame_ids",
+            a.shape(),
+            MemberData::I64(std_slice(a, "frame_ids")?),
+        )?;
     }
     w.add("head_dir", &[3], MemberData::F32(&ds.head_dir))?;
     w.add("pose_scale", &[], MemberData::F32(&[ds.pose_scale]))?;
@@ -101,10 +128,18 @@ fn scene_members<W: Write + std::io::Seek>(ds: &Dataset, w: &mut NpzWriter<W>) -
         w.add("c2ws", a.shape(), MemberData::F32(std_slice(a, "c2ws")?))?;
     }
     if let Some(a) = &ds.focals {
-        w.add("focals", a.shape(), MemberData::F32(std_slice(a, "focals")?))?;
+        w.add(
+            "focals",
+            a.shape(),
+            MemberData::F32(std_slice(a, "focals")?),
+        )?;
     }
     if let Some(a) = &ds.centers {
-        w.add("centers", a.shape(), MemberData::F32(std_slice(a, "centers")?))?;
+        w.add(
+            "centers",
+            a.shape(),
+            MemberData::F32(std_slice(a, "centers")?),
+        )?;
     }
     if let Some(s) = ds.img_shape {
         let v = s.map(|x| x as i64);
@@ -120,7 +155,11 @@ fn scene_members<W: Write + std::io::Seek>(ds: &Dataset, w: &mut NpzWriter<W>) -
         }
     }
     if let Some(a) = &ds.eval_tag {
-        w.add("eval_tag", a.shape(), MemberData::I8(std_slice(a, "eval_tag")?))?;
+        w.add(
+            "eval_tag",
+            a.shape(),
+            MemberData::I8(std_slice(a, "eval_tag")?),
+        )?;
     }
     Ok(())
 }

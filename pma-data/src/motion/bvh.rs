@@ -111,6 +111,14 @@ impl<'a> Tokens<'a> {
             .map_or(0, |&(l, _)| l)
     }
 
+    fn err_at(&self, line: usize, msg: impl Into<String>) -> MotionError {
+        MotionError::Bvh {
+            file: self.file.to_string(),
+            line,
+            msg: msg.into(),
+        }
+    }
+
     fn err(&self, msg: impl Into<String>) -> MotionError {
         MotionError::Bvh {
             file: self.file.to_string(),
@@ -185,11 +193,14 @@ impl Bvh {
         }
         tok.expect("MOTION")?;
         tok.expect("Frames:")?;
+        let frames_line = tok.line();
         let n_frames = tok.number("the frame count")?;
         if n_frames < 1.0 || n_frames.fract() != 0.0 {
-            return Err(tok.err(format!(
-                "expected a positive integer frame count, found {n_frames}"
-            )));
+            // Report the `Frames:` line itself, not the token after it.
+            return Err(tok.err_at(
+                frames_line,
+                format!("expected a positive integer frame count, found {n_frames}"),
+            ));
         }
         let n_frames = n_frames as usize;
         tok.expect("Frame")?;

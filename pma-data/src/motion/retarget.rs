@@ -50,7 +50,10 @@ pub const CMU_UNIT_METRES: f64 = 0.056444;
 #[derive(Clone, Copy, Debug)]
 pub enum Source {
     /// The SMPL bone to the single child follows BVH segment `from → to`.
-    Bone { from: &'static str, to: &'static str },
+    Bone {
+        from: &'static str,
+        to: &'static str,
+    },
     /// Orientation of BVH joint `owner`, aligned in the rest pose by an up
     /// segment and a side segment given for both skeletons.
     Frame {
@@ -220,9 +223,9 @@ fn resolve(
         match entry.source {
             Source::Bone { from, to } => {
                 let (f, t) = (find(from, j)?, find(to, j)?);
-                let owner = bvh.joints[t].parent.ok_or_else(|| {
-                    degenerate(j, &format!("segment end `{to}` is the BVH root"))
-                })?;
+                let owner = bvh.joints[t]
+                    .parent
+                    .ok_or_else(|| degenerate(j, &format!("segment end `{to}` is the BVH root")))?;
                 let child = crate::skeleton::children(j);
                 let [c] = child.as_slice() else {
                     return Err(degenerate(

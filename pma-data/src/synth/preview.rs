@@ -5,7 +5,7 @@
 
 use std::path::Path;
 
-use super::{SplitPlan, ScenePlan, SynthError};
+use super::{ScenePlan, SplitPlan, SynthError};
 use crate::dataset::Dataset;
 
 /// Tiles per row at most.
@@ -25,8 +25,9 @@ impl Sheet {
             path: path.to_path_buf(),
             msg,
         };
-        let img = image::RgbImage::from_raw(self.width as u32, self.height as u32, self.rgb.clone())
-            .ok_or_else(|| err("contact sheet buffer does not match its size".into()))?;
+        let img =
+            image::RgbImage::from_raw(self.width as u32, self.height as u32, self.rgb.clone())
+                .ok_or_else(|| err("contact sheet buffer does not match its size".into()))?;
         let mut bytes = std::io::Cursor::new(Vec::new());
         img.write_to(&mut bytes, image::ImageFormat::Png)
             .map_err(|e| err(e.to_string()))?;

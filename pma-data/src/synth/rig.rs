@@ -39,7 +39,7 @@ impl Default for Ring {
 /// The seed rotates the whole ring (by less than one spacing) and jitters
 /// the heights, so different seeds see the figure from different places.
 pub fn ring_cameras(n: usize, res: usize, seed: u64, ring: &Ring) -> Result<Vec<Camera>> {
-    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0xCA4E_2A5);
+    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x0CA4_E2A5);
     let spacing = std::f64::consts::TAU / n.max(1) as f64;
     let offset = rng.gen_range(0.0..spacing);
     let target = DVec3::from(ring.target);
@@ -62,15 +62,7 @@ pub fn ring_cameras(n: usize, res: usize, seed: u64, ring: &Ring) -> Result<Vec<
                 [0.0, 0.0, 0.0, 1.0],
             ];
             let centre = res as f32 / 2.0;
-            Camera::new(
-                res,
-                res,
-                focal as f32,
-                focal as f32,
-                centre,
-                centre,
-                c2w,
-            )
+            Camera::new(res, res, focal as f32, focal as f32, centre, centre, c2w)
         })
         .collect()
 }

@@ -31,13 +31,28 @@ pub struct TexPoint {
 pub enum Texture {
     Solid(Rgb),
     /// `a` at one end of the bone blending smoothly into `b` at the other.
-    Gradient { a: Rgb, b: Rgb },
+    Gradient {
+        a: Rgb,
+        b: Rgb,
+    },
     /// Bands across the bone, `period` metres apart.
-    Rings { a: Rgb, b: Rgb, period: f64 },
+    Rings {
+        a: Rgb,
+        b: Rgb,
+        period: f64,
+    },
     /// `count` stripes running along the bone, around its circumference.
-    Stripes { a: Rgb, b: Rgb, count: u32 },
+    Stripes {
+        a: Rgb,
+        b: Rgb,
+        count: u32,
+    },
     /// 3-D checkerboard of `size`-metre cells in joint axes.
-    Checker { a: Rgb, b: Rgb, size: f64 },
+    Checker {
+        a: Rgb,
+        b: Rgb,
+        size: f64,
+    },
     /// Rows of 3×5-cell glyphs (`cell` metres) printed on the front
     /// (`local.z > 0`) over a vertical gradient.
     Glyphs {
@@ -50,11 +65,24 @@ pub enum Texture {
         per_row: usize,
     },
     /// Skin with two eyes and a mouth on the front, hair on top and back.
-    Face { skin: Rgb, hair: Rgb, features: Rgb },
+    Face {
+        skin: Rgb,
+        hair: Rgb,
+        features: Rgb,
+    },
     /// A low-frequency band (`band`, between heights `y0..y1`) on `base`.
-    Belt { base: Rgb, band: Rgb, y0: f64, y1: f64 },
+    Belt {
+        base: Rgb,
+        band: Rgb,
+        y0: f64,
+        y1: f64,
+    },
     /// A shoe: `upper` with a `sole` colour below `sole_y` (joint axes).
-    Shoe { upper: Rgb, sole: Rgb, sole_y: f64 },
+    Shoe {
+        upper: Rgb,
+        sole: Rgb,
+        sole_y: f64,
+    },
 }
 
 fn mix(a: Rgb, b: Rgb, t: f64) -> Rgb {
@@ -128,7 +156,11 @@ impl Texture {
             Texture::Belt { base, band, y0, y1 } => {
                 pick(*band, *base, (*y0..*y1).contains(&p.local.y))
             }
-            Texture::Shoe { upper, sole, sole_y } => pick(*sole, *upper, p.local.y < *sole_y),
+            Texture::Shoe {
+                upper,
+                sole,
+                sole_y,
+            } => pick(*sole, *upper, p.local.y < *sole_y),
         }
     }
 }

@@ -19,8 +19,14 @@ use super::TrainError;
 
 /// Substrings that put a parameter into the "freq" group (lr 1e-4, `model.lr_freq`); every
 /// other parameter is in the "other" group (lr 5e-4). Spec §6.
-pub const FREQ_GROUP_PATTERNS: [&str; 6] =
-    ["graph_net", "pose_extractor", "win_fun", "modulator", "pts_enc_point", "pts_enc_pose"];
+pub const FREQ_GROUP_PATTERNS: [&str; 6] = [
+    "graph_net",
+    "pose_extractor",
+    "win_fun",
+    "modulator",
+    "pts_enc_point",
+    "pts_enc_pose",
+];
 
 /// Index of the reference group a parameter belongs to: 0 = "freq", 1 = "other".
 pub fn reference_group(name: &str) -> usize {
@@ -94,7 +100,10 @@ impl Adam {
                 )));
             };
             if var.dtype() != DType::F32 {
-                return Err(TrainError::Config(format!("parameter `{name}` is {:?}, expected f32", var.dtype())));
+                return Err(TrainError::Config(format!(
+                    "parameter `{name}` is {:?}, expected f32",
+                    var.dtype()
+                )));
             }
             groups[gi].params.push(name.clone());
             let zeros = var.as_tensor().zeros_like()?;
@@ -102,14 +111,27 @@ impl Adam {
                 name: name.clone(),
                 var: var.clone(),
                 group: gi,
-                state: ParamState { step: 0, exp_avg: zeros.clone(), exp_avg_sq: zeros },
+                state: ParamState {
+                    step: 0,
+                    exp_avg: zeros.clone(),
+                    exp_avg_sq: zeros,
+                },
             });
         }
-        Ok(Self { groups, slots: per_group.into_iter().flatten().collect() })
+        Ok(Self {
+            groups,
+            slots: per_group.into_iter().flatten().collect(),
+        })
     }
 
     /// The reference's two groups ("freq" 1e-4, "other" 5e-4) over `vars`.
-    pub fn reference(vars: &[(String, Var)], lr_freq: f64, lr: f64, betas: [f64; 2], eps: f64) -> Result<Self, TrainError> {
+    pub fn reference(
+        vars: &[(String, Var)],
+        lr_freq: f64,
+        lr: f64,
+        betas: [f64; 2],
+        eps: f64,
+    ) -> Result<Self, TrainError> {
         let group = |name: &str, lr0: f64| ParamGroup {
             name: name.to_string(),
             initial_lr: lr0,
@@ -118,7 +140,11 @@ impl Adam {
             eps,
             params: Vec::new(),
         };
-        Self::new(vars, vec![group("freq", lr_freq), group("other", lr)], reference_group)
+        Self::new(
+            vars,
+            vec![group("freq", lr_freq), group("other", lr)],
+            reference_group,
+        )
     }
 
     pub fn groups(&self) -> &[ParamGroup] {
@@ -144,7 +170,13 @@ impl Adam {
     }
 
     /// Set every group's rate from its initial rate for the step after `completed_steps`.
-    pub fn apply_schedule(&mut self, completed_steps: u64, decay: f64, decay_steps: f64, floor: f64) {
+    pub fn apply_schedule(
+        &mut self,
+        completed_steps: u64,
+        decay: f64,
+        decay_steps: f64,
+        floor: f64,
+    ) {
         for g in &mut self.groups {
             g.lr = decayed_lr(g.initial_lr, completed_steps, decay, decay_steps, floor);
         }
@@ -159,7 +191,11 @@ impl Adam {
     ) -> Result<(), TrainError> {
         let mut problems = Vec::new();
         if groups_lr.len() != self.groups.len() {
-            problems.push(format!("{} group rates given, {} groups exist", groups_lr.len(), self.groups.len()));
+            problems.push(format!(
+                "{} group rates given, {} groups exist",
+                groups_lr.len(),
+                self.groups.len()
+            ));
         }
         for slot in &self.slots {
             match states.get(&slot.name) {
@@ -179,8 +215,13 @@ impl Adam {
                 }
             }
         }
-        let known: std::collections::HashSet<&str> = self.slots.iter().map(|s| s.name.as_str()).collect();
-        let mut extra: Vec<_> = states.keys().filter(|k| !known.contains(k.as_str())).cloned().collect();
+        let known: std::collections::HashSet<&str> =
+            self.slots.iter().map(|s| s.name.as_str()).collect();
+        let mut extra: Vec<_> = states
+            .keys()
+            .filter(|k| !known.contains(k.as_str()))
+            .cloned()
+            .collect();
         extra.sort();
         for name in extra {
             problems.push(format!("optimizer state for unknown parameter `{name}`"));
@@ -230,7 +271,11 @@ impl Adam {
             let update = ((&m * step_size)? / denom)?;
             let p = (slot.var.as_tensor().detach() - update)?;
             slot.var.set(&p)?;
-            *st = ParamState { step: t, exp_avg: m, exp_avg_sq: v };
+            *st = ParamState {
+                step: t,
+                exp_avg: m,
+                exp_avg_sq: v,
+            };
         }
         Ok(())
     }
@@ -241,7 +286,11 @@ impl Adam {
 pub fn global_norm(grads: &[Option<Tensor>]) -> Result<f64, TrainError> {
     let mut sum = 0.0f64;
     for g in grads.iter().flatten() {
-        sum += g.to_dtype(DType::F64)?.sqr()?.sum_all()?.to_scalar::<f64>()?;
+        sum += g
+            .to_dtype(DType::F64)?
+            .sqr()?
+            .sum_all()?
+            .to_scalar::<f64>()?;
     }
     Ok(sum.sqrt())
 }
@@ -249,7 +298,11 @@ pub fn global_norm(grads: &[Option<Tensor>]) -> Result<f64, TrainError> {
 /// Scale gradients so their global norm is at most `max_norm` (torch `clip_grad_norm_`:
 /// coefficient `max_norm / (norm + 1e-6)`, applied only when it is below 1).
 /// Returns the coefficient used (1 when nothing was scaled).
-pub fn clip_grad_norm(grads: &mut [Option<Tensor>], max_norm: f64, total_norm: f64) -> Result<f64, TrainError> {
+pub fn clip_grad_norm(
+    grads: &mut [Option<Tensor>],
+    max_norm: f64,
+    total_norm: f64,
+) -> Result<f64, TrainError> {
     let coef = max_norm / (total_norm + 1e-6);
     if coef >= 1.0 {
         return Ok(1.0);
@@ -300,17 +353,27 @@ mod tests {
             |_| 0,
         )
         .unwrap();
-        let grads: Vec<Vec<f64>> =
-            vec![vec![0.1, -0.2, 3.0, 1e-9], vec![-0.3, 0.2, 1.0, 0.0], vec![0.05, 0.0, -2.0, 5e-9]];
+        let grads: Vec<Vec<f64>> = vec![
+            vec![0.1, -0.2, 3.0, 1e-9],
+            vec![-0.3, 0.2, 1.0, 0.0],
+            vec![0.05, 0.0, -2.0, 5e-9],
+        ];
         for g in &grads {
-            let gt = Tensor::new(g.iter().map(|&x| x as f32).collect::<Vec<_>>(), &Device::Cpu).unwrap();
+            let gt = Tensor::new(
+                g.iter().map(|&x| x as f32).collect::<Vec<_>>(),
+                &Device::Cpu,
+            )
+            .unwrap();
             adam.step(&[Some(gt)]).unwrap();
         }
         let mut want = vec![0.5, -1.0, 2.0, 1e-3];
         adam_ref(&mut want, &grads, 0.01, 0.9, 0.999, 1e-8);
         let got = x.to_vec1::<f32>().unwrap();
         for (g, w) in got.iter().zip(&want) {
-            assert!((*g as f64 - w).abs() < 1e-6 * w.abs().max(1e-3), "{got:?} vs {want:?}");
+            assert!(
+                (*g as f64 - w).abs() < 1e-6 * w.abs().max(1e-3),
+                "{got:?} vs {want:?}"
+            );
         }
         assert_eq!(adam.state("w").unwrap().step, 3);
     }
@@ -318,7 +381,10 @@ mod tests {
     #[test]
     fn groups_follow_reference_patterns_and_rates() {
         let vars = vec![
-            ("pts_enc_pose.sin_lin0.layer.weight".to_string(), var(&[1.0])),
+            (
+                "pts_enc_pose.sin_lin0.layer.weight".to_string(),
+                var(&[1.0]),
+            ),
             ("pts_linears.0.weight".to_string(), var(&[1.0])),
             ("graph_net.axis_scale".to_string(), var(&[1.0])),
             ("framecodes.codes.weight".to_string(), var(&[1.0])),
@@ -327,7 +393,12 @@ mod tests {
         let names: Vec<_> = adam.param_names().collect();
         assert_eq!(
             names,
-            ["pts_enc_pose.sin_lin0.layer.weight", "graph_net.axis_scale", "pts_linears.0.weight", "framecodes.codes.weight"]
+            [
+                "pts_enc_pose.sin_lin0.layer.weight",
+                "graph_net.axis_scale",
+                "pts_linears.0.weight",
+                "framecodes.codes.weight"
+            ]
         );
         // First Adam step moves every element by ~lr (sign of the gradient).
         let g = |v: f32| Some(Tensor::new(&[v], &Device::Cpu).unwrap());
@@ -344,8 +415,14 @@ mod tests {
     #[test]
     fn none_gradient_leaves_param_and_state_alone() {
         let x = var(&[1.0, 2.0]);
-        let mut adam = Adam::reference(&[("pts_linears.0.bias".into(), x.clone())], 1e-4, 5e-4, [0.9, 0.999], 1e-8)
-            .unwrap();
+        let mut adam = Adam::reference(
+            &[("pts_linears.0.bias".into(), x.clone())],
+            1e-4,
+            5e-4,
+            [0.9, 0.999],
+            1e-8,
+        )
+        .unwrap();
         adam.step(&[None]).unwrap();
         assert_eq!(x.to_vec1::<f32>().unwrap(), vec![1.0, 2.0]);
         assert_eq!(adam.state("pts_linears.0.bias").unwrap().step, 0);

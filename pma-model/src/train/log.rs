@@ -37,7 +37,12 @@ impl TrainLog {
         let text = match std::fs::read_to_string(path) {
             Ok(t) => t,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Self::default()),
-            Err(source) => return Err(TrainError::Io { path: path.to_path_buf(), source }),
+            Err(source) => {
+                return Err(TrainError::Io {
+                    path: path.to_path_buf(),
+                    source,
+                })
+            }
         };
         Self::parse(&text).map_err(|msg| TrainError::Config(format!("{}: {msg}", path.display())))
     }
@@ -54,10 +59,15 @@ impl TrainLog {
             let lineno = i + 2;
             let f: Vec<&str> = line.split(',').collect();
             if f.len() != 8 {
-                return Err(format!("line {lineno}: expected 8 fields, found {}", f.len()));
+                return Err(format!(
+                    "line {lineno}: expected 8 fields, found {}",
+                    f.len()
+                ));
             }
             let num = |k: usize| -> Result<f64, String> {
-                f[k].trim().parse::<f64>().map_err(|_| format!("line {lineno}: field {k} = {:?} is not a number", f[k]))
+                f[k].trim()
+                    .parse::<f64>()
+                    .map_err(|_| format!("line {lineno}: field {k} = {:?} is not a number", f[k]))
             };
             let opt = |k: usize| -> Result<Option<f64>, String> {
                 if f[k].trim().is_empty() {
@@ -67,7 +77,9 @@ impl TrainLog {
                 }
             };
             let int = |k: usize| -> Result<u64, String> {
-                f[k].trim().parse::<u64>().map_err(|_| format!("line {lineno}: field {k} = {:?} is not an integer", f[k]))
+                f[k].trim()
+                    .parse::<u64>()
+                    .map_err(|_| format!("line {lineno}: field {k} = {:?} is not an integer", f[k]))
             };
             rows.push(LogRow {
                 iter: int(0)?,
@@ -128,12 +140,19 @@ impl TrainLog {
 
     /// `(wall_s, eval_psnr)` of every evaluated row: the "error against run time" curve.
     pub fn eval_curve(&self) -> Vec<(f64, f64)> {
-        self.rows.iter().filter_map(|r| r.eval_psnr.map(|p| (r.wall_s, p))).collect()
+        self.rows
+            .iter()
+            .filter_map(|r| r.eval_psnr.map(|p| (r.wall_s, p)))
+            .collect()
     }
 
     /// `(wall_s, train_psnr)` of every row with a finite training PSNR.
     pub fn train_curve(&self) -> Vec<(f64, f64)> {
-        self.rows.iter().filter(|r| r.train_psnr.is_finite()).map(|r| (r.wall_s, r.train_psnr)).collect()
+        self.rows
+            .iter()
+            .filter(|r| r.train_psnr.is_finite())
+            .map(|r| (r.wall_s, r.train_psnr))
+            .collect()
     }
 }
 
@@ -172,8 +191,14 @@ mod tests {
         assert_eq!(back.eval_curve(), vec![(10.0, 18.25)]);
         let mut cut = back.clone();
         cut.truncate_after(20);
-        assert_eq!(cut.rows.iter().map(|r| r.iter).collect::<Vec<_>>(), vec![10, 20]);
-        assert!(TrainLog::read(&dir.path().join("missing.csv")).unwrap().rows.is_empty());
+        assert_eq!(
+            cut.rows.iter().map(|r| r.iter).collect::<Vec<_>>(),
+            vec![10, 20]
+        );
+        assert!(TrainLog::read(&dir.path().join("missing.csv"))
+            .unwrap()
+            .rows
+            .is_empty());
     }
 
     #[test]

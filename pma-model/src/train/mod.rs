@@ -3,7 +3,7 @@
 //!
 //! * [`adam`]: Adam with parameter groups, the lr schedule, global-norm clipping.
 //! * [`state`]: the train-state file (optimizer moments, RNG, sampler, iteration).
-//! * [`log`]: `log.csv`.
+//! * `log`: `log.csv`.
 //! * [`source`]: training batches from a dataset (spec data.md §7).
 //! * [`trainer`]: one training step (forward, loss, backward, clip, Adam, schedule), non-finite
 //!   step skipping, checkpoint and resume.
@@ -46,7 +46,10 @@ pub enum TrainError {
 
     /// A train-state file that cannot be used (every problem listed).
     #[error("train state {path}: {} problem(s):\n  - {}", problems.len(), problems.join("\n  - "))]
-    StateFile { path: PathBuf, problems: Vec<String> },
+    StateFile {
+        path: PathBuf,
+        problems: Vec<String>,
+    },
 
     /// The run directory cannot be resumed (missing files, mismatched config or model).
     #[error("cannot resume from {dir}: {reason}")]
@@ -57,20 +60,42 @@ pub enum TrainError {
     #[error("{count} consecutive non-finite steps up to iteration {iter}; stopping (the last checkpoint is intact)")]
     Diverged { count: u64, iter: u64 },
 
+    // The wrapped errors are boxed so `Result<_, TrainError>` stays small on the hot path.
     #[error(transparent)]
-    Model(#[from] crate::error::ModelError),
+    Model(Box<crate::error::ModelError>),
 
     #[error(transparent)]
-    Data(#[from] pma_data::DataError),
+    Data(Box<pma_data::DataError>),
 
     #[error(transparent)]
-    Candle(#[from] candle_core::Error),
+    Candle(Box<candle_core::Error>),
+}
+
+impl From<crate::error::ModelError> for TrainError {
+    fn from(e: crate::error::ModelError) -> Self {
+        TrainError::Model(Box::new(e))
+    }
+}
+
+impl From<pma_data::DataError> for TrainError {
+    fn from(e: pma_data::DataError) -> Self {
+        TrainError::Data(Box::new(e))
+    }
+}
+
+impl From<candle_core::Error> for TrainError {
+    fn from(e: candle_core::Error) -> Self {
+        TrainError::Candle(Box::new(e))
+    }
 }
 
 /// Write `bytes` to `path` through a temporary file in the same directory, then rename, so
 /// readers see either the old or the new file, never a partial one.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), TrainError> {
-    let io = |source| TrainError::Io { path: path.to_path_buf(), source };
+    let io = |source| TrainError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
     let dir = match path.parent() {
         Some(d) if !d.as_os_str().is_empty() => d,
         _ => Path::new("."),

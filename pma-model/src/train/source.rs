@@ -61,7 +61,9 @@ impl DatasetSource {
     ) -> Result<Self, TrainError> {
         let bad = |msg: String| TrainError::Config(format!("{}: {msg}", data.source));
         if images_per_step == 0 || rays_per_step % images_per_step != 0 {
-            return Err(bad(format!("{rays_per_step} rays cannot be split evenly over {images_per_step} images")));
+            return Err(bad(format!(
+                "{rays_per_step} rays cannot be split evenly over {images_per_step} images"
+            )));
         }
         let n = data.n_images();
         if n == 0 {
@@ -79,7 +81,10 @@ impl DatasetSource {
         .filter_map(|(k, m)| m.then_some(k))
         .collect();
         if !missing.is_empty() {
-            return Err(bad(format!("missing {} (train profile)", missing.join(", "))));
+            return Err(bad(format!(
+                "missing {} (train profile)",
+                missing.join(", ")
+            )));
         }
         let rays_per_image = rays_per_step / images_per_step;
         if rays_per_image > data.height() * data.width() {
@@ -126,11 +131,19 @@ impl DatasetSource {
     fn pixels(&mut self, n: usize) -> Vec<usize> {
         let hw = self.data.height() * self.data.width();
         let valid: Vec<usize> = match self.data.sampling_mask(n) {
-            Some(m) => m.outer_iter().enumerate().filter(|(_, v)| v[0] > 0).map(|(i, _)| i).collect(),
+            Some(m) => m
+                .outer_iter()
+                .enumerate()
+                .filter(|(_, v)| v[0] > 0)
+                .map(|(i, _)| i)
+                .collect(),
             None => Vec::new(),
         };
         let mut px: Vec<usize> = if valid.len() >= self.rays_per_image {
-            rand::seq::index::sample(&mut self.rng, valid.len(), self.rays_per_image).into_iter().map(|i| valid[i]).collect()
+            rand::seq::index::sample(&mut self.rng, valid.len(), self.rays_per_image)
+                .into_iter()
+                .map(|i| valid[i])
+                .collect()
         } else {
             rand::seq::index::sample(&mut self.rng, hw, self.rays_per_image).into_vec()
         };
@@ -144,18 +157,28 @@ impl BatchSource for DatasetSource {
         let images = self.next_images();
         let k = self.rays_per_image;
         let r = k * images.len();
-        let (mut o, mut d, mut bg, mut target) =
-            (Vec::with_capacity(3 * r), Vec::with_capacity(3 * r), Vec::with_capacity(3 * r), Vec::with_capacity(3 * r));
+        let (mut o, mut d, mut bg, mut target) = (
+            Vec::with_capacity(3 * r),
+            Vec::with_capacity(3 * r),
+            Vec::with_capacity(3 * r),
+            Vec::with_capacity(3 * r),
+        );
         let mut framecodes = Vec::with_capacity(r);
         let mut bones = Vec::with_capacity(images.len());
         let mut skts = Vec::with_capacity(images.len() * 16 * 24);
         let mut cyls = Vec::with_capacity(images.len() * 5);
         let data = self.data.clone();
-        let (all_skts, all_cyls) = (data.skts.as_ref().expect("checked"), data.cyls.as_ref().expect("checked"));
+        let (all_skts, all_cyls) = (
+            data.skts.as_ref().expect("checked"),
+            data.cyls.as_ref().expect("checked"),
+        );
         for &n in &images {
             let cam = data.image_camera(n)?;
             let p = data.pose_row(n)?;
-            let (img, mask) = (data.image(n).expect("checked"), data.mask(n).expect("checked"));
+            let (img, mask) = (
+                data.image(n).expect("checked"),
+                data.mask(n).expect("checked"),
+            );
             let pixels = self.pixels(n);
             let (origins, dirs) = cam.rays(&pixels, true);
             for ((&px, ro), rd) in pixels.iter().zip(origins).zip(dirs) {
@@ -163,7 +186,11 @@ impl BatchSource for DatasetSource {
                 d.extend_from_slice(&rd);
                 let fg = (mask[[px, 0]] > 0) as u8 as f32;
                 // Black plates (PM zeroes the stored backgrounds); noise on background pixels.
-                let noise: [f32; 3] = if self.perturb_bg { self.rng.gen() } else { [0.0; 3] };
+                let noise: [f32; 3] = if self.perturb_bg {
+                    self.rng.gen()
+                } else {
+                    [0.0; 3]
+                };
                 for c in 0..3 {
                     let b = (1.0 - fg) * noise[c];
                     bg.push(b);
@@ -172,7 +199,14 @@ impl BatchSource for DatasetSource {
                 framecodes.push(n as i64);
             }
             bones.push(data.pose_bones(p));
-            skts.extend(all_skts.outer_iter().nth(p).expect("pose row checked").iter().copied());
+            skts.extend(
+                all_skts
+                    .outer_iter()
+                    .nth(p)
+                    .expect("pose row checked")
+                    .iter()
+                    .copied(),
+            );
             cyls.extend(all_cyls.row(p).iter().copied());
         }
         let dev = &self.device;
@@ -194,16 +228,24 @@ impl BatchSource for DatasetSource {
     }
 
     fn state(&self) -> serde_json::Value {
-        serde_json::to_value(SourceState { rng: RngState::capture(&self.rng), perm: self.perm.clone(), cursor: self.cursor })
-            .unwrap_or(serde_json::Value::Null)
+        serde_json::to_value(SourceState {
+            rng: RngState::capture(&self.rng),
+            perm: self.perm.clone(),
+            cursor: self.cursor,
+        })
+        .unwrap_or(serde_json::Value::Null)
     }
 
     fn restore(&mut self, state: &serde_json::Value) -> Result<(), TrainError> {
         let bad = |msg: String| TrainError::State(vec![format!("sampler state: {msg}")]);
-        let s: SourceState = serde_json::from_value(state.clone()).map_err(|e| bad(e.to_string()))?;
+        let s: SourceState =
+            serde_json::from_value(state.clone()).map_err(|e| bad(e.to_string()))?;
         let n = self.data.n_images();
         if s.perm.len() != n && !s.perm.is_empty() {
-            return Err(bad(format!("permutation of {} images, the dataset has {n}", s.perm.len())));
+            return Err(bad(format!(
+                "permutation of {} images, the dataset has {n}",
+                s.perm.len()
+            )));
         }
         if s.cursor > s.perm.len() || s.perm.iter().any(|&i| i >= n) {
             return Err(bad("cursor or image index out of range".into()));

@@ -113,7 +113,11 @@ impl TrainState {
         meta.insert("format".to_string(), FORMAT.to_string());
         meta.insert("format_version".to_string(), FORMAT_VERSION.to_string());
         meta.insert("global_iter".to_string(), self.global_iter.to_string());
-        let steps: BTreeMap<&str, u64> = self.params.iter().map(|(n, s)| (n.as_str(), s.step)).collect();
+        let steps: BTreeMap<&str, u64> = self
+            .params
+            .iter()
+            .map(|(n, s)| (n.as_str(), s.step))
+            .collect();
         meta.insert("steps".to_string(), json(&steps)?);
         let groups: Vec<GroupMeta> = self
             .groups
@@ -148,37 +152,56 @@ impl TrainState {
         let mut tensors: Vec<(String, Tensor)> = Vec::with_capacity(2 * self.params.len());
         for (name, st) in &self.params {
             tensors.push((format!("exp_avg.{name}"), st.exp_avg.to_dtype(DType::F32)?));
-            tensors.push((format!("exp_avg_sq.{name}"), st.exp_avg_sq.to_dtype(DType::F32)?));
+            tensors.push((
+                format!("exp_avg_sq.{name}"),
+                st.exp_avg_sq.to_dtype(DType::F32)?,
+            ));
         }
         tensors.sort_by(|a, b| a.0.cmp(&b.0));
-        let bytes = safetensors::serialize(tensors.iter().map(|(n, t)| (n.as_str(), t)), Some(meta))
-            .map_err(|e| TrainError::StateFile { path: path.to_path_buf(), problems: vec![e.to_string()] })?;
+        let bytes =
+            safetensors::serialize(tensors.iter().map(|(n, t)| (n.as_str(), t)), Some(meta))
+                .map_err(|e| TrainError::StateFile {
+                    path: path.to_path_buf(),
+                    problems: vec![e.to_string()],
+                })?;
         write_atomic(path, &bytes)
     }
 
     /// Read and check a train-state file: metadata present and well-formed, every group
     /// member has both moments and a step, and no tensor is left over.
     pub fn load(path: &Path, device: &Device) -> Result<Self, TrainError> {
-        let bytes = std::fs::read(path).map_err(|source| TrainError::Io { path: path.to_path_buf(), source })?;
+        let bytes = std::fs::read(path).map_err(|source| TrainError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
         Self::from_bytes(&bytes, device).map_err(|e| match e {
-            TrainError::State(problems) => TrainError::StateFile { path: path.to_path_buf(), problems },
+            TrainError::State(problems) => TrainError::StateFile {
+                path: path.to_path_buf(),
+                problems,
+            },
             other => other,
         })
     }
 
     fn from_bytes(bytes: &[u8], device: &Device) -> Result<Self, TrainError> {
         let fail = |p: String| TrainError::State(vec![p]);
-        let (_, header) =
-            safetensors::SafeTensors::read_metadata(bytes).map_err(|e| fail(format!("not a safetensors file: {e}")))?;
+        let (_, header) = safetensors::SafeTensors::read_metadata(bytes)
+            .map_err(|e| fail(format!("not a safetensors file: {e}")))?;
         let meta = header.metadata().clone().unwrap_or_default();
         match meta.get("format").map(String::as_str) {
             Some(FORMAT) => {}
-            other => return Err(fail(format!("metadata `format`: expected {FORMAT:?}, found {other:?}"))),
+            other => {
+                return Err(fail(format!(
+                    "metadata `format`: expected {FORMAT:?}, found {other:?}"
+                )))
+            }
         }
         match meta.get("format_version") {
             Some(v) if *v == FORMAT_VERSION.to_string() => {}
             other => {
-                return Err(fail(format!("metadata `format_version`: expected \"{FORMAT_VERSION}\", found {other:?}")))
+                return Err(fail(format!(
+                    "metadata `format_version`: expected \"{FORMAT_VERSION}\", found {other:?}"
+                )))
             }
         }
         let mut problems = Vec::new();
@@ -189,18 +212,32 @@ impl TrainState {
             }
             v
         };
-        let global_iter = required("global_iter", &mut problems)
-            .and_then(|s| s.parse::<u64>().map_err(|_| problems.push(format!("`global_iter` = {s:?} is not an integer"))).ok());
-        let steps: Option<BTreeMap<String, u64>> = required("steps", &mut problems)
-            .and_then(|s| serde_json::from_str(&s).map_err(|e| problems.push(format!("`steps`: {e}"))).ok());
-        let groups: Option<Vec<GroupMeta>> = required("param_groups", &mut problems)
-            .and_then(|s| serde_json::from_str(&s).map_err(|e| problems.push(format!("`param_groups`: {e}"))).ok());
+        let global_iter = required("global_iter", &mut problems).and_then(|s| {
+            s.parse::<u64>()
+                .map_err(|_| problems.push(format!("`global_iter` = {s:?} is not an integer")))
+                .ok()
+        });
+        let steps: Option<BTreeMap<String, u64>> = required("steps", &mut problems).and_then(|s| {
+            serde_json::from_str(&s)
+                .map_err(|e| problems.push(format!("`steps`: {e}")))
+                .ok()
+        });
+        let groups: Option<Vec<GroupMeta>> =
+            required("param_groups", &mut problems).and_then(|s| {
+                serde_json::from_str(&s)
+                    .map_err(|e| problems.push(format!("`param_groups`: {e}")))
+                    .ok()
+            });
         fn optional<T: serde::de::DeserializeOwned>(
             meta: &HashMap<String, String>,
             key: &str,
             problems: &mut Vec<String>,
         ) -> Option<T> {
-            meta.get(key).and_then(|s| serde_json::from_str(s).map_err(|e| problems.push(format!("`{key}`: {e}"))).ok())
+            meta.get(key).and_then(|s| {
+                serde_json::from_str(s)
+                    .map_err(|e| problems.push(format!("`{key}`: {e}")))
+                    .ok()
+            })
         }
         let rng: Option<RngState> = optional(&meta, "rng", &mut problems);
         let sampler: Option<serde_json::Value> = optional(&meta, "sampler", &mut problems);
@@ -215,7 +252,10 @@ impl TrainState {
         let mut tensors: HashMap<String, Tensor> = HashMap::new();
         for (name, view) in st.tensors() {
             if view.dtype() != safetensors::Dtype::F32 {
-                problems.push(format!("tensor `{name}`: expected f32, found {:?}", view.dtype()));
+                problems.push(format!(
+                    "tensor `{name}`: expected f32, found {:?}",
+                    view.dtype()
+                ));
                 continue;
             }
             tensors.insert(name, candle_core::safetensors::Load::load(&view, device)?);
@@ -225,7 +265,9 @@ impl TrainState {
         for g in &groups {
             for name in &g.params {
                 if !seen.insert(name.clone()) {
-                    problems.push(format!("parameter `{name}` is listed in more than one group"));
+                    problems.push(format!(
+                        "parameter `{name}` is listed in more than one group"
+                    ));
                     continue;
                 }
                 let m = tensors.remove(&format!("exp_avg.{name}"));
@@ -240,12 +282,21 @@ impl TrainState {
                                 v.dims()
                             ));
                         }
-                        params.insert(name.clone(), ParamState { step, exp_avg: m, exp_avg_sq: v });
+                        params.insert(
+                            name.clone(),
+                            ParamState {
+                                step,
+                                exp_avg: m,
+                                exp_avg_sq: v,
+                            },
+                        );
                     }
                     (m, v, step) => {
-                        for (what, missing) in
-                            [("tensor exp_avg", m.is_none()), ("tensor exp_avg_sq", v.is_none()), ("steps entry", step.is_none())]
-                        {
+                        for (what, missing) in [
+                            ("tensor exp_avg", m.is_none()),
+                            ("tensor exp_avg_sq", v.is_none()),
+                            ("steps entry", step.is_none()),
+                        ] {
                             if missing {
                                 problems.push(format!("`{name}`: {what} is missing"));
                             }
@@ -260,7 +311,9 @@ impl TrainState {
             problems.push(format!("tensor `{name}` belongs to no parameter group"));
         }
         for name in steps.keys().filter(|n| !seen.contains(*n)) {
-            problems.push(format!("`steps` names `{name}`, which is in no parameter group"));
+            problems.push(format!(
+                "`steps` names `{name}`, which is in no parameter group"
+            ));
         }
         if !problems.is_empty() {
             return Err(TrainError::State(problems));
@@ -276,7 +329,16 @@ impl TrainState {
                 params: g.params,
             })
             .collect();
-        Ok(Self { global_iter, groups, params, rng, sampler, progress, run_config, model_fingerprint })
+        Ok(Self {
+            global_iter,
+            groups,
+            params,
+            rng,
+            sampler,
+            progress,
+            run_config,
+            model_fingerprint,
+        })
     }
 }
 
@@ -292,7 +354,8 @@ pub fn fingerprint(bytes: &[u8]) -> String {
 }
 
 fn json<T: Serialize + ?Sized>(v: &T) -> Result<String, TrainError> {
-    serde_json::to_string(v).map_err(|e| TrainError::Config(format!("cannot serialise train state: {e}")))
+    serde_json::to_string(v)
+        .map_err(|e| TrainError::Config(format!("cannot serialise train state: {e}")))
 }
 
 #[cfg(test)]
@@ -304,8 +367,22 @@ mod tests {
         let dev = Device::Cpu;
         let t = |v: &[f32]| Tensor::new(v, &dev).unwrap();
         let mut params = HashMap::new();
-        params.insert("a.weight".to_string(), ParamState { step: 3, exp_avg: t(&[0.1, 0.2]), exp_avg_sq: t(&[1e-3, 2e-3]) });
-        params.insert("b.bias".to_string(), ParamState { step: 3, exp_avg: t(&[-0.5]), exp_avg_sq: t(&[4e-6]) });
+        params.insert(
+            "a.weight".to_string(),
+            ParamState {
+                step: 3,
+                exp_avg: t(&[0.1, 0.2]),
+                exp_avg_sq: t(&[1e-3, 2e-3]),
+            },
+        );
+        params.insert(
+            "b.bias".to_string(),
+            ParamState {
+                step: 3,
+                exp_avg: t(&[-0.5]),
+                exp_avg_sq: t(&[4e-6]),
+            },
+        );
         let group = |name: &str, lr: f64, p: &str| ParamGroup {
             name: name.into(),
             initial_lr: lr,
@@ -318,11 +395,18 @@ mod tests {
         rng.next_u64();
         TrainState {
             global_iter: 3,
-            groups: vec![group("freq", 1e-4, "a.weight"), group("other", 5e-4, "b.bias")],
+            groups: vec![
+                group("freq", 1e-4, "a.weight"),
+                group("other", 5e-4, "b.bias"),
+            ],
             params,
             rng: Some(RngState::capture(&rng)),
             sampler: Some(serde_json::json!({"cursor": 5})),
-            progress: Some(Progress { wall_s: 1.5, skipped: 1, consecutive_skipped: 0 }),
+            progress: Some(Progress {
+                wall_s: 1.5,
+                skipped: 1,
+                consecutive_skipped: 0,
+            }),
             run_config: None,
             model_fingerprint: Some(fingerprint(b"model")),
         }
@@ -339,7 +423,10 @@ mod tests {
         // serde_json's float parsing may be 1 ulp off; the trainer recomputes rates from the
         // schedule on resume, so the stored ones only need to be close.
         for (a, b) in l.groups.iter().zip(&s.groups) {
-            assert_eq!((&a.name, &a.params, a.betas, a.eps), (&b.name, &b.params, b.betas, b.eps));
+            assert_eq!(
+                (&a.name, &a.params, a.betas, a.eps),
+                (&b.name, &b.params, b.betas, b.eps)
+            );
             assert!((a.lr - b.lr).abs() <= 1e-15 * b.lr && a.initial_lr == b.initial_lr);
         }
         assert_eq!(l.rng, s.rng);
@@ -349,8 +436,14 @@ mod tests {
         for (n, p) in &s.params {
             let q = &l.params[n];
             assert_eq!(q.step, p.step);
-            assert_eq!(q.exp_avg.to_vec1::<f32>().unwrap(), p.exp_avg.to_vec1::<f32>().unwrap());
-            assert_eq!(q.exp_avg_sq.to_vec1::<f32>().unwrap(), p.exp_avg_sq.to_vec1::<f32>().unwrap());
+            assert_eq!(
+                q.exp_avg.to_vec1::<f32>().unwrap(),
+                p.exp_avg.to_vec1::<f32>().unwrap()
+            );
+            assert_eq!(
+                q.exp_avg_sq.to_vec1::<f32>().unwrap(),
+                p.exp_avg_sq.to_vec1::<f32>().unwrap()
+            );
         }
     }
 
@@ -364,7 +457,11 @@ mod tests {
         for _ in 0..100 {
             assert_eq!(a.next_u64(), b.next_u64());
         }
-        let bad = RngState { seed: "zz".into(), stream: 0, word_pos: "0".into() };
+        let bad = RngState {
+            seed: "zz".into(),
+            stream: 0,
+            word_pos: "0".into(),
+        };
         assert!(bad.restore().is_err());
     }
 
@@ -377,19 +474,30 @@ mod tests {
         s.groups[0].params.push("ghost".into());
         s.params.insert(
             "stray".into(),
-            ParamState { step: 1, exp_avg: Tensor::new(&[0f32], &Device::Cpu).unwrap(), exp_avg_sq: Tensor::new(&[0f32], &Device::Cpu).unwrap() },
+            ParamState {
+                step: 1,
+                exp_avg: Tensor::new(&[0f32], &Device::Cpu).unwrap(),
+                exp_avg_sq: Tensor::new(&[0f32], &Device::Cpu).unwrap(),
+            },
         );
         s.save(&path).unwrap();
-        let err = TrainState::load(&path, &Device::Cpu).unwrap_err().to_string();
+        let err = TrainState::load(&path, &Device::Cpu)
+            .unwrap_err()
+            .to_string();
         assert!(err.contains("`ghost`: tensor exp_avg is missing"), "{err}");
-        assert!(err.contains("tensor `exp_avg.stray` belongs to no parameter group"), "{err}");
+        assert!(
+            err.contains("tensor `exp_avg.stray` belongs to no parameter group"),
+            "{err}"
+        );
         assert!(err.contains(path.to_str().unwrap()), "{err}");
 
         // A model checkpoint is not a train state.
         let other = dir.path().join("model.safetensors");
         let t = Tensor::new(&[1f32], &Device::Cpu).unwrap();
         safetensors::serialize_to_file([("x", &t)], None, &other).unwrap();
-        let err = TrainState::load(&other, &Device::Cpu).unwrap_err().to_string();
+        let err = TrainState::load(&other, &Device::Cpu)
+            .unwrap_err()
+            .to_string();
         assert!(err.contains("metadata `format`"), "{err}");
     }
 

@@ -88,7 +88,12 @@ pub struct Optimization {
 
 impl Optimization {
     pub fn new(adam: Adam, cfg: TrainConfig) -> Self {
-        Self { adam, cfg, iter: 0, progress: Progress::default() }
+        Self {
+            adam,
+            cfg,
+            iter: 0,
+            progress: Progress::default(),
+        }
     }
 
     /// Rates of the next step, per group.
@@ -100,10 +105,21 @@ impl Optimization {
     /// gradient). A non-finite loss or gradient norm skips the update: nothing reaches the
     /// weights or the moments, the skip is counted, and after `max_consecutive_skips` in a row
     /// the run stops with [`TrainError::Diverged`].
-    pub fn apply(&mut self, loss: LossParts, mut grads: Vec<Option<Tensor>>) -> Result<StepStats, TrainError> {
+    pub fn apply(
+        &mut self,
+        loss: LossParts,
+        mut grads: Vec<Option<Tensor>>,
+    ) -> Result<StepStats, TrainError> {
         let lrs = self.lrs();
         let iter = self.iter + 1;
-        let mut stats = StepStats { iter, loss, grad_norm: f64::NAN, clip_coef: 1.0, lrs, skipped: None };
+        let mut stats = StepStats {
+            iter,
+            loss,
+            grad_norm: f64::NAN,
+            clip_coef: 1.0,
+            lrs,
+            skipped: None,
+        };
         if !loss.total.is_finite() {
             stats.skipped = Some(SkipReason::NonFiniteLoss);
         } else {
@@ -126,9 +142,13 @@ impl Optimization {
         // The schedule follows the iteration count, skipped or not (the reference sets the
         // rates from global_iter after every step).
         let c = &self.cfg;
-        self.adam.apply_schedule(iter, c.lr_decay, c.lr_decay_steps, c.lr_floor);
+        self.adam
+            .apply_schedule(iter, c.lr_decay, c.lr_decay_steps, c.lr_floor);
         if self.progress.consecutive_skipped >= self.cfg.max_consecutive_skips {
-            return Err(TrainError::Diverged { count: self.progress.consecutive_skipped, iter });
+            return Err(TrainError::Diverged {
+                count: self.progress.consecutive_skipped,
+                iter,
+            });
         }
         Ok(stats)
     }
@@ -175,10 +195,21 @@ impl BatchSource for FixedBatch {
 }
 
 /// The differentiated loss (spec §5, [`crate::loss`]) and its parts as numbers.
-pub fn training_loss(out: &Outputs, target: &Tensor, cfg: &TrainConfig) -> Result<(Tensor, LossParts), TrainError> {
-    let weights = LossWeights { fine: cfg.loss_fine, coarse: cfg.loss_coarse, scale: cfg.loss_scale };
+pub fn training_loss(
+    out: &Outputs,
+    target: &Tensor,
+    cfg: &TrainConfig,
+) -> Result<(Tensor, LossParts), TrainError> {
+    let weights = LossWeights {
+        fine: cfg.loss_fine,
+        coarse: cfg.loss_coarse,
+        scale: cfg.loss_scale,
+    };
     let loss = crate::loss::training_loss(out, target, &weights)?;
-    let mse = (&out.fine.rgb.detach() - target)?.sqr()?.mean_all()?.to_scalar::<f32>()? as f64;
+    let mse = (&out.fine.rgb.detach() - target)?
+        .sqr()?
+        .mean_all()?
+        .to_scalar::<f32>()? as f64;
     let scalar = |t: &Tensor| -> Result<f64, TrainError> { Ok(t.to_scalar::<f32>()? as f64) };
     let parts = LossParts {
         total: scalar(&loss.total)?,
@@ -208,11 +239,15 @@ pub struct Trainer {
 
 /// The density-noise stream is seeded from the run seed on its own ChaCha stream, so it
 /// never overlaps the sampler's or the initialisation's draws.
-const NOISE_STREAM: u64 = 0x6e6f_6973_65;
+const NOISE_STREAM: u64 = 0x6e_6f69_7365;
 
 impl Trainer {
     /// Train `avatar` on batches from `source`. `run.model` must be the avatar's config.
-    pub fn with_source(run: RunConfig, avatar: Avatar, source: Box<dyn BatchSource>) -> Result<Self, TrainError> {
+    pub fn with_source(
+        run: RunConfig,
+        avatar: Avatar,
+        source: Box<dyn BatchSource>,
+    ) -> Result<Self, TrainError> {
         run.train.validate()?;
         if avatar.config() != &run.model {
             return Err(TrainError::Config(
@@ -223,22 +258,38 @@ impl Trainer {
         let t = &run.train;
         let adam = Adam::reference(&vars, t.lr_freq, t.lr, t.betas, t.eps)?;
         let names: Vec<String> = adam.param_names().map(str::to_string).collect();
-        let by_name: std::collections::HashMap<&str, &Var> = vars.iter().map(|(n, v)| (n.as_str(), v)).collect();
+        let by_name: std::collections::HashMap<&str, &Var> =
+            vars.iter().map(|(n, v)| (n.as_str(), v)).collect();
         let params = names.iter().map(|n| by_name[n.as_str()].clone()).collect();
         let mut noise_rng = ChaCha8Rng::seed_from_u64(t.seed);
         noise_rng.set_stream(NOISE_STREAM);
         let opt = Optimization::new(adam, run.train.clone());
-        Ok(Self { run, avatar, params, names, opt, source, noise_rng })
+        Ok(Self {
+            run,
+            avatar,
+            params,
+            names,
+            opt,
+            source,
+            noise_rng,
+        })
     }
 
     /// A fresh run on `data` (train profile): the avatar is initialised from the dataset's
     /// rest pose with one frame code per training image, and batches come from
     /// [`DatasetSource`]. `run.model.n_framecodes` is set to the number of images.
-    pub fn new(mut run: RunConfig, data: Arc<Dataset>, device: &Device) -> Result<Self, TrainError> {
+    pub fn new(
+        mut run: RunConfig,
+        data: Arc<Dataset>,
+        device: &Device,
+    ) -> Result<Self, TrainError> {
         run.model.n_framecodes = data.n_images();
         run.validate()?;
         let rest = data.rest_pose.ok_or_else(|| {
-            TrainError::Config(format!("{}: no rest_pose (required for training)", data.source))
+            TrainError::Config(format!(
+                "{}: no rest_pose (required for training)",
+                data.source
+            ))
         })?;
         let source = Self::dataset_source(&run, data, device)?;
         let avatar = Avatar::new(run.model.clone(), &rest, run.train.seed, device)?;
@@ -246,15 +297,31 @@ impl Trainer {
     }
 
     /// Continue the run in `dir` on the same `data` (see [`Self::resume_with_source`]).
-    pub fn resume(dir: &Path, mut run: RunConfig, data: Arc<Dataset>, device: &Device) -> Result<Self, TrainError> {
+    pub fn resume(
+        dir: &Path,
+        mut run: RunConfig,
+        data: Arc<Dataset>,
+        device: &Device,
+    ) -> Result<Self, TrainError> {
         run.model.n_framecodes = data.n_images();
         let source = Self::dataset_source(&run, data, device)?;
         Self::resume_with_source(dir, run, source, device)
     }
 
-    fn dataset_source(run: &RunConfig, data: Arc<Dataset>, device: &Device) -> Result<Box<dyn BatchSource>, TrainError> {
+    fn dataset_source(
+        run: &RunConfig,
+        data: Arc<Dataset>,
+        device: &Device,
+    ) -> Result<Box<dyn BatchSource>, TrainError> {
         let t = &run.train;
-        Ok(Box::new(DatasetSource::new(data, t.rays_per_step, t.images_per_step, t.perturb_bg, t.seed, device)?))
+        Ok(Box::new(DatasetSource::new(
+            data,
+            t.rays_per_step,
+            t.images_per_step,
+            t.perturb_bg,
+            t.seed,
+            device,
+        )?))
     }
 
     pub fn run_config(&self) -> &RunConfig {
@@ -307,11 +374,18 @@ impl Trainer {
 
     /// One iteration on `batch`: forward (training mode, density noise), loss, backward,
     /// `hook`, clip, Adam, schedule. A non-finite loss skips the backward pass too.
-    pub fn step_on(&mut self, batch: &TrainBatch, hook: Option<GradHook>) -> Result<StepStats, TrainError> {
+    pub fn step_on(
+        &mut self,
+        batch: &TrainBatch,
+        hook: Option<GradHook>,
+    ) -> Result<StepStats, TrainError> {
         let (loss, parts) = self.loss_on(batch)?;
         let mut grads: Vec<Option<Tensor>> = if parts.total.is_finite() {
             let store = loss.backward()?;
-            self.params.iter().map(|v| store.get(v.as_tensor()).cloned()).collect()
+            self.params
+                .iter()
+                .map(|v| store.get(v.as_tensor()).cloned())
+                .collect()
         } else {
             vec![None; self.params.len()]
         };
@@ -327,11 +401,19 @@ impl Trainer {
         let rng = &mut self.noise_rng;
         let mut noise = |n: usize| -> crate::error::Result<Tensor> {
             use rand_distr::Distribution;
-            let v: Vec<f32> = (0..n).map(|_| rand_distr::StandardNormal.sample(&mut *rng)).collect();
+            let v: Vec<f32> = (0..n)
+                .map(|_| rand_distr::StandardNormal.sample(&mut *rng))
+                .collect();
             Ok(Tensor::from_vec(v, n, &device)?)
         };
-        let mut opts = ForwardOptions { training: true, noise: Some(&mut noise), inference: false };
-        let out = self.avatar.forward(&batch.rays, &batch.poses, &mut opts, None)?;
+        let mut opts = ForwardOptions {
+            training: true,
+            noise: Some(&mut noise),
+            inference: false,
+        };
+        let out = self
+            .avatar
+            .forward(&batch.rays, &batch.poses, &mut opts, None)?;
         training_loss(&out, &batch.target, &self.run.train)
     }
 
@@ -341,17 +423,25 @@ impl Trainer {
     pub fn save_checkpoint(&self, dir: &Path) -> Result<(), TrainError> {
         let model_path = dir.join(MODEL_FILE);
         self.avatar.save(&model_path)?;
-        let bytes =
-            std::fs::read(&model_path).map_err(|source| TrainError::Io { path: model_path.clone(), source })?;
+        let bytes = std::fs::read(&model_path).map_err(|source| TrainError::Io {
+            path: model_path.clone(),
+            source,
+        })?;
         let state = TrainState {
             global_iter: self.opt.iter,
             groups: self.opt.adam.groups().to_vec(),
-            params: self.opt.adam.states().map(|(n, s)| (n.to_string(), s.clone())).collect(),
+            params: self
+                .opt
+                .adam
+                .states()
+                .map(|(n, s)| (n.to_string(), s.clone()))
+                .collect(),
             rng: Some(RngState::capture(&self.noise_rng)),
             sampler: Some(self.source.state()),
             progress: Some(self.opt.progress.clone()),
             run_config: Some(
-                serde_json::to_value(&self.run).map_err(|e| TrainError::Config(format!("run config: {e}")))?,
+                serde_json::to_value(&self.run)
+                    .map_err(|e| TrainError::Config(format!("run config: {e}")))?,
             ),
             model_fingerprint: Some(fingerprint(&bytes)),
         };
@@ -367,7 +457,10 @@ impl Trainer {
         source: Box<dyn BatchSource>,
         device: &Device,
     ) -> Result<Self, TrainError> {
-        let fail = |reason: String| TrainError::Resume { dir: dir.to_path_buf(), reason };
+        let fail = |reason: String| TrainError::Resume {
+            dir: dir.to_path_buf(),
+            reason,
+        };
         let state_path = dir.join(STATE_FILE);
         let model_path = dir.join(MODEL_FILE);
         for p in [&state_path, &model_path] {
@@ -383,10 +476,16 @@ impl Trainer {
             a.train.iters = 0;
             b.train.iters = 0;
             if a != b {
-                return Err(fail("the run configuration differs from the one the checkpoint was trained with".into()));
+                return Err(fail(
+                    "the run configuration differs from the one the checkpoint was trained with"
+                        .into(),
+                ));
             }
         }
-        let bytes = std::fs::read(&model_path).map_err(|source| TrainError::Io { path: model_path.clone(), source })?;
+        let bytes = std::fs::read(&model_path).map_err(|source| TrainError::Io {
+            path: model_path.clone(),
+            source,
+        })?;
         if let Some(fp) = &state.model_fingerprint {
             if *fp != fingerprint(&bytes) {
                 return Err(fail(format!(
@@ -400,19 +499,30 @@ impl Trainer {
         let mut trainer = Self::with_source(run, avatar, source)?;
         let lrs: Vec<f64> = state.groups.iter().map(|g| g.lr).collect();
         let saved_names: Vec<&String> = state.groups.iter().flat_map(|g| &g.params).collect();
-        if saved_names.len() != trainer.names.len() || saved_names.iter().zip(&trainer.names).any(|(a, b)| *a != b) {
-            return Err(fail("the optimizer's parameter groups differ from the model's".into()));
+        if saved_names.len() != trainer.names.len()
+            || saved_names.iter().zip(&trainer.names).any(|(a, b)| *a != b)
+        {
+            return Err(fail(
+                "the optimizer's parameter groups differ from the model's".into(),
+            ));
         }
         trainer.opt.adam.load_states(state.params, &lrs)?;
         trainer.opt.iter = state.global_iter;
         // Rates follow from the iteration; recomputing avoids trusting JSON float parsing.
         let c = &trainer.run.train;
-        trainer.opt.adam.apply_schedule(state.global_iter, c.lr_decay, c.lr_decay_steps, c.lr_floor);
+        trainer.opt.adam.apply_schedule(
+            state.global_iter,
+            c.lr_decay,
+            c.lr_decay_steps,
+            c.lr_floor,
+        );
         trainer.opt.progress = state.progress.unwrap_or_default();
         if let Some(r) = &state.rng {
             trainer.noise_rng = r.restore()?;
         }
-        trainer.source.restore(state.sampler.as_ref().unwrap_or(&serde_json::Value::Null))?;
+        trainer
+            .source
+            .restore(state.sampler.as_ref().unwrap_or(&serde_json::Value::Null))?;
         Ok(trainer)
     }
 }
@@ -424,13 +534,29 @@ mod tests {
 
     fn setup() -> (Var, Optimization) {
         let x = Var::from_tensor(&Tensor::new(&[1f32, -2.0], &Device::Cpu).unwrap()).unwrap();
-        let adam = Adam::reference(&[("pts_linears.0.weight".into(), x.clone())], 1e-4, 5e-4, [0.9, 0.999], 1e-8).unwrap();
-        let cfg = TrainConfig { max_consecutive_skips: 3, ..TrainConfig::tiny() };
+        let adam = Adam::reference(
+            &[("pts_linears.0.weight".into(), x.clone())],
+            1e-4,
+            5e-4,
+            [0.9, 0.999],
+            1e-8,
+        )
+        .unwrap();
+        let cfg = TrainConfig {
+            max_consecutive_skips: 3,
+            ..TrainConfig::tiny()
+        };
         (x, Optimization::new(adam, cfg))
     }
 
     fn loss(total: f64) -> LossParts {
-        LossParts { total, fine: total, coarse: 0.0, scale: 0.0, psnr: 10.0 }
+        LossParts {
+            total,
+            fine: total,
+            coarse: 0.0,
+            scale: 0.0,
+            psnr: 10.0,
+        }
     }
 
     #[test]
@@ -448,7 +574,14 @@ mod tests {
         assert_eq!(s.skipped, Some(SkipReason::NonFiniteLoss));
         assert_eq!(x.to_vec1::<f32>().unwrap(), after_good);
         assert_eq!(opt.adam.state("pts_linears.0.weight").unwrap().step, 1);
-        assert_eq!((opt.iter, opt.progress.skipped, opt.progress.consecutive_skipped), (3, 2, 2));
+        assert_eq!(
+            (
+                opt.iter,
+                opt.progress.skipped,
+                opt.progress.consecutive_skipped
+            ),
+            (3, 2, 2)
+        );
 
         // A good step resets the streak; three bad ones in a row stop the run.
         opt.apply(loss(0.5), g([1.0, 1.0])).unwrap();
@@ -456,7 +589,10 @@ mod tests {
         opt.apply(loss(f64::NAN), g([1.0, 1.0])).unwrap();
         opt.apply(loss(f64::NAN), g([1.0, 1.0])).unwrap();
         let err = opt.apply(loss(f64::NAN), g([1.0, 1.0])).unwrap_err();
-        assert!(matches!(err, TrainError::Diverged { count: 3, iter: 7 }), "{err}");
+        assert!(
+            matches!(err, TrainError::Diverged { count: 3, iter: 7 }),
+            "{err}"
+        );
         assert_eq!(opt.adam.state("pts_linears.0.weight").unwrap().step, 2);
     }
 

@@ -134,7 +134,7 @@ impl GoldenCase {
         let mut opts = ForwardOptions {
             training: true,
             noise: None,
-        inference: false,
+            inference: false,
         };
         self.avatar
             .forward(&self.rays, &self.poses, &mut opts, trace)

@@ -21,7 +21,10 @@ pub fn tiny_scene(dir: &Path) -> Arc<Dataset> {
         ..Default::default()
     };
     pma_data::synth::generate(&cfg, dir, &mut |_, _| {}).expect("synth");
-    Arc::new(Dataset::read(dir.join("train.npz"), &ReadOptions::new(Profile::Train)).expect("read train.npz"))
+    Arc::new(
+        Dataset::read(dir.join("train.npz"), &ReadOptions::new(Profile::Train))
+            .expect("read train.npz"),
+    )
 }
 
 pub fn tiny_run() -> RunConfig {
@@ -37,14 +40,29 @@ pub fn tiny_trainer(data: &Arc<Dataset>) -> Trainer {
 
 /// Every trainable parameter as raw f32 bits, by name.
 pub fn param_bits(t: &Trainer) -> Vec<(String, Vec<u32>)> {
-    t.avatar().trainable().into_iter().map(|(n, v)| (n, bits(v.as_tensor()))).collect()
+    t.avatar()
+        .trainable()
+        .into_iter()
+        .map(|(n, v)| (n, bits(v.as_tensor())))
+        .collect()
 }
 
 pub fn bits(t: &Tensor) -> Vec<u32> {
-    t.to_dtype(DType::F32).unwrap().flatten_all().unwrap().to_vec1::<f32>().unwrap().into_iter().map(f32::to_bits).collect()
+    t.to_dtype(DType::F32)
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .to_vec1::<f32>()
+        .unwrap()
+        .into_iter()
+        .map(f32::to_bits)
+        .collect()
 }
 
 /// Optimizer moments and steps as raw bits, in state order.
 pub fn adam_bits(t: &Trainer) -> Vec<(String, u64, Vec<u32>, Vec<u32>)> {
-    t.optimizer().states().map(|(n, s)| (n.to_string(), s.step, bits(&s.exp_avg), bits(&s.exp_avg_sq))).collect()
+    t.optimizer()
+        .states()
+        .map(|(n, s)| (n.to_string(), s.step, bits(&s.exp_avg), bits(&s.exp_avg_sq)))
+        .collect()
 }

@@ -1,0 +1,132 @@
+//! `pma eval` end to end: table on stdout, eval.json with the documented shape, side-by-side
+//! PNGs, and clear errors for a bad split or a missing model.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn pma(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_pma"))
+        .args(args)
+        .output()
+        .expect("running pma")
+}
+
+fn ok(out: Output) -> Output {
+    assert!(
+        out.status.success(),
+        "pma failed: {}\nstdout:\n{}\nstderr:\n{}",
+        out.status,
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    out
+}
+
+fn tiny_scene(dir: &Path) {
+    let cfg = pma_data::synth::SynthConfig {
+        res: 24,
+        train_cams: 2,
+        test_cams: 1,
+        frames: 3,
+        novel_view_stride: 2,
+        novel_pose_walk: 1,
+        novel_pose_dance: 1,
+        ..Default::default()
+    };
+    pma_data::synth::generate(&cfg, dir, &mut |_, _| {}).expect("synth");
+}
+
+#[test]
+fn eval_writes_table_json_and_pngs() {
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = tmp.path().join("scene");
+    tiny_scene(&scene);
+    let run = tmp.path().join("run");
+    let train = scene.join("train.npz");
+    ok(pma(&[
+        "train",
+        "--data",
+        train.to_str().unwrap(),
+        "--out",
+        run.to_str().unwrap(),
+        "--preset",
+        "tiny",
+        "--iters",
+        "2",
+        "--quiet",
+    ]));
+    let model = run.join("model.safetensors");
+    let out_dir = tmp.path().join("eval");
+    let out = ok(pma(&[
+        "eval",
+        "--model",
+        model.to_str().unwrap(),
+        "--data",
+        scene.to_str().unwrap(),
+        "--split",
+        "novel_pose",
+        "--out",
+        out_dir.to_str().unwrap(),
+        "--pngs",
+        "2",
+    ]));
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        stdout.contains("PSNR") && stdout.contains("mean"),
+        "{stdout}"
+    );
+    assert!(stdout.contains("LPIPS: n/a"), "{stdout}");
+
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out_dir.join("eval.json")).unwrap()).unwrap();
+    assert_eq!(json["split"], "novel_pose");
+    let per_image = json["per_image"].as_array().unwrap();
+    assert_eq!(
+        per_image.len(),
+        2 * 2,
+        "2 training cameras x (1 walk + 1 dance) frames"
+    );
+    let mean_psnr = per_image
+        .iter()
+        .map(|r| r["psnr"].as_f64().unwrap())
+        .sum::<f64>()
+        / per_image.len() as f64;
+    assert!((json["psnr"].as_f64().unwrap() - mean_psnr).abs() < 1e-9);
+    let ssim = json["ssim"].as_f64().unwrap();
+    assert!(ssim.is_finite() && ssim <= 1.0);
+    assert!(
+        json["baseline_psnr"].as_f64().unwrap().is_finite(),
+        "train.npz is beside the split"
+    );
+    let pngs = json["pngs"].as_array().unwrap();
+    assert_eq!(pngs.len(), 2);
+    for p in pngs {
+        let img = image::open(p.as_str().unwrap()).unwrap();
+        // Ground truth | render | error map of a square image, with two 4-px gaps.
+        assert_eq!(img.width(), 3 * img.height() + 8);
+    }
+}
+
+#[test]
+fn eval_rejects_bad_split_and_missing_model() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = pma(&[
+        "eval",
+        "--model",
+        "/nonexistent/m.safetensors",
+        "--data",
+        tmp.path().to_str().unwrap(),
+    ]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("/nonexistent/m.safetensors"));
+    let out = pma(&[
+        "eval",
+        "--model",
+        "/nonexistent/m.safetensors",
+        "--data",
+        tmp.path().to_str().unwrap(),
+        "--split",
+        "holdout",
+    ]);
+    assert!(!out.status.success());
+}
