@@ -37,6 +37,10 @@ enum Command {
     Eval(cli::eval::Args),
     /// The main job on the embedded default: synthesise the scene, train, evaluate, render.
     Demo(cli::demo::Args),
+    /// Render a trained avatar: dataset views, an orbit, bullet time, or retargeted motion (PNG + GIF).
+    Render(cli::render::Args),
+    /// Extract a coloured mesh (PLY) of a trained avatar in one pose by marching cubes.
+    Mesh(cli::mesh::Args),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -49,5 +53,7 @@ fn main() -> anyhow::Result<()> {
         Command::Train(a) => cli::train::run(a),
         Command::Eval(a) => cli::eval::run(a),
         Command::Demo(a) => cli::demo::run(a),
+        Command::Render(a) => cli::render::run(a),
+        Command::Mesh(a) => cli::mesh::run(a),
     }
 }

@@ -3,6 +3,7 @@
 //! Modules follow the paper's concepts; `avatar.rs` wires them together top-down.
 
 pub mod avatar;
+pub mod camera_path;
 pub mod checkpoint;
 pub mod config;
 pub mod encoders;
@@ -11,11 +12,13 @@ pub mod field;
 pub mod gnn;
 pub mod image;
 pub mod loss;
+pub mod mesh;
 pub mod modulator;
 pub mod nn;
 pub mod presets;
 pub mod raycast;
 pub mod render;
+pub mod retarget;
 pub mod window;
 
 #[cfg(feature = "train")]

@@ -668,6 +668,14 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
     tmp.as_file()
         .sync_all()
         .with_context(|| format!("writing {}", path.display()))?;
+    // Temporary files are created 0600; reports and images are ordinary files.
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        tmp.as_file()
+            .set_permissions(std::fs::Permissions::from_mode(0o644))
+            .with_context(|| format!("writing {}", path.display()))?;
+    }
     tmp.persist(path)
         .with_context(|| format!("replacing {}", path.display()))?;
     Ok(())

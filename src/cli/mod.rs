@@ -5,5 +5,7 @@ pub mod demo;
 pub mod eval;
 pub mod forward;
 pub mod inspect;
+pub mod mesh;
+pub mod render;
 pub mod synth;
 pub mod train;

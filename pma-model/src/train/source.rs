@@ -237,6 +237,11 @@ impl BatchSource for DatasetSource {
     }
 
     fn restore(&mut self, state: &serde_json::Value) -> Result<(), TrainError> {
+        // A state converted from a reference checkpoint carries no sampler position: the
+        // reference's loader order cannot be reproduced anyway, so start a fresh stream.
+        if state.is_null() {
+            return Ok(());
+        }
         let bad = |msg: String| TrainError::State(vec![format!("sampler state: {msg}")]);
         let s: SourceState =
             serde_json::from_value(state.clone()).map_err(|e| bad(e.to_string()))?;

@@ -1,0 +1,211 @@
+//! `pma mesh`: extract a coloured triangle mesh of a trained avatar in one pose.
+//!
+//! The density `relu(σ)` (no noise, spec data.md §9.3) is sampled on a cubic-cell grid covering
+//! the posed body's part boxes (`--res` samples along the longest side) and turned into a
+//! surface by marching cubes at `--threshold` (PM's default 5.0). Points outside every part
+//! box count as empty (`--no-box-mask` evaluates them too). Vertices are written in world
+//! coordinates (the reference's exporter uses axis-swapped index space; pma does not), with
+//! normals toward lower density and colours = the radiance seen along the inward normal with
+//! the mean frame code. `--preview PNG` rasterises the mesh from a framing camera.
+//!
+//! The pose: frame `--frame` of `--poses` (any pma-npz; retargeted onto the avatar like
+//! `pma render --poses`), or by default the avatar's rest pose standing upright (head −y).
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{bail, Context as _};
+use candle_core::Device;
+use image::RgbImage;
+use pma_data::cylinder::HeadDir;
+use pma_model::camera_path::{facing, framing_camera, load_avatar, ViewDirs};
+use pma_model::mesh::{
+    colour_vertices, marching_cubes, render_preview, sample_grid, write_ply, AvatarField, Grid,
+    DEFAULT_THRESHOLD,
+};
+use pma_model::retarget::{retarget, MotionClip, RootScale};
+
+use super::eval::write_png_atomic;
+use super::render::read_motion;
+
+#[derive(clap::Args, Debug, Clone)]
+pub struct Args {
+    /// Trained model (`RUN/model.safetensors`).
+    #[arg(long)]
+    pub model: PathBuf,
+    /// Pose source: a motion or dataset npz (default: the rest pose, upright).
+    #[arg(long)]
+    pub poses: Option<PathBuf>,
+    /// Pose row of `--poses`.
+    #[arg(long, default_value_t = 0)]
+    pub frame: usize,
+    /// Root trajectory scale for `--poses` (`legs`, `none` or a factor); moves the mesh only.
+    #[arg(long, default_value = "legs")]
+    pub root_scale: String,
+    /// Grid samples along the longest side of the body's bounds.
+    #[arg(long, default_value_t = 256)]
+    pub res: usize,
+    /// Density threshold of the surface.
+    #[arg(long, default_value_t = DEFAULT_THRESHOLD)]
+    pub threshold: f32,
+    /// Grid points per density call.
+    #[arg(long, default_value_t = 65536)]
+    pub chunk: usize,
+    /// Skip vertex colours.
+    #[arg(long)]
+    pub no_colour: bool,
+    /// Evaluate the network outside the part boxes too.
+    #[arg(long)]
+    pub no_box_mask: bool,
+    /// Colour with the reference's raw view directions (see `pma render --reference-dirs`).
+    #[arg(long)]
+    pub reference_dirs: bool,
+    /// Also write a rasterised preview of the mesh (PNG).
+    #[arg(long)]
+    pub preview: Option<PathBuf>,
+    /// Preview size in pixels (square).
+    #[arg(long, default_value_t = 256)]
+    pub preview_res: usize,
+    /// No progress bar.
+    #[arg(long)]
+    pub quiet: bool,
+    /// Output PLY.
+    #[arg(short = 'o', long)]
+    pub out: PathBuf,
+}
+
+// The field closures return `pma_model`'s error, which carries candle's (large) one.
+#[allow(clippy::result_large_err)]
+pub fn run(args: Args) -> anyhow::Result<()> {
+    if !(2..=1024).contains(&args.res) {
+        bail!("--res must be in 2..=1024, found {}", args.res);
+    }
+    if !args.threshold.is_finite() {
+        bail!("--threshold must be finite");
+    }
+    if args.chunk == 0 {
+        bail!("--chunk must be >= 1");
+    }
+    if !(8..=4096).contains(&args.preview_res) {
+        bail!("--preview-res must be in 8..=4096");
+    }
+    let device = Device::Cpu;
+    let dirs = if args.reference_dirs {
+        ViewDirs::Reference
+    } else {
+        ViewDirs::Normalized
+    };
+    let avatar = load_avatar(&args.model, &device, dirs)
+        .with_context(|| format!("loading model {}", args.model.display()))?;
+
+    let (bones, root) = match &args.poses {
+        Some(p) => {
+            let (clip, _) = read_motion(&avatar, p)?;
+            if args.frame >= clip.len() {
+                bail!(
+                    "--frame {} is past the {} pose(s) of {}",
+                    args.frame,
+                    clip.len(),
+                    p.display()
+                );
+            }
+            let one = MotionClip {
+                bones: vec![clip.bones[args.frame]],
+                roots: vec![clip.roots[args.frame]],
+                ..clip
+            };
+            let scale: RootScale = args.root_scale.parse()?;
+            let f = retarget(&one, avatar.rest_pose(), scale)?.frames.remove(0);
+            (f.bones, f.root)
+        }
+        None => {
+            // The rest pose, turned from SMPL's y-up to the training convention's head −y.
+            let mut b = [[0f32; 3]; 24];
+            b[0] = [std::f32::consts::PI, 0.0, 0.0];
+            (b, [0.0; 3])
+        }
+    };
+    let (poses, kp3d) = avatar.pose_from_bones(&bones, root)?;
+    let mut field = AvatarField::new(&avatar, &poses)?;
+    field.mask_outside_boxes = !args.no_box_mask;
+    let (lo, hi) = field.bounds();
+    let grid = Grid::covering(lo, hi, args.res, 2)?;
+
+    let bar = if args.quiet {
+        indicatif::ProgressBar::hidden()
+    } else {
+        indicatif::ProgressBar::new(grid.len() as u64).with_style(
+            indicatif::ProgressStyle::with_template(
+                "density {bar:40} {human_pos}/{human_len} points ({elapsed} < {eta})",
+            )
+            .expect("static template"),
+        )
+    };
+    let t0 = Instant::now();
+    let values = sample_grid(
+        &grid,
+        args.chunk,
+        |pts| field.density(pts),
+        &mut |done, _| bar.set_position(done as u64),
+    )?;
+    bar.finish_and_clear();
+    let t_density = t0.elapsed().as_secs_f64();
+    let t1 = Instant::now();
+    let mut mesh = marching_cubes(&values, &grid, args.threshold)?;
+    let t_mc = t1.elapsed().as_secs_f64();
+    if mesh.triangles.is_empty() {
+        let max = values.iter().copied().fold(0f32, f32::max);
+        bail!(
+            "no surface at density threshold {}: the largest density on the {:?} grid is {max:.3} \
+             (pass a lower --threshold)",
+            args.threshold,
+            grid.dims
+        );
+    }
+    let t2 = Instant::now();
+    if !args.no_colour {
+        colour_vertices(&mut mesh, 16_384, |p, d| field.radiance(p, d))?;
+    }
+    let t_colour = t2.elapsed().as_secs_f64();
+    write_ply(&mesh, &args.out).with_context(|| format!("writing {}", args.out.display()))?;
+    let stats = mesh.edge_stats();
+    let (mlo, mhi) = mesh.bounds().expect("non-empty mesh");
+    println!(
+        "wrote {}: {} vertices, {} triangles, {}; bounds {:.3?}..{:.3?}",
+        args.out.display(),
+        mesh.vertices.len(),
+        mesh.triangles.len(),
+        if stats.is_watertight() {
+            "watertight".to_string()
+        } else {
+            format!(
+                "{} boundary / {} non-manifold edges",
+                stats.boundary, stats.non_manifold
+            )
+        },
+        mlo,
+        mhi
+    );
+    println!(
+        "grid {:?} ({} points, spacing {:.4}): density {t_density:.2} s, marching cubes {t_mc:.2} s, colours {t_colour:.2} s",
+        grid.dims,
+        grid.len(),
+        grid.spacing
+    );
+    if let Some(png) = &args.preview {
+        let cam = framing_camera(
+            &kp3d,
+            HeadDir::NegY,
+            facing(&bones),
+            args.preview_res,
+            args.preview_res,
+        )?;
+        let rgb = render_preview(&mesh, &cam, [1.0; 3])?;
+        let px: Vec<u8> = rgb.iter().map(|v| (v * 255.0).round() as u8).collect();
+        let img =
+            RgbImage::from_raw(cam.width as u32, cam.height as u32, px).expect("H·W·3 values");
+        write_png_atomic(&img, png)?;
+        println!("wrote preview {}", png.display());
+    }
+    Ok(())
+}

@@ -1,0 +1,677 @@
+//! `pma render`: render a trained avatar as PNG frames plus an animated GIF.
+//!
+//! Sources of poses:
+//! * `--data DS [--split S]`: the images of a dataset split, each with its own pose;
+//! * `--poses POSES.npz`: a motion (e.g. from `pma convert motion`), retargeted onto the avatar
+//!   (spec data.md §9.2: FK with the avatar's rest pose, head turned to −y, the root trajectory
+//!   scaled by the leg-length ratio; see `pma_model::retarget`).
+//!
+//! Cameras (`--camera`):
+//! * `dataset`: each image's own camera (needs `--data` without `--poses`);
+//! * `orbit`: one turn around the body over the sequence (`--views` frames per turn), at the
+//!   training camera's distance and height (`--data`'s camera `--cam`, default the first
+//!   image's), or `--distance`; without a dataset, a framing camera in front of the body;
+//! * `bullet`: one pose (`--frame`) frozen while the camera turns `--views` times about the
+//!   vertical axis through the root (spec §9.1, the reference's transposed Ry);
+//! * `follow`: the orbit's starting camera for every frame, moving with the body (retargeted
+//!   motion seen from the training camera).
+//!
+//! Renders are chunked (bounded memory: `--chunk` rays at a time, the GIF is streamed to disk)
+//! and show a progress bar over the rays to trace. View directions are normalised before the
+//! view encoding, as in training (`--reference-dirs` keeps the reference's raw render-time
+//! directions; see `pma_model::camera_path`). MP4 is not offered: no pure-Rust H.264 encoder
+//! fits, and no ffmpeg is assumed.
+//!
+//! Output: `OUT/frame_0000.png`…, `OUT/render.gif`, `OUT/render.json` (what was rendered and
+//! how long each frame took), and with `--strip N` `OUT/strip.png`: N evenly spread frames side
+//! by side.
+
+use std::f64::consts::TAU;
+use std::ops::Range;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{bail, Context as _};
+use candle_core::{Device, Tensor};
+use image::codecs::gif::{GifEncoder, Repeat};
+use image::{Delay, Frame, RgbImage, RgbaImage};
+use pma_data::camera::Camera;
+use pma_data::cylinder::{cylinder_from_joints, CylinderParams, HeadDir};
+use pma_data::dataset::{Dataset, Profile, ReadOptions};
+use pma_data::skeleton::Joints;
+use pma_model::avatar::{Avatar, Poses, Rays};
+use pma_model::camera_path::{
+    bullet_time, facing, framing_camera, load_avatar, parse_resolution, Orbit, ViewDirs,
+};
+use pma_model::image::{body_box, render_image, ChunkRender, ImageOptions, RenderedImage};
+use pma_model::retarget::{retarget, MotionClip, RootScale};
+use serde::Serialize;
+
+use super::eval::{read_dataset, resolve_split, split_images, write_json_atomic, write_png_atomic};
+
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum CameraMode {
+    Dataset,
+    Orbit,
+    Bullet,
+    /// The orbit's first camera for every frame, following the body along the ground.
+    Follow,
+}
+
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Background {
+    Black,
+    White,
+}
+
+#[derive(clap::Args, Debug, Clone)]
+pub struct Args {
+    /// Trained model (`RUN/model.safetensors`).
+    #[arg(long)]
+    pub model: PathBuf,
+    /// Dataset: a pma-npz file, or a `pma synth` directory holding `<split>.npz`. Supplies poses
+    /// (without `--poses`) and the training camera for orbit and bullet time.
+    #[arg(long)]
+    pub data: Option<PathBuf>,
+    /// Split of `--data` (`novel_view`, `novel_pose`, `train`, `val`).
+    #[arg(long, default_value = "novel_view")]
+    pub split: String,
+    /// Motion npz (`pma convert motion`), retargeted onto the avatar.
+    #[arg(long)]
+    pub poses: Option<PathBuf>,
+    /// Camera path (default: `dataset` with `--data` alone, `orbit` otherwise).
+    #[arg(long, value_enum)]
+    pub camera: Option<CameraMode>,
+    /// Output size `WxH` (default: the dataset's image size, or 256x256).
+    #[arg(long)]
+    pub res: Option<String>,
+    /// Frames `a:b` (end exclusive; `a:`, `:b` and `k` work too) of the split's images or of
+    /// the motion's poses.
+    #[arg(long)]
+    pub frames: Option<String>,
+    /// Bullet time: views per turn (default 24). Orbit: frames per turn (default: all frames).
+    #[arg(long)]
+    pub views: Option<usize>,
+    /// Bullet time: which frame of the range to freeze (default: the first).
+    #[arg(long, default_value_t = 0)]
+    pub frame: usize,
+    /// Camera row of `--data` that orbit and bullet time start from (default: the first
+    /// image's camera).
+    #[arg(long)]
+    pub cam: Option<usize>,
+    /// Orbit distance from the body (default: the training camera's).
+    #[arg(long)]
+    pub distance: Option<f64>,
+    #[arg(long, value_enum, default_value = "black")]
+    pub background: Background,
+    /// Root trajectory scale for `--poses`: `legs` (avatar/motion leg length), `none`, or a
+    /// factor.
+    #[arg(long, default_value = "legs")]
+    pub root_scale: String,
+    /// GIF frame rate.
+    #[arg(long, default_value_t = 15.0)]
+    pub fps: f64,
+    /// Rays per network call.
+    #[arg(long, default_value_t = 4096)]
+    pub chunk: usize,
+    /// Feed the reference's raw (unnormalised) render-time ray directions to the view encoding.
+    #[arg(long)]
+    pub reference_dirs: bool,
+    /// PNG frames only.
+    #[arg(long)]
+    pub no_gif: bool,
+    /// Also write `strip.png`: this many evenly spread frames side by side.
+    #[arg(long)]
+    pub strip: Option<usize>,
+    /// No progress bar.
+    #[arg(long)]
+    pub quiet: bool,
+    /// Output directory.
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+/// One pose to render.
+struct PoseItem {
+    label: String,
+    poses: Poses,
+    kp3d: Joints,
+    bones: Joints,
+    /// The dataset image's camera, if the pose comes from one.
+    camera: Option<Camera>,
+}
+
+/// One output frame.
+struct Job<'a> {
+    item: &'a PoseItem,
+    camera: Camera,
+}
+
+#[derive(Serialize)]
+struct FrameReport {
+    file: String,
+    pose: String,
+    camera_origin: [f32; 3],
+    /// Pixels ray-traced (inside the body's box); the others are background.
+    rays: usize,
+    seconds: f64,
+}
+
+#[derive(Serialize)]
+struct Report {
+    model: PathBuf,
+    camera: CameraMode,
+    width: usize,
+    height: usize,
+    view_dirs: &'static str,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    root_scale: Option<f64>,
+    frames: Vec<FrameReport>,
+    seconds_per_frame: f64,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    gif: Option<PathBuf>,
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    if args.chunk == 0 {
+        bail!("--chunk must be >= 1");
+    }
+    if !(args.fps.is_finite() && args.fps > 0.0 && args.fps <= 100.0) {
+        bail!("--fps must be in (0, 100], found {}", args.fps);
+    }
+    if args.views == Some(0) {
+        bail!("--views must be >= 1");
+    }
+    let res = args.res.as_deref().map(parse_resolution).transpose()?;
+    let device = Device::Cpu;
+    let dirs = if args.reference_dirs {
+        ViewDirs::Reference
+    } else {
+        ViewDirs::Normalized
+    };
+    let avatar = load_avatar(&args.model, &device, dirs)
+        .with_context(|| format!("loading model {}", args.model.display()))?;
+
+    let data = match &args.data {
+        Some(d) => {
+            let (path, split) = resolve_split(d, &args.split)?;
+            let ds = read_dataset(&path, Profile::Render)?;
+            Some((ds, split))
+        }
+        None => None,
+    };
+    let mode = match (args.camera, &args.poses, &data) {
+        (Some(m), _, _) => m,
+        (None, None, Some(_)) => CameraMode::Dataset,
+        _ => CameraMode::Orbit,
+    };
+
+    // 1. Poses.
+    let mut root_scale = None;
+    let (items, head) = match (&args.poses, &data) {
+        (Some(p), _) => {
+            if mode == CameraMode::Dataset {
+                bail!("--camera dataset renders a dataset's own images: pass --data without --poses (or use orbit/bullet)");
+            }
+            let scale: RootScale = args.root_scale.parse()?;
+            let (items, s) = motion_items(&avatar, p, scale, args.frames.as_deref())?;
+            root_scale = Some(s);
+            (items, HeadDir::NegY)
+        }
+        (None, Some((ds, split))) => {
+            let images = split_images(ds, split)?;
+            let range = parse_range(args.frames.as_deref(), images.len(), "split images")?;
+            let items = images[range]
+                .iter()
+                .map(|&n| dataset_item(&avatar, ds, n))
+                .collect::<anyhow::Result<Vec<_>>>()?;
+            (items, ds.head()?)
+        }
+        (None, None) => bail!("nothing to render: pass --data DS and/or --poses POSES.npz"),
+    };
+
+    // 2. Cameras.
+    let reference = |first: &PoseItem| -> anyhow::Result<Camera> {
+        let cam = match (&data, args.cam) {
+            (Some((ds, _)), Some(c)) => ds.camera(c)?,
+            (Some(_), None) => match &first.camera {
+                Some(c) => c.clone(),
+                None => {
+                    let (ds, split) = data.as_ref().expect("matched Some");
+                    ds.image_camera(split_images(ds, split)?[0])?
+                }
+            },
+            (None, Some(_)) => bail!("--cam needs --data"),
+            (None, None) => {
+                let (w, h) = res.unwrap_or((256, 256));
+                framing_camera(&first.kp3d, head, facing(&first.bones), w, h)?
+            }
+        };
+        Ok(match res {
+            Some((w, h)) => cam.resized(w, h),
+            None => cam,
+        })
+    };
+    let jobs: Vec<Job> = match mode {
+        CameraMode::Dataset => items
+            .iter()
+            .map(|it| {
+                let cam = it.camera.clone().expect("dataset items carry cameras");
+                Job {
+                    item: it,
+                    camera: match res {
+                        Some((w, h)) => cam.resized(w, h),
+                        None => cam,
+                    },
+                }
+            })
+            .collect(),
+        CameraMode::Orbit | CameraMode::Follow => {
+            let first = &items[0];
+            let target0 = body_centre(&first.kp3d, head);
+            let mut orbit = Orbit::through(&reference(first)?, target0, head)?;
+            if let Some(d) = args.distance {
+                orbit = orbit.at_distance(d)?;
+            }
+            let per_turn = args.views.unwrap_or(items.len());
+            let spin = if mode == CameraMode::Follow { 0.0 } else { 1.0 };
+            items
+                .iter()
+                .enumerate()
+                .map(|(k, it)| {
+                    // Follow the body along the ground; keep the first frame's height.
+                    let c = body_centre(&it.kp3d, head);
+                    let target = [c[0], target0[1], c[2]];
+                    let angle = spin * TAU * k as f64 / per_turn as f64;
+                    Ok(Job {
+                        item: it,
+                        camera: orbit.camera(target, angle)?,
+                    })
+                })
+                .collect::<anyhow::Result<_>>()?
+        }
+        CameraMode::Bullet => {
+            let it = items.get(args.frame).with_context(|| {
+                format!(
+                    "--frame {} is past the {} selected frame(s)",
+                    args.frame,
+                    items.len()
+                )
+            })?;
+            let mut cam = reference(it)?;
+            if let Some(d) = args.distance {
+                let target = body_centre(&it.kp3d, head);
+                cam = Orbit::through(&cam, target, head)?
+                    .at_distance(d)?
+                    .camera(target, 0.0)?;
+            }
+            bullet_time(&cam, it.kp3d[0], args.views.unwrap_or(24))?
+                .into_iter()
+                .map(|camera| Job { item: it, camera })
+                .collect()
+        }
+    };
+
+    // 3. Render.
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("creating {}", args.out.display()))?;
+    let (w, h) = (jobs[0].camera.width, jobs[0].camera.height);
+    let total: u64 = jobs
+        .iter()
+        .map(|j| {
+            let b = body_box(&j.camera, &j.item.kp3d, head);
+            (b.width() * b.height()) as u64
+        })
+        .sum();
+    let bar = progress_bar(args.quiet, total);
+    let bg = match args.background {
+        Background::Black => [0.0f32; 3],
+        Background::White => [1.0; 3],
+    };
+    let background: Vec<f32> = (0..w * h).flat_map(|_| bg).collect();
+    let opts = ImageOptions {
+        chunk: args.chunk,
+        head,
+        device: device.clone(),
+    };
+    let gif_path = args.out.join("render.gif");
+    let mut gif = if args.no_gif {
+        None
+    } else {
+        Some(GifStream::create(&gif_path, args.fps)?)
+    };
+    if args.strip == Some(0) {
+        bail!("--strip must be >= 1");
+    }
+    let strip_frames: Vec<usize> = args
+        .strip
+        .map(|n| super::eval::spread(&(0..jobs.len()).collect::<Vec<_>>(), n))
+        .unwrap_or_default();
+    let mut strip = Vec::with_capacity(strip_frames.len());
+    let mut frames = Vec::with_capacity(jobs.len());
+    for (k, job) in jobs.iter().enumerate() {
+        bar.set_message(format!("frame {}/{}", k + 1, jobs.len()));
+        let t = Instant::now();
+        let img = render_job(&avatar, job, &background, &opts, &bar)
+            .with_context(|| format!("rendering frame {k} ({})", job.item.label))?;
+        let seconds = t.elapsed().as_secs_f64();
+        let rgb = to_rgb8(&img);
+        let file = format!("frame_{k:04}.png");
+        write_png_atomic(&rgb, &args.out.join(&file))?;
+        if let Some(g) = gif.as_mut() {
+            g.push(&rgb)?;
+        }
+        if strip_frames.contains(&k) {
+            strip.push(rgb);
+        }
+        frames.push(FrameReport {
+            file,
+            pose: job.item.label.clone(),
+            camera_origin: job.camera.origin(),
+            rays: {
+                let b = body_box(&job.camera, &job.item.kp3d, head);
+                b.width() * b.height()
+            },
+            seconds,
+        });
+    }
+    bar.finish_and_clear();
+    let gif_written = match gif {
+        Some(g) => {
+            g.finish(&gif_path)?;
+            Some(gif_path)
+        }
+        None => None,
+    };
+    if !strip.is_empty() {
+        let mut img = RgbImage::new(w as u32 * strip.len() as u32, h as u32);
+        for (i, f) in strip.iter().enumerate() {
+            image::imageops::replace(&mut img, f, (i * w) as i64, 0);
+        }
+        write_png_atomic(&img, &args.out.join("strip.png"))?;
+    }
+    let report = Report {
+        model: args.model.clone(),
+        camera: mode,
+        width: w,
+        height: h,
+        view_dirs: match dirs {
+            ViewDirs::Normalized => "normalized",
+            ViewDirs::Reference => "reference",
+        },
+        root_scale,
+        seconds_per_frame: frames.iter().map(|f| f.seconds).sum::<f64>() / frames.len() as f64,
+        frames,
+        gif: gif_written.clone(),
+    };
+    write_json_atomic(&report, &args.out.join("render.json"))?;
+    println!(
+        "rendered {} frame(s) of {w}x{h} ({:?} camera, {:.2} s/frame) to {}{}",
+        report.frames.len(),
+        mode,
+        report.seconds_per_frame,
+        args.out.display(),
+        gif_written
+            .map(|g| format!(", animation {}", g.display()))
+            .unwrap_or_default()
+    );
+    Ok(())
+}
+
+/// `a:b`, `a:`, `:b` or `k` over `n` items; `None` = all.
+fn parse_range(s: Option<&str>, n: usize, what: &str) -> anyhow::Result<Range<usize>> {
+    let Some(s) = s else {
+        if n == 0 {
+            bail!("no {what} to render");
+        }
+        return Ok(0..n);
+    };
+    let num = |t: &str, default: usize| -> anyhow::Result<usize> {
+        let t = t.trim();
+        if t.is_empty() {
+            return Ok(default);
+        }
+        t.parse()
+            .with_context(|| format!("--frames {s:?}: {t:?} is not a frame index"))
+    };
+    let r = match s.split_once(':') {
+        Some((a, b)) => num(a, 0)?..num(b, n)?,
+        None => {
+            let k = num(s, usize::MAX)?;
+            k..k.saturating_add(1)
+        }
+    };
+    if r.start >= r.end || r.end > n {
+        bail!("--frames {s:?} selects nothing within the {n} {what} (use a:b with a < b <= {n})");
+    }
+    Ok(r)
+}
+
+fn dataset_item(avatar: &Avatar, ds: &Dataset, n: usize) -> anyhow::Result<PoseItem> {
+    let device = avatar.device();
+    let p = ds.pose_row(n)?;
+    let (Some(skts), Some(cyls), Some(kp3d)) = (&ds.skts, &ds.cyls, ds.pose_kp3d(p)) else {
+        bail!(
+            "{}: pose {p} lacks skts/cyls/kp3d (derived on import; is the file valid?)",
+            ds.source
+        );
+    };
+    let skts: Vec<f32> = skts
+        .outer_iter()
+        .nth(p)
+        .map(|m| m.iter().copied().collect())
+        .unwrap_or_default();
+    let bones = ds.pose_bones(p);
+    Ok(PoseItem {
+        label: format!("image {n} (pose {p})"),
+        poses: Poses {
+            bones: vec![bones],
+            skts: Tensor::from_vec(skts, (1, 24, 4, 4), device)?,
+            cyls: Tensor::from_vec(cyls.row(p).to_vec(), (1, 5), device)?,
+        },
+        kp3d,
+        bones,
+        camera: Some(ds.image_camera(n)?),
+    })
+}
+
+/// The motion file's poses, retargeted onto the avatar; also returns the root scale used.
+fn motion_items(
+    avatar: &Avatar,
+    path: &Path,
+    scale: RootScale,
+    frames: Option<&str>,
+) -> anyhow::Result<(Vec<PoseItem>, f64)> {
+    let (clip, _) = read_motion(avatar, path)?;
+    let range = parse_range(frames, clip.len(), "motion frames")?;
+    let clip = MotionClip {
+        bones: clip.bones[range.clone()].to_vec(),
+        roots: clip.roots[range.clone()].to_vec(),
+        ..clip
+    };
+    let out = retarget(&clip, avatar.rest_pose(), scale)
+        .with_context(|| format!("retargeting {}", path.display()))?;
+    let items = out
+        .frames
+        .iter()
+        .enumerate()
+        .map(|(k, f)| {
+            let (poses, kp3d) = avatar.pose_from_bones(&f.bones, f.root)?;
+            Ok(PoseItem {
+                label: format!("motion frame {}", range.start + k),
+                poses,
+                kp3d,
+                bones: f.bones,
+                camera: None,
+            })
+        })
+        .collect::<anyhow::Result<_>>()?;
+    Ok((items, out.root_scale))
+}
+
+/// A motion (or any pma-npz) file's pose rows. Kinematics that the file leaves out use the
+/// avatar's rest pose (spec §4.3 note 1).
+pub fn read_motion(avatar: &Avatar, path: &Path) -> anyhow::Result<(MotionClip, Dataset)> {
+    let mut opts = ReadOptions::new(Profile::Motion);
+    opts.rest_pose = Some(*avatar.rest_pose());
+    let ds =
+        Dataset::read(path, &opts).with_context(|| format!("reading motion {}", path.display()))?;
+    for w in &ds.warnings {
+        eprintln!("warning: {}: {w}", path.display());
+    }
+    let clip = MotionClip::from_dataset(&ds)?;
+    if clip.rest.is_none() {
+        eprintln!(
+            "note: {} has no rest_pose of its own: its root trajectory is kept as is",
+            path.display()
+        );
+    }
+    Ok((clip, ds))
+}
+
+/// Centre of the render cylinder: ground position of the root, mid-height of the body.
+fn body_centre(kp3d: &Joints, head: HeadDir) -> [f32; 3] {
+    let c = cylinder_from_joints(kp3d, &CylinderParams::render(head));
+    [c[0], 0.5 * (c[3] + c[4]), c[1]]
+}
+
+// The renderer closure returns `pma_model`'s error, which carries candle's (large) one.
+#[allow(clippy::result_large_err)]
+fn render_job(
+    avatar: &Avatar,
+    job: &Job,
+    background: &[f32],
+    opts: &ImageOptions,
+    bar: &indicatif::ProgressBar,
+) -> anyhow::Result<RenderedImage> {
+    let poses = &job.item.poses;
+    let mut renderer =
+        |o: &Tensor, d: &Tensor, bg: &Tensor| -> pma_model::error::Result<ChunkRender> {
+            let rays = Rays {
+                origins: o.clone(),
+                dirs: d.clone(),
+                bgs: Some(bg.clone()),
+                framecodes: vec![-1; o.dim(0)?],
+            };
+            let out = avatar.render_rays(&rays, poses)?;
+            bar.inc(o.dim(0)? as u64);
+            Ok(ChunkRender {
+                rgb: out.fine.rgb,
+                acc: out.fine.acc,
+                disp: out.fine.disp,
+            })
+        };
+    Ok(render_image(
+        &mut renderer,
+        &job.camera,
+        &job.item.kp3d,
+        Some(background),
+        opts,
+    )?)
+}
+
+fn to_rgb8(img: &RenderedImage) -> RgbImage {
+    let px: Vec<u8> = img
+        .rgb
+        .iter()
+        .map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
+        .collect();
+    RgbImage::from_raw(img.width as u32, img.height as u32, px).expect("H·W·3 values")
+}
+
+fn progress_bar(quiet: bool, rays: u64) -> indicatif::ProgressBar {
+    if quiet {
+        return indicatif::ProgressBar::hidden();
+    }
+    indicatif::ProgressBar::new(rays).with_style(
+        indicatif::ProgressStyle::with_template(
+            "{msg} {bar:40} {human_pos}/{human_len} rays ({elapsed} < {eta})",
+        )
+        .expect("static template"),
+    )
+}
+
+/// A GIF written frame by frame into a temporary file beside its destination, renamed into
+/// place when complete: memory stays bounded and readers never see a partial animation.
+struct GifStream {
+    encoder: GifEncoder<std::io::BufWriter<std::fs::File>>,
+    tmp: tempfile::NamedTempFile,
+    delay: Delay,
+}
+
+impl GifStream {
+    fn create(path: &Path, fps: f64) -> anyhow::Result<Self> {
+        let dir = match path.parent() {
+            Some(d) if !d.as_os_str().is_empty() => d,
+            _ => Path::new("."),
+        };
+        let err = || format!("writing {}", path.display());
+        let tmp = tempfile::NamedTempFile::new_in(dir).with_context(err)?;
+        let file = tmp.as_file().try_clone().with_context(err)?;
+        let mut encoder = GifEncoder::new_with_speed(std::io::BufWriter::new(file), 10);
+        encoder.set_repeat(Repeat::Infinite).with_context(err)?;
+        Ok(Self {
+            encoder,
+            tmp,
+            delay: Delay::from_numer_denom_ms(1000, fps.round().max(1.0) as u32),
+        })
+    }
+
+    fn push(&mut self, rgb: &RgbImage) -> anyhow::Result<()> {
+        let rgba = RgbaImage::from_fn(rgb.width(), rgb.height(), |x, y| {
+            let p = rgb.get_pixel(x, y).0;
+            image::Rgba([p[0], p[1], p[2], 255])
+        });
+        self.encoder
+            .encode_frame(Frame::from_parts(rgba, 0, 0, self.delay))
+            .context("encoding a GIF frame")
+    }
+
+    fn finish(self, path: &Path) -> anyhow::Result<()> {
+        let err = || format!("writing {}", path.display());
+        // Dropping the encoder writes the GIF trailer and flushes the buffer, both without
+        // reporting errors: check that the file ends with the trailer byte instead.
+        drop(self.encoder);
+        let mut f = self.tmp.as_file();
+        use std::io::{Read as _, Seek as _, SeekFrom};
+        f.seek(SeekFrom::End(-1)).with_context(err)?;
+        let mut last = [0u8; 1];
+        f.read_exact(&mut last).with_context(err)?;
+        if last[0] != 0x3B {
+            bail!(
+                "{}: the GIF could not be completed (disk full?)",
+                path.display()
+            );
+        }
+        f.sync_all().with_context(err)?;
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::PermissionsExt;
+            f.set_permissions(std::fs::Permissions::from_mode(0o644))
+                .with_context(err)?;
+        }
+        self.tmp
+            .persist(path)
+            .with_context(|| format!("replacing {}", path.display()))?;
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn frame_ranges() {
+        assert_eq!(parse_range(None, 5, "x").unwrap(), 0..5);
+        assert_eq!(parse_range(Some("1:3"), 5, "x").unwrap(), 1..3);
+        assert_eq!(parse_range(Some("2:"), 5, "x").unwrap(), 2..5);
+        assert_eq!(parse_range(Some(":2"), 5, "x").unwrap(), 0..2);
+        assert_eq!(parse_range(Some("4"), 5, "x").unwrap(), 4..5);
+        for bad in ["3:3", "4:2", "0:6", "5", "a:b", "-1:2"] {
+            assert!(parse_range(Some(bad), 5, "x").is_err(), "{bad}");
+        }
+        assert!(parse_range(None, 0, "x").is_err());
+    }
+}
