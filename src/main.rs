@@ -41,6 +41,10 @@ enum Command {
     Render(cli::render::Args),
     /// Extract a coloured mesh (PLY) of a trained avatar in one pose by marching cubes.
     Mesh(cli::mesh::Args),
+    /// Parity mode against each culling option: speed, memory and error side by side.
+    Bench(cli::bench::Args),
+    /// Drive an avatar through extreme poses, frequencies, scales, densities and ray geometry.
+    CheckStability(cli::check_stability::Args),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -55,5 +59,7 @@ fn main() -> anyhow::Result<()> {
         Command::Demo(a) => cli::demo::run(a),
         Command::Render(a) => cli::render::run(a),
         Command::Mesh(a) => cli::mesh::run(a),
+        Command::Bench(a) => cli::bench::run(a),
+        Command::CheckStability(a) => cli::check_stability::run(a),
     }
 }

@@ -324,6 +324,10 @@ fn scalar_f64(h5: &H5File, key: &str) -> Result<f64> {
     }
 }
 
+/// Largest image side accepted (JPEG's limit): a larger `img_shape` is
+/// corruption, and it would size buffers and the generated background plate.
+pub const MAX_SIDE: usize = 65_535;
+
 /// Keys the converter reads from an `.h5`; any other key is reported as dropped.
 const KNOWN_KEYS: &[&str] = &[
     "img_shape",
@@ -403,15 +407,16 @@ fn read_h5_scene(h5: &H5File, layout: Layout) -> Result<(Dataset, PixelPlan)> {
 
     if has("img_shape") {
         let (shape, v) = h5.read_i64("img_shape")?;
+        let side = 1..=MAX_SIDE as i64;
         match v.as_slice() {
-            [n, hh, ww, 3] if shape == [4] && *n >= 0 && *hh > 0 && *ww > 0 => {
+            [n, hh, ww, 3] if shape == [4] && *n >= 0 && side.contains(hh) && side.contains(ww) => {
                 ds.img_shape = Some([*n as usize, *hh as usize, *ww as usize, 3]);
             }
             _ => {
                 return Err(ConvertError::mismatch(
                     path,
                     "img_shape",
-                    "4 entries (N, H, W, 3)",
+                    format!("4 entries (N, H, W, 3) with 1 <= H, W <= {MAX_SIDE}"),
                     format!("{v:?}"),
                 ))
             }
@@ -419,6 +424,20 @@ fn read_h5_scene(h5: &H5File, layout: Layout) -> Result<(Dataset, PixelPlan)> {
     }
     let n = ds.n_images();
     let p = ds.n_poses();
+    // These layouts have per-image poses or cameras, so their index maps are
+    // built from N; a corrupt N must not size them.
+    let cams = ds.c2ws.as_ref().map_or(0, |c| c.shape()[0]);
+    if layout != Layout::H36mZju && layout != Layout::Aist && n > p.max(cams) {
+        return Err(ConvertError::mismatch(
+            path,
+            "img_shape",
+            format!(
+                "at most {} images ({p} poses, {cams} cameras in the file)",
+                p.max(cams)
+            ),
+            format!("N = {n}"),
+        ));
+    }
     let identity = || Array1::from_iter(0..n as i64);
 
     match layout {
@@ -780,8 +799,15 @@ fn write_h5_output(
             &[1, plan.hw, 3],
             opts.compression,
         )?;
-        zip.write_all(&vec![255u8; plan.hw * 3])
-            .map_err(|e| ConvertError::io(output, e))?;
+        // In pieces: a plate is as large as one image, whatever that is.
+        let piece = vec![255u8; (plan.hw * 3).min(1 << 20)];
+        let mut left = plan.hw * 3;
+        while left > 0 {
+            let k = left.min(piece.len());
+            zip.write_all(&piece[..k])
+                .map_err(|e| ConvertError::io(output, e))?;
+            left -= k;
+        }
         done += 1;
         progress(done, total);
     }

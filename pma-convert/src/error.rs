@@ -132,6 +132,38 @@ impl From<pma_model::error::ModelError> for ConvertError {
 }
 
 impl ConvertError {
+    /// The file of an operating-system I/O failure (reading or writing), if
+    /// that is what this error is. Everything else is about the content of an
+    /// input. The CLI uses this to tell bad input (exit 2) from a failure to
+    /// write the output (exit 1): an I/O error on an input file is still bad
+    /// input (missing, unreadable, truncated).
+    pub fn io_path(&self) -> Option<&std::path::Path> {
+        match self {
+            Self::Io { path, .. } => Some(path),
+            Self::Zip {
+                path,
+                cause: zip::result::ZipError::Io(_),
+            } => Some(path),
+            Self::Data(e) => match &**e {
+                pma_data::DataError::Io { path, .. } => Some(path),
+                _ => None,
+            },
+            Self::Motion(e) => match &**e {
+                pma_data::motion::MotionError::Io { path, .. } => Some(path),
+                _ => None,
+            },
+            Self::Train(e) => match &**e {
+                pma_model::train::TrainError::Io { path, .. } => Some(path),
+                _ => None,
+            },
+            Self::Model(e) => match &**e {
+                pma_model::error::ModelError::Io { path, .. } => Some(path),
+                _ => None,
+            },
+            _ => None,
+        }
+    }
+
     pub(crate) fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
         Self::Io {
             path: path.into(),

@@ -20,6 +20,14 @@ use crate::error::{ConvertError, Result};
 /// large cache would only raise the memory high-water mark.
 const CHUNK_CACHE_BYTES: usize = 4 << 20;
 
+/// Deflate expands by at most 1032:1, so data actually stored in a file of
+/// `n` bytes decodes to less than `n · 1100`. A dataset claiming more exists
+/// only in a corrupt or hostile header (or as never-written fill values, which
+/// the reference writer does not produce): refuse it before allocating.
+const MAX_EXPANSION: u64 = 1100;
+/// Reads below this are always allowed (tiny files with fill-value datasets).
+const MIN_READ_LIMIT: u64 = 64 << 20;
+
 /// The element type of a dataset, reduced to what the files use.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum H5Kind {
@@ -63,7 +71,13 @@ pub struct H5File {
 
 impl H5File {
     pub fn open(path: &Path) -> Result<Self> {
-        let opts = OpenOptions::default().with_chunk_cache_bytes(CHUNK_CACHE_BYTES);
+        let len = std::fs::metadata(path)
+            .map_err(|e| ConvertError::io(path, e))?
+            .len();
+        let limit = len.saturating_mul(MAX_EXPANSION).max(MIN_READ_LIMIT);
+        let opts = OpenOptions::default()
+            .with_chunk_cache_bytes(CHUNK_CACHE_BYTES)
+            .with_max_read_bytes(usize::try_from(limit).unwrap_or(usize::MAX));
         let file =
             Hdf5File::open_with_options(path, opts).map_err(|source| ConvertError::Hdf5 {
                 path: path.to_path_buf(),

@@ -779,7 +779,12 @@ impl TorchArchive {
                 )
             })?;
         let prefix = pkl_name.trim_end_matches("data.pkl").to_string();
-        if let Ok(bo) = read_entry(&mut zip, path, &format!("{prefix}byteorder")) {
+        if let Ok(bo) = read_entry(
+            &mut zip,
+            path,
+            &format!("{prefix}byteorder"),
+            Size::AtMost(64),
+        ) {
             if bo != b"little" {
                 return Err(ConvertError::format(
                     path,
@@ -790,7 +795,7 @@ impl TorchArchive {
                 ));
             }
         }
-        let pkl = read_entry(&mut zip, path, &pkl_name)?;
+        let pkl = read_entry(&mut zip, path, &pkl_name, Size::AtMost(MAX_PICKLE_BYTES))?;
         let graph = unpickle(&pkl, path, &pkl_name)?;
         Ok(Self {
             path: path.to_path_buf(),
@@ -850,18 +855,31 @@ impl TorchArchive {
             ));
         };
         let entry = format!("{}data/{}", self.prefix, t.key);
-        let bytes = read_entry(&mut self.zip, &self.path, &entry)?;
-        if Some(bytes.len()) != t.storage_numel.checked_mul(es) {
-            return Err(ConvertError::mismatch(
+        let storage_bytes = t.storage_numel.checked_mul(es).ok_or_else(|| {
+            ConvertError::invalid(
+                &self.path,
+                name,
+                format!("storage of {} elements overflows", t.storage_numel),
+            )
+        })?;
+        let bytes = read_entry(
+            &mut self.zip,
+            &self.path,
+            &entry,
+            Size::Exactly(storage_bytes as u64),
+        )
+        .map_err(|e| match e {
+            ConvertError::Mismatch { found, .. } => ConvertError::mismatch(
                 &self.path,
                 format!("{name} (zip entry {entry})"),
                 format!(
                     "{} elements of {:?} ({} bytes each)",
                     t.storage_numel, t.dtype, es
                 ),
-                format!("{} bytes", bytes.len()),
-            ));
-        }
+                found,
+            ),
+            other => other,
+        })?;
         let data = bytes[t.offset * es..end * es].to_vec();
         Ok(RawTensor {
             dtype: t.dtype,
@@ -871,10 +889,29 @@ impl TorchArchive {
     }
 }
 
+/// Largest `data.pkl` accepted. The reference checkpoint's is 33 KB (tensor
+/// data lives in separate entries); anything near this is not a checkpoint.
+const MAX_PICKLE_BYTES: u64 = 64 << 20;
+
+/// Deflate expands by at most 1032:1; an entry claiming more than this ratio
+/// is a corrupt header or a zip bomb.
+const MAX_EXPANSION: u64 = 1100;
+
+/// What an entry's declared (uncompressed) size must be.
+#[derive(Clone, Copy)]
+enum Size {
+    AtMost(u64),
+    Exactly(u64),
+}
+
+/// Reads a whole zip entry after checking its declared size, so a lying or
+/// hostile header is refused before anything of that size is allocated (the
+/// zip reader never returns more than the declared size).
 fn read_entry(
     zip: &mut zip::ZipArchive<BufReader<File>>,
     path: &Path,
     name: &str,
+    size: Size,
 ) -> Result<Vec<u8>> {
     let mut f = zip.by_name(name).map_err(|e| match e {
         zip::result::ZipError::FileNotFound => ConvertError::missing(path, name, " (zip entry)"),
@@ -883,11 +920,49 @@ fn read_entry(
             cause: source,
         },
     })?;
-    // The declared size only sizes the first allocation; a lying header cannot
-    // make us reserve more than the archive could hold.
-    let mut buf = Vec::with_capacity(f.size().min(1 << 28) as usize);
+    let (declared, packed) = (f.size(), f.compressed_size());
+    let key = || format!("zip entry {name}");
+    if declared > packed.saturating_mul(MAX_EXPANSION).max(4096) {
+        return Err(ConvertError::mismatch(
+            path,
+            key(),
+            format!("at most {MAX_EXPANSION}x its {packed} compressed bytes"),
+            format!("a declared size of {declared} bytes (corrupt header or zip bomb)"),
+        ));
+    }
+    match size {
+        Size::AtMost(max) if declared > max => {
+            return Err(ConvertError::mismatch(
+                path,
+                key(),
+                format!("at most {max} bytes"),
+                format!("{declared} bytes"),
+            ))
+        }
+        Size::Exactly(n) if declared != n => {
+            return Err(ConvertError::mismatch(
+                path,
+                key(),
+                format!("{n} bytes"),
+                format!("{declared} bytes"),
+            ))
+        }
+        _ => {}
+    }
+    let mut buf = Vec::new();
+    buf.try_reserve_exact(declared as usize).map_err(|_| {
+        ConvertError::invalid(path, key(), format!("cannot allocate {declared} bytes"))
+    })?;
     f.read_to_end(&mut buf)
         .map_err(|e| ConvertError::io(path, e))?;
+    if buf.len() as u64 != declared {
+        return Err(ConvertError::mismatch(
+            path,
+            key(),
+            format!("{declared} bytes (its declared size)"),
+            format!("{} bytes", buf.len()),
+        ));
+    }
     Ok(buf)
 }
 

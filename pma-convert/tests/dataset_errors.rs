@@ -35,14 +35,12 @@ fn error_after(breaks: impl FnOnce(&mut Dataset), profile: Profile) -> String {
 }
 
 #[test]
-#[ignore = "needs pma-data validation of data.md §10, not implemented yet (issue 2 is open)"]
 fn nan_pose_is_rejected() {
     let msg = error_after(|ds| ds.bones[[1, 5, 2]] = f32::NAN, Profile::Motion);
     assert!(msg.contains("bones"), "{msg}");
 }
 
 #[test]
-#[ignore = "needs pma-data validation of data.md §10, not implemented yet (issue 2 is open)"]
 fn non_orthonormal_camera_rotation_is_rejected() {
     let msg = error_after(
         |ds| {
@@ -59,7 +57,6 @@ fn non_orthonormal_camera_rotation_is_rejected() {
 }
 
 #[test]
-#[ignore = "needs pma-data validation of data.md §10, not implemented yet (issue 2 is open)"]
 fn non_positive_focal_is_rejected() {
     let msg = error_after(
         |ds| ds.focals.as_mut().unwrap()[[1, 0]] = 0.0,
@@ -69,7 +66,6 @@ fn non_positive_focal_is_rejected() {
 }
 
 #[test]
-#[ignore = "needs pma-data validation of data.md §10, not implemented yet (issue 2 is open)"]
 fn missing_key_for_the_profile_is_named_with_the_profile() {
     let msg = error_after(|ds| ds.c2ws = None, Profile::Render);
     assert!(msg.contains("c2ws") && msg.contains("render"), "{msg}");
@@ -88,7 +84,6 @@ fn wrong_joint_count_is_rejected() {
 }
 
 #[test]
-#[ignore = "needs pma-data validation of data.md §10, not implemented yet (issue 2 is open)"]
 fn kp3d_that_disagrees_with_the_bones_is_rejected() {
     let msg = error_after(
         |ds| ds.kp3d.as_mut().unwrap()[[0, 7, 1]] += 0.2,

@@ -582,6 +582,47 @@ pub fn init_half_extents(rest: &Joints) -> Result<[[f32; 3]; N_JOINTS]> {
     Ok(out)
 }
 
+/// Reject box half-extents that would divide by (almost) zero later: `x̄ = x̂ / s` with a
+/// floor proportional to `s`, so a zero initial extent (e.g. coincident knees give a zero leg
+/// width) turns into inf/NaN points far from where it was caused. `what` names the source
+/// (file and key) for the message; extents must be finite and at least `1e-6 x scale`.
+pub fn check_half_extents(what: &str, s: &[[f32; 3]; N_JOINTS], scale: f64) -> Result<()> {
+    let min = 1e-6 * scale.max(f64::MIN_POSITIVE);
+    for (j, v) in s.iter().enumerate() {
+        for (k, &x) in v.iter().enumerate() {
+            if !(x.is_finite() && f64::from(x) >= min) {
+                return Err(DataError::DegenerateRestPose {
+                    joint: j,
+                    name: JOINT_NAMES[j],
+                    reason: format!(
+                        "{what}: half-extent axis {k} is {x:e}, expected finite and >= {min:e}"
+                    ),
+                });
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Everything the model builds from a rest pose, validated up front: the kinematic checks
+/// of [`check_rest_pose`], finite bone-align transforms, and positive initial half-extents.
+/// Returns the half-extents.
+pub fn check_model_rest_pose(rest: &Joints) -> Result<[[f32; 3]; N_JOINTS]> {
+    let align = bone_align(rest)?;
+    for (j, m) in align.transforms.iter().enumerate() {
+        if !m.iter().flatten().all(|v| v.is_finite()) {
+            return Err(DataError::DegenerateRestPose {
+                joint: j,
+                name: JOINT_NAMES[j],
+                reason: "bone-align transform is not finite".into(),
+            });
+        }
+    }
+    let s = init_half_extents(rest)?;
+    check_half_extents("rest pose", &s, rest_pose_scale(rest))?;
+    Ok(s)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

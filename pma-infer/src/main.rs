@@ -1,4 +1,4 @@
-//! `pma-infer MODEL OUT.png [SIZE]`: the smallest program that uses a trained avatar.
+//! `pma-infer MODEL OUT.png [SIZE] [--device D]`: the smallest program that uses a trained avatar.
 //!
 //! Loads a pma checkpoint and renders the avatar's rest pose, standing upright (head −y),
 //! from the front at SIZE×SIZE pixels (default 256) on a black background, with normalised
@@ -14,7 +14,8 @@ use pma_data::cylinder::HeadDir;
 use pma_model::camera_path::{facing, framing_camera, load_avatar, ViewDirs};
 use pma_model::image::ImageOptions;
 
-const USAGE: &str = "usage: pma-infer MODEL.safetensors OUT.png [SIZE]";
+const USAGE: &str =
+    "usage: pma-infer MODEL.safetensors OUT.png [SIZE] [--device cpu|cuda|cuda:N|metal]";
 
 type BoxError = Box<dyn std::error::Error>;
 
@@ -35,10 +36,31 @@ struct Args {
     model: PathBuf,
     out: PathBuf,
     size: usize,
+    /// `--device` as given (default cpu); opened in `run` so parsing stays side-effect free.
+    device: String,
 }
 
-fn parse(args: Vec<String>) -> Result<Args, BoxError> {
-    match args.as_slice() {
+fn parse(mut args: Vec<String>) -> Result<Args, BoxError> {
+    // `--device D` / `--device=D` may stand anywhere; take it out before the positionals.
+    let mut device = "cpu".to_string();
+    if let Some(i) = args
+        .iter()
+        .position(|a| a == "--device" || a.starts_with("--device="))
+    {
+        let flag = args.remove(i);
+        device = match flag.strip_prefix("--device=") {
+            Some(v) => v.to_string(),
+            None if i < args.len() => args.remove(i),
+            None => return Err(format!("--device needs a value\n{USAGE}").into()),
+        };
+    }
+    let mut a = parse_positional(&args)?;
+    a.device = device;
+    Ok(a)
+}
+
+fn parse_positional(args: &[String]) -> Result<Args, BoxError> {
+    match args {
         [h] if h == "-h" || h == "--help" => {
             println!("{USAGE}");
             std::process::exit(0);
@@ -47,6 +69,7 @@ fn parse(args: Vec<String>) -> Result<Args, BoxError> {
             model: model.into(),
             out: out.into(),
             size: 256,
+            device: String::new(),
         }),
         [model, out, size] => {
             let size: usize = size
@@ -58,6 +81,7 @@ fn parse(args: Vec<String>) -> Result<Args, BoxError> {
                 model: model.into(),
                 out: out.into(),
                 size,
+                device: String::new(),
             })
         }
         _ => Err(USAGE.into()),
@@ -66,7 +90,7 @@ fn parse(args: Vec<String>) -> Result<Args, BoxError> {
 
 fn run(args: &Args) -> Result<(), BoxError> {
     let t0 = Instant::now();
-    let device = Device::Cpu;
+    let device: Device = pma_model::device::parse_device(&args.device)?;
     let avatar = load_avatar(&args.model, &device, ViewDirs::Normalized)
         .map_err(|e| format!("loading {}: {e}", args.model.display()))?;
     let t_load = t0.elapsed();
@@ -76,7 +100,12 @@ fn run(args: &Args) -> Result<(), BoxError> {
     let (poses, kp3d) = avatar.pose_from_bones(&bones, [0.0; 3])?;
     let cam = framing_camera(&kp3d, HeadDir::NegY, facing(&bones), args.size, args.size)?;
     let t1 = Instant::now();
-    let img = avatar.render_image(&poses, &kp3d, &cam, None, &ImageOptions::default())?;
+    // Ray tensors must live on the model's device.
+    let opts = ImageOptions {
+        device: device.clone(),
+        ..ImageOptions::default()
+    };
+    let img = avatar.render_image(&poses, &kp3d, &cam, None, &opts)?;
     let t_render = t1.elapsed();
     let px: Vec<u8> = img
         .rgb

@@ -11,6 +11,7 @@
 
 use std::collections::{BTreeMap, HashMap};
 use std::path::Path;
+use std::sync::atomic::{AtomicU64, Ordering};
 
 use candle_core::{DType, Device, Tensor, Var, D};
 use candle_nn::{VarBuilder, VarMap};
@@ -19,7 +20,8 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use crate::checkpoint::{self, TensorKind};
-use crate::config::Config;
+use crate::config::{Config, Culling, SampleFill};
+use crate::cull::{ray_fates, SampleFate, WindowTest};
 use crate::encoders::{pose6d, spherical_harmonics, PointEnc};
 use crate::error::{ModelError, Result};
 use crate::field::{Field, FrameCodes};
@@ -124,12 +126,18 @@ pub struct PoseFeatures {
 pub struct Avatar {
     cfg: Config,
     device: Device,
+    /// The dtype of every tensor (f32 unless built by [`Avatar::with_dtype`]).
+    dtype: DType,
     varmap: VarMap,
     rest_pose: Joints,
     /// Rotation of A_j (`pts_embedder.transforms`), transposed: [24,3,3].
     align_rot_t: Tensor,
     /// Translation of A_j: [24,3].
     align_trans: Tensor,
+    /// A_j on the host, [24,4,4] row-major: the culling test runs there.
+    align_host: Vec<f32>,
+    /// Points that went through the network since construction (bench counters).
+    points_evaluated: AtomicU64,
     caster: RayCaster,
     gnn: GnnSine,
     pts_enc_pose: PointEnc,
@@ -156,12 +164,23 @@ impl Avatar {
         device: &Device,
     ) -> Result<Self> {
         cfg.validate()?;
-        let problems = checkpoint::check_tensors(
+        // The network runs in the dtype of its tensors (f32 from checkpoints; f16/bf16/f64 via
+        // [`Self::with_dtype`]), so the layout check only asks for one common float dtype.
+        let dtype = tensors.get("rest_pose").map_or(DType::F32, |t| t.dtype());
+        let mut problems = checkpoint::check_tensors(
             &cfg,
-            tensors
-                .iter()
-                .map(|(n, t)| (n.as_str(), t.dims(), t.dtype())),
+            tensors.iter().map(|(n, t)| {
+                let dt = if t.dtype() == dtype && dtype.is_float() {
+                    DType::F32
+                } else {
+                    t.dtype()
+                };
+                (n.as_str(), t.dims(), dt)
+            }),
         );
+        if problems.is_empty() {
+            problems.extend(check_buffers(&tensors)?);
+        }
         if !problems.is_empty() {
             return Err(ModelError::Checkpoint {
                 path: "<tensors>".into(),
@@ -175,8 +194,11 @@ impl Avatar {
                 data.insert(name.clone(), Var::from_tensor(&t.to_device(device)?)?);
             }
         }
-        let vb = VarBuilder::from_varmap(&varmap, DType::F32, device);
-        let rest = vb.get((N_JOINTS, 3), "rest_pose")?.to_vec2::<f32>()?;
+        let vb = VarBuilder::from_varmap(&varmap, dtype, device);
+        let rest = vb
+            .get((N_JOINTS, 3), "rest_pose")?
+            .to_dtype(DType::F32)?
+            .to_vec2::<f32>()?;
         let mut rest_pose = [[0f32; 3]; N_JOINTS];
         for (d, s) in rest_pose.iter_mut().zip(rest) {
             d.copy_from_slice(&s);
@@ -210,11 +232,62 @@ impl Avatar {
                 .narrow(1, 0, 3)?
                 .narrow(2, 3, 1)?
                 .reshape((N_JOINTS, 3))?,
+            align_host: align
+                .flatten_all()?
+                .to_dtype(DType::F32)?
+                .to_device(&Device::Cpu)?
+                .to_vec1::<f32>()?,
+            points_evaluated: AtomicU64::new(0),
             rest_pose,
             varmap,
             device: device.clone(),
+            dtype,
             cfg,
         })
+    }
+
+    /// The same avatar with every tensor converted to `dtype` (f16/bf16 inference, f64
+    /// checks). Inputs are converted at the forward entry points, and the ray caster keeps
+    /// working in f32 on the host.
+    pub fn with_dtype(&self, dtype: DType) -> Result<Self> {
+        let tensors = self
+            .tensors()
+            .into_iter()
+            .map(|(k, t)| Ok((k, t.to_dtype(dtype)?)))
+            .collect::<Result<HashMap<_, _>>>()?;
+        Self::from_tensors(self.cfg.clone(), tensors, &self.device)
+    }
+
+    /// The dtype the network computes in (that of its tensors).
+    pub fn dtype(&self) -> DType {
+        self.dtype
+    }
+
+    /// Rays and poses converted to the network's dtype (a no-op for f32 inputs of an f32
+    /// avatar, the only case training and parity use).
+    fn cast_batch(&self, rays: &Rays, poses: &Poses) -> Result<Option<(Rays, Poses)>> {
+        if rays.dirs.dtype() == self.dtype
+            && rays.origins.dtype() == self.dtype
+            && poses.skts.dtype() == self.dtype
+        {
+            return Ok(None);
+        }
+        let rays = Rays {
+            origins: rays.origins.to_dtype(self.dtype)?,
+            dirs: rays.dirs.to_dtype(self.dtype)?,
+            bgs: rays
+                .bgs
+                .as_ref()
+                .map(|b| b.to_dtype(self.dtype))
+                .transpose()?,
+            framecodes: rays.framecodes.clone(),
+        };
+        let poses = Poses {
+            bones: poses.bones.clone(),
+            skts: poses.skts.to_dtype(self.dtype)?,
+            cyls: poses.cyls.to_dtype(self.dtype)?,
+        };
+        Ok(Some((rays, poses)))
     }
 
     /// A freshly initialised avatar for `rest_pose` with the reference's initialisation
@@ -228,6 +301,20 @@ impl Avatar {
         &self.cfg
     }
 
+    /// Switch culling (leaving work out, [`crate::cull`]) on or off for later passes.
+    pub fn set_culling(&mut self, culling: Culling) -> Result<()> {
+        let mut cfg = self.cfg.clone();
+        cfg.culling = culling;
+        cfg.validate()?;
+        self.cfg = cfg;
+        Ok(())
+    }
+
+    /// Points evaluated by the network (far-away constants included) since construction.
+    pub fn points_evaluated(&self) -> u64 {
+        self.points_evaluated.load(Ordering::Relaxed)
+    }
+
     pub fn device(&self) -> &Device {
         &self.device
     }
@@ -238,6 +325,13 @@ impl Avatar {
 
     pub fn ray_caster(&self) -> &RayCaster {
         &self.caster
+    }
+
+    /// Pin the (near, far) that rays missing the bounding cylinder get in later passes
+    /// ([`RayCaster::with_miss_fill`]; `None` unpins): chunked training casts every chunk
+    /// with its whole batch's values.
+    pub fn pin_miss_fill(&mut self, fill: Option<(f32, f32)>) {
+        self.caster = self.caster.with_miss_fill(fill);
     }
 
     /// All tensors (parameters and buffers) by reference name, for saving.
@@ -281,7 +375,7 @@ impl Avatar {
                 poses.skts.dims(),
             ));
         }
-        let theta = pose6d(&poses.bones, &self.device)?;
+        let theta = pose6d(&poses.bones, &self.device)?.to_dtype(self.dtype)?;
         let mut layers = Vec::new();
         let g_feat = self
             .gnn
@@ -302,7 +396,7 @@ impl Avatar {
         }
         Ok(PoseFeatures {
             g,
-            skts: poses.skts.clone(),
+            skts: poses.skts.to_dtype(self.dtype)?,
             scales,
         })
     }
@@ -330,8 +424,11 @@ impl Avatar {
             .matmul(&rot.t()?)?
             .reshape((n, j, 3))?
             .broadcast_add(&trans)?;
+        // `contiguous`: CUDA's batched gemm needs packed rows (the CPU gemm takes any
+        // strides), and the transposed [j,n,3] view has a row stride of 3j.
         let x_hat = x_jt
             .transpose(0, 1)?
+            .contiguous()?
             .matmul(&self.align_rot_t)?
             .transpose(0, 1)?
             .broadcast_add(&self.align_trans)?;
@@ -395,7 +492,9 @@ impl Avatar {
             .narrow(1, 0, 1)?
             .squeeze(1)?
             .narrow(1, 0, 3)?
-            .narrow(2, 0, 3)?;
+            .narrow(2, 0, 3)?
+            // A 3×3 window of the 4×4 matrices: CUDA's gemm rejects its row stride of 4.
+            .contiguous()?;
         let d = rays
             .dirs
             .reshape((p, k, 3))?
@@ -430,6 +529,8 @@ impl Avatar {
         trace: Option<&mut Trace>,
     ) -> Result<Tensor> {
         let (r, s, _) = pts.dims3()?;
+        self.points_evaluated
+            .fetch_add((r * s) as u64, Ordering::Relaxed);
         let n_poses = pose.g.dim(0)?;
         let k = r / n_poses;
         let vdim = view.dim(1)?;
@@ -502,6 +603,263 @@ impl Avatar {
         Ok(Tensor::cat(&[rgb, density], 1)?.reshape((r, s, 4))?)
     }
 
+    /// The culling state of one forward pass, or `None` when culling is off.
+    fn cull_context(
+        &self,
+        pose: &PoseFeatures,
+        poses: &Poses,
+        bounds: &RayBounds,
+    ) -> Result<Option<CullCtx>> {
+        let c = &self.cfg.culling;
+        if c.is_off() {
+            return Ok(None);
+        }
+        let test = match c.sample_threshold {
+            Some(t) => Some(WindowTest::new(
+                &self.align_host,
+                &host_vec(&poses.skts)?,
+                &host_vec(&pose.scales)?,
+                self.cfg.window_alpha,
+                self.cfg.window_beta,
+                t,
+            )?),
+            None => None,
+        };
+        Ok(Some(CullCtx {
+            test,
+            ray_alive: c.rays.then(|| bounds.ray_hits_body.clone()),
+            fill: c.sample_fill,
+            consts: ConstRows::default(),
+        }))
+    }
+
+    /// [`Self::network_pass`] with culling: only samples with [`SampleFate::Evaluate`] go
+    /// through the network; the rest are filled from the far-away constants or with zeros.
+    /// Gradients reach the evaluated samples and the constants (an `index_select` gathers
+    /// them), so training with culling at threshold 0 matches parity mode as well.
+    ///
+    /// The far-away points ride in the same network call as the evaluated samples: gemm's
+    /// result for a row depends (by an ulp) on the size of the call, not on the row's place
+    /// in it, and parity mode evaluates culled samples inside large calls.
+    fn network_pass_culled(
+        &self,
+        pose: &PoseFeatures,
+        pts: &Tensor,
+        view: &Tensor,
+        opts: &mut ForwardOptions,
+        cull: &mut CullCtx,
+    ) -> Result<Tensor> {
+        let (r, s, _) = pts.dims3()?;
+        let n = r * s;
+        let n_poses = pose.g.dim(0)?;
+        let k = r / n_poses;
+        let dev = pts.device();
+        let fates = match (&cull.test, &cull.ray_alive) {
+            (Some(t), alive) => t.fates(&host_vec(pts)?, r, s, alive.as_deref())?,
+            (None, Some(alive)) => ray_fates(r, s, alive)?,
+            (None, None) => vec![SampleFate::Evaluate; n],
+        };
+        let network_fill = cull.fill == SampleFill::Network;
+        let noisy = opts.training && opts.noise.is_some() && self.cfg.density_noise_std > 0.0;
+        let need: Vec<usize> = if network_fill {
+            (0..r)
+                .filter(|&ray| fates[ray * s..(ray + 1) * s].contains(&SampleFate::Outside))
+                .collect()
+        } else {
+            Vec::new()
+        };
+        if cull.consts.row_of_ray.len() != r {
+            cull.consts.row_of_ray = vec![u32::MAX; r];
+        }
+        if !need.is_empty() && opts.inference && !noisy && !cull.consts.probed {
+            self.probe_shared_constant(pose, view, need[0], cull)?;
+        }
+        let far_rays: Vec<usize> = if cull.consts.shared {
+            Vec::new()
+        } else {
+            need.iter()
+                .copied()
+                .filter(|&ray| cull.consts.row_of_ray[ray] == u32::MAX)
+                .collect()
+        };
+        let pts_flat = pts.reshape((n, 3))?;
+        let mut rgbs = Vec::new();
+        let mut sigmas = Vec::new();
+        let mut evaluated = 0usize;
+        let mut far_done = 0usize;
+        for p in 0..n_poses {
+            let idx: Vec<u32> = (p * k * s..(p + 1) * k * s)
+                .filter(|&i| fates[i] == SampleFate::Evaluate)
+                .map(|i| i as u32)
+                .collect();
+            let far_p: Vec<usize> = far_rays
+                .iter()
+                .copied()
+                .filter(|&ray| ray / k == p)
+                .collect();
+            if idx.is_empty() && far_p.is_empty() {
+                continue;
+            }
+            let chunk = if opts.inference {
+                INFERENCE_POINT_CHUNK
+            } else {
+                idx.len().max(1)
+            };
+            let parts: Vec<&[u32]> = if idx.is_empty() {
+                vec![&[]]
+            } else {
+                idx.chunks(chunk).collect()
+            };
+            let last = parts.len() - 1;
+            for (c, part) in parts.into_iter().enumerate() {
+                let len = part.len();
+                let far_len = if c == last { far_p.len() } else { 0 };
+                let mut rays_of: Vec<u32> = part.iter().map(|&i| i / s as u32).collect();
+                let mut pts_c = Vec::new();
+                if len > 0 {
+                    pts_c.push(
+                        pts_flat.index_select(&Tensor::from_vec(part.to_vec(), len, dev)?, 0)?,
+                    );
+                }
+                if far_len > 0 {
+                    let test = cull.test.as_ref().ok_or_else(|| {
+                        ModelError::Input("culling: constants need the window test".into())
+                    })?;
+                    let far = test.far_point(p)?;
+                    pts_c.push(
+                        Tensor::from_vec(far.repeat(far_len), (far_len, 3), dev)?
+                            .to_dtype(pts.dtype())?,
+                    );
+                    rays_of.extend(far_p.iter().map(|&ray| ray as u32));
+                }
+                let pts_c = Tensor::cat(&pts_c, 0)?;
+                let view_c =
+                    view.index_select(&Tensor::from_vec(rays_of, len + far_len, dev)?, 0)?;
+                let (rgb, sigma_raw) = self.eval_points(pose, p, &pts_c, &view_c, None)?;
+                let (rgb, sigma_raw) = if opts.inference {
+                    (rgb.detach(), sigma_raw.detach())
+                } else {
+                    (rgb, sigma_raw)
+                };
+                if len > 0 {
+                    rgbs.push(rgb.narrow(0, 0, len)?);
+                    sigmas.push(sigma_raw.narrow(0, 0, len)?);
+                }
+                if far_len > 0 {
+                    let consts = &mut cull.consts;
+                    for (i, &ray) in far_p.iter().enumerate() {
+                        consts.row_of_ray[ray] = (consts.rows + i) as u32;
+                    }
+                    consts.rows += far_len;
+                    consts.rgb.push(rgb.narrow(0, len, far_len)?);
+                    consts.sigma.push(sigma_raw.narrow(0, len, far_len)?);
+                    far_done += far_len;
+                }
+                evaluated += len;
+            }
+        }
+        self.points_evaluated
+            .fetch_add((evaluated + far_done) as u64, Ordering::Relaxed);
+        let consts = &cull.consts;
+        let zero_row = (evaluated + consts.rows) as u32;
+        let mut next = 0u32;
+        let mut any_zero = false;
+        let idx: Vec<u32> = (0..n)
+            .map(|i| match fates[i] {
+                SampleFate::Evaluate => {
+                    next += 1;
+                    next - 1
+                }
+                SampleFate::Outside if network_fill => {
+                    evaluated as u32
+                        + if consts.shared {
+                            0
+                        } else {
+                            consts.row_of_ray[i / s]
+                        }
+                }
+                _ => {
+                    any_zero = true;
+                    zero_row
+                }
+            })
+            .collect();
+        let out_dtype = rgbs
+            .first()
+            .or(consts.rgb.first())
+            .map_or(pts.dtype(), |t| t.dtype());
+        let mut rgb_rows = rgbs;
+        let mut sigma_rows = sigmas;
+        rgb_rows.extend(consts.rgb.iter().cloned());
+        sigma_rows.extend(consts.sigma.iter().cloned());
+        rgb_rows.push(Tensor::zeros((1, 3), out_dtype, dev)?);
+        sigma_rows.push(Tensor::zeros((1, 1), out_dtype, dev)?);
+        let idx = Tensor::from_vec(idx, n, dev)?;
+        let rgb = Tensor::cat(&rgb_rows, 0)?.index_select(&idx, 0)?;
+        let sigma_raw = Tensor::cat(&sigma_rows, 0)?.index_select(&idx, 0)?;
+        let sigma_in = match (opts.training, opts.noise.as_mut()) {
+            (true, Some(noise)) if self.cfg.density_noise_std > 0.0 => {
+                // Drawn for every sample, culled or not, so the noise stream stays aligned
+                // with parity mode.
+                let eps = noise(n)?.reshape((n, 1))?;
+                (&sigma_raw + (eps * self.cfg.density_noise_std)?)?
+            }
+            _ => sigma_raw,
+        };
+        let mut density = sigma_in.relu()?;
+        if noisy && any_zero {
+            // Zero-filled samples have no density even where noise would have given some.
+            let alive: Vec<f32> = fates
+                .iter()
+                .map(|f| match f {
+                    SampleFate::Evaluate => 1.0,
+                    SampleFate::Outside if network_fill => 1.0,
+                    _ => 0.0,
+                })
+                .collect();
+            let alive = Tensor::from_vec(alive, (n, 1), dev)?.to_dtype(density.dtype())?;
+            density = density.broadcast_mul(&alive)?;
+        }
+        Ok(Tensor::cat(&[rgb, density], 1)?.reshape((r, s, 4))?)
+    }
+
+    /// Inference without noise: the far-away density is one global constant (f^m and every
+    /// windowed feature are 0 there). When it is ≤ 0 the colour of culled samples carries zero
+    /// weight in every rendered output, so one evaluation (along ray `ray`) serves all rays;
+    /// their raw colour is then the one seen along that ray. Decided once per forward pass.
+    fn probe_shared_constant(
+        &self,
+        pose: &PoseFeatures,
+        view: &Tensor,
+        ray: usize,
+        cull: &mut CullCtx,
+    ) -> Result<()> {
+        let consts = &mut cull.consts;
+        consts.probed = true;
+        let Some(test) = cull.test.as_ref() else {
+            return Ok(());
+        };
+        let rays_per_pose = view.dim(0)? / pose.g.dim(0)?;
+        let p = ray / rays_per_pose;
+        let dev = view.device();
+        let far = test.far_point(p)?;
+        let pts = Tensor::from_vec(far.to_vec(), (1, 3), dev)?;
+        let view_c = view.narrow(0, ray, 1)?;
+        let (rgb, sigma) = self.eval_points(pose, p, &pts, &view_c, None)?;
+        self.points_evaluated.fetch_add(1, Ordering::Relaxed);
+        let sigma0 = sigma
+            .flatten_all()?
+            .to_dtype(DType::F32)?
+            .to_vec1::<f32>()?[0];
+        if sigma0 <= 0.0 {
+            consts.shared = true;
+            consts.rows = 1;
+            consts.rgb = vec![rgb.detach()];
+            consts.sigma = vec![sigma.detach()];
+        }
+        Ok(())
+    }
+
     /// Render a ray batch: the full coarse + fine forward pass (training or inference).
     pub fn forward(
         &self,
@@ -510,9 +868,9 @@ impl Avatar {
         opts: &mut ForwardOptions,
         mut trace: Option<&mut Trace>,
     ) -> Result<Outputs> {
-        let r = rays.origins.dim(0)?;
-        let n_poses = poses.bones.len();
         check_batch(rays, poses)?;
+        let cast = self.cast_batch(rays, poses)?;
+        let (rays, poses) = cast.as_ref().map_or((rays, poses), |(r, p)| (r, p));
         let stage_trace = |t: &mut Option<&mut Trace>, prefix: &str| -> Option<Trace> {
             t.as_ref().map(|_| {
                 let _ = prefix;
@@ -523,6 +881,43 @@ impl Avatar {
         // 1. Per-pose work.
         let mut pose_trace = stage_trace(&mut trace, "pose");
         let pose = self.pose_features(poses, pose_trace.as_mut())?;
+        self.forward_inner(rays, poses, &pose, opts, trace, pose_trace)
+    }
+
+    /// [`Self::forward`] with the per-pose work already done (`pose` from
+    /// [`Self::pose_features`] of the same `poses`), so callers that split a pose's rays into
+    /// chunks run the GNN once per pose, not once per chunk.
+    pub fn forward_with_pose(
+        &self,
+        rays: &Rays,
+        poses: &Poses,
+        pose: &PoseFeatures,
+        opts: &mut ForwardOptions,
+    ) -> Result<Outputs> {
+        check_batch(rays, poses)?;
+        let cast = self.cast_batch(rays, poses)?;
+        let (rays, poses) = cast.as_ref().map_or((rays, poses), |(r, p)| (r, p));
+        if pose.g.dim(0)? != poses.bones.len() {
+            return Err(ModelError::shape(
+                "pose features",
+                [poses.bones.len()],
+                [pose.g.dim(0)?],
+            ));
+        }
+        self.forward_inner(rays, poses, pose, opts, None, None)
+    }
+
+    fn forward_inner(
+        &self,
+        rays: &Rays,
+        poses: &Poses,
+        pose: &PoseFeatures,
+        opts: &mut ForwardOptions,
+        mut trace: Option<&mut Trace>,
+        pose_trace: Option<Trace>,
+    ) -> Result<Outputs> {
+        let r = rays.origins.dim(0)?;
+        let n_poses = poses.bones.len();
         // 2. Ray casting (no gradient) with the current, detached box sizes.
         let coarse = self.caster.cast(
             &rays.origins,
@@ -532,15 +927,23 @@ impl Avatar {
             &pose.scales.detach(),
         )?;
         let (view, d_root) = self.view_features(rays, poses, opts.training)?;
+        // Culling needs per-point traces of every sample, so a traced pass never culls.
+        let mut cull = match trace {
+            None => self.cull_context(pose, poses, &coarse.bounds)?,
+            Some(_) => None,
+        };
         // 3. Coarse pass and render.
-        let raw_coarse = self.network_pass(
-            &pose,
-            &coarse.pts,
-            &view,
-            opts,
-            "coarse",
-            trace.as_deref_mut(),
-        )?;
+        let raw_coarse = match cull.as_mut() {
+            Some(c) => self.network_pass_culled(pose, &coarse.pts, &view, opts, c)?,
+            None => self.network_pass(
+                pose,
+                &coarse.pts,
+                &view,
+                opts,
+                "coarse",
+                trace.as_deref_mut(),
+            )?,
+        };
         let render_coarse = raw2outputs(&raw_coarse, &coarse.z, &rays.dirs, rays.bgs.as_ref())?;
         // 4. Importance samples from the coarse weights, then the fine pass on those only.
         let fine = self.caster.resample(
@@ -549,8 +952,12 @@ impl Avatar {
             &coarse.z,
             &render_coarse.weights.detach(),
         )?;
-        let raw_fine =
-            self.network_pass(&pose, &fine.pts, &view, opts, "fine", trace.as_deref_mut())?;
+        let raw_fine = match cull.as_mut() {
+            Some(c) => self.network_pass_culled(pose, &fine.pts, &view, opts, c)?,
+            None => {
+                self.network_pass(pose, &fine.pts, &view, opts, "fine", trace.as_deref_mut())?
+            }
+        };
         // 5. Merge with the coarse outputs (reused, noise included) and render again.
         let raw = merge_raw(&raw_coarse, &raw_fine, &fine.perm)?;
         let render_fine = raw2outputs(&raw, &fine.z_all, &rays.dirs, rays.bgs.as_ref())?;
@@ -613,6 +1020,8 @@ impl Avatar {
                 poses.bones.len()
             )));
         }
+        // The GNN and every other per-pose term once per image, not once per chunk.
+        let pose = self.pose_features(poses, None)?;
         let mut renderer =
             |o: &Tensor, d: &Tensor, bg: &Tensor| -> Result<crate::image::ChunkRender> {
                 let rays = Rays {
@@ -621,7 +1030,11 @@ impl Avatar {
                     bgs: Some(bg.clone()),
                     framecodes: vec![-1; o.dim(0)?],
                 };
-                let out = self.render_rays(&rays, poses)?;
+                let mut opts = ForwardOptions {
+                    inference: true,
+                    ..Default::default()
+                };
+                let out = self.forward_with_pose(&rays, poses, &pose, &mut opts)?;
                 Ok(crate::image::ChunkRender {
                     rgb: out.fine.rgb,
                     acc: out.fine.acc,
@@ -660,6 +1073,70 @@ impl std::fmt::Debug for Avatar {
     }
 }
 
+/// Culling state of one forward pass (coarse and fine share the far-away constants).
+struct CullCtx {
+    test: Option<WindowTest>,
+    /// `ray_hits_body` when rays are culled.
+    ray_alive: Option<Vec<bool>>,
+    fill: SampleFill,
+    consts: ConstRows,
+}
+
+/// Network outputs at the far-away point, one row per ray that needed one.
+#[derive(Default)]
+struct ConstRows {
+    /// Row of each ray (u32::MAX: not computed).
+    row_of_ray: Vec<u32>,
+    rgb: Vec<Tensor>,
+    sigma: Vec<Tensor>,
+    rows: usize,
+    /// Row 0 serves every ray (inference, constant density 0).
+    shared: bool,
+    /// Whether the shared constant was tried in this forward pass.
+    probed: bool,
+}
+
+fn host_vec(t: &Tensor) -> Result<Vec<f32>> {
+    Ok(t.flatten_all()?
+        .to_dtype(DType::F32)?
+        .to_device(&Device::Cpu)?
+        .to_vec1::<f32>()?)
+}
+
+/// Buffers a checkpoint may carry that would only fail much later, as NaN: a degenerate
+/// rest pose and zero or non-finite box sizes (the floor is a fraction of `base_scale`, so a
+/// zero there divides by zero in x̄ = x̂ / s). One line per problem.
+fn check_buffers(tensors: &HashMap<String, Tensor>) -> Result<Vec<String>> {
+    let mut problems = Vec::new();
+    let host = |k: &str| -> Result<Vec<f32>> { host_vec(&tensors[k]) };
+    let rest = host("rest_pose")?;
+    let mut joints = [[0f32; 3]; N_JOINTS];
+    for (d, s) in joints.iter_mut().zip(rest.chunks_exact(3)) {
+        d.copy_from_slice(s);
+    }
+    if let Err(e) = skeleton::check_rest_pose(&joints) {
+        problems.push(format!("tensor `rest_pose`: {e}"));
+    }
+    let base = host("graph_net.base_scale")?;
+    let mut s = [[0f32; 3]; N_JOINTS];
+    for (d, v) in s.iter_mut().zip(base.chunks_exact(3)) {
+        d.copy_from_slice(v);
+    }
+    if let Err(e) = skeleton::check_half_extents(
+        "tensor `graph_net.base_scale`",
+        &s,
+        skeleton::rest_pose_scale(&joints),
+    ) {
+        problems.push(e.to_string());
+    }
+    for k in ["pts_embedder.transforms", "raycast.transforms"] {
+        if let Some(i) = host(k)?.iter().position(|v| !v.is_finite()) {
+            problems.push(format!("tensor `{k}`: value {i} is not finite"));
+        }
+    }
+    Ok(problems)
+}
+
 fn check_batch(rays: &Rays, poses: &Poses) -> Result<()> {
     let r = rays.origins.dim(0)?;
     let p = poses.bones.len();
@@ -692,8 +1169,8 @@ pub fn init_tensors(
     device: &Device,
 ) -> Result<HashMap<String, Tensor>> {
     cfg.validate()?;
+    let base = skeleton::check_model_rest_pose(rest)?;
     let align = skeleton::bone_align(rest)?;
-    let base = skeleton::init_half_extents(rest)?;
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let mut out = HashMap::new();
     let j = cfg.n_joints;

@@ -22,6 +22,46 @@ pub struct Quirks {
     /// Reference: frame-code indices are clamped only when `idx > n` (so `idx == n`
     /// is out of range). `true` clamps `idx >= n`.
     pub fix_framecode_clamp: bool,
+    /// Reference: box crossings are unsigned distances, rays through a box edge or corner
+    /// ignore that box, and a cylinder behind the camera yields far < near. `true` uses
+    /// signed crossings clipped at the camera, keeps edge/corner hits, and treats a cylinder
+    /// behind the camera as a miss (issue 7; changes only such rays).
+    pub robust_ray_bounds: bool,
+}
+
+/// What culled samples are given (see [`Culling`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SampleFill {
+    /// The network's own output there: where w^p = 0 for every joint, every windowed feature
+    /// is 0 and the network reduces to a global constant density and a colour that depends
+    /// only on the view. It is evaluated once per ray at a far-away point (or, in inference
+    /// when that density is 0, once per pass), so culling at threshold 0 is exact.
+    #[default]
+    Network,
+    /// Density 0 and black: cheapest, exact only where the network learned empty space.
+    Zero,
+}
+
+/// Leaving work out (issue 6). Everything is off by default, which is parity with the
+/// reference; the section is omitted from checkpoint JSON while it is off.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct Culling {
+    /// Rays that cross no (enlarged) bone box skip the network: raw outputs 0, so the
+    /// render is exactly the background with zero weights, acc, depth and disparity.
+    pub rays: bool,
+    /// Samples whose spatial window w^p is <= this for every joint skip the network and get
+    /// `sample_fill`. `Some(0.0)` culls only exact zeros (exact with `SampleFill::Network`);
+    /// `None` is off.
+    pub sample_threshold: Option<f64>,
+    pub sample_fill: SampleFill,
+}
+
+impl Culling {
+    pub fn is_off(&self) -> bool {
+        !self.rays && self.sample_threshold.is_none()
+    }
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -91,6 +131,9 @@ pub struct Config {
     pub box_bound: f64,
     /// Reference quirks that can be switched off.
     pub quirks: Quirks,
+    /// Work left out at evaluation time (off = parity).
+    #[serde(skip_serializing_if = "Culling::is_off")]
+    pub culling: Culling,
 }
 
 impl Default for Config {
@@ -135,6 +178,7 @@ impl Config {
             far: 100.0,
             box_bound: 1.1,
             quirks: Quirks::default(),
+            culling: Culling::default(),
         }
     }
 }
@@ -185,6 +229,13 @@ impl Config {
         ] {
             if !(v.is_finite() && v > 0.0) {
                 bad.push(format!("{name} must be finite and > 0, found {v}"));
+            }
+        }
+        if let Some(t) = self.culling.sample_threshold {
+            if !(t.is_finite() && (0.0..1.0).contains(&t)) {
+                bad.push(format!(
+                    "culling.sample_threshold must be in [0, 1), found {t}"
+                ));
             }
         }
         if bad.is_empty() {

@@ -6,6 +6,8 @@ pub mod avatar;
 pub mod camera_path;
 pub mod checkpoint;
 pub mod config;
+pub mod cull;
+pub mod device;
 pub mod encoders;
 pub mod error;
 pub mod field;
@@ -19,6 +21,7 @@ pub mod presets;
 pub mod raycast;
 pub mod render;
 pub mod retarget;
+pub mod stability;
 pub mod window;
 
 #[cfg(feature = "train")]

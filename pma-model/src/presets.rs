@@ -129,6 +129,10 @@ mod train_presets {
         pub render_chunk: usize,
         /// Abort after this many consecutive non-finite steps (each is skipped, not applied).
         pub max_consecutive_skips: u64,
+        /// Rays per forward/backward chunk of a training step (gradients are accumulated over
+        /// the chunks, so the step is the same as unchunked); `0` = automatic, chunks of at
+        /// most [`crate::train::AUTO_CHUNK_POINT_JOINTS`] point-joint pairs, which bounds memory.
+        pub chunk_rays: usize,
     }
 
     impl Default for TrainConfig {
@@ -163,6 +167,7 @@ mod train_presets {
                 eval_images: 4,
                 render_chunk: 5120,
                 max_consecutive_skips: 100,
+                chunk_rays: 0,
             }
         }
 

@@ -33,6 +33,9 @@ pub struct RayBounds {
     /// cylinder bounds and every sample of theirs lies outside all boxes, where the spatial
     /// window is at most exp(−2·1.1⁶) ≈ 0.03: the candidates for culling.
     pub ray_hits_body: Vec<bool>,
+    /// (near, far) given to the rays that miss the bounding cylinder (the batch means in the
+    /// reference, so they depend on the whole batch).
+    pub miss_fill: (f32, f32),
 }
 
 /// Coarse samples of a ray batch, ready for the network.
@@ -69,8 +72,13 @@ pub struct RayCaster {
     far: f32,
     bound: f64,
     per_ray_fallback: bool,
+    /// `quirks.robust_ray_bounds`: signed box crossings, edge/corner hits kept, and a
+    /// cylinder behind the camera counted as a miss.
+    robust_bounds: bool,
     /// A_j: [24,4,4] row-major (`raycast.transforms`).
     transforms: Vec<f32>,
+    /// Cylinder-miss bounds pinned by [`Self::with_miss_fill`].
+    miss_fill: Option<(f32, f32)>,
 }
 
 impl RayCaster {
@@ -110,8 +118,20 @@ impl RayCaster {
             far: cfg.far as f32,
             bound: cfg.box_bound,
             per_ray_fallback: cfg.quirks.per_ray_cylinder_fallback,
+            robust_bounds: cfg.quirks.robust_ray_bounds,
             transforms: transforms.to_vec(),
+            miss_fill: None,
         })
+    }
+
+    /// This caster with the (near, far) of cylinder misses pinned to `fill` (`None`: computed
+    /// from each batch as usual). Chunked training pins the whole batch's
+    /// [`RayBounds::miss_fill`] so every chunk is cast as part of that batch.
+    pub fn with_miss_fill(&self, fill: Option<(f32, f32)>) -> Self {
+        Self {
+            miss_fill: fill,
+            ..self.clone()
+        }
     }
 
     /// transforms: [24,4,4] tensor (any device and float dtype).
@@ -170,13 +190,21 @@ impl RayCaster {
             let c = &cyls[pose_of(r) * 5..pose_of(r) * 5 + 3];
             [c[0], c[1], c[2]]
         });
-        fill_cylinder_misses(
-            &mut near,
-            &mut far,
-            self.near,
-            self.far,
-            self.per_ray_fallback,
-        );
+        if self.robust_bounds {
+            // A circle behind the camera gives far < near (and negative intervals that can
+            // overflow exp(σ|δ|) in compositing): treat it like a miss.
+            for (n, f) in near.iter_mut().zip(far.iter_mut()) {
+                if !(*f >= *n && *f > 0.0) {
+                    *n = f32::NAN;
+                    *f = f32::NAN;
+                }
+            }
+        }
+        // A pinned fill (chunked training) casts a chunk exactly like its whole batch.
+        let miss_fill = self.miss_fill.unwrap_or_else(|| {
+            cylinder_miss_fill(&near, &far, self.near, self.far, self.per_ray_fallback)
+        });
+        fill_cylinder_misses(&mut near, &mut far, miss_fill.0, miss_fill.1, true);
 
         let mut box_hit = vec![false; n_rays * N_JOINTS];
         let mut ray_hits_body = vec![false; n_rays];
@@ -196,9 +224,13 @@ impl RayCaster {
                 let mut ray_far = f32::NEG_INFINITY;
                 for j in 0..N_JOINTS {
                     let s = [scales[3 * j], scales[3 * j + 1], scales[3 * j + 2]];
-                    if let Some((t0, t1)) =
-                        box_near_far(&world_to_box[j * 16..j * 16 + 16], s, o, d, self.bound)
-                    {
+                    let w2b = &world_to_box[j * 16..j * 16 + 16];
+                    let hit = if self.robust_bounds {
+                        box_near_far_robust(w2b, s, o, d, self.bound)
+                    } else {
+                        box_near_far(w2b, s, o, d, self.bound)
+                    };
+                    if let Some((t0, t1)) = hit {
                         box_hit[r * N_JOINTS + j] = true;
                         ray_near = ray_near.min(t0);
                         ray_far = ray_far.max(t1);
@@ -216,6 +248,7 @@ impl RayCaster {
             far,
             box_hit,
             ray_hits_body,
+            miss_fill,
         })
     }
 
@@ -269,7 +302,7 @@ impl RayCaster {
         Ok(out)
     }
 
-    /// Tensor entry point for the coarse pass. rays_o, rays_d: [R,3]; cyls: [P,5];
+    /// Tensor entry point for the coarse pass (outputs in `rays_o`'s dtype). rays_o, rays_d: [R,3]; cyls: [P,5];
     /// skts: [P,24,4,4]; scales: [24,3] (used as constants: nothing here is differentiable).
     /// Outputs live on `rays_o`'s device.
     pub fn cast(
@@ -290,11 +323,11 @@ impl RayCaster {
         let bounds = self.near_far(&o, &d, &cyls, &skts, &scales)?;
         let z = self.coarse_z(&bounds.near, &bounds.far)?;
         let pts = sample_points(&o, &d, &z, self.n_samples)?;
-        let dev = rays_o.device();
+        let (dev, dt) = (rays_o.device(), rays_o.dtype());
         Ok(CoarseSamples {
             bounds,
-            z: Tensor::from_vec(z, (n_rays, self.n_samples), dev)?,
-            pts: Tensor::from_vec(pts, (n_rays, self.n_samples, 3), dev)?,
+            z: Tensor::from_vec(z, (n_rays, self.n_samples), dev)?.to_dtype(dt)?,
+            pts: Tensor::from_vec(pts, (n_rays, self.n_samples, 3), dev)?.to_dtype(dt)?,
         })
     }
 
@@ -317,11 +350,11 @@ impl RayCaster {
         let zf = self.importance_z(&zc, &w)?;
         let pts = sample_points(&o, &d, &zf, sf)?;
         let (z_all, perm) = merge_sorted(&zc, sc, &zf, sf)?;
-        let dev = rays_o.device();
+        let (dev, dt) = (rays_o.device(), rays_o.dtype());
         Ok(FineSamples {
-            z: Tensor::from_vec(zf, (n_rays, sf), dev)?,
-            pts: Tensor::from_vec(pts, (n_rays, sf, 3), dev)?,
-            z_all: Tensor::from_vec(z_all, (n_rays, sc + sf), dev)?,
+            z: Tensor::from_vec(zf, (n_rays, sf), dev)?.to_dtype(dt)?,
+            pts: Tensor::from_vec(pts, (n_rays, sf, 3), dev)?.to_dtype(dt)?,
+            z_all: Tensor::from_vec(z_all, (n_rays, sc + sf), dev)?.to_dtype(dt)?,
             perm: Tensor::from_vec(perm, (n_rays, sc + sf), dev)?,
         })
     }
@@ -378,6 +411,24 @@ pub fn fill_cylinder_misses(
     };
     fill(near, near0);
     fill(far, far0);
+}
+
+/// The (near, far) that [`fill_cylinder_misses`] gives to misses.
+pub fn cylinder_miss_fill(
+    near: &[f32],
+    far: &[f32],
+    near0: f32,
+    far0: f32,
+    per_ray: bool,
+) -> (f32, f32) {
+    if per_ray {
+        (near0, far0)
+    } else {
+        (
+            nan_mean(near).unwrap_or(near0),
+            nan_mean(far).unwrap_or(far0),
+        )
+    }
 }
 
 /// Mean of the non-NaN entries (accumulated in f64), `None` if all are NaN.
@@ -441,6 +492,45 @@ pub fn box_near_far(
     };
     let (t0, t1) = (dist(hits[0]), dist(hits[1]));
     Some((t0.min(t1), t0.max(t1)))
+}
+
+/// [`box_near_far`] without the reference's blind spots (`quirks.robust_ray_bounds`): the
+/// face hits are kept as signed ray parameters (the box frame is an affine image of the world
+/// ray, so a face's `t` is the world ray parameter), every valid hit counts (rays through an
+/// edge or corner validate 3–6 faces, which the reference drops), the part behind the camera
+/// is cut off (near ≥ 0, so a camera inside a box samples from its origin), and boxes
+/// entirely behind the camera are misses.
+pub fn box_near_far_robust(
+    world_to_box: &[f32],
+    scale: [f32; 3],
+    o: [f32; 3],
+    d: [f32; 3],
+    bound: f64,
+) -> Option<(f32, f32)> {
+    let m = world_to_box;
+    let rot = |v: [f32; 3], i: usize| m[4 * i] * v[0] + m[4 * i + 1] * v[1] + m[4 * i + 2] * v[2];
+    let o_t = [rot(o, 0) + m[3], rot(o, 1) + m[7], rot(o, 2) + m[11]];
+    let d_t = [rot(d, 0), rot(d, 1), rot(d, 2)];
+    let o_s = [o_t[0] / scale[0], o_t[1] / scale[1], o_t[2] / scale[2]];
+    let d_s = [d_t[0] / scale[0], d_t[1] / scale[1], d_t[2] / scale[2]];
+    let face = bound as f32;
+    let lim = (bound + BOX_EPS) as f32;
+    let (mut t_min, mut t_max) = (f32::INFINITY, f32::NEG_INFINITY);
+    for axis in 0..3 {
+        for plane in [-face, face] {
+            let t = (plane - o_s[axis]) / d_s[axis];
+            let p = [
+                o_s[0] + t * d_s[0],
+                o_s[1] + t * d_s[1],
+                o_s[2] + t * d_s[2],
+            ];
+            if t.is_finite() && p.iter().all(|&c| c >= -lim && c <= lim) {
+                t_min = t_min.min(t);
+                t_max = t_max.max(t);
+            }
+        }
+    }
+    (t_max > t_min && t_max > 0.0).then(|| (t_min.max(0.0), t_max))
 }
 
 /// Sample points: rays_o, rays_d: [R,3], z: [R,S] -> [R,S,3] with `o + d·z`.

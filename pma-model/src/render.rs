@@ -37,7 +37,8 @@ pub struct RenderOutputs {
 /// raw: [R,M,4] (r, g, b, activated density σ ≥ 0) at ray parameters z_vals: [R,M] (ascending)
 /// along rays_d: [R,3] of any length (interval lengths are scaled by |d|); bgs: [R,3]
 /// background colour composited behind the ray, or `None` for black. Any float dtype; all
-/// inputs must share it and the device.
+/// inputs must share it and the device. Half-precision inputs are composited in f32 (the
+/// outputs are then f32).
 pub fn raw2outputs(
     raw: &Tensor,
     z_vals: &Tensor,
@@ -62,6 +63,14 @@ pub fn raw2outputs(
         }
     }
     let dtype = raw.dtype();
+    if matches!(dtype, DType::F16 | DType::BF16) {
+        // The 1e-10 guards underflow to 0 in half precision (f16's smallest subnormal is
+        // 6e-8), so an empty ray's disparity becomes 0/0 and an opaque sample's log(1 − α)
+        // −inf. Compositing is cheap: do it in f32 and hand back f32 maps.
+        let up = |t: &Tensor| t.to_dtype(DType::F32);
+        let bg = bgs.map(up).transpose()?;
+        return raw2outputs(&up(raw)?, &up(z_vals)?, &up(rays_d)?, bg.as_ref());
+    }
     let dev = raw.device();
 
     // δ_i = (z_{i+1} − z_i)·|d|, δ_M = 1e10·|d|.

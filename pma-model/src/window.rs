@@ -68,8 +68,16 @@ impl WinFun {
     /// One pose group: g: [J,H] (that pose's projection), e: [N,J,Ce] pose-branch point
     /// encodings, w_p: [N,J] spatial window.
     pub fn forward(&self, g: &Tensor, e: &Tensor, w_p: &Tensor) -> Result<Window> {
-        let q = self.layer_point.forward(e)?;
-        let part = q.broadcast_add(&g.unsqueeze(0)?)?;
+        // layer_point's bias is added to the per-pose g ([J,H]) rather than to every point:
+        // one pass over the [N,J,H] part features fewer, forward and backward (the bias
+        // gradient is then a sum over J rows, not over N·J).
+        let (n, j, ce) = e.dims3()?;
+        let q = e
+            .reshape((n * j, ce))?
+            .matmul(&self.layer_point.weight.t()?)?
+            .reshape((n, j, ()))?;
+        let g_b = g.broadcast_add(&self.layer_point.bias)?;
+        let part = q.broadcast_add(&g_b.unsqueeze(0)?)?;
         let attenuated = part.broadcast_mul(&w_p.unsqueeze(D::Minus1)?)?;
         let pooled = attenuated.max(1)?;
         let h = self.sin1.forward(&self.sin0.forward(&pooled)?)?;

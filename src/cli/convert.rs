@@ -1,19 +1,26 @@
 //! `pma convert`: reference checkpoints, A-NeRF/DANBO datasets and real motion
 //! into pma formats. Parsing and reporting only; the work is in `pma-convert`.
+//!
+//! Exit status: 0 on success; 2 when an input is refused (one line on stderr
+//! naming the file, the key or byte offset, and what was expected vs found),
+//! and no output file is created; 1 when the output cannot be written.
 
 use std::{ops::Range, path::PathBuf};
 
-use anyhow::Context;
 use clap::{Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 use pma_convert::{
     checkpoint::{convert_checkpoint, CheckpointOptions},
     dataset::{convert_dataset, DatasetOptions, Layout},
     motion::{convert_motion, read_rest_pose, MotionOptions, DEFAULT_NPZ_FPS},
+    ConvertError,
 };
 use pma_data::dataset::{Compression, Profile};
 
 #[derive(clap::Args)]
+#[command(
+    after_help = "Exit status: 0 on success; 2 when an input is refused (one line on stderr names the file, the key or byte offset, and what was expected vs found; no output is written); 1 when the output cannot be written."
+)]
 pub struct Args {
     #[command(subcommand)]
     what: What,
@@ -159,15 +166,67 @@ fn layout(l: LayoutArg) -> Layout {
     }
 }
 
+/// Exit status of a conversion refused because an input is bad (corrupt,
+/// truncated, hostile, wrong keys/shapes/values, missing). clap's usage errors
+/// exit with 2 as well: in both cases the user has to change the command or its input.
+pub const EXIT_BAD_INPUT: i32 = 2;
+/// Exit status of a failure that is not the input's fault (the output cannot
+/// be written: permissions, a full disk).
+pub const EXIT_FAILURE: i32 = 1;
+
 pub fn run(args: Args) -> anyhow::Result<()> {
+    let inputs = args.what.inputs();
+    if let Err(e) = convert(args) {
+        // One line on stderr and a status that scripts can branch on; anyhow's
+        // multi-line report would print the file twice (our errors name it).
+        eprintln!("error: {}", one_line(&e.to_string()));
+        std::process::exit(exit_code(&e, &inputs));
+    }
+    Ok(())
+}
+
+impl What {
+    /// Files the conversion reads; an I/O error on one of them is bad input.
+    fn inputs(&self) -> Vec<PathBuf> {
+        match self {
+            What::Checkpoint { input, .. } | What::Dataset { input, .. } => vec![input.clone()],
+            What::Motion {
+                input, rest_pose, ..
+            } => std::iter::once(input.clone())
+                .chain(rest_pose.clone())
+                .collect(),
+        }
+    }
+}
+
+fn exit_code(e: &ConvertError, inputs: &[PathBuf]) -> i32 {
+    match e.io_path() {
+        Some(p) if !inputs.iter().any(|i| i == p) => EXIT_FAILURE,
+        _ => EXIT_BAD_INPUT,
+    }
+}
+
+/// Joins a multi-line message (a checkpoint's list of problems) into one line.
+fn one_line(msg: &str) -> String {
+    let mut out = String::with_capacity(msg.len());
+    for line in msg.lines().map(str::trim).filter(|l| !l.is_empty()) {
+        let item = line.strip_prefix("- ").unwrap_or(line);
+        if !out.is_empty() {
+            out.push_str(if out.ends_with(':') { " " } else { "; " });
+        }
+        out.push_str(item);
+    }
+    out
+}
+
+fn convert(args: Args) -> Result<(), ConvertError> {
     match args.what {
         What::Checkpoint {
             input,
             output,
             with_optimizer,
         } => {
-            let rep = convert_checkpoint(&input, &output, &CheckpointOptions { with_optimizer })
-                .with_context(|| format!("converting checkpoint {}", input.display()))?;
+            let rep = convert_checkpoint(&input, &output, &CheckpointOptions { with_optimizer })?;
             println!(
                 "{}: {} tensors, {} parameters, n_framecodes {}, global_iter {}",
                 output.display(),
@@ -212,9 +271,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             let rep = convert_dataset(&input, &output, &opts, &mut |done, total| {
                 bar.set_length(total);
                 bar.set_position(done);
-            })
-            .with_context(|| format!("converting dataset {}", input.display()))?;
+            });
             bar.finish_and_clear();
+            let rep = rep?;
             for w in &rep.warnings {
                 eprintln!("warning: {w}");
             }
@@ -240,11 +299,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             rest_pose,
             npz_fps,
         } => {
-            let rest = rest_pose
-                .as_deref()
-                .map(read_rest_pose)
-                .transpose()
-                .context("reading the rest pose")?;
+            let rest = rest_pose.as_deref().map(read_rest_pose).transpose()?;
             let frames: Option<Range<usize>> = frames.map(|r| r.start..r.end.unwrap_or(usize::MAX));
             let opts = MotionOptions {
                 frames,
@@ -257,8 +312,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 npz_fps,
                 ..Default::default()
             };
-            let rep = convert_motion(&input, &output, &opts)
-                .with_context(|| format!("converting motion {}", input.display()))?;
+            let rep = convert_motion(&input, &output, &opts)?;
             println!(
                 "{}: {} frames at {} fps (from {} at {} fps), head {:?} (source {:?})",
                 output.display(),

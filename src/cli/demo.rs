@@ -159,7 +159,9 @@ mod imp {
             minutes: Some(args.minutes),
             eval_data: Some(scene.join("novel_view.npz")),
             quiet: args.quiet,
+            chunk_rays: None,
             title: "pma demo: held-out (novel view) PSNR vs wall-clock time".into(),
+            device: candle_core::Device::Cpu,
         })?;
         let train_s = (outcome.session_s - outcome.eval_s).max(1e-9);
         let it_per_s = outcome.session_iterations as f64 / train_s;

@@ -16,7 +16,6 @@ use std::io::Write as _;
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context as _};
-use candle_core::Device;
 use candle_core::Tensor;
 use pma_data::dataset::{Dataset, Profile, ReadOptions};
 use pma_model::avatar::{Avatar, Poses};
@@ -58,12 +57,19 @@ pub struct Args {
     /// mask). Default: `train.npz` beside a split file or in the `--data` directory.
     #[arg(long)]
     pub train_data: Option<PathBuf>,
+    #[command(flatten)]
+    pub cull: super::bench::CullArgs,
+    /// Compute device: cpu, cuda, cuda:N, metal (cuda/metal need a binary built with that
+    /// feature).
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let device = Device::Cpu;
-    let avatar = Avatar::load(&args.model, &device)
+    let device = super::device(&args.device)?;
+    let mut avatar = Avatar::load(&args.model, &device)
         .with_context(|| format!("loading model {}", args.model.display()))?;
+    args.cull.apply(&mut avatar)?;
     let (data_path, split) = resolve_split(&args.data, &args.split)?;
     let data = read_dataset(&data_path, Profile::Eval)?;
     let images = split_images(&data, &split)?;
@@ -423,9 +429,7 @@ pub fn quantize(img: &pma_model::image::RenderedImage) -> Vec<f32> {
 }
 
 fn quantize_f32(rgb: &[f32]) -> Vec<f32> {
-    rgb.iter()
-        .map(|&v| ((v.clamp(0.0, 1.0) * 255.0) as u8) as f32 / 255.0)
-        .collect()
+    pma_data::metrics::quantize(rgb)
 }
 
 /// Ground truth of image `n` composited on black ([H·W·3] in [0,1]) and its mask ([H·W]).
@@ -446,6 +450,7 @@ pub fn ground_truth(data: &Dataset, n: usize) -> anyhow::Result<(Vec<f32>, Vec<u
 }
 
 /// (PSNR, SSIM) of `pred` against `gt` ([H·W·3] in [0,1]); `None` when the mask is empty.
+/// The protocol lives in `pma_data::metrics`.
 fn score(
     pred: &[f32],
     gt: &[f32],
@@ -454,123 +459,33 @@ fn score(
     w: usize,
     opts: &EvalOptions,
 ) -> anyhow::Result<Option<(f64, f64)>> {
-    let Some(b) = tight_box(mask, h, w) else {
-        return Ok(None);
+    let region = match opts.region {
+        PsnrRegion::Mask => pma_data::metrics::Region::Mask,
+        PsnrRegion::Bbox => pma_data::metrics::Region::Bbox,
     };
-    let in_box = |p: usize| (b.0..b.2).contains(&(p / w)) && (b.1..b.3).contains(&(p % w));
-    let (mut se, mut count) = (0f64, 0usize);
-    for p in 0..h * w {
-        let use_px = match opts.region {
-            PsnrRegion::Mask => mask[p] > 0,
-            PsnrRegion::Bbox => in_box(p),
-        };
-        if use_px {
-            for c in 0..3 {
-                let e = pred[3 * p + c] as f64 - gt[3 * p + c] as f64;
-                se += e * e;
-            }
-            count += 3;
-        }
-    }
-    let psnr = -10.0 * (se / count as f64).log10();
-    // scikit-image refuses crops under 7×7 (a thin limb seen edge-on in a tiny image); grow
-    // such a box symmetrically inside the image instead of dropping the image.
-    let grow = |lo: usize, hi: usize, n: usize| -> (usize, usize) {
-        if hi - lo >= 7 || n < 7 {
-            return (lo, hi);
-        }
-        let lo = lo.saturating_sub((7 - (hi - lo)).div_ceil(2)).min(n - 7);
-        (lo, lo + 7)
-    };
-    let ((y0, y1), (x0, x1)) = (grow(b.0, b.2, h), grow(b.1, b.3, w));
-    let b = (y0, x0, y1, x1);
-    let crop = |img: &[f32]| -> Vec<f64> {
-        let mut out = Vec::with_capacity((b.2 - b.0) * (b.3 - b.1) * 3);
-        for y in b.0..b.2 {
-            for x in b.1..b.3 {
-                out.extend((0..3).map(|c| img[3 * (y * w + x) + c] as f64));
-            }
-        }
-        out
-    };
-    let ssim = ssim_skimage(
-        &crop(pred),
-        &crop(gt),
-        b.2 - b.0,
-        b.3 - b.1,
+    Ok(pma_data::metrics::score_image(
+        pred,
+        gt,
+        mask,
+        h,
+        w,
+        region,
         opts.ssim_data_range,
-    )?;
-    Ok(Some((psnr, ssim)))
+    )?)
 }
 
 /// Inclusive-exclusive tight box `(y0, x0, y1, x1)` of the nonzero mask pixels (OpenCV
 /// `boundingRect`), or `None` for an empty mask.
+#[cfg(test)]
 fn tight_box(mask: &[u8], h: usize, w: usize) -> Option<(usize, usize, usize, usize)> {
-    let mut b: Option<(usize, usize, usize, usize)> = None;
-    for y in 0..h {
-        for x in 0..w {
-            if mask[y * w + x] > 0 {
-                b = Some(match b {
-                    None => (y, x, y + 1, x + 1),
-                    Some((y0, x0, y1, x1)) => (y0.min(y), x0.min(x), y1.max(y + 1), x1.max(x + 1)),
-                });
-            }
-        }
-    }
-    b
+    pma_data::metrics::tight_box(mask, h, w).map(|b| (b.y0, b.x0, b.y1, b.x1))
 }
 
-/// scikit-image `structural_similarity` with its defaults as the reference called it
-/// (spec data.md §8.3 a): 7×7 uniform window, sample covariance (×49/48), K1 0.01, K2 0.03,
-/// the given data range, per-channel mean over the map without a 3-pixel border, then the
-/// mean over channels. a, b: [h·w·3] channels last.
-pub fn ssim_skimage(
-    a: &[f64],
-    b: &[f64],
-    h: usize,
-    w: usize,
-    data_range: f64,
-) -> anyhow::Result<f64> {
-    const WIN: usize = 7;
-    if h < WIN || w < WIN {
-        bail!("SSIM needs a crop of at least 7x7 pixels, found {w}x{h}");
-    }
-    let (c1, c2) = ((0.01 * data_range).powi(2), (0.03 * data_range).powi(2));
-    let np = (WIN * WIN) as f64;
-    let cov_norm = np / (np - 1.0);
-    let pad = (WIN - 1) / 2;
-    let mut total = 0.0;
-    for c in 0..3 {
-        let at = |img: &[f64], y: usize, x: usize| img[3 * (y * w + x) + c];
-        let (mut sum, mut n) = (0.0, 0usize);
-        // Only windows fully inside the image survive the border crop, so no padding rule
-        // is needed.
-        for y in pad..h - pad {
-            for x in pad..w - pad {
-                let (mut ux, mut uy, mut uxx, mut uyy, mut uxy) = (0.0, 0.0, 0.0, 0.0, 0.0);
-                for yy in y - pad..=y + pad {
-                    for xx in x - pad..=x + pad {
-                        let (p, q) = (at(a, yy, xx), at(b, yy, xx));
-                        ux += p;
-                        uy += q;
-                        uxx += p * p;
-                        uyy += q * q;
-                        uxy += p * q;
-                    }
-                }
-                let (ux, uy, uxx, uyy, uxy) = (ux / np, uy / np, uxx / np, uyy / np, uxy / np);
-                let vx = cov_norm * (uxx - ux * ux);
-                let vy = cov_norm * (uyy - uy * uy);
-                let vxy = cov_norm * (uxy - ux * uy);
-                let s = ((2.0 * ux * uy + c1) * (2.0 * vxy + c2))
-                    / ((ux * ux + uy * uy + c1) * (vx + vy + c2));
-                sum += s;
-                n += 1;
-            }
-        }
-        total += sum / n as f64;
-    }
-    Ok(total / 3.0)
+/// scikit-image `structural_similarity` as the reference called it (spec data.md §8.3 a);
+/// see `pma_data::metrics::ssim`. a, b: [h·w·3] channels last.
+#[cfg(test)]
+fn ssim_skimage(a: &[f64], b: &[f64], h: usize, w: usize, data_range: f64) -> anyhow::Result<f64> {
+    Ok(pma_data::metrics::ssim(a, b, h, w, data_range)?)
 }
 
 /// [GT | render | error heat map], upscaled so small images stay readable.

@@ -7,7 +7,7 @@ use std::io::BufWriter;
 use std::path::PathBuf;
 
 use anyhow::{bail, Context, Result};
-use candle_core::{Device, Tensor};
+use candle_core::Tensor;
 use pma_data::dataset::npz::{MemberData, NpyData, NpzReader, NpzWriter};
 use pma_model::avatar::{Avatar, ForwardOptions, Poses, Rays};
 use pma_model::checkpoint;
@@ -30,6 +30,14 @@ pub struct Args {
     /// Evaluate in training mode (frame codes looked up directly; no density noise).
     #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
     train_mode: bool,
+    /// Compute device: cpu, cuda, cuda:N, metal (cuda/metal need a binary built with that
+    /// feature).
+    #[arg(long, default_value = "cpu")]
+    device: String,
+    /// After the forward whose outputs are written, run this many more and print their
+    /// median wall time (the first call pays one-off costs such as GPU kernel loading).
+    #[arg(long, default_value_t = 0)]
+    time: usize,
 }
 
 struct Batch {
@@ -94,7 +102,7 @@ impl Batch {
 }
 
 pub fn run(args: Args) -> Result<()> {
-    let dev = Device::Cpu;
+    let dev = super::device(&args.device)?;
     let file = args.batch.display().to_string();
     let mut reader = NpzReader::open(&args.batch)?;
     let mut arrays = HashMap::new();
@@ -189,6 +197,27 @@ pub fn run(args: Args) -> Result<()> {
         inference: false,
     };
     let out = avatar.forward(&rays, &poses, &mut opts, None)?;
+    if args.time > 0 {
+        let mut secs = Vec::with_capacity(args.time);
+        for _ in 0..args.time {
+            // Synchronise on both sides: GPU work is queued asynchronously, so the clock
+            // must not start before earlier work ends nor stop before this work does.
+            dev.synchronize()?;
+            let t0 = std::time::Instant::now();
+            let o = avatar.forward(&rays, &poses, &mut opts, None)?;
+            dev.synchronize()?;
+            secs.push(t0.elapsed().as_secs_f64());
+            drop(o);
+        }
+        secs.sort_by(f64::total_cmp);
+        println!(
+            "forward on {}: median {:.4} s, min {:.4} s over {} runs ({r} rays)",
+            args.device,
+            secs[secs.len() / 2],
+            secs[0],
+            secs.len()
+        );
+    }
 
     let outputs: Vec<(&str, &Tensor)> = vec![
         ("rgb_map", &out.fine.rgb),

@@ -32,7 +32,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{bail, Context as _};
-use candle_core::{Device, Tensor};
+use candle_core::Tensor;
 use image::codecs::gif::{GifEncoder, Repeat};
 use image::{Delay, Frame, RgbImage, RgbaImage};
 use pma_data::camera::Camera;
@@ -127,6 +127,12 @@ pub struct Args {
     /// No progress bar.
     #[arg(long)]
     pub quiet: bool,
+    #[command(flatten)]
+    pub cull: super::bench::CullArgs,
+    /// Compute device: cpu, cuda, cuda:N, metal (cuda/metal need a binary built with that
+    /// feature).
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
     /// Output directory.
     #[arg(long)]
     pub out: PathBuf,
@@ -184,14 +190,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         bail!("--views must be >= 1");
     }
     let res = args.res.as_deref().map(parse_resolution).transpose()?;
-    let device = Device::Cpu;
+    let device = super::device(&args.device)?;
     let dirs = if args.reference_dirs {
         ViewDirs::Reference
     } else {
         ViewDirs::Normalized
     };
-    let avatar = load_avatar(&args.model, &device, dirs)
+    let mut avatar = load_avatar(&args.model, &device, dirs)
         .with_context(|| format!("loading model {}", args.model.display()))?;
+    args.cull.apply(&mut avatar)?;
 
     let data = match &args.data {
         Some(d) => {

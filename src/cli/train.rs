@@ -47,9 +47,18 @@ pub struct Args {
     /// Random seed (model initialisation, ray sampling, density noise); overrides the config.
     #[arg(long)]
     pub seed: Option<u64>,
+    /// Rays per forward/backward chunk of a training step (gradients accumulate over the
+    /// chunks, the step is unchanged; memory is bounded by the chunk). 0 = automatic (128 for
+    /// the default preset); overrides the config, also on resume.
+    #[arg(long)]
+    pub chunk_rays: Option<usize>,
     /// No progress bar (log lines only).
     #[arg(long)]
     pub quiet: bool,
+    /// Compute device: cpu, cuda, cuda:N, metal (cuda/metal need a binary built with that
+    /// feature).
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
 }
 
 #[cfg(not(feature = "train"))]
@@ -217,8 +226,12 @@ mod imp {
         /// Held-out data for the periodic evaluation (images with `eval_tag` 1 if tagged).
         pub eval_data: Option<PathBuf>,
         pub quiet: bool,
+        /// Overrides `train.chunk_rays` (memory only: the step is the same).
+        pub chunk_rays: Option<usize>,
         /// Plot title.
         pub title: String,
+        /// Where the model trains.
+        pub device: Device,
     }
 
     /// What a training session did.
@@ -266,7 +279,9 @@ mod imp {
             minutes: args.minutes,
             eval_data,
             quiet: args.quiet,
+            chunk_rays: args.chunk_rays,
             title: "pma train: held-out PSNR vs wall-clock time".into(),
+            device: super::super::device(&args.device)?,
         })?;
         println!(
             "{} at iteration {} ({} this session, {:.1} it/s, {} skipped); model: {}",
@@ -324,6 +339,7 @@ mod imp {
                 // comes from the data).
                 a.train.iters = 0;
                 b.train.iters = 0;
+                a.train.chunk_rays = b.train.chunk_rays;
                 a.model.n_framecodes = b.model.n_framecodes;
                 if a != b {
                     bail!(
@@ -340,6 +356,9 @@ mod imp {
         };
         if let Some(n) = req.iters {
             run.train.iters = n;
+        }
+        if let Some(c) = req.chunk_rays {
+            run.train.chunk_rays = c;
         }
         run.validate()?;
         Ok(run)
@@ -378,7 +397,7 @@ mod imp {
     /// Train until `iters` or the time budget or Ctrl-C, checkpointing as configured.
     pub fn train_run(req: TrainRequest) -> anyhow::Result<TrainOutcome> {
         let run = resolve_run(&req)?;
-        let device = Device::Cpu;
+        let device = req.device.clone();
         if !req.resume && !req.overwrite && req.out.join(STATE_FILE).exists() {
             bail!(
                 "{} already holds a run (pass --resume to continue it, or choose another --out)",

@@ -191,11 +191,21 @@ impl NpzReader {
     ) -> Result<(MemberInfo, NpyFile<zip::read::ZipFile<'_, BufReader<File>>>)> {
         let file = self.file.clone();
         let name = format!("{key}.npy");
-        let zf = self.zip.by_name(&name).map_err(|e| DataError::Format {
+        let open_err = |e: zip::result::ZipError| DataError::Format {
             file: file.clone(),
             key: key.into(),
             msg: format!("cannot open member {name}: {e}"),
+        };
+        // npyz multiplies the shape unchecked (a panic in debug builds, a
+        // wrapped count in release), so the claim is checked first.
+        let zf = self.zip.by_name(&name).map_err(open_err)?;
+        let declared = zf.size();
+        check_npy_claim(zf, declared).map_err(|msg| DataError::Format {
+            file: file.clone(),
+            key: key.into(),
+            msg,
         })?;
+        let zf = self.zip.by_name(&name).map_err(open_err)?;
         let compressed = zf.compression() != zip::CompressionMethod::Stored;
         let size = zf.size();
         let npy = NpyFile::new(zf).map_err(|e| DataError::Format {
@@ -301,6 +311,57 @@ impl NpzReader {
             arr.notes.push("converted from Fortran order".into());
         }
         Ok(arr)
+    }
+}
+
+/// Checks the shape an NPY header claims before npyz parses it: its element
+/// count must not overflow, and its payload must fit in the `declared` size of
+/// the member holding it. Headers this scanner cannot read are left to npyz.
+pub(crate) fn check_npy_claim(
+    mut member: impl Read,
+    declared: u64,
+) -> std::result::Result<(), String> {
+    let mut head = Vec::new();
+    // Magic (6) + version (2) + length (2 or 4) + a header of at most 64 KiB in practice.
+    (&mut member)
+        .take(12 + (1 << 16))
+        .read_to_end(&mut head)
+        .map_err(|e| format!("cannot read the NPY header: {e}"))?;
+    let text = String::from_utf8_lossy(&head);
+    let claim = |k: &str| {
+        let at = text.find(k)? + k.len();
+        let rest = text[at..].trim_start().strip_prefix(':')?.trim_start();
+        Some(rest.to_string())
+    };
+    let Some(shape) = claim("'shape'") else {
+        return Ok(());
+    };
+    let Some(inner) = shape.strip_prefix('(').and_then(|r| r.split(')').next()) else {
+        return Ok(());
+    };
+    let mut count: u64 = 1;
+    for d in inner.split(',').map(str::trim).filter(|d| !d.is_empty()) {
+        let Ok(d) = d.parse::<u64>() else {
+            return Ok(());
+        };
+        count = count
+            .checked_mul(d)
+            .ok_or_else(|| format!("shape ({inner}) overflows a 64-bit element count"))?;
+    }
+    // The item size ends the dtype descriptor (`<f4`, `|u1`); 1 if unreadable.
+    let item: u64 = claim("'descr'")
+        .and_then(|d| {
+            let d = d.trim_start_matches(['\'', '"']);
+            let digits: String = d.chars().skip(2).take_while(char::is_ascii_digit).collect();
+            digits.parse().ok()
+        })
+        .unwrap_or(1)
+        .max(1);
+    match count.checked_mul(item) {
+        Some(bytes) if bytes <= declared => Ok(()),
+        _ => Err(format!(
+            "shape ({inner}) of {item}-byte elements does not fit in the member's {declared} bytes (corrupt or truncated)"
+        )),
     }
 }
 

@@ -211,7 +211,9 @@ impl Bvh {
                 "expected a positive frame time, found {frame_time}"
             )));
         }
-        let mut values = Vec::with_capacity(n_frames * n_channels);
+        // The header's count only sizes the buffer up to what the file holds.
+        let remaining = tok.items.len().saturating_sub(tok.next);
+        let mut values = Vec::with_capacity(n_frames.saturating_mul(n_channels).min(remaining));
         for f in 0..n_frames {
             for c in 0..n_channels {
                 if tok.peek().is_none() {
@@ -308,6 +310,9 @@ impl Bvh {
     }
 }
 
+/// Most joints a hierarchy may declare (CMU skeletons have 31).
+const MAX_JOINTS: usize = 1024;
+
 /// Parses `name { OFFSET … CHANNELS … children }` after `ROOT`/`JOINT`.
 fn parse_joint(
     tok: &mut Tokens<'_>,
@@ -315,6 +320,10 @@ fn parse_joint(
     joints: &mut Vec<BvhJoint>,
     n_channels: &mut usize,
 ) -> Result<(), MotionError> {
+    // Skeletons have tens of joints; a bound keeps hostile nesting off the stack.
+    if joints.len() >= MAX_JOINTS {
+        return Err(tok.err(format!("more than {MAX_JOINTS} joints")));
+    }
     let name = tok.next("a joint name")?.to_string();
     if name == "{" {
         tok.next -= 1;

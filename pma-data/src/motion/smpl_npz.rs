@@ -42,6 +42,24 @@ fn read_from<R: Read + Seek>(
         key: key.to_string(),
         msg,
     };
+    // npyz multiplies header shapes unchecked; check each member's claim first.
+    let mut zip = zip::ZipArchive::new(reader).map_err(|e| npz_err("<archive>", e.to_string()))?;
+    for i in 0..zip.len() {
+        let m = zip
+            .by_index(i)
+            .map_err(|e| npz_err("<archive>", e.to_string()))?;
+        let key = m
+            .name()
+            .map_err(|e| npz_err("<archive>", e.to_string()))?
+            .trim_end_matches(".npy")
+            .to_string();
+        let declared = m.size();
+        crate::dataset::npz::check_npy_claim(m, declared).map_err(|msg| npz_err(&key, msg))?;
+    }
+    let mut reader = zip.into_inner();
+    reader
+        .rewind()
+        .map_err(|e| npz_err("<archive>", e.to_string()))?;
     let mut npz =
         npyz::npz::NpzArchive::new(reader).map_err(|e| npz_err("<archive>", e.to_string()))?;
 

@@ -5,8 +5,9 @@
 //! * [`state`]: the train-state file (optimizer moments, RNG, sampler, iteration).
 //! * `log`: `log.csv`.
 //! * [`source`]: training batches from a dataset (spec data.md §7).
-//! * [`trainer`]: one training step (forward, loss, backward, clip, Adam, schedule), non-finite
-//!   step skipping, checkpoint and resume.
+//! * [`trainer`]: one training step (forward, loss, backward, clip, Adam, schedule), run in
+//!   chunks of rays with gradient accumulation when the batch is large, non-finite step
+//!   skipping, checkpoint and resume.
 //!
 //! The inference path of the crate does not depend on anything here.
 

@@ -11,16 +11,14 @@
 //!    (`perturb_bg`; black otherwise), and the renderer composites over the same `bg`;
 //! 5. per-image pose data (bones, skts, cyls) once per image, frame code = image index.
 //!
-//! All draws come from one ChaCha8 stream; the permutation, cursor and stream position are
-//! the source's saved state.
+//! The sampling itself is `pma_data::sampler::Sampler` (one ChaCha8 stream); this module adds
+//! the tensors and the saved state (the permutation, cursor and stream position).
 
 use std::sync::Arc;
 
 use candle_core::{Device, Tensor};
 use pma_data::dataset::Dataset;
-use rand::seq::SliceRandom;
-use rand::{Rng, SeedableRng};
-use rand_chacha::ChaCha8Rng;
+use pma_data::sampler::Sampler;
 use serde::{Deserialize, Serialize};
 
 use super::state::RngState;
@@ -28,18 +26,10 @@ use super::trainer::{BatchSource, TrainBatch};
 use super::TrainError;
 use crate::avatar::{Poses, Rays};
 
-/// The sampler's stream of the run seed (distinct from initialisation and density noise).
-const SAMPLER_STREAM: u64 = 0x7361_6d70;
-
 pub struct DatasetSource {
     data: Arc<Dataset>,
-    rays_per_image: usize,
-    images_per_step: usize,
-    perturb_bg: bool,
     device: Device,
-    rng: ChaCha8Rng,
-    perm: Vec<usize>,
-    cursor: usize,
+    sampler: Sampler,
 }
 
 #[derive(Serialize, Deserialize)]
@@ -99,105 +89,29 @@ impl DatasetSource {
             data.image_camera(i)?;
             data.pose_row(i)?;
         }
-        let mut rng = ChaCha8Rng::seed_from_u64(seed);
-        rng.set_stream(SAMPLER_STREAM);
+        let sampler =
+            Sampler::for_dataset(&data, rays_per_step, images_per_step, perturb_bg, seed)?;
         Ok(Self {
             data,
-            rays_per_image,
-            images_per_step,
-            perturb_bg,
             device: device.clone(),
-            rng,
-            perm: Vec::new(),
-            cursor: 0,
+            sampler,
         })
-    }
-
-    fn next_images(&mut self) -> Vec<usize> {
-        let mut out = Vec::with_capacity(self.images_per_step);
-        while out.len() < self.images_per_step {
-            if self.cursor >= self.perm.len() {
-                self.perm = (0..self.data.n_images()).collect();
-                self.perm.shuffle(&mut self.rng);
-                self.cursor = 0;
-            }
-            out.push(self.perm[self.cursor]);
-            self.cursor += 1;
-        }
-        out.sort_unstable();
-        out
-    }
-
-    fn pixels(&mut self, n: usize) -> Vec<usize> {
-        let hw = self.data.height() * self.data.width();
-        let valid: Vec<usize> = match self.data.sampling_mask(n) {
-            Some(m) => m
-                .outer_iter()
-                .enumerate()
-                .filter(|(_, v)| v[0] > 0)
-                .map(|(i, _)| i)
-                .collect(),
-            None => Vec::new(),
-        };
-        let mut px: Vec<usize> = if valid.len() >= self.rays_per_image {
-            rand::seq::index::sample(&mut self.rng, valid.len(), self.rays_per_image)
-                .into_iter()
-                .map(|i| valid[i])
-                .collect()
-        } else {
-            rand::seq::index::sample(&mut self.rng, hw, self.rays_per_image).into_vec()
-        };
-        px.sort_unstable();
-        px
     }
 }
 
 impl BatchSource for DatasetSource {
     fn next_batch(&mut self) -> Result<TrainBatch, TrainError> {
-        let images = self.next_images();
-        let k = self.rays_per_image;
-        let r = k * images.len();
-        let (mut o, mut d, mut bg, mut target) = (
-            Vec::with_capacity(3 * r),
-            Vec::with_capacity(3 * r),
-            Vec::with_capacity(3 * r),
-            Vec::with_capacity(3 * r),
-        );
-        let mut framecodes = Vec::with_capacity(r);
-        let mut bones = Vec::with_capacity(images.len());
-        let mut skts = Vec::with_capacity(images.len() * 16 * 24);
-        let mut cyls = Vec::with_capacity(images.len() * 5);
         let data = self.data.clone();
+        let b = self.sampler.next_batch(&data)?;
+        let r = b.len();
         let (all_skts, all_cyls) = (
             data.skts.as_ref().expect("checked"),
             data.cyls.as_ref().expect("checked"),
         );
-        for &n in &images {
-            let cam = data.image_camera(n)?;
-            let p = data.pose_row(n)?;
-            let (img, mask) = (
-                data.image(n).expect("checked"),
-                data.mask(n).expect("checked"),
-            );
-            let pixels = self.pixels(n);
-            let (origins, dirs) = cam.rays(&pixels, true);
-            for ((&px, ro), rd) in pixels.iter().zip(origins).zip(dirs) {
-                o.extend_from_slice(&ro);
-                d.extend_from_slice(&rd);
-                let fg = (mask[[px, 0]] > 0) as u8 as f32;
-                // Black plates (PM zeroes the stored backgrounds); noise on background pixels.
-                let noise: [f32; 3] = if self.perturb_bg {
-                    self.rng.gen()
-                } else {
-                    [0.0; 3]
-                };
-                for c in 0..3 {
-                    let b = (1.0 - fg) * noise[c];
-                    bg.push(b);
-                    target.push(img[[px, c]] as f32 / 255.0 * fg + (1.0 - fg) * b);
-                }
-                framecodes.push(n as i64);
-            }
+        let mut bones = Vec::with_capacity(b.images.len());
+        let mut skts = Vec::with_capacity(b.images.len() * 16 * 24);
+        let mut cyls = Vec::with_capacity(b.images.len() * 5);
+        for &p in &b.pose_rows {
             bones.push(data.pose_bones(p));
             skts.extend(
                 all_skts
@@ -210,28 +124,28 @@ impl BatchSource for DatasetSource {
             cyls.extend(all_cyls.row(p).iter().copied());
         }
         let dev = &self.device;
-        let p = images.len();
+        let p = b.images.len();
         Ok(TrainBatch {
             rays: Rays {
-                origins: Tensor::from_vec(o, (r, 3), dev)?,
-                dirs: Tensor::from_vec(d, (r, 3), dev)?,
-                bgs: Some(Tensor::from_vec(bg, (r, 3), dev)?),
-                framecodes,
+                origins: Tensor::from_vec(b.origins, (r, 3), dev)?,
+                dirs: Tensor::from_vec(b.dirs, (r, 3), dev)?,
+                bgs: Some(Tensor::from_vec(b.bgs, (r, 3), dev)?),
+                framecodes: b.framecodes,
             },
             poses: Poses {
                 bones,
                 skts: Tensor::from_vec(skts, (p, 24, 4, 4), dev)?,
                 cyls: Tensor::from_vec(cyls, (p, 5), dev)?,
             },
-            target: Tensor::from_vec(target, (r, 3), dev)?,
+            target: Tensor::from_vec(b.targets, (r, 3), dev)?,
         })
     }
 
     fn state(&self) -> serde_json::Value {
         serde_json::to_value(SourceState {
-            rng: RngState::capture(&self.rng),
-            perm: self.perm.clone(),
-            cursor: self.cursor,
+            rng: RngState::capture(self.sampler.rng()),
+            perm: self.sampler.permutation().to_vec(),
+            cursor: self.sampler.cursor(),
         })
         .unwrap_or(serde_json::Value::Null)
     }
@@ -255,9 +169,9 @@ impl BatchSource for DatasetSource {
         if s.cursor > s.perm.len() || s.perm.iter().any(|&i| i >= n) {
             return Err(bad("cursor or image index out of range".into()));
         }
-        self.rng = s.rng.restore()?;
-        self.perm = s.perm;
-        self.cursor = s.cursor;
-        Ok(())
+        let rng = s.rng.restore()?;
+        self.sampler
+            .restore(rng, s.perm, s.cursor)
+            .map_err(|e| bad(e.to_string()))
     }
 }

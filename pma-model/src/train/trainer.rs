@@ -20,7 +20,8 @@ use super::adam::{clip_grad_norm, global_norm, Adam};
 use super::source::DatasetSource;
 use super::state::{fingerprint, Progress, RngState, TrainState};
 use super::TrainError;
-use crate::avatar::{Avatar, ForwardOptions, Outputs, Poses, Rays};
+use crate::avatar::{Avatar, ForwardOptions, Outputs, PoseFeatures, Poses, Rays};
+use crate::config::Config;
 use crate::loss::LossWeights;
 use crate::presets::{RunConfig, TrainConfig};
 use pma_data::dataset::Dataset;
@@ -221,6 +222,81 @@ pub fn training_loss(
     Ok((loss.total, parts))
 }
 
+/// Automatic chunking of a training step (`chunk_rays = 0`): at most this many
+/// point × joint × feature elements per chunk (samples per ray × joints × the widest per-joint
+/// feature). Forward and backward keep some 50 tensors of that size alive: a 512-ray chunk
+/// of the paper config peaked near 8 GiB, so the budget is 128 rays of it (about 2 GiB).
+pub const AUTO_CHUNK_POINT_JOINTS: usize = 128 * 72 * 24 * 128;
+
+/// Rays per chunk of a training step (see [`TrainConfig::chunk_rays`]).
+pub fn chunk_rays(train: &TrainConfig, model: &Config) -> usize {
+    if train.chunk_rays > 0 {
+        return train.chunk_rays;
+    }
+    let width = model.win_hidden.max(model.point_enc_dim).max(1);
+    let per_ray = (model.n_samples + model.n_importance) * model.n_joints * width;
+    (AUTO_CHUNK_POINT_JOINTS / per_ray.max(1)).max(1)
+}
+
+/// The density noise of one step, drawn a whole block (all rays of the batch) at a time in
+/// the order the unchunked forward draws it; each chunk reads its own rays' rows.
+#[derive(Default)]
+struct NoiseTape {
+    /// One block per noise call of a forward pass (coarse, fine): [R·S] each.
+    blocks: Vec<Vec<f32>>,
+    /// Calls made by the current chunk.
+    call: usize,
+    /// The chunk whose calls are being counted (its first row).
+    chunk: Option<usize>,
+}
+
+impl NoiseTape {
+    /// `n` noise values for the samples of rays `rows` (S = n / rows per ray) of a batch of
+    /// `r` rays.
+    fn rows(
+        &mut self,
+        rng: &mut ChaCha8Rng,
+        n: usize,
+        rows: &[usize],
+        r: usize,
+        device: &Device,
+    ) -> crate::error::Result<Tensor> {
+        use rand_distr::Distribution;
+        if rows.is_empty() || n % rows.len() != 0 {
+            return Err(crate::error::ModelError::Input(format!(
+                "density noise: {n} samples requested for {} rays (not a whole number per ray)",
+                rows.len()
+            )));
+        }
+        if self.chunk != Some(rows[0]) {
+            self.chunk = Some(rows[0]);
+            self.call = 0;
+        }
+        let s = n / rows.len();
+        if self.blocks.len() == self.call {
+            self.blocks.push(
+                (0..r * s)
+                    .map(|_| rand_distr::StandardNormal.sample(&mut *rng))
+                    .collect(),
+            );
+        }
+        let block = &self.blocks[self.call];
+        if block.len() != r * s {
+            return Err(crate::error::ModelError::Input(format!(
+                "density noise call {}: {s} samples per ray, but the first chunk drew {} per ray",
+                self.call,
+                block.len() / r
+            )));
+        }
+        self.call += 1;
+        let mut v = Vec::with_capacity(n);
+        for &row in rows {
+            v.extend_from_slice(&block[row * s..(row + 1) * s]);
+        }
+        Ok(Tensor::from_vec(v, n, device)?)
+    }
+}
+
 /// Gradient hook: sees (and may change) the gradients of a step before clipping, aligned
 /// with [`Trainer::param_names`].
 pub type GradHook<'a> = &'a mut dyn FnMut(&mut [Option<Tensor>]);
@@ -374,25 +450,165 @@ impl Trainer {
 
     /// One iteration on `batch`: forward (training mode, density noise), loss, backward,
     /// `hook`, clip, Adam, schedule. A non-finite loss skips the backward pass too.
+    ///
+    /// A batch of more than [`chunk_rays`] rays runs in chunks (see [`Self::chunked_grads`]);
+    /// clipping and Adam then see the accumulated gradient, as if it had been one pass.
     pub fn step_on(
         &mut self,
         batch: &TrainBatch,
         hook: Option<GradHook>,
     ) -> Result<StepStats, TrainError> {
-        let (loss, parts) = self.loss_on(batch)?;
-        let mut grads: Vec<Option<Tensor>> = if parts.total.is_finite() {
-            let store = loss.backward()?;
-            self.params
-                .iter()
-                .map(|v| store.get(v.as_tensor()).cloned())
-                .collect()
+        let chunk = chunk_rays(&self.run.train, self.avatar.config());
+        let (parts, mut grads) = if batch.rays.origins.dim(0)? > chunk {
+            self.chunked_grads(batch, chunk)?
         } else {
-            vec![None; self.params.len()]
+            let (loss, parts) = self.loss_on(batch)?;
+            let grads = if parts.total.is_finite() {
+                let store = loss.backward()?;
+                self.params
+                    .iter()
+                    .map(|v| store.get(v.as_tensor()).cloned())
+                    .collect()
+            } else {
+                vec![None; self.params.len()]
+            };
+            (parts, grads)
         };
         if let Some(h) = hook {
             h(&mut grads);
         }
         self.opt.apply(parts, grads)
+    }
+
+    /// Loss parts and gradients of one step on `batch`, computed `chunk` rays at a time
+    /// (at least one ray per pose), so memory is bounded by the chunk, not the batch.
+    ///
+    /// Every chunk takes the same slice of each pose's block of rays, so it is itself a valid
+    /// batch of all P poses and the per-pose work (GNN, `layer_pose`, box scales) is done once
+    /// and shared: each chunk's backward pass adds its share to the GNN's gradient. The L1
+    /// terms are sums scaled by `1/(3R)` of the whole batch (the same two multiplications
+    /// as the mean), so the chunk losses add up to the unchunked loss; the box-volume term
+    /// goes with the first chunk. The density noise of the whole step is drawn once, in the
+    /// unchunked order, and each chunk takes its rays' rows; rays that miss the bounding
+    /// cylinder get the whole batch's fallback bounds. What differs from one pass is only
+    /// the order of float summation.
+    pub fn chunked_grads(
+        &mut self,
+        batch: &TrainBatch,
+        chunk: usize,
+    ) -> Result<(LossParts, Vec<Option<Tensor>>), TrainError> {
+        let host = |t: &Tensor| -> Result<Vec<f32>, TrainError> {
+            Ok(t.flatten_all()?.to_device(&Device::Cpu)?.to_vec1::<f32>()?)
+        };
+        let pose = self.avatar.pose_features(&batch.poses, None)?;
+        let bounds = self.avatar.ray_caster().near_far(
+            &host(&batch.rays.origins)?,
+            &host(&batch.rays.dirs)?,
+            &host(&batch.poses.cyls)?,
+            &host(&batch.poses.skts)?,
+            &host(&pose.scales.detach())?,
+        )?;
+        self.avatar.pin_miss_fill(Some(bounds.miss_fill));
+        let result = self.chunk_loop(batch, &pose, chunk);
+        self.avatar.pin_miss_fill(None);
+        result
+    }
+
+    fn chunk_loop(
+        &mut self,
+        batch: &TrainBatch,
+        pose: &PoseFeatures,
+        chunk: usize,
+    ) -> Result<(LossParts, Vec<Option<Tensor>>), TrainError> {
+        let r = batch.rays.origins.dim(0)?;
+        let n_poses = batch.poses.bones.len();
+        if n_poses == 0 || r % n_poses != 0 {
+            return Err(TrainError::Config(format!(
+                "{r} rays cannot be split into {n_poses} equal per-pose blocks"
+            )));
+        }
+        let k = r / n_poses;
+        let per_pose = (chunk / n_poses).clamp(1, k);
+        let device = self.avatar.device().clone();
+        let cfg = self.run.train.clone();
+        let inv_n = 1.0 / (3 * r) as f64;
+        let (avatar, rng) = (&self.avatar, &mut self.noise_rng);
+        let mut tape = NoiseTape::default();
+        let mut grads: Vec<Option<Tensor>> = vec![None; self.params.len()];
+        let (mut fine, mut coarse, mut sq, mut scale) = (0f64, 0f64, 0f64, 0f64);
+        let mut finite = true;
+        for start in (0..k).step_by(per_pose) {
+            let len = per_pose.min(k - start);
+            let rows: Vec<usize> = (0..n_poses)
+                .flat_map(|p| p * k + start..p * k + start + len)
+                .collect();
+            let idx = Tensor::from_vec(
+                rows.iter().map(|&i| i as u32).collect::<Vec<_>>(),
+                rows.len(),
+                &device,
+            )?;
+            let rays = Rays {
+                origins: batch.rays.origins.index_select(&idx, 0)?,
+                dirs: batch.rays.dirs.index_select(&idx, 0)?,
+                bgs: match &batch.rays.bgs {
+                    Some(b) => Some(b.index_select(&idx, 0)?),
+                    None => None,
+                },
+                framecodes: rows.iter().map(|&i| batch.rays.framecodes[i]).collect(),
+            };
+            let target = batch.target.index_select(&idx, 0)?;
+            let mut noise = |n: usize| tape.rows(&mut *rng, n, &rows, r, &device);
+            let mut opts = ForwardOptions {
+                training: true,
+                noise: Some(&mut noise),
+                inference: false,
+            };
+            let out = avatar.forward_with_pose(&rays, &batch.poses, pose, &mut opts)?;
+            // sum · (1/n) · w: the multiplications the unchunked mean and weight make.
+            let l1 = |pred: &Tensor, w: f64| -> Result<Tensor, TrainError> {
+                Ok((((pred - &target)?.abs()?.sum_all()? * inv_n)? * w)?)
+            };
+            let mut loss =
+                (l1(&out.fine.rgb, cfg.loss_fine)? + l1(&out.coarse.rgb, cfg.loss_coarse)?)?;
+            let scalar = |t: &Tensor| -> Result<f64, TrainError> {
+                Ok(t.to_dtype(candle_core::DType::F64)?.to_scalar::<f64>()?)
+            };
+            fine += scalar(&(&out.fine.rgb.detach() - &target)?.abs()?.sum_all()?)? * inv_n;
+            coarse += scalar(&(&out.coarse.rgb.detach() - &target)?.abs()?.sum_all()?)? * inv_n;
+            sq += scalar(&(&out.fine.rgb.detach() - &target)?.sqr()?.sum_all()?)? * inv_n;
+            if start == 0 {
+                let volume = crate::loss::box_volume(&out.vol_scale)?;
+                scale = scalar(&volume)?;
+                loss = (loss + (volume * cfg.loss_scale)?)?;
+            }
+            // Once the total is non-finite the step is skipped: the remaining chunks still run
+            // forward for the logged loss terms, but nothing is differentiated.
+            finite &= scalar(&loss)?.is_finite();
+            if finite {
+                let store = loss.backward()?;
+                for (g, v) in grads.iter_mut().zip(&self.params) {
+                    if let Some(d) = store.get(v.as_tensor()) {
+                        let d = d.detach();
+                        *g = Some(match g.take() {
+                            Some(sum) => (sum + d)?,
+                            None => d,
+                        });
+                    }
+                }
+            }
+        }
+        let total = fine * cfg.loss_fine + coarse * cfg.loss_coarse + scale * cfg.loss_scale;
+        let parts = LossParts {
+            total: if finite { total } else { f64::NAN },
+            fine,
+            coarse,
+            scale,
+            psnr: psnr_from_mse(sq),
+        };
+        if !finite {
+            grads = vec![None; self.params.len()];
+        }
+        Ok((parts, grads))
     }
 
     /// Forward pass and loss on `batch` in training mode (consumes density noise).
@@ -475,6 +691,9 @@ impl Trainer {
             let (mut a, mut b) = (saved, run.clone());
             a.train.iters = 0;
             b.train.iters = 0;
+            // Chunking changes memory use, not the step.
+            a.train.chunk_rays = 0;
+            b.train.chunk_rays = 0;
             if a != b {
                 return Err(fail(
                     "the run configuration differs from the one the checkpoint was trained with"

@@ -1,0 +1,82 @@
+//! CPU throughput of the paper configuration in parity mode, in network samples per second
+//! (rays × (48 + 24)), to compare with the reference's figures measured on the same machine
+//! (issue 6: training 4,223 samples/s at 512 rays, inference 8,823 samples/s at 4,096 rays).
+//!
+//! cargo run --release -p pma-model --features train --example throughput -- [--train-rays 512]
+//!     [--infer-rays 4096] [--repeats 3]
+//!
+//! Medians over `--repeats` after one warm-up each; a training step includes backward, clip and
+//! Adam. Inference is `Avatar::render_rays` (no gradient, bounded chunks).
+
+#[path = "support/scene.rs"]
+mod scene;
+
+use std::time::Instant;
+
+use candle_core::Device;
+use pma_model::train::{BatchSource, DatasetSource, Preset, RunConfig, Trainer};
+
+const REF_TRAIN: f64 = 4223.0;
+const REF_INFER: f64 = 8823.0;
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let train_rays: usize = scene::arg("--train-rays", 512);
+    let infer_rays: usize = scene::arg("--infer-rays", 4096);
+    let repeats: usize = scene::arg("--repeats", 3).max(1);
+    let dir = tempfile::tempdir()?;
+    let data = scene::scene(dir.path())?;
+    let mut run = RunConfig::from_preset(Preset::Paper);
+    let samples = (run.model.n_samples + run.model.n_importance) as f64;
+    println!(
+        "paper config, parity mode, {} threads",
+        candle_core::utils::get_num_threads()
+    );
+
+    if train_rays > 0 {
+        run.train.rays_per_step = train_rays;
+        let mut trainer = Trainer::new(run.clone(), data.clone(), &Device::Cpu)?;
+        let mut times = Vec::new();
+        for i in 0..=repeats {
+            let t = Instant::now();
+            trainer.step()?;
+            if i > 0 {
+                times.push(t.elapsed().as_secs_f64());
+            }
+        }
+        let m = scene::median(times);
+        let sps = train_rays as f64 * samples / m;
+        println!(
+            "training  {train_rays:>5} rays: median {:.2} s/step, {sps:.0} samples/s ({:.2}x the reference's {REF_TRAIN})",
+            m,
+            sps / REF_TRAIN
+        );
+    }
+
+    if infer_rays > 0 {
+        run.model.n_framecodes = data.n_images();
+        let rest = data.rest_pose.ok_or("scene without rest pose")?;
+        let avatar = pma_model::avatar::Avatar::new(run.model.clone(), &rest, 0, &Device::Cpu)?;
+        let mut src = DatasetSource::new(data, infer_rays, 16, false, 0, &Device::Cpu)?;
+        let batch = src.next_batch()?;
+        let mut times = Vec::new();
+        for i in 0..=repeats {
+            let t = Instant::now();
+            avatar.render_rays(&batch.rays, &batch.poses)?;
+            if i > 0 {
+                times.push(t.elapsed().as_secs_f64());
+            }
+        }
+        let m = scene::median(times);
+        let sps = infer_rays as f64 * samples / m;
+        println!(
+            "inference {infer_rays:>5} rays: median {:.2} s, {sps:.0} samples/s ({:.2}x the reference's {REF_INFER})",
+            m,
+            sps / REF_INFER
+        );
+    }
+    println!(
+        "peak RSS {:.0} MiB",
+        scene::peak_rss_mib().unwrap_or(f64::NAN)
+    );
+    Ok(())
+}

@@ -1,0 +1,775 @@
+//! `pma bench`: parity mode against each culling option, side by side in one process
+//! (issue 6). For every option: network points/s and rays/s of inference, ms per rendered
+//! W×H image, ms per training step, peak RSS of each phase, PSNR of the render against the
+//! parity render, the change of held-out PSNR against ground truth, held-out PSNR after the
+//! same wall-clock training budget, and the achieved GFLOP/s against an estimate of the
+//! machine's fp32 peak. Writes `bench.json` and `error_vs_time.png`.
+//!
+//! FLOPs are the matmul FLOPs of one network evaluation per point ([`flops_per_point`],
+//! 2·in·out per linear layer per row, per joint for the per-joint layers); element-wise
+//! work, the GNN (once per pose) and ray casting are not counted. The peak is
+//! cores × GHz × FLOP/cycle/core from /proc/cpuinfo: `cpu MHz` (the current clock, so a
+//! lower bound of the boost peak), the number of `processor` entries, and 32 FLOP/cycle with
+//! `avx2`+`fma` or `avx512f` (two 8-wide FMA pipes; Zen 4 runs 512-bit FMAs as two 256-bit
+//! halves), 8 otherwise.
+
+use std::path::PathBuf;
+
+#[derive(clap::Args, Debug, Clone)]
+pub struct Args {
+    /// Output directory (scene, bench.json, error_vs_time.png).
+    #[arg(long, default_value = "runs/bench")]
+    pub out: PathBuf,
+    /// Network preset (`cpu-small`, `default` = the paper's, `tiny`).
+    #[arg(long, default_value = "cpu-small")]
+    pub preset: String,
+    /// Use this trained model (its preset) instead of training one briefly in-process.
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// Seconds of in-process training of the model that is rendered (without --model).
+    #[arg(long, default_value_t = 60.0)]
+    pub train_seconds: f64,
+    /// Wall-clock training budget per option for the held-out-PSNR comparison (0 = skip).
+    #[arg(long, default_value_t = 20.0)]
+    pub budget_seconds: f64,
+    /// Rendered image size (square).
+    #[arg(long, default_value_t = 256)]
+    pub res: usize,
+    /// Timed repeats after one warm-up (medians are reported).
+    #[arg(long, default_value_t = 3)]
+    pub repeats: usize,
+    /// Held-out images for the PSNR columns.
+    #[arg(long, default_value_t = 2)]
+    pub eval_images: usize,
+    /// Sample thresholds to compare (each with ray culling on).
+    #[arg(long, value_delimiter = ',', default_value = "0,1e-6,1e-4,1e-2")]
+    pub thresholds: Vec<f64>,
+    /// Smallest run that exercises everything (tests): tiny preset, 32×32, one repeat,
+    /// 2 s budgets, a 32-pixel scene.
+    #[arg(long)]
+    pub quick: bool,
+    /// No progress bars.
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+#[cfg(not(feature = "train"))]
+pub fn run(_args: Args) -> anyhow::Result<()> {
+    anyhow::bail!("this build of pma has no training support; rebuild with `--features train` (on by default)")
+}
+
+#[cfg(feature = "train")]
+pub fn run(args: Args) -> anyhow::Result<()> {
+    imp::run(args)
+}
+
+/// Matmul FLOPs of one network evaluation of one point (see the module docs).
+pub fn flops_per_point(c: &pma_model::Config) -> f64 {
+    let lin = |i: usize, o: usize| 2.0 * i as f64 * o as f64;
+    let j = c.n_joints as f64;
+    let (ce, h, f) = (c.point_enc_dim, c.win_hidden, c.freq_dim);
+    // World → joint frames ([3,72]) and bone alignment (24 × [3,3]).
+    let mut total = lin(3, 3 * c.n_joints) + j * lin(3, 3);
+    // Both point encoders and the window's point projection, per joint.
+    total += j * (2.0 * lin(3, ce) + lin(ce, h));
+    // Window: two sine layers and the last layer; f^m = w·g.
+    total += 2.0 * lin(h, h) + lin(h, c.n_joints) + lin(c.n_joints, c.gnn_width.max(h));
+    // Pose extractor: sine layers, then the frequency/phase head (2 · n_pm · freq_dim).
+    let ph = c.pose_extractor_hidden;
+    total += lin(h, ph)
+        + (c.pose_extractor_depth.saturating_sub(1)) as f64 * lin(ph, ph)
+        + lin(ph, 2 * c.n_pm * f);
+    // Modulated layers.
+    total += lin(c.n_joints * ce, f) + (c.n_pm.saturating_sub(1)) as f64 * lin(f, f);
+    // Density trunk (skip layers take the modulator output again), σ head, feature,
+    // colour head on [feature; SH; frame code].
+    let s_dim = c.n_pm * f;
+    let w = c.trunk_width;
+    total += lin(s_dim, w);
+    for l in 1..c.trunk_depth {
+        let input = if c.skips.contains(&(l - 1)) {
+            w + s_dim
+        } else {
+            w
+        };
+        total += lin(input, w);
+    }
+    let view = c.sh_degree * c.sh_degree + if c.use_framecodes { c.framecode_ch } else { 0 };
+    total += lin(w, 1) + lin(w, w) + lin(w + view, c.view_width) + lin(c.view_width, 3);
+    total
+}
+
+/// Estimated fp32 peak of this machine in GFLOP/s and how it was estimated.
+pub fn fp32_peak() -> (f64, String) {
+    let info = std::fs::read_to_string("/proc/cpuinfo").unwrap_or_default();
+    let cores = info
+        .lines()
+        .filter(|l| l.starts_with("processor"))
+        .count()
+        .max(1);
+    let mhz = info
+        .lines()
+        .find(|l| l.starts_with("cpu MHz"))
+        .and_then(|l| l.split(':').nth(1))
+        .and_then(|v| v.trim().parse::<f64>().ok())
+        .unwrap_or(2000.0);
+    let flags = info
+        .lines()
+        .find(|l| l.starts_with("flags"))
+        .unwrap_or_default();
+    let has = |f: &str| flags.split_whitespace().any(|x| x == f);
+    let per_cycle = if has("avx512f") || (has("avx2") && has("fma")) {
+        32.0
+    } else {
+        8.0
+    };
+    let peak = cores as f64 * mhz / 1e3 * per_cycle;
+    (
+        peak,
+        format!(
+            "{cores} logical cores x {:.2} GHz (cpu MHz) x {per_cycle} FLOP/cycle/core (avx2+fma: two 8-wide FMA pipes)",
+            mhz / 1e3
+        ),
+    )
+}
+
+/// Peak resident set size of this process so far (VmHWM), MiB.
+pub fn peak_rss_mib() -> Option<f64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kib: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib / 1024.0)
+}
+
+/// Reset VmHWM to the current RSS (Linux `clear_refs` 5); false where unsupported.
+pub fn reset_peak_rss() -> bool {
+    std::fs::write("/proc/self/clear_refs", "5").is_ok()
+}
+
+/// One option's measurements (a row of `bench.json`).
+#[derive(Debug, Clone, Default, serde::Serialize, serde::Deserialize)]
+pub struct OptionResult {
+    pub name: String,
+    pub culling: pma_model::config::Culling,
+    /// Median ms per rendered image.
+    pub ms_per_image: f64,
+    /// Rays traced per image (pixels inside the body box) per second.
+    pub rays_per_s: f64,
+    /// Network points (far-away constants included) per second.
+    pub network_points_per_s: f64,
+    /// All samples the rendered rays stand for (rays × (Sc + Sf)) per second.
+    pub samples_per_s: f64,
+    pub network_points_per_image: u64,
+    /// Achieved matmul GFLOP/s (network points × FLOPs per point / time).
+    pub gflops: f64,
+    /// Median ms per training step (the option's culling in training).
+    pub ms_per_step: f64,
+    /// Peak RSS of this option's phases (VmHWM after a reset; process-wide if no reset).
+    pub peak_rss_mib: f64,
+    /// PSNR of this option's W×H render against the parity render (inf = identical).
+    pub psnr_vs_parity_render: f64,
+    /// Max |Δrgb| against the parity render.
+    pub max_abs_diff_vs_parity: f64,
+    /// Held-out PSNR (rendered model vs ground truth) and its loss against parity.
+    pub heldout_psnr: f64,
+    pub psnr_loss_vs_parity_db: f64,
+    /// Held-out PSNR after `budget_seconds` of training with this option from the same init.
+    pub budget_heldout_psnr: Option<f64>,
+    pub budget_iterations: Option<u64>,
+    /// Speed-up of rays/s against parity.
+    pub speedup_vs_parity: f64,
+}
+
+#[derive(Debug, Clone, Default, serde::Serialize, serde::Deserialize)]
+pub struct BenchReport {
+    pub preset: String,
+    pub res: usize,
+    pub repeats: usize,
+    pub model: String,
+    pub flops_per_point: f64,
+    pub peak_gflops: f64,
+    pub peak_estimate: String,
+    pub rss_reset_supported: bool,
+    /// Fraction of (image chunk, joint) pairs whose window is 0 on every coarse sample of
+    /// the chunk (what skipping optional joints could leave out).
+    pub inactive_joint_fraction: f64,
+    pub options: Vec<OptionResult>,
+}
+
+#[cfg(feature = "train")]
+mod imp {
+    use std::sync::Arc;
+    use std::time::Instant;
+
+    use anyhow::Context as _;
+    use candle_core::{Device, Tensor};
+    use pma_data::camera::Camera;
+    use pma_data::dataset::{Dataset, Profile};
+    use pma_data::synth::{generate, SynthConfig};
+    use pma_model::avatar::{Avatar, Poses};
+    use pma_model::config::{Culling, SampleFill};
+    use pma_model::image::{ImageOptions, RenderedImage};
+    use pma_model::train::{Preset, RunConfig, Trainer};
+
+    use super::super::eval::{ground_truth, read_dataset, write_json_atomic};
+    use super::*;
+
+    fn options(thresholds: &[f64]) -> Vec<(String, Culling)> {
+        let mut v = vec![
+            ("parity".to_string(), Culling::default()),
+            (
+                "rays".to_string(),
+                Culling {
+                    rays: true,
+                    ..Default::default()
+                },
+            ),
+        ];
+        for &t in thresholds {
+            v.push((
+                format!("rays+samples@{t:e}"),
+                Culling {
+                    rays: true,
+                    sample_threshold: Some(t),
+                    sample_fill: SampleFill::Network,
+                },
+            ));
+        }
+        v
+    }
+
+    fn median(v: &mut [f64]) -> f64 {
+        if v.is_empty() {
+            return f64::NAN;
+        }
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    }
+
+    fn psnr(a: &[f32], b: &[f32]) -> f64 {
+        let mse = a
+            .iter()
+            .zip(b)
+            .map(|(x, y)| ((x - y) as f64).powi(2))
+            .sum::<f64>()
+            / a.len().max(1) as f64;
+        -10.0 * mse.log10()
+    }
+
+    fn bar(quiet: bool, len: u64, msg: &str) -> indicatif::ProgressBar {
+        if quiet {
+            return indicatif::ProgressBar::hidden();
+        }
+        let b = indicatif::ProgressBar::new(len);
+        b.set_style(
+            indicatif::ProgressStyle::with_template("{msg:28} {bar:30} {pos}/{len} {elapsed}")
+                .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+        );
+        b.set_message(msg.to_string());
+        b
+    }
+
+    /// Pose row p of a dataset as model input (+ its joints for the render box).
+    fn pose_of(data: &Dataset, p: usize, dev: &Device) -> anyhow::Result<(Poses, [[f32; 3]; 24])> {
+        let (Some(skts), Some(cyls), Some(kp3d)) = (&data.skts, &data.cyls, data.pose_kp3d(p))
+        else {
+            anyhow::bail!("{}: pose {p} lacks skts/cyls/kp3d", data.source);
+        };
+        let skts: Vec<f32> = skts
+            .outer_iter()
+            .nth(p)
+            .map(|m| m.iter().copied().collect())
+            .unwrap_or_default();
+        Ok((
+            Poses {
+                bones: vec![data.pose_bones(p)],
+                skts: Tensor::from_vec(skts, (1, 24, 4, 4), dev)?,
+                cyls: Tensor::from_vec(cyls.row(p).to_vec(), (1, 5), dev)?,
+            },
+            kp3d,
+        ))
+    }
+
+    /// Train `run` for `seconds` (at least 2 steps); returns the trainer and the step times.
+    fn train_for(
+        run: RunConfig,
+        data: Arc<Dataset>,
+        seconds: f64,
+        max_steps: u64,
+        dev: &Device,
+        bar: &indicatif::ProgressBar,
+    ) -> anyhow::Result<(Trainer, Vec<f64>)> {
+        let mut trainer = Trainer::new(run, data, dev)?;
+        let start = Instant::now();
+        let mut times = Vec::new();
+        while (times.len() < 2 || start.elapsed().as_secs_f64() < seconds)
+            && (times.len() as u64) < max_steps
+        {
+            let t = Instant::now();
+            trainer.step()?;
+            times.push(t.elapsed().as_secs_f64() * 1e3);
+            bar.set_position((start.elapsed().as_secs_f64().min(seconds)) as u64);
+        }
+        Ok((trainer, times))
+    }
+
+    fn heldout_psnr(
+        avatar: &Avatar,
+        data: &Dataset,
+        images: &[usize],
+    ) -> anyhow::Result<(f64, Vec<Vec<f32>>)> {
+        let mut scores = Vec::new();
+        let mut renders = Vec::new();
+        for &n in images {
+            let img = super::super::eval::render_dataset_image(avatar, data, n, 4096)?;
+            let (gt, _) = ground_truth(data, n)?;
+            scores.push(psnr(&img.rgb, &gt));
+            renders.push(img.rgb);
+        }
+        Ok((
+            scores.iter().sum::<f64>() / scores.len().max(1) as f64,
+            renders,
+        ))
+    }
+
+    pub fn run(mut args: Args) -> anyhow::Result<()> {
+        if args.quick {
+            args.preset = "tiny".into();
+            args.res = 32;
+            args.repeats = 1;
+            args.train_seconds = args.train_seconds.min(2.0);
+            args.budget_seconds = args.budget_seconds.min(2.0);
+            args.eval_images = 1;
+        }
+        anyhow::ensure!(args.repeats >= 1, "--repeats must be >= 1");
+        anyhow::ensure!(args.res >= 8, "--res must be >= 8, found {}", args.res);
+        for &t in &args.thresholds {
+            anyhow::ensure!(
+                t.is_finite() && (0.0..1.0).contains(&t),
+                "--thresholds: {t} is not in [0, 1)"
+            );
+        }
+        let dev = Device::Cpu;
+        std::fs::create_dir_all(&args.out)
+            .with_context(|| format!("creating {}", args.out.display()))?;
+        let rss_reset = reset_peak_rss();
+
+        // The synthetic scene (small: it only serves training and the held-out PSNR).
+        let mut synth = SynthConfig::default();
+        if args.quick {
+            synth.res = 32;
+            synth.frames = 8;
+            synth.novel_pose_walk = 2;
+            synth.novel_pose_dance = 2;
+        }
+        let scene = args.out.join("scene");
+        if !scene.join("novel_view.npz").is_file() {
+            println!("synthesising the scene into {}", scene.display());
+            generate(&synth, &scene, &mut |_, _| {}).context("synthesising the bench scene")?;
+        }
+        let train = Arc::new(read_dataset(&scene.join("train.npz"), Profile::Train)?);
+        let held = read_dataset(&scene.join("novel_view.npz"), Profile::Eval)?;
+        let k = args.eval_images.clamp(1, held.n_images());
+        let eval_set: Vec<usize> = (0..k).map(|i| i * held.n_images() / k).collect();
+
+        // The model that is rendered.
+        let preset: Preset = args.preset.parse()?;
+        let (mut avatar, model_desc) = match &args.model {
+            Some(p) => (
+                Avatar::load(p, &dev).with_context(|| format!("loading {}", p.display()))?,
+                p.display().to_string(),
+            ),
+            None => {
+                let b = bar(
+                    args.quiet,
+                    args.train_seconds as u64,
+                    "training the bench model",
+                );
+                let (trainer, _) = train_for(
+                    RunConfig::from_preset(preset),
+                    train.clone(),
+                    args.train_seconds,
+                    u64::MAX,
+                    &dev,
+                    &b,
+                )?;
+                b.finish_and_clear();
+                let path = args.out.join("model.safetensors");
+                trainer.avatar().save(&path)?;
+                println!(
+                    "trained {} iterations of {} in-process ({:.0} s)",
+                    trainer.iteration(),
+                    args.preset,
+                    args.train_seconds
+                );
+                (
+                    Avatar::load(&path, &dev)?,
+                    format!("{} (trained in-process)", path.display()),
+                )
+            }
+        };
+        let cfg = avatar.config().clone();
+        let fpp = flops_per_point(&cfg);
+        let (peak, peak_how) = fp32_peak();
+
+        // A W×H view of the first held-out image's pose and camera, intrinsics rescaled.
+        let n0 = eval_set[0];
+        let (poses, kp3d) = pose_of(&held, held.pose_row(n0)?, &dev)?;
+        let cam0 = held.image_camera(n0)?;
+        let sx = args.res as f32 / cam0.width as f32;
+        let sy = args.res as f32 / cam0.height as f32;
+        let cam = Camera::new(
+            args.res,
+            args.res,
+            cam0.fx * sx,
+            cam0.fy * sy,
+            cam0.cx * sx,
+            cam0.cy * sy,
+            cam0.c2w,
+        )?;
+        let img_opts = ImageOptions {
+            chunk: 4096,
+            head: held.head()?,
+            device: dev.clone(),
+        };
+        let box_rays = {
+            let b = pma_model::image::body_box(&cam, &kp3d, img_opts.head);
+            ((b.x1.min(args.res as i64) - b.x0.max(0)).max(0)
+                * (b.y1.min(args.res as i64) - b.y0.max(0)).max(0)) as f64
+        };
+        let samples_per_ray = (cfg.n_samples + cfg.n_importance) as f64;
+
+        let inactive = inactive_joint_fraction(&avatar, &poses, &cam, &kp3d, &img_opts)?;
+
+        let opts = options(&args.thresholds);
+        let mut results: Vec<OptionResult> = Vec::new();
+        let mut parity_img: Option<RenderedImage> = None;
+        let mut parity_held: Vec<Vec<f32>> = Vec::new();
+        let mut parity_psnr = f64::NAN;
+        let b = bar(args.quiet, opts.len() as u64, "inference per option");
+        for (name, culling) in &opts {
+            b.set_message(format!("render {name}"));
+            avatar.set_culling(culling.clone())?;
+            if rss_reset {
+                reset_peak_rss();
+            }
+            let render = |a: &Avatar| -> anyhow::Result<RenderedImage> {
+                Ok(a.render_image(&poses, &kp3d, &cam, None, &img_opts)?)
+            };
+            let img = render(&avatar)?; // warm-up
+            let mut times = Vec::new();
+            let mut points = 0;
+            for _ in 0..args.repeats {
+                let before = avatar.points_evaluated();
+                let t = Instant::now();
+                let _ = render(&avatar)?;
+                times.push(t.elapsed().as_secs_f64());
+                points = avatar.points_evaluated() - before;
+            }
+            let sec = median(&mut times);
+            let (held_psnr, held_renders) = heldout_psnr(&avatar, &held, &eval_set)?;
+            let peak_rss = peak_rss_mib().unwrap_or(f64::NAN);
+            let (vs_parity, max_diff) = match &parity_img {
+                None => (f64::INFINITY, 0.0),
+                Some(p) => (
+                    psnr(&img.rgb, &p.rgb),
+                    img.rgb
+                        .iter()
+                        .zip(&p.rgb)
+                        .map(|(a, b)| (a - b).abs() as f64)
+                        .fold(0.0, f64::max),
+                ),
+            };
+            if parity_img.is_none() {
+                parity_img = Some(img);
+                parity_held = held_renders;
+                parity_psnr = held_psnr;
+            }
+            let _ = &parity_held;
+            results.push(OptionResult {
+                name: name.clone(),
+                culling: culling.clone(),
+                ms_per_image: sec * 1e3,
+                rays_per_s: box_rays / sec,
+                network_points_per_s: points as f64 / sec,
+                samples_per_s: box_rays * samples_per_ray / sec,
+                network_points_per_image: points,
+                gflops: points as f64 * fpp / sec / 1e9,
+                peak_rss_mib: peak_rss,
+                psnr_vs_parity_render: vs_parity,
+                max_abs_diff_vs_parity: max_diff,
+                heldout_psnr: held_psnr,
+                psnr_loss_vs_parity_db: parity_psnr - held_psnr,
+                ..Default::default()
+            });
+            b.inc(1);
+        }
+        b.finish_and_clear();
+        avatar.set_culling(Culling::default())?;
+
+        // Training: ms per step and held-out PSNR after the same wall-clock budget.
+        let budget = args.budget_seconds.max(0.0);
+        let b = bar(args.quiet, opts.len() as u64, "training per option");
+        for (res, (name, culling)) in results.iter_mut().zip(&opts) {
+            b.set_message(format!("train {name}"));
+            let mut run = RunConfig::from_preset(preset);
+            run.model = cfg.clone();
+            run.model.culling = culling.clone();
+            if rss_reset {
+                reset_peak_rss();
+            }
+            let hidden = indicatif::ProgressBar::hidden();
+            let (trainer, mut times) = if budget > 0.0 {
+                train_for(run, train.clone(), budget, u64::MAX, &dev, &hidden)?
+            } else {
+                train_for(run, train.clone(), 0.0, 3, &dev, &hidden)?
+            };
+            if times.len() > 1 {
+                times.remove(0); // warm-up
+            }
+            res.ms_per_step = median(&mut times);
+            res.peak_rss_mib = res.peak_rss_mib.max(peak_rss_mib().unwrap_or(f64::NAN));
+            if budget > 0.0 {
+                let mut a = Avatar::from_tensors(
+                    trainer.avatar().config().clone(),
+                    trainer.avatar().tensors(),
+                    &dev,
+                )?;
+                a.set_culling(culling.clone())?;
+                res.budget_heldout_psnr = Some(heldout_psnr(&a, &held, &eval_set)?.0);
+                res.budget_iterations = Some(trainer.iteration());
+            }
+            b.inc(1);
+        }
+        b.finish_and_clear();
+
+        let parity_rays = results[0].rays_per_s;
+        for r in &mut results {
+            r.speedup_vs_parity = r.rays_per_s / parity_rays;
+        }
+        let report = BenchReport {
+            preset: args.preset.clone(),
+            res: args.res,
+            repeats: args.repeats,
+            model: model_desc,
+            flops_per_point: fpp,
+            peak_gflops: peak,
+            peak_estimate: peak_how,
+            rss_reset_supported: rss_reset,
+            inactive_joint_fraction: inactive,
+            options: results,
+        };
+        print_table(&report);
+        write_json_atomic(&report, &args.out.join("bench.json"))?;
+        plot(&report, &args.out.join("error_vs_time.png"))?;
+        println!(
+            "wrote {} and {}",
+            args.out.join("bench.json").display(),
+            args.out.join("error_vs_time.png").display()
+        );
+        Ok(())
+    }
+
+    /// Fraction of (render chunk, joint) pairs with a zero window on every coarse sample.
+    fn inactive_joint_fraction(
+        avatar: &Avatar,
+        poses: &Poses,
+        cam: &Camera,
+        kp3d: &[[f32; 3]; 24],
+        opts: &ImageOptions,
+    ) -> anyhow::Result<f64> {
+        let pbox = pma_model::image::body_box(cam, kp3d, opts.head);
+        let (w, h) = (cam.width as i64, cam.height as i64);
+        let pixels: Vec<(usize, usize)> = (pbox.y0.max(0)..pbox.y1.min(h))
+            .flat_map(|y| (pbox.x0.max(0)..pbox.x1.min(w)).map(move |x| (x as usize, y as usize)))
+            .collect();
+        let scales = avatar.axis_scale()?.detach();
+        let align: Vec<f32> = avatar.tensors()["pts_embedder.transforms"]
+            .flatten_all()?
+            .to_vec1()?;
+        let skts: Vec<f32> = poses.skts.flatten_all()?.to_vec1()?;
+        let test = pma_model::cull::WindowTest::new(
+            &align,
+            &skts,
+            &scales.flatten_all()?.to_vec1::<f32>()?,
+            avatar.config().window_alpha,
+            avatar.config().window_beta,
+            0.0,
+        )?;
+        let (mut inactive, mut total) = (0usize, 0usize);
+        let origin = cam.origin();
+        for chunk in pixels.chunks(opts.chunk) {
+            let c = chunk.len();
+            let o: Vec<f32> = chunk.iter().flat_map(|_| origin).collect();
+            let d: Vec<f32> = chunk
+                .iter()
+                .flat_map(|&(x, y)| cam.ray_dir(x, y, false))
+                .collect();
+            let samples = avatar.ray_caster().cast(
+                &Tensor::from_vec(o, (c, 3), &opts.device)?,
+                &Tensor::from_vec(d, (c, 3), &opts.device)?,
+                &poses.cyls,
+                &poses.skts,
+                &scales,
+            )?;
+            let pts: Vec<f32> = samples.pts.flatten_all()?.to_vec1()?;
+            let active = test.active_joints(&pts, c, avatar.ray_caster().n_samples())?;
+            inactive += active[0].iter().filter(|a| !**a).count();
+            total += 24;
+        }
+        Ok(inactive as f64 / total.max(1) as f64)
+    }
+
+    fn print_table(r: &BenchReport) {
+        println!(
+            "\npreset {} | {}x{} | {:.3} MFLOP/point | peak ≈ {:.0} GFLOP/s ({}) | inactive joints per chunk {:.0}%",
+            r.preset,
+            r.res,
+            r.res,
+            r.flops_per_point / 1e6,
+            r.peak_gflops,
+            r.peak_estimate,
+            100.0 * r.inactive_joint_fraction
+        );
+        println!(
+            "{:<22} {:>9} {:>9} {:>7} {:>11} {:>11} {:>8} {:>8} {:>9} {:>9} {:>8} {:>9} {:>9}",
+            "option",
+            "ms/img",
+            "rays/s",
+            "x par",
+            "net pts/s",
+            "samples/s",
+            "GFLOP/s",
+            "ms/step",
+            "RSS MiB",
+            "PSNR/par",
+            "ΔPSNR dB",
+            "held dB",
+            "budget dB"
+        );
+        for o in &r.options {
+            println!(
+                "{:<22} {:>9.1} {:>9.0} {:>7.2} {:>11.0} {:>11.0} {:>8.2} {:>8.1} {:>9.0} {:>9.2} {:>8.3} {:>9.2} {:>9}",
+                o.name,
+                o.ms_per_image,
+                o.rays_per_s,
+                o.speedup_vs_parity,
+                o.network_points_per_s,
+                o.samples_per_s,
+                o.gflops,
+                o.ms_per_step,
+                o.peak_rss_mib,
+                o.psnr_vs_parity_render,
+                o.psnr_loss_vs_parity_db,
+                o.heldout_psnr,
+                o.budget_heldout_psnr
+                    .map_or("-".to_string(), |v| format!("{v:.2}")),
+            );
+        }
+    }
+
+    static FONT: &[u8] = include_bytes!("../../assets/fonts/DejaVuSans.ttf");
+
+    /// Error against time: x = seconds per image, y = held-out PSNR loss against parity.
+    fn plot(r: &BenchReport, path: &std::path::Path) -> anyhow::Result<()> {
+        use plotters::prelude::*;
+        static REGISTER: std::sync::Once = std::sync::Once::new();
+        REGISTER.call_once(|| {
+            let _ = plotters::style::register_font("sans-serif", FontStyle::Normal, FONT);
+        });
+        let pts: Vec<(f64, f64, &str)> = r
+            .options
+            .iter()
+            .map(|o| {
+                (
+                    o.ms_per_image / 1e3,
+                    if o.psnr_loss_vs_parity_db.is_finite() {
+                        o.psnr_loss_vs_parity_db
+                    } else {
+                        0.0
+                    },
+                    o.name.as_str(),
+                )
+            })
+            .collect();
+        let x_max = pts.iter().map(|p| p.0).fold(0.0, f64::max).max(1e-3) * 1.15;
+        let y_lo = pts.iter().map(|p| p.1).fold(0.0, f64::min) - 0.05;
+        let y_hi = pts.iter().map(|p| p.1).fold(0.1, f64::max) * 1.2 + 0.05;
+        let (w, h) = (900u32, 540u32);
+        let mut buf = vec![0u8; (w * h * 3) as usize];
+        {
+            let e = |e: &dyn std::fmt::Display| anyhow::anyhow!("plot: {e}");
+            let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
+            root.fill(&WHITE).map_err(|x| e(&x))?;
+            let mut chart = ChartBuilder::on(&root)
+                .caption(
+                    format!("pma bench ({}, {}x{})", r.preset, r.res, r.res),
+                    ("sans-serif", 22),
+                )
+                .margin(16)
+                .x_label_area_size(44)
+                .y_label_area_size(60)
+                .build_cartesian_2d(0.0..x_max, y_lo..y_hi)
+                .map_err(|x| e(&x))?;
+            chart
+                .configure_mesh()
+                .x_desc("seconds per image")
+                .y_desc("held-out PSNR loss vs parity [dB]")
+                .label_style(("sans-serif", 15))
+                .draw()
+                .map_err(|x| e(&x))?;
+            chart
+                .draw_series(
+                    pts.iter()
+                        .map(|p| Circle::new((p.0, p.1), 5, BLUE.filled())),
+                )
+                .map_err(|x| e(&x))?;
+            chart
+                .draw_series(pts.iter().map(|p| {
+                    Text::new(p.2.to_string(), (p.0, p.1), ("sans-serif", 13).into_font())
+                }))
+                .map_err(|x| e(&x))?;
+            root.present().map_err(|x| e(&x))?;
+        }
+        let img = image::RgbImage::from_raw(w, h, buf)
+            .ok_or_else(|| anyhow::anyhow!("plot buffer has the wrong size"))?;
+        super::super::eval::write_png_atomic(&img, path)
+    }
+}
+
+/// `--cull*` flags of the render and eval commands (off = parity with the reference).
+#[derive(clap::Args, Debug, Clone, Default)]
+pub struct CullArgs {
+    /// Rays that cross no bone box get the background without running the network.
+    #[arg(long)]
+    pub cull_rays: bool,
+    /// Samples whose spatial window is <= T for every joint skip the network (0 = only
+    /// exact zeros, which leaves the image unchanged).
+    #[arg(long, value_name = "T")]
+    pub cull_samples: Option<f64>,
+    /// What culled samples get: `network` (the network's far-away constant) or `zero`.
+    #[arg(long, default_value = "network")]
+    pub cull_fill: String,
+}
+
+impl CullArgs {
+    pub fn culling(&self) -> anyhow::Result<pma_model::config::Culling> {
+        use pma_model::config::SampleFill;
+        let sample_fill = match self.cull_fill.as_str() {
+            "network" => SampleFill::Network,
+            "zero" => SampleFill::Zero,
+            other => anyhow::bail!("--cull-fill: expected `network` or `zero`, found `{other}`"),
+        };
+        Ok(pma_model::config::Culling {
+            rays: self.cull_rays,
+            sample_threshold: self.cull_samples,
+            sample_fill,
+        })
+    }
+
+    /// Switch the avatar's culling to what the flags ask for.
+    pub fn apply(&self, avatar: &mut pma_model::avatar::Avatar) -> anyhow::Result<()> {
+        avatar.set_culling(self.culling()?)?;
+        Ok(())
+    }
+}

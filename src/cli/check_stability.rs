@@ -1,0 +1,84 @@
+//! `pma check-stability`: run the numerical-stability probes (`pma_model::stability`, issue 7)
+//! on a checkpoint or a freshly initialised avatar and print one table row per case. Exits
+//! non-zero when any output or gradient is non-finite (with `--strict`, also on broken
+//! invariants such as far < near).
+
+use std::path::PathBuf;
+
+use anyhow::{bail, Context, Result};
+use pma_model::avatar::Avatar;
+use pma_model::stability::{self, ProbeOptions};
+use pma_model::Config;
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// Checkpoint to probe (.safetensors). Default: a freshly initialised avatar of `--preset`
+    /// on the synthetic figure's rest pose.
+    #[arg(long)]
+    model: Option<PathBuf>,
+    /// Network size of the fresh avatar: default (the paper's), cpu-small or tiny.
+    #[arg(long, default_value = "default")]
+    preset: String,
+    /// Switch on the opt-in stability fixes (`quirks.robust_ray_bounds`,
+    /// `quirks.per_ray_cylinder_fallback`) before probing.
+    #[arg(long)]
+    fixes: bool,
+    /// Also fail on broken invariants (weights outside [0,1], far < near, batch dependence).
+    #[arg(long)]
+    strict: bool,
+    /// Compute device: cpu, cuda, cuda:N, metal.
+    #[arg(long, default_value = "cpu")]
+    device: String,
+    /// Hide the progress bar.
+    #[arg(long)]
+    quiet: bool,
+}
+
+pub fn run(args: Args) -> Result<()> {
+    let device = super::device(&args.device)?;
+    let mut avatar = match &args.model {
+        Some(path) => {
+            Avatar::load(path, &device).with_context(|| format!("loading {}", path.display()))?
+        }
+        None => {
+            let cfg = match args.preset.as_str() {
+                "default" | "paper" => Config::paper(),
+                "cpu-small" => Config::cpu_small(),
+                "tiny" => Config::tiny(),
+                other => bail!("--preset: expected default, cpu-small or tiny, found `{other}`"),
+            };
+            Avatar::new(cfg, &pma_data::synth::rest_pose(), 0, &device)?
+        }
+    };
+    if args.fixes {
+        let tensors = avatar.tensors();
+        let mut cfg = avatar.config().clone();
+        cfg.quirks.robust_ray_bounds = true;
+        cfg.quirks.per_ray_cylinder_fallback = true;
+        avatar = Avatar::from_tensors(cfg, tensors, &device)?;
+    }
+    let opts = ProbeOptions::default();
+    let bar = if args.quiet {
+        indicatif::ProgressBar::hidden()
+    } else {
+        indicatif::ProgressBar::new(stability::case_count(&opts)? as u64).with_style(
+            indicatif::ProgressStyle::with_template("probes {bar:40} {pos}/{len} {msg}")
+                .expect("static template"),
+        )
+    };
+    let report = stability::run_all(&avatar, &opts, &mut |row| {
+        bar.set_message(row.case.clone());
+        bar.inc(1);
+    })?;
+    bar.finish_and_clear();
+    print!("{}", report.table());
+    let (bad, broken) = (report.non_finite(), report.violations());
+    println!("non-finite values: {bad}; broken invariants: {broken}");
+    if bad > 0 {
+        bail!("{bad} non-finite output or gradient values");
+    }
+    if args.strict && broken > 0 {
+        bail!("{broken} broken invariants (--strict)");
+    }
+    Ok(())
+}

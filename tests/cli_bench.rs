@@ -1,0 +1,82 @@
+//! `pma bench --quick`: the smallest run writes bench.json with one row per option and the
+//! error-vs-time plot; bad flags fail with a message.
+
+use std::process::Command;
+
+#[test]
+fn quick_bench_writes_every_field() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_pma"))
+        .args([
+            "bench",
+            "--quick",
+            "--quiet",
+            "--thresholds",
+            "0,1e-2",
+            "--out",
+        ])
+        .arg(dir.path())
+        .output()
+        .expect("running pma");
+    assert!(
+        out.status.success(),
+        "pma bench failed:\n{}\n{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("bench.json")).unwrap()).unwrap();
+    for key in ["flops_per_point", "peak_gflops", "inactive_joint_fraction"] {
+        let v = json[key].as_f64();
+        assert!(v.is_some_and(|v| v.is_finite() && v >= 0.0), "{key}: {v:?}");
+    }
+    let options = json["options"].as_array().unwrap();
+    let names: Vec<&str> = options
+        .iter()
+        .map(|o| o["name"].as_str().unwrap())
+        .collect();
+    assert_eq!(
+        names,
+        ["parity", "rays", "rays+samples@0e0", "rays+samples@1e-2"]
+    );
+    for o in options {
+        for key in [
+            "ms_per_image",
+            "rays_per_s",
+            "network_points_per_s",
+            "samples_per_s",
+            "gflops",
+            "ms_per_step",
+            "peak_rss_mib",
+            "heldout_psnr",
+            "speedup_vs_parity",
+        ] {
+            let v = o[key].as_f64();
+            assert!(
+                v.is_some_and(|v| v.is_finite() && v > 0.0),
+                "{}: {key} = {v:?}",
+                o["name"]
+            );
+        }
+        assert!(o["budget_heldout_psnr"].as_f64().is_some());
+    }
+    // Threshold 0 leaves the render unchanged against parity ("rays" culling aside, which
+    // only touches rays that miss every box): its points are fewer than parity's.
+    let pts = |i: usize| options[i]["network_points_per_image"].as_u64().unwrap();
+    assert!(pts(2) < pts(0), "culling did not leave points out");
+    assert!(dir.path().join("error_vs_time.png").is_file());
+}
+
+#[test]
+fn bad_thresholds_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_pma"))
+        .args(["bench", "--quick", "--thresholds", "2", "--out"])
+        .arg(dir.path())
+        .output()
+        .expect("running pma");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(err.contains("--thresholds"), "{err}");
+    assert!(!err.contains("panicked"), "{err}");
+}
