@@ -17,6 +17,12 @@ static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
     about = "Pose Modulated Avatars (PM-Avatar, ICLR 2024) in Rust"
 )]
 struct Cli {
+    /// CPU worker threads, each running whole chunks of points or rays with candle's own
+    /// threading off (0 = one per core). Renders do not depend on it; a training batch that
+    /// fits one chunk is split over the workers, which changes only the float summation
+    /// order. Setting RAYON_NUM_THREADS or CANDLE_NUM_THREADS keeps candle's threading instead.
+    #[arg(long, global = true, default_value_t = 0)]
+    workers: usize,
     #[command(subcommand)]
     command: Command,
 }
@@ -49,6 +55,8 @@ enum Command {
 
 fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
+    // Before any candle op: candle sizes its thread pool once.
+    pma_model::parallel::configure_cpu(cli.workers);
     match cli.command {
         Command::Synth(a) => cli::synth::run(a),
         Command::Inspect(a) => cli::inspect::run(a),

@@ -23,6 +23,8 @@ type BoxError = Box<dyn std::error::Error>;
 static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 fn main() -> ExitCode {
+    // Data-parallel CPU workers, one per core, set up before any candle op.
+    pma_model::parallel::configure_cpu(0);
     match parse(std::env::args().skip(1).collect()).and_then(|a| run(&a)) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {

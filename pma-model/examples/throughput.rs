@@ -16,20 +16,34 @@ use std::time::Instant;
 use candle_core::Device;
 use pma_model::train::{BatchSource, DatasetSource, Preset, RunConfig, Trainer};
 
+// The same allocator as the `pma` binary, so these figures are the CLI's.
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 const REF_TRAIN: f64 = 4223.0;
 const REF_INFER: f64 = 8823.0;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
+    // Data-parallel workers with candle's intra-op threads off (0 = one per core), as the
+    // `pma` binary does; `--workers 1` keeps candle's own threading.
+    let workers = pma_model::parallel::configure_cpu(scene::arg("--workers", 0));
     let train_rays: usize = scene::arg("--train-rays", 512);
     let infer_rays: usize = scene::arg("--infer-rays", 4096);
     let repeats: usize = scene::arg("--repeats", 3).max(1);
+    // `--no-fused`: plain candle ops instead of the fused CPU kernels (A/B measurement).
+    pma_model::fused::set_enabled(!std::env::args().any(|a| a == "--no-fused"));
     let dir = tempfile::tempdir()?;
     let data = scene::scene(dir.path())?;
     let mut run = RunConfig::from_preset(Preset::Paper);
     let samples = (run.model.n_samples + run.model.n_importance) as f64;
     println!(
-        "paper config, parity mode, {} threads",
-        candle_core::utils::get_num_threads()
+        "paper config, parity mode, {workers} workers x {} candle threads, fused kernels {}",
+        candle_core::utils::get_num_threads(),
+        if pma_model::fused::enabled() {
+            "on"
+        } else {
+            "off"
+        }
     );
 
     if train_rays > 0 {

@@ -28,10 +28,10 @@ impl Linear {
         let dims = x.dims().to_vec();
         let in_dim = *dims.last().unwrap_or(&0);
         let rows = x.elem_count() / in_dim.max(1);
-        let y = x
-            .reshape((rows, in_dim))?
-            .matmul(&self.weight.t()?)?
-            .broadcast_add(&self.bias)?;
+        let y = crate::fused::add_bias(
+            &x.reshape((rows, in_dim))?.matmul(&self.weight.t()?)?,
+            &self.bias,
+        )?;
         let mut out_dims = dims;
         *out_dims
             .last_mut()

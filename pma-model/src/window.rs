@@ -77,9 +77,7 @@ impl WinFun {
             .matmul(&self.layer_point.weight.t()?)?
             .reshape((n, j, ()))?;
         let g_b = g.broadcast_add(&self.layer_point.bias)?;
-        let part = q.broadcast_add(&g_b.unsqueeze(0)?)?;
-        let attenuated = part.broadcast_mul(&w_p.unsqueeze(D::Minus1)?)?;
-        let pooled = attenuated.max(1)?;
+        let pooled = crate::fused::window_pool(&q, &g_b, w_p)?;
         let h = self.sin1.forward(&self.sin0.forward(&pooled)?)?;
         let logits = self.last.forward(&h)?;
         let w_f = candle_nn::ops::sigmoid(&logits)?;

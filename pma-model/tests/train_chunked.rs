@@ -13,10 +13,9 @@ use pma_data::dataset::Dataset;
 use pma_model::avatar::Avatar;
 use pma_model::raycast::cylinder_near_far;
 use pma_model::train::{
-    chunk_rays, BatchSource, DatasetSource, FixedBatch, RunConfig, StepStats, TrainBatch,
-    TrainConfig, Trainer,
+    chunk_rays, FixedBatch, RunConfig, StepStats, TrainBatch, TrainConfig, Trainer,
 };
-use train_support::{tiny_run, tiny_scene};
+use train_support::{first_batch, tiny_run, tiny_scene};
 
 fn flat(t: &Tensor) -> Vec<f32> {
     t.flatten_all().unwrap().to_vec1::<f32>().unwrap()
@@ -25,19 +24,9 @@ fn flat(t: &Tensor) -> Vec<f32> {
 /// A training batch of the tiny scene in which ray 5 of the second image points along the
 /// cylinder's axis from the camera, so it misses the cylinder and every box.
 fn batch_with_a_miss(data: &Arc<Dataset>, run: &RunConfig) -> TrainBatch {
-    let t = &run.train;
-    let mut src = DatasetSource::new(
-        data.clone(),
-        t.rays_per_step,
-        t.images_per_step,
-        t.perturb_bg,
-        t.seed,
-        &Device::Cpu,
-    )
-    .unwrap();
-    let mut batch = src.next_batch().unwrap();
+    let mut batch = first_batch(data, run);
     let r = batch.rays.origins.dim(0).unwrap();
-    let miss = r / t.images_per_step + 5;
+    let miss = r / run.train.images_per_step + 5;
     let mut dirs = flat(&batch.rays.dirs);
     dirs[3 * miss..3 * miss + 3].copy_from_slice(&[0.0, 1.0, 0.0]);
     batch.rays.dirs = Tensor::from_vec(dirs, (r, 3), &Device::Cpu).unwrap();

@@ -239,23 +239,21 @@ pub fn chunk_rays(train: &TrainConfig, model: &Config) -> usize {
 }
 
 /// The density noise of one step, drawn a whole block (all rays of the batch) at a time in
-/// the order the unchunked forward draws it; each chunk reads its own rays' rows.
-#[derive(Default)]
-struct NoiseTape {
+/// the order the unchunked forward draws it; each chunk reads its own rays' rows. Chunks may
+/// run on different workers: every chunk makes its calls in the same order (coarse, fine),
+/// so block `c` is always drawn before block `c + 1`, whichever chunk asks first.
+struct NoiseTape<'a> {
+    rng: &'a mut ChaCha8Rng,
     /// One block per noise call of a forward pass (coarse, fine): [R·S] each.
     blocks: Vec<Vec<f32>>,
-    /// Calls made by the current chunk.
-    call: usize,
-    /// The chunk whose calls are being counted (its first row).
-    chunk: Option<usize>,
 }
 
-impl NoiseTape {
-    /// `n` noise values for the samples of rays `rows` (S = n / rows per ray) of a batch of
-    /// `r` rays.
+impl NoiseTape<'_> {
+    /// Call number `call` of a chunk: `n` noise values for the samples of rays `rows`
+    /// (S = n / rows per ray) of a batch of `r` rays.
     fn rows(
         &mut self,
-        rng: &mut ChaCha8Rng,
+        call: usize,
         n: usize,
         rows: &[usize],
         r: usize,
@@ -268,33 +266,45 @@ impl NoiseTape {
                 rows.len()
             )));
         }
-        if self.chunk != Some(rows[0]) {
-            self.chunk = Some(rows[0]);
-            self.call = 0;
-        }
         let s = n / rows.len();
-        if self.blocks.len() == self.call {
+        if self.blocks.len() == call {
+            let rng = &mut *self.rng;
             self.blocks.push(
                 (0..r * s)
-                    .map(|_| rand_distr::StandardNormal.sample(&mut *rng))
+                    .map(|_| rand_distr::StandardNormal.sample(rng))
                     .collect(),
             );
         }
-        let block = &self.blocks[self.call];
+        let block = self.blocks.get(call).ok_or_else(|| {
+            crate::error::ModelError::Input(format!(
+                "density noise call {call} before call {}",
+                self.blocks.len()
+            ))
+        })?;
         if block.len() != r * s {
             return Err(crate::error::ModelError::Input(format!(
-                "density noise call {}: {s} samples per ray, but the first chunk drew {} per ray",
-                self.call,
+                "density noise call {call}: {s} samples per ray, but the first chunk drew {} per ray",
                 block.len() / r
             )));
         }
-        self.call += 1;
         let mut v = Vec::with_capacity(n);
         for &row in rows {
             v.extend_from_slice(&block[row * s..(row + 1) * s]);
         }
         Ok(Tensor::from_vec(v, n, device)?)
     }
+}
+
+/// What one chunk of a training step contributes.
+struct ChunkOut {
+    fine: f64,
+    coarse: f64,
+    sq: f64,
+    /// The box-volume term (first chunk only).
+    scale: Option<f64>,
+    finite: bool,
+    /// Gradients aligned with the trainer's parameters (empty when not finite).
+    grads: Vec<Option<Tensor>>,
 }
 
 /// Gradient hook: sees (and may change) the gradients of a step before clipping, aligned
@@ -458,8 +468,14 @@ impl Trainer {
         batch: &TrainBatch,
         hook: Option<GradHook>,
     ) -> Result<StepStats, TrainError> {
-        let chunk = chunk_rays(&self.run.train, self.avatar.config());
-        let (parts, mut grads) = if batch.rays.origins.dim(0)? > chunk {
+        let rays = batch.rays.origins.dim(0)?;
+        let mut chunk = chunk_rays(&self.run.train, self.avatar.config());
+        let workers = crate::parallel::workers_on(self.avatar.device());
+        if workers > 1 {
+            // Enough chunks to keep every worker busy (chunks stay at least one ray per pose).
+            chunk = chunk.min(rays.div_ceil(workers));
+        }
+        let (parts, mut grads) = if rays > chunk {
             self.chunked_grads(batch, chunk)?
         } else {
             let (loss, parts) = self.loss_on(batch)?;
@@ -532,12 +548,12 @@ impl Trainer {
         let device = self.avatar.device().clone();
         let cfg = self.run.train.clone();
         let inv_n = 1.0 / (3 * r) as f64;
-        let (avatar, rng) = (&self.avatar, &mut self.noise_rng);
-        let mut tape = NoiseTape::default();
-        let mut grads: Vec<Option<Tensor>> = vec![None; self.params.len()];
-        let (mut fine, mut coarse, mut sq, mut scale) = (0f64, 0f64, 0f64, 0f64);
-        let mut finite = true;
-        for start in (0..k).step_by(per_pose) {
+        let (avatar, params) = (&self.avatar, &self.params);
+        let tape = std::sync::Mutex::new(NoiseTape {
+            rng: &mut self.noise_rng,
+            blocks: Vec::new(),
+        });
+        let run_chunk = |start: usize| -> Result<ChunkOut, TrainError> {
             let len = per_pose.min(k - start);
             let rows: Vec<usize> = (0..n_poses)
                 .flat_map(|p| p * k + start..p * k + start + len)
@@ -557,7 +573,12 @@ impl Trainer {
                 framecodes: rows.iter().map(|&i| batch.rays.framecodes[i]).collect(),
             };
             let target = batch.target.index_select(&idx, 0)?;
-            let mut noise = |n: usize| tape.rows(&mut *rng, n, &rows, r, &device);
+            let mut call = 0;
+            let mut noise = |n: usize| {
+                let mut t = tape.lock().unwrap_or_else(|e| e.into_inner());
+                call += 1;
+                t.rows(call - 1, n, &rows, r, &device)
+            };
             let mut opts = ForwardOptions {
                 training: true,
                 noise: Some(&mut noise),
@@ -573,22 +594,57 @@ impl Trainer {
             let scalar = |t: &Tensor| -> Result<f64, TrainError> {
                 Ok(t.to_dtype(candle_core::DType::F64)?.to_scalar::<f64>()?)
             };
-            fine += scalar(&(&out.fine.rgb.detach() - &target)?.abs()?.sum_all()?)? * inv_n;
-            coarse += scalar(&(&out.coarse.rgb.detach() - &target)?.abs()?.sum_all()?)? * inv_n;
-            sq += scalar(&(&out.fine.rgb.detach() - &target)?.sqr()?.sum_all()?)? * inv_n;
+            let fine = scalar(&(&out.fine.rgb.detach() - &target)?.abs()?.sum_all()?)? * inv_n;
+            let coarse = scalar(&(&out.coarse.rgb.detach() - &target)?.abs()?.sum_all()?)? * inv_n;
+            let sq = scalar(&(&out.fine.rgb.detach() - &target)?.sqr()?.sum_all()?)? * inv_n;
+            let mut scale = None;
             if start == 0 {
                 let volume = crate::loss::box_volume(&out.vol_scale)?;
-                scale = scalar(&volume)?;
+                scale = Some(scalar(&volume)?);
                 loss = (loss + (volume * cfg.loss_scale)?)?;
             }
-            // Once the total is non-finite the step is skipped: the remaining chunks still run
-            // forward for the logged loss terms, but nothing is differentiated.
-            finite &= scalar(&loss)?.is_finite();
-            if finite {
+            // A non-finite chunk is not differentiated; the step is then skipped.
+            let finite = scalar(&loss)?.is_finite();
+            let grads = if finite {
                 let store = loss.backward()?;
-                for (g, v) in grads.iter_mut().zip(&self.params) {
-                    if let Some(d) = store.get(v.as_tensor()) {
-                        let d = d.detach();
+                params
+                    .iter()
+                    .map(|v| store.get(v.as_tensor()).map(|d| d.detach()))
+                    .collect()
+            } else {
+                Vec::new()
+            };
+            Ok(ChunkOut {
+                fine,
+                coarse,
+                sq,
+                scale,
+                finite,
+                grads,
+            })
+        };
+        let mut grads: Vec<Option<Tensor>> = vec![None; self.params.len()];
+        let (mut fine, mut coarse, mut sq, mut scale) = (0f64, 0f64, 0f64, 0f64);
+        let mut finite = true;
+        let starts: Vec<usize> = (0..k).step_by(per_pose).collect();
+        // One wave of chunks per round of workers; sums are taken in chunk order, so the
+        // result is the sequential loop's, bit for bit, whatever the worker count.
+        let workers = crate::parallel::workers_on(&device);
+        for wave in starts.chunks(workers) {
+            let outs = crate::parallel::map_ordered(workers, wave.len(), |i| run_chunk(wave[i]))?;
+            for out in outs {
+                fine += out.fine;
+                coarse += out.coarse;
+                sq += out.sq;
+                if let Some(v) = out.scale {
+                    scale = v;
+                }
+                finite &= out.finite;
+                if !finite {
+                    continue;
+                }
+                for (g, d) in grads.iter_mut().zip(out.grads) {
+                    if let Some(d) = d {
                         *g = Some(match g.take() {
                             Some(sum) => (sum + d)?,
                             None => d,

@@ -66,3 +66,20 @@ pub fn adam_bits(t: &Trainer) -> Vec<(String, u64, Vec<u32>, Vec<u32>)> {
         .map(|(n, s)| (n.to_string(), s.step, bits(&s.exp_avg), bits(&s.exp_avg_sq)))
         .collect()
 }
+
+/// The first training batch `run`'s sampler draws from `data`.
+pub fn first_batch(data: &Arc<Dataset>, run: &RunConfig) -> pma_model::train::TrainBatch {
+    use pma_model::train::BatchSource;
+    let t = &run.train;
+    pma_model::train::DatasetSource::new(
+        data.clone(),
+        t.rays_per_step,
+        t.images_per_step,
+        t.perturb_bg,
+        t.seed,
+        &candle_core::Device::Cpu,
+    )
+    .unwrap()
+    .next_batch()
+    .unwrap()
+}

@@ -1,0 +1,342 @@
+//! Two CPU kernels that replace the places where candle's generic autograd costs most
+//! (profile of a paper-config training step, issue 6):
+//!
+//! * **Bias add** of every linear layer. candle differentiates `broadcast_add` with a
+//!   strided reduction over the rows that runs element by element; [`add_bias`] computes the
+//!   same column sums in one contiguous pass.
+//! * **The window's max-pool** `m = max_j (q_j + g_j) · w^p_j`. In plain ops this builds two
+//!   [N,24,128] tensors forward and about ten passes over that size backward (equality mask,
+//!   casts, products, candle's zero-then-add accumulation). [`window_pool`] reads `q` once
+//!   forward and scatters the gradient to the arg-max joint backward.
+//!
+//! Both compute the same f32 operations in the same order as the plain path, so forward
+//! values are bit-identical and gradients identical except on exact ties of the max, where
+//! the gradient goes to the first maximal joint (PyTorch's rule, the reference) instead of
+//! to every tied joint (candle's rule). Ties only occur where w^p = 0, so both give 0 there.
+//!
+//! They run on CPU in f32; other devices and dtypes take the plain path.
+//! [`set_enabled`]`(false)` forces the plain path everywhere, for A/B measurements.
+
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use candle_core::{CpuStorage, CustomOp2, CustomOp3, DType, Layout, Shape, Storage, Tensor};
+
+use crate::error::Result;
+
+static ENABLED: AtomicBool = AtomicBool::new(true);
+
+/// Turns the fused CPU kernels on (the default) or off (plain candle ops everywhere).
+pub fn set_enabled(on: bool) {
+    ENABLED.store(on, Ordering::Relaxed);
+}
+
+/// Whether the fused kernels are in use.
+pub fn enabled() -> bool {
+    ENABLED.load(Ordering::Relaxed)
+}
+
+fn applies(ts: &[&Tensor]) -> bool {
+    enabled()
+        && ts
+            .iter()
+            .all(|t| t.device().is_cpu() && t.dtype() == DType::F32)
+}
+
+/// `y + b` broadcast over rows: y: [rows,out], b: [out] -> [rows,out].
+pub fn add_bias(y: &Tensor, b: &Tensor) -> Result<Tensor> {
+    if !applies(&[y, b]) || y.rank() != 2 || b.rank() != 1 {
+        return Ok(y.broadcast_add(b)?);
+    }
+    Ok(y.contiguous()?.apply_op2(&b.contiguous()?, BiasAdd)?)
+}
+
+/// `max_j (q[n,j,:] + g[j,:]) · w_p[n,j]`: q: [N,J,H], g: [J,H], w_p: [N,J] -> [N,H].
+/// No gradient flows to `w_p` (the reference detaches the spatial window).
+pub fn window_pool(q: &Tensor, g: &Tensor, w_p: &Tensor) -> Result<Tensor> {
+    let plain = || -> Result<Tensor> {
+        let part = q.broadcast_add(&g.unsqueeze(0)?)?;
+        Ok(part
+            .broadcast_mul(&w_p.unsqueeze(candle_core::D::Minus1)?)?
+            .max(1)?)
+    };
+    if !applies(&[q, g, w_p]) || q.rank() != 3 {
+        return plain();
+    }
+    Ok(q.contiguous()?
+        .apply_op3(&g.contiguous()?, &w_p.detach().contiguous()?, WindowPool)?)
+}
+
+/// A contiguous f32 CPU slice of `s` under layout `l`.
+fn slice<'a>(s: &'a CpuStorage, l: &Layout, what: &str) -> candle_core::Result<&'a [f32]> {
+    let CpuStorage::F32(v) = s else {
+        candle_core::bail!("{what}: fused kernel expects f32")
+    };
+    match l.contiguous_offsets() {
+        Some((a, b)) => Ok(&v[a..b]),
+        None => candle_core::bail!("{what}: fused kernel expects a contiguous tensor"),
+    }
+}
+
+/// The f32 data of a contiguous CPU tensor's storage.
+fn cpu_slice<'a>(s: &'a Storage, l: &Layout) -> candle_core::Result<&'a [f32]> {
+    let Storage::Cpu(cpu) = s else {
+        candle_core::bail!("fused kernel: tensor is not on the CPU")
+    };
+    slice(cpu, l, "fused kernel")
+}
+
+struct BiasAdd;
+
+impl CustomOp2 for BiasAdd {
+    fn name(&self) -> &'static str {
+        "pma-bias-add"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let (y, b) = (slice(s1, l1, "bias add: y")?, slice(s2, l2, "bias add: b")?);
+        let out = b.len();
+        if out == 0 || y.len() % out != 0 {
+            candle_core::bail!(
+                "bias add: {} values do not split into rows of {out}",
+                y.len()
+            )
+        }
+        let mut dst = Vec::with_capacity(y.len());
+        for row in y.chunks_exact(out) {
+            dst.extend(row.iter().zip(b).map(|(a, c)| a + c));
+        }
+        Ok((CpuStorage::F32(dst), l1.shape().clone()))
+    }
+
+    fn bwd(
+        &self,
+        _y: &Tensor,
+        b: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>)> {
+        let out = b.elem_count();
+        // Row order, from zero: the same summation candle's reduction does.
+        let grad_c = grad.contiguous()?;
+        let (storage, layout) = grad_c.storage_and_layout();
+        let mut sums = vec![0f32; out];
+        for row in cpu_slice(&storage, layout)?.chunks_exact(out) {
+            for (a, v) in sums.iter_mut().zip(row) {
+                *a += v;
+            }
+        }
+        drop(storage);
+        let gb = Tensor::from_vec(sums, out, b.device())?;
+        Ok((Some(grad.clone()), Some(gb)))
+    }
+}
+
+struct WindowPool;
+
+/// One point's pooled row: `best[k] = max_j (q[j,k] + g[j,k]) · w[j]` and the first joint
+/// reaching it in `arg` (a NaN wins and stays, as PyTorch's max propagates it).
+fn pool_row(q: &[f32], g: &[f32], w: &[f32], best: &mut [f32], arg: &mut [usize]) {
+    let h = best.len();
+    for k in 0..h {
+        best[k] = (q[k] + g[k]) * w[0];
+        arg[k] = 0;
+    }
+    for (jj, &wj) in w.iter().enumerate().skip(1) {
+        let (qj, gj) = (&q[jj * h..(jj + 1) * h], &g[jj * h..(jj + 1) * h]);
+        for k in 0..h {
+            let v = (qj[k] + gj[k]) * wj;
+            if v > best[k] || (v.is_nan() && !best[k].is_nan()) {
+                best[k] = v;
+                arg[k] = jj;
+            }
+        }
+    }
+}
+
+impl CustomOp3 for WindowPool {
+    fn name(&self) -> &'static str {
+        "pma-window-pool"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+        s3: &CpuStorage,
+        l3: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let (n, j, h) = l1.shape().dims3()?;
+        let q = slice(s1, l1, "window pool: q")?;
+        let g = slice(s2, l2, "window pool: g")?;
+        let w = slice(s3, l3, "window pool: w_p")?;
+        if g.len() != j * h || w.len() != n * j || j == 0 {
+            candle_core::bail!("window pool: shapes do not agree with q [{n},{j},{h}]")
+        }
+        let mut dst = vec![0f32; n * h];
+        let mut arg = vec![0usize; h];
+        for (i, m) in dst.chunks_exact_mut(h).enumerate() {
+            pool_row(
+                &q[i * j * h..(i + 1) * j * h],
+                g,
+                &w[i * j..(i + 1) * j],
+                m,
+                &mut arg,
+            );
+        }
+        Ok((CpuStorage::F32(dst), Shape::from((n, h))))
+    }
+
+    fn bwd(
+        &self,
+        q: &Tensor,
+        g: &Tensor,
+        w_p: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+        let (n, j, h) = q.dims3()?;
+        let (q_c, g_c, w_c, d_c) = (
+            q.contiguous()?,
+            g.contiguous()?,
+            w_p.contiguous()?,
+            grad.contiguous()?,
+        );
+        let guards = [&q_c, &g_c, &w_c, &d_c].map(|t| t.storage_and_layout());
+        let [q, g, w, dm] = [0, 1, 2, 3].map(|i| cpu_slice(&guards[i].0, guards[i].1));
+        let (q, g, w, dm) = (q?, g?, w?, dm?);
+        let mut gq = vec![0f32; n * j * h];
+        let mut gg = vec![0f32; j * h];
+        let mut arg = vec![0usize; h];
+        let mut best = vec![0f32; h];
+        for i in 0..n {
+            let wn = &w[i * j..(i + 1) * j];
+            pool_row(&q[i * j * h..(i + 1) * j * h], g, wn, &mut best, &mut arg);
+            let dmn = &dm[i * h..(i + 1) * h];
+            for k in 0..h {
+                let jj = arg[k];
+                let d = dmn[k] * wn[jj];
+                gq[i * j * h + jj * h + k] = d;
+                gg[jj * h + k] += d;
+            }
+        }
+        drop(guards);
+        let gq = Tensor::from_vec(gq, (n, j, h), q_c.device())?;
+        let gg = Tensor::from_vec(gg, (j, h), g_c.device())?;
+        Ok((Some(gq), Some(gg), None))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use candle_core::{Device, Var};
+
+    fn rand(shape: &[usize], seed: u64) -> Tensor {
+        // Deterministic values in [-1, 1) without an RNG dependency.
+        let n: usize = shape.iter().product();
+        let mut x = seed
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        let v: Vec<f32> = (0..n)
+            .map(|_| {
+                x = x
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                ((x >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
+            })
+            .collect();
+        Tensor::from_vec(v, shape, &Device::Cpu).unwrap()
+    }
+
+    fn max_abs(a: &Tensor, b: &Tensor) -> f32 {
+        (a - b)
+            .unwrap()
+            .abs()
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .max(0)
+            .unwrap()
+            .to_scalar::<f32>()
+            .unwrap()
+    }
+
+    /// Forward values and gradients of both kernels equal the plain candle ops exactly,
+    /// including rows whose spatial window is 0 for every joint (all-tie rows).
+    #[test]
+    fn fused_kernels_match_plain_ops_bit_for_bit() {
+        let (n, j, h, out) = (37, 24, 16, 9);
+        let run = |fused: bool| {
+            let q = Var::from_tensor(&rand(&[n, j, h], 1)).unwrap();
+            let g = Var::from_tensor(&rand(&[j, h], 2)).unwrap();
+            // Half the rows far from every bone (w_p = 0), the rest in (0, 1).
+            let mut w = rand(&[n, j], 3).abs().unwrap();
+            let zero = Tensor::zeros((n / 2, j), DType::F32, &Device::Cpu).unwrap();
+            w = Tensor::cat(&[&zero, &w.narrow(0, n / 2, n - n / 2).unwrap()], 0).unwrap();
+            let y = Var::from_tensor(&rand(&[n, out], 4)).unwrap();
+            let b = Var::from_tensor(&rand(&[out], 5)).unwrap();
+            let (m, z) = if fused {
+                (
+                    window_pool(q.as_tensor(), g.as_tensor(), &w).unwrap(),
+                    add_bias(y.as_tensor(), b.as_tensor()).unwrap(),
+                )
+            } else {
+                let part = q
+                    .as_tensor()
+                    .broadcast_add(&g.as_tensor().unsqueeze(0).unwrap());
+                let att = part
+                    .unwrap()
+                    .broadcast_mul(&w.unsqueeze(2).unwrap())
+                    .unwrap();
+                (
+                    att.max(1).unwrap(),
+                    y.as_tensor().broadcast_add(b.as_tensor()).unwrap(),
+                )
+            };
+            // A loss with distinct weights per element, so every gradient entry is tested.
+            let a = m.sin().unwrap().sum_all().unwrap();
+            let c = (z.sqr().unwrap() * 0.5).unwrap().sum_all().unwrap();
+            let loss = (a + c).unwrap();
+            let grads = loss.backward().unwrap();
+            let get = |v: &Var| grads.get(v.as_tensor()).unwrap().clone();
+            (m, z, get(&q), get(&g), get(&y), get(&b))
+        };
+        let a = run(true);
+        let b = run(false);
+        assert_eq!(max_abs(&a.0, &b.0), 0.0, "pooled");
+        assert_eq!(max_abs(&a.1, &b.1), 0.0, "bias add");
+        assert_eq!(max_abs(&a.2, &b.2), 0.0, "grad q");
+        assert_eq!(max_abs(&a.3, &b.3), 0.0, "grad g");
+        assert_eq!(max_abs(&a.4, &b.4), 0.0, "grad y");
+        assert_eq!(max_abs(&a.5, &b.5), 0.0, "grad bias");
+        // The kernels actually ran (they are off when disabled or for other dtypes).
+        assert!(applies(&[&a.0]));
+    }
+
+    #[test]
+    fn window_pool_propagates_nan_and_falls_back_for_f64() {
+        let q = rand(&[3, 4, 5], 7);
+        let g = rand(&[4, 5], 8);
+        let mut wv = vec![0.5f32; 12];
+        wv[5] = f32::NAN;
+        let w = Tensor::from_vec(wv, (3, 4), &Device::Cpu).unwrap();
+        let m = window_pool(&q, &g, &w).unwrap().to_vec2::<f32>().unwrap();
+        assert!(m[1].iter().all(|v| v.is_nan()), "row 1 has a NaN window");
+        assert!(m[0].iter().chain(&m[2]).all(|v| v.is_finite()));
+        let m64 = window_pool(
+            &q.to_dtype(DType::F64).unwrap(),
+            &g.to_dtype(DType::F64).unwrap(),
+            &w.to_dtype(DType::F64).unwrap(),
+        )
+        .unwrap();
+        assert_eq!(m64.dtype(), DType::F64);
+    }
+}

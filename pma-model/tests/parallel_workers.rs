@@ -1,0 +1,73 @@
+//! Data-parallel workers (`pma_model::parallel`) change nothing but the speed: a chunked
+//! training step and an inference pass give bit-identical results with 1 and with 3 workers.
+#![cfg(feature = "train")]
+
+mod train_support;
+
+use candle_core::{Device, Tensor};
+use pma_model::avatar::Avatar;
+use pma_model::parallel::{set_workers, workers};
+use pma_model::train::{BatchSource, DatasetSource, FixedBatch, Trainer};
+use train_support::{first_batch, tiny_run, tiny_scene};
+
+fn flat(t: &Tensor) -> Vec<f32> {
+    t.flatten_all().unwrap().to_vec1::<f32>().unwrap()
+}
+
+// One test function: the worker count is process-wide.
+#[test]
+fn worker_count_does_not_change_results() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let mut run = tiny_run();
+    run.model.n_framecodes = data.n_images();
+    run.train.chunk_rays = 2;
+    let rest = data.rest_pose.unwrap();
+    let batch = first_batch(&data, &run);
+
+    let step = |w: usize| {
+        set_workers(w);
+        assert_eq!(workers(), w);
+        let avatar = Avatar::new(run.model.clone(), &rest, run.train.seed, &Device::Cpu).unwrap();
+        let mut trainer =
+            Trainer::with_source(run.clone(), avatar, Box::new(FixedBatch(batch.clone()))).unwrap();
+        let mut grads = Vec::new();
+        let stats = trainer
+            .step_hooked(&mut |g: &mut [Option<Tensor>]| {
+                grads = g
+                    .iter()
+                    .map(|t| t.as_ref().map(flat).unwrap_or_default())
+                    .collect::<Vec<_>>();
+            })
+            .unwrap();
+        let params: Vec<Vec<f32>> = trainer
+            .avatar()
+            .trainable()
+            .into_iter()
+            .map(|(_, v)| flat(v.as_tensor()))
+            .collect();
+        (stats.loss.total, grads, params)
+    };
+    let one = step(1);
+    let three = step(3);
+    assert_eq!(one.0.to_bits(), three.0.to_bits(), "loss");
+    assert!(one.1.iter().any(|g| !g.is_empty()), "no gradients");
+    assert_eq!(one.1, three.1, "accumulated gradients");
+    assert_eq!(one.2, three.2, "parameters after the step");
+
+    // Inference: enough rays for several point chunks per pose.
+    let mut src = DatasetSource::new(data.clone(), 1024, 2, false, 3, &Device::Cpu).unwrap();
+    let batch = src.next_batch().unwrap();
+    let avatar = Avatar::new(run.model.clone(), &rest, 1, &Device::Cpu).unwrap();
+    let render = |w: usize| {
+        set_workers(w);
+        let out = avatar.render_rays(&batch.rays, &batch.poses).unwrap();
+        (flat(&out.fine.rgb), flat(&out.fine.acc))
+    };
+    let (rgb1, acc1) = render(1);
+    let (rgb3, acc3) = render(3);
+    assert!(acc1.iter().any(|&a| a > 0.0), "the batch sees the body");
+    assert_eq!(rgb1, rgb3, "rendered colour");
+    assert_eq!(acc1, acc3, "accumulated opacity");
+    set_workers(1);
+}
