@@ -5,7 +5,7 @@
 //!
 //! The case counts are bounded so the whole file runs in well under a minute
 //! in the test profile; the seed is fixed so CI is deterministic. For a longer
-//! local hunt: `PMA_FUZZ_CASES=20000 PMA_FUZZ_SEED=$RANDOM cargo test -p pma-convert --test fuzz_readers --release`.
+//! local hunt: `PMA_FUZZ_CASES=20000 PMA_FUZZ_SEED=$RANDOM cargo test -p pma-convert --release --test convert fuzz_readers::`.
 //! Claims of huge sizes are covered separately (`hostile_sizes.rs`), where
 //! peak memory can be measured without other tests running beside them.
 

@@ -2,26 +2,9 @@
 //! seed gives byte-identical files, another seed changes the pixels, and bad settings fail
 //! with the setting named.
 
+use crate::run::{ok, pma};
 use std::path::Path;
-use std::process::{Command, Output};
-
-fn pma(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_pma"))
-        .args(args)
-        .output()
-        .expect("running pma")
-}
-
-fn ok(out: Output) -> Output {
-    assert!(
-        out.status.success(),
-        "pma failed: {}\nstdout:\n{}\nstderr:\n{}",
-        out.status,
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    out
-}
+use std::process::Output;
 
 fn synth(dir: &Path, seed: &str) -> Output {
     pma(&[

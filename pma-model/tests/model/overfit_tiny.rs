@@ -8,13 +8,11 @@
 //! first hundreds of iterations.
 #![cfg(feature = "train")]
 
-mod train_support;
-
+use crate::train_support::*;
 use candle_core::{Device, Tensor};
 use pma_model::avatar::ForwardOptions;
 use pma_model::train::{psnr_from_mse, BatchSource, DatasetSource, TrainBatch, Trainer};
 use rand::SeedableRng;
-use train_support::*;
 
 const ITERS: usize = 150;
 /// Observed: 12.84 dB -> 17.33 dB (+4.5) on x86-64; the margin leaves room for other FPUs.

@@ -2,37 +2,12 @@
 //! expected surface known exactly: the union of the posed part boxes.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
 
+use crate::run::{fails_with, ok, pma};
 use candle_core::{Device, Tensor};
 use pma_model::avatar::Avatar;
 use pma_model::mesh::{read_ply, AvatarField};
 use pma_model::Config;
-
-fn pma(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_pma"))
-        .args(args)
-        .output()
-        .expect("running pma")
-}
-
-fn ok(out: Output) -> Output {
-    assert!(
-        out.status.success(),
-        "pma failed: {}\nstdout:\n{}\nstderr:\n{}",
-        out.status,
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    out
-}
-
-fn fails_with(out: Output, needle: &str) {
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success(), "expected failure, got success");
-    assert!(err.contains(needle), "stderr lacks {needle:?}:\n{err}");
-    assert!(!err.contains("panicked"), "{err}");
-}
 
 fn s(p: &Path) -> &str {
     p.to_str().unwrap()

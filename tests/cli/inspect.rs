@@ -2,16 +2,9 @@
 //! broken one (non-zero exit, key named).
 
 use std::path::Path;
-use std::process::{Command, Output};
 
+use crate::run::pma;
 use pma_data::dataset::{Dataset, Profile, ReadOptions, WriteOptions};
-
-fn pma(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_pma"))
-        .args(args)
-        .output()
-        .expect("running pma")
-}
 
 fn tiny_scene(dir: &Path) {
     let cfg = pma_data::synth::SynthConfig {

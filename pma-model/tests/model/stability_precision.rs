@@ -6,10 +6,8 @@
 //! Measured errors (max |Δ| of the fine rgb over the 64 golden rays) are printed; the bounds
 //! below are a few times the measured values, so a regression in the dtype plumbing fails.
 
-mod common;
-
+use crate::common::*;
 use candle_core::DType;
-use common::*;
 use pma_model::avatar::{ForwardOptions, Outputs};
 use pma_model::stability::tensor_stats;
 

@@ -2,11 +2,9 @@
 //! the skip is counted, training continues, and a streak of them stops the run.
 #![cfg(feature = "train")]
 
-mod train_support;
-
+use crate::train_support::*;
 use candle_core::{Device, Tensor};
 use pma_model::train::{SkipReason, TrainBatch, TrainError, Trainer};
-use train_support::*;
 
 /// Hook that overwrites the first element of the first parameter's gradient.
 fn poison(value: f32) -> impl FnMut(&mut [Option<Tensor>]) {

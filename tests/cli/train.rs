@@ -3,39 +3,10 @@
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Command;
 
+use crate::run::{fails_with, ok, pma};
 use candle_core::{Device, Tensor};
-
-fn pma(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_pma"))
-        .args(args)
-        .output()
-        .expect("running pma")
-}
-
-fn ok(out: Output) -> Output {
-    assert!(
-        out.status.success(),
-        "pma failed: {}\nstdout:\n{}\nstderr:\n{}",
-        out.status,
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    out
-}
-
-fn fails_with(out: Output, needle: &str) {
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(
-        !out.status.success(),
-        "expected failure containing {needle:?}, got success"
-    );
-    assert!(
-        stderr.contains(needle),
-        "expected {needle:?} in stderr:\n{stderr}"
-    );
-}
 
 /// A scene small enough for debug builds: 24 px, 2 training cameras, 3 frames.
 fn tiny_scene(dir: &Path) -> PathBuf {

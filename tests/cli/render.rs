@@ -2,39 +2,15 @@
 //! AIST++ motion from `pma convert motion` on an orbit, bullet time, and clear errors.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
 
+use crate::run::{fails_with, ok, pma};
 use candle_core::Device;
 use image::AnimationDecoder;
 use pma_model::avatar::Avatar;
 use pma_model::Config;
 
-fn pma(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_pma"))
-        .args(args)
-        .output()
-        .expect("running pma")
-}
-
-fn ok(out: Output) -> Output {
-    assert!(
-        out.status.success(),
-        "pma failed: {}\nstdout:\n{}\nstderr:\n{}",
-        out.status,
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    out
-}
-
 /// Fails with a message naming `needle`, without panicking.
-fn fails_with(out: Output, needle: &str) {
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success(), "expected failure, got success");
-    assert!(err.contains(needle), "stderr lacks {needle:?}:\n{err}");
-    assert!(!err.contains("panicked"), "{err}");
-}
-
 fn tiny_scene(dir: &Path) {
     let cfg = pma_data::synth::SynthConfig {
         res: 24,

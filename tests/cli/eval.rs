@@ -2,25 +2,8 @@
 //! PNGs, and clear errors for a bad split or a missing model.
 
 use std::path::Path;
-use std::process::{Command, Output};
 
-fn pma(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_pma"))
-        .args(args)
-        .output()
-        .expect("running pma")
-}
-
-fn ok(out: Output) -> Output {
-    assert!(
-        out.status.success(),
-        "pma failed: {}\nstdout:\n{}\nstderr:\n{}",
-        out.status,
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    out
-}
+use crate::run::{ok, pma};
 
 fn tiny_scene(dir: &Path) {
     let cfg = pma_data::synth::SynthConfig {

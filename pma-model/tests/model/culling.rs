@@ -2,10 +2,8 @@
 //! mode on the golden cases; culled rays are exactly the background with zero weights while
 //! every other ray is untouched; a small sample threshold changes a render by a bounded amount.
 
-mod common;
-
+use crate::common::*;
 use candle_core::{Device, Tensor};
-use common::*;
 use pma_model::avatar::{Avatar, ForwardOptions, Outputs};
 use pma_model::config::{Config, Culling, SampleFill};
 use pma_model::cull::{SampleFate, WindowTest};

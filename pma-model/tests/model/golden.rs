@@ -4,9 +4,7 @@
 //! Tolerance: max abs error ≤ 1e-4, or ≤ 1e-4 relative to |reference| where values exceed 1
 //! (depths and disparities of several metres, frequencies γ ≈ 30, pre-activations).
 
-mod common;
-
-use common::*;
+use crate::common::*;
 
 fn check_case(dir: &str, sigma_override: bool) {
     let case = GoldenCase::load(dir, sigma_override);

@@ -11,9 +11,7 @@
 //! reversed and the ray origins moved by one ulp (identical maths up to rounding) — and allows
 //! max(1e-4, 10 × floor) per array (one perturbation only samples the floor, hence the margin), printing the floor next to each error.
 
-mod common;
-
-use common::*;
+use crate::common::*;
 use pma_model::loss::{l1, training_loss, LossWeights};
 
 /// Every gradient (by parameter name) of `loss_kind` with the rays in the given order.

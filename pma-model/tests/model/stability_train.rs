@@ -4,12 +4,12 @@
 //!
 //! CI runs a few `tiny` steps. The full check of the issue (200 `cpu-small` steps) is the
 //! ignored test, run in release:
-//! `STRESS_STEPS=200 STRESS_PRESET=cpu-small cargo test --release -p pma-model --features train --test stability_train -- --ignored --nocapture`
+//! `STRESS_STEPS=200 STRESS_PRESET=cpu-small cargo test --release -p pma-model --features train --test model stability_train:: -- --ignored --nocapture`
 #![cfg(feature = "train")]
 
-mod train_support;
-
 use std::sync::Arc;
+
+use crate::train_support;
 
 use candle_core::{Device, Tensor};
 use pma_data::cylinder::{cylinder_from_joints, CylinderParams, HeadDir};

@@ -4,10 +4,9 @@
 //! bounds depend on the whole batch).
 #![cfg(feature = "train")]
 
-mod train_support;
-
 use std::sync::Arc;
 
+use crate::train_support::{first_batch, tiny_run, tiny_scene};
 use candle_core::{Device, Tensor};
 use pma_data::dataset::Dataset;
 use pma_model::avatar::Avatar;
@@ -15,7 +14,6 @@ use pma_model::raycast::cylinder_near_far;
 use pma_model::train::{
     chunk_rays, FixedBatch, RunConfig, StepStats, TrainBatch, TrainConfig, Trainer,
 };
-use train_support::{first_batch, tiny_run, tiny_scene};
 
 fn flat(t: &Tensor) -> Vec<f32> {
     t.flatten_all().unwrap().to_vec1::<f32>().unwrap()

@@ -3,11 +3,9 @@
 //! steps, and the loss of every resumed step.
 #![cfg(feature = "train")]
 
-mod train_support;
-
+use crate::train_support::*;
 use candle_core::Device;
 use pma_model::train::{TrainError, Trainer, MODEL_FILE, STATE_FILE};
-use train_support::*;
 
 #[test]
 fn resume_equals_uninterrupted_run() {

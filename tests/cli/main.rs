@@ -1,0 +1,16 @@
+//! End-to-end tests of the `pma` binary, linked as one test binary: each binary links candle, and one per file
+//! filled a CI disk. Files stay one module per concern; filter with `cargo test --test cli train::`.
+
+mod run;
+
+mod bench;
+mod check_stability;
+mod convert;
+mod demo;
+mod eval;
+mod forward;
+mod inspect;
+mod mesh;
+mod render;
+mod synth;
+mod train;
