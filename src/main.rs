@@ -23,6 +23,11 @@ struct Cli {
     /// order. Setting RAYON_NUM_THREADS or CANDLE_NUM_THREADS keeps candle's threading instead.
     #[arg(long, global = true, default_value_t = 0)]
     workers: usize,
+    /// Vectorised sine in the SIREN and modulated layers (CPU, f32) instead of libm's: faster,
+    /// and different from parity mode in the last bit of a few values (`pma bench` measures
+    /// the error). Off by default.
+    #[arg(long, global = true)]
+    fast_sine: bool,
     #[command(subcommand)]
     command: Command,
 }
@@ -57,6 +62,7 @@ fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
     // Before any candle op: candle sizes its thread pool once.
     pma_model::parallel::configure_cpu(cli.workers);
+    pma_model::fast_sine::set_enabled(cli.fast_sine);
     match cli.command {
         Command::Synth(a) => cli::synth::run(a),
         Command::Inspect(a) => cli::inspect::run(a),

@@ -32,12 +32,19 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let repeats: usize = scene::arg("--repeats", 3).max(1);
     // `--no-fused`: plain candle ops instead of the fused CPU kernels (A/B measurement).
     pma_model::fused::set_enabled(!std::env::args().any(|a| a == "--no-fused"));
+    // `--fast-sine`: the vectorised sine (not parity mode: last-bit differences).
+    pma_model::fast_sine::set_enabled(std::env::args().any(|a| a == "--fast-sine"));
     let dir = tempfile::tempdir()?;
     let data = scene::scene(dir.path())?;
     let mut run = RunConfig::from_preset(Preset::Paper);
     let samples = (run.model.n_samples + run.model.n_importance) as f64;
     println!(
-        "paper config, parity mode, {workers} workers x {} candle threads, fused kernels {}",
+        "paper config, {}, {workers} workers x {} candle threads, fused kernels {}",
+        if pma_model::fast_sine::enabled() {
+            "fast sine (not parity)"
+        } else {
+            "parity mode"
+        },
         candle_core::utils::get_num_threads(),
         if pma_model::fused::enabled() {
             "on"

@@ -121,7 +121,7 @@ impl Modulator {
         let mut outs = Vec::with_capacity(self.layers.len());
         for (k, layer) in self.layers.iter().enumerate() {
             let pre = layer.forward(&h)?;
-            h = (pre * self.gamma(&m.freq[k])?)?.add(&m.phase[k])?.sin()?;
+            h = crate::fast_sine::sin(&(pre * self.gamma(&m.freq[k])?)?.add(&m.phase[k])?)?;
             outs.push(h.clone());
         }
         Ok(Tensor::cat(&outs, 1)?)
