@@ -151,6 +151,9 @@ pub fn reset_peak_rss() -> bool {
 pub struct OptionResult {
     pub name: String,
     pub culling: pma_model::config::Culling,
+    /// The vectorised sine (`--fast-sine`) was on for this option.
+    #[serde(default)]
+    pub fast_sine: bool,
     /// Median ms per rendered image.
     pub ms_per_image: f64,
     /// Rays traced per image (pixels inside the body box) per second.
@@ -214,15 +217,18 @@ mod imp {
     use super::super::eval::{ground_truth, read_dataset, write_json_atomic};
     use super::*;
 
-    fn options(thresholds: &[f64]) -> Vec<(String, Culling)> {
+    /// (name, culling, fast sine): parity, each culling option, then the vectorised sine
+    /// alone and with the last (most aggressive) culling option.
+    fn options(thresholds: &[f64]) -> Vec<(String, Culling, bool)> {
         let mut v = vec![
-            ("parity".to_string(), Culling::default()),
+            ("parity".to_string(), Culling::default(), false),
             (
                 "rays".to_string(),
                 Culling {
                     rays: true,
                     ..Default::default()
                 },
+                false,
             ),
         ];
         for &t in thresholds {
@@ -233,7 +239,13 @@ mod imp {
                     sample_threshold: Some(t),
                     sample_fill: SampleFill::Network,
                 },
+                false,
             ));
+        }
+        let (last_name, last_culling, _) = v.last().cloned().expect("parity is always there");
+        v.push(("fast-sine".to_string(), Culling::default(), true));
+        if last_name != "rays" {
+            v.push((format!("{last_name}+fast-sine"), last_culling, true));
         }
         v
     }
@@ -447,9 +459,10 @@ mod imp {
         let mut parity_held: Vec<Vec<f32>> = Vec::new();
         let mut parity_psnr = f64::NAN;
         let b = bar(args.quiet, opts.len() as u64, "inference per option");
-        for (name, culling) in &opts {
+        for (name, culling, fast_sine) in &opts {
             b.set_message(format!("render {name}"));
             avatar.set_culling(culling.clone())?;
+            pma_model::fast_sine::set_enabled(*fast_sine);
             if rss_reset {
                 reset_peak_rss();
             }
@@ -489,6 +502,7 @@ mod imp {
             results.push(OptionResult {
                 name: name.clone(),
                 culling: culling.clone(),
+                fast_sine: *fast_sine,
                 ms_per_image: sec * 1e3,
                 rays_per_s: box_rays / sec,
                 network_points_per_s: points as f64 / sec,
@@ -510,8 +524,9 @@ mod imp {
         // Training: ms per step and held-out PSNR after the same wall-clock budget.
         let budget = args.budget_seconds.max(0.0);
         let b = bar(args.quiet, opts.len() as u64, "training per option");
-        for (res, (name, culling)) in results.iter_mut().zip(&opts) {
+        for (res, (name, culling, fast_sine)) in results.iter_mut().zip(&opts) {
             b.set_message(format!("train {name}"));
+            pma_model::fast_sine::set_enabled(*fast_sine);
             let mut run = RunConfig::from_preset(preset);
             run.model = cfg.clone();
             run.model.culling = culling.clone();
@@ -542,6 +557,7 @@ mod imp {
             b.inc(1);
         }
         b.finish_and_clear();
+        pma_model::fast_sine::set_enabled(false);
 
         let parity_rays = results[0].rays_per_s;
         for r in &mut results {

@@ -37,8 +37,20 @@ fn quick_bench_writes_every_field() {
         .collect();
     assert_eq!(
         names,
-        ["parity", "rays", "rays+samples@0e0", "rays+samples@1e-2"]
+        [
+            "parity",
+            "rays",
+            "rays+samples@0e0",
+            "rays+samples@1e-2",
+            "fast-sine",
+            "rays+samples@1e-2+fast-sine"
+        ]
     );
+    let fast: Vec<bool> = options
+        .iter()
+        .map(|o| o["fast_sine"].as_bool().unwrap())
+        .collect();
+    assert_eq!(fast, [false, false, false, false, true, true]);
     for o in options {
         for key in [
             "ms_per_image",
@@ -64,6 +76,11 @@ fn quick_bench_writes_every_field() {
     // only touches rays that miss every box): its points are fewer than parity's.
     let pts = |i: usize| options[i]["network_points_per_image"].as_u64().unwrap();
     assert!(pts(2) < pts(0), "culling did not leave points out");
+    // The vectorised sine leaves out no points, and its render is near parity's (last-bit
+    // differences through the network), not identical and not far.
+    assert_eq!(pts(4), pts(0));
+    let diff = options[4]["max_abs_diff_vs_parity"].as_f64().unwrap();
+    assert!(diff < 1e-3, "fast sine moved the render by {diff}");
     assert!(dir.path().join("error_vs_time.png").is_file());
 }
 
