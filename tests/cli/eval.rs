@@ -1,29 +1,13 @@
 //! `pma eval` end to end: table on stdout, eval.json with the documented shape, side-by-side
 //! PNGs, and clear errors for a bad split or a missing model.
 
-use std::path::Path;
-
-use crate::run::{ok, pma};
-
-fn tiny_scene(dir: &Path) {
-    let cfg = pma_data::synth::SynthConfig {
-        res: 24,
-        train_cams: 2,
-        test_cams: 1,
-        frames: 3,
-        novel_view_stride: 2,
-        novel_pose_walk: 1,
-        novel_pose_dance: 1,
-        ..Default::default()
-    };
-    pma_data::synth::generate(&cfg, dir, &mut |_, _| {}).expect("synth");
-}
+use crate::run::{ok, pma, tiny_scene};
 
 #[test]
 fn eval_writes_table_json_and_pngs() {
     let tmp = tempfile::tempdir().unwrap();
     let scene = tmp.path().join("scene");
-    tiny_scene(&scene);
+    tiny_scene(&scene, 2);
     let run = tmp.path().join("run");
     let train = scene.join("train.npz");
     ok(pma(&[

@@ -4,26 +4,11 @@
 use std::path::{Path, PathBuf};
 use std::process::Output;
 
-use crate::run::{fails_with, ok, pma};
+use crate::run::{fails_with, ok, pma, tiny_scene};
 use candle_core::Device;
 use image::AnimationDecoder;
 use pma_model::avatar::Avatar;
 use pma_model::Config;
-
-/// Fails with a message naming `needle`, without panicking.
-fn tiny_scene(dir: &Path) {
-    let cfg = pma_data::synth::SynthConfig {
-        res: 24,
-        train_cams: 2,
-        test_cams: 1,
-        frames: 3,
-        novel_view_stride: 1,
-        novel_pose_walk: 1,
-        novel_pose_dance: 1,
-        ..Default::default()
-    };
-    pma_data::synth::generate(&cfg, dir, &mut |_, _| {}).expect("synth");
-}
 
 /// An untrained tiny avatar on the synthetic scene's rest pose.
 fn tiny_model(dir: &Path) -> PathBuf {
@@ -86,7 +71,7 @@ fn s(p: &Path) -> &str {
 fn dataset_views_of_a_trained_model() {
     let tmp = tempfile::tempdir().unwrap();
     let scene = tmp.path().join("scene");
-    tiny_scene(&scene);
+    tiny_scene(&scene, 1);
     let run = tmp.path().join("run");
     ok(pma(&[
         "train",
@@ -264,7 +249,7 @@ fn follow_camera_moves_with_the_root_only() {
 fn bullet_time_freezes_one_pose_and_turns_the_camera() {
     let tmp = tempfile::tempdir().unwrap();
     let scene = tmp.path().join("scene");
-    tiny_scene(&scene);
+    tiny_scene(&scene, 1);
     let model = tiny_model(tmp.path());
     let out = tmp.path().join("bullet");
     ok(pma(&[
@@ -315,7 +300,7 @@ fn bullet_time_freezes_one_pose_and_turns_the_camera() {
 fn bad_input_gives_clear_errors() {
     let tmp = tempfile::tempdir().unwrap();
     let scene = tmp.path().join("scene");
-    tiny_scene(&scene);
+    tiny_scene(&scene, 1);
     let model = tiny_model(tmp.path());
     let out = tmp.path().join("o");
     let base = |extra: &[&str]| -> Output {

@@ -2,27 +2,11 @@
 //! clear errors on bad input.
 
 use std::collections::HashMap;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Command;
 
-use crate::run::{fails_with, ok, pma};
+use crate::run::{fails_with, ok, pma, tiny_scene};
 use candle_core::{Device, Tensor};
-
-/// A scene small enough for debug builds: 24 px, 2 training cameras, 3 frames.
-fn tiny_scene(dir: &Path) -> PathBuf {
-    let cfg = pma_data::synth::SynthConfig {
-        res: 24,
-        train_cams: 2,
-        test_cams: 1,
-        frames: 3,
-        novel_view_stride: 2,
-        novel_pose_walk: 1,
-        novel_pose_dance: 1,
-        ..Default::default()
-    };
-    pma_data::synth::generate(&cfg, dir, &mut |_, _| {}).expect("synth");
-    dir.join("train.npz")
-}
 
 fn tensors(path: &Path) -> HashMap<String, Tensor> {
     candle_core::safetensors::load(path, &Device::Cpu).unwrap()
@@ -50,7 +34,7 @@ fn assert_same_tensors(a: &Path, b: &Path) {
 #[test]
 fn resumed_run_equals_uninterrupted_run_bit_for_bit() {
     let tmp = tempfile::tempdir().unwrap();
-    let data = tiny_scene(&tmp.path().join("scene"));
+    let data = tiny_scene(&tmp.path().join("scene"), 2);
     let data = data.to_str().unwrap();
     let a = tmp.path().join("a");
     let b = tmp.path().join("b");
@@ -160,7 +144,7 @@ fn bad_input_gives_clear_errors() {
 #[test]
 fn existing_run_is_not_overwritten_without_resume() {
     let tmp = tempfile::tempdir().unwrap();
-    let data = tiny_scene(&tmp.path().join("scene"));
+    let data = tiny_scene(&tmp.path().join("scene"), 2);
     let out = tmp.path().join("run");
     let args = [
         "train",
@@ -181,7 +165,7 @@ fn existing_run_is_not_overwritten_without_resume() {
 #[test]
 fn ctrl_c_writes_a_checkpoint_that_resumes() {
     let tmp = tempfile::tempdir().unwrap();
-    let data = tiny_scene(&tmp.path().join("scene"));
+    let data = tiny_scene(&tmp.path().join("scene"), 2);
     let out = tmp.path().join("run");
     let child = Command::new(env!("CARGO_BIN_EXE_pma"))
         .args([
