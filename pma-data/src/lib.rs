@@ -10,6 +10,7 @@ pub mod camera;
 pub mod cylinder;
 pub mod dataset;
 pub mod error;
+pub mod fsio;
 pub mod metrics;
 pub mod motion;
 pub mod sampler;
