@@ -6,7 +6,7 @@
 use std::time::Instant;
 
 use candle_core::Device;
-use pma_model::avatar::{Avatar, ForwardOptions, Poses, Rays};
+use pma_model::avatar::{Avatar, Mode, Poses, Rays};
 use pma_model::loss::{training_loss, LossWeights};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
@@ -38,28 +38,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let (mut fwd, mut bwd) = (Vec::new(), Vec::new());
     for i in 0..7 {
         let t = Instant::now();
-        let out = avatar.forward(
-            &rays,
-            &poses,
-            &mut ForwardOptions {
-                training: true,
-                noise: None,
-                inference: false,
-            },
-            None,
-        )?;
+        let out = avatar.forward(&rays, &poses, &mut Mode::Train(None), None)?;
         let f = t.elapsed().as_secs_f64();
         let t = Instant::now();
-        let out2 = avatar.forward(
-            &rays,
-            &poses,
-            &mut ForwardOptions {
-                training: true,
-                noise: None,
-                inference: false,
-            },
-            None,
-        )?;
+        let out2 = avatar.forward(&rays, &poses, &mut Mode::Train(None), None)?;
         let loss = training_loss(&out2, &target, &LossWeights::default())?;
         loss.total.backward()?;
         let b = t.elapsed().as_secs_f64();

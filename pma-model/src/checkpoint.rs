@@ -1,5 +1,5 @@
 //! The pma checkpoint: a safetensors file holding the reference's 71 tensors under the
-//! reference's names (spec `model.md` §8.1), plus metadata that makes the file
+//! reference's names (docs/reference.md, "Checkpoint and state_dict names"), plus metadata that makes the file
 //! self-describing:
 //!
 //! | key | value |
@@ -20,10 +20,10 @@
 //! metadata) are collected and reported together in one [`ModelError::Checkpoint`].
 
 use std::collections::HashMap;
-use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use candle_core::{DType, Device, Tensor};
+use pma_data::skeleton::{JOINT_NAMES, PARENTS};
 use serde::{Deserialize, Serialize};
 
 use crate::config::Config;
@@ -32,150 +32,8 @@ use crate::error::{ModelError, Result};
 pub const FORMAT: &str = "pma-checkpoint";
 pub const FORMAT_VERSION: u32 = 1;
 
-/// Whether a tensor is optimised (a reference `nn.Parameter`) or a fixed buffer.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum TensorKind {
-    Param,
-    Buffer,
-}
-
-/// Name, shape and kind of one state_dict entry.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct TensorSpec {
-    pub name: String,
-    pub shape: Vec<usize>,
-    pub kind: TensorKind,
-}
-
-/// Every tensor of the model for `cfg`, in the reference's state_dict order (§8.1).
-///
-/// Filtering to [`TensorKind::Param`] gives the reference's `named_parameters()` order,
-/// i.e. the golden manifest's `param_names` (64 entries for the paper config).
-pub fn tensor_layout(cfg: &Config) -> Vec<TensorSpec> {
-    let mut out = Vec::with_capacity(72);
-    let j = cfg.n_joints;
-    let ce = cfg.point_enc_dim;
-    let w = cfg.trunk_width;
-    let s_dim = cfg.n_pm * cfg.freq_dim;
-    let gw = cfg.gnn_width;
-    let wh = cfg.win_hidden;
-    let ph = cfg.pose_extractor_hidden;
-    let view_in = w
-        + cfg.sh_degree * cfg.sh_degree
-        + if cfg.use_framecodes {
-            cfg.framecode_ch
-        } else {
-            0
-        };
-
-    let mut push = |name: &str, shape: &[usize], kind: TensorKind| {
-        out.push(TensorSpec {
-            name: name.to_string(),
-            shape: shape.to_vec(),
-            kind,
-        })
-    };
-    use TensorKind::{Buffer as B, Param as P};
-
-    push("rest_pose", &[j, 3], B);
-    push("pts_embedder.transforms", &[j, 4, 4], B);
-    for enc in ["pts_enc_pose", "pts_enc_point"] {
-        push(&format!("{enc}.sin_lin0.layer.weight"), &[ce, 3], P);
-        push(&format!("{enc}.sin_lin0.layer.bias"), &[ce], P);
-    }
-    push("raycast.transforms", &[j, 4, 4], B);
-    for i in 0..cfg.trunk_depth {
-        let fan_in = if i == 0 {
-            s_dim
-        } else if cfg.skips.contains(&(i - 1)) {
-            w + s_dim
-        } else {
-            w
-        };
-        push(&format!("pts_linears.{i}.weight"), &[w, fan_in], P);
-        push(&format!("pts_linears.{i}.bias"), &[w], P);
-    }
-    push("sigma_linear.weight", &[1, w], P);
-    push("sigma_linear.bias", &[1], P);
-    push("views_linears.0.weight", &[cfg.view_width, view_in], P);
-    push("views_linears.0.bias", &[cfg.view_width], P);
-    push("feature_linear.weight", &[w, w], P);
-    push("feature_linear.bias", &[w], P);
-    push("rgb_linear.weight", &[3, cfg.view_width], P);
-    push("rgb_linear.bias", &[3], P);
-    if cfg.use_framecodes {
-        push(
-            "framecodes.codes.weight",
-            &[cfg.n_framecodes, cfg.framecode_ch],
-            P,
-        );
-    }
-    push("graph_net.axis_scale", &[j, 3], P);
-    push("graph_net.mask", &[1, j, 1], B);
-    push("graph_net.base_scale", &[j, 3], B);
-    for l in 0..cfg.gnn_graph_layers {
-        let fan_in = if l == 0 { 6 } else { gw };
-        push(&format!("graph_net.layers.{l}.bias"), &[gw], P);
-        push(&format!("graph_net.layers.{l}.adj_w"), &[1, j, j], P);
-        push(&format!("graph_net.layers.{l}.adj"), &[1, j, j], B);
-        push(
-            &format!("graph_net.layers.{l}.lin.weight"),
-            &[j, fan_in, gw],
-            P,
-        );
-    }
-    for l in cfg.gnn_graph_layers..cfg.gnn_graph_layers + cfg.gnn_fc_layers {
-        let fan_in = if l == 0 { 6 } else { gw };
-        push(&format!("graph_net.layers.{l}.weight"), &[j, fan_in, gw], P);
-        push(&format!("graph_net.layers.{l}.bias"), &[1, j, gw], P);
-    }
-    for k in 0..cfg.n_pm {
-        let fan_in = if k == 0 { j * ce } else { cfg.freq_dim };
-        push(
-            &format!("modulator.sin_lin{k}.layer.weight"),
-            &[cfg.freq_dim, fan_in],
-            P,
-        );
-        push(
-            &format!("modulator.sin_lin{k}.layer.bias"),
-            &[cfg.freq_dim],
-            P,
-        );
-    }
-    for (name, out_dim, in_dim) in [
-        ("layer_pose", wh, gw),
-        ("layer_point", wh, ce),
-        ("sin_lin0", wh, wh),
-        ("sin_lin1", wh, wh),
-        ("last_layer", j, wh),
-    ] {
-        push(
-            &format!("win_fun.{name}.layer.weight"),
-            &[out_dim, in_dim],
-            P,
-        );
-        push(&format!("win_fun.{name}.layer.bias"), &[out_dim], P);
-    }
-    for l in 0..=cfg.pose_extractor_depth {
-        let fan_in = if l == 0 { wh } else { ph };
-        let out_dim = if l == cfg.pose_extractor_depth {
-            2 * cfg.n_pm * cfg.freq_dim
-        } else {
-            ph
-        };
-        push(
-            &format!("pose_extractor.sin_lin{l}.layer.weight"),
-            &[out_dim, fan_in],
-            P,
-        );
-        push(
-            &format!("pose_extractor.sin_lin{l}.layer.bias"),
-            &[out_dim],
-            P,
-        );
-    }
-    out
-}
+pub use crate::avatar::tensor_layout;
+pub use crate::params::{TensorKind, TensorSpec};
 
 /// Names of the trainable tensors in reference order (`named_parameters()`).
 pub fn param_names(cfg: &Config) -> Vec<String> {
@@ -185,37 +43,6 @@ pub fn param_names(cfg: &Config) -> Vec<String> {
         .map(|t| t.name)
         .collect()
 }
-
-// TODO(M1): take these from pma_data::skeleton once it lands.
-const SMPL_NAMES_TMP: [&str; 24] = [
-    "pelvis",
-    "left_hip",
-    "right_hip",
-    "spine1",
-    "left_knee",
-    "right_knee",
-    "spine2",
-    "left_ankle",
-    "right_ankle",
-    "spine3",
-    "left_foot",
-    "right_foot",
-    "neck",
-    "left_collar",
-    "right_collar",
-    "head",
-    "left_shoulder",
-    "right_shoulder",
-    "left_elbow",
-    "right_elbow",
-    "left_wrist",
-    "right_wrist",
-    "left_hand",
-    "right_hand",
-];
-const SMPL_PARENTS_TMP: [usize; 24] = [
-    0, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 20, 21,
-];
 
 /// Skeleton description stored in the metadata.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
@@ -228,8 +55,8 @@ impl SkeletonMeta {
     /// The SMPL 24-joint skeleton the model is built for.
     pub fn smpl() -> Self {
         Self {
-            names: SMPL_NAMES_TMP.iter().map(|s| s.to_string()).collect(),
-            parents: SMPL_PARENTS_TMP.to_vec(),
+            names: JOINT_NAMES.iter().map(|s| s.to_string()).collect(),
+            parents: PARENTS.to_vec(),
         }
     }
 }
@@ -331,24 +158,41 @@ pub fn save(path: &Path, tensors: &HashMap<String, Tensor>, cfg: &Config) -> Res
             path: path.to_path_buf(),
             source,
         })?;
-    write_atomic(path, &bytes)
-}
-
-/// Write `bytes` to `path` through a temporary file in the same directory.
-pub(crate) fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    let io = |source| ModelError::Io {
+    let bytes = sorted_header(bytes);
+    pma_data::fsio::write_atomic(path, &bytes).map_err(|source| ModelError::Io {
         path: path.to_path_buf(),
         source,
+    })
+}
+
+/// The same safetensors bytes with the JSON header's keys in sorted order. safetensors
+/// writes its metadata from a `HashMap`, whose order changes from one process to the next;
+/// sorted, the same tensors and config give the same file, byte for byte. The header keeps
+/// its length (trailing spaces are safetensors' alignment padding), so data offsets hold.
+pub fn sorted_header(mut bytes: Vec<u8>) -> Vec<u8> {
+    let Some(len) = bytes
+        .get(..8)
+        .map(|b| u64::from_le_bytes(b.try_into().expect("8 bytes")))
+    else {
+        return bytes;
     };
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d,
-        _ => Path::new("."),
+    let end = 8usize.saturating_add(len as usize);
+    let Some(header) = bytes.get(8..end) else {
+        return bytes;
     };
-    let mut tmp = tempfile::NamedTempFile::new_in(dir).map_err(io)?;
-    tmp.write_all(bytes).map_err(io)?;
-    tmp.as_file().sync_all().map_err(io)?;
-    tmp.persist(path).map_err(|e| io(e.error))?;
-    Ok(())
+    // serde_json's map is a BTreeMap: parsing and printing sorts every object's keys.
+    let Ok(value) = serde_json::from_slice::<serde_json::Value>(header) else {
+        return bytes;
+    };
+    let Ok(mut sorted) = serde_json::to_vec(&value) else {
+        return bytes;
+    };
+    if sorted.len() > header.len() {
+        return bytes;
+    }
+    sorted.resize(header.len(), b' ');
+    bytes[8..end].copy_from_slice(&sorted);
+    bytes
 }
 
 /// Read and validate a checkpoint (see the module docs for what is checked).

@@ -1,4 +1,4 @@
-//! Hyper-parameters of the PM-Avatar network (spec `model.md` §1).
+//! Hyper-parameters of the PM-Avatar network (docs/reference.md; presets in `presets.rs`).
 //!
 //! The config is stored as JSON in every checkpoint's metadata, so a checkpoint
 //! always carries the shapes it was built with. Field names are snake_case
@@ -25,7 +25,7 @@ pub struct Quirks {
     /// Reference: box crossings are unsigned distances, rays through a box edge or corner
     /// ignore that box, and a cylinder behind the camera yields far < near. `true` uses
     /// signed crossings clipped at the camera, keeps edge/corner hits, and treats a cylinder
-    /// behind the camera as a miss (issue 7; changes only such rays).
+    /// behind the camera as a miss (changes only such rays; docs/numerics.md).
     pub robust_ray_bounds: bool,
 }
 
@@ -43,7 +43,7 @@ pub enum SampleFill {
     Zero,
 }
 
-/// Leaving work out (issue 6). Everything is off by default, which is parity with the
+/// Leaving work out (docs/numerics.md, "Empty rays and culling"). Everything is off by default, which is parity with the
 /// reference; the section is omitted from checkpoint JSON while it is off.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 #[serde(default)]

@@ -1,4 +1,4 @@
-//! Leaving work out (issue 6): which rays and samples may skip the network, decided on the
+//! Leaving work out: which rays and samples may skip the network, decided on the
 //! host before any network work.
 //!
 //! * **Ray culling.** A ray that crosses no enlarged bone box (`RayBounds::ray_hits_body`
@@ -27,8 +27,10 @@
 //! max, and it saves only the per-joint encoder/`layer_point` rows and the joint's block of
 //! the first modulated layer; see the bench report for the fraction that could be saved.
 
+use pma_data::skeleton::N_JOINTS;
+
+use crate::bones::BoneFrames;
 use crate::error::{ModelError, Result};
-use crate::raycast::N_JOINTS;
 
 /// `exp(−x)` is exactly 0 in f32 for x > 103.98 (half the smallest subnormal); culling at
 /// threshold 0 uses a cut a little above it so that the host test (f64, composed transform)
@@ -113,41 +115,43 @@ impl WindowTest {
                 "culling: sample threshold must be finite and >= 0, found {threshold}"
             )));
         }
-        let n_poses = skts.len() / (N_JOINTS * 16);
+        Ok(Self::from_frames(
+            &BoneFrames::new(align, skts)?,
+            scales,
+            alpha,
+            beta,
+            threshold,
+        ))
+    }
+
+    /// The test for the bone boxes of `frames` (validated inputs: see [`Self::new`]).
+    fn from_frames(
+        frames: &BoneFrames,
+        scales: &[f32],
+        alpha: f64,
+        beta: u32,
+        threshold: f64,
+    ) -> Self {
+        let n_poses = frames.n_poses();
         let mut maps = Vec::with_capacity(n_poses * N_JOINTS);
-        let mut roots = Vec::with_capacity(n_poses);
         for p in 0..n_poses {
             for j in 0..N_JOINTS {
-                let a = &align[j * 16..j * 16 + 16];
-                let t = &skts[(p * N_JOINTS + j) * 16..][..16];
-                let mut m = [[0f64; 4]; 3];
+                let mut m = frames.world_to_box_f64(p, j);
                 for (i, row) in m.iter_mut().enumerate() {
-                    for (k, v) in row.iter_mut().enumerate() {
-                        *v = (0..4)
-                            .map(|l| a[4 * i + l] as f64 * t[4 * l + k] as f64)
-                            .sum::<f64>()
-                            / scales[3 * j + i] as f64;
+                    for v in row.iter_mut() {
+                        *v /= scales[3 * j + i] as f64;
                     }
                 }
                 maps.push(m);
             }
-            // Root joint origin in the world: −R⁰ᵀ t⁰.
-            let t = &skts[p * N_JOINTS * 16..][..16];
-            let mut root = [0f64; 3];
-            for (c, r) in root.iter_mut().enumerate() {
-                *r = -(0..3)
-                    .map(|i| t[4 * i + c] as f64 * t[4 * i + 3] as f64)
-                    .sum::<f64>();
-            }
-            roots.push(root);
         }
-        Ok(Self {
+        Self {
             maps,
             alpha,
             half_beta: (beta / 2) as i32,
             cut: exponent_cut(threshold),
-            roots,
-        })
+            roots: (0..n_poses).map(|p| frames.root_origin(p)).collect(),
+        }
     }
 
     pub fn n_poses(&self) -> usize {

@@ -1,18 +1,18 @@
-//! Input encoders (spec model.md §3.1, §3.5, §3.11): the 6D pose embedding fed to the
+//! Input encoders (paper Sec. 3; docs/reference.md): the 6D pose embedding fed to the
 //! GNN, the two SIREN point encoders applied to bone-normalised points x̄, and the
 //! spherical-harmonics view encoding in the root joint's frame.
 
 use candle_core::{Device, Tensor};
-use candle_nn::VarBuilder;
-use pma_data::skeleton::{pose_to_rot6d, Joints};
+use pma_data::skeleton::{pose_to_rot6d, Joints, N_JOINTS};
 
 use crate::error::{ModelError, Result};
 use crate::nn::SineLayer;
+use crate::params::{Init, Params};
 
 /// 6D rotation features of every joint of every pose: bones (axis-angle) -> [P,J,6].
 /// No gradient flows here (poses are data).
 pub fn pose6d(bones: &[Joints], device: &Device) -> Result<Tensor> {
-    let mut flat = Vec::with_capacity(bones.len() * 24 * 6);
+    let mut flat = Vec::with_capacity(bones.len() * N_JOINTS * 6);
     for pose in bones {
         for w in pose {
             if !w.iter().all(|v| v.is_finite()) {
@@ -25,7 +25,7 @@ pub fn pose6d(bones: &[Joints], device: &Device) -> Result<Tensor> {
             flat.extend_from_slice(&row);
         }
     }
-    Ok(Tensor::from_vec(flat, (bones.len(), 24, 6), device)?)
+    Ok(Tensor::from_vec(flat, (bones.len(), N_JOINTS, 6), device)?)
 }
 
 /// One SIREN layer `sin(ω (W x̄ + b))` shared by all joints (`PointEnc`).
@@ -35,10 +35,17 @@ pub struct PointEnc {
 }
 
 impl PointEnc {
-    /// Loads `{pts_enc_pose|pts_enc_point}.sin_lin0.layer.*`.
-    pub fn load(vb: VarBuilder, out_dim: usize, w0: f64) -> Result<Self> {
+    /// `{pts_enc_pose|pts_enc_point}.sin_lin0.layer.*`, with SIREN's first-layer init
+    /// U(±1/fan_in).
+    pub fn new<'a>(p: impl Into<Params<'a>>, out_dim: usize, w0: f64) -> Result<Self> {
         Ok(Self {
-            layer: SineLayer::load(vb.pp("sin_lin0"), 3, out_dim, w0)?,
+            layer: SineLayer::new(
+                p.into().pp("sin_lin0"),
+                3,
+                out_dim,
+                w0,
+                Init::Uniform(1.0 / 3.0),
+            )?,
         })
     }
 

@@ -1,12 +1,12 @@
-//! The radiance field heads (spec model.md §3.10, §3.12–3.14): the density trunk on the
+//! The radiance field heads (paper Eq. 9 and the NeRF heads): the density trunk on the
 //! modulator output S, the density and colour heads, and the per-image frame codes.
 
 use candle_core::{Tensor, D};
-use candle_nn::VarBuilder;
 
 use crate::config::Config;
 use crate::error::{ModelError, Result};
 use crate::nn::Linear;
+use crate::params::{Init, Params};
 
 /// Intermediates of one field evaluation (for parity tests).
 #[derive(Debug, Clone)]
@@ -38,10 +38,15 @@ pub struct Field {
 }
 
 impl Field {
-    /// Loads `pts_linears.*`, `sigma_linear`, `feature_linear`, `views_linears.0`, `rgb_linear`.
-    pub fn load(vb: VarBuilder, cfg: &Config) -> Result<Self> {
+    /// `pts_linears.*`, `sigma_linear`, `views_linears.0`, `feature_linear`, `rgb_linear`
+    /// (in that order, the reference's), all with torch's default init.
+    pub fn new<'a>(p: impl Into<Params<'a>>, cfg: &Config) -> Result<Self> {
+        let p = p.into();
         let w = cfg.trunk_width;
         let s_dim = cfg.n_pm * cfg.freq_dim;
+        let linear = |name: &str, fan_in: usize, out: usize| {
+            Linear::new(p.pp(name), fan_in, out, Init::torch_default(fan_in))
+        };
         let mut pts_linears = Vec::new();
         for i in 0..cfg.trunk_depth {
             let fan_in = if i == 0 {
@@ -51,24 +56,25 @@ impl Field {
             } else {
                 w
             };
-            pts_linears.push(Linear::load(vb.pp(format!("pts_linears.{i}")), fan_in, w)?);
+            pts_linears.push(linear(&format!("pts_linears.{i}"), fan_in, w)?);
         }
         let code = if cfg.use_framecodes {
             cfg.framecode_ch
         } else {
             0
         };
+        let sigma = linear("sigma_linear", w, 1)?;
+        let view_in = w + cfg.sh_degree * cfg.sh_degree + code;
+        let view = linear("views_linears.0", view_in, cfg.view_width)?;
+        let feature = linear("feature_linear", w, w)?;
+        let rgb = linear("rgb_linear", cfg.view_width, 3)?;
         Ok(Self {
             pts_linears,
             skips: cfg.skips.clone(),
-            sigma: Linear::load(vb.pp("sigma_linear"), w, 1)?,
-            feature: Linear::load(vb.pp("feature_linear"), w, w)?,
-            view: Linear::load(
-                vb.pp("views_linears.0"),
-                w + cfg.sh_degree * cfg.sh_degree + code,
-                cfg.view_width,
-            )?,
-            rgb: Linear::load(vb.pp("rgb_linear"), cfg.view_width, 3)?,
+            sigma,
+            feature,
+            view,
+            rgb,
         })
     }
 
@@ -114,9 +120,12 @@ pub struct FrameCodes {
 }
 
 impl FrameCodes {
-    pub fn load(vb: VarBuilder, cfg: &Config) -> Result<Self> {
+    /// `framecodes.codes.weight` [n,ch], Xavier-normal.
+    pub fn new<'a>(p: impl Into<Params<'a>>, cfg: &Config) -> Result<Self> {
+        let (n, ch) = (cfg.n_framecodes, cfg.framecode_ch);
+        let std = (2.0 / (n + ch) as f64).sqrt();
         Ok(Self {
-            weight: vb.get((cfg.n_framecodes, cfg.framecode_ch), "codes.weight")?,
+            weight: p.into().param([n, ch], "codes.weight", Init::Normal(std))?,
             fix_clamp: cfg.quirks.fix_framecode_clamp,
         })
     }

@@ -1,15 +1,16 @@
-//! The pose graph network `GNN_Sine` (spec model.md §3.2) and the learnable per-part
-//! box half-extents ("axis scales", §2.6) it owns.
+//! The pose graph network `GNN_Sine` (paper Eq. 2) and the learnable per-part box
+//! half-extents ("axis scales") it owns.
 //!
 //! Input: the 6D rotation of every joint of every distinct pose in the batch; output: one
 //! feature vector G_j per joint. All of this is per-pose work, computed once per pose.
 
 use candle_core::Tensor;
-use candle_nn::VarBuilder;
+use pma_data::skeleton::PARENTS;
 
 use crate::config::Config;
 use crate::error::Result;
 use crate::nn::per_joint_matmul;
+use crate::params::{Init, Params, RestValue};
 
 /// Graph convolution with per-node weights: `Y_j = Σ_k (E ⊙ A)_jk (X_k W_k) + β`.
 #[derive(Debug, Clone)]
@@ -69,33 +70,51 @@ pub struct GnnSine {
 }
 
 impl GnnSine {
-    /// Loads `graph_net.*` (pass `vb.pp("graph_net")`).
-    pub fn load(vb: VarBuilder, cfg: &Config) -> Result<Self> {
+    /// `graph_net.*` (pass `p.pp("graph_net")`), registered in the reference's order.
+    pub fn new<'a>(p: impl Into<Params<'a>>, cfg: &Config) -> Result<Self> {
+        let p = p.into();
         let j = cfg.n_joints;
         let gw = cfg.gnn_width;
+        let axis_scale = p.param([j, 3], "axis_scale", Init::Rest(RestValue::HalfExtents))?;
+        let root_mask = (0..j)
+            .map(|i| if i == 0 && cfg.mask_root { 0.0 } else { 1.0 })
+            .collect();
+        let mask = p.buffer([1, j, 1], "mask", Init::Values(root_mask))?;
+        let base_scale = p.buffer([j, 3], "base_scale", Init::Rest(RestValue::HalfExtents))?;
+        let adj = adjacency(j);
         let mut layers = Vec::new();
         for l in 0..cfg.gnn_graph_layers + cfg.gnn_fc_layers {
-            let vl = vb.pp(format!("layers.{l}"));
+            let pl = p.pp(format!("layers.{l}"));
             let fan_in = if l == 0 { 6 } else { gw };
+            // The reference's SIREN init reads the weight's last dim as fan-in: for the
+            // [J,in,out] layout that is the fan-out (kept for parity; docs/reference.md).
+            let weight_init = if l == 0 {
+                Init::Uniform(1.0 / gw as f64)
+            } else {
+                Init::siren(gw, cfg.sin_w0_pose)
+            };
             layers.push(if l < cfg.gnn_graph_layers {
+                let bias = pl.param([gw], "bias", Init::Zeros)?;
+                let adj_w = pl.param([1, j, j], "adj_w", Init::EdgeWeights(adj.clone()))?;
+                let adj = pl.buffer([1, j, j], "adj", Init::Values(adj.clone()))?;
                 Layer::Graph(GraphConv {
-                    weight: vl.get((j, fan_in, gw), "lin.weight")?,
-                    adj_w: vl.get((1, j, j), "adj_w")?,
-                    adj: vl.get((1, j, j), "adj")?.detach(),
-                    bias: vl.get(gw, "bias")?,
+                    weight: pl.param([j, fan_in, gw], "lin.weight", weight_init)?,
+                    adj_w,
+                    adj,
+                    bias,
                 })
             } else {
                 Layer::Node(ParallelLinear {
-                    weight: vl.get((j, fan_in, gw), "weight")?,
-                    bias: vl.get((1, j, gw), "bias")?,
+                    weight: pl.param([j, fan_in, gw], "weight", weight_init)?,
+                    bias: pl.param([1, j, gw], "bias", Init::Zeros)?,
                 })
             });
         }
         Ok(Self {
             layers,
-            mask: vb.get((1, j, 1), "mask")?.detach(),
-            axis_scale: vb.get((j, 3), "axis_scale")?,
-            base_scale: vb.get((j, 3), "base_scale")?.detach(),
+            mask,
+            axis_scale,
+            base_scale,
             w0: cfg.sin_w0_pose,
             scale_floor: cfg.scale_floor,
         })
@@ -125,4 +144,18 @@ impl GnnSine {
         let clamped = a.maximum(&floor)?;
         Ok((&a + (clamped - &a)?.detach())?)
     }
+}
+
+/// The skeleton graph with self-loops, row-major J×J (joints beyond the SMPL 24 have no
+/// edges).
+fn adjacency(j: usize) -> Vec<f32> {
+    let mut adj = vec![0f32; j * j];
+    for i in 0..j {
+        adj[i * j + i] = 1.0;
+        if i > 0 && i < PARENTS.len() {
+            adj[i * j + PARENTS[i]] = 1.0;
+            adj[PARENTS[i] * j + i] = 1.0;
+        }
+    }
+    adj
 }

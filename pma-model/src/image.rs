@@ -1,4 +1,4 @@
-//! Whole-image rendering with bounded memory (spec `model.md` §4 render path, `data.md` §6.5).
+//! Whole-image rendering with bounded memory (docs/conventions.md, "Evaluation protocol").
 //!
 //! Only pixels inside the 2-D box of the body's render cylinder (E = 0.25, a = 1.6, b = 1.1,
 //! bottom-right bound exclusive) are ray-traced, row by row, in chunks; every other pixel keeps
@@ -20,12 +20,13 @@
 //! that miss the ray caster's cylinder get the mean near/far of their chunk (as in the
 //! reference, whose chunks are 5120 rays); `Quirks::per_ray_cylinder_fallback` removes that.
 
-use candle_core::{DType, Device, Tensor};
+use candle_core::{Device, Tensor};
 use pma_data::camera::Camera;
 use pma_data::cylinder::{cylinder_box, cylinder_from_joints, CylinderParams, HeadDir, PixelBox};
 use pma_data::skeleton::Joints;
 
 use crate::error::{ModelError, Result};
+use crate::host::host_f32_shaped;
 
 /// Rays per chunk of the reference render path.
 pub const DEFAULT_CHUNK: usize = 5120;
@@ -179,9 +180,9 @@ pub fn render_image<R: ChunkRenderer + ?Sized>(
             &Tensor::from_vec(d, (c, 3), dev)?,
             &Tensor::from_vec(bg, (c, 3), dev)?,
         )?;
-        let chunk_rgb = host_f32("chunk rgb", &out.rgb, &[c, 3])?;
-        let chunk_acc = host_f32("chunk acc", &out.acc, &[c])?;
-        let chunk_disp = host_f32("chunk disp", &out.disp, &[c])?;
+        let chunk_rgb = host_f32_shaped("chunk rgb", &out.rgb, &[c, 3])?;
+        let chunk_acc = host_f32_shaped("chunk acc", &out.acc, &[c])?;
+        let chunk_disp = host_f32_shaped("chunk disp", &out.disp, &[c])?;
         for (i, &p) in chunk.iter().enumerate() {
             rgb[3 * p..3 * p + 3].copy_from_slice(&chunk_rgb[3 * i..3 * i + 3]);
             acc[p] = chunk_acc[i];
@@ -195,14 +196,4 @@ pub fn render_image<R: ChunkRenderer + ?Sized>(
         acc,
         disp,
     })
-}
-
-fn host_f32(what: &str, t: &Tensor, shape: &[usize]) -> Result<Vec<f32>> {
-    if t.dims() != shape {
-        return Err(ModelError::shape(what, shape, t.dims()));
-    }
-    Ok(t.flatten_all()?
-        .to_dtype(DType::F32)?
-        .to_device(&Device::Cpu)?
-        .to_vec1::<f32>()?)
 }

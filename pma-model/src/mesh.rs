@@ -1,4 +1,4 @@
-//! Mesh extraction from a density field (spec data.md §9.3): sample the field on a regular
+//! Mesh extraction from a density field: sample the field on a regular
 //! grid inside the posed body's bounds, run marching cubes, colour the vertices with the
 //! radiance seen along the surface normal, write a PLY.
 //!
@@ -27,17 +27,16 @@
 //! writes world coordinates (scene units) in the world's axis order.
 
 use std::collections::HashMap;
-use std::io::{BufRead, BufReader, BufWriter, Read, Write};
+use std::io::{BufRead, BufReader, Read, Write};
 use std::path::Path;
 
 use candle_core::{DType, Device, Tensor};
-use candle_nn::VarBuilder;
 use pma_data::camera::Camera;
+use pma_data::skeleton::N_JOINTS;
 
 use crate::avatar::{Avatar, PoseFeatures, Poses, INFERENCE_POINT_CHUNK};
-use crate::encoders::spherical_harmonics;
 use crate::error::{ModelError, Result};
-use crate::field::FrameCodes;
+use crate::host::host_f32;
 
 /// PM's `density_threshold` (configs/render/h36m_zju_mesh.yaml).
 pub const DEFAULT_THRESHOLD: f32 = 5.0;
@@ -611,25 +610,7 @@ fn to_u8(c: f32) -> u8 {
 /// Write `mesh` as a binary little-endian PLY (vertices `x y z nx ny nz [red green blue]`,
 /// faces `vertex_indices`), atomically (temporary file + rename).
 pub fn write_ply(mesh: &Mesh, path: &Path) -> Result<()> {
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d,
-        _ => Path::new("."),
-    };
-    let tmp = tempfile::NamedTempFile::new_in(dir).map_err(io_err(path))?;
-    {
-        let mut w = BufWriter::new(tmp.as_file());
-        write_ply_to(mesh, &mut w).map_err(io_err(path))?;
-        w.flush().map_err(io_err(path))?;
-    }
-    #[cfg(unix)]
-    {
-        use std::os::unix::fs::PermissionsExt;
-        tmp.as_file()
-            .set_permissions(std::fs::Permissions::from_mode(0o644))
-            .map_err(io_err(path))?;
-    }
-    tmp.persist(path).map_err(|e| io_err(path)(e.error))?;
-    Ok(())
+    pma_data::fsio::write_atomic_with(path, |w| write_ply_to(mesh, w)).map_err(io_err(path))
 }
 
 fn write_ply_to(mesh: &Mesh, w: &mut impl Write) -> std::io::Result<()> {
@@ -895,7 +876,7 @@ impl PartBox {
 /// (eval mode: no density noise, the mean frame code).
 ///
 /// Points outside every part box (the enlarged bone-aligned boxes the ray caster samples in,
-/// spec data.md §6.6) get density 0 unless [`AvatarField::mask_outside_boxes`] is off: the
+/// docs/conventions.md, "Ray sampler") get density 0 unless [`AvatarField::mask_outside_boxes`] is off: the
 /// network was never asked about those regions while training, and its output there is
 /// whatever the untrained constant branch says (floaters).
 pub struct AvatarField<'a> {
@@ -904,8 +885,6 @@ pub struct AvatarField<'a> {
     /// World → root rotation (rotation part of `skts[0]`), row-major.
     root_rot: [[f32; 3]; 3],
     boxes: Vec<PartBox>,
-    code: Option<Tensor>,
-    normalize_dirs: bool,
     pub mask_outside_boxes: bool,
     /// Points per network call.
     pub chunk: usize,
@@ -922,43 +901,24 @@ impl<'a> AvatarField<'a> {
         }
         let pose = avatar.pose_features(poses, None)?;
         let cfg = avatar.config();
-        let skts: Vec<f32> = poses.skts.flatten_all()?.to_vec1::<f32>()?;
-        let tensors = avatar.tensors();
-        let align: Vec<f32> = tensors
-            .get("raycast.transforms")
-            .ok_or_else(|| ModelError::Input("avatar has no raycast.transforms".into()))?
-            .flatten_all()?
-            .to_vec1::<f32>()?;
-        let scales: Vec<f32> = pose.scales.flatten_all()?.to_vec1::<f32>()?;
-        let m4 = |v: &[f32], j: usize, r: usize, c: usize| v[j * 16 + r * 4 + c] as f64;
-        let boxes = (0..24)
+        let frames = avatar.bone_frames(&poses.skts)?;
+        let scales = host_f32(&pose.scales)?;
+        let boxes = (0..N_JOINTS)
             .map(|j| {
-                // The composite A_j·skt_j, from the 3×4 blocks of both.
-                let comp = |r: usize, c: usize| -> f64 {
-                    (0..3)
-                        .map(|k| m4(&align, j, r, k) * m4(&skts, j, k, c))
-                        .sum()
-                };
-                let rot = std::array::from_fn(|r| std::array::from_fn(|c| comp(r, c) as f32));
-                let trans = std::array::from_fn(|r| (comp(r, 3) + m4(&align, j, r, 3)) as f32);
+                let m = frames.world_to_box_f64(0, j);
+                let rot = std::array::from_fn(|r| std::array::from_fn(|c| m[r][c] as f32));
+                let trans = std::array::from_fn(|r| m[r][3] as f32);
                 let half = std::array::from_fn(|k| scales[3 * j + k] * cfg.box_bound as f32);
                 PartBox { rot, trans, half }
             })
             .collect();
-        let root_rot = std::array::from_fn(|r| std::array::from_fn(|c| skts[r * 4 + c]));
-        let code = if cfg.use_framecodes {
-            let vb = VarBuilder::from_tensors(tensors, DType::F32, avatar.device());
-            Some(FrameCodes::load(vb.pp("framecodes"), cfg)?.lookup(&[-1], false)?)
-        } else {
-            None
-        };
+        let root = frames.skt(0, 0);
+        let root_rot = std::array::from_fn(|r| std::array::from_fn(|c| root[r * 4 + c]));
         Ok(Self {
             avatar,
             pose,
             root_rot,
             boxes,
-            code,
-            normalize_dirs: cfg.quirks.normalize_view_dirs,
             mask_outside_boxes: true,
             chunk: INFERENCE_POINT_CHUNK,
         })
@@ -993,30 +953,19 @@ impl<'a> AvatarField<'a> {
         self.avatar.device()
     }
 
-    /// View features for world directions: SH of the root-frame direction, then the code.
+    /// View features for world directions (the mean frame code).
     fn view(&self, dirs: &[[f32; 3]]) -> Result<Tensor> {
         let d: Vec<f32> = dirs
             .iter()
             .flat_map(|d| {
-                let mut r: [f32; 3] = std::array::from_fn(|i| {
+                let r: [f32; 3] = std::array::from_fn(|i| {
                     (0..3).map(|k| self.root_rot[i][k] * d[k]).sum::<f32>()
                 });
-                if self.normalize_dirs {
-                    let n = r.iter().map(|x| x * x).sum::<f32>().sqrt().max(1e-12);
-                    r = r.map(|x| x / n);
-                }
                 r
             })
             .collect();
         let d = Tensor::from_vec(d, (dirs.len(), 3), self.device())?;
-        let sh = spherical_harmonics(&d, self.avatar.config().sh_degree)?;
-        Ok(match &self.code {
-            Some(c) => Tensor::cat(
-                &[&sh, &c.broadcast_as((dirs.len(), c.dim(1)?))?.contiguous()?],
-                1,
-            )?,
-            None => sh,
-        })
+        self.avatar.view_features(&d, &vec![-1; dirs.len()], false)
     }
 
     /// (rgb, density) of the network at `pts` seen along `dirs`, in chunks.

@@ -1,14 +1,14 @@
-//! Pose-dependent frequency modulation (spec model.md §3.7, §3.9): the `PoseExtractor`
+//! Pose-dependent frequency modulation (paper Eqs. 7–8): the `PoseExtractor`
 //! predicts per-layer frequencies Θ and phases Φ from the aggregated pose feature f^m,
 //! and the FiLM-SIREN `Modulator` runs the windowed point encoding through sine layers
 //! whose frequencies and phases are those predictions.
 
 use candle_core::Tensor;
-use candle_nn::VarBuilder;
 
 use crate::config::Config;
 use crate::error::Result;
 use crate::nn::{Linear, SineLayer};
+use crate::params::{Init, Params};
 
 /// Frequencies Θ and phases Φ of the modulated layers, one [N,F] tensor per layer.
 #[derive(Debug, Clone)]
@@ -26,17 +26,20 @@ pub struct PoseExtractor {
 }
 
 impl PoseExtractor {
-    /// Loads `pose_extractor.*`.
-    pub fn load(vb: VarBuilder, cfg: &Config) -> Result<Self> {
-        let h = cfg.pose_extractor_hidden;
+    /// `pose_extractor.*`, SIREN's init throughout (the linear head included).
+    pub fn new<'a>(p: impl Into<Params<'a>>, cfg: &Config) -> Result<Self> {
+        let p = p.into();
+        let (h, w0) = (cfg.pose_extractor_hidden, cfg.sin_w0_pose);
         let mut hidden = Vec::new();
         for l in 0..cfg.pose_extractor_depth {
             let fan_in = if l == 0 { cfg.win_hidden } else { h };
-            hidden.push(SineLayer::load(
-                vb.pp(format!("sin_lin{l}")),
+            let init = Init::siren(fan_in, w0);
+            hidden.push(SineLayer::new(
+                p.pp(format!("sin_lin{l}")),
                 fan_in,
                 h,
-                cfg.sin_w0_pose,
+                w0,
+                init,
             )?);
         }
         let fan_in = if cfg.pose_extractor_depth == 0 {
@@ -44,10 +47,11 @@ impl PoseExtractor {
         } else {
             h
         };
-        let head = Linear::load(
-            vb.pp(format!("sin_lin{}.layer", cfg.pose_extractor_depth)),
+        let head = Linear::new(
+            p.pp(format!("sin_lin{}.layer", cfg.pose_extractor_depth)),
             fan_in,
             2 * cfg.n_pm * cfg.freq_dim,
+            Init::siren(fan_in, w0),
         )?;
         Ok(Self {
             hidden,
@@ -83,8 +87,9 @@ pub struct Modulator {
 }
 
 impl Modulator {
-    /// Loads `modulator.sin_lin{k}.layer.*`.
-    pub fn load(vb: VarBuilder, cfg: &Config) -> Result<Self> {
+    /// `modulator.sin_lin{k}.layer.*`, SIREN's init with the point frequency ω.
+    pub fn new<'a>(p: impl Into<Params<'a>>, cfg: &Config) -> Result<Self> {
+        let p = p.into();
         let mut layers = Vec::new();
         for k in 0..cfg.n_pm {
             let fan_in = if k == 0 {
@@ -92,10 +97,11 @@ impl Modulator {
             } else {
                 cfg.freq_dim
             };
-            layers.push(Linear::load(
-                vb.pp(format!("sin_lin{k}.layer")),
+            layers.push(Linear::new(
+                p.pp(format!("sin_lin{k}.layer")),
                 fan_in,
                 cfg.freq_dim,
+                Init::siren(fan_in, cfg.sin_w0_point),
             )?);
         }
         Ok(Self {

@@ -2,9 +2,9 @@
 //! the PyTorch weight layout, the SIREN variant, and per-joint ("parallel") linears.
 
 use candle_core::{Tensor, D};
-use candle_nn::VarBuilder;
 
 use crate::error::Result;
+use crate::params::{Init, Params};
 
 /// `y = x Wᵀ + b` with PyTorch's layout: weight [out,in], bias [out]. Works on any
 /// leading batch shape (`x: [..., in]`).
@@ -15,11 +15,12 @@ pub struct Linear {
 }
 
 impl Linear {
-    /// Loads `{prefix}.weight` [out,in] and `{prefix}.bias` [out].
-    pub fn load(vb: VarBuilder, in_dim: usize, out_dim: usize) -> Result<Self> {
+    /// `{prefix}.weight` [out,in] starting from `weight_init`, and `{prefix}.bias` [out]
+    /// with torch's default U(±1/√in).
+    pub fn new(p: Params, in_dim: usize, out_dim: usize, weight_init: Init) -> Result<Self> {
         Ok(Self {
-            weight: vb.get((out_dim, in_dim), "weight")?,
-            bias: vb.get(out_dim, "bias")?,
+            weight: p.param([out_dim, in_dim], "weight", weight_init)?,
+            bias: p.param([out_dim], "bias", Init::torch_default(in_dim))?,
         })
     }
 
@@ -48,10 +49,16 @@ pub struct SineLayer {
 }
 
 impl SineLayer {
-    /// Loads `{prefix}.layer.weight` / `{prefix}.layer.bias` (the reference's key layout).
-    pub fn load(vb: VarBuilder, in_dim: usize, out_dim: usize, w0: f64) -> Result<Self> {
+    /// `{prefix}.layer.weight` / `{prefix}.layer.bias` (the reference's key layout).
+    pub fn new(
+        p: Params,
+        in_dim: usize,
+        out_dim: usize,
+        w0: f64,
+        weight_init: Init,
+    ) -> Result<Self> {
         Ok(Self {
-            linear: Linear::load(vb.pp("layer"), in_dim, out_dim)?,
+            linear: Linear::new(p.pp("layer"), in_dim, out_dim, weight_init)?,
             w0,
         })
     }

@@ -1,4 +1,4 @@
-//! Ray caster (`VolRayCast`, spec `model.md` §3.16): per-ray near/far from the bounding
+//! Ray caster (the reference's `VolRayCast`): per-ray near/far from the bounding
 //! cylinder and the per-bone boxes, coarse samples, deterministic importance samples and the
 //! merge of both sample sets.
 //!
@@ -8,13 +8,16 @@
 //! [`RayCaster::resample`] wrap the host code for the network; [`merge_raw`] reorders the
 //! network outputs (differentiably, it is a gather).
 
-use candle_core::{DType, Device, Tensor, D};
+use candle_core::{DType, Tensor, D};
 
+use pma_data::skeleton::N_JOINTS;
+
+use crate::bones::BoneFrames;
 use crate::config::Config;
 use crate::error::{ModelError, Result};
+use crate::host::host_f32_shaped;
 
 /// Number of skeleton parts with a box (SMPL).
-pub const N_JOINTS: usize = 24;
 
 /// Tolerance of the box-face test: a plane hit is valid while every coordinate lies within
 /// `bound + BOX_EPS`.
@@ -136,8 +139,13 @@ impl RayCaster {
 
     /// transforms: [24,4,4] tensor (any device and float dtype).
     pub fn from_tensor(cfg: &Config, transforms: &Tensor) -> Result<Self> {
-        let host = host_f32("raycast.transforms", transforms, &[N_JOINTS, 4, 4])?;
+        let host = host_f32_shaped("raycast.transforms", transforms, &[N_JOINTS, 4, 4])?;
         Self::new(cfg, &host)
+    }
+
+    /// A_j, the bone-alignment transforms the boxes are built from: [24,4,4] row-major.
+    pub fn bone_align(&self) -> &[f32] {
+        &self.transforms
     }
 
     /// Coarse samples per ray (S_c).
@@ -150,7 +158,7 @@ impl RayCaster {
         self.n_importance
     }
 
-    /// Near/far of every ray (§3.16 a+b): box bounds where the ray crosses at least one part,
+    /// Near/far of every ray: box bounds where the ray crosses at least one part,
     /// cylinder bounds otherwise.
     ///
     /// rays_o, rays_d: [R,3]; cyls: [P,5] (centre_x, centre_z, radius, top, bottom; only the
@@ -208,14 +216,11 @@ impl RayCaster {
 
         let mut box_hit = vec![false; n_rays * N_JOINTS];
         let mut ray_hits_body = vec![false; n_rays];
+        let frames = BoneFrames::new(&self.transforms, skts)?;
         let mut world_to_box = vec![0f32; N_JOINTS * 16];
         for p in 0..n_poses {
             for j in 0..N_JOINTS {
-                let m = mat4_mul(
-                    &self.transforms[j * 16..j * 16 + 16],
-                    &skts[(p * N_JOINTS + j) * 16..][..16],
-                );
-                world_to_box[j * 16..j * 16 + 16].copy_from_slice(&m);
+                world_to_box[j * 16..j * 16 + 16].copy_from_slice(&frames.world_to_box(p, j));
             }
             for r in p * per_pose..(p + 1) * per_pose {
                 let o = [rays_o[3 * r], rays_o[3 * r + 1], rays_o[3 * r + 2]];
@@ -252,7 +257,7 @@ impl RayCaster {
         })
     }
 
-    /// Coarse ray parameters (§3.16c): near, far: [R] -> z: [R,Sc],
+    /// Coarse ray parameters: near, far: [R] -> z: [R,Sc],
     /// `z_k = near·(1−t_k) + far·t_k` with `t = linspace(0,1,Sc)`, no jitter.
     pub fn coarse_z(&self, near: &[f32], far: &[f32]) -> Result<Vec<f32>> {
         if near.len() != far.len() {
@@ -266,7 +271,7 @@ impl RayCaster {
         Ok(z)
     }
 
-    /// Importance ray parameters (§3.16d): z_coarse: [R,Sc] ascending, weights: [R,Sc] coarse
+    /// Importance ray parameters: z_coarse: [R,Sc] ascending, weights: [R,Sc] coarse
     /// render weights -> [R,Sf], ascending per ray.
     pub fn importance_z(&self, z_coarse: &[f32], weights: &[f32]) -> Result<Vec<f32>> {
         let sc = self.n_samples;
@@ -314,12 +319,12 @@ impl RayCaster {
         scales: &Tensor,
     ) -> Result<CoarseSamples> {
         let n_rays = rays_o.dims().first().copied().unwrap_or(0);
-        let o = host_f32("rays_o", rays_o, &[n_rays, 3])?;
-        let d = host_f32("rays_d", rays_d, &[n_rays, 3])?;
+        let o = host_f32_shaped("rays_o", rays_o, &[n_rays, 3])?;
+        let d = host_f32_shaped("rays_d", rays_d, &[n_rays, 3])?;
         let n_poses = skts.dims().first().copied().unwrap_or(0);
-        let skts = host_f32("skts", skts, &[n_poses, N_JOINTS, 4, 4])?;
-        let cyls = host_f32("cyls", cyls, &[n_poses, 5])?;
-        let scales = host_f32("scales", scales, &[N_JOINTS, 3])?;
+        let skts = host_f32_shaped("skts", skts, &[n_poses, N_JOINTS, 4, 4])?;
+        let cyls = host_f32_shaped("cyls", cyls, &[n_poses, 5])?;
+        let scales = host_f32_shaped("scales", scales, &[N_JOINTS, 3])?;
         let bounds = self.near_far(&o, &d, &cyls, &skts, &scales)?;
         let z = self.coarse_z(&bounds.near, &bounds.far)?;
         let pts = sample_points(&o, &d, &z, self.n_samples)?;
@@ -343,10 +348,10 @@ impl RayCaster {
     ) -> Result<FineSamples> {
         let n_rays = rays_o.dims().first().copied().unwrap_or(0);
         let (sc, sf) = (self.n_samples, self.n_importance);
-        let o = host_f32("rays_o", rays_o, &[n_rays, 3])?;
-        let d = host_f32("rays_d", rays_d, &[n_rays, 3])?;
-        let zc = host_f32("z_coarse", z_coarse, &[n_rays, sc])?;
-        let w = host_f32("weights", weights, &[n_rays, sc])?;
+        let o = host_f32_shaped("rays_o", rays_o, &[n_rays, 3])?;
+        let d = host_f32_shaped("rays_d", rays_d, &[n_rays, 3])?;
+        let zc = host_f32_shaped("z_coarse", z_coarse, &[n_rays, sc])?;
+        let w = host_f32_shaped("weights", weights, &[n_rays, sc])?;
         let zf = self.importance_z(&zc, &w)?;
         let pts = sample_points(&o, &d, &zf, sf)?;
         let (z_all, perm) = merge_sorted(&zc, sc, &zf, sf)?;
@@ -360,7 +365,7 @@ impl RayCaster {
     }
 }
 
-/// Cylinder near/far (§3.16a) before the miss fallback: rays_o, rays_d: [R,3]; `cyl(r)` gives
+/// Cylinder near/far before the miss fallback: rays_o, rays_d: [R,3]; `cyl(r)` gives
 /// ray r's (centre_x, centre_z, radius). Returns near, far: [R], NaN for rays that miss the
 /// circle in the ground (x–z) plane or run vertically.
 pub fn cylinder_near_far(
@@ -440,7 +445,7 @@ fn nan_mean(v: &[f32]) -> Option<f32> {
     (count > 0).then(|| (sum / count as f64) as f32)
 }
 
-/// One ray against one part's box (§3.16b). world_to_box: [4,4] row-major `A_j·skt_j`;
+/// One ray against one part's box. world_to_box: [4,4] row-major `A_j·skt_j`;
 /// scale: s_j; o, d: the world ray; bound: half-size of the box in normalised units (1.1).
 /// Returns the (near, far) ray parameters of the crossing, or `None` unless exactly two of the
 /// six face hits are valid (misses, and grazing rays through an edge or corner).
@@ -792,7 +797,7 @@ fn linspace01(n: usize) -> Vec<f32> {
         .collect()
 }
 
-/// Deterministic inverse-CDF sampling of one ray (§3.16d), appending `u.len()` samples to `out`.
+/// Deterministic inverse-CDF sampling of one ray, appending `u.len()` samples to `out`.
 /// z: [Sc] ascending; w: [Sc] coarse weights; u: [Sf] in [0,1].
 fn sample_pdf_det(z: &[f32], w: &[f32], u: &[f32], out: &mut Vec<f32>) {
     let sc = z.len();
@@ -834,17 +839,6 @@ fn pairwise_sum(v: &[f32]) -> f32 {
     }
     let (a, b) = v.split_at(v.len() / 2);
     pairwise_sum(a) + pairwise_sum(b)
-}
-
-/// 4×4 row-major product a·b in f32.
-fn mat4_mul(a: &[f32], b: &[f32]) -> [f32; 16] {
-    let mut m = [0f32; 16];
-    for i in 0..4 {
-        for k in 0..4 {
-            m[4 * i + k] = (0..4).fold(0f32, |s, l| s + a[4 * i + l] * b[4 * l + k]);
-        }
-    }
-    m
 }
 
 fn norm3(v: [f32; 3]) -> f32 {
@@ -900,17 +894,6 @@ fn check_scales(scales: &[f32]) -> Result<()> {
         ))),
         None => Ok(()),
     }
-}
-
-/// Copy a tensor to the host as f32 after checking its shape.
-fn host_f32(what: &str, t: &Tensor, shape: &[usize]) -> Result<Vec<f32>> {
-    if t.dims() != shape {
-        return Err(ModelError::shape(what, shape, t.dims()));
-    }
-    Ok(t.flatten_all()?
-        .to_dtype(DType::F32)?
-        .to_device(&Device::Cpu)?
-        .to_vec1::<f32>()?)
 }
 
 #[cfg(test)]

@@ -1,5 +1,5 @@
-//! Numerical-stability probes (issue 7, spec `model.md` §11): drive an avatar through the
-//! hard cases and measure what comes out.
+//! Numerical-stability probes (docs/numerics.md): drive an avatar through the hard cases
+//! and measure what comes out.
 //!
 //! Each probe returns [`ProbeRow`]s: the largest finite |output|, how many outputs or
 //! gradient entries are not finite, the gradient norm, and how many invariants broke
@@ -14,9 +14,11 @@ use pma_data::skeleton::{self, Joints, N_JOINTS};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use crate::avatar::{Avatar, ForwardOptions, Outputs, Poses, Rays, Trace};
+use crate::avatar::{Avatar, Mode, Outputs, Poses, Rays, Trace};
+use crate::bones::BoneFrames;
 use crate::config::Config;
 use crate::error::{ModelError, Result};
+use crate::host::host_f32 as host32;
 use crate::raycast::RayCaster;
 use crate::render::raw2outputs;
 
@@ -245,15 +247,10 @@ pub fn forward_backward(
         bgs: None,
         framecodes: vec![0; r],
     };
-    let mut opts = ForwardOptions {
-        training: true,
-        noise: None,
-        inference: false,
-    };
     // Every intermediate is traced and counted: candle's ReLU maps NaN to 0, so a NaN density
     // head would otherwise render as empty space without a trace in the outputs.
     let mut trace = Trace::default();
-    let out = avatar.forward(&rays, poses, &mut opts, Some(&mut trace))?;
+    let out = avatar.forward(&rays, poses, &mut Mode::Train(None), Some(&mut trace))?;
     let loss = training_like_loss(&out)?;
     let grads = loss.backward()?;
     let (grad_norm, grad_bad) = grad_norm(avatar, &grads)?;
@@ -505,7 +502,7 @@ pub fn geometry_rays(
     skts: &[f32],
     scales: &[f32],
 ) -> (Vec<f32>, Vec<f32>) {
-    let a = avatar_align(avatar);
+    let a = avatar.ray_caster().bone_align();
     let bound = avatar.config().box_bound as f32;
     let mut o = Vec::new();
     let mut d = Vec::new();
@@ -515,7 +512,7 @@ pub fn geometry_rays(
     };
     for j in [0usize, 4, 9, 15, 18] {
         // World → box: M = A_j·skt_j (rigid), box point b = R·x + t, x = Rᵀ(b − t).
-        let m = mat4_mul(&a[j * 16..j * 16 + 16], &skts[j * 16..j * 16 + 16]);
+        let m = crate::bones::mat4_mul(&a[j * 16..j * 16 + 16], &skts[j * 16..j * 16 + 16]);
         let r = |i: usize, k: usize| m[4 * i + k];
         let to_world = |b: [f32; 3]| -> [f32; 3] {
             let c = [b[0] - m[3], b[1] - m[7], b[2] - m[11]];
@@ -548,31 +545,6 @@ pub fn geometry_rays(
     push([c[0], c[1], c[2] + 3.0], [0.0, 0.0, 1.0]);
     push([c[0] + 2.0, c[1], c[2] - 3.0], [0.0, 0.6, 0.8]);
     (o, d)
-}
-
-fn avatar_align(avatar: &Avatar) -> Vec<f32> {
-    avatar
-        .tensors()
-        .get("raycast.transforms")
-        .and_then(|t| {
-            t.flatten_all()
-                .ok()?
-                .to_dtype(DType::F32)
-                .ok()?
-                .to_vec1::<f32>()
-                .ok()
-        })
-        .unwrap_or_else(identity_transforms)
-}
-
-fn mat4_mul(a: &[f32], b: &[f32]) -> [f32; 16] {
-    let mut m = [0f32; 16];
-    for i in 0..4 {
-        for k in 0..4 {
-            m[4 * i + k] = (0..4).map(|l| a[4 * i + l] * b[4 * l + k]).sum();
-        }
-    }
-    m
 }
 
 /// Ray bounds on [`geometry_rays`]: near ≤ far and finite for every ray, and each ray's bounds
@@ -629,17 +601,16 @@ pub fn bound_violations(
     skts: &[f32],
     scales: &[f32],
 ) -> usize {
-    let a = avatar_align(avatar);
+    let Ok(frames) = BoneFrames::new(avatar.ray_caster().bone_align(), skts) else {
+        // No pose to test against: every ray that claims to cross the body is wrong.
+        return b.ray_hits_body.iter().filter(|&&h| h).count();
+    };
     let bound = avatar.config().box_bound as f32;
     let n_rays = b.near.len();
-    let n_poses = (skts.len() / (N_JOINTS * 16)).max(1);
-    let per_pose = (n_rays / n_poses).max(1);
+    let per_pose = (n_rays / frames.n_poses()).max(1);
     let on_a_box = |p: [f32; 3], pose: usize| {
         (0..N_JOINTS).any(|j| {
-            let m = mat4_mul(
-                &a[j * 16..j * 16 + 16],
-                &skts[(pose * N_JOINTS + j) * 16..][..16],
-            );
+            let m = frames.world_to_box(pose, j);
             (0..3).all(|i| {
                 let x = m[4 * i] * p[0] + m[4 * i + 1] * p[1] + m[4 * i + 2] * p[2] + m[4 * i + 3];
                 (x / scales[3 * j + i]).abs() <= bound * 1.001 + 1e-4
@@ -659,10 +630,6 @@ pub fn bound_violations(
             !(on_a_box(at(n), r / per_pose) && on_a_box(at(f), r / per_pose))
         })
         .count()
-}
-
-fn host32(t: &Tensor) -> Result<Vec<f32>> {
-    Ok(t.flatten_all()?.to_dtype(DType::F32)?.to_vec1::<f32>()?)
 }
 
 /// Which probes [`run_all`] runs.

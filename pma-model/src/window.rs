@@ -1,13 +1,13 @@
-//! The two-stage window (spec model.md §3.4, §3.6): the spatial window w^p from the
+//! The two-stage window (paper Eqs. 4–6): the spatial window w^p from the
 //! bone-normalised point x̄, and the learned feature window w^f from a max-pool over the
 //! joints' part features. Their product w selects which parts describe a point.
 
 use candle_core::{Tensor, D};
-use candle_nn::VarBuilder;
 
 use crate::config::Config;
 use crate::error::Result;
 use crate::nn::{Linear, SineLayer};
+use crate::params::{Init, Params};
 
 /// Spatial window `w^p = exp(−α Σ_k x̄_k^β)`: x_bar: [N,J,3] -> [N,J], detached as in the
 /// reference (it does not train the box sizes). The power is computed by repeated squaring
@@ -47,15 +47,22 @@ pub struct WinFun {
 }
 
 impl WinFun {
-    /// Loads `win_fun.*`.
-    pub fn load(vb: VarBuilder, cfg: &Config) -> Result<Self> {
-        let h = cfg.win_hidden;
+    /// `win_fun.*`; every weight, the linear ones included, has SIREN's init.
+    pub fn new<'a>(p: impl Into<Params<'a>>, cfg: &Config) -> Result<Self> {
+        let p = p.into();
+        let (h, w0) = (cfg.win_hidden, cfg.sin_w0_pose);
+        let (gw, ce) = (cfg.gnn_width, cfg.point_enc_dim);
         Ok(Self {
-            layer_pose: Linear::load(vb.pp("layer_pose.layer"), cfg.gnn_width, h)?,
-            layer_point: Linear::load(vb.pp("layer_point.layer"), cfg.point_enc_dim, h)?,
-            sin0: SineLayer::load(vb.pp("sin_lin0"), h, h, cfg.sin_w0_pose)?,
-            sin1: SineLayer::load(vb.pp("sin_lin1"), h, h, cfg.sin_w0_pose)?,
-            last: Linear::load(vb.pp("last_layer.layer"), h, cfg.n_joints)?,
+            layer_pose: Linear::new(p.pp("layer_pose.layer"), gw, h, Init::siren(gw, w0))?,
+            layer_point: Linear::new(p.pp("layer_point.layer"), ce, h, Init::siren(ce, w0))?,
+            sin0: SineLayer::new(p.pp("sin_lin0"), h, h, w0, Init::siren(h, w0))?,
+            sin1: SineLayer::new(p.pp("sin_lin1"), h, h, w0, Init::siren(h, w0))?,
+            last: Linear::new(
+                p.pp("last_layer.layer"),
+                h,
+                cfg.n_joints,
+                Init::siren(h, w0),
+            )?,
         })
     }
 

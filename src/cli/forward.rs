@@ -9,7 +9,7 @@ use std::path::PathBuf;
 use anyhow::{bail, Context, Result};
 use candle_core::Tensor;
 use pma_data::dataset::npz::{MemberData, NpyData, NpzReader, NpzWriter};
-use pma_model::avatar::{Avatar, ForwardOptions, Poses, Rays};
+use pma_model::avatar::{Avatar, Mode, Poses, Rays};
 use pma_model::checkpoint;
 
 #[derive(clap::Args)]
@@ -191,10 +191,10 @@ pub fn run(args: Args) -> Result<()> {
         bgs: Some(Tensor::from_vec(bgs, (r, 3), &dev)?),
         framecodes: cam_idxs,
     };
-    let mut opts = ForwardOptions {
-        training: args.train_mode,
-        noise: None,
-        inference: false,
+    let mut opts = if args.train_mode {
+        Mode::Train(None)
+    } else {
+        Mode::Eval
     };
     let out = avatar.forward(&rays, &poses, &mut opts, None)?;
     if args.time > 0 {

@@ -20,7 +20,7 @@ use super::adam::{clip_grad_norm, global_norm, Adam};
 use super::source::DatasetSource;
 use super::state::{fingerprint, Progress, RngState, TrainState};
 use super::TrainError;
-use crate::avatar::{Avatar, ForwardOptions, Outputs, PoseFeatures, Poses, Rays};
+use crate::avatar::{Avatar, Mode, Outputs, PoseFeatures, Poses, Rays};
 use crate::config::Config;
 use crate::loss::LossWeights;
 use crate::presets::{RunConfig, TrainConfig};
@@ -579,11 +579,7 @@ impl Trainer {
                 call += 1;
                 t.rows(call - 1, n, &rows, r, &device)
             };
-            let mut opts = ForwardOptions {
-                training: true,
-                noise: Some(&mut noise),
-                inference: false,
-            };
+            let mut opts = Mode::Train(Some(&mut noise));
             let out = avatar.forward_with_pose(&rays, &batch.poses, pose, &mut opts)?;
             // sum · (1/n) · w: the multiplications the unchunked mean and weight make.
             let l1 = |pred: &Tensor, w: f64| -> Result<Tensor, TrainError> {
@@ -678,11 +674,7 @@ impl Trainer {
                 .collect();
             Ok(Tensor::from_vec(v, n, &device)?)
         };
-        let mut opts = ForwardOptions {
-            training: true,
-            noise: Some(&mut noise),
-            inference: false,
-        };
+        let mut opts = Mode::Train(Some(&mut noise));
         let out = self
             .avatar
             .forward(&batch.rays, &batch.poses, &mut opts, None)?;

@@ -5,7 +5,7 @@ use std::collections::HashMap;
 use std::path::PathBuf;
 
 use candle_core::{DType, Device, Tensor};
-use pma_model::avatar::{Avatar, ForwardOptions, Outputs, Poses, Rays, Trace};
+use pma_model::avatar::{Avatar, Mode, Outputs, Poses, Rays, Trace};
 use pma_model::checkpoint;
 
 pub fn fixtures() -> PathBuf {
@@ -131,11 +131,7 @@ impl GoldenCase {
 
     /// Train-mode forward with density noise off, as the golden run.
     pub fn forward(&self, trace: Option<&mut Trace>) -> Outputs {
-        let mut opts = ForwardOptions {
-            training: true,
-            noise: None,
-            inference: false,
-        };
+        let mut opts = Mode::Train(None);
         self.avatar
             .forward(&self.rays, &self.poses, &mut opts, trace)
             .unwrap()

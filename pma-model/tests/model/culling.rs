@@ -4,7 +4,7 @@
 
 use crate::common::*;
 use candle_core::{Device, Tensor};
-use pma_model::avatar::{Avatar, ForwardOptions, Outputs};
+use pma_model::avatar::{Avatar, Mode, Outputs};
 use pma_model::config::{Config, Culling, SampleFill};
 use pma_model::cull::{SampleFate, WindowTest};
 use pma_model::image::ImageOptions;
@@ -78,10 +78,7 @@ fn zero_window_samples(avatar: &Avatar, case: &GoldenCase, pts: &Tensor) -> usiz
 }
 
 fn inference(case: &GoldenCase) -> Outputs {
-    let mut opts = ForwardOptions {
-        inference: true,
-        ..Default::default()
-    };
+    let mut opts = Mode::Infer;
     case.avatar
         .forward(&case.rays, &case.poses, &mut opts, None)
         .unwrap()

@@ -39,11 +39,7 @@ fn gradients(
         // rounding differences of the size that separate any two float32 implementations.
         c_rays.origins = (c_rays.origins * (1.0 + f32::EPSILON as f64)).unwrap();
     }
-    let mut opts = pma_model::avatar::ForwardOptions {
-        training: true,
-        noise: None,
-        inference: false,
-    };
+    let mut opts = pma_model::avatar::Mode::Train(None);
     let out = case
         .avatar
         .forward(&c_rays, &case.poses, &mut opts, None)

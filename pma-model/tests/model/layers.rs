@@ -24,7 +24,7 @@ use candle_nn::{VarBuilder, VarMap};
 use serde_json::Value;
 
 use pma_data::skeleton::Joints;
-use pma_model::avatar::{Avatar, ForwardOptions, Poses, Rays, Trace};
+use pma_model::avatar::{Avatar, Mode, Poses, Rays, Trace};
 use pma_model::checkpoint;
 use pma_model::config::Config;
 use pma_model::encoders::{pose6d, spherical_harmonics, PointEnc};
@@ -570,7 +570,7 @@ fn gnn_matches_torch() {
     let fx = fixture("gnn");
     let cfg = tiny_config();
     let (vm, vb) = tiny_vars(&[]);
-    let gnn = GnnSine::load(vb.pp("graph_net"), &cfg).unwrap();
+    let gnn = GnnSine::new(vb.pp("graph_net"), &cfg).unwrap();
     for case in ["normal", "far", "degenerate"] {
         let theta = input_var(&fx, case, "theta");
         let mut trace = GnnTrace::new();
@@ -617,7 +617,7 @@ fn check_axis_scale_case(case: &str) {
             ("graph_net.axis_scale", &raw),
             ("graph_net.base_scale", &base),
         ]);
-        let gnn = GnnSine::load(vb.pp("graph_net"), &cfg).unwrap();
+        let gnn = GnnSine::new(vb.pp("graph_net"), &cfg).unwrap();
         let s = gnn.axis_scale().unwrap();
         fx.check_t(case, "out/scale", &s);
         let volume =
@@ -641,7 +641,7 @@ fn normalised_coordinates_and_spatial_window() {
     let cfg = tiny_config();
     for case in ["window_normal", "window_extreme"] {
         let (vm, vb) = tiny_vars(&[]);
-        let gnn = GnnSine::load(vb.pp("graph_net"), &cfg).unwrap();
+        let gnn = GnnSine::new(vb.pp("graph_net"), &cfg).unwrap();
         let x_hat = input_var(&fx, case, "x_hat");
         let x_bar = x_hat
             .as_tensor()
@@ -723,9 +723,9 @@ fn point_encoders_match_torch() {
     for case in ["point_enc_normal", "point_enc_far"] {
         let (vm, vb) = tiny_vars(&[]);
         let enc_pose =
-            PointEnc::load(vb.pp("pts_enc_pose"), cfg.point_enc_dim, cfg.sin_w0_pose).unwrap();
+            PointEnc::new(vb.pp("pts_enc_pose"), cfg.point_enc_dim, cfg.sin_w0_pose).unwrap();
         let enc_point =
-            PointEnc::load(vb.pp("pts_enc_point"), cfg.point_enc_dim, cfg.sin_w0_point).unwrap();
+            PointEnc::new(vb.pp("pts_enc_point"), cfg.point_enc_dim, cfg.sin_w0_point).unwrap();
         let x_bar = input_var(&fx, case, "x_bar");
         let e = enc_pose.forward(x_bar.as_tensor()).unwrap();
         let z = enc_point.forward(x_bar.as_tensor()).unwrap();
@@ -765,7 +765,7 @@ fn window_matches_torch() {
     let cfg = tiny_config();
     for case in ["normal", "zero_rows", "large"] {
         let (vm, vb) = tiny_vars(&[]);
-        let win = WinFun::load(vb.pp("win_fun"), &cfg).unwrap();
+        let win = WinFun::new(vb.pp("win_fun"), &cfg).unwrap();
         let g_feat = input_var(&fx, case, "gnn_feat");
         let e = input_var(&fx, case, "pts_enc_pose");
         let w_p = fx.input(case, "w_p");
@@ -820,8 +820,8 @@ fn pose_extractor_matches_torch() {
     let cfg = tiny_config();
     for case in ["pose_extractor_normal", "pose_extractor_far"] {
         let (vm, vb) = tiny_vars(&[]);
-        let pe = PoseExtractor::load(vb.pp("pose_extractor"), &cfg).unwrap();
-        let modulator = Modulator::load(vb.pp("modulator"), &cfg).unwrap();
+        let pe = PoseExtractor::new(vb.pp("pose_extractor"), &cfg).unwrap();
+        let modulator = Modulator::new(vb.pp("modulator"), &cfg).unwrap();
         let f_m = input_var(&fx, case, "f_m");
         let m = pe.forward(f_m.as_tensor()).unwrap();
         let theta = Tensor::stack(&m.freq, 0).unwrap();
@@ -841,7 +841,7 @@ fn modulator_matches_torch() {
     let cfg = tiny_config();
     for case in ["normal", "extreme", "negative"] {
         let (vm, vb) = tiny_vars(&[]);
-        let modulator = Modulator::load(vb.pp("modulator"), &cfg).unwrap();
+        let modulator = Modulator::new(vb.pp("modulator"), &cfg).unwrap();
         let x_tilde = input_var(&fx, case, "x_tilde");
         let theta = input_var(&fx, case, "theta");
         let phi = input_var(&fx, case, "phi");
@@ -884,8 +884,8 @@ fn field_and_frame_codes_match_torch() {
             .as_bool()
             .expect("training option");
         let (vm, vb) = tiny_vars(&[]);
-        let field = Field::load(vb.clone(), &cfg).unwrap();
-        let codes = FrameCodes::load(vb.pp("framecodes"), &cfg).unwrap();
+        let field = Field::new(vb.clone(), &cfg).unwrap();
+        let codes = FrameCodes::new(vb.pp("framecodes"), &cfg).unwrap();
         let s = input_var(&fx, case, "S");
         let idx: Vec<i64> = fx.input(case, "frame_idx").to_vec1().unwrap();
         let code = codes.lookup(&idx, training).unwrap();
@@ -954,10 +954,7 @@ fn full_forward_and_training_gradients() {
             bgs: Some(fx.input(case, "bgs")),
             framecodes: fx.input(case, "cam_idxs").to_vec1().unwrap(),
         };
-        let mut opts = ForwardOptions {
-            training: true,
-            ..Default::default()
-        };
+        let mut opts = Mode::Train(None);
         let mut trace = Trace::default();
         let out = avatar
             .forward(&rays, &poses, &mut opts, Some(&mut trace))

@@ -10,7 +10,7 @@
 
 use crate::train_support::*;
 use candle_core::{Device, Tensor};
-use pma_model::avatar::ForwardOptions;
+use pma_model::avatar::Mode;
 use pma_model::train::{psnr_from_mse, BatchSource, DatasetSource, TrainBatch, Trainer};
 use rand::SeedableRng;
 
@@ -29,11 +29,7 @@ fn probe_psnr(t: &Trainer, probe: &TrainBatch) -> f64 {
             .collect();
         Ok(Tensor::from_vec(v, n, &Device::Cpu)?)
     };
-    let mut opts = ForwardOptions {
-        training: true,
-        noise: Some(&mut noise),
-        inference: false,
-    };
+    let mut opts = Mode::Train(Some(&mut noise));
     let out = t
         .avatar()
         .forward(&probe.rays, &probe.poses, &mut opts, None)

@@ -8,8 +8,9 @@ use std::collections::HashMap;
 use std::path::PathBuf;
 
 use candle_core::{DType, Device, Tensor};
+use pma_data::skeleton::N_JOINTS;
 use pma_model::config::Config;
-use pma_model::raycast::{merge_sorted, sample_points, RayCaster, N_JOINTS};
+use pma_model::raycast::{merge_sorted, sample_points, RayCaster};
 
 /// Max abs error allowed on every float output (the reference's own float32 results).
 const TOL: f32 = 1e-4;

@@ -3,9 +3,10 @@
 //! sampling of a uniform and a peaked pdf, merge gradients, and input errors.
 
 use candle_core::{Device, Tensor, Var};
+use pma_data::skeleton::N_JOINTS;
 use pma_model::config::Config;
 use pma_model::raycast::{
-    box_near_far, cylinder_near_far, fill_cylinder_misses, merge_raw, RayCaster, N_JOINTS,
+    box_near_far, cylinder_near_far, fill_cylinder_misses, merge_raw, RayCaster,
 };
 
 fn identity4() -> Vec<f32> {

@@ -113,7 +113,7 @@ const TOL: f64 = 1e-5;
 #[test]
 fn gnn_and_axis_scale() {
     let mut s = setup();
-    let gnn = GnnSine::load(s.vb.pp("graph_net"), &s.cfg).unwrap();
+    let gnn = GnnSine::new(s.vb.pp("graph_net"), &s.cfg).unwrap();
     let rot6d = |bones: &pma_data::skeleton::Joints| {
         let v: Vec<f64> = pma_data::skeleton::pose_to_rot6d(bones)
             .iter()
@@ -184,13 +184,13 @@ fn gnn_and_axis_scale() {
 fn point_encoders_window_and_aggregation() {
     let mut s = setup();
     let cfg = s.cfg.clone();
-    let enc = PointEnc::load(
+    let enc = PointEnc::new(
         s.vb.pp("pts_enc_point"),
         cfg.point_enc_dim,
         cfg.sin_w0_point,
     )
     .unwrap();
-    let win = WinFun::load(s.vb.pp("win_fun"), &cfg).unwrap();
+    let win = WinFun::new(s.vb.pp("win_fun"), &cfg).unwrap();
     for (case, span) in [("normal", 1.0), ("1e3 box sizes out", 1e3)] {
         let x = Var::from_tensor(&rand_t(&mut s.rng, &[5, 24, 3], -span, span)).unwrap();
         let w = rand_t(&mut s.rng, &[5, 24, cfg.point_enc_dim], -1.0, 1.0);
@@ -247,7 +247,7 @@ fn point_encoders_window_and_aggregation() {
 fn pose_extractor_and_modulator_at_huge_frequencies() {
     let mut s = setup();
     let cfg = s.cfg.clone();
-    let ext = PoseExtractor::load(s.vb.pp("pose_extractor"), &cfg).unwrap();
+    let ext = PoseExtractor::new(s.vb.pp("pose_extractor"), &cfg).unwrap();
     let f_m = Var::from_tensor(&rand_t(&mut s.rng, &[4, cfg.win_hidden], -1.0, 1.0)).unwrap();
     let w = rand_t(&mut s.rng, &[4, 2 * cfg.n_pm * cfg.freq_dim], -1.0, 1.0);
     let loss = || {
@@ -266,7 +266,7 @@ fn pose_extractor_and_modulator_at_huge_frequencies() {
         assert!(e < TOL, "{n}: {e:e}");
     }
 
-    let modu = Modulator::load(s.vb.pp("modulator"), &cfg).unwrap();
+    let modu = Modulator::new(s.vb.pp("modulator"), &cfg).unwrap();
     let x = rand_t(&mut s.rng, &[3, 24 * cfg.point_enc_dim], -1.0, 1.0);
     let out_w = rand_t(&mut s.rng, &[3, cfg.n_pm * cfg.freq_dim], -1.0, 1.0);
     // Θ such that γ = 15Θ + 30 is about 30 (normal), 1e3 and −1e3 (extreme).
@@ -312,7 +312,7 @@ fn pose_extractor_and_modulator_at_huge_frequencies() {
 fn field_view_encoding_and_compositing() {
     let mut s = setup();
     let cfg = s.cfg.clone();
-    let field = Field::load(s.vb.clone(), &cfg).unwrap();
+    let field = Field::new(s.vb.clone(), &cfg).unwrap();
     let n = 5;
     let sdim = cfg.n_pm * cfg.freq_dim;
     let vdim = cfg.sh_degree * cfg.sh_degree + cfg.framecode_ch;

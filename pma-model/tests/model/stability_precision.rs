@@ -8,15 +8,11 @@
 
 use crate::common::*;
 use candle_core::DType;
-use pma_model::avatar::{ForwardOptions, Outputs};
+use pma_model::avatar::{Mode, Outputs};
 use pma_model::stability::tensor_stats;
 
 fn forward(case: &GoldenCase, avatar: &pma_model::avatar::Avatar) -> Outputs {
-    let mut opts = ForwardOptions {
-        training: true,
-        noise: None,
-        inference: false,
-    };
+    let mut opts = Mode::Train(None);
     avatar
         .forward(&case.rays, &case.poses, &mut opts, None)
         .unwrap()
