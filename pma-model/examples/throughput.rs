@@ -1,6 +1,8 @@
 //! CPU throughput of the paper configuration in parity mode, in network samples per second
-//! (rays × (48 + 24)), to compare with the reference's figures measured on the same machine
-//! (issue 6: training 4,223 samples/s at 512 rays, inference 8,823 samples/s at 4,096 rays).
+//! (rays × (48 + 24)). The printed ratios divide by `REF_TRAIN` and `REF_INFER`: the
+//! reference's throughput at 512 training rays and 4,096 inference rays, measured once on the
+//! 2-core machine pma was developed on. On any other machine only the samples/s are
+//! meaningful; compare against the reference run there.
 //!
 //! cargo run --release -p pma-model --features train --example throughput -- [--train-rays 512]
 //!     [--infer-rays 4096] [--repeats 3]

@@ -1,19 +1,20 @@
-//! Camera paths for rendering a trained avatar (spec data.md §9.1): an orbit around the body
-//! at the training camera's distance, bullet time, and a default framing camera when no
-//! training camera is at hand.
+//! Camera paths for rendering a trained avatar: an orbit around the body at the training
+//! camera's distance, bullet time, and a default framing camera when no training camera is at
+//! hand.
 //!
 //! All cameras use the training world convention (head toward −y unless told otherwise,
 //! ground plane x–z, OpenGL camera axes: the camera looks along its −z and its +y is "up" in
 //! the image, i.e. toward the head).
 //!
 //! # Ray directions at render time
-//! The reference trains on unit ray directions but renders with unnormalised ones (camera-space
-//! z = −1, |d| up to ≈ 1.17 at image corners), and feeds them to a spherical-harmonics view
-//! encoding that assumes unit vectors (spec data.md §6.3, §11). Ray marching is invariant to
-//! |d| (step lengths are multiplied by it), the view encoding is not. pma renders with the
-//! view directions normalised ([`ViewDirs::Normalized`], the default of `pma render`), so a
-//! pixel's colour does not depend on where it sits in the image or on the focal length;
-//! [`ViewDirs::Reference`] keeps the checkpoint's own setting for parity with the reference.
+//! The reference trains on unit ray directions but renders with unnormalised ones
+//! (camera-space z = −1, |d| up to ≈ 1.17 at image corners), and feeds them to a
+//! spherical-harmonics view encoding that assumes unit vectors (see docs/numerics.md, "Cameras
+//! and rays"). Ray marching is invariant to |d| (step lengths are multiplied by it), the view
+//! encoding is not. pma renders with the view directions normalised ([`ViewDirs::Normalized`],
+//! the default of `pma render`), so a pixel's colour does not depend on where it sits in the
+//! image or on the focal length; [`ViewDirs::Reference`] keeps the checkpoint's own setting for
+//! parity with the reference.
 
 use std::f64::consts::TAU;
 use std::path::Path;
@@ -170,10 +171,11 @@ impl Orbit {
     }
 }
 
-/// Bullet time (spec data.md §9.1): `c2w_k = Ry(2πk/n)·c2w` with the reference's transposed
-/// `Ry`, applied after shifting the camera by −`pivot`. The shift is undone afterwards, so
-/// the body can stay where it is (the image equals the reference's re-centred one: moving
-/// camera and body by the same translation changes nothing). k = 0 is `cam` itself.
+/// Bullet time, as the reference's render script defines it: `c2w_k = Ry(2πk/n)·c2w` with the
+/// reference's transposed `Ry`, applied after shifting the camera by −`pivot`. The shift is
+/// undone afterwards, so the body can stay where it is (the image equals the reference's
+/// re-centred one: moving camera and body by the same translation changes nothing). k = 0 is
+/// `cam` itself.
 pub fn bullet_time(cam: &Camera, pivot: [f32; 3], n: usize) -> Result<Vec<Camera>> {
     cam.validate()?;
     if n == 0 {
@@ -197,9 +199,9 @@ pub fn bullet_time(cam: &Camera, pivot: [f32; 3], n: usize) -> Result<Vec<Camera
 pub const FRAMING_FOV_DEG: f64 = 30.0;
 
 /// A camera that frames a posed body when no training camera is available: it looks at the
-/// centre of the body's render cylinder (spec data.md §6.5, a = 1.6, b = 1.1) from the
-/// direction `facing` (projected onto the ground plane; e.g. where the body faces), slightly
-/// from above, far enough for the cylinder to fill ~90 % of the image.
+/// centre of the body's render cylinder (a = 1.6, b = 1.1, see docs/conventions.md, "Cameras")
+/// from the direction `facing` (projected onto the ground plane; e.g. where the body faces),
+/// slightly from above, far enough for the cylinder to fill ~90 % of the image.
 pub fn framing_camera(
     kp3d: &Joints,
     head: HeadDir,

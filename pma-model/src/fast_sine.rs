@@ -1,13 +1,13 @@
 //! An opt-in vectorised sine for the SIREN and modulated layers (`--fast-sine`).
 //!
-//! candle evaluates `sin` (and `cos` in its backward) with one scalar libm call per value:
-//! 21 % of a paper-config inference pass and 14 % of a training step (`perf record`, issue
-//! 6). Here the argument is reduced by π/2 in f64 and sin/cos of the remainder come from
-//! Taylor polynomials in f64 (truncation < 5e-17 on [-π/4, π/4]), written as straight-line
-//! lane-wise code the compiler vectorises (AVX2 where the CPU has it). The result is the
-//! correctly rounded f32 sine up to rare last-bit ties, so it can differ from the libm
-//! result in the last bit: it is an explicit option, never the parity default, and its
-//! error against parity is measured (`pma bench`, `throughput --fast-sine`).
+//! candle evaluates `sin` (and `cos` in its backward) with one scalar libm call per value, a
+//! large share of a paper-config pass on the CPU (`perf record`). Here the argument is reduced
+//! by π/2 in f64 and sin/cos of the remainder come from Taylor polynomials in f64 (truncation
+//! < 5e-17 on [-π/4, π/4]), written as straight-line lane-wise code the compiler vectorises
+//! (AVX2 where the CPU has it). The result is the correctly rounded f32 sine up to rare
+//! last-bit ties, so it can differ from the libm result in the last bit: it is an explicit
+//! option, never the parity default, and its error against parity is measured (`pma bench`,
+//! `throughput --fast-sine`).
 //!
 //! The reduction is exact enough while |x| ≤ 2^26 (see `PIO2_1`); larger and non-finite
 //! arguments go to libm.

@@ -1,5 +1,5 @@
 //! Two CPU kernels that replace the places where candle's generic autograd costs most
-//! (profile of a paper-config training step, issue 6):
+//! (in a profile of a paper-config training step):
 //!
 //! * **Bias add** of every linear layer. candle differentiates `broadcast_add` with a
 //!   strided reduction over the rows that runs element by element; [`add_bias`] computes the

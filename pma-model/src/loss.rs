@@ -1,5 +1,6 @@
-//! The reference's training objective (spec model.md §5): L1 on the fine and the coarse
-//! render (means over rays × channels) plus 0.001 × the summed box volumes.
+//! The reference's training objective: L1 on the fine and the coarse render (means over
+//! rays × channels) plus 0.001 × the summed box volumes (docs/reference.md, "Training schedule
+//! and Adam").
 
 use candle_core::Tensor;
 

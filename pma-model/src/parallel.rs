@@ -2,15 +2,14 @@
 //!
 //! candle parallelises inside each op (gemm through rayon, large elementwise maps through
 //! its barrier pool). This network is a long chain of mid-sized ops, and on a few cores the
-//! per-op fork/join costs more than it gains: on the 2-core CI machine one two-threaded
-//! op stream trained the paper config at 1,884 samples/s, while two single-threaded
-//! processes reached 1,769 each (`throughput` example, issue 6). So on CPU pma runs `W`
-//! workers on disjoint chunks of points or rays, each with candle's intra-op threading off.
-//! Results are combined in chunk order, so they do not depend on thread timing, and for a
-//! given chunking not on `W` either. The one place `W` matters: a training batch smaller
-//! than one chunk is split into `W` chunks so every worker has work, and a chunked step
-//! differs from the one-pass step by float summation order only (≤ 1e-6 on gradients,
-//! `tests/model/train_chunked.rs`).
+//! per-op fork/join costs more than it gains: on a 2-core machine, two single-threaded op
+//! streams together trained the paper config much faster than one stream using both cores
+//! (the `throughput` example measures it). So on CPU pma runs `W` workers on disjoint chunks
+//! of points or rays, each with candle's intra-op threading off. Results are combined in
+//! chunk order, so they do not depend on thread timing, and for a given chunking not on `W`
+//! either. The one place `W` matters: a training batch smaller than one chunk is split into
+//! `W` chunks so every worker has work, and a chunked step differs from the one-pass step by
+//! float summation order only (≤ 1e-6 on gradients, `tests/model/train_chunked.rs`).
 //!
 //! [`configure_cpu`] must run before the first candle op of the process (candle sizes its
 //! thread pool once); binaries call it at start-up. Libraries and tests that never call it
@@ -51,11 +50,11 @@ pub fn configure_cpu(workers: usize) -> usize {
 }
 
 /// Tell mimalloc (the allocator of pma's binaries) to keep freed pages rather than return
-/// them to the OS a second later (mimalloc v3's default). Every chunk frees and re-allocates the same few hundred MB;
-/// with two workers the purges and the page faults after them cost ~12 % of a training step
-/// (`throughput`: 1,909 → 2,180 samples/s with `MIMALLOC_PURGE_DELAY=-1`). Peak RSS is set
-/// by the chunk size either way. A user's `MIMALLOC_PURGE_DELAY` wins; in a process whose
-/// global allocator is not mimalloc this only configures an unused heap.
+/// them to the OS a second later (mimalloc v3's default). Every chunk frees and re-allocates
+/// the same few hundred MB; with two workers the purges and the page faults after them are a
+/// noticeable part of a training step (compare `throughput` with `MIMALLOC_PURGE_DELAY=-1`).
+/// Peak RSS is set by the chunk size either way. A user's `MIMALLOC_PURGE_DELAY` wins; in a
+/// process whose global allocator is not mimalloc this only configures an unused heap.
 fn keep_freed_pages() {
     if std::env::var_os("MIMALLOC_PURGE_DELAY").is_none() {
         // SAFETY: mimalloc options are plain atomics, settable at any time from any thread.

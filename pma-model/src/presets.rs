@@ -81,8 +81,8 @@ mod train_presets {
     use crate::config::Config;
     use crate::train::TrainError;
 
-    /// Hyper-parameters of the training loop (spec `model.md` §1, §5, §6). Field names follow
-    /// the reference's yaml where one exists (given in the doc comments).
+    /// Hyper-parameters of the training loop (docs/reference.md, "Training schedule and Adam").
+    /// Field names follow the reference's yaml where one exists (given in the doc comments).
     #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
     #[serde(default, deny_unknown_fields)]
     pub struct TrainConfig {

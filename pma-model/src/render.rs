@@ -1,4 +1,5 @@
-//! Volume rendering (`raw2outputs`, spec `model.md` §3.15), differentiable.
+//! Volume rendering (the reference's `raw2outputs`), differentiable. The formulas and their
+//! guards are listed in docs/numerics.md, "Densities and alpha".
 //!
 //! candle has no cumprod, so the transmittance `T_i = Π_{k<i}(1 − α_k + 1e-10)` is computed as
 //! `exp(Σ_{k<i} ln(1 − α_k + 1e-10))`, the exclusive sum being one matmul with a strictly

@@ -1,4 +1,5 @@
-//! Retargeting real motion onto a trained avatar (spec data.md §9.2).
+//! Retargeting real motion onto a trained avatar (docs/conventions.md, "Motion files" and
+//! "Units and up axis").
 //!
 //! A motion (e.g. from `pma convert motion`: AIST++ dance, CMU walk) gives per-frame joint
 //! rotations and a root trajectory recorded on *another* body. To drive the avatar:

@@ -1,4 +1,4 @@
-//! Camera paths (spec data.md §9.1) and the render-time ray-direction choice.
+//! Camera paths (orbit, bullet time, framing camera) and the render-time ray-direction choice.
 // Closures return `pma_model::error::Result`, whose error carries candle's (large) error.
 #![allow(clippy::result_large_err)]
 

@@ -1,4 +1,4 @@
-//! Leaving work out (issue 6, `pma_model::cull`): culling at threshold 0 is exactly parity
+//! Leaving work out (`pma_model::cull`): culling at threshold 0 is exactly parity
 //! mode on the golden cases; culled rays are exactly the background with zero weights while
 //! every other ray is untouched; a small sample threshold changes a render by a bounded amount.
 

@@ -600,8 +600,8 @@ fn axis_scale_straight_through_floor() {
     check_axis_scale_case("floor");
 }
 
-/// Raw scales exactly 0: torch's d|a|/da is 0 there (model.md §2.6), so the regulariser does
-/// not push such an entry either way.
+/// Raw scales exactly 0: torch's d|a|/da is 0 there (docs/numerics.md, "Densities and alpha"),
+/// so the regulariser does not push such an entry either way.
 #[test]
 fn axis_scale_gradient_is_zero_at_zero() {
     check_axis_scale_case("zero");
@@ -658,8 +658,8 @@ fn normalised_coordinates_and_spatial_window() {
 
 #[test]
 fn spatial_window_is_detached() {
-    // w^p carries no gradient in the reference (model.md §3.4): the window cases above only
-    // pass their loss through x̄, so check the detachment directly.
+    // w^p carries no gradient in the reference (docs/reference.md, "Paper versus code"): the
+    // window cases above only pass their loss through x̄, so check the detachment directly.
     let fx = fixture("encoders");
     let cfg = tiny_config();
     let x = input_var(&fx, "window_normal", "x_hat");

@@ -6,7 +6,8 @@ use candle_core::{DType, Device, Tensor, Var};
 use pma_model::render::raw2outputs;
 use proptest::prelude::*;
 
-/// Straightforward per-ray f64 evaluation of spec §3.15 (explicit cumulative product).
+/// Straightforward per-ray f64 evaluation of the compositing formulas (docs/numerics.md,
+/// "Densities and alpha"), with an explicit cumulative product.
 /// raw: [R,M,4], z: [R,M], d: [R,3], bg: [R,3] -> (rgb [R,3], depth, disp, acc, weights [R,M]).
 #[allow(clippy::type_complexity)]
 fn naive(

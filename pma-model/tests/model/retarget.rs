@@ -1,6 +1,6 @@
-//! Retargeting (spec data.md §9.2): bone lengths from the avatar's rest pose, the root
-//! trajectory rescaled by the leg-length ratio, y-up motion turned head-down; on synthetic
-//! clips and on the embedded AIST++ dance.
+//! Retargeting (docs/conventions.md, "Motion files"): bone lengths from the avatar's rest pose,
+//! the root trajectory rescaled by the leg-length ratio, y-up motion turned head-down; on
+//! synthetic clips and on the embedded AIST++ dance.
 
 use ndarray::{Array2, Array3};
 use pma_data::cylinder::HeadDir;

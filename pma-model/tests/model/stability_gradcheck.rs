@@ -1,6 +1,6 @@
-//! Finite differences vs autograd in f64, module by module, at normal and at extreme inputs
-//! (issue 7): 6D poses that are far from orthonormal or have collinear columns, bone-frame
-//! coordinates a thousand box sizes out, modulation frequencies of ±1e3, densities of 1e4.
+//! Finite differences vs autograd in f64, module by module, at normal and at extreme inputs: 6D
+//! poses that are far from orthonormal or have collinear columns, bone-frame coordinates a
+//! thousand box sizes out, modulation frequencies of ±1e3, densities of 1e4.
 //!
 //! Every module is built from the `tiny` initialisation cast to f64. For a few entries of each
 //! parameter (and of the differentiable inputs) the central difference with step `h` is

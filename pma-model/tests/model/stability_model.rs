@@ -1,7 +1,7 @@
-//! Stability of the whole avatar on extreme inputs (issue 7): extreme poses (AIST++ frames,
-//! rotations up to and exactly π, near 0 and 2π, the head backwards, tangled limbs), huge and
-//! negative modulation frequencies, box sizes at their floor, and degenerate rest poses.
-//! Outputs and gradients must be finite; broken rest poses must fail at construction.
+//! Stability of the whole avatar on extreme inputs: extreme poses (AIST++ frames, rotations up
+//! to and exactly π, near 0 and 2π, the head backwards, tangled limbs), huge and negative
+//! modulation frequencies, box sizes at their floor, and degenerate rest poses. Outputs and
+//! gradients must be finite; broken rest poses must fail at construction.
 
 use candle_core::{DType, Device, Tensor};
 use pma_data::skeleton::{self, Joints};
@@ -48,7 +48,7 @@ fn extreme_poses_give_finite_outputs_and_gradients() {
         reference_violations += row.violations;
     }
     // The probe set includes a ray facing away from the cylinder: with the reference's bounds
-    // its far < near (spec §11.8), which the robust bounds remove.
+    // its far < near (docs/numerics.md, "Cameras and rays"), which the robust bounds remove.
     assert!(reference_violations > 0);
 }
 

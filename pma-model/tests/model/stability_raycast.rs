@@ -1,5 +1,5 @@
-//! Ray bounds on hard geometry (issue 7, spec model.md §11.7–8): random rays around an extreme
-//! pose, cameras inside the body, boxes behind the camera, vertical rays. With
+//! Ray bounds on hard geometry (docs/numerics.md, "Cameras and rays"): random rays around an
+//! extreme pose, cameras inside the body, boxes behind the camera, vertical rays. With
 //! `quirks.robust_ray_bounds` and `quirks.per_ray_cylinder_fallback` every ray gets finite,
 //! ordered bounds whose ends lie on a box, independent of the other rays in its batch; the
 //! reference settings are checked to show the hazards these switches remove.

@@ -1,7 +1,7 @@
-//! Volume rendering and importance sampling on stiff inputs (issue 7, spec model.md §11.9–10):
-//! densities from 0 to 1e6, interval lengths from 1e-7 to 1e10, all weight on one sample, no
-//! weight at all. Compositing stays in [0,1], transmittance is monotone, gradients are finite,
-//! and importance samples are sorted and inside the coarse span.
+//! Volume rendering and importance sampling on stiff inputs (docs/numerics.md, "Densities and
+//! alpha"): densities from 0 to 1e6, interval lengths from 1e-7 to 1e10, all weight on one
+//! sample, no weight at all. Compositing stays in [0,1], transmittance is monotone, gradients
+//! are finite, and importance samples are sorted and inside the coarse span.
 
 use candle_core::{DType, Device, Tensor, Var};
 use pma_model::raycast::RayCaster;

@@ -1,9 +1,9 @@
-//! Training under stress (issue 7): steps on the synthetic scene where every other batch has
+//! Training under stress: steps on the synthetic scene where every other batch has
 //! its poses replaced by extreme ones (AIST++ dance frames, every joint at π, tangled limbs,
 //! axis-angle near 2π). No step may be skipped for a non-finite loss or gradient.
 //!
-//! CI runs a few `tiny` steps. The full check of the issue (200 `cpu-small` steps) is the
-//! ignored test, run in release:
+//! CI runs a few `tiny` steps. The full check (200 `cpu-small` steps) is the ignored test, run
+//! in release:
 //! `STRESS_STEPS=200 STRESS_PRESET=cpu-small cargo test --release -p pma-model --features train --test model stability_train:: -- --ignored --nocapture`
 #![cfg(feature = "train")]
 
