@@ -138,7 +138,7 @@ impl Avatar {
         let varmap = VarMap::new();
         let p = Params::init(seed, rest, varmap.clone(), device);
         let net = Network::new(&p, &cfg)?;
-        check_buffers(&varmap_tensors(&varmap))?;
+        checkpoint::check_buffers(&varmap_tensors(&varmap))?;
         Self::assemble(cfg, net, varmap, DType::F32, device)
     }
 
@@ -163,9 +163,9 @@ impl Avatar {
                 .map(|(n, t)| (n.as_str(), t.dims(), as_f32(t))),
         );
         if !problems.is_empty() {
-            return Err(checkpoint_error(problems));
+            return Err(checkpoint::tensors_error(problems));
         }
-        check_buffers(&tensors)?;
+        checkpoint::check_buffers(&tensors)?;
         let varmap = VarMap::new();
         {
             let mut data = varmap.data().lock().expect("fresh VarMap lock");
@@ -506,69 +506,6 @@ impl Avatar {
         })
     }
 
-    // ---- whole renders ------------------------------------------------------------------
-
-    /// Inference: render rays (eval mode, no noise, no gradient, bounded memory).
-    pub fn render_rays(&self, rays: &Rays, poses: &Poses) -> Result<Outputs> {
-        self.forward(rays, poses, &mut Mode::Infer, None)
-    }
-
-    /// Render a whole image of one pose (eval mode, mean frame code, black or given
-    /// background), in chunks of rays inside the body's 2-D box: memory stays bounded at any
-    /// resolution. `kp3d` are the pose's joint positions (for the box).
-    pub fn render_image(
-        &self,
-        poses: &Poses,
-        kp3d: &Joints,
-        cam: &pma_data::camera::Camera,
-        background: Option<&[f32]>,
-        opts: &crate::image::ImageOptions,
-    ) -> Result<crate::image::RenderedImage> {
-        if poses.bones.len() != 1 {
-            return Err(ModelError::Input(format!(
-                "render_image takes one pose, found {}",
-                poses.bones.len()
-            )));
-        }
-        // The GNN and every other per-pose term once per image, not once per chunk.
-        let pose = self.pose_features(poses, None)?;
-        let mut renderer =
-            |o: &Tensor, d: &Tensor, bg: &Tensor| -> Result<crate::image::ChunkRender> {
-                let rays = Rays {
-                    origins: o.clone(),
-                    dirs: d.clone(),
-                    bgs: Some(bg.clone()),
-                    framecodes: vec![-1; o.dim(0)?],
-                };
-                let out = self.forward_with_pose(&rays, poses, &pose, &mut Mode::Infer)?;
-                Ok(crate::image::ChunkRender {
-                    rgb: out.fine.rgb,
-                    acc: out.fine.acc,
-                    disp: out.fine.disp,
-                })
-            };
-        crate::image::render_image(&mut renderer, cam, kp3d, background, opts)
-    }
-
-    /// Per-pose data for one pose given only its bones and root location: FK with the
-    /// avatar's own rest pose (what retargeting needs).
-    pub fn pose_from_bones(&self, bones: &Joints, root: [f32; 3]) -> Result<(Poses, Joints)> {
-        let posed = skeleton::forward_kinematics(&self.rest_pose, bones, root);
-        let skts: Vec<f32> = posed.skts.iter().flatten().flatten().copied().collect();
-        let cyl = pma_data::cylinder::cylinder_from_joints(
-            &posed.kp3d,
-            &pma_data::cylinder::CylinderParams::training(pma_data::cylinder::HeadDir::NegY),
-        );
-        Ok((
-            Poses {
-                bones: vec![*bones],
-                skts: Tensor::from_vec(skts, (1, N_JOINTS, 4, 4), &self.device)?,
-                cyls: Tensor::from_vec(cyl.to_vec(), (1, 5), &self.device)?,
-            },
-            posed.kp3d,
-        ))
-    }
-
     // ---- accessors ----------------------------------------------------------------------
 
     pub fn config(&self) -> &Config {
@@ -670,51 +607,6 @@ fn varmap_tensors(varmap: &VarMap) -> HashMap<String, Tensor> {
     data.iter()
         .map(|(k, v)| (k.clone(), v.as_tensor().clone()))
         .collect()
-}
-
-fn checkpoint_error(problems: Vec<String>) -> ModelError {
-    ModelError::Checkpoint {
-        path: "<tensors>".into(),
-        problems,
-    }
-}
-
-/// Buffers a checkpoint may carry that would only fail much later, as NaN: a degenerate
-/// rest pose and zero or non-finite box sizes (the floor is a fraction of `base_scale`, so a
-/// zero there divides by zero in x̄ = x̂ / s).
-fn check_buffers(tensors: &HashMap<String, Tensor>) -> Result<()> {
-    let mut problems = Vec::new();
-    let host = |k: &str| -> Result<Vec<f32>> { host_f32(&tensors[k]) };
-    let mut joints = [[0f32; 3]; N_JOINTS];
-    for (d, s) in joints.iter_mut().zip(host("rest_pose")?.chunks_exact(3)) {
-        d.copy_from_slice(s);
-    }
-    if let Err(e) = skeleton::check_rest_pose(&joints) {
-        problems.push(format!("tensor `rest_pose`: {e}"));
-    }
-    let mut s = [[0f32; 3]; N_JOINTS];
-    for (d, v) in s
-        .iter_mut()
-        .zip(host("graph_net.base_scale")?.chunks_exact(3))
-    {
-        d.copy_from_slice(v);
-    }
-    if let Err(e) = skeleton::check_half_extents(
-        "tensor `graph_net.base_scale`",
-        &s,
-        skeleton::rest_pose_scale(&joints),
-    ) {
-        problems.push(e.to_string());
-    }
-    for k in ["pts_embedder.transforms", "raycast.transforms"] {
-        if let Some(i) = host(k)?.iter().position(|v| !v.is_finite()) {
-            problems.push(format!("tensor `{k}`: value {i} is not finite"));
-        }
-    }
-    match problems.is_empty() {
-        true => Ok(()),
-        false => Err(checkpoint_error(problems)),
-    }
 }
 
 /// The tensors of a fresh avatar ([`Avatar::new`]) by name.

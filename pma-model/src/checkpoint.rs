@@ -23,7 +23,9 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 use candle_core::{DType, Device, Tensor};
-use pma_data::skeleton::{JOINT_NAMES, PARENTS};
+use pma_data::skeleton::{self, JOINT_NAMES, N_JOINTS, PARENTS};
+
+use crate::host::host_f32;
 use serde::{Deserialize, Serialize};
 
 use crate::config::Config;
@@ -215,115 +217,37 @@ pub fn load(path: &Path, device: &Device) -> Result<Checkpoint> {
     let mut problems = Vec::new();
     let meta_map = header.metadata().clone().unwrap_or_default();
     let views = st.tensors();
-    let dtype_of = |d: safetensors::Dtype| match d {
-        safetensors::Dtype::F32 => DType::F32,
-        safetensors::Dtype::F64 => DType::F64,
-        safetensors::Dtype::F16 => DType::F16,
-        safetensors::Dtype::BF16 => DType::BF16,
-        safetensors::Dtype::I64 => DType::I64,
-        safetensors::Dtype::U32 => DType::U32,
-        // Any other dtype is reported as a dtype problem through this stand-in.
-        _ => DType::U8,
-    };
     let found: Vec<(&str, &[usize], DType)> = views
         .iter()
         .map(|(n, v)| (n.as_str(), v.shape(), dtype_of(v.dtype())))
         .collect();
 
-    let (config, format_version, skeleton, meta_rest) = match meta_map
-        .get("format")
-        .map(String::as_str)
-    {
-        Some(FORMAT) => {
-            let mut get = |key: &str| -> Option<String> {
-                let v = meta_map.get(key).cloned();
-                if v.is_none() {
-                    problems.push(format!("metadata key `{key}` is missing"));
-                }
-                v
-            };
-            let version = get("format_version");
-            let config = get("config");
-            let skeleton = get("skeleton");
-            let rest = get("rest_pose");
-            let n_codes = get("n_framecodes");
-            if !problems.is_empty() {
-                return Err(fail(problems));
+    let (config, format_version, skeleton, meta_rest) =
+        match meta_map.get("format").map(String::as_str) {
+            Some(FORMAT) => {
+                let (c, s, r) = read_pma_meta(&meta_map).map_err(fail)?;
+                (c, Some(FORMAT_VERSION), s, Some(r))
             }
-            let (version, config, skeleton, rest, n_codes) = (
-                version.unwrap(),
-                config.unwrap(),
-                skeleton.unwrap(),
-                rest.unwrap(),
-                n_codes.unwrap(),
-            );
-            if version != FORMAT_VERSION.to_string() {
-                problems.push(format!(
-                    "metadata `format_version`: expected \"{FORMAT_VERSION}\", found {version:?}"
-                ));
+            Some(other) if meta_map.contains_key("format_version") => {
+                return Err(fail(vec![format!(
+                    "metadata `format`: expected \"{FORMAT}\", found {other:?}"
+                )]));
             }
-            let config: Option<Config> = serde_json::from_str(&config)
-                .map_err(|e| problems.push(format!("metadata `config` is not a valid config: {e}")))
-                .ok();
-            let skeleton: Option<SkeletonMeta> = serde_json::from_str(&skeleton)
-                .map_err(|e| {
-                    problems.push(format!(
-                        "metadata `skeleton` is not {{names, parents}}: {e}"
-                    ))
-                })
-                .ok();
-            let rest: Option<Vec<[f32; 3]>> = serde_json::from_str(&rest)
-                .map_err(|e| {
-                    problems.push(format!("metadata `rest_pose` is not [[x,y,z],...]: {e}"))
-                })
-                .ok();
-            if let Some(cfg) = &config {
-                if n_codes != cfg.n_framecodes.to_string() {
-                    problems.push(format!(
-                        "metadata `n_framecodes` = {n_codes:?} disagrees with config.n_framecodes = {}",
-                        cfg.n_framecodes
-                    ));
-                }
-                if let Err(e) = cfg.validate() {
-                    problems.push(format!("metadata `config`: {e}"));
-                }
-            }
-            if let Some(sk) = &skeleton {
-                if *sk != SkeletonMeta::smpl() {
-                    problems.push(format!(
-                        "metadata `skeleton`: expected the SMPL 24-joint skeleton, found {} joints {:?}",
-                        sk.names.len(),
-                        sk.names
-                    ));
-                }
-            }
-            match (config, skeleton, rest) {
-                (Some(c), Some(s), Some(r)) if problems.is_empty() => {
-                    (c, Some(FORMAT_VERSION), s, Some(r))
-                }
-                _ => return Err(fail(problems)),
-            }
-        }
-        Some(other) if meta_map.contains_key("format_version") => {
-            return Err(fail(vec![format!(
-                "metadata `format`: expected \"{FORMAT}\", found {other:?}"
-            )]));
-        }
-        _ => {
-            let mut cfg = Config::paper();
-            match found
-                .iter()
-                .find(|(n, _, _)| *n == "framecodes.codes.weight")
-            {
-                Some((_, [n, _], _)) => cfg.n_framecodes = *n,
-                Some((_, shape, _)) => problems.push(format!(
+            _ => {
+                let mut cfg = Config::paper();
+                match found
+                    .iter()
+                    .find(|(n, _, _)| *n == "framecodes.codes.weight")
+                {
+                    Some((_, [n, _], _)) => cfg.n_framecodes = *n,
+                    Some((_, shape, _)) => problems.push(format!(
                     "tensor `framecodes.codes.weight`: expected shape [n, 128], found {shape:?}"
                 )),
-                None => {} // reported as missing below
+                    None => {} // reported as missing below
+                }
+                (cfg, None, SkeletonMeta::smpl(), None)
             }
-            (cfg, None, SkeletonMeta::smpl(), None)
-        }
-    };
+        };
 
     problems.extend(check_tensors(&config, found.iter().copied()));
     if !problems.is_empty() {
@@ -365,6 +289,91 @@ pub fn load(path: &Path, device: &Device) -> Result<Checkpoint> {
     })
 }
 
+/// The metadata of a pma checkpoint: config, skeleton and rest pose, or every problem found.
+fn read_pma_meta(
+    meta_map: &HashMap<String, String>,
+) -> std::result::Result<(Config, SkeletonMeta, Vec<[f32; 3]>), Vec<String>> {
+    let mut problems = Vec::new();
+    let mut get = |key: &str| -> Option<String> {
+        let v = meta_map.get(key).cloned();
+        if v.is_none() {
+            problems.push(format!("metadata key `{key}` is missing"));
+        }
+        v
+    };
+    let version = get("format_version");
+    let config = get("config");
+    let skeleton = get("skeleton");
+    let rest = get("rest_pose");
+    let n_codes = get("n_framecodes");
+    if !problems.is_empty() {
+        return Err(problems);
+    }
+    let (version, config, skeleton, rest, n_codes) = (
+        version.unwrap(),
+        config.unwrap(),
+        skeleton.unwrap(),
+        rest.unwrap(),
+        n_codes.unwrap(),
+    );
+    if version != FORMAT_VERSION.to_string() {
+        problems.push(format!(
+            "metadata `format_version`: expected \"{FORMAT_VERSION}\", found {version:?}"
+        ));
+    }
+    let config: Option<Config> = serde_json::from_str(&config)
+        .map_err(|e| problems.push(format!("metadata `config` is not a valid config: {e}")))
+        .ok();
+    let skeleton: Option<SkeletonMeta> = serde_json::from_str(&skeleton)
+        .map_err(|e| {
+            problems.push(format!(
+                "metadata `skeleton` is not {{names, parents}}: {e}"
+            ))
+        })
+        .ok();
+    let rest: Option<Vec<[f32; 3]>> = serde_json::from_str(&rest)
+        .map_err(|e| problems.push(format!("metadata `rest_pose` is not [[x,y,z],...]: {e}")))
+        .ok();
+    if let Some(cfg) = &config {
+        if n_codes != cfg.n_framecodes.to_string() {
+            problems.push(format!(
+                "metadata `n_framecodes` = {n_codes:?} disagrees with config.n_framecodes = {}",
+                cfg.n_framecodes
+            ));
+        }
+        if let Err(e) = cfg.validate() {
+            problems.push(format!("metadata `config`: {e}"));
+        }
+    }
+    if let Some(sk) = &skeleton {
+        if *sk != SkeletonMeta::smpl() {
+            problems.push(format!(
+                "metadata `skeleton`: expected the SMPL 24-joint skeleton, found {} joints {:?}",
+                sk.names.len(),
+                sk.names
+            ));
+        }
+    }
+    match (config, skeleton, rest) {
+        (Some(c), Some(s), Some(r)) if problems.is_empty() => Ok((c, s, r)),
+        _ => Err(problems),
+    }
+}
+
+/// candle's dtype for a safetensors dtype; any dtype a checkpoint cannot hold is reported
+/// as a dtype problem through the stand-in u8.
+fn dtype_of(d: safetensors::Dtype) -> DType {
+    match d {
+        safetensors::Dtype::F32 => DType::F32,
+        safetensors::Dtype::F64 => DType::F64,
+        safetensors::Dtype::F16 => DType::F16,
+        safetensors::Dtype::BF16 => DType::BF16,
+        safetensors::Dtype::I64 => DType::I64,
+        safetensors::Dtype::U32 => DType::U32,
+        _ => DType::U8,
+    }
+}
+
 /// Read tensors from a plain safetensors file (no checks): e.g. a partial override such as
 /// `sigma_override.safetensors`.
 pub fn load_tensors(path: &Path, device: &Device) -> Result<HashMap<String, Tensor>> {
@@ -381,4 +390,49 @@ pub fn load_tensors(path: &Path, device: &Device) -> Result<HashMap<String, Tens
 fn to_json<T: Serialize>(v: &T) -> Result<String> {
     serde_json::to_string(v)
         .map_err(|e| ModelError::Config(format!("cannot serialise checkpoint metadata: {e}")))
+}
+
+pub(crate) fn tensors_error(problems: Vec<String>) -> ModelError {
+    ModelError::Checkpoint {
+        path: "<tensors>".into(),
+        problems,
+    }
+}
+
+/// Buffers a checkpoint may carry that would only fail much later, as NaN: a degenerate
+/// rest pose and zero or non-finite box sizes (the floor is a fraction of `base_scale`, so a
+/// zero there divides by zero in x̄ = x̂ / s).
+pub(crate) fn check_buffers(tensors: &HashMap<String, Tensor>) -> Result<()> {
+    let mut problems = Vec::new();
+    let host = |k: &str| -> Result<Vec<f32>> { host_f32(&tensors[k]) };
+    let mut joints = [[0f32; 3]; N_JOINTS];
+    for (d, s) in joints.iter_mut().zip(host("rest_pose")?.chunks_exact(3)) {
+        d.copy_from_slice(s);
+    }
+    if let Err(e) = skeleton::check_rest_pose(&joints) {
+        problems.push(format!("tensor `rest_pose`: {e}"));
+    }
+    let mut s = [[0f32; 3]; N_JOINTS];
+    for (d, v) in s
+        .iter_mut()
+        .zip(host("graph_net.base_scale")?.chunks_exact(3))
+    {
+        d.copy_from_slice(v);
+    }
+    if let Err(e) = skeleton::check_half_extents(
+        "tensor `graph_net.base_scale`",
+        &s,
+        skeleton::rest_pose_scale(&joints),
+    ) {
+        problems.push(e.to_string());
+    }
+    for k in ["pts_embedder.transforms", "raycast.transforms"] {
+        if let Some(i) = host(k)?.iter().position(|v| !v.is_finite()) {
+            problems.push(format!("tensor `{k}`: value {i} is not finite"));
+        }
+    }
+    match problems.is_empty() {
+        true => Ok(()),
+        false => Err(tensors_error(problems)),
+    }
 }

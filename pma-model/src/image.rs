@@ -25,6 +25,8 @@ use pma_data::camera::Camera;
 use pma_data::cylinder::{cylinder_box, cylinder_from_joints, CylinderParams, HeadDir, PixelBox};
 use pma_data::skeleton::Joints;
 
+use crate::avatar::{Avatar, Mode, Rays};
+use crate::batch::{Outputs, Poses};
 use crate::error::{ModelError, Result};
 use crate::host::host_f32_shaped;
 
@@ -196,4 +198,49 @@ pub fn render_image<R: ChunkRenderer + ?Sized>(
         acc,
         disp,
     })
+}
+
+impl Avatar {
+    // ---- whole renders ------------------------------------------------------------------
+
+    /// Inference: render rays (eval mode, no noise, no gradient, bounded memory).
+    pub fn render_rays(&self, rays: &Rays, poses: &Poses) -> Result<Outputs> {
+        self.forward(rays, poses, &mut Mode::Infer, None)
+    }
+
+    /// Render a whole image of one pose (eval mode, mean frame code, black or given
+    /// background), in chunks of rays inside the body's 2-D box: memory stays bounded at any
+    /// resolution. `kp3d` are the pose's joint positions (for the box).
+    pub fn render_image(
+        &self,
+        poses: &Poses,
+        kp3d: &Joints,
+        cam: &pma_data::camera::Camera,
+        background: Option<&[f32]>,
+        opts: &ImageOptions,
+    ) -> Result<RenderedImage> {
+        if poses.bones.len() != 1 {
+            return Err(ModelError::Input(format!(
+                "render_image takes one pose, found {}",
+                poses.bones.len()
+            )));
+        }
+        // The GNN and every other per-pose term once per image, not once per chunk.
+        let pose = self.pose_features(poses, None)?;
+        let mut renderer = |o: &Tensor, d: &Tensor, bg: &Tensor| -> Result<ChunkRender> {
+            let rays = Rays {
+                origins: o.clone(),
+                dirs: d.clone(),
+                bgs: Some(bg.clone()),
+                framecodes: vec![-1; o.dim(0)?],
+            };
+            let out = self.forward_with_pose(&rays, poses, &pose, &mut Mode::Infer)?;
+            Ok(ChunkRender {
+                rgb: out.fine.rgb,
+                acc: out.fine.acc,
+                disp: out.fine.disp,
+            })
+        };
+        render_image(&mut renderer, cam, kp3d, background, opts)
+    }
 }

@@ -21,11 +21,14 @@
 //! When the motion file holds no rest pose of its own, its source skeleton is unknown and the
 //! trajectory is kept (scale 1) unless a factor is given.
 
+use candle_core::Tensor;
 use pma_data::cylinder::HeadDir;
 use pma_data::dataset::Dataset;
 use pma_data::motion::Motion;
-use pma_data::skeleton::{forward_kinematics, Joints, Transforms};
+use pma_data::skeleton::{forward_kinematics, Joints, Transforms, N_JOINTS};
 
+use crate::avatar::Avatar;
+use crate::batch::Poses;
 use crate::error::{ModelError, Result};
 
 /// How the root trajectory is rescaled.
@@ -211,4 +214,25 @@ pub fn retarget(clip: &MotionClip, target: &Joints, scale: RootScale) -> Result<
         root_scale: s,
         flipped: clip.head != HeadDir::NegY,
     })
+}
+
+impl Avatar {
+    /// Per-pose data for one pose given only its bones and root location: FK with the
+    /// avatar's own rest pose (what retargeting needs).
+    pub fn pose_from_bones(&self, bones: &Joints, root: [f32; 3]) -> Result<(Poses, Joints)> {
+        let posed = forward_kinematics(self.rest_pose(), bones, root);
+        let skts: Vec<f32> = posed.skts.iter().flatten().flatten().copied().collect();
+        let cyl = pma_data::cylinder::cylinder_from_joints(
+            &posed.kp3d,
+            &pma_data::cylinder::CylinderParams::training(pma_data::cylinder::HeadDir::NegY),
+        );
+        Ok((
+            Poses {
+                bones: vec![*bones],
+                skts: Tensor::from_vec(skts, (1, N_JOINTS, 4, 4), self.device())?,
+                cyls: Tensor::from_vec(cyl.to_vec(), (1, 5), self.device())?,
+            },
+            posed.kp3d,
+        ))
+    }
 }
