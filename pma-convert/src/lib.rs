@@ -6,6 +6,7 @@ pub mod dataset;
 pub mod error;
 pub mod h5;
 pub mod motion;
+pub mod pickle;
 pub mod raw;
 pub mod torch;
 pub mod train_state;

@@ -19,12 +19,9 @@ use std::path::PathBuf;
 use glam::{DMat3, DQuat, DVec3};
 
 pub use crate::cylinder::HeadDir;
-use crate::skeleton::{axis_angle_to_matrix, matrix_to_axis_angle};
+use crate::skeleton::{axis_angle_to_matrix, matrix_to_axis_angle, Joints, N_JOINTS};
 
 pub use smpl_npz::{parse_smpl_npz, read_smpl_npz};
-
-/// Number of SMPL joints.
-pub const J: usize = 24;
 
 /// Errors from reading, retargeting or editing motion.
 #[derive(Debug, thiserror::Error)]
@@ -88,7 +85,7 @@ pub struct Motion {
     pub fps: f64,
     /// Per frame `[24][3]` axis-angle (radians) relative to the parent;
     /// joint 0 is the global orientation in the motion's world frame.
-    pub bones: Vec<[[f32; 3]; J]>,
+    pub bones: Vec<Joints>,
     /// Per frame, the root (pelvis) location in metres, world frame.
     pub root: Vec<[f32; 3]>,
     /// Where the head points in this motion's world frame.
@@ -235,8 +232,8 @@ impl Motion {
                 continue;
             }
             let (a, b) = (&self.bones[i], &self.bones[i + 1]);
-            let mut frame = [[0.0f32; 3]; J];
-            for j in 0..J {
+            let mut frame = [[0.0f32; 3]; N_JOINTS];
+            for j in 0..N_JOINTS {
                 let q = quat_from_rotvec(a[j]).slerp(quat_from_rotvec(b[j]), s);
                 frame[j] = rotvec_from_mat(DMat3::from_quat(q));
             }
@@ -292,7 +289,7 @@ impl Motion {
 /// Guesses the up axis from the root orientations: SMPL's canonical head
 /// direction is +y, so the head points along `R₀·ŷ`. Returns `None` when
 /// the mean of its y component is within ±0.5 (lying or tumbling motion).
-pub fn detect_up(bones: &[[[f32; 3]; J]]) -> Option<HeadDir> {
+pub fn detect_up(bones: &[Joints]) -> Option<HeadDir> {
     let mean_y = mean_head_y(bones);
     if mean_y > 0.5 {
         Some(HeadDir::PosY)
@@ -303,7 +300,7 @@ pub fn detect_up(bones: &[[[f32; 3]; J]]) -> Option<HeadDir> {
     }
 }
 
-fn mean_head_y(bones: &[[[f32; 3]; J]]) -> f64 {
+fn mean_head_y(bones: &[Joints]) -> f64 {
     let sum: f64 = bones
         .iter()
         .map(|b| (mat_from_rotvec(b[0]) * DVec3::Y).y)
@@ -311,7 +308,7 @@ fn mean_head_y(bones: &[[[f32; 3]; J]]) -> f64 {
     sum / bones.len().max(1) as f64
 }
 
-pub(crate) fn ambiguous_up(what: &str, bones: &[[[f32; 3]; J]]) -> MotionError {
+pub(crate) fn ambiguous_up(what: &str, bones: &[Joints]) -> MotionError {
     MotionError::AmbiguousUp {
         what: what.to_string(),
         mean_y: mean_head_y(bones),

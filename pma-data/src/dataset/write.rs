@@ -1,6 +1,5 @@
-//! [`Dataset`] → npz, atomically (temp file in the target directory, then
-//! rename) and byte-deterministically (fixed member order, timestamps and
-//! permissions).
+//! [`Dataset`] → npz, atomically (through [`crate::fsio`]) and
+//! byte-deterministically (fixed member order, timestamps and permissions).
 
 use std::io::{BufWriter, Write};
 use std::path::Path;
@@ -8,6 +7,7 @@ use std::path::Path;
 use super::npz::{MemberData, NpzWriter};
 use super::Dataset;
 use crate::error::{DataError, Result};
+use crate::fsio::{parent_dir, AtomicFile};
 
 /// How members are stored.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -38,13 +38,9 @@ pub(crate) fn write_npz(
     opts: &WriteOptions,
     which: Members,
 ) -> Result<()> {
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d,
-        _ => Path::new("."),
-    };
-    let tmp = tempfile::NamedTempFile::new_in(dir).map_err(|e| DataError::io(dir, e))?;
+    let tmp = AtomicFile::create(path).map_err(|e| DataError::io(parent_dir(path), e))?;
     {
-        let buf = BufWriter::new(tmp.as_file());
+        let buf = BufWriter::new(tmp.file());
         let mut w = NpzWriter::new(
             buf,
             opts.compression == Compression::Deflated,
@@ -59,12 +55,7 @@ pub(crate) fn write_npz(
         let mut buf = w.finish()?;
         buf.flush().map_err(|e| DataError::io(path, e))?;
     }
-    tmp.as_file()
-        .sync_all()
-        .map_err(|e| DataError::io(path, e))?;
-    tmp.persist(path)
-        .map_err(|e| DataError::io(path, e.error))?;
-    Ok(())
+    tmp.commit().map_err(|e| DataError::io(path, e))
 }
 
 fn std_slice<'a, T, D: ndarray::Dimension>(
