@@ -1,23 +1,24 @@
-//! Processed A-NeRF/DANBO/PM datasets (`.h5`, spec data.md §2.3) and pma-npz
-//! files (§4) → a validated pma-npz v1 file.
+//! Processed A-NeRF/DANBO/PM datasets (`.h5`, docs/conventions.md "A-NeRF/DANBO
+//! .h5") and pma-npz files ("pma-npz v1") → a validated pma-npz v1 file.
 //!
-//! What the converter does with an `.h5` (§4.4):
+//! What the converter does with an `.h5`:
 //! * every array keeps its name, dtype class and shape; pixel arrays keep the
 //!   flattened `(n, H·W, C)` layout; `focals (C,)` becomes `(C,2)`;
-//! * the per-image index maps are written explicitly with the semantics of
-//!   §2.5, because the reference loaders interpret the stored ones per layout:
+//! * the per-image index maps are written explicitly (image → pose row,
+//!   camera row, background plate), because the reference loaders interpret
+//!   the stored ones per layout:
 //!   SURREAL's pose row is `n mod F`, Mixamo's stored `kp_idxs` are frame
 //!   numbers that the loader ignores (pose and camera row = image index),
 //!   PerfCap and SURREAL always use background plate 0, Mixamo a white one;
 //! * `cam_idxs`, `img_paths`, `gt_poses` and `selected_idx` are not part of
 //!   the schema and are dropped (reported as warnings);
 //! * **no dataset-specific corrections are applied.** In particular the
-//!   PerfCap scale undo and the ÷1.05 camera fudge (§2.3.2) are loader
+//!   PerfCap scale undo and the ÷1.05 camera fudge are loader
 //!   behaviours: the file stays in scaled SPIN units with its `pose_scale`,
 //!   so a loader can still reproduce the reference exactly (`--perfcap-undo-scale`);
 //! * `head_dir` is +y for AIST and −y for every other layout;
 //! * absent derivable keys (`skts`, `cyls`, centres, root locations) are filled
-//!   by `pma_data` (§4.5) and the result is validated (§10).
+//!   by `pma_data` and the result is validated (docs/conventions.md, "Validation").
 //!
 //! Pixels are never held whole: each image is read as one hyperslab, checked
 //! (mask values, empty sampling masks) and appended to the output member, so
@@ -34,6 +35,7 @@ use ndarray::{Array1, Array2, Array3};
 use npyz::{DType, TypeStr, WriterBuilder};
 use pma_data::{
     dataset::{Compression, Dataset, Profile, ReadOptions, Warning, WriteOptions},
+    fsio::{parent_dir, AtomicFile},
     skeleton::Joints,
     DataError,
 };
@@ -43,7 +45,7 @@ use crate::{
     h5::H5File,
 };
 
-/// The `.h5` layouts of spec data.md §2.3.
+/// The `.h5` layouts (docs/conventions.md, "A-NeRF/DANBO .h5").
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Layout {
     H36mZju,
@@ -72,7 +74,7 @@ impl Layout {
         }
     }
 
-    /// Head direction of the file's world (§1).
+    /// Head direction of the file's world (docs/conventions.md, "Units and up axis").
     pub fn head_dir(self) -> [f32; 3] {
         match self {
             Layout::Aist => [0.0, 1.0, 0.0],
@@ -164,11 +166,7 @@ pub fn convert_dataset(
     opts: &DatasetOptions,
     progress: Progress,
 ) -> Result<DatasetReport> {
-    let ext = input
-        .extension()
-        .and_then(|e| e.to_str())
-        .unwrap_or("")
-        .to_ascii_lowercase();
+    let ext = crate::extension(input);
     match ext.as_str() {
         "h5" | "hdf5" => convert_h5(input, output, opts, progress),
         "npz" => convert_npz(input, output, opts),
@@ -188,7 +186,6 @@ fn convert_npz(input: &Path, output: &Path, opts: &DatasetOptions) -> Result<Dat
             compression: opts.compression,
         },
     )?;
-    crate::set_readable(output)?;
     Ok(report(&ds, None))
 }
 
@@ -223,7 +220,7 @@ fn keep_profile_groups(ds: &mut Dataset, profile: Profile) {
     }
 }
 
-/// Guesses the layout from which keys a file has (§2.3):
+/// Guesses the layout from which keys a file has:
 /// `img_paths`/`gt_poses` → Mixamo; `img_pose_indices` → H36M-ZJU or AIST,
 /// told apart by whether the head is below (−y) or above (+y) the pelvis in
 /// `kp3d`; `pose_scale` → PerfCap; otherwise SURREAL (per-image cameras, no
@@ -355,30 +352,45 @@ const KNOWN_KEYS: &[&str] = &[
 /// Reads everything but pixels from an `.h5` into a [`Dataset`], with the
 /// layout's index semantics applied. Pixel keys are only checked for shape.
 fn read_h5_scene(h5: &H5File, layout: Layout) -> Result<(Dataset, PixelPlan)> {
-    let path = h5.path();
     let keys = h5.keys()?;
-    let has = |k: &str| keys.iter().any(|x| x == k);
-
     let bones: Array3<f32> = f32_array(h5, "bones", 3, "(P,24,3)")?;
     let mut ds = Dataset::from_bones(bones);
-    ds.source = path.display().to_string();
+    ds.source = h5.path().display().to_string();
     ds.head_dir = layout.head_dir();
 
-    if let Some(rest) = opt(h5, &keys, "rest_pose", |h| h.read_f32("rest_pose"))? {
-        ds.rest_pose = Some(joints(path, "rest_pose", &rest.0, &rest.1)?);
+    read_pose_arrays(h5, &keys, &mut ds)?;
+    read_cameras(h5, &keys, &mut ds)?;
+    read_img_shape(h5, &keys, &mut ds)?;
+    set_index_maps(h5, &keys, &mut ds, layout)?;
+    warn_dropped_keys(&keys, &mut ds, layout);
+
+    let plan = PixelPlan::new(h5, &keys, &ds, layout)?;
+    Ok((ds, plan))
+}
+
+/// The pose-side arrays besides `bones`, as stored.
+fn read_pose_arrays(h5: &H5File, keys: &[String], ds: &mut Dataset) -> Result<()> {
+    if let Some(rest) = opt(h5, keys, "rest_pose", |h| h.read_f32("rest_pose"))? {
+        ds.rest_pose = Some(joints(h5.path(), "rest_pose", &rest.0, &rest.1)?);
     }
-    ds.kp3d = opt(h5, &keys, "kp3d", |h| f32_array(h, "kp3d", 3, "(P,24,3)"))?;
-    ds.skts = opt(h5, &keys, "skts", |h| {
+    ds.kp3d = opt(h5, keys, "kp3d", |h| f32_array(h, "kp3d", 3, "(P,24,3)"))?;
+    ds.skts = opt(h5, keys, "skts", |h| {
         f32_array::<ndarray::Ix4>(h, "skts", 4, "(P,24,4,4)")
     })?;
-    ds.cyls = opt(h5, &keys, "cyls", |h| f32_array(h, "cyls", 2, "(P,5)"))?;
-    ds.betas = opt(h5, &keys, "betas", |h| {
+    ds.cyls = opt(h5, keys, "cyls", |h| f32_array(h, "cyls", 2, "(P,5)"))?;
+    ds.betas = opt(h5, keys, "betas", |h| {
         f32_array(h, "betas", 2, "(P,10) or (1,10)")
     })?;
-    ds.gt_kp3d = opt(h5, &keys, "gt_kp3d", |h| {
+    ds.gt_kp3d = opt(h5, keys, "gt_kp3d", |h| {
         f32_array(h, "gt_kp3d", 3, "(P,J',3)")
     })?;
-    ds.c2ws = opt(h5, &keys, "c2ws", |h| f32_array(h, "c2ws", 3, "(C,4,4)"))?;
+    Ok(())
+}
+
+/// Camera arrays and scales; `focals (C,)` becomes `(C,2)`.
+fn read_cameras(h5: &H5File, keys: &[String], ds: &mut Dataset) -> Result<()> {
+    let has = |k: &str| keys.iter().any(|x| x == k);
+    ds.c2ws = opt(h5, keys, "c2ws", |h| f32_array(h, "c2ws", 3, "(C,4,4)"))?;
     if has("focals") {
         let (shape, v) = h5.read_f32("focals")?;
         ds.focals = Some(match shape.as_slice() {
@@ -386,7 +398,7 @@ fn read_h5_scene(h5: &H5File, layout: Layout) -> Result<(Dataset, PixelPlan)> {
             [c, 2] => Array2::from_shape_vec((*c, 2), v).expect("shape matches"),
             _ => {
                 return Err(ConvertError::mismatch(
-                    path,
+                    h5.path(),
                     "focals",
                     "shape (C,) or (C,2)",
                     format!("{shape:?}"),
@@ -397,31 +409,40 @@ fn read_h5_scene(h5: &H5File, layout: Layout) -> Result<(Dataset, PixelPlan)> {
             ds.derived.push("focals (C,) expanded to (C,2)".into());
         }
     }
-    ds.centers = opt(h5, &keys, "centers", |h| {
-        f32_array(h, "centers", 2, "(C,2)")
-    })?;
+    ds.centers = opt(h5, keys, "centers", |h| f32_array(h, "centers", 2, "(C,2)"))?;
     if has("pose_scale") {
         ds.pose_scale = scalar_f64(h5, "pose_scale")? as f32;
     }
-    ds.ext_scale = opt(h5, &keys, "ext_scale", |h| scalar_f64(h, "ext_scale"))?;
+    ds.ext_scale = opt(h5, keys, "ext_scale", |h| scalar_f64(h, "ext_scale"))?;
+    Ok(())
+}
 
-    if has("img_shape") {
-        let (shape, v) = h5.read_i64("img_shape")?;
-        let side = 1..=MAX_SIDE as i64;
-        match v.as_slice() {
-            [n, hh, ww, 3] if shape == [4] && *n >= 0 && side.contains(hh) && side.contains(ww) => {
-                ds.img_shape = Some([*n as usize, *hh as usize, *ww as usize, 3]);
-            }
-            _ => {
-                return Err(ConvertError::mismatch(
-                    path,
-                    "img_shape",
-                    format!("4 entries (N, H, W, 3) with 1 <= H, W <= {MAX_SIDE}"),
-                    format!("{v:?}"),
-                ))
-            }
-        }
+/// `img_shape`, `(N, H, W, 3)` with sides up to [`MAX_SIDE`].
+fn read_img_shape(h5: &H5File, keys: &[String], ds: &mut Dataset) -> Result<()> {
+    if !keys.iter().any(|k| k == "img_shape") {
+        return Ok(());
     }
+    let (shape, v) = h5.read_i64("img_shape")?;
+    let side = 1..=MAX_SIDE as i64;
+    match v.as_slice() {
+        [n, hh, ww, 3] if shape == [4] && *n >= 0 && side.contains(hh) && side.contains(ww) => {
+            ds.img_shape = Some([*n as usize, *hh as usize, *ww as usize, 3]);
+            Ok(())
+        }
+        _ => Err(ConvertError::mismatch(
+            h5.path(),
+            "img_shape",
+            format!("4 entries (N, H, W, 3) with 1 <= H, W <= {MAX_SIDE}"),
+            format!("{v:?}"),
+        )),
+    }
+}
+
+/// The per-image index maps with the layout's semantics (docs/conventions.md,
+/// "A-NeRF/DANBO .h5"): stored for H36M-ZJU and AIST, built for the others.
+fn set_index_maps(h5: &H5File, keys: &[String], ds: &mut Dataset, layout: Layout) -> Result<()> {
+    let path = h5.path();
+    let has = |k: &str| keys.iter().any(|x| x == k);
     let n = ds.n_images();
     let p = ds.n_poses();
     // These layouts have per-image poses or cameras, so their index maps are
@@ -442,17 +463,20 @@ fn read_h5_scene(h5: &H5File, layout: Layout) -> Result<(Dataset, PixelPlan)> {
 
     match layout {
         Layout::H36mZju | Layout::Aist => {
-            ds.kp_idxs = opt(h5, &keys, "kp_idxs", |h| i64_vec(h, "kp_idxs"))?;
-            ds.img_pose_indices = opt(h5, &keys, "img_pose_indices", |h| {
+            ds.kp_idxs = opt(h5, keys, "kp_idxs", |h| i64_vec(h, "kp_idxs"))?;
+            ds.img_pose_indices = opt(h5, keys, "img_pose_indices", |h| {
                 i64_vec(h, "img_pose_indices")
             })?;
-            ds.bkgd_idxs = opt(h5, &keys, "bkgd_idxs", |h| i64_vec(h, "bkgd_idxs"))?;
+            ds.bkgd_idxs = opt(h5, keys, "bkgd_idxs", |h| i64_vec(h, "bkgd_idxs"))?;
         }
         Layout::PerfCap => {
             ds.kp_idxs = Some(identity());
             ds.img_pose_indices = Some(identity());
             if has("bkgd_idxs") && i64_vec(h5, "bkgd_idxs")?.iter().any(|&b| b != 0) {
-                ds.warnings.push(warn("bkgd_idxs", "PerfCap images all use background plate 0 (§2.5); the stored values are replaced"));
+                ds.warnings.push(warn(
+                    "bkgd_idxs",
+                    "PerfCap images all use background plate 0; the stored values are replaced",
+                ));
             }
             ds.bkgd_idxs = Some(Array1::zeros(n));
             ds.derived.push(
@@ -482,8 +506,12 @@ fn read_h5_scene(h5: &H5File, layout: Layout) -> Result<(Dataset, PixelPlan)> {
             );
         }
     }
+    Ok(())
+}
 
-    for k in &keys {
+/// Warns about keys outside the schema and stored values the layout replaces.
+fn warn_dropped_keys(keys: &[String], ds: &mut Dataset, layout: Layout) {
+    for k in keys {
         if !KNOWN_KEYS.contains(&k.as_str()) {
             ds.warnings
                 .push(warn(k, "not part of the pma-npz schema; dropped"));
@@ -499,9 +527,6 @@ fn read_h5_scene(h5: &H5File, layout: Layout) -> Result<(Dataset, PixelPlan)> {
             ));
         }
     }
-
-    let plan = PixelPlan::new(h5, &keys, &ds, layout)?;
-    Ok((ds, plan))
 }
 
 fn warn(key: &str, message: &str) -> Warning {
@@ -512,7 +537,7 @@ fn warn(key: &str, message: &str) -> Warning {
 }
 
 /// `(24,3)` or `(1,24,3)` → joints.
-fn joints(path: &Path, key: &str, shape: &[usize], v: &[f32]) -> Result<Joints> {
+pub(crate) fn joints(path: &Path, key: &str, shape: &[usize], v: &[f32]) -> Result<Joints> {
     if !(shape == [24, 3] || shape == [1, 24, 3]) {
         return Err(ConvertError::mismatch(
             path,
@@ -747,10 +772,7 @@ fn write_h5_output(
     rep: &mut DatasetReport,
     progress: Progress,
 ) -> Result<()> {
-    let dir = match output.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d,
-        _ => Path::new("."),
-    };
+    let dir = parent_dir(output);
     // The data layer writes the scene members; they are copied verbatim into
     // the final archive, followed by the streamed pixel members.
     let scene = tempfile::NamedTempFile::new_in(dir).map_err(|e| ConvertError::io(dir, e))?;
@@ -768,12 +790,12 @@ fn write_h5_output(
         cause: source,
     })?;
 
-    let out = tempfile::NamedTempFile::new_in(dir).map_err(|e| ConvertError::io(dir, e))?;
+    let out = AtomicFile::create(output).map_err(|e| ConvertError::io(dir, e))?;
     let zerr = |source| ConvertError::Zip {
         path: output.to_path_buf(),
         cause: source,
     };
-    let mut zip = zip::ZipWriter::new(BufWriter::new(out.as_file()));
+    let mut zip = zip::ZipWriter::new(BufWriter::new(out.file()));
     zip.merge_archive(scene_zip).map_err(zerr)?;
 
     let total: u64 = streamed.iter().map(|m| m.rows as u64).sum::<u64>() + plan.white_plate as u64;
@@ -814,15 +836,11 @@ fn write_h5_output(
     let mut buf = zip.finish().map_err(zerr)?;
     buf.flush().map_err(|e| ConvertError::io(output, e))?;
     drop(buf);
-    out.as_file()
-        .sync_all()
-        .map_err(|e| ConvertError::io(output, e))?;
-    out.persist(output)
-        .map_err(|e| ConvertError::io(output, e.error))?;
-    crate::set_readable(output)
+    out.commit().map_err(|e| ConvertError::io(output, e))
 }
 
-/// Checks one row of pixels (§10.21–22) and converts it to the stored form.
+/// Checks one row of pixels (mask values, empty sampling masks) and converts
+/// it to the stored form.
 fn prepare_row(
     raw: Vec<u8>,
     m: &PixelMember,
