@@ -6,8 +6,8 @@
 //! (joint 0 = global orientation) and root locations in metres, plus the
 //! direction the subject's head points in the motion's world frame. Models
 //! trained on H36M-ZJU expect the head toward −y; [`Motion::to_up`] applies
-//! the data-spec §9.2 flip `F = diag(1,−1,−1)` to the root rotation and
-//! translation.
+//! the flip `F = diag(1,−1,−1)` to the root rotation and translation
+//! (docs/conventions.md, "Units and up axis").
 
 pub mod bvh;
 pub mod retarget;
@@ -107,7 +107,7 @@ fn quat_from_rotvec(v: [f32; 3]) -> DQuat {
     DQuat::from_mat3(&mat_from_rotvec(v))
 }
 
-/// The §9.2 up-axis flip, a 180° turn about x.
+/// The up-axis flip, a 180° turn about x.
 const FLIP: DMat3 = DMat3::from_cols(
     DVec3::new(1.0, 0.0, 0.0),
     DVec3::new(0.0, -1.0, 0.0),
@@ -161,11 +161,6 @@ impl Motion {
 
     pub fn is_empty(&self) -> bool {
         self.bones.is_empty()
-    }
-
-    /// Seconds from the first to the last frame.
-    pub fn duration(&self) -> f64 {
-        self.len().saturating_sub(1) as f64 / self.fps
     }
 
     /// Frames `range` of this motion.
@@ -251,9 +246,9 @@ impl Motion {
         })
     }
 
-    /// Re-expresses the motion so the head points along `up` (data spec
-    /// §9.2): `R₀ ← F·R₀` and `t ← F·t` with `F = diag(1,−1,−1)`. Joint
-    /// rotations below the root are relative and stay as they are. A camera
+    /// Re-expresses the motion so the head points along `up`: `R₀ ← F·R₀`
+    /// and `t ← F·t` with `F = diag(1,−1,−1)`. Joint rotations below the
+    /// root are relative and stay as they are. A camera
     /// rig seen with this motion needs `c2w ← diag(1,−1,−1,1)·c2w`.
     pub fn to_up(&self, up: HeadDir) -> Motion {
         if up == self.up {

@@ -8,7 +8,7 @@
 //! * **Motion**: the CMU 131_01 walk (retargeted, [`crate::motion::retarget`])
 //!   for training, its later frames and the AIST++ dance for novel poses.
 //!   Both are embedded in the library (`assets/motion`, see SOURCE.md),
-//!   turned to the training convention (head −y, data spec §9.2) and kept
+//!   turned to the training convention (head −y) and kept
 //!   on a treadmill: the root's horizontal drift is removed, its height
 //!   kept relative to the first frame.
 //! * **Cameras**: [`rig`], a ring; the first cameras in ring order that are

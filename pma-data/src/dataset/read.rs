@@ -1,5 +1,5 @@
 //! npz → [`Dataset`]: dtype and shape normalisation of every known key
-//! (spec data.md §4.1–4.3, §10 classes 2 and 5). Counts across keys are
+//! (docs/conventions.md, "pma-npz v1"). Counts across keys are
 //! checked later by validation.
 
 use std::path::Path;
@@ -169,7 +169,7 @@ fn pose_array(ctx: &Ctx<'_>, key: &str, shape: &[usize], last: usize) -> Result<
 }
 
 /// Convert 6D bones `(P,24,6)` to axis-angle; degenerate columns are an error
-/// naming the pose and joint (§10.10).
+/// naming the pose and joint.
 fn bones_from_6d(ctx: &Ctx<'_>, p: usize, v: &[f32]) -> Result<Vec<f32>> {
     let mut out = Vec::with_capacity(p * N_JOINTS * 3);
     for (i, x) in v.chunks_exact(6).enumerate() {
