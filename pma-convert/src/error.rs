@@ -38,8 +38,8 @@ pub enum ConvertError {
         offset: usize,
         module: String,
         name: String,
-        /// What the reader's policy accepts (see `pickle::Policy::accepted`).
-        accepted: &'static str,
+        /// What the reader's policy accepts (a thin reference keeps the error small).
+        accepted: &'static crate::pickle::Accepted,
     },
 
     #[error("{path}: pickle {entry}, byte {offset}: {msg}")]

@@ -154,6 +154,16 @@ pub struct Unpickled<O> {
     pub heap: Heap<O>,
 }
 
+/// A policy's description of the globals it accepts, e.g. "collections.OrderedDict".
+#[derive(Debug, PartialEq, Eq)]
+pub struct Accepted(pub &'static str);
+
+impl std::fmt::Display for Accepted {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.0)
+    }
+}
+
 /// Which globals a pickle may name and what is built from them. Every method
 /// builds plain values; an `Err` message becomes a [`crate::ConvertError::Pickle`] at
 /// the offset of the opcode being interpreted.
@@ -162,7 +172,7 @@ pub trait Policy {
 
     /// What the policy accepts, completing "only ... are accepted" in the
     /// [`crate::ConvertError::ForbiddenGlobal`] message.
-    fn accepted(&self) -> &'static str;
+    fn accepted(&self) -> &'static Accepted;
 
     /// The value `module.name` stands for, or `None` to refuse it.
     fn global(&self, module: &str, name: &str) -> Option<Self::Object>;
@@ -218,8 +228,8 @@ impl Object for OrderedDictClass {
 impl Policy for PlainData {
     type Object = OrderedDictClass;
 
-    fn accepted(&self) -> &'static str {
-        "collections.OrderedDict"
+    fn accepted(&self) -> &'static Accepted {
+        &Accepted("collections.OrderedDict")
     }
 
     fn global(&self, module: &str, name: &str) -> Option<OrderedDictClass> {

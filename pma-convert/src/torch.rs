@@ -20,7 +20,7 @@ use safetensors::Dtype;
 
 use crate::{
     error::Result,
-    pickle::{self, ordered_dict, Object, Policy},
+    pickle::{self, ordered_dict, Accepted, Object, Policy},
 };
 
 pub use archive::TorchArchive;
@@ -150,8 +150,8 @@ type Built = std::result::Result<Value, String>;
 impl Policy for TorchPickle {
     type Object = TorchObject;
 
-    fn accepted(&self) -> &'static str {
-        "torch tensor/storage rebuilders and collections.OrderedDict"
+    fn accepted(&self) -> &'static Accepted {
+        &Accepted("torch tensor/storage rebuilders and collections.OrderedDict")
     }
 
     fn global(&self, module: &str, name: &str) -> Option<TorchObject> {
