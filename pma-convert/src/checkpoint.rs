@@ -1,7 +1,7 @@
 //! Reference `.th` checkpoint → pma checkpoint (+ optional training state).
 //!
 //! The model tensors are copied byte for byte under their reference names
-//! (spec model.md §8.1). The [`Config`] is inferred from the tensor shapes
+//! (docs/reference.md, "Checkpoint and state_dict names"). The [`Config`] is inferred from the tensor shapes
 //! ([`infer_config`]) and then every tensor is checked against the layout that
 //! config implies, so a checkpoint of another architecture fails with the list
 //! of tensors that do not fit instead of loading garbage. `n_framecodes` and
@@ -208,7 +208,6 @@ pub fn convert_checkpoint(
         tensors.insert(name.clone(), tensor);
     }
     save(output, &tensors, &cfg)?;
-    crate::set_readable(output)?;
     let n_parameters = param_names(&cfg)
         .iter()
         .map(|n| tensors[n].elem_count())
@@ -227,7 +226,6 @@ pub fn convert_checkpoint(
         state.model_fingerprint = Some(fingerprint(&model_bytes));
         let side = sidecar_path(output);
         state.save(&side)?;
-        crate::set_readable(&side)?;
         report.n_moments = ck.optimizer.as_ref().map_or(0, |o| o.state.len());
         report.train_state = Some(side);
     }

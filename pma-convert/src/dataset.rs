@@ -1,40 +1,33 @@
-//! Processed A-NeRF/DANBO/PM datasets (`.h5`, spec data.md §2.3) and pma-npz
-//! files (§4) → a validated pma-npz v1 file.
+//! Processed A-NeRF/DANBO/PM datasets (`.h5`, docs/conventions.md "A-NeRF/DANBO
+//! .h5") and pma-npz files ("pma-npz v1") → a validated pma-npz v1 file.
 //!
-//! What the converter does with an `.h5` (§4.4):
+//! What the converter does with an `.h5`:
 //! * every array keeps its name, dtype class and shape; pixel arrays keep the
 //!   flattened `(n, H·W, C)` layout; `focals (C,)` becomes `(C,2)`;
-//! * the per-image index maps are written explicitly with the semantics of
-//!   §2.5, because the reference loaders interpret the stored ones per layout:
+//! * the per-image index maps are written explicitly (image → pose row,
+//!   camera row, background plate), because the reference loaders interpret
+//!   the stored ones per layout:
 //!   SURREAL's pose row is `n mod F`, Mixamo's stored `kp_idxs` are frame
 //!   numbers that the loader ignores (pose and camera row = image index),
 //!   PerfCap and SURREAL always use background plate 0, Mixamo a white one;
 //! * `cam_idxs`, `img_paths`, `gt_poses` and `selected_idx` are not part of
 //!   the schema and are dropped (reported as warnings);
 //! * **no dataset-specific corrections are applied.** In particular the
-//!   PerfCap scale undo and the ÷1.05 camera fudge (§2.3.2) are loader
+//!   PerfCap scale undo and the ÷1.05 camera fudge are loader
 //!   behaviours: the file stays in scaled SPIN units with its `pose_scale`,
 //!   so a loader can still reproduce the reference exactly (`--perfcap-undo-scale`);
 //! * `head_dir` is +y for AIST and −y for every other layout;
 //! * absent derivable keys (`skts`, `cyls`, centres, root locations) are filled
-//!   by `pma_data` (§4.5) and the result is validated (§10).
+//!   by `pma_data` and the result is validated (docs/conventions.md, "Validation").
 //!
 //! Pixels are never held whole: each image is read as one hyperslab, checked
 //! (mask values, empty sampling masks) and appended to the output member, so
 //! memory stays at one image plus the reader's small chunk cache whatever N is.
 
-use std::{
-    fs::File,
-    io::{BufWriter, Seek, Write},
-    path::Path,
-    str::FromStr,
-};
+use std::{path::Path, str::FromStr};
 
-use ndarray::{Array1, Array2, Array3};
-use npyz::{DType, TypeStr, WriterBuilder};
 use pma_data::{
     dataset::{Compression, Dataset, Profile, ReadOptions, Warning, WriteOptions},
-    skeleton::Joints,
     DataError,
 };
 
@@ -43,7 +36,14 @@ use crate::{
     h5::H5File,
 };
 
-/// The `.h5` layouts of spec data.md §2.3.
+mod h5_scene;
+mod pixels;
+
+pub(crate) use h5_scene::joints;
+use h5_scene::read_h5_scene;
+use pixels::{write_h5_output, PixelMember, PixelPlan};
+
+/// The `.h5` layouts (docs/conventions.md, "A-NeRF/DANBO .h5").
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Layout {
     H36mZju,
@@ -72,7 +72,7 @@ impl Layout {
         }
     }
 
-    /// Head direction of the file's world (§1).
+    /// Head direction of the file's world (docs/conventions.md, "Units and up axis").
     pub fn head_dir(self) -> [f32; 3] {
         match self {
             Layout::Aist => [0.0, 1.0, 0.0],
@@ -164,11 +164,7 @@ pub fn convert_dataset(
     opts: &DatasetOptions,
     progress: Progress,
 ) -> Result<DatasetReport> {
-    let ext = input
-        .extension()
-        .and_then(|e| e.to_str())
-        .unwrap_or("")
-        .to_ascii_lowercase();
+    let ext = crate::extension(input);
     match ext.as_str() {
         "h5" | "hdf5" => convert_h5(input, output, opts, progress),
         "npz" => convert_npz(input, output, opts),
@@ -188,7 +184,6 @@ fn convert_npz(input: &Path, output: &Path, opts: &DatasetOptions) -> Result<Dat
             compression: opts.compression,
         },
     )?;
-    crate::set_readable(output)?;
     Ok(report(&ds, None))
 }
 
@@ -223,7 +218,7 @@ fn keep_profile_groups(ds: &mut Dataset, profile: Profile) {
     }
 }
 
-/// Guesses the layout from which keys a file has (§2.3):
+/// Guesses the layout from which keys a file has:
 /// `img_paths`/`gt_poses` → Mixamo; `img_pose_indices` → H36M-ZJU or AIST,
 /// told apart by whether the head is below (−y) or above (+y) the pelvis in
 /// `kp3d`; `pose_scale` → PerfCap; otherwise SURREAL (per-image cameras, no
@@ -264,380 +259,9 @@ pub fn detect_layout(h5: &H5File) -> Result<Layout> {
     ))
 }
 
-fn f32_array<D: ndarray::Dimension>(
-    h5: &H5File,
-    key: &str,
-    rank: usize,
-    what: &str,
-) -> Result<ndarray::Array<f32, D>> {
-    let (shape, v) = h5.read_f32(key)?;
-    if shape.len() != rank {
-        return Err(ConvertError::mismatch(
-            h5.path(),
-            key,
-            format!("rank {rank} {what}"),
-            format!("shape {shape:?}"),
-        ));
-    }
-    ndarray::ArrayD::from_shape_vec(shape, v)
-        .expect("hdf5 shape matches its element count")
-        .into_dimensionality::<D>()
-        .map_err(|_| ConvertError::mismatch(h5.path(), key, what, "another rank"))
-}
-
-fn opt<T>(
-    h5: &H5File,
-    keys: &[String],
-    key: &str,
-    f: impl FnOnce(&H5File) -> Result<T>,
-) -> Result<Option<T>> {
-    if keys.iter().any(|k| k == key) {
-        f(h5).map(Some)
-    } else {
-        Ok(None)
-    }
-}
-
-fn i64_vec(h5: &H5File, key: &str) -> Result<Array1<i64>> {
-    let (shape, v) = h5.read_i64(key)?;
-    if shape.len() != 1 {
-        return Err(ConvertError::mismatch(
-            h5.path(),
-            key,
-            "shape (N,)",
-            format!("{shape:?}"),
-        ));
-    }
-    Ok(Array1::from_vec(v))
-}
-
-fn scalar_f64(h5: &H5File, key: &str) -> Result<f64> {
-    let (shape, v) = h5.read_f64(key)?;
-    match v.as_slice() {
-        [x] if shape.iter().product::<usize>() == 1 => Ok(*x),
-        _ => Err(ConvertError::mismatch(
-            h5.path(),
-            key,
-            "a scalar",
-            format!("shape {shape:?}"),
-        )),
-    }
-}
-
 /// Largest image side accepted (JPEG's limit): a larger `img_shape` is
 /// corruption, and it would size buffers and the generated background plate.
 pub const MAX_SIDE: usize = 65_535;
-
-/// Keys the converter reads from an `.h5`; any other key is reported as dropped.
-const KNOWN_KEYS: &[&str] = &[
-    "img_shape",
-    "imgs",
-    "masks",
-    "sampling_masks",
-    "bkgds",
-    "bkgd_idxs",
-    "c2ws",
-    "focals",
-    "centers",
-    "img_pose_indices",
-    "kp_idxs",
-    "kp3d",
-    "bones",
-    "skts",
-    "cyls",
-    "rest_pose",
-    "betas",
-    "gt_kp3d",
-    "pose_scale",
-    "ext_scale",
-];
-
-/// Reads everything but pixels from an `.h5` into a [`Dataset`], with the
-/// layout's index semantics applied. Pixel keys are only checked for shape.
-fn read_h5_scene(h5: &H5File, layout: Layout) -> Result<(Dataset, PixelPlan)> {
-    let path = h5.path();
-    let keys = h5.keys()?;
-    let has = |k: &str| keys.iter().any(|x| x == k);
-
-    let bones: Array3<f32> = f32_array(h5, "bones", 3, "(P,24,3)")?;
-    let mut ds = Dataset::from_bones(bones);
-    ds.source = path.display().to_string();
-    ds.head_dir = layout.head_dir();
-
-    if let Some(rest) = opt(h5, &keys, "rest_pose", |h| h.read_f32("rest_pose"))? {
-        ds.rest_pose = Some(joints(path, "rest_pose", &rest.0, &rest.1)?);
-    }
-    ds.kp3d = opt(h5, &keys, "kp3d", |h| f32_array(h, "kp3d", 3, "(P,24,3)"))?;
-    ds.skts = opt(h5, &keys, "skts", |h| {
-        f32_array::<ndarray::Ix4>(h, "skts", 4, "(P,24,4,4)")
-    })?;
-    ds.cyls = opt(h5, &keys, "cyls", |h| f32_array(h, "cyls", 2, "(P,5)"))?;
-    ds.betas = opt(h5, &keys, "betas", |h| {
-        f32_array(h, "betas", 2, "(P,10) or (1,10)")
-    })?;
-    ds.gt_kp3d = opt(h5, &keys, "gt_kp3d", |h| {
-        f32_array(h, "gt_kp3d", 3, "(P,J',3)")
-    })?;
-    ds.c2ws = opt(h5, &keys, "c2ws", |h| f32_array(h, "c2ws", 3, "(C,4,4)"))?;
-    if has("focals") {
-        let (shape, v) = h5.read_f32("focals")?;
-        ds.focals = Some(match shape.as_slice() {
-            [c] => Array2::from_shape_fn((*c, 2), |(i, _)| v[i]),
-            [c, 2] => Array2::from_shape_vec((*c, 2), v).expect("shape matches"),
-            _ => {
-                return Err(ConvertError::mismatch(
-                    path,
-                    "focals",
-                    "shape (C,) or (C,2)",
-                    format!("{shape:?}"),
-                ))
-            }
-        });
-        if shape.len() == 1 {
-            ds.derived.push("focals (C,) expanded to (C,2)".into());
-        }
-    }
-    ds.centers = opt(h5, &keys, "centers", |h| {
-        f32_array(h, "centers", 2, "(C,2)")
-    })?;
-    if has("pose_scale") {
-        ds.pose_scale = scalar_f64(h5, "pose_scale")? as f32;
-    }
-    ds.ext_scale = opt(h5, &keys, "ext_scale", |h| scalar_f64(h, "ext_scale"))?;
-
-    if has("img_shape") {
-        let (shape, v) = h5.read_i64("img_shape")?;
-        let side = 1..=MAX_SIDE as i64;
-        match v.as_slice() {
-            [n, hh, ww, 3] if shape == [4] && *n >= 0 && side.contains(hh) && side.contains(ww) => {
-                ds.img_shape = Some([*n as usize, *hh as usize, *ww as usize, 3]);
-            }
-            _ => {
-                return Err(ConvertError::mismatch(
-                    path,
-                    "img_shape",
-                    format!("4 entries (N, H, W, 3) with 1 <= H, W <= {MAX_SIDE}"),
-                    format!("{v:?}"),
-                ))
-            }
-        }
-    }
-    let n = ds.n_images();
-    let p = ds.n_poses();
-    // These layouts have per-image poses or cameras, so their index maps are
-    // built from N; a corrupt N must not size them.
-    let cams = ds.c2ws.as_ref().map_or(0, |c| c.shape()[0]);
-    if layout != Layout::H36mZju && layout != Layout::Aist && n > p.max(cams) {
-        return Err(ConvertError::mismatch(
-            path,
-            "img_shape",
-            format!(
-                "at most {} images ({p} poses, {cams} cameras in the file)",
-                p.max(cams)
-            ),
-            format!("N = {n}"),
-        ));
-    }
-    let identity = || Array1::from_iter(0..n as i64);
-
-    match layout {
-        Layout::H36mZju | Layout::Aist => {
-            ds.kp_idxs = opt(h5, &keys, "kp_idxs", |h| i64_vec(h, "kp_idxs"))?;
-            ds.img_pose_indices = opt(h5, &keys, "img_pose_indices", |h| {
-                i64_vec(h, "img_pose_indices")
-            })?;
-            ds.bkgd_idxs = opt(h5, &keys, "bkgd_idxs", |h| i64_vec(h, "bkgd_idxs"))?;
-        }
-        Layout::PerfCap => {
-            ds.kp_idxs = Some(identity());
-            ds.img_pose_indices = Some(identity());
-            if has("bkgd_idxs") && i64_vec(h5, "bkgd_idxs")?.iter().any(|&b| b != 0) {
-                ds.warnings.push(warn("bkgd_idxs", "PerfCap images all use background plate 0 (§2.5); the stored values are replaced"));
-            }
-            ds.bkgd_idxs = Some(Array1::zeros(n));
-            ds.derived.push(
-                "kp_idxs, img_pose_indices (identity), bkgd_idxs (zeros): PerfCap semantics".into(),
-            );
-        }
-        Layout::Surreal => {
-            if p == 0 || n % p != 0 {
-                return Err(ConvertError::invalid(
-                    path,
-                    "bones",
-                    format!("SURREAL images are camera-major over the poses, so N = {n} must be a multiple of P = {p}"),
-                ));
-            }
-            ds.kp_idxs = Some(Array1::from_iter((0..n).map(|i| (i % p) as i64)));
-            ds.img_pose_indices = Some(identity());
-            ds.bkgd_idxs = Some(Array1::zeros(n));
-            ds.derived.push("kp_idxs (n mod P), img_pose_indices (identity), bkgd_idxs (zeros): SURREAL semantics".into());
-        }
-        Layout::Mixamo => {
-            ds.kp_idxs = Some(identity());
-            ds.img_pose_indices = Some(identity());
-            ds.bkgd_idxs = Some(Array1::zeros(n));
-            ds.derived.push(
-                "kp_idxs, img_pose_indices (identity; the stored kp_idxs are frame numbers), bkgd_idxs (zeros): Mixamo semantics"
-                    .into(),
-            );
-        }
-    }
-
-    for k in &keys {
-        if !KNOWN_KEYS.contains(&k.as_str()) {
-            ds.warnings
-                .push(warn(k, "not part of the pma-npz schema; dropped"));
-        } else if k == "kp_idxs" && layout == Layout::Mixamo {
-            ds.warnings.push(warn(
-                k,
-                "Mixamo frame numbers, not pose rows; replaced by the image index",
-            ));
-        } else if k == "bkgds" && layout == Layout::Mixamo {
-            ds.warnings.push(warn(
-                k,
-                "Mixamo images are composited on white; replaced by one white plate",
-            ));
-        }
-    }
-
-    let plan = PixelPlan::new(h5, &keys, &ds, layout)?;
-    Ok((ds, plan))
-}
-
-fn warn(key: &str, message: &str) -> Warning {
-    Warning {
-        key: key.to_string(),
-        message: message.to_string(),
-    }
-}
-
-/// `(24,3)` or `(1,24,3)` → joints.
-fn joints(path: &Path, key: &str, shape: &[usize], v: &[f32]) -> Result<Joints> {
-    if !(shape == [24, 3] || shape == [1, 24, 3]) {
-        return Err(ConvertError::mismatch(
-            path,
-            key,
-            "shape (24,3) or (1,24,3)",
-            format!("{shape:?}"),
-        ));
-    }
-    let mut j = [[0.0f32; 3]; 24];
-    for (i, row) in j.iter_mut().enumerate() {
-        row.copy_from_slice(&v[3 * i..3 * i + 3]);
-    }
-    Ok(j)
-}
-
-/// One pixel member to stream: its source key and the channel count written.
-#[derive(Clone, Debug)]
-struct PixelMember {
-    key: &'static str,
-    rows: usize,
-    channels_in: usize,
-    channels_out: usize,
-}
-
-/// The pixel members of an `.h5` and their checked shapes.
-#[derive(Clone, Debug, Default)]
-struct PixelPlan {
-    members: Vec<PixelMember>,
-    /// Mixamo's white plate, written in place of a stored `bkgds`.
-    white_plate: bool,
-    hw: usize,
-}
-
-impl PixelPlan {
-    fn new(h5: &H5File, keys: &[String], ds: &Dataset, layout: Layout) -> Result<Self> {
-        let path = h5.path();
-        let n = ds.n_images();
-        let hw = ds.height() * ds.width();
-        let mut members = Vec::new();
-        for (key, channels) in [
-            ("imgs", 3usize),
-            ("masks", 1),
-            ("sampling_masks", 1),
-            ("bkgds", 3),
-        ] {
-            if !keys.iter().any(|k| k == key) || (key == "bkgds" && layout == Layout::Mixamo) {
-                continue;
-            }
-            if ds.img_shape.is_none() {
-                return Err(ConvertError::missing(
-                    path,
-                    "img_shape",
-                    format!(" (needed to read `{key}`)"),
-                ));
-            }
-            let info = h5.info(key)?;
-            let s = &info.shape;
-            let expect = format!("(n, H·W = {hw}, {channels}) uint8");
-            if info.kind
-                != (crate::h5::H5Kind::Int {
-                    size: 1,
-                    signed: false,
-                })
-            {
-                return Err(ConvertError::mismatch(
-                    path,
-                    key,
-                    expect,
-                    format!("{} of shape {s:?}", info.kind),
-                ));
-            }
-            let c_in = match s.as_slice() {
-                [_, p, c] if *p == hw => *c,
-                _ => {
-                    return Err(ConvertError::mismatch(
-                        path,
-                        key,
-                        expect,
-                        format!("shape {s:?}"),
-                    ))
-                }
-            };
-            if key != "bkgds" && s[0] != n {
-                return Err(ConvertError::mismatch(
-                    path,
-                    key,
-                    format!("{n} rows (img_shape[0])"),
-                    format!("{} rows", s[0]),
-                ));
-            }
-            let c_out = if channels == 3 && c_in == 4 { 3 } else { c_in };
-            if c_in != channels && !(channels == 3 && c_in == 4) {
-                return Err(ConvertError::mismatch(
-                    path,
-                    key,
-                    expect,
-                    format!("shape {s:?}"),
-                ));
-            }
-            members.push(PixelMember {
-                key,
-                rows: s[0],
-                channels_in: c_in,
-                channels_out: c_out,
-            });
-        }
-        Ok(Self {
-            members,
-            white_plate: layout == Layout::Mixamo,
-            hw,
-        })
-    }
-
-    fn get(&self, key: &str) -> Option<&PixelMember> {
-        self.members.iter().find(|m| m.key == key)
-    }
-
-    fn n_backgrounds(&self) -> Option<usize> {
-        if self.white_plate {
-            Some(1)
-        } else {
-            self.get("bkgds").map(|m| m.rows)
-        }
-    }
-}
 
 fn convert_h5(
     input: &Path,
@@ -733,174 +357,5 @@ fn check_background_rows(ds: &Dataset, plan: &PixelPlan, input: &Path) -> Result
         }
         .into());
     }
-    Ok(())
-}
-
-#[allow(clippy::too_many_arguments)]
-fn write_h5_output(
-    h5: &H5File,
-    ds: &Dataset,
-    plan: &PixelPlan,
-    streamed: &[&PixelMember],
-    output: &Path,
-    opts: &DatasetOptions,
-    rep: &mut DatasetReport,
-    progress: Progress,
-) -> Result<()> {
-    let dir = match output.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d,
-        _ => Path::new("."),
-    };
-    // The data layer writes the scene members; they are copied verbatim into
-    // the final archive, followed by the streamed pixel members.
-    let scene = tempfile::NamedTempFile::new_in(dir).map_err(|e| ConvertError::io(dir, e))?;
-    ds.write(
-        scene.path(),
-        &WriteOptions {
-            compression: opts.compression,
-        },
-    )?;
-    let scene_zip = zip::ZipArchive::new(
-        File::open(scene.path()).map_err(|e| ConvertError::io(scene.path(), e))?,
-    )
-    .map_err(|source| ConvertError::Zip {
-        path: scene.path().to_path_buf(),
-        cause: source,
-    })?;
-
-    let out = tempfile::NamedTempFile::new_in(dir).map_err(|e| ConvertError::io(dir, e))?;
-    let zerr = |source| ConvertError::Zip {
-        path: output.to_path_buf(),
-        cause: source,
-    };
-    let mut zip = zip::ZipWriter::new(BufWriter::new(out.as_file()));
-    zip.merge_archive(scene_zip).map_err(zerr)?;
-
-    let total: u64 = streamed.iter().map(|m| m.rows as u64).sum::<u64>() + plan.white_plate as u64;
-    let mut done = 0u64;
-    progress(done, total);
-    for m in streamed {
-        let shape = [m.rows, plan.hw, m.channels_out];
-        start_member(&mut zip, output, m.key, &shape, opts.compression)?;
-        for row in 0..m.rows {
-            let raw = h5.read_u8_rows(m.key, row, row + 1)?;
-            let px = prepare_row(raw, m, row, opts, h5.path(), rep)?;
-            zip.write_all(&px)
-                .map_err(|e| ConvertError::io(output, e))?;
-            done += 1;
-            progress(done, total);
-        }
-    }
-    if plan.white_plate && opts.profile >= Profile::Render {
-        start_member(
-            &mut zip,
-            output,
-            "bkgds",
-            &[1, plan.hw, 3],
-            opts.compression,
-        )?;
-        // In pieces: a plate is as large as one image, whatever that is.
-        let piece = vec![255u8; (plan.hw * 3).min(1 << 20)];
-        let mut left = plan.hw * 3;
-        while left > 0 {
-            let k = left.min(piece.len());
-            zip.write_all(&piece[..k])
-                .map_err(|e| ConvertError::io(output, e))?;
-            left -= k;
-        }
-        done += 1;
-        progress(done, total);
-    }
-    let mut buf = zip.finish().map_err(zerr)?;
-    buf.flush().map_err(|e| ConvertError::io(output, e))?;
-    drop(buf);
-    out.as_file()
-        .sync_all()
-        .map_err(|e| ConvertError::io(output, e))?;
-    out.persist(output)
-        .map_err(|e| ConvertError::io(output, e.error))?;
-    crate::set_readable(output)
-}
-
-/// Checks one row of pixels (§10.21–22) and converts it to the stored form.
-fn prepare_row(
-    raw: Vec<u8>,
-    m: &PixelMember,
-    row: usize,
-    opts: &DatasetOptions,
-    input: &Path,
-    rep: &mut DatasetReport,
-) -> Result<Vec<u8>> {
-    let mut px = if m.channels_in != m.channels_out {
-        raw.chunks_exact(m.channels_in)
-            .flat_map(|c| c[..m.channels_out].iter().copied())
-            .collect()
-    } else {
-        raw
-    };
-    match m.key {
-        "masks" => {
-            if let Some(pos) = px.iter().position(|&v| v > 1) {
-                if !opts.binarize_masks {
-                    return Err(ConvertError::invalid(
-                        input,
-                        "masks",
-                        format!(
-                            "image {row}, pixel {pos}: value {} is not 0 or 1 (pass --binarize-masks for 0/255 masks)",
-                            px[pos]
-                        ),
-                    ));
-                }
-                for v in &mut px {
-                    *v = (*v >= 2) as u8;
-                }
-            }
-        }
-        "sampling_masks" if px.iter().all(|&v| v == 0) => {
-            rep.warnings.push(Warning {
-                key: "sampling_masks".into(),
-                message: format!(
-                    "image {row} allows no pixel; the reference falls back to sampling every pixel"
-                ),
-            });
-        }
-        _ => {}
-    }
-    Ok(px)
-}
-
-/// Starts `<key>.npy` in the archive and writes its NPY header; the payload
-/// is appended by the caller. Options match the data layer's writer (fixed
-/// timestamp and permissions) so outputs are byte-deterministic.
-fn start_member<W: Write + Seek>(
-    zip: &mut zip::ZipWriter<W>,
-    output: &Path,
-    key: &str,
-    shape: &[usize],
-    compression: Compression,
-) -> Result<()> {
-    let payload: u64 = shape.iter().map(|&d| d as u64).product();
-    let method = match compression {
-        Compression::Stored => zip::CompressionMethod::Stored,
-        Compression::Deflated => zip::CompressionMethod::Deflated,
-    };
-    let options = zip::write::SimpleFileOptions::default()
-        .compression_method(method)
-        .last_modified_time(zip::DateTime::default())
-        .unix_permissions(0o644)
-        .large_file(payload + 4096 >= u32::MAX as u64);
-    zip.start_file(format!("{key}.npy"), options)
-        .map_err(|source| ConvertError::Zip {
-            path: output.to_path_buf(),
-            cause: source,
-        })?;
-    let ts: TypeStr = "|u1".parse().expect("static dtype descriptor");
-    let shape64: Vec<u64> = shape.iter().map(|&d| d as u64).collect();
-    npyz::WriteOptions::new_header_only()
-        .dtype(DType::Plain(ts))
-        .shape(&shape64)
-        .writer(&mut *zip)
-        .write_header_only()
-        .map_err(|e| ConvertError::io(output, e))?;
     Ok(())
 }

@@ -31,13 +31,15 @@ pub enum ConvertError {
         name: &'static str,
     },
 
-    #[error("{path}: pickle {entry}, byte {offset}: forbidden global `{module}.{name}`; only torch tensor/storage rebuilders and collections.OrderedDict are accepted")]
+    #[error("{path}: pickle {entry}, byte {offset}: forbidden global `{module}.{name}`; only {accepted} are accepted")]
     ForbiddenGlobal {
         path: PathBuf,
         entry: String,
         offset: usize,
         module: String,
         name: String,
+        /// What the reader's policy accepts (a thin reference keeps the error small).
+        accepted: &'static crate::pickle::Accepted,
     },
 
     #[error("{path}: pickle {entry}, byte {offset}: {msg}")]

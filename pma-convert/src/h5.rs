@@ -1,5 +1,5 @@
 //! Typed, key-named access to the processed `.h5` files of A-NeRF/DANBO/PM
-//! (spec data.md §2), on top of the pure-Rust `hdf5-reader`.
+//! (docs/conventions.md, "A-NeRF/DANBO .h5"), on top of the pure-Rust `hdf5-reader`.
 //!
 //! Why `hdf5-reader`: it needs no system library (CI installs nothing), it
 //! reads gzip-chunked datasets and hyperslabs, and it reads the file with
@@ -7,8 +7,8 @@
 //! file can be read at a time. `hdf5-pure` loads the whole file on open, and
 //! `hdf5-metno` needs libhdf5.
 //!
-//! Readers do not rely on chunk shapes (§2.1): images are read as row
-//! hyperslabs of the flattened `(n, H·W, C)` layout.
+//! Readers do not rely on chunk shapes, which differ between writers: images
+//! are read as row hyperslabs of the flattened `(n, H·W, C)` layout.
 
 use std::path::{Path, PathBuf};
 
@@ -103,6 +103,10 @@ impl H5File {
         }
     }
 
+    fn kind_mismatch(&self, key: &str, expected: &str, found: H5Kind) -> ConvertError {
+        ConvertError::mismatch(&self.path, key, expected, found.to_string())
+    }
+
     /// Names of the datasets in the root group, sorted.
     pub fn keys(&self) -> Result<Vec<String>> {
         let root = self.file.root_group().map_err(self.err("/"))?;
@@ -150,14 +154,7 @@ impl H5File {
                 .iter()
                 .map(|&v| v as f32)
                 .collect(),
-            other => {
-                return Err(ConvertError::mismatch(
-                    &self.path,
-                    key,
-                    "float32 or float64",
-                    other.to_string(),
-                ))
-            }
+            other => return Err(self.kind_mismatch(key, "float32 or float64", other)),
         };
         Ok((info.shape, values))
     }
@@ -174,14 +171,7 @@ impl H5File {
                 .map(|&v| v as f64)
                 .collect(),
             H5Kind::Float { size: 8 } => flat(ds.read_array::<f64>().map_err(self.err(key))?),
-            other => {
-                return Err(ConvertError::mismatch(
-                    &self.path,
-                    key,
-                    "float32 or float64",
-                    other.to_string(),
-                ))
-            }
+            other => return Err(self.kind_mismatch(key, "float32 or float64", other)),
         };
         Ok((info.shape, values))
     }
@@ -201,34 +191,13 @@ impl H5File {
             };
         }
         let values = match info.kind {
-            H5Kind::Int {
-                size: 1,
-                signed: true,
-            } => widen!(i8),
-            H5Kind::Int {
-                size: 1,
-                signed: false,
-            } => widen!(u8),
-            H5Kind::Int {
-                size: 2,
-                signed: true,
-            } => widen!(i16),
-            H5Kind::Int {
-                size: 2,
-                signed: false,
-            } => widen!(u16),
-            H5Kind::Int {
-                size: 4,
-                signed: true,
-            } => widen!(i32),
-            H5Kind::Int {
-                size: 4,
-                signed: false,
-            } => widen!(u32),
-            H5Kind::Int {
-                size: 8,
-                signed: true,
-            } => widen!(i64),
+            H5Kind::Int { size: 1, signed } if signed => widen!(i8),
+            H5Kind::Int { size: 1, .. } => widen!(u8),
+            H5Kind::Int { size: 2, signed } if signed => widen!(i16),
+            H5Kind::Int { size: 2, .. } => widen!(u16),
+            H5Kind::Int { size: 4, signed } if signed => widen!(i32),
+            H5Kind::Int { size: 4, .. } => widen!(u32),
+            H5Kind::Int { size: 8, signed } if signed => widen!(i64),
             H5Kind::Int {
                 size: 8,
                 signed: false,
@@ -264,14 +233,7 @@ impl H5File {
                     })
                     .collect::<Result<Vec<_>>>()?
             }
-            other => {
-                return Err(ConvertError::mismatch(
-                    &self.path,
-                    key,
-                    "an integer type",
-                    other.to_string(),
-                ))
-            }
+            other => return Err(self.kind_mismatch(key, "an integer type", other)),
         };
         Ok((info.shape, values))
     }

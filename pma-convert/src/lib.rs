@@ -6,6 +6,7 @@ pub mod dataset;
 pub mod error;
 pub mod h5;
 pub mod motion;
+pub mod pickle;
 pub mod raw;
 pub mod torch;
 pub mod train_state;
@@ -13,16 +14,10 @@ pub mod train_state;
 pub use error::{ConvertError, Result};
 pub use raw::RawTensor;
 
-use std::path::Path;
-
-/// Temporary files are created owner-only (0600); a converted file is an
-/// ordinary output, so give it the usual 0644 once it is in place.
-pub(crate) fn set_readable(path: &Path) -> Result<()> {
-    #[cfg(unix)]
-    {
-        use std::os::unix::fs::PermissionsExt;
-        std::fs::set_permissions(path, std::fs::Permissions::from_mode(0o644))
-            .map_err(|e| ConvertError::io(path, e))?;
-    }
-    Ok(())
+/// A file's extension in lower case (empty when it has none), which picks its reader.
+pub(crate) fn extension(path: &std::path::Path) -> String {
+    path.extension()
+        .and_then(|e| e.to_str())
+        .unwrap_or("")
+        .to_ascii_lowercase()
 }

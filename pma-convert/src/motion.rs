@@ -1,4 +1,5 @@
-//! Real motion → a `motion`-profile pma-npz for retargeting (spec data.md §9.2).
+//! Real motion → a `motion`-profile pma-npz for retargeting (docs/conventions.md,
+//! "Motion files").
 //!
 //! Inputs: SMPL-parameter npz (AIST++ style `poses (T,72)` + `trans (T,3)`)
 //! and CMU BVH (31 joints), read and retargeted onto SMPL 24 by
@@ -7,12 +8,13 @@
 //! 1. `--frames a:b` keeps source frames `a..b` (end exclusive);
 //! 2. `--fps F` resamples (slerp of joint rotations, linear root);
 //! 3. the motion is turned so the head points the target dataset's way
-//!    (H36M-ZJU and the other SPIN/ZJU layouts: −y; AIST: +y), by the §9.2
-//!    flip of the root rotation and translation;
+//!    (H36M-ZJU and the other SPIN/ZJU layouts: −y; AIST: +y), by a 180°
+//!    turn about x of the root rotation and translation (docs/conventions.md,
+//!    "Units and up axis");
 //! 4. `kp3d`, `skts` and `cyls` come from forward kinematics with the rest
 //!    pose (the trained model's, ideally: `--rest-pose` takes a pma
 //!    checkpoint or a dataset npz; the default is the synthetic scene's SMPL
-//!    rest pose), in f64, stored f32; the file is validated (§10) and written.
+//!    rest pose), in f64, stored f32; the file is validated and written.
 //!
 //! The output holds `bones`, `root_locs`, `kp3d`, `skts`, `cyls`,
 //! `rest_pose` (the one used for `kp3d`), `head_dir`, and `frame_ids`
@@ -86,11 +88,7 @@ pub struct MotionReport {
 
 /// Reads a motion file (`.npz` or `.bvh`). BVH retargeting needs the rest pose.
 pub fn read_motion(input: &Path, rest: &Joints, npz_fps: f64) -> Result<Motion> {
-    let ext = input
-        .extension()
-        .and_then(|e| e.to_str())
-        .unwrap_or("")
-        .to_ascii_lowercase();
+    let ext = crate::extension(input);
     match ext.as_str() {
         "npz" => Ok(read_smpl_npz(input, npz_fps)?),
         "bvh" => {
@@ -113,11 +111,7 @@ pub fn read_motion(input: &Path, rest: &Joints, npz_fps: f64) -> Result<Motion> 
 /// Reads a rest pose from a pma checkpoint (`.safetensors`, tensor
 /// `rest_pose`) or a dataset npz (key `rest_pose`), shape `(24,3)` or `(1,24,3)`.
 pub fn read_rest_pose(path: &Path) -> Result<Joints> {
-    let ext = path
-        .extension()
-        .and_then(|e| e.to_str())
-        .unwrap_or("")
-        .to_ascii_lowercase();
+    let ext = crate::extension(path);
     let (shape, values): (Vec<usize>, Vec<f32>) = match ext.as_str() {
         "safetensors" => {
             let bytes = std::fs::read(path).map_err(|e| ConvertError::io(path, e))?;
@@ -167,24 +161,13 @@ pub fn read_rest_pose(path: &Path) -> Result<Joints> {
             )))
         }
     };
-    if !(shape == [24, 3] || shape == [1, 24, 3]) {
-        return Err(ConvertError::mismatch(
-            path,
-            "rest_pose",
-            "shape (24,3) or (1,24,3)",
-            format!("{shape:?}"),
-        ));
-    }
+    let j = crate::dataset::joints(path, "rest_pose", &shape, &values)?;
     if let Some(i) = values.iter().position(|v| !v.is_finite()) {
         return Err(ConvertError::invalid(
             path,
             "rest_pose",
             format!("non-finite value at flat index {i}"),
         ));
-    }
-    let mut j = [[0.0f32; 3]; 24];
-    for (i, row) in j.iter_mut().enumerate() {
-        row.copy_from_slice(&values[3 * i..3 * i + 3]);
     }
     Ok(j)
 }
@@ -256,6 +239,5 @@ pub fn convert_motion(input: &Path, output: &Path, opts: &MotionOptions) -> Resu
             compression: opts.compression,
         },
     )?;
-    crate::set_readable(output)?;
     Ok(report)
 }

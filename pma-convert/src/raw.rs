@@ -19,16 +19,6 @@ impl RawTensor {
         self.shape.iter().product()
     }
 
-    /// The values as f32, or `None` when the dtype is not F32.
-    pub fn to_f32_vec(&self) -> Option<Vec<f32>> {
-        (self.dtype == Dtype::F32).then(|| {
-            self.data
-                .chunks_exact(4)
-                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-                .collect()
-        })
-    }
-
     /// A candle tensor holding the same bytes.
     pub fn to_candle(&self, device: &Device) -> candle_core::Result<Tensor> {
         let dtype = match self.dtype {

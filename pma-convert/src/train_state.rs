@@ -6,8 +6,8 @@
 //! owned by the trainer and implemented once, in `pma_model::train::state`;
 //! this module only maps torch's optimiser state onto it:
 //!
-//! * optimiser ids → parameter names by the reference's grouping (model.md
-//!   §6, §8.2): the parameters in `named_parameters()` order, split into group
+//! * optimiser ids → parameter names by the reference's grouping
+//!   (docs/reference.md, "Training schedule and Adam"): the parameters in `named_parameters()` order, split into group
 //!   0 "freq" (names containing `graph_net`, `pose_extractor`, `win_fun`,
 //!   `modulator`, `pts_enc_point`, `pts_enc_pose`) and group 1 "other"; torch
 //!   numbers group 0 first;
@@ -35,7 +35,7 @@ use safetensors::Dtype;
 
 use crate::{
     error::{ConvertError, Result},
-    torch::ReferenceCheckpoint,
+    torch::{ReferenceCheckpoint, TorchAdam, TorchAdamGroup},
 };
 
 pub use pma_model::train::state::{FORMAT, FORMAT_VERSION};
@@ -82,6 +82,31 @@ pub fn train_state_from_torch(
     })?;
 
     let names = reference_param_groups(cfg);
+    let (groups, id_to_name) = param_groups(path, adam, &names)?;
+    let shapes: HashMap<String, Vec<usize>> = tensor_layout(cfg)
+        .into_iter()
+        .map(|t| (t.name, t.shape))
+        .collect();
+    let mut params = param_states(path, adam, &id_to_name, &shapes)?;
+    add_unstepped(&mut params, &names, &shapes)?;
+    Ok(TrainState {
+        global_iter,
+        groups,
+        params,
+        rng: None,
+        sampler: None,
+        progress: None,
+        run_config: None,
+        model_fingerprint: model_file.map(fingerprint),
+    })
+}
+
+/// The two groups with their rates, and which parameter each optimiser id is.
+fn param_groups<'a>(
+    path: &Path,
+    adam: &TorchAdam,
+    names: &'a [Vec<String>; 2],
+) -> Result<(Vec<ParamGroup>, HashMap<usize, &'a str>)> {
     if adam.param_groups.len() != names.len() {
         return Err(ConvertError::mismatch(
             path,
@@ -91,39 +116,10 @@ pub fn train_state_from_torch(
         ));
     }
     let paper = TrainConfig::paper();
-    let shapes: HashMap<String, Vec<usize>> = tensor_layout(cfg)
-        .into_iter()
-        .map(|t| (t.name, t.shape))
-        .collect();
     let mut id_to_name: HashMap<usize, &str> = HashMap::new();
     let mut groups = Vec::new();
-    for (g, (group, names)) in adam.param_groups.iter().zip(&names).enumerate() {
-        let key = |k: &str| format!("optimizer.param_groups[{g}].{k}");
-        if group.params.len() != names.len() {
-            return Err(ConvertError::mismatch(
-                path,
-                key("params"),
-                format!("{} parameters ({}, ...)", names.len(), names[0]),
-                format!("{} ids", group.params.len()),
-            ));
-        }
-        if group.amsgrad {
-            return Err(ConvertError::invalid(
-                path,
-                key("amsgrad"),
-                "AMSGrad is not supported by pma's Adam",
-            ));
-        }
-        if group.weight_decay != 0.0 {
-            return Err(ConvertError::invalid(
-                path,
-                key("weight_decay"),
-                format!(
-                    "{} is not supported by pma's Adam (the reference uses 0)",
-                    group.weight_decay
-                ),
-            ));
-        }
+    for (g, (group, names)) in adam.param_groups.iter().zip(names).enumerate() {
+        check_group(path, g, group, names)?;
         for (&id, name) in group.params.iter().zip(names) {
             if id_to_name.insert(id, name).is_some() {
                 return Err(ConvertError::invalid(
@@ -147,7 +143,47 @@ pub fn train_state_from_torch(
             params: names.clone(),
         });
     }
+    Ok((groups, id_to_name))
+}
 
+/// A group has one id per parameter and no option pma's Adam lacks.
+fn check_group(path: &Path, g: usize, group: &TorchAdamGroup, names: &[String]) -> Result<()> {
+    let key = |k: &str| format!("optimizer.param_groups[{g}].{k}");
+    if group.params.len() != names.len() {
+        return Err(ConvertError::mismatch(
+            path,
+            key("params"),
+            format!("{} parameters ({}, ...)", names.len(), names[0]),
+            format!("{} ids", group.params.len()),
+        ));
+    }
+    if group.amsgrad {
+        return Err(ConvertError::invalid(
+            path,
+            key("amsgrad"),
+            "AMSGrad is not supported by pma's Adam",
+        ));
+    }
+    if group.weight_decay != 0.0 {
+        return Err(ConvertError::invalid(
+            path,
+            key("weight_decay"),
+            format!(
+                "{} is not supported by pma's Adam (the reference uses 0)",
+                group.weight_decay
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// The moments and step count of every parameter torch holds state for.
+fn param_states(
+    path: &Path,
+    adam: &TorchAdam,
+    id_to_name: &HashMap<usize, &str>,
+    shapes: &HashMap<String, Vec<usize>>,
+) -> Result<HashMap<String, ParamState>> {
     let mut params: HashMap<String, ParamState> = HashMap::new();
     for (id, st) in &adam.state {
         let key = format!("optimizer.state[{id}]");
@@ -179,6 +215,15 @@ pub fn train_state_from_torch(
         };
         params.insert(name.to_string(), state);
     }
+    Ok(params)
+}
+
+/// Zero moments and step 0 for the parameters torch never stepped.
+fn add_unstepped(
+    params: &mut HashMap<String, ParamState>,
+    names: &[Vec<String>; 2],
+    shapes: &HashMap<String, Vec<usize>>,
+) -> Result<()> {
     for name in names.iter().flatten() {
         if !params.contains_key(name) {
             let zeros = Tensor::zeros(
@@ -197,14 +242,5 @@ pub fn train_state_from_torch(
             );
         }
     }
-    Ok(TrainState {
-        global_iter,
-        groups,
-        params,
-        rng: None,
-        sampler: None,
-        progress: None,
-        run_config: None,
-        model_fingerprint: model_file.map(fingerprint),
-    })
+    Ok(())
 }

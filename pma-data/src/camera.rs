@@ -1,4 +1,4 @@
-//! Pinhole cameras and per-pixel rays (spec data.md §6.1–6.3).
+//! Pinhole cameras and per-pixel rays (docs/conventions.md, "Cameras").
 //!
 //! `c2w` uses the OpenGL/NeRF axes: camera +x right, +y up, looking along −z.
 //! Pixel `(x, y)` lies at integer coordinates (no +0.5): the ray through it is
@@ -9,7 +9,7 @@ use glam::{DMat3, DMat4, DVec3, DVec4};
 use crate::error::{DataError, Result};
 use crate::skeleton::mat4_from_rows;
 
-/// Tolerance on `max|RᵀR − I|` for a rotation block (spec data.md §10.9).
+/// Tolerance on `max|RᵀR − I|` for a rotation block.
 pub const ORTHONORMAL_TOL: f64 = 1e-4;
 /// Tolerance on the last row `(0,0,0,1)` of a rigid transform.
 pub const LAST_ROW_TOL: f64 = 1e-6;
@@ -212,7 +212,7 @@ impl Camera {
     }
 
     /// The same camera for images of `width × height` (intrinsics scaled
-    /// per axis, spec data.md §6.1).
+    /// per axis).
     pub fn resized(&self, width: usize, height: usize) -> Camera {
         let sx = width as f32 / self.width as f32;
         let sy = height as f32 / self.height as f32;
@@ -223,22 +223,6 @@ impl Camera {
             fy: self.fy * sy,
             cx: self.cx * sx,
             cy: self.cy * sy,
-            c2w: self.c2w,
-        }
-    }
-
-    /// The preview camera for `render_factor` k: `W//k × H//k`, focal and
-    /// centre divided by k.
-    pub fn downscaled(&self, k: usize) -> Camera {
-        let k = k.max(1);
-        let kf = k as f32;
-        Camera {
-            width: self.width / k,
-            height: self.height / k,
-            fx: self.fx / kf,
-            fy: self.fy / kf,
-            cx: self.cx / kf,
-            cy: self.cy / kf,
             c2w: self.c2w,
         }
     }

@@ -1,5 +1,5 @@
 //! The per-frame bounding cylinder `cyls = (x_c, z_c, r, y_top, y_bot)` and
-//! its 2-D pixel box (spec data.md §6.5).
+//! its 2-D pixel box, which bound where rays are sampled.
 //!
 //! The cylinder axis is always world y (ground plane x–z): the reference's
 //! box and near/far code hard-code it, so only head directions ±y exist.
@@ -136,7 +136,7 @@ impl PixelBox {
 }
 
 /// Project the cylinder's two 50-point cap circles and take their pixel
-/// bounding box (spec data.md §6.5 steps 1–6), optionally scaled about its
+/// bounding box, optionally scaled about its
 /// centre (the training box sampler uses 1.3).
 ///
 /// cyl: `[5]`. Returns `None` when a cap point is not in front of the camera

@@ -1,6 +1,6 @@
-//! `pma-npz v1` datasets (spec data.md §4): the arrays of one scene, read
-//! from / written to numpy `.npz` archives, with the import-time derivations
-//! of §4.5 and the validation of §10.
+//! `pma-npz v1` datasets (docs/conventions.md, "pma-npz v1"): the arrays of
+//! one scene, read from / written to numpy `.npz` archives, with the
+//! import-time derivations and the validation ("Validation").
 //!
 //! Counts: `P` pose rows, `C` camera rows, `N` images, `B` background plates,
 //! images `H × W`. Pixels stay `u8` and are held once (a 2,000-frame
@@ -28,7 +28,7 @@ pub use write::{Compression, WriteOptions};
 /// Current schema version written to `schema_version`.
 pub const SCHEMA_VERSION: i32 = 1;
 
-/// Which uses a file must support (spec data.md §4.3); each profile requires
+/// Which uses a file must support; each profile requires
 /// everything the previous one does.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
 pub enum Profile {
@@ -97,9 +97,9 @@ pub struct ReadOptions {
     /// Requirements to enforce.
     pub profile: Profile,
     /// The trained model's rest pose, used when the file has none (motion and
-    /// render files may omit it; kinematics then use the model's, §9.2).
+    /// render files may omit it; kinematics then use the model's).
     pub rest_pose: Option<Joints>,
-    /// Accept `rest_pose[0]` away from the origin (§10.13).
+    /// Accept `rest_pose[0]` away from the origin.
     pub allow_offset_root: bool,
     /// Turn 0/255 masks into {0,1} with the reference's threshold (≥ 2 → 1).
     pub binarize_masks: bool,
@@ -182,7 +182,7 @@ pub struct Dataset {
     pub bkgds: Option<Array3<u8>>,
 
     // --- provenance ---
-    /// Keys computed at import rather than read (§4.5).
+    /// Keys computed at import rather than read.
     pub derived: Vec<String>,
     /// Non-fatal findings of reading and validation.
     pub warnings: Vec<Warning>,
@@ -226,8 +226,8 @@ impl Dataset {
     }
 
     /// Read a `.npz` (or a `.scene.npz` with its sibling `.frames.npz`),
-    /// derive the absent keys (§4.5) and validate against `opts.profile`
-    /// (§10). Warnings end up in [`Dataset::warnings`].
+    /// derive the absent keys and validate against `opts.profile`.
+    /// Warnings end up in [`Dataset::warnings`].
     pub fn read(path: impl AsRef<Path>, opts: &ReadOptions) -> Result<Dataset> {
         let mut ds = read::read_npz(path.as_ref(), opts)?;
         ds.derive(opts.rest_pose.as_ref())?;
@@ -235,7 +235,7 @@ impl Dataset {
         Ok(ds)
     }
 
-    /// Fill absent derivable keys (§4.5): `(C,)` focals, centres, root
+    /// Fill absent derivable keys: `(C,)` focals, centres, root
     /// locations, `kp3d`, `skts`, `cyls`, identity index maps. `rest` is used
     /// when the dataset has no rest pose of its own. Keys already present are
     /// kept as they are (stored values win, for bit-parity).
@@ -244,12 +244,12 @@ impl Dataset {
     }
 
     /// Recompute `kp3d`, `skts` and `cyls` from `bones` and `root_locs` with
-    /// another rest pose (retargeting onto a trained model, spec §9.2).
+    /// another rest pose (retargeting onto a trained model).
     pub fn repose(&mut self, rest: &Joints) -> Result<()> {
         derive::repose(self, rest)
     }
 
-    /// Check everything in spec data.md §10 that applies to `opts.profile`.
+    /// Check everything in docs/conventions.md, "Validation", that applies to `opts.profile`.
     /// Errors name the file and key; warnings are appended to `self.warnings`.
     /// May rewrite masks (`binarize_masks`) and images (`drop_alpha`).
     pub fn validate(&mut self, opts: &ReadOptions) -> Result<()> {
@@ -329,7 +329,7 @@ impl Dataset {
                 value: n.to_string(),
                 bound: a.len(),
             })?,
-            // Identity default (§4.3 footnote 3).
+            // An absent index map is the identity.
             None => n as i64,
         };
         if v < 0 || v as usize >= bound {

@@ -2,7 +2,7 @@
 //! `pma-npz v1` datasets (read, validate, write), the training ray sampler,
 //! image metrics, real motion readers and the synthetic multi-view scene.
 
-// Index loops over the 24 joints mirror the spec's formulas; nested result tuples are
+// Index loops over the 24 joints mirror the written formulas; nested result tuples are
 // local plumbing.
 #![allow(clippy::needless_range_loop, clippy::type_complexity)]
 

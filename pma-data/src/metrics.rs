@@ -1,6 +1,7 @@
-//! Image metrics under the paper's offline evaluation protocol (spec data.md
-//! §8.3 a). Images are float RGB in [0,1], `[H·W·3]` channels last, row-major;
-//! masks are `[H·W]`, nonzero = foreground.
+//! Image metrics under the paper's offline evaluation protocol
+//! (docs/conventions.md, "Evaluation protocol"). Images are float RGB in
+//! [0,1], `[H·W·3]` channels last, row-major; masks are `[H·W]`, nonzero =
+//! foreground.
 //!
 //! * PSNR = −10·log10(MSE), the mean over pixels and the 3 channels, over the
 //!   foreground-mask pixels ([`Region::Mask`], the reference's committed H36M
@@ -85,6 +86,21 @@ pub fn tight_box(mask: &[u8], h: usize, w: usize) -> Option<TightBox> {
     b
 }
 
+/// Checks the lengths of a masked comparison (`pred`, `gt`: `[h·w·3]`,
+/// `mask`: `[h·w]`) and returns the mask's tight box, `None` when it is empty.
+fn masked_box(
+    pred: &[f32],
+    gt: &[f32],
+    mask: &[u8],
+    h: usize,
+    w: usize,
+) -> Result<Option<TightBox>> {
+    check_len("pred", pred.len(), 3 * h * w)?;
+    check_len("gt", gt.len(), 3 * h * w)?;
+    check_len("mask", mask.len(), h * w)?;
+    Ok(tight_box(mask, h, w))
+}
+
 /// −10·log10 of a mean squared error (+∞ for a perfect match).
 pub fn psnr_from_mse(mse: f64) -> f64 {
     -10.0 * mse.log10()
@@ -117,10 +133,7 @@ pub fn psnr_masked(
     w: usize,
     region: Region,
 ) -> Result<Option<f64>> {
-    check_len("pred", pred.len(), 3 * h * w)?;
-    check_len("gt", gt.len(), 3 * h * w)?;
-    check_len("mask", mask.len(), h * w)?;
-    let Some(b) = tight_box(mask, h, w) else {
+    let Some(b) = masked_box(pred, gt, mask, h, w)? else {
         return Ok(None);
     };
     let (mut se, mut count) = (0f64, 0usize);
@@ -232,10 +245,7 @@ pub fn ssim_masked(
     w: usize,
     data_range: f64,
 ) -> Result<Option<f64>> {
-    check_len("pred", pred.len(), 3 * h * w)?;
-    check_len("gt", gt.len(), 3 * h * w)?;
-    check_len("mask", mask.len(), h * w)?;
-    let Some(b) = tight_box(mask, h, w) else {
+    let Some(b) = masked_box(pred, gt, mask, h, w)? else {
         return Ok(None);
     };
     let b = ssim_crop(b, h, w);
@@ -249,8 +259,8 @@ pub fn ssim_masked(
     .map(Some)
 }
 
-/// (PSNR over `region`, SSIM on the tight box) of one image, the per-image
-/// scores of §8.3 (a); `None` when the mask is empty (§10.23: skipped).
+/// (PSNR over `region`, SSIM on the tight box) of one image; `None` when the
+/// mask is empty (such an image is skipped, not scored).
 pub fn score_image(
     pred: &[f32],
     gt: &[f32],

@@ -6,8 +6,8 @@
 //! (joint 0 = global orientation) and root locations in metres, plus the
 //! direction the subject's head points in the motion's world frame. Models
 //! trained on H36M-ZJU expect the head toward −y; [`Motion::to_up`] applies
-//! the data-spec §9.2 flip `F = diag(1,−1,−1)` to the root rotation and
-//! translation.
+//! the flip `F = diag(1,−1,−1)` to the root rotation and translation
+//! (docs/conventions.md, "Units and up axis").
 
 pub mod bvh;
 pub mod retarget;
@@ -19,12 +19,9 @@ use std::path::PathBuf;
 use glam::{DMat3, DQuat, DVec3};
 
 pub use crate::cylinder::HeadDir;
-use crate::skeleton::{axis_angle_to_matrix, matrix_to_axis_angle};
+use crate::skeleton::{axis_angle_to_matrix, matrix_to_axis_angle, Joints, N_JOINTS};
 
 pub use smpl_npz::{parse_smpl_npz, read_smpl_npz};
-
-/// Number of SMPL joints.
-pub const J: usize = 24;
 
 /// Errors from reading, retargeting or editing motion.
 #[derive(Debug, thiserror::Error)]
@@ -88,7 +85,7 @@ pub struct Motion {
     pub fps: f64,
     /// Per frame `[24][3]` axis-angle (radians) relative to the parent;
     /// joint 0 is the global orientation in the motion's world frame.
-    pub bones: Vec<[[f32; 3]; J]>,
+    pub bones: Vec<Joints>,
     /// Per frame, the root (pelvis) location in metres, world frame.
     pub root: Vec<[f32; 3]>,
     /// Where the head points in this motion's world frame.
@@ -110,7 +107,7 @@ fn quat_from_rotvec(v: [f32; 3]) -> DQuat {
     DQuat::from_mat3(&mat_from_rotvec(v))
 }
 
-/// The §9.2 up-axis flip, a 180° turn about x.
+/// The up-axis flip, a 180° turn about x.
 const FLIP: DMat3 = DMat3::from_cols(
     DVec3::new(1.0, 0.0, 0.0),
     DVec3::new(0.0, -1.0, 0.0),
@@ -164,11 +161,6 @@ impl Motion {
 
     pub fn is_empty(&self) -> bool {
         self.bones.is_empty()
-    }
-
-    /// Seconds from the first to the last frame.
-    pub fn duration(&self) -> f64 {
-        self.len().saturating_sub(1) as f64 / self.fps
     }
 
     /// Frames `range` of this motion.
@@ -235,8 +227,8 @@ impl Motion {
                 continue;
             }
             let (a, b) = (&self.bones[i], &self.bones[i + 1]);
-            let mut frame = [[0.0f32; 3]; J];
-            for j in 0..J {
+            let mut frame = [[0.0f32; 3]; N_JOINTS];
+            for j in 0..N_JOINTS {
                 let q = quat_from_rotvec(a[j]).slerp(quat_from_rotvec(b[j]), s);
                 frame[j] = rotvec_from_mat(DMat3::from_quat(q));
             }
@@ -254,9 +246,9 @@ impl Motion {
         })
     }
 
-    /// Re-expresses the motion so the head points along `up` (data spec
-    /// §9.2): `R₀ ← F·R₀` and `t ← F·t` with `F = diag(1,−1,−1)`. Joint
-    /// rotations below the root are relative and stay as they are. A camera
+    /// Re-expresses the motion so the head points along `up`: `R₀ ← F·R₀`
+    /// and `t ← F·t` with `F = diag(1,−1,−1)`. Joint rotations below the
+    /// root are relative and stay as they are. A camera
     /// rig seen with this motion needs `c2w ← diag(1,−1,−1,1)·c2w`.
     pub fn to_up(&self, up: HeadDir) -> Motion {
         if up == self.up {
@@ -292,7 +284,7 @@ impl Motion {
 /// Guesses the up axis from the root orientations: SMPL's canonical head
 /// direction is +y, so the head points along `R₀·ŷ`. Returns `None` when
 /// the mean of its y component is within ±0.5 (lying or tumbling motion).
-pub fn detect_up(bones: &[[[f32; 3]; J]]) -> Option<HeadDir> {
+pub fn detect_up(bones: &[Joints]) -> Option<HeadDir> {
     let mean_y = mean_head_y(bones);
     if mean_y > 0.5 {
         Some(HeadDir::PosY)
@@ -303,7 +295,7 @@ pub fn detect_up(bones: &[[[f32; 3]; J]]) -> Option<HeadDir> {
     }
 }
 
-fn mean_head_y(bones: &[[[f32; 3]; J]]) -> f64 {
+fn mean_head_y(bones: &[Joints]) -> f64 {
     let sum: f64 = bones
         .iter()
         .map(|b| (mat_from_rotvec(b[0]) * DVec3::Y).y)
@@ -311,7 +303,7 @@ fn mean_head_y(bones: &[[[f32; 3]; J]]) -> f64 {
     sum / bones.len().max(1) as f64
 }
 
-pub(crate) fn ambiguous_up(what: &str, bones: &[[[f32; 3]; J]]) -> MotionError {
+pub(crate) fn ambiguous_up(what: &str, bones: &[Joints]) -> MotionError {
     MotionError::AmbiguousUp {
         what: what.to_string(),
         mean_y: mean_head_y(bones),

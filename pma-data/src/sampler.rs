@@ -1,4 +1,4 @@
-//! The training ray sampler (spec data.md §7, PM defaults), as plain host
+//! The training ray sampler (docs/conventions.md, "Ray sampler"), as plain host
 //! data; the model crate turns a [`SampledBatch`] into tensors.
 //!
 //! 1. images: the next `images_per_step` indices of a random permutation of

@@ -1,6 +1,6 @@
 //! The SMPL 24-joint skeleton: joint table, rotations (axis-angle, 6D),
 //! forward kinematics, the bone-align transforms and the per-part volume
-//! initialisation (spec data.md §5, model.md §2).
+//! initialisation (docs/conventions.md, "Skeleton").
 //!
 //! Everything is computed in f64 and stored as f32, as the reference's
 //! preprocessing does; 4×4 transforms are stored row-major (`m[row][col]`).
@@ -129,7 +129,7 @@ pub fn rot6d_from_matrix(m: DMat3) -> [f64; 6] {
 
 /// Gram–Schmidt decode of a 6D rotation. Columns shorter than 1e-6 (first
 /// column, or the second after removing its component along the first) have
-/// no reliable direction and are an error (spec data.md §10.10).
+/// no reliable direction and are an error.
 pub fn matrix_from_rot6d(x: [f64; 6]) -> Result<DMat3> {
     const EPS: f64 = 1e-6;
     let a1 = DVec3::new(x[0], x[2], x[4]);
@@ -189,16 +189,6 @@ pub fn rot_y_ref(theta: f64) -> DMat3 {
         DVec3::new(c, 0.0, s),
         DVec3::new(0.0, 1.0, 0.0),
         DVec3::new(-s, 0.0, c),
-    )
-}
-
-/// Standard rotation about z, `[[c,−s,0],[s,c,0],[0,0,1]]`.
-pub fn rot_z(psi: f64) -> DMat3 {
-    let (s, c) = psi.sin_cos();
-    DMat3::from_cols(
-        DVec3::new(c, s, 0.0),
-        DVec3::new(-s, c, 0.0),
-        DVec3::new(0.0, 0.0, 1.0),
     )
 }
 
@@ -271,7 +261,7 @@ pub fn rigid_inverse(m: &DMat4) -> DMat4 {
 // ---------------------------------------------------------------------------
 // Forward kinematics
 
-/// Local-to-world transforms `L_j` (spec data.md §5.3), f64.
+/// Local-to-world transforms `L_j`, f64.
 /// rest: rest pose `[24][3]`; bones: axis-angle `[24][3]`; root: root
 /// translation `t`, added to every `L_j` (so `kp3d[0] = rest[0] + t`).
 pub fn local_to_world(rest: &Joints, bones: &Joints, root: DVec3) -> [DMat4; N_JOINTS] {
@@ -389,7 +379,7 @@ pub fn rest_pose_scale(rest: &Joints) -> f64 {
 }
 
 /// Reject rest poses that the kinematics cannot use: non-finite values and
-/// parent–child distances below 1e-6·S (spec data.md §10.14).
+/// parent–child distances below 1e-6·S (S: the rest pose's size).
 pub fn check_rest_pose(rest: &Joints) -> Result<()> {
     for (j, r) in rest.iter().enumerate() {
         if !r.iter().all(|v| v.is_finite()) {
@@ -458,7 +448,7 @@ fn signed_angle(a: f64, c: f64) -> f64 {
 }
 
 /// Bone-align rotation for a bone vector `d`: `Rx(ψ)·Ry(θ)` maps `d` onto
-/// `(0, 0, |d|)` (spec data.md §5.5).
+/// `(0, 0, |d|)`.
 pub fn bone_align_rotation(d: DVec3) -> DMat3 {
     let theta = signed_angle(d.x, d.z);
     let ry = rot_y_ref(theta);
@@ -467,7 +457,7 @@ pub fn bone_align_rotation(d: DVec3) -> DMat3 {
     rot_x(psi) * ry
 }
 
-/// Bone-align transforms from the rest pose (spec model.md §2.4).
+/// Bone-align transforms from the rest pose (docs/conventions.md, "Skeleton").
 pub fn bone_align(rest: &Joints) -> Result<BoneAlign> {
     check_rest_pose(rest)?;
     let mut out = BoneAlign {
@@ -493,7 +483,7 @@ pub fn bone_align(rest: &Joints) -> Result<BoneAlign> {
     Ok(out)
 }
 
-/// Widths and bone lengths of a rest pose (spec data.md §5.6).
+/// Widths and bone lengths of a rest pose, which size the per-part volumes.
 #[derive(Debug, Clone, PartialEq)]
 pub struct SkeletonProfile {
     /// `|r16 − r17|`
@@ -536,7 +526,7 @@ pub fn skeleton_profile(rest: &Joints) -> Result<SkeletonProfile> {
 }
 
 /// Initial per-part half-extents `(x, y, z)` in the bone-aligned frame
-/// (`graph_net.base_scale`, spec model.md §2.5), `[24][3]`.
+/// (`graph_net.base_scale`; docs/reference.md, "Initialisation"), `[24][3]`.
 ///
 /// Reproduces the reference's quirks: collars and arms use the **knee**
 /// width, and end effectors get their parent's length to child without the

@@ -8,7 +8,7 @@
 //! * **Motion**: the CMU 131_01 walk (retargeted, [`crate::motion::retarget`])
 //!   for training, its later frames and the AIST++ dance for novel poses.
 //!   Both are embedded in the library (`assets/motion`, see SOURCE.md),
-//!   turned to the training convention (head −y, data spec §9.2) and kept
+//!   turned to the training convention (head −y) and kept
 //!   on a treadmill: the root's horizontal drift is removed, its height
 //!   kept relative to the first frame.
 //! * **Cameras**: [`rig`], a ring; the first cameras in ring order that are
@@ -32,7 +32,6 @@ pub mod render;
 pub mod rig;
 pub mod texture;
 
-use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use ndarray::{Array1, Array2, Array3, Array4};
@@ -564,17 +563,9 @@ struct MotionInfo {
     credit: &'static str,
 }
 
-/// Writes `bytes` to `path` atomically (temp file in the same directory).
+/// Writes `bytes` to `path` atomically.
 fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), SynthError> {
-    let dir = path.parent().unwrap_or(Path::new("."));
-    let mut tmp = tempfile::NamedTempFile::new_in(dir).map_err(io_err(dir))?;
-    tmp.write_all(bytes).map_err(io_err(path))?;
-    tmp.as_file().sync_all().map_err(io_err(path))?;
-    tmp.persist(path).map_err(|e| SynthError::Io {
-        path: path.to_path_buf(),
-        source: e.error,
-    })?;
-    Ok(())
+    crate::fsio::write_atomic(path, bytes).map_err(io_err(path))
 }
 
 /// Renders every split and writes `out/{train,novel_view,novel_pose}.npz`,

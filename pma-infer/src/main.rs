@@ -11,6 +11,7 @@ use std::time::Instant;
 
 use candle_core::Device;
 use pma_data::cylinder::HeadDir;
+use pma_data::fsio::{parent_dir, AtomicFile};
 use pma_model::camera_path::{facing, framing_camera, load_avatar, ViewDirs};
 use pma_model::image::ImageOptions;
 
@@ -128,23 +129,16 @@ fn run(args: &Args) -> Result<(), BoxError> {
     Ok(())
 }
 
-/// Encode, then replace `path` atomically (temporary file + rename).
+/// Encode, then replace `path` atomically.
 fn write_png(img: &image::RgbImage, path: &Path) -> Result<(), BoxError> {
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d,
-        _ => Path::new("."),
-    };
+    let named = |e: &dyn std::fmt::Display| format!("{}: {e}", path.display());
     let mut tmp =
-        tempfile::NamedTempFile::new_in(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+        AtomicFile::create(path).map_err(|e| format!("{}: {e}", parent_dir(path).display()))?;
     img.write_to(
-        &mut std::io::BufWriter::new(tmp.as_file_mut()),
+        &mut std::io::BufWriter::new(tmp.file_mut()),
         image::ImageFormat::Png,
     )
-    .map_err(|e| format!("{}: {e}", path.display()))?;
-    tmp.as_file()
-        .sync_all()
-        .map_err(|e| format!("{}: {e}", path.display()))?;
-    tmp.persist(path)
-        .map_err(|e| format!("{}: {}", path.display(), e.error))?;
+    .map_err(|e| named(&e))?;
+    tmp.commit().map_err(|e| named(&e))?;
     Ok(())
 }

@@ -85,7 +85,7 @@ fn golden_checkpoint_converts_to_identical_tensors_and_loads() {
 fn optimizer_ids_follow_the_reference_grouping() {
     let groups = reference_param_groups(&Config::paper());
     assert_eq!((groups[0].len(), groups[1].len()), (39, 25));
-    // Spot checks against the id table of spec model.md §8.2.
+    // Spot checks of the optimiser ids (docs/reference.md, "Training schedule and Adam").
     let id = |i: usize| {
         if i < 39 {
             &groups[0][i]

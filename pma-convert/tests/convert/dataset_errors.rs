@@ -1,4 +1,4 @@
-//! Bad datasets (spec data.md §10) are refused with the file and key named.
+//! Bad datasets (docs/conventions.md, "Validation") are refused with the file and key named.
 //! Each case starts from the converted h36m_zju fixture, breaks one thing,
 //! and converts the broken pma-npz again.
 

@@ -92,7 +92,7 @@ fn perfcap_keeps_scaled_units_and_gets_identity_maps() {
     assert_eq!(rep.layout, Some(Layout::PerfCap));
     assert_eq!((ds.n_images(), ds.n_poses(), ds.n_cameras()), (4, 4, 4));
     assert_eq!(ds.img_shape, Some([4, 16, 24, 3]));
-    // No scale undo and no ÷1.05 in the file: those are loader behaviours (§4.4).
+    // No scale undo and no ÷1.05 in the file: those are loader behaviours.
     assert_eq!(ds.pose_scale, 1.65);
     assert_eq!(
         ds.kp3d

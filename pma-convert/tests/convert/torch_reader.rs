@@ -41,7 +41,8 @@ fn golden_ckpt_tensors_are_byte_identical_to_model_safetensors() {
         assert_eq!(t.shape, view.shape(), "{name}");
         assert!(t.data == view.data(), "{name}: bytes differ");
     }
-    // State-dict order is the reference's module registration order (model.md §8.1).
+    // State-dict order is the reference's module registration order
+    // (docs/reference.md, "Checkpoint and state_dict names").
     assert_eq!(ck.model[0].0, "rest_pose");
     assert_eq!(ck.model[1].0, "pts_embedder.transforms");
     assert_eq!(

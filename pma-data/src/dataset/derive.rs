@@ -1,4 +1,4 @@
-//! Import-time derivations (spec data.md §4.5). Stored values always win;
+//! Import-time derivations (docs/conventions.md, "pma-npz v1"). Stored values always win;
 //! only absent keys are filled, and each one filled is listed in
 //! `Dataset::derived`.
 

@@ -1,5 +1,5 @@
 //! npz → [`Dataset`]: dtype and shape normalisation of every known key
-//! (spec data.md §4.1–4.3, §10 classes 2 and 5). Counts across keys are
+//! (docs/conventions.md, "pma-npz v1"). Counts across keys are
 //! checked later by validation.
 
 use std::path::Path;
@@ -151,6 +151,20 @@ impl Ctx<'_> {
 fn arr2(shape: [usize; 2], v: Vec<f32>) -> Array2<f32> {
     Array2::from_shape_vec(shape, v).expect("shape checked")
 }
+/// A `(rows, cols)` float array; `expected` names the shape in the error.
+fn rows(
+    ctx: &mut Ctx<'_>,
+    key: &str,
+    a: NpyArray,
+    cols: usize,
+    expected: &str,
+) -> Result<Array2<f32>> {
+    let (s, v) = ctx.f32s(key, a)?;
+    if s.len() != 2 || s[1] != cols {
+        return Err(ctx.shape_err(key, expected, &s));
+    }
+    Ok(arr2([s[0], cols], v))
+}
 fn arr3<T>(shape: [usize; 3], v: Vec<T>) -> Array3<T> {
     Array3::from_shape_vec(shape, v).expect("shape checked")
 }
@@ -169,7 +183,7 @@ fn pose_array(ctx: &Ctx<'_>, key: &str, shape: &[usize], last: usize) -> Result<
 }
 
 /// Convert 6D bones `(P,24,6)` to axis-angle; degenerate columns are an error
-/// naming the pose and joint (§10.10).
+/// naming the pose and joint.
 fn bones_from_6d(ctx: &Ctx<'_>, p: usize, v: &[f32]) -> Result<Vec<f32>> {
     let mut out = Vec::with_capacity(p * N_JOINTS * 3);
     for (i, x) in v.chunks_exact(6).enumerate() {
@@ -338,13 +352,7 @@ pub(crate) fn read_npz(path: &Path, opts: &ReadOptions) -> Result<Dataset> {
                 let (s, v) = ctx.f32s(k, a)?;
                 ds.kp3d = Some(arr3(pose_array(&ctx, k, &s, 3)?, v));
             }
-            "root_locs" => {
-                let (s, v) = ctx.f32s(k, a)?;
-                if s.len() != 2 || s[1] != 3 {
-                    return Err(ctx.shape_err(k, "(P,3)", &s));
-                }
-                ds.root_locs = Some(arr2([s[0], 3], v));
-            }
+            "root_locs" => ds.root_locs = Some(rows(&mut ctx, k, a, 3, "(P,3)")?),
             "skts" => {
                 let (s, v) = ctx.f32s(k, a)?;
                 if s.len() != 4 || s[1] != N_JOINTS || s[2] != 4 || s[3] != 4 {
@@ -353,20 +361,8 @@ pub(crate) fn read_npz(path: &Path, opts: &ReadOptions) -> Result<Dataset> {
                 ds.skts =
                     Some(Array4::from_shape_vec([s[0], N_JOINTS, 4, 4], v).expect("shape checked"));
             }
-            "cyls" => {
-                let (s, v) = ctx.f32s(k, a)?;
-                if s.len() != 2 || s[1] != 5 {
-                    return Err(ctx.shape_err(k, "(P,5)", &s));
-                }
-                ds.cyls = Some(arr2([s[0], 5], v));
-            }
-            "betas" => {
-                let (s, v) = ctx.f32s(k, a)?;
-                if s.len() != 2 || s[1] != 10 {
-                    return Err(ctx.shape_err(k, "(P,10) or (1,10)", &s));
-                }
-                ds.betas = Some(arr2([s[0], 10], v));
-            }
+            "cyls" => ds.cyls = Some(rows(&mut ctx, k, a, 5, "(P,5)")?),
+            "betas" => ds.betas = Some(rows(&mut ctx, k, a, 10, "(P,10) or (1,10)")?),
             "gt_kp3d" => {
                 let (s, v) = ctx.f32s(k, a)?;
                 if s.len() != 3 || s[2] != 3 {

@@ -1,5 +1,5 @@
-//! Validation of a [`Dataset`] against spec data.md §10, for one use profile
-//! (§4.3). Runs after reading and derivation, and on datasets built in code
+//! Validation of a [`Dataset`] for one use profile (docs/conventions.md,
+//! "Validation" and "pma-npz v1"). Runs after reading and derivation, and on datasets built in code
 //! (the converters and `pma synth` validate before they write).
 //!
 //! The order matters for the messages: structure (missing keys, shapes,
@@ -22,18 +22,18 @@ use crate::skeleton::{
     Joints, JOINT_NAMES, N_JOINTS, PARENTS,
 };
 
-/// |ω| above this is garbage rather than an unwrapped angle (§10.11).
+/// |ω| above this is garbage rather than an unwrapped angle.
 const MAX_AXIS_ANGLE: f64 = 1e3;
-/// `max|skts·L − I|` tolerance (§10.16).
+/// `max|skts·L − I|` tolerance.
 const SKTS_TOL: f64 = 1e-4;
-/// kp3d-vs-FK error and warning thresholds, relative to the rest-pose size S (§10.15).
+/// kp3d-vs-FK error and warning thresholds, relative to the rest-pose size S.
 const FK_ERROR_REL: f64 = 1e-3;
 const FK_WARN_REL: f64 = 1e-5;
-/// Root offset tolerance, relative to S (§10.13).
+/// Root offset tolerance, relative to S.
 const ROOT_OFFSET_REL: f64 = 1e-4;
-/// Plausible mean rest bone length, scene units (§10.18).
+/// Plausible mean rest bone length, scene units.
 const BONE_LEN_RANGE: (f64, f64) = (0.02, 2.0);
-/// Plausible camera-to-root distance over rest height (§10.18).
+/// Plausible camera-to-root distance over rest height.
 const CAMERA_DIST_RANGE: (f64, f64) = (0.3, 100.0);
 
 struct Checker {
@@ -153,7 +153,7 @@ pub(crate) fn validate(ds: &mut Dataset, opts: &ReadOptions) -> Result<()> {
 }
 
 // ---------------------------------------------------------------------------
-// Structure (§10.1–10.6)
+// Structure: required keys and shapes
 
 fn required_keys(ck: &Checker, ds: &Dataset, profile: Profile) -> Result<()> {
     if ds.kp3d.is_none() && ds.root_locs.is_none() {
@@ -343,7 +343,7 @@ fn shapes_and_counts(ck: &Checker, ds: &Dataset, profile: Profile) -> Result<()>
 }
 
 // ---------------------------------------------------------------------------
-// Numerics (§10.7–10.12)
+// Numerics
 
 fn numerics(ck: &mut Checker, ds: &Dataset) -> Result<()> {
     if let Some(r) = &ds.rest_pose {
@@ -391,7 +391,7 @@ fn numerics(ck: &mut Checker, ds: &Dataset) -> Result<()> {
     if HeadDir::from_vector(ds.head_dir).is_none() {
         return Err(ck.value(
             "head_dir",
-            "unsupported head direction (the cylinder, box and near/far code assume a y height axis; convert the motion first, spec §9.2)",
+            "unsupported head direction (the cylinder, box and near/far code assume a y height axis; convert the motion first; docs/conventions.md, \"Units and up axis\")",
             "(0,-1,0) or (0,1,0)",
             format!("{:?}", ds.head_dir),
         ));
@@ -494,7 +494,7 @@ fn rows4(mut it: impl Iterator<Item = f32>) -> [[f32; 4]; 4] {
 }
 
 // ---------------------------------------------------------------------------
-// Index maps (§10.4)
+// Index maps
 
 fn indices(ck: &Checker, ds: &Dataset) -> Result<()> {
     if let Some(a) = &ds.kp_idxs {
@@ -512,7 +512,7 @@ fn indices(ck: &Checker, ds: &Dataset) -> Result<()> {
 }
 
 // ---------------------------------------------------------------------------
-// Geometry and consistency (§10.13–10.20)
+// Geometry and consistency
 
 fn geometry(ck: &mut Checker, ds: &Dataset, opts: &ReadOptions) -> Result<()> {
     let head = ds.head()?;
@@ -588,7 +588,7 @@ fn vec3(v: &[f32; 3]) -> DVec3 {
     DVec3::new(v[0] as f64, v[1] as f64, v[2] as f64)
 }
 
-/// Stored `kp3d`, `root_locs` and `skts` agree with FK of `bones` (§4.3 note 2, §10.15–16).
+/// Stored `kp3d`, `root_locs` and `skts` agree with FK of `bones`.
 fn kinematics(
     ck: &mut Checker,
     ds: &Dataset,
@@ -680,7 +680,7 @@ fn kinematics(
 }
 
 /// A stored cylinder must enclose its joints in x–z and have its caps
-/// beyond them along the head direction (§10.17).
+/// beyond them along the head direction.
 fn cylinder_encloses(
     ck: &Checker,
     p: usize,
@@ -725,7 +725,7 @@ fn cylinder_encloses(
 }
 
 /// Every image's camera sits at a plausible distance and the person is in
-/// front of it (§10.18, §10.19).
+/// front of it.
 fn cameras_see_the_person(ck: &Checker, ds: &Dataset, profile: Profile) -> Result<()> {
     let (Some(kp3d), Some(c2ws)) = (&ds.kp3d, &ds.c2ws) else {
         return Ok(());
@@ -780,7 +780,7 @@ fn cameras_see_the_person(ck: &Checker, ds: &Dataset, profile: Profile) -> Resul
 }
 
 // ---------------------------------------------------------------------------
-// Pixels (§10.21–10.23)
+// Pixels
 
 fn pixels(ck: &mut Checker, ds: &mut Dataset, opts: &ReadOptions) -> Result<()> {
     if let Some(masks) = &mut ds.masks {

@@ -1,13 +1,13 @@
-//! [`Dataset`] → npz, atomically (temp file in the target directory, then
-//! rename) and byte-deterministically (fixed member order, timestamps and
-//! permissions).
+//! [`Dataset`] → npz, atomically (through [`crate::fsio`]) and
+//! byte-deterministically (fixed member order, timestamps and permissions).
 
-use std::io::{BufWriter, Write};
+use std::io::{BufWriter, Seek, Write};
 use std::path::Path;
 
 use super::npz::{MemberData, NpzWriter};
 use super::Dataset;
 use crate::error::{DataError, Result};
+use crate::fsio::{parent_dir, AtomicFile};
 
 /// How members are stored.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -38,13 +38,9 @@ pub(crate) fn write_npz(
     opts: &WriteOptions,
     which: Members,
 ) -> Result<()> {
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d,
-        _ => Path::new("."),
-    };
-    let tmp = tempfile::NamedTempFile::new_in(dir).map_err(|e| DataError::io(dir, e))?;
+    let tmp = AtomicFile::create(path).map_err(|e| DataError::io(parent_dir(path), e))?;
     {
-        let buf = BufWriter::new(tmp.as_file());
+        let buf = BufWriter::new(tmp.file());
         let mut w = NpzWriter::new(
             buf,
             opts.compression == Compression::Deflated,
@@ -59,12 +55,7 @@ pub(crate) fn write_npz(
         let mut buf = w.finish()?;
         buf.flush().map_err(|e| DataError::io(path, e))?;
     }
-    tmp.as_file()
-        .sync_all()
-        .map_err(|e| DataError::io(path, e))?;
-    tmp.persist(path)
-        .map_err(|e| DataError::io(path, e.error))?;
-    Ok(())
+    tmp.commit().map_err(|e| DataError::io(path, e))
 }
 
 fn std_slice<'a, T, D: ndarray::Dimension>(
@@ -75,105 +66,65 @@ fn std_slice<'a, T, D: ndarray::Dimension>(
         .ok_or_else(|| DataError::arg(key, "a C-contiguous array", "a non-contiguous view"))
 }
 
-fn scene_members<W: Write + std::io::Seek>(ds: &Dataset, w: &mut NpzWriter<W>) -> Result<()> {
+/// Adds array `a` as member `key`; `data` picks the element type.
+fn add<'a, W: Write + Seek, T, D: ndarray::Dimension>(
+    w: &mut NpzWriter<W>,
+    key: &str,
+    a: &'a ndarray::Array<T, D>,
+    data: fn(&'a [T]) -> MemberData<'a>,
+) -> Result<()> {
+    w.add(key, a.shape(), data(std_slice(a, key)?))
+}
+
+/// [`add`] for an optional array; an absent one is not written.
+fn add_opt<'a, W: Write + Seek, T, D: ndarray::Dimension>(
+    w: &mut NpzWriter<W>,
+    key: &str,
+    a: &'a Option<ndarray::Array<T, D>>,
+    data: fn(&'a [T]) -> MemberData<'a>,
+) -> Result<()> {
+    match a {
+        Some(a) => add(w, key, a, data),
+        None => Ok(()),
+    }
+}
+
+fn scene_members<W: Write + Seek>(ds: &Dataset, w: &mut NpzWriter<W>) -> Result<()> {
+    use MemberData::{F32, I64, I8};
     w.add("schema_version", &[], MemberData::I32(&[ds.schema_version]))?;
     if let Some(r) = &ds.rest_pose {
         let flat: Vec<f32> = r.iter().flatten().copied().collect();
-        w.add("rest_pose", &[24, 3], MemberData::F32(&flat))?;
+        w.add("rest_pose", &[24, 3], F32(&flat))?;
     }
-    w.add(
-        "bones",
-        ds.bones.shape(),
-        MemberData::F32(std_slice(&ds.bones, "bones")?),
-    )?;
-    if let Some(a) = &ds.kp3d {
-        w.add("kp3d", a.shape(), MemberData::F32(std_slice(a, "kp3d")?))?;
-    }
-    if let Some(a) = &ds.root_locs {
-        w.add(
-            "root_locs",
-            a.shape(),
-            MemberData::F32(std_slice(a, "root_locs")?),
-        )?;
-    }
-    if let Some(a) = &ds.skts {
-        w.add("skts", a.shape(), MemberData::F32(std_slice(a, "skts")?))?;
-    }
-    if let Some(a) = &ds.cyls {
-        w.add("cyls", a.shape(), MemberData::F32(std_slice(a, "cyls")?))?;
-    }
-    if let Some(a) = &ds.betas {
-        w.add("betas", a.shape(), MemberData::F32(std_slice(a, "betas")?))?;
-    }
-    if let Some(a) = &ds.gt_kp3d {
-        w.add(
-            "gt_kp3d",
-            a.shape(),
-            MemberData::F32(std_slice(a, "gt_kp3d")?),
-        )?;
-    }
-    if let Some(a) = &ds.frame_ids {
-        w.add(
-            "frame_ids",
-            a.shape(),
-            MemberData::I64(std_slice(a, "frame_ids")?),
-        )?;
-    }
-    w.add("head_dir", &[3], MemberData::F32(&ds.head_dir))?;
-    w.add("pose_scale", &[], MemberData::F32(&[ds.pose_scale]))?;
+    add(w, "bones", &ds.bones, F32)?;
+    add_opt(w, "kp3d", &ds.kp3d, F32)?;
+    add_opt(w, "root_locs", &ds.root_locs, F32)?;
+    add_opt(w, "skts", &ds.skts, F32)?;
+    add_opt(w, "cyls", &ds.cyls, F32)?;
+    add_opt(w, "betas", &ds.betas, F32)?;
+    add_opt(w, "gt_kp3d", &ds.gt_kp3d, F32)?;
+    add_opt(w, "frame_ids", &ds.frame_ids, I64)?;
+    w.add("head_dir", &[3], F32(&ds.head_dir))?;
+    w.add("pose_scale", &[], F32(&[ds.pose_scale]))?;
     if let Some(e) = ds.ext_scale {
         w.add("ext_scale", &[], MemberData::F64(&[e]))?;
     }
-    if let Some(a) = &ds.c2ws {
-        w.add("c2ws", a.shape(), MemberData::F32(std_slice(a, "c2ws")?))?;
-    }
-    if let Some(a) = &ds.focals {
-        w.add(
-            "focals",
-            a.shape(),
-            MemberData::F32(std_slice(a, "focals")?),
-        )?;
-    }
-    if let Some(a) = &ds.centers {
-        w.add(
-            "centers",
-            a.shape(),
-            MemberData::F32(std_slice(a, "centers")?),
-        )?;
-    }
+    add_opt(w, "c2ws", &ds.c2ws, F32)?;
+    add_opt(w, "focals", &ds.focals, F32)?;
+    add_opt(w, "centers", &ds.centers, F32)?;
     if let Some(s) = ds.img_shape {
         let v = s.map(|x| x as i64);
-        w.add("img_shape", &[4], MemberData::I64(&v))?;
+        w.add("img_shape", &[4], I64(&v))?;
     }
-    for (key, a) in [
-        ("kp_idxs", &ds.kp_idxs),
-        ("img_pose_indices", &ds.img_pose_indices),
-        ("bkgd_idxs", &ds.bkgd_idxs),
-    ] {
-        if let Some(a) = a {
-            w.add(key, a.shape(), MemberData::I64(std_slice(a, key)?))?;
-        }
-    }
-    if let Some(a) = &ds.eval_tag {
-        w.add(
-            "eval_tag",
-            a.shape(),
-            MemberData::I8(std_slice(a, "eval_tag")?),
-        )?;
-    }
-    Ok(())
+    add_opt(w, "kp_idxs", &ds.kp_idxs, I64)?;
+    add_opt(w, "img_pose_indices", &ds.img_pose_indices, I64)?;
+    add_opt(w, "bkgd_idxs", &ds.bkgd_idxs, I64)?;
+    add_opt(w, "eval_tag", &ds.eval_tag, I8)
 }
 
-fn frame_members<W: Write + std::io::Seek>(ds: &Dataset, w: &mut NpzWriter<W>) -> Result<()> {
-    for (key, a) in [
-        ("imgs", &ds.imgs),
-        ("masks", &ds.masks),
-        ("sampling_masks", &ds.sampling_masks),
-        ("bkgds", &ds.bkgds),
-    ] {
-        if let Some(a) = a {
-            w.add(key, a.shape(), MemberData::U8(std_slice(a, key)?))?;
-        }
-    }
-    Ok(())
+fn frame_members<W: Write + Seek>(ds: &Dataset, w: &mut NpzWriter<W>) -> Result<()> {
+    add_opt(w, "imgs", &ds.imgs, MemberData::U8)?;
+    add_opt(w, "masks", &ds.masks, MemberData::U8)?;
+    add_opt(w, "sampling_masks", &ds.sampling_masks, MemberData::U8)?;
+    add_opt(w, "bkgds", &ds.bkgds, MemberData::U8)
 }

@@ -40,8 +40,8 @@
 use glam::{DMat3, DQuat, DVec3};
 
 use super::bvh::{Bvh, BvhPose};
-use super::{rotvec_from_mat, HeadDir, Motion, MotionError, J};
-use crate::skeleton::{Joints, JOINT_NAMES, PARENTS};
+use super::{rotvec_from_mat, HeadDir, Motion, MotionError};
+use crate::skeleton::{Joints, JOINT_NAMES, N_JOINTS, PARENTS};
 
 /// CMU "cmuconvert" BVH length unit in metres: `(1/0.45)·2.54/100`.
 pub const CMU_UNIT_METRES: f64 = 0.056444;
@@ -95,7 +95,7 @@ const fn leaf(at: &'static str) -> MapEntry {
 /// order. The CMU spine is shorter than SMPL's and branches the collars
 /// at `Chest2`, so spine2 follows the upper back `Chest2 → Neck` and spine3
 /// takes the `Chest2` frame.
-pub const CMU_TO_SMPL: [MapEntry; J] = [
+pub const CMU_TO_SMPL: [MapEntry; N_JOINTS] = [
     MapEntry {
         at: "Hips",
         source: Source::Frame {
@@ -158,15 +158,15 @@ impl Default for RetargetOptions {
 /// A joint map resolved against one BVH hierarchy and one SMPL rest pose.
 struct Resolved {
     /// Per SMPL joint: the owner BVH joint whose rotation drives it.
-    owner: [usize; J],
+    owner: [usize; N_JOINTS],
     /// Per SMPL joint: the rest alignment `A_j`.
-    align: [DMat3; J],
+    align: [DMat3; N_JOINTS],
     /// Per Bone joint: BVH segment (from, to) indices.
-    segment: [Option<(usize, usize)>; J],
+    segment: [Option<(usize, usize)>; N_JOINTS],
     /// Per Bone joint: the BVH rest direction `u` of its segment.
-    rest_dir: [DVec3; J],
+    rest_dir: [DVec3; N_JOINTS],
     /// Per Leaf joint: true.
-    leaf: [bool; J],
+    leaf: [bool; N_JOINTS],
 }
 
 fn direction(a: DVec3, b: DVec3) -> DVec3 {
@@ -188,7 +188,7 @@ fn arc(from: DVec3, to: DVec3) -> DMat3 {
 fn resolve(
     bvh: &Bvh,
     file: &str,
-    map: &[MapEntry; J],
+    map: &[MapEntry; N_JOINTS],
     rest: &Joints,
 ) -> Result<Resolved, MotionError> {
     let find = |name: &'static str, j: usize| {
@@ -212,11 +212,11 @@ fn resolve(
     let p = |b: usize| bvh_rest.position[b];
 
     let mut out = Resolved {
-        owner: [0; J],
-        align: [DMat3::IDENTITY; J],
-        segment: [None; J],
-        rest_dir: [DVec3::ZERO; J],
-        leaf: [false; J],
+        owner: [0; N_JOINTS],
+        align: [DMat3::IDENTITY; N_JOINTS],
+        segment: [None; N_JOINTS],
+        rest_dir: [DVec3::ZERO; N_JOINTS],
+        leaf: [false; N_JOINTS],
     };
     for (j, entry) in map.iter().enumerate() {
         find(entry.at, j)?;
@@ -276,9 +276,9 @@ fn resolve(
 }
 
 /// World orientations `Q_j` of the SMPL joints for one BVH pose.
-fn world_orientations(res: &Resolved, pose: &BvhPose) -> [DMat3; J] {
-    let mut q = [DMat3::IDENTITY; J];
-    for j in 0..J {
+fn world_orientations(res: &Resolved, pose: &BvhPose) -> [DMat3; N_JOINTS] {
+    let mut q = [DMat3::IDENTITY; N_JOINTS];
+    for j in 0..N_JOINTS {
         let g = pose.rotation[res.owner[j]];
         q[j] = if res.leaf[j] {
             let parent_owner = pose.rotation[res.owner[PARENTS[j]]];
@@ -301,7 +301,7 @@ fn world_orientations(res: &Resolved, pose: &BvhPose) -> [DMat3; J] {
 pub fn retarget_bvh(
     bvh: &Bvh,
     file: &str,
-    map: &[MapEntry; J],
+    map: &[MapEntry; N_JOINTS],
     rest: &Joints,
     opts: &RetargetOptions,
 ) -> Result<Motion, MotionError> {
@@ -324,9 +324,9 @@ pub fn retarget_bvh(
     for f in 0..bvh.n_frames() {
         let pose = bvh.pose(f);
         let q = world_orientations(&res, &pose);
-        let mut frame = [[0.0f32; 3]; J];
+        let mut frame = [[0.0f32; 3]; N_JOINTS];
         frame[0] = rotvec_from_mat(q[0]);
-        for j in 1..J {
+        for j in 1..N_JOINTS {
             frame[j] = rotvec_from_mat(q[PARENTS[j]].transpose() * q[j]);
         }
         bones.push(frame);

@@ -10,7 +10,8 @@
 use std::io::{Cursor, Read, Seek};
 use std::path::Path;
 
-use super::{ambiguous_up, detect_up, Motion, MotionError, J};
+use super::{ambiguous_up, detect_up, Motion, MotionError};
+use crate::skeleton::N_JOINTS;
 
 /// Reads an SMPL-parameter npz. `fallback_fps` is used when the file stores
 /// no frame rate (AIST++ annotations are 60 fps). The up axis is detected
@@ -130,7 +131,7 @@ fn read_from<R: Read + Seek>(
                 frame: f,
             });
         }
-        bones.push(std::array::from_fn::<_, J, _>(|j| {
+        bones.push(std::array::from_fn::<_, N_JOINTS, _>(|j| {
             std::array::from_fn(|c| p[3 * j + c] as f32)
         }));
         root.push(std::array::from_fn(|c| r[c] as f32));

@@ -1,5 +1,5 @@
 //! Analytic ray tracing of the posed figure: one ray per pixel through the
-//! pixel's integer coordinates (the camera convention of the data spec),
+//! pixel's integer coordinates (docs/conventions.md, "Cameras"),
 //! nearest hit over all parts, Lambert shading under one fixed directional
 //! light. The mask is exactly "this pixel's ray hits a part".
 

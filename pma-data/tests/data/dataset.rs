@@ -1,6 +1,6 @@
 //! pma-npz v1 datasets: byte-deterministic write → read round trip, import-time derivations
-//! equal to the stored keys, and one refused file per bad-input class of spec data.md §10
-//! (each asserts the error kind and that the message names the file and the key).
+//! equal to the stored keys, and one refused file per bad-input class of docs/conventions.md,
+//! "Validation" (each asserts the error kind and that the message names the file and the key).
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -204,7 +204,7 @@ fn derived_kinematics_and_cylinders_equal_the_stored_ones() {
     assert!(diff(&kp(&read(&p, Profile::Train).unwrap()), &kp(&full)) <= 1e-6);
 }
 
-// --- §10 structure --------------------------------------------------------------------
+// --- structure ------------------------------------------------------------------------
 
 #[test]
 fn s10_1_missing_key_names_the_profile() {
@@ -411,7 +411,7 @@ fn s10_6_empty_splits_are_refused() {
     assert_names(&msg, &["bones", "P = 0"]);
 }
 
-// --- §10 numerics ---------------------------------------------------------------------
+// --- numerics -------------------------------------------------------------------------
 
 #[test]
 fn s10_7_non_finite_values_are_refused() {
@@ -540,7 +540,7 @@ fn s10_12_non_positive_pose_scale_is_refused() {
     assert_names(&msg, &["pose_scale", "> 0"]);
 }
 
-// --- §10 geometry -----------------------------------------------------------------------
+// --- geometry ---------------------------------------------------------------------------
 
 #[test]
 fn s10_13_offset_root_is_refused_unless_allowed() {
@@ -679,7 +679,7 @@ fn s10_20_head_direction_must_be_plus_or_minus_y() {
     assert_names(&msg, &["head_dir", "(0,-1,0) or (0,1,0)"]);
 }
 
-// --- §10 pixels ---------------------------------------------------------------------------
+// --- pixels -------------------------------------------------------------------------------
 
 #[test]
 fn s10_21_non_binary_masks_are_refused_unless_binarised() {

@@ -1,4 +1,4 @@
-//! PSNR / SSIM (spec data.md §8.3 a) against scikit-image and closed forms.
+//! PSNR / SSIM (docs/conventions.md, "Evaluation protocol") against scikit-image and closed forms.
 //!
 //! The scikit-image numbers come from `fixtures/metrics/skimage_reference.py`
 //! (scikit-image 0.26.0, numpy 2.4), which builds the same closed-form arrays.

@@ -1,6 +1,6 @@
-//! The §7 training sampler: seeded determinism, the image-major contiguous layout, distinct
-//! sorted pixels inside the sampling mask, permutation coverage, background noise only off
-//! the silhouette, and an exact continuation after restore.
+//! The training ray sampler (docs/conventions.md, "Ray sampler"): seeded determinism, the
+//! image-major contiguous layout, distinct sorted pixels inside the sampling mask, permutation
+//! coverage, background noise only off the silhouette, and an exact continuation after restore.
 
 use pma_data::dataset::Dataset;
 use pma_data::sampler::Sampler;

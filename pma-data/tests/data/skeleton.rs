@@ -1,5 +1,6 @@
 //! Skeleton kinematics against the reference's golden outputs and the
-//! spec's test vectors (model.md §2.4, §2.5), plus rotation round trips.
+//! spec's test vectors (docs/conventions.md, "Skeleton"; docs/reference.md,
+//! "Initialisation"), plus rotation round trips.
 
 use std::path::PathBuf;
 
