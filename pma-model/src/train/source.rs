@@ -21,8 +21,8 @@ use pma_data::dataset::Dataset;
 use pma_data::sampler::Sampler;
 use serde::{Deserialize, Serialize};
 
+use super::batch::{BatchSource, TrainBatch};
 use super::state::RngState;
-use super::trainer::{BatchSource, TrainBatch};
 use super::TrainError;
 use crate::avatar::{Poses, Rays};
 

@@ -17,14 +17,16 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
 use super::adam::{clip_grad_norm, global_norm, Adam};
+use super::batch::{BatchSource, TrainBatch};
 use super::source::DatasetSource;
 use super::state::{fingerprint, Progress, RngState, TrainState};
 use super::TrainError;
-use crate::avatar::{Avatar, ForwardOptions, Outputs, PoseFeatures, Poses, Rays};
+use crate::avatar::{Avatar, ForwardOptions, Outputs, PoseFeatures, Rays};
 use crate::config::Config;
 use crate::loss::LossWeights;
 use crate::presets::{RunConfig, TrainConfig};
 use pma_data::dataset::Dataset;
+use pma_data::metrics::psnr_from_mse;
 
 /// Model file of a run directory (a pma checkpoint).
 pub const MODEL_FILE: &str = "model.safetensors";
@@ -152,46 +154,6 @@ impl Optimization {
             });
         }
         Ok(stats)
-    }
-}
-
-/// PSNR from a mean squared error (`-10 log10 mse`; +inf for a perfect match).
-pub fn psnr_from_mse(mse: f64) -> f64 {
-    -10.0 * mse.log10()
-}
-
-/// One training batch: rays grouped by pose in equal contiguous blocks, their targets.
-#[derive(Debug, Clone)]
-pub struct TrainBatch {
-    /// Unit directions, per-ray backgrounds (random noise on background pixels), and the
-    /// training-image index of each ray as its frame code.
-    pub rays: Rays,
-    pub poses: Poses,
-    /// target: [R,3] pixel colour composited over the ray's background.
-    pub target: Tensor,
-}
-
-/// Where training batches come from. Its state is saved with every checkpoint, so it must
-/// capture everything that decides the next batches (permutation, cursor, RNG position).
-pub trait BatchSource {
-    fn next_batch(&mut self) -> Result<TrainBatch, TrainError>;
-    /// JSON state for the train-state file (`Value::Null` if stateless).
-    fn state(&self) -> serde_json::Value;
-    fn restore(&mut self, state: &serde_json::Value) -> Result<(), TrainError>;
-}
-
-/// The same batch every step (parity tests, overfitting a fixed batch).
-pub struct FixedBatch(pub TrainBatch);
-
-impl BatchSource for FixedBatch {
-    fn next_batch(&mut self) -> Result<TrainBatch, TrainError> {
-        Ok(self.0.clone())
-    }
-    fn state(&self) -> serde_json::Value {
-        serde_json::Value::Null
-    }
-    fn restore(&mut self, _: &serde_json::Value) -> Result<(), TrainError> {
-        Ok(())
     }
 }
 
