@@ -206,10 +206,11 @@ pub fn split_images(data: &Dataset, path: &Path, split: &Split) -> Result<Vec<us
         (Some(tags), false) => (0..n).filter(|&i| tags[i] == split.tag).collect(),
         (None, false) => {
             if file_split_name(path).as_deref() != Some(split.name.as_str()) {
-                return Err(not_in_file(
-                    "the file has no eval_tag, so only a file named after the split counts as it"
-                        .into(),
-                ));
+                return Err(not_in_file(format!(
+                    "the file has no eval_tag; without one a file holds only the split its name \
+                     gives, {}.npz",
+                    split.name
+                )));
             }
             (0..n).collect()
         }

@@ -57,6 +57,23 @@ pub fn exit_code(e: &anyhow::Error) -> u8 {
     }
 }
 
+/// `e` and its causes on one line, each cause left out when the message already holds it
+/// (many errors print their source themselves).
+pub fn report(e: &anyhow::Error) -> String {
+    let mut out = String::new();
+    for cause in e.chain() {
+        let text = cause.to_string();
+        if out.contains(&text) {
+            continue;
+        }
+        if !out.is_empty() {
+            out.push_str(": ");
+        }
+        out.push_str(&text);
+    }
+    out
+}
+
 /// An evaluation error, as [`Refused`] when it is about the input.
 pub fn eval_error(e: pma_model::eval::EvalError) -> anyhow::Error {
     if e.is_bad_input() {

@@ -73,12 +73,12 @@ mod imp {
 
     use anyhow::{bail, Context as _};
     use pma_model::train::{
-        train_run, ObserverError, Preset, RunConfig, StepReport, TrainLog, TrainObserver,
-        TrainOutcome, TrainRequest, CONFIG_FILE,
+        train_run, ObserverError, Preset, RunConfig, StepReport, TrainError, TrainLog,
+        TrainObserver, TrainOutcome, TrainRequest, CONFIG_FILE,
     };
 
     use super::super::plot::plot_psnr_vs_time;
-    use super::super::progress;
+    use super::super::{progress, Refused};
     use super::*;
 
     /// The plot a run directory gets at every checkpoint.
@@ -142,7 +142,7 @@ mod imp {
         };
         let result = train_run(req, &interrupt_flag(), &mut view);
         view.bar.finish_and_clear();
-        let outcome = result?;
+        let outcome = result.map_err(refuse_input)?;
         if outcome.interrupted {
             eprintln!(
                 "interrupted at iteration {}; continue with `pma train --resume --out {}`",
@@ -151,6 +151,16 @@ mod imp {
             );
         }
         Ok(outcome)
+    }
+
+    /// A run directory that holds another run, or data without what was asked of it, is
+    /// refused input.
+    fn refuse_input(e: TrainError) -> anyhow::Error {
+        match e {
+            TrainError::RunExists(_) => Refused::new(e).into(),
+            TrainError::Eval(e) if e.is_bad_input() => Refused::new(*e).into(),
+            e => e.into(),
+        }
     }
 
     /// Set once per process: the first Ctrl-C asks the loop to checkpoint and stop, a second
