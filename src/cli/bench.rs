@@ -13,6 +13,9 @@
 //! `avx2`+`fma` or `avx512f` (two 8-wide FMA pipes; Zen 4 runs 512-bit FMAs as two 256-bit
 //! halves), 8 otherwise.
 
+// Without training support only the report types and flags are compiled, unused.
+#![cfg_attr(not(feature = "train"), allow(dead_code))]
+
 use std::path::PathBuf;
 
 #[derive(clap::Args, Debug, Clone)]

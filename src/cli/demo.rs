@@ -129,7 +129,9 @@ mod imp {
 
         let plot = out.join(PLOT_FILE);
         let run_plot = out.join("run").join(PLOT_FILE);
-        std::fs::copy(&run_plot, &plot)
+        let bytes =
+            std::fs::read(&run_plot).with_context(|| format!("reading {}", run_plot.display()))?;
+        pma_data::fsio::write_atomic(&plot, &bytes)
             .with_context(|| format!("copying the plot to {}", plot.display()))?;
         let summary = Summary {
             iterations: outcome.iterations,

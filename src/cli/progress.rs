@@ -13,6 +13,7 @@ pub fn bar(quiet: bool, len: u64, prefix: &str) -> ProgressBar {
 }
 
 /// As [`bar`] without the estimated time: for work whose message carries its own estimate.
+#[cfg(feature = "train")]
 pub fn bar_without_eta(quiet: bool, len: u64, prefix: &str) -> ProgressBar {
     styled(
         quiet,
