@@ -3,6 +3,8 @@
 //! The binary only parses arguments and calls the libraries (`pma-data`,
 //! `pma-model`, `pma-convert`); each subcommand lives in `src/cli/<name>.rs`.
 
+use std::process::ExitCode;
+
 use clap::{Parser, Subcommand};
 
 mod cli;
@@ -58,12 +60,14 @@ enum Command {
     CheckStability(cli::check_stability::Args),
 }
 
-fn main() -> anyhow::Result<()> {
+/// Errors go to stderr as one `error: ...` line with their causes, as clap reports usage
+/// errors; the exit status is 2 for refused input ([`cli::Refused`]) and 1 otherwise.
+fn main() -> ExitCode {
     let cli = Cli::parse();
     // Before any candle op: candle sizes its thread pool once.
     pma_model::parallel::configure_cpu(cli.workers);
     pma_model::fast_sine::set_enabled(cli.fast_sine);
-    match cli.command {
+    let result = match cli.command {
         Command::Synth(a) => cli::synth::run(a),
         Command::Inspect(a) => cli::inspect::run(a),
         Command::Forward(a) => cli::forward::run(a),
@@ -75,5 +79,12 @@ fn main() -> anyhow::Result<()> {
         Command::Mesh(a) => cli::mesh::run(a),
         Command::Bench(a) => cli::bench::run(a),
         Command::CheckStability(a) => cli::check_stability::run(a),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {}", cli::report(&e));
+            ExitCode::from(cli::exit_code(&e))
+        }
     }
 }

@@ -31,6 +31,7 @@ pub struct Quirks {
 
 /// What culled samples are given (see [`Culling`]).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
 #[serde(rename_all = "snake_case")]
 pub enum SampleFill {
     /// The network's own output there: where w^p = 0 for every joint, every windowed feature
@@ -43,18 +44,46 @@ pub enum SampleFill {
     Zero,
 }
 
-/// Leaving work out (docs/numerics.md, "Empty rays and culling"). Everything is off by default, which is parity with the
-/// reference; the section is omitted from checkpoint JSON while it is off.
+/// Leaving work out (docs/numerics.md, "Empty rays and culling"). Everything is off by
+/// default, which is parity with the reference; the section is omitted from checkpoint JSON
+/// while it is off. With the `cli` feature it is also the `--cull-rays`, `--cull-samples T`
+/// and `--cull-fill` flags.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "cli", derive(clap::Args))]
 #[serde(default)]
 pub struct Culling {
     /// Rays that cross no (enlarged) bone box skip the network: raw outputs 0, so the
     /// render is exactly the background with zero weights, acc, depth and disparity.
+    #[cfg_attr(
+        feature = "cli",
+        arg(
+            long = "cull-rays",
+            help = "Rays that cross no bone box get the background without running the network"
+        )
+    )]
     pub rays: bool,
     /// Samples whose spatial window w^p is <= this for every joint skip the network and get
     /// `sample_fill`. `Some(0.0)` culls only exact zeros (exact with `SampleFill::Network`);
     /// `None` is off.
+    #[cfg_attr(
+        feature = "cli",
+        arg(
+            long = "cull-samples",
+            value_name = "T",
+            help = "Samples whose spatial window is <= T for every joint skip the network \
+                    (0 = only exact zeros, which leaves the image unchanged)"
+        )
+    )]
     pub sample_threshold: Option<f64>,
+    #[cfg_attr(
+        feature = "cli",
+        arg(
+            long = "cull-fill",
+            value_enum,
+            default_value = "network",
+            help = "What culled samples get: `network` (the network's far-away constant) or `zero`"
+        )
+    )]
     pub sample_fill: SampleFill,
 }
 

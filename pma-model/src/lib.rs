@@ -25,6 +25,7 @@ pub mod cull;
 pub mod device;
 pub mod encoders;
 pub mod error;
+pub mod eval;
 pub mod fast_sine;
 pub mod field;
 pub mod fused;

@@ -1,5 +1,5 @@
-//! `pma bench`: parity mode against each culling option, side by side in one process
-//! (issue 6). For every option: network points/s and rays/s of inference, ms per rendered
+//! `pma bench`: parity mode against each culling option, side by side in one process.
+//! For every option: network points/s and rays/s of inference, ms per rendered
 //! W×H image, ms per training step, peak RSS of each phase, PSNR of the render against the
 //! parity render, the change of held-out PSNR against ground truth, held-out PSNR after the
 //! same wall-clock training budget, and the achieved GFLOP/s against an estimate of the
@@ -12,6 +12,9 @@
 //! lower bound of the boost peak), the number of `processor` entries, and 32 FLOP/cycle with
 //! `avx2`+`fma` or `avx512f` (two 8-wide FMA pipes; Zen 4 runs 512-bit FMAs as two 256-bit
 //! halves), 8 otherwise.
+
+// Without training support only the report types and flags are compiled, unused.
+#![cfg_attr(not(feature = "train"), allow(dead_code))]
 
 use std::path::PathBuf;
 
@@ -208,13 +211,17 @@ mod imp {
     use candle_core::{Device, Tensor};
     use pma_data::camera::Camera;
     use pma_data::dataset::{Dataset, Profile};
+    use pma_data::metrics::psnr;
+    use pma_data::skeleton::Joints;
     use pma_data::synth::{generate, SynthConfig};
     use pma_model::avatar::{Avatar, Poses};
     use pma_model::config::{Culling, SampleFill};
+    use pma_model::eval::{dataset_pose, ground_truth, render_dataset_image};
     use pma_model::image::{ImageOptions, RenderedImage};
     use pma_model::train::{Preset, RunConfig, Trainer};
 
-    use super::super::eval::{ground_truth, read_dataset, write_json_atomic};
+    use super::super::plot::plot_error_vs_time;
+    use super::super::{progress, read_dataset, write_json};
     use super::*;
 
     /// (name, culling, fast sine): parity, each culling option, then the vectorised sine
@@ -258,50 +265,6 @@ mod imp {
         v[v.len() / 2]
     }
 
-    fn psnr(a: &[f32], b: &[f32]) -> f64 {
-        let mse = a
-            .iter()
-            .zip(b)
-            .map(|(x, y)| ((x - y) as f64).powi(2))
-            .sum::<f64>()
-            / a.len().max(1) as f64;
-        -10.0 * mse.log10()
-    }
-
-    fn bar(quiet: bool, len: u64, msg: &str) -> indicatif::ProgressBar {
-        if quiet {
-            return indicatif::ProgressBar::hidden();
-        }
-        let b = indicatif::ProgressBar::new(len);
-        b.set_style(
-            indicatif::ProgressStyle::with_template("{msg:28} {bar:30} {pos}/{len} {elapsed}")
-                .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
-        );
-        b.set_message(msg.to_string());
-        b
-    }
-
-    /// Pose row p of a dataset as model input (+ its joints for the render box).
-    fn pose_of(data: &Dataset, p: usize, dev: &Device) -> anyhow::Result<(Poses, [[f32; 3]; 24])> {
-        let (Some(skts), Some(cyls), Some(kp3d)) = (&data.skts, &data.cyls, data.pose_kp3d(p))
-        else {
-            anyhow::bail!("{}: pose {p} lacks skts/cyls/kp3d", data.source);
-        };
-        let skts: Vec<f32> = skts
-            .outer_iter()
-            .nth(p)
-            .map(|m| m.iter().copied().collect())
-            .unwrap_or_default();
-        Ok((
-            Poses {
-                bones: vec![data.pose_bones(p)],
-                skts: Tensor::from_vec(skts, (1, 24, 4, 4), dev)?,
-                cyls: Tensor::from_vec(cyls.row(p).to_vec(), (1, 5), dev)?,
-            },
-            kp3d,
-        ))
-    }
-
     /// Train `run` for `seconds` (at least 2 steps); returns the trainer and the step times.
     fn train_for(
         run: RunConfig,
@@ -325,240 +288,55 @@ mod imp {
         Ok((trainer, times))
     }
 
-    fn heldout_psnr(
-        avatar: &Avatar,
-        data: &Dataset,
-        images: &[usize],
-    ) -> anyhow::Result<(f64, Vec<Vec<f32>>)> {
+    /// Mean PSNR of the unquantised renders of `images` against their ground truth.
+    fn heldout_psnr(avatar: &Avatar, data: &Dataset, images: &[usize]) -> anyhow::Result<f64> {
         let mut scores = Vec::new();
-        let mut renders = Vec::new();
         for &n in images {
-            let img = super::super::eval::render_dataset_image(avatar, data, n, 4096)?;
+            let img = render_dataset_image(avatar, data, n, 4096)?;
             let (gt, _) = ground_truth(data, n)?;
-            scores.push(psnr(&img.rgb, &gt));
-            renders.push(img.rgb);
+            scores.push(psnr(&img.rgb, &gt)?);
         }
-        Ok((
-            scores.iter().sum::<f64>() / scores.len().max(1) as f64,
-            renders,
-        ))
+        Ok(scores.iter().sum::<f64>() / scores.len().max(1) as f64)
+    }
+
+    /// The scene's training split and the held-out images the PSNR columns use.
+    struct Scene {
+        train: Arc<Dataset>,
+        held: Dataset,
+        eval_set: Vec<usize>,
+    }
+
+    /// The W×H view every option renders: the first held-out image's pose and camera,
+    /// intrinsics rescaled.
+    struct View {
+        poses: Poses,
+        kp3d: Joints,
+        cam: Camera,
+        opts: ImageOptions,
+        /// Pixels inside the body box (the rays traced).
+        box_rays: f64,
     }
 
     pub fn run(mut args: Args) -> anyhow::Result<()> {
-        if args.quick {
-            args.preset = "tiny".into();
-            args.res = 32;
-            args.repeats = 1;
-            args.train_seconds = args.train_seconds.min(2.0);
-            args.budget_seconds = args.budget_seconds.min(2.0);
-            args.eval_images = 1;
-        }
-        anyhow::ensure!(args.repeats >= 1, "--repeats must be >= 1");
-        anyhow::ensure!(args.res >= 8, "--res must be >= 8, found {}", args.res);
-        for &t in &args.thresholds {
-            anyhow::ensure!(
-                t.is_finite() && (0.0..1.0).contains(&t),
-                "--thresholds: {t} is not in [0, 1)"
-            );
-        }
+        check_args(&mut args)?;
         let dev = Device::Cpu;
         std::fs::create_dir_all(&args.out)
             .with_context(|| format!("creating {}", args.out.display()))?;
         let rss_reset = reset_peak_rss();
-
-        // The synthetic scene (small: it only serves training and the held-out PSNR).
-        let mut synth = SynthConfig::default();
-        if args.quick {
-            synth.res = 32;
-            synth.frames = 8;
-            synth.novel_pose_walk = 2;
-            synth.novel_pose_dance = 2;
-        }
-        let scene = args.out.join("scene");
-        if !scene.join("novel_view.npz").is_file() {
-            println!("synthesising the scene into {}", scene.display());
-            generate(&synth, &scene, &mut |_, _| {}).context("synthesising the bench scene")?;
-        }
-        let train = Arc::new(read_dataset(&scene.join("train.npz"), Profile::Train)?);
-        let held = read_dataset(&scene.join("novel_view.npz"), Profile::Eval)?;
-        let k = args.eval_images.clamp(1, held.n_images());
-        let eval_set: Vec<usize> = (0..k).map(|i| i * held.n_images() / k).collect();
-
-        // The model that is rendered.
+        let scene = prepare_scene(&args)?;
         let preset: Preset = args.preset.parse()?;
-        let (mut avatar, model_desc) = match &args.model {
-            Some(p) => (
-                Avatar::load(p, &dev).with_context(|| format!("loading {}", p.display()))?,
-                p.display().to_string(),
-            ),
-            None => {
-                let b = bar(
-                    args.quiet,
-                    args.train_seconds as u64,
-                    "training the bench model",
-                );
-                let (trainer, _) = train_for(
-                    RunConfig::from_preset(preset),
-                    train.clone(),
-                    args.train_seconds,
-                    u64::MAX,
-                    &dev,
-                    &b,
-                )?;
-                b.finish_and_clear();
-                let path = args.out.join("model.safetensors");
-                trainer.avatar().save(&path)?;
-                println!(
-                    "trained {} iterations of {} in-process ({:.0} s)",
-                    trainer.iteration(),
-                    args.preset,
-                    args.train_seconds
-                );
-                (
-                    Avatar::load(&path, &dev)?,
-                    format!("{} (trained in-process)", path.display()),
-                )
-            }
-        };
+        let (mut avatar, model_desc) = bench_model(&args, preset, &scene, &dev)?;
         let cfg = avatar.config().clone();
         let fpp = flops_per_point(&cfg);
         let (peak, peak_how) = fp32_peak();
-
-        // A W×H view of the first held-out image's pose and camera, intrinsics rescaled.
-        let n0 = eval_set[0];
-        let (poses, kp3d) = pose_of(&held, held.pose_row(n0)?, &dev)?;
-        let cam0 = held.image_camera(n0)?;
-        let sx = args.res as f32 / cam0.width as f32;
-        let sy = args.res as f32 / cam0.height as f32;
-        let cam = Camera::new(
-            args.res,
-            args.res,
-            cam0.fx * sx,
-            cam0.fy * sy,
-            cam0.cx * sx,
-            cam0.cy * sy,
-            cam0.c2w,
-        )?;
-        let img_opts = ImageOptions {
-            chunk: 4096,
-            head: held.head()?,
-            device: dev.clone(),
-        };
-        let box_rays = {
-            let b = pma_model::image::body_box(&cam, &kp3d, img_opts.head);
-            ((b.x1.min(args.res as i64) - b.x0.max(0)).max(0)
-                * (b.y1.min(args.res as i64) - b.y0.max(0)).max(0)) as f64
-        };
-        let samples_per_ray = (cfg.n_samples + cfg.n_importance) as f64;
-
-        let inactive = inactive_joint_fraction(&avatar, &poses, &cam, &kp3d, &img_opts)?;
+        let view = bench_view(&args, &scene, &dev)?;
+        let inactive =
+            inactive_joint_fraction(&avatar, &view.poses, &view.cam, &view.kp3d, &view.opts)?;
 
         let opts = options(&args.thresholds);
-        let mut results: Vec<OptionResult> = Vec::new();
-        let mut parity_img: Option<RenderedImage> = None;
-        let mut parity_held: Vec<Vec<f32>> = Vec::new();
-        let mut parity_psnr = f64::NAN;
-        let b = bar(args.quiet, opts.len() as u64, "inference per option");
-        for (name, culling, fast_sine) in &opts {
-            b.set_message(format!("render {name}"));
-            avatar.set_culling(culling.clone())?;
-            pma_model::fast_sine::set_enabled(*fast_sine);
-            if rss_reset {
-                reset_peak_rss();
-            }
-            let render = |a: &Avatar| -> anyhow::Result<RenderedImage> {
-                Ok(a.render_image(&poses, &kp3d, &cam, None, &img_opts)?)
-            };
-            let img = render(&avatar)?; // warm-up
-            let mut times = Vec::new();
-            let mut points = 0;
-            for _ in 0..args.repeats {
-                let before = avatar.points_evaluated();
-                let t = Instant::now();
-                let _ = render(&avatar)?;
-                times.push(t.elapsed().as_secs_f64());
-                points = avatar.points_evaluated() - before;
-            }
-            let sec = median(&mut times);
-            let (held_psnr, held_renders) = heldout_psnr(&avatar, &held, &eval_set)?;
-            let peak_rss = peak_rss_mib().unwrap_or(f64::NAN);
-            let (vs_parity, max_diff) = match &parity_img {
-                None => (f64::INFINITY, 0.0),
-                Some(p) => (
-                    psnr(&img.rgb, &p.rgb),
-                    img.rgb
-                        .iter()
-                        .zip(&p.rgb)
-                        .map(|(a, b)| (a - b).abs() as f64)
-                        .fold(0.0, f64::max),
-                ),
-            };
-            if parity_img.is_none() {
-                parity_img = Some(img);
-                parity_held = held_renders;
-                parity_psnr = held_psnr;
-            }
-            let _ = &parity_held;
-            results.push(OptionResult {
-                name: name.clone(),
-                culling: culling.clone(),
-                fast_sine: *fast_sine,
-                ms_per_image: sec * 1e3,
-                rays_per_s: box_rays / sec,
-                network_points_per_s: points as f64 / sec,
-                samples_per_s: box_rays * samples_per_ray / sec,
-                network_points_per_image: points,
-                gflops: points as f64 * fpp / sec / 1e9,
-                peak_rss_mib: peak_rss,
-                psnr_vs_parity_render: vs_parity,
-                max_abs_diff_vs_parity: max_diff,
-                heldout_psnr: held_psnr,
-                psnr_loss_vs_parity_db: parity_psnr - held_psnr,
-                ..Default::default()
-            });
-            b.inc(1);
-        }
-        b.finish_and_clear();
-        avatar.set_culling(Culling::default())?;
-
-        // Training: ms per step and held-out PSNR after the same wall-clock budget.
-        let budget = args.budget_seconds.max(0.0);
-        let b = bar(args.quiet, opts.len() as u64, "training per option");
-        for (res, (name, culling, fast_sine)) in results.iter_mut().zip(&opts) {
-            b.set_message(format!("train {name}"));
-            pma_model::fast_sine::set_enabled(*fast_sine);
-            let mut run = RunConfig::from_preset(preset);
-            run.model = cfg.clone();
-            run.model.culling = culling.clone();
-            if rss_reset {
-                reset_peak_rss();
-            }
-            let hidden = indicatif::ProgressBar::hidden();
-            let (trainer, mut times) = if budget > 0.0 {
-                train_for(run, train.clone(), budget, u64::MAX, &dev, &hidden)?
-            } else {
-                train_for(run, train.clone(), 0.0, 3, &dev, &hidden)?
-            };
-            if times.len() > 1 {
-                times.remove(0); // warm-up
-            }
-            res.ms_per_step = median(&mut times);
-            res.peak_rss_mib = res.peak_rss_mib.max(peak_rss_mib().unwrap_or(f64::NAN));
-            if budget > 0.0 {
-                let mut a = Avatar::from_tensors(
-                    trainer.avatar().config().clone(),
-                    trainer.avatar().tensors(),
-                    &dev,
-                )?;
-                a.set_culling(culling.clone())?;
-                res.budget_heldout_psnr = Some(heldout_psnr(&a, &held, &eval_set)?.0);
-                res.budget_iterations = Some(trainer.iteration());
-            }
-            b.inc(1);
-        }
-        b.finish_and_clear();
-        pma_model::fast_sine::set_enabled(false);
-
+        let mut results =
+            measure_inference(&args, &mut avatar, &scene, &view, &opts, fpp, rss_reset)?;
+        measure_training(&args, preset, &cfg, &scene, &opts, &mut results, rss_reset)?;
         let parity_rays = results[0].rays_per_s;
         for r in &mut results {
             r.speedup_vs_parity = r.rays_per_s / parity_rays;
@@ -576,13 +354,265 @@ mod imp {
             options: results,
         };
         print_table(&report);
-        write_json_atomic(&report, &args.out.join("bench.json"))?;
-        plot(&report, &args.out.join("error_vs_time.png"))?;
+        write_json(&report, &args.out.join("bench.json"))?;
+        plot_error_vs_time(&report, &args.out.join("error_vs_time.png"))?;
         println!(
             "wrote {} and {}",
             args.out.join("bench.json").display(),
             args.out.join("error_vs_time.png").display()
         );
+        Ok(())
+    }
+
+    /// `--quick` settings, then the checks of the flags.
+    fn check_args(args: &mut Args) -> anyhow::Result<()> {
+        if args.quick {
+            args.preset = "tiny".into();
+            args.res = 32;
+            args.repeats = 1;
+            args.train_seconds = args.train_seconds.min(2.0);
+            args.budget_seconds = args.budget_seconds.min(2.0);
+            args.eval_images = 1;
+        }
+        anyhow::ensure!(args.repeats >= 1, "--repeats must be >= 1");
+        anyhow::ensure!(args.res >= 8, "--res must be >= 8, found {}", args.res);
+        for &t in &args.thresholds {
+            anyhow::ensure!(
+                t.is_finite() && (0.0..1.0).contains(&t),
+                "--thresholds: {t} is not in [0, 1)"
+            );
+        }
+        Ok(())
+    }
+
+    /// The synthetic scene (small: it only serves training and the held-out PSNR).
+    fn prepare_scene(args: &Args) -> anyhow::Result<Scene> {
+        let mut synth = SynthConfig::default();
+        if args.quick {
+            synth.res = 32;
+            synth.frames = 8;
+            synth.novel_pose_walk = 2;
+            synth.novel_pose_dance = 2;
+        }
+        let scene = args.out.join("scene");
+        if !scene.join("novel_view.npz").is_file() {
+            println!("synthesising the scene into {}", scene.display());
+            generate(&synth, &scene, &mut |_, _| {}).context("synthesising the bench scene")?;
+        }
+        let train = Arc::new(read_dataset(&scene.join("train.npz"), Profile::Train)?);
+        let held = read_dataset(&scene.join("novel_view.npz"), Profile::Eval)?;
+        let k = args.eval_images.clamp(1, held.n_images());
+        let eval_set: Vec<usize> = (0..k).map(|i| i * held.n_images() / k).collect();
+        Ok(Scene {
+            train,
+            held,
+            eval_set,
+        })
+    }
+
+    /// The model that is rendered: `--model`, or one trained in-process for
+    /// `--train-seconds`. Returns it with a description for the report.
+    fn bench_model(
+        args: &Args,
+        preset: Preset,
+        scene: &Scene,
+        dev: &Device,
+    ) -> anyhow::Result<(Avatar, String)> {
+        if let Some(p) = &args.model {
+            return Ok((
+                Avatar::load(p, dev).with_context(|| format!("loading {}", p.display()))?,
+                p.display().to_string(),
+            ));
+        }
+        let b = progress::bar(
+            args.quiet,
+            args.train_seconds as u64,
+            "training the bench model (s)",
+        );
+        let (trainer, _) = train_for(
+            RunConfig::from_preset(preset),
+            scene.train.clone(),
+            args.train_seconds,
+            u64::MAX,
+            dev,
+            &b,
+        )?;
+        b.finish_and_clear();
+        let path = args.out.join("model.safetensors");
+        trainer.avatar().save(&path)?;
+        println!(
+            "trained {} iterations of {} in-process ({:.0} s)",
+            trainer.iteration(),
+            args.preset,
+            args.train_seconds
+        );
+        Ok((
+            Avatar::load(&path, dev)?,
+            format!("{} (trained in-process)", path.display()),
+        ))
+    }
+
+    fn bench_view(args: &Args, scene: &Scene, dev: &Device) -> anyhow::Result<View> {
+        let held = &scene.held;
+        let n0 = scene.eval_set[0];
+        let (poses, kp3d) = dataset_pose(held, held.pose_row(n0)?, dev)?;
+        let cam0 = held.image_camera(n0)?;
+        let sx = args.res as f32 / cam0.width as f32;
+        let sy = args.res as f32 / cam0.height as f32;
+        let cam = Camera::new(
+            args.res,
+            args.res,
+            cam0.fx * sx,
+            cam0.fy * sy,
+            cam0.cx * sx,
+            cam0.cy * sy,
+            cam0.c2w,
+        )?;
+        let opts = ImageOptions {
+            chunk: 4096,
+            head: held.head()?,
+            device: dev.clone(),
+        };
+        let box_rays = {
+            let b = pma_model::image::body_box(&cam, &kp3d, opts.head);
+            ((b.x1.min(args.res as i64) - b.x0.max(0)).max(0)
+                * (b.y1.min(args.res as i64) - b.y0.max(0)).max(0)) as f64
+        };
+        Ok(View {
+            poses,
+            kp3d,
+            cam,
+            opts,
+            box_rays,
+        })
+    }
+
+    /// Inference per option: render time, points, peak RSS, and the PSNR columns.
+    fn measure_inference(
+        args: &Args,
+        avatar: &mut Avatar,
+        scene: &Scene,
+        view: &View,
+        opts: &[(String, Culling, bool)],
+        flops_per_point: f64,
+        rss_reset: bool,
+    ) -> anyhow::Result<Vec<OptionResult>> {
+        let samples_per_ray = {
+            let c = avatar.config();
+            (c.n_samples + c.n_importance) as f64
+        };
+        let mut results: Vec<OptionResult> = Vec::new();
+        let mut parity: Option<(RenderedImage, f64)> = None;
+        let b = progress::bar(args.quiet, opts.len() as u64, "inference per option");
+        for (name, culling, fast_sine) in opts {
+            b.set_message(format!("render {name}"));
+            avatar.set_culling(culling.clone())?;
+            pma_model::fast_sine::set_enabled(*fast_sine);
+            if rss_reset {
+                reset_peak_rss();
+            }
+            let render = |a: &Avatar| -> anyhow::Result<RenderedImage> {
+                Ok(a.render_image(&view.poses, &view.kp3d, &view.cam, None, &view.opts)?)
+            };
+            let img = render(avatar)?; // warm-up
+            let mut times = Vec::new();
+            let mut points = 0;
+            for _ in 0..args.repeats {
+                let before = avatar.points_evaluated();
+                let t = Instant::now();
+                let _ = render(avatar)?;
+                times.push(t.elapsed().as_secs_f64());
+                points = avatar.points_evaluated() - before;
+            }
+            let sec = median(&mut times);
+            let held_psnr = heldout_psnr(avatar, &scene.held, &scene.eval_set)?;
+            let peak_rss = peak_rss_mib().unwrap_or(f64::NAN);
+            let (vs_parity, max_diff) = match &parity {
+                None => (f64::INFINITY, 0.0),
+                Some((p, _)) => (
+                    psnr(&img.rgb, &p.rgb)?,
+                    img.rgb
+                        .iter()
+                        .zip(&p.rgb)
+                        .map(|(a, b)| (a - b).abs() as f64)
+                        .fold(0.0, f64::max),
+                ),
+            };
+            let parity_psnr = parity.as_ref().map_or(held_psnr, |p| p.1);
+            if parity.is_none() {
+                parity = Some((img, held_psnr));
+            }
+            results.push(OptionResult {
+                name: name.clone(),
+                culling: culling.clone(),
+                fast_sine: *fast_sine,
+                ms_per_image: sec * 1e3,
+                rays_per_s: view.box_rays / sec,
+                network_points_per_s: points as f64 / sec,
+                samples_per_s: view.box_rays * samples_per_ray / sec,
+                network_points_per_image: points,
+                gflops: points as f64 * flops_per_point / sec / 1e9,
+                peak_rss_mib: peak_rss,
+                psnr_vs_parity_render: vs_parity,
+                max_abs_diff_vs_parity: max_diff,
+                heldout_psnr: held_psnr,
+                psnr_loss_vs_parity_db: parity_psnr - held_psnr,
+                ..Default::default()
+            });
+            b.inc(1);
+        }
+        b.finish_and_clear();
+        avatar.set_culling(Culling::default())?;
+        Ok(results)
+    }
+
+    /// Training per option: ms per step and held-out PSNR after the same wall-clock budget.
+    fn measure_training(
+        args: &Args,
+        preset: Preset,
+        cfg: &pma_model::Config,
+        scene: &Scene,
+        opts: &[(String, Culling, bool)],
+        results: &mut [OptionResult],
+        rss_reset: bool,
+    ) -> anyhow::Result<()> {
+        let dev = Device::Cpu;
+        let budget = args.budget_seconds.max(0.0);
+        let b = progress::bar(args.quiet, opts.len() as u64, "training per option");
+        for (res, (name, culling, fast_sine)) in results.iter_mut().zip(opts) {
+            b.set_message(format!("train {name}"));
+            pma_model::fast_sine::set_enabled(*fast_sine);
+            let mut run = RunConfig::from_preset(preset);
+            run.model = cfg.clone();
+            run.model.culling = culling.clone();
+            if rss_reset {
+                reset_peak_rss();
+            }
+            let hidden = indicatif::ProgressBar::hidden();
+            let (trainer, mut times) = if budget > 0.0 {
+                train_for(run, scene.train.clone(), budget, u64::MAX, &dev, &hidden)?
+            } else {
+                train_for(run, scene.train.clone(), 0.0, 3, &dev, &hidden)?
+            };
+            if times.len() > 1 {
+                times.remove(0); // warm-up
+            }
+            res.ms_per_step = median(&mut times);
+            res.peak_rss_mib = res.peak_rss_mib.max(peak_rss_mib().unwrap_or(f64::NAN));
+            if budget > 0.0 {
+                let mut a = Avatar::from_tensors(
+                    trainer.avatar().config().clone(),
+                    trainer.avatar().tensors(),
+                    &dev,
+                )?;
+                a.set_culling(culling.clone())?;
+                res.budget_heldout_psnr = Some(heldout_psnr(&a, &scene.held, &scene.eval_set)?);
+                res.budget_iterations = Some(trainer.iteration());
+            }
+            b.inc(1);
+        }
+        b.finish_and_clear();
+        pma_model::fast_sine::set_enabled(false);
         Ok(())
     }
 
@@ -682,110 +712,5 @@ mod imp {
                     .map_or("-".to_string(), |v| format!("{v:.2}")),
             );
         }
-    }
-
-    static FONT: &[u8] = include_bytes!("../../assets/fonts/DejaVuSans.ttf");
-
-    /// Error against time: x = seconds per image, y = held-out PSNR loss against parity.
-    fn plot(r: &BenchReport, path: &std::path::Path) -> anyhow::Result<()> {
-        use plotters::prelude::*;
-        static REGISTER: std::sync::Once = std::sync::Once::new();
-        REGISTER.call_once(|| {
-            let _ = plotters::style::register_font("sans-serif", FontStyle::Normal, FONT);
-        });
-        let pts: Vec<(f64, f64, &str)> = r
-            .options
-            .iter()
-            .map(|o| {
-                (
-                    o.ms_per_image / 1e3,
-                    if o.psnr_loss_vs_parity_db.is_finite() {
-                        o.psnr_loss_vs_parity_db
-                    } else {
-                        0.0
-                    },
-                    o.name.as_str(),
-                )
-            })
-            .collect();
-        let x_max = pts.iter().map(|p| p.0).fold(0.0, f64::max).max(1e-3) * 1.15;
-        let y_lo = pts.iter().map(|p| p.1).fold(0.0, f64::min) - 0.05;
-        let y_hi = pts.iter().map(|p| p.1).fold(0.1, f64::max) * 1.2 + 0.05;
-        let (w, h) = (900u32, 540u32);
-        let mut buf = vec![0u8; (w * h * 3) as usize];
-        {
-            let e = |e: &dyn std::fmt::Display| anyhow::anyhow!("plot: {e}");
-            let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
-            root.fill(&WHITE).map_err(|x| e(&x))?;
-            let mut chart = ChartBuilder::on(&root)
-                .caption(
-                    format!("pma bench ({}, {}x{})", r.preset, r.res, r.res),
-                    ("sans-serif", 22),
-                )
-                .margin(16)
-                .x_label_area_size(44)
-                .y_label_area_size(60)
-                .build_cartesian_2d(0.0..x_max, y_lo..y_hi)
-                .map_err(|x| e(&x))?;
-            chart
-                .configure_mesh()
-                .x_desc("seconds per image")
-                .y_desc("held-out PSNR loss vs parity [dB]")
-                .label_style(("sans-serif", 15))
-                .draw()
-                .map_err(|x| e(&x))?;
-            chart
-                .draw_series(
-                    pts.iter()
-                        .map(|p| Circle::new((p.0, p.1), 5, BLUE.filled())),
-                )
-                .map_err(|x| e(&x))?;
-            chart
-                .draw_series(pts.iter().map(|p| {
-                    Text::new(p.2.to_string(), (p.0, p.1), ("sans-serif", 13).into_font())
-                }))
-                .map_err(|x| e(&x))?;
-            root.present().map_err(|x| e(&x))?;
-        }
-        let img = image::RgbImage::from_raw(w, h, buf)
-            .ok_or_else(|| anyhow::anyhow!("plot buffer has the wrong size"))?;
-        super::super::eval::write_png_atomic(&img, path)
-    }
-}
-
-/// `--cull*` flags of the render and eval commands (off = parity with the reference).
-#[derive(clap::Args, Debug, Clone, Default)]
-pub struct CullArgs {
-    /// Rays that cross no bone box get the background without running the network.
-    #[arg(long)]
-    pub cull_rays: bool,
-    /// Samples whose spatial window is <= T for every joint skip the network (0 = only
-    /// exact zeros, which leaves the image unchanged).
-    #[arg(long, value_name = "T")]
-    pub cull_samples: Option<f64>,
-    /// What culled samples get: `network` (the network's far-away constant) or `zero`.
-    #[arg(long, default_value = "network")]
-    pub cull_fill: String,
-}
-
-impl CullArgs {
-    pub fn culling(&self) -> anyhow::Result<pma_model::config::Culling> {
-        use pma_model::config::SampleFill;
-        let sample_fill = match self.cull_fill.as_str() {
-            "network" => SampleFill::Network,
-            "zero" => SampleFill::Zero,
-            other => anyhow::bail!("--cull-fill: expected `network` or `zero`, found `{other}`"),
-        };
-        Ok(pma_model::config::Culling {
-            rays: self.cull_rays,
-            sample_threshold: self.cull_samples,
-            sample_fill,
-        })
-    }
-
-    /// Switch the avatar's culling to what the flags ask for.
-    pub fn apply(&self, avatar: &mut pma_model::avatar::Avatar) -> anyhow::Result<()> {
-        avatar.set_culling(self.culling()?)?;
-        Ok(())
     }
 }

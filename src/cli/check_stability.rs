@@ -1,4 +1,4 @@
-//! `pma check-stability`: run the numerical-stability probes (`pma_model::stability`, issue 7)
+//! `pma check-stability`: run the numerical-stability probes (`pma_model::stability`)
 //! on a checkpoint or a freshly initialised avatar and print one table row per case. Exits
 //! non-zero when any output or gradient is non-finite (with `--strict`, also on broken
 //! invariants such as far < near).
@@ -58,14 +58,7 @@ pub fn run(args: Args) -> Result<()> {
         avatar = Avatar::from_tensors(cfg, tensors, &device)?;
     }
     let opts = ProbeOptions::default();
-    let bar = if args.quiet {
-        indicatif::ProgressBar::hidden()
-    } else {
-        indicatif::ProgressBar::new(stability::case_count(&opts)? as u64).with_style(
-            indicatif::ProgressStyle::with_template("probes {bar:40} {pos}/{len} {msg}")
-                .expect("static template"),
-        )
-    };
+    let bar = super::progress::bar(args.quiet, stability::case_count(&opts)? as u64, "probes");
     let report = stability::run_all(&avatar, &opts, &mut |row| {
         bar.set_message(row.case.clone());
         bar.inc(1);

@@ -8,7 +8,6 @@
 use std::{ops::Range, path::PathBuf};
 
 use clap::{Subcommand, ValueEnum};
-use indicatif::{ProgressBar, ProgressStyle};
 use pma_convert::{
     checkpoint::{convert_checkpoint, CheckpointOptions},
     dataset::{convert_dataset, DatasetOptions, Layout},
@@ -16,6 +15,8 @@ use pma_convert::{
     ConvertError,
 };
 use pma_data::dataset::{Compression, Profile};
+
+use super::Refused;
 
 #[derive(clap::Args)]
 #[command(
@@ -166,23 +167,20 @@ fn layout(l: LayoutArg) -> Layout {
     }
 }
 
-/// Exit status of a conversion refused because an input is bad (corrupt,
-/// truncated, hostile, wrong keys/shapes/values, missing). clap's usage errors
-/// exit with 2 as well: in both cases the user has to change the command or its input.
-pub const EXIT_BAD_INPUT: i32 = 2;
-/// Exit status of a failure that is not the input's fault (the output cannot
-/// be written: permissions, a full disk).
-pub const EXIT_FAILURE: i32 = 1;
-
+/// A conversion refused because an input is bad (corrupt, truncated, hostile, wrong
+/// keys/shapes/values, missing) is [`Refused`] (exit status 2); a failure that is not the
+/// input's fault (the output cannot be written: permissions, a full disk) exits 1. The
+/// message is flattened to one line so scripts can read it; our errors name the file.
 pub fn run(args: Args) -> anyhow::Result<()> {
     let inputs = args.what.inputs();
-    if let Err(e) = convert(args) {
-        // One line on stderr and a status that scripts can branch on; anyhow's
-        // multi-line report would print the file twice (our errors name it).
-        eprintln!("error: {}", one_line(&e.to_string()));
-        std::process::exit(exit_code(&e, &inputs));
-    }
-    Ok(())
+    convert(args).map_err(|e| {
+        let line = one_line(&e.to_string());
+        if is_bad_input(&e, &inputs) {
+            Refused::new(line).into()
+        } else {
+            anyhow::Error::msg(line)
+        }
+    })
 }
 
 impl What {
@@ -199,10 +197,10 @@ impl What {
     }
 }
 
-fn exit_code(e: &ConvertError, inputs: &[PathBuf]) -> i32 {
+fn is_bad_input(e: &ConvertError, inputs: &[PathBuf]) -> bool {
     match e.io_path() {
-        Some(p) if !inputs.iter().any(|i| i == p) => EXIT_FAILURE,
-        _ => EXIT_BAD_INPUT,
+        Some(p) => inputs.iter().any(|i| i == p),
+        None => true,
     }
 }
 
@@ -263,11 +261,7 @@ fn convert(args: Args) -> Result<(), ConvertError> {
             opts.allow_offset_root = allow_offset_root;
             opts.binarize_masks = binarize_masks;
             opts.drop_alpha = drop_alpha;
-            let bar = ProgressBar::new(0).with_style(
-                ProgressStyle::with_template("{msg} {bar:40} {pos}/{len} images ({eta})")
-                    .expect("static progress template"),
-            );
-            bar.set_message("pixels");
+            let bar = super::progress::bar(false, 0, "pixels of images");
             let rep = convert_dataset(&input, &output, &opts, &mut |done, total| {
                 bar.set_length(total);
                 bar.set_position(done);

@@ -33,9 +33,8 @@ pub struct Args {
     /// Training frames of the scene (default: `pma synth`'s).
     #[arg(long)]
     pub frames: Option<usize>,
-    /// Score at most this many images per split, evenly spread over it (0 = all). Rendering
-    /// one 96×96 image takes ~3 s with `cpu-small` on 2 cores; the full splits (64 + 128
-    /// images) would add ~10 minutes.
+    /// Score at most this many images per split, evenly spread over it (0 = all); rendering
+    /// the full splits takes several times as long as the default.
     #[arg(long, default_value_t = 32)]
     pub max_eval_images: usize,
     /// Side-by-side PNGs per split.
@@ -67,6 +66,8 @@ pub struct SplitSummary {
     pub ssim: f64,
     pub baseline_psnr: f64,
     pub images: usize,
+    /// The file the split was scored on.
+    pub data: PathBuf,
 }
 
 #[cfg(feature = "train")]
@@ -78,7 +79,11 @@ pub struct Summary {
     /// Training iterations per second (periodic evaluations excluded).
     pub it_per_s: f64,
     pub model: PathBuf,
+    /// The held-out file the run was scored on while it trained (novel view); each split
+    /// names its own file in `splits`.
     pub data: PathBuf,
+    /// The training images.
+    pub train_data: PathBuf,
     pub preset: String,
     pub skipped_steps: u64,
     pub splits: std::collections::BTreeMap<String, SplitSummary>,
@@ -92,27 +97,67 @@ pub struct Summary {
 #[cfg(feature = "train")]
 mod imp {
     use std::collections::BTreeMap;
+    use std::path::{Path, PathBuf};
 
     use anyhow::Context as _;
     use pma_data::dataset::Profile;
     use pma_data::synth::{generate, SynthConfig};
     use pma_model::avatar::Avatar;
-    use pma_model::train::{Preset, RunConfig};
-
-    use super::super::eval::{
-        evaluate, mean_foreground_colour, read_dataset, split_images, spread, write_json_atomic,
-        EvalOptions, PsnrRegion, Split, LPIPS_NOTE,
+    use pma_model::eval::{
+        evaluate, mean_foreground_colour, split_images, spread, EvalOptions, PsnrRegion, Split,
+        LPIPS_NOTE,
     };
-    use super::super::train::{train_run, TrainRequest};
+    use pma_model::train::{Preset, RunConfig, TrainOutcome, TrainRequest, LOG_FILE};
+
+    use super::super::eval::warn_empty_masks;
+    use super::super::train::{train, PLOT_FILE};
+    use super::super::{progress, read_dataset, write_json};
     use super::*;
-    use std::path::Path;
+
+    /// The held-out splits the demo scores.
+    const SPLITS: [&str; 2] = ["novel_view", "novel_pose"];
 
     pub fn run(args: Args) -> anyhow::Result<()> {
         let preset: Preset = args.preset.parse()?;
         let out = args.out.clone();
         std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+        let scene = make_scene(&args, &out.join("scene"))?;
+        let (outcome, it_per_s) = train_scene(&args, preset, &scene, &out.join("run"))?;
+        println!("[3/4] evaluating");
+        let renders = out.join("renders");
+        let splits = evaluate_splits(&args, preset, &scene, &outcome.model, &out)?;
 
-        // 1. The scene (reused when an identical one is already there).
+        let plot = out.join(PLOT_FILE);
+        let run_plot = out.join("run").join(PLOT_FILE);
+        let bytes =
+            std::fs::read(&run_plot).with_context(|| format!("reading {}", run_plot.display()))?;
+        pma_data::fsio::write_atomic(&plot, &bytes)
+            .with_context(|| format!("copying the plot to {}", plot.display()))?;
+        let summary = Summary {
+            iterations: outcome.iterations,
+            wall_s: outcome.wall_s,
+            it_per_s,
+            model: outcome.model.clone(),
+            data: scene.join(format!("{}.npz", SPLITS[0])),
+            train_data: scene.join("train.npz"),
+            preset: preset.name().to_string(),
+            skipped_steps: outcome.skipped,
+            splits,
+            plot,
+            log: out.join("run").join(LOG_FILE),
+            renders,
+            lpips: None,
+            lpips_note: LPIPS_NOTE.to_string(),
+        };
+        let path = out.join("summary.json");
+        write_json(&summary, &path)?;
+        println!("[4/4] wrote {}", path.display());
+        println!("{}", serde_json::to_string_pretty(&summary)?);
+        Ok(())
+    }
+
+    /// Step 1: the scene (reused when an identical one is already there).
+    fn make_scene(args: &Args, scene: &Path) -> anyhow::Result<PathBuf> {
         let mut synth = SynthConfig::default();
         if let Some(r) = args.res {
             synth.res = r;
@@ -120,99 +165,108 @@ mod imp {
         if let Some(f) = args.frames {
             synth.frames = f;
         }
-        let scene = out.join("scene");
-        if scene_matches(&scene, &synth) {
+        if scene_matches(scene, &synth) {
             println!("[1/4] reusing the synthetic scene in {}", scene.display());
-        } else {
-            println!("[1/4] synthesising the scene into {}", scene.display());
-            let bar = bar(args.quiet);
-            let summary = generate(&synth, &scene, &mut |done, total| {
-                bar.set_length(total as u64);
-                bar.set_position(done as u64);
-            })
-            .context("synthesising the demo scene")?;
-            bar.finish_and_clear();
-            for s in &summary.splits {
-                println!(
-                    "      {}: {} images, {} poses",
-                    s.path.display(),
-                    s.images,
-                    s.poses
-                );
-            }
+            return Ok(scene.to_path_buf());
         }
-        let train_npz = scene.join("train.npz");
+        println!("[1/4] synthesising the scene into {}", scene.display());
+        let bar = progress::bar(args.quiet, 0, "      images");
+        let summary = generate(&synth, scene, &mut |done, total| {
+            bar.set_length(total as u64);
+            bar.set_position(done as u64);
+        })
+        .context("synthesising the demo scene")?;
+        bar.finish_and_clear();
+        for s in &summary.splits {
+            println!(
+                "      {}: {} images, {} poses",
+                s.path.display(),
+                s.images,
+                s.poses
+            );
+        }
+        Ok(scene.to_path_buf())
+    }
 
-        // 2. Training for the budget.
+    /// Step 2: training for the budget; returns the outcome and the training it/s.
+    fn train_scene(
+        args: &Args,
+        preset: Preset,
+        scene: &Path,
+        run_dir: &Path,
+    ) -> anyhow::Result<(TrainOutcome, f64)> {
         println!("[2/4] training preset `{preset}` for {} min", args.minutes);
         let mut run = RunConfig::from_preset(preset);
         run.train.seed = args.seed;
         run.train.iters = args.iters.unwrap_or(u64::MAX / 2);
-        let run_dir = out.join("run");
-        let outcome = train_run(TrainRequest {
-            data: train_npz.clone(),
-            out: run_dir.clone(),
+        let req = TrainRequest {
+            data: scene.join("train.npz"),
+            out: run_dir.to_path_buf(),
             run: Some(run),
             resume: false,
             overwrite: true,
             iters: None,
             minutes: Some(args.minutes),
             eval_data: Some(scene.join("novel_view.npz")),
-            quiet: args.quiet,
             chunk_rays: None,
-            title: "pma demo: held-out (novel view) PSNR vs wall-clock time".into(),
             device: candle_core::Device::Cpu,
-        })?;
+        };
+        let outcome = train(
+            &req,
+            args.quiet,
+            "pma demo: held-out (novel view) PSNR vs wall-clock time",
+        )?;
         let train_s = (outcome.session_s - outcome.eval_s).max(1e-9);
         let it_per_s = outcome.session_iterations as f64 / train_s;
         println!(
             "      {} iterations in {:.0} s ({it_per_s:.2} it/s), {} skipped",
             outcome.iterations, outcome.wall_s, outcome.skipped
         );
+        Ok((outcome, it_per_s))
+    }
 
-        // 3. Evaluation of both held-out splits.
-        println!("[3/4] evaluating");
-        let device = candle_core::Device::Cpu;
-        let avatar = Avatar::load(&outcome.model, &device)?;
-        let baseline = mean_foreground_colour(&read_dataset(&train_npz, Profile::Eval)?)?;
+    /// Step 3: both held-out splits, each from its own file of the scene.
+    fn evaluate_splits(
+        args: &Args,
+        preset: Preset,
+        scene: &Path,
+        model: &Path,
+        out: &Path,
+    ) -> anyhow::Result<BTreeMap<String, SplitSummary>> {
         let renders = out.join("renders");
+        let avatar = Avatar::load(model, &candle_core::Device::Cpu)?;
+        let baseline =
+            mean_foreground_colour(&read_dataset(&scene.join("train.npz"), Profile::Eval)?)?;
         std::fs::create_dir_all(&renders)
             .with_context(|| format!("creating {}", renders.display()))?;
-        let chunk = RunConfig::from_preset(preset).train.render_chunk;
+        let opts = EvalOptions {
+            region: PsnrRegion::Mask,
+            ssim_data_range: 2.0,
+            chunk: RunConfig::from_preset(preset).train.render_chunk,
+            png_dir: Some(renders.clone()),
+            pngs: args.pngs,
+            baseline_colour: Some(baseline),
+        };
+        let limit = match args.max_eval_images {
+            0 => usize::MAX,
+            n => n,
+        };
         let mut splits = BTreeMap::new();
-        for name in ["novel_view", "novel_pose"] {
+        for name in SPLITS {
             let path = scene.join(format!("{name}.npz"));
             let data = read_dataset(&path, Profile::Eval)?;
-            let images = split_images(
-                &data,
-                &Split {
-                    name: name.into(),
-                    tag: None,
-                },
-            )?;
             let images = spread(
-                &images,
-                if args.max_eval_images == 0 {
-                    usize::MAX
-                } else {
-                    args.max_eval_images
-                },
+                &split_images(&data, &path, &Split::whole_file(name)?)?,
+                limit,
             );
-            let opts = EvalOptions {
-                region: PsnrRegion::Mask,
-                ssim_data_range: 2.0,
-                chunk,
-                png_dir: Some(renders.clone()),
-                pngs: args.pngs,
-                baseline_colour: Some(baseline),
-            };
-            let bar = bar(args.quiet);
+            let bar = progress::bar(args.quiet, 0, "      images");
             let report = evaluate(&avatar, &data, name, &images, &opts, &mut |d, t| {
                 bar.set_length(t as u64);
                 bar.set_position(d as u64);
             })?;
             bar.finish_and_clear();
-            write_json_atomic(&report, &out.join(format!("eval_{name}.json")))?;
+            warn_empty_masks(&report, &data.source);
+            write_json(&report, &out.join(format!("eval_{name}.json")))?;
             let baseline_psnr = report.baseline_psnr.unwrap_or(f64::NAN);
             println!(
                 "      {name}: PSNR {:.2} dB, SSIM {:.4} over {} images (baseline PSNR {baseline_psnr:.2} dB)",
@@ -225,34 +279,11 @@ mod imp {
                     ssim: report.ssim,
                     baseline_psnr,
                     images: report.images,
+                    data: path,
                 },
             );
         }
-
-        // 4. Summary.
-        let plot = out.join("psnr_vs_time.png");
-        std::fs::copy(&outcome.plot, &plot)
-            .with_context(|| format!("copying the plot to {}", plot.display()))?;
-        let summary = Summary {
-            iterations: outcome.iterations,
-            wall_s: outcome.wall_s,
-            it_per_s,
-            model: outcome.model.clone(),
-            data: train_npz,
-            preset: preset.name().to_string(),
-            skipped_steps: outcome.skipped,
-            splits,
-            plot,
-            log: run_dir.join("log.csv"),
-            renders,
-            lpips: None,
-            lpips_note: LPIPS_NOTE.to_string(),
-        };
-        let path = out.join("summary.json");
-        write_json_atomic(&summary, &path)?;
-        println!("[4/4] wrote {}", path.display());
-        println!("{}", serde_json::to_string_pretty(&summary)?);
-        Ok(())
+        Ok(splits)
     }
 
     /// The scene directory holds all three splits made with exactly `cfg`.
@@ -267,20 +298,5 @@ mod imp {
             return false;
         };
         files_there && serde_json::to_value(cfg).ok().as_ref() == json.get("config")
-    }
-
-    fn bar(quiet: bool) -> indicatif::ProgressBar {
-        if quiet {
-            indicatif::ProgressBar::hidden()
-        } else {
-            let b = indicatif::ProgressBar::new(0);
-            b.set_style(
-                indicatif::ProgressStyle::with_template(
-                    "      [{elapsed_precise}] {bar:30} {pos}/{len} {eta}",
-                )
-                .expect("static template"),
-            );
-            b
-        }
     }
 }

@@ -3,13 +3,14 @@
 //! the pose data, as the reference's data loader delivers them.
 
 use std::collections::HashMap;
-use std::io::BufWriter;
+use std::io::{BufWriter, Write as _};
 use std::path::PathBuf;
 
 use anyhow::{bail, Context, Result};
 use candle_core::Tensor;
 use pma_data::dataset::npz::{MemberData, NpyData, NpzReader, NpzWriter};
-use pma_model::avatar::{Avatar, Mode, Poses, Rays};
+use pma_data::fsio::AtomicFile;
+use pma_model::avatar::{Avatar, Mode, Outputs, Poses, Rays};
 use pma_model::checkpoint;
 
 #[derive(clap::Args)]
@@ -104,50 +105,120 @@ impl Batch {
 pub fn run(args: Args) -> Result<()> {
     let dev = super::device(&args.device)?;
     let file = args.batch.display().to_string();
-    let mut reader = NpzReader::open(&args.batch)?;
-    let mut arrays = HashMap::new();
-    for key in reader.keys() {
-        let a = reader.read(&key)?;
-        arrays.insert(key, (a.shape, a.data));
-    }
-    let b = Batch {
-        file: file.clone(),
-        arrays,
+    let b = Batch::read(&args.batch)?;
+    let input = b.model_input(&dev)?;
+    let avatar = load_model(&args, &input.rest, &file, &dev)?;
+    let mut opts = if args.train_mode {
+        Mode::Train(None)
+    } else {
+        Mode::Eval
     };
-
-    let rays_o = b.f32("rays_o", &[None, Some(3)])?;
-    let r = rays_o.len() / 3;
-    let n = Some(r);
-    let rays_d = b.f32("rays_d", &[n, Some(3)])?;
-    let bones = b.f32("bones", &[n, Some(24), Some(3)])?;
-    let skts = b.f32("skts", &[n, Some(24), Some(4), Some(4)])?;
-    let cyls = b.f32("cyls", &[n, Some(5)])?;
-    let bgs = b.f32("bgs", &[n, Some(3)])?;
-    let cam_idxs = b.i64("cam_idxs", &[n])?;
-    let rest = b.f32("rest_pose", &[Some(24), Some(3)])?;
-    let n_unique = match b.arrays.get("N_unique") {
-        Some(_) => b
-            .i64("N_unique", &[Some(1)])
-            .or_else(|_| b.i64("N_unique", &[]))?[0] as usize,
-        None => 1,
-    };
-    if r == 0 || n_unique == 0 || r % n_unique != 0 {
-        bail!("{file}: {r} rays cannot be split into N_unique = {n_unique} equal per-pose blocks");
+    let out = avatar.forward(&input.rays, &input.poses, &mut opts, None)?;
+    if args.time > 0 {
+        time_forward(&args, &avatar, &input, &mut opts, &dev)?;
     }
-    let stride = r / n_unique;
+    write_outputs(&out, &args.out)?;
+    println!(
+        "wrote {} ({} rays, {} pose(s))",
+        args.out.display(),
+        input.rays.framecodes.len(),
+        input.poses.bones.len()
+    );
+    Ok(())
+}
 
-    let ck = checkpoint::load(&args.model, &dev)?;
+/// What the batch file holds, as model input.
+struct Input {
+    rays: Rays,
+    poses: Poses,
+    /// The rest pose the batch was made for.
+    rest: Vec<f32>,
+}
+
+impl Batch {
+    fn read(path: &std::path::Path) -> Result<Self> {
+        let mut reader = NpzReader::open(path)?;
+        let mut arrays = HashMap::new();
+        for key in reader.keys() {
+            let a = reader.read(&key)?;
+            arrays.insert(key, (a.shape, a.data));
+        }
+        Ok(Self {
+            file: path.display().to_string(),
+            arrays,
+        })
+    }
+
+    fn model_input(&self, dev: &candle_core::Device) -> Result<Input> {
+        let file = &self.file;
+        let rays_o = self.f32("rays_o", &[None, Some(3)])?;
+        let r = rays_o.len() / 3;
+        let n = Some(r);
+        let rays_d = self.f32("rays_d", &[n, Some(3)])?;
+        let bones = self.f32("bones", &[n, Some(24), Some(3)])?;
+        let skts = self.f32("skts", &[n, Some(24), Some(4), Some(4)])?;
+        let cyls = self.f32("cyls", &[n, Some(5)])?;
+        let bgs = self.f32("bgs", &[n, Some(3)])?;
+        let cam_idxs = self.i64("cam_idxs", &[n])?;
+        let rest = self.f32("rest_pose", &[Some(24), Some(3)])?;
+        let n_unique = match self.arrays.get("N_unique") {
+            Some(_) => self
+                .i64("N_unique", &[Some(1)])
+                .or_else(|_| self.i64("N_unique", &[]))?[0] as usize,
+            None => 1,
+        };
+        if r == 0 || n_unique == 0 || r % n_unique != 0 {
+            bail!(
+                "{file}: {r} rays cannot be split into N_unique = {n_unique} equal per-pose blocks"
+            );
+        }
+        let stride = r / n_unique;
+        // Unique poses by striding, as the reference does.
+        let pick = |v: &[f32], per: usize| -> Vec<f32> {
+            (0..n_unique)
+                .flat_map(|p| v[p * stride * per..(p * stride + 1) * per].to_vec())
+                .collect()
+        };
+        let mut pose_bones = Vec::new();
+        for p in 0..n_unique {
+            let mut j = [[0f32; 3]; 24];
+            for (k, row) in j.iter_mut().enumerate() {
+                let at = (p * stride * 24 + k) * 3;
+                row.copy_from_slice(&bones[at..at + 3]);
+            }
+            pose_bones.push(j);
+        }
+        Ok(Input {
+            poses: Poses {
+                bones: pose_bones,
+                skts: Tensor::from_vec(pick(&skts, 24 * 16), (n_unique, 24, 4, 4), dev)?,
+                cyls: Tensor::from_vec(pick(&cyls, 5), (n_unique, 5), dev)?,
+            },
+            rays: Rays {
+                origins: Tensor::from_vec(rays_o, (r, 3), dev)?,
+                dirs: Tensor::from_vec(rays_d, (r, 3), dev)?,
+                bgs: Some(Tensor::from_vec(bgs, (r, 3), dev)?),
+                framecodes: cam_idxs,
+            },
+            rest,
+        })
+    }
+}
+
+/// The model, checked against the batch's rest pose, with `--sigma-override` applied.
+fn load_model(args: &Args, rest: &[f32], file: &str, dev: &candle_core::Device) -> Result<Avatar> {
+    let ck = checkpoint::load(&args.model, dev)?;
     let model_rest: Vec<f32> = ck.meta.rest_pose.iter().flatten().copied().collect();
     let rest_err = model_rest
         .iter()
-        .zip(&rest)
+        .zip(rest)
         .fold(0f32, |m, (a, b)| m.max((a - b).abs()));
     if rest_err > 1e-5 {
         bail!("{file}: key `rest_pose` differs from the model's rest pose by {rest_err:.2e} (the batch was made for another subject)");
     }
     let mut tensors = ck.tensors;
     if let Some(path) = &args.sigma_override {
-        for (k, v) in candle_core::safetensors::load(path, &dev)
+        for (k, v) in candle_core::safetensors::load(path, dev)
             .with_context(|| format!("reading {}", path.display()))?
         {
             match tensors.get(&k) {
@@ -164,61 +235,42 @@ pub fn run(args: Args) -> Result<()> {
             }
         }
     }
-    let avatar = Avatar::from_tensors(ck.config, tensors, &dev)?;
+    Ok(Avatar::from_tensors(ck.config, tensors, dev)?)
+}
 
-    // Unique poses by striding, as the reference does.
-    let pick = |v: &[f32], per: usize| -> Vec<f32> {
-        (0..n_unique)
-            .flat_map(|p| v[p * stride * per..(p * stride + 1) * per].to_vec())
-            .collect()
-    };
-    let mut pose_bones = Vec::new();
-    for p in 0..n_unique {
-        let mut j = [[0f32; 3]; 24];
-        for (k, row) in j.iter_mut().enumerate() {
-            row.copy_from_slice(&bones[(p * stride * 24 + k) * 3..(p * stride * 24 + k) * 3 + 3]);
-        }
-        pose_bones.push(j);
+/// `--time`: more forwards, and their median wall time.
+fn time_forward(
+    args: &Args,
+    avatar: &Avatar,
+    input: &Input,
+    opts: &mut Mode,
+    dev: &candle_core::Device,
+) -> Result<()> {
+    let mut secs = Vec::with_capacity(args.time);
+    for _ in 0..args.time {
+        // Synchronise on both sides: GPU work is queued asynchronously, so the clock
+        // must not start before earlier work ends nor stop before this work does.
+        dev.synchronize()?;
+        let t0 = std::time::Instant::now();
+        let o = avatar.forward(&input.rays, &input.poses, opts, None)?;
+        dev.synchronize()?;
+        secs.push(t0.elapsed().as_secs_f64());
+        drop(o);
     }
-    let poses = Poses {
-        bones: pose_bones,
-        skts: Tensor::from_vec(pick(&skts, 24 * 16), (n_unique, 24, 4, 4), &dev)?,
-        cyls: Tensor::from_vec(pick(&cyls, 5), (n_unique, 5), &dev)?,
-    };
-    let rays = Rays {
-        origins: Tensor::from_vec(rays_o, (r, 3), &dev)?,
-        dirs: Tensor::from_vec(rays_d, (r, 3), &dev)?,
-        bgs: Some(Tensor::from_vec(bgs, (r, 3), &dev)?),
-        framecodes: cam_idxs,
-    };
-    let mut opts = if args.train_mode {
-        Mode::Train(None)
-    } else {
-        Mode::Eval
-    };
-    let out = avatar.forward(&rays, &poses, &mut opts, None)?;
-    if args.time > 0 {
-        let mut secs = Vec::with_capacity(args.time);
-        for _ in 0..args.time {
-            // Synchronise on both sides: GPU work is queued asynchronously, so the clock
-            // must not start before earlier work ends nor stop before this work does.
-            dev.synchronize()?;
-            let t0 = std::time::Instant::now();
-            let o = avatar.forward(&rays, &poses, &mut opts, None)?;
-            dev.synchronize()?;
-            secs.push(t0.elapsed().as_secs_f64());
-            drop(o);
-        }
-        secs.sort_by(f64::total_cmp);
-        println!(
-            "forward on {}: median {:.4} s, min {:.4} s over {} runs ({r} rays)",
-            args.device,
-            secs[secs.len() / 2],
-            secs[0],
-            secs.len()
-        );
-    }
+    secs.sort_by(f64::total_cmp);
+    println!(
+        "forward on {}: median {:.4} s, min {:.4} s over {} runs ({} rays)",
+        args.device,
+        secs[secs.len() / 2],
+        secs[0],
+        secs.len(),
+        input.rays.framecodes.len()
+    );
+    Ok(())
+}
 
+/// The outputs under the reference's names, as one npz written atomically.
+fn write_outputs(out: &Outputs, path: &std::path::Path) -> Result<()> {
     let outputs: Vec<(&str, &Tensor)> = vec![
         ("rgb_map", &out.fine.rgb),
         ("acc_map", &out.fine.acc),
@@ -235,28 +287,20 @@ pub fn run(args: Args) -> Result<()> {
         ("raw_merged", &out.raw),
         ("vol_scale", &out.vol_scale),
     ];
-    let dir = args
-        .out
-        .parent()
-        .filter(|d| !d.as_os_str().is_empty())
-        .unwrap_or(std::path::Path::new("."));
-    let tmp = tempfile::NamedTempFile::new_in(dir)
-        .with_context(|| format!("creating a temporary file in {}", dir.display()))?;
+    let file = AtomicFile::create(path)
+        .with_context(|| format!("creating a temporary file for {}", path.display()))?;
     let mut w = NpzWriter::new(
-        BufWriter::new(tmp.reopen()?),
+        BufWriter::new(file.file().try_clone()?),
         false,
-        args.out.display().to_string(),
+        path.display().to_string(),
     );
     for (name, t) in outputs {
         let data = t.flatten_all()?.to_vec1::<f32>()?;
         w.add(name, t.dims(), MemberData::F32(&data))?;
     }
-    w.finish()?;
-    tmp.persist(&args.out)
-        .with_context(|| format!("writing {}", args.out.display()))?;
-    println!(
-        "wrote {} ({r} rays, {n_unique} pose(s))",
-        args.out.display()
-    );
-    Ok(())
+    w.finish()?
+        .flush()
+        .with_context(|| format!("writing {}", path.display()))?;
+    file.commit()
+        .with_context(|| format!("writing {}", path.display()))
 }

@@ -1,5 +1,6 @@
 //! `pma inspect FILE`: a pma-npz dataset's members (dtype, shape, storage), counts, pose and
-//! camera ranges, and the result of validating it (spec data.md §10) for a use profile.
+//! camera ranges, and the result of validating it (see `docs/conventions.md`, "Validation") for a use
+//! profile.
 //! An invalid file prints its error and exits non-zero.
 
 use std::path::{Path, PathBuf};

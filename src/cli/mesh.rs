@@ -1,6 +1,6 @@
 //! `pma mesh`: extract a coloured triangle mesh of a trained avatar in one pose.
 //!
-//! The density `relu(σ)` (no noise, spec data.md §9.3) is sampled on a cubic-cell grid covering
+//! The density `relu(σ)` (no noise) is sampled on a cubic-cell grid covering
 //! the posed body's part boxes (`--res` samples along the longest side) and turned into a
 //! surface by marching cubes at `--threshold` (PM's default 5.0). Points outside every part
 //! box count as empty (`--no-box-mask` evaluates them too). Vertices are written in world
@@ -18,15 +18,17 @@ use anyhow::{bail, Context as _};
 use candle_core::Device;
 use image::RgbImage;
 use pma_data::cylinder::HeadDir;
+use pma_data::skeleton::Joints;
+use pma_model::avatar::Avatar;
 use pma_model::camera_path::{facing, framing_camera, load_avatar, ViewDirs};
 use pma_model::mesh::{
     colour_vertices, marching_cubes, render_preview, sample_grid, write_ply, AvatarField, Grid,
-    DEFAULT_THRESHOLD,
+    Mesh, DEFAULT_THRESHOLD,
 };
 use pma_model::retarget::{retarget, MotionClip, RootScale};
 
-use super::eval::write_png_atomic;
 use super::render::read_motion;
+use super::{progress, write_png};
 
 #[derive(clap::Args, Debug, Clone)]
 pub struct Args {
@@ -77,18 +79,7 @@ pub struct Args {
 // The field closures return `pma_model`'s error, which carries candle's (large) one.
 #[allow(clippy::result_large_err)]
 pub fn run(args: Args) -> anyhow::Result<()> {
-    if !(2..=1024).contains(&args.res) {
-        bail!("--res must be in 2..=1024, found {}", args.res);
-    }
-    if !args.threshold.is_finite() {
-        bail!("--threshold must be finite");
-    }
-    if args.chunk == 0 {
-        bail!("--chunk must be >= 1");
-    }
-    if !(8..=4096).contains(&args.preview_res) {
-        bail!("--preview-res must be in 8..=4096");
-    }
+    check_args(&args)?;
     let device = Device::Cpu;
     let dirs = if args.reference_dirs {
         ViewDirs::Reference
@@ -97,50 +88,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     };
     let avatar = load_avatar(&args.model, &device, dirs)
         .with_context(|| format!("loading model {}", args.model.display()))?;
-
-    let (bones, root) = match &args.poses {
-        Some(p) => {
-            let (clip, _) = read_motion(&avatar, p)?;
-            if args.frame >= clip.len() {
-                bail!(
-                    "--frame {} is past the {} pose(s) of {}",
-                    args.frame,
-                    clip.len(),
-                    p.display()
-                );
-            }
-            let one = MotionClip {
-                bones: vec![clip.bones[args.frame]],
-                roots: vec![clip.roots[args.frame]],
-                ..clip
-            };
-            let scale: RootScale = args.root_scale.parse()?;
-            let f = retarget(&one, avatar.rest_pose(), scale)?.frames.remove(0);
-            (f.bones, f.root)
-        }
-        None => {
-            // The rest pose, turned from SMPL's y-up to the training convention's head −y.
-            let mut b = [[0f32; 3]; 24];
-            b[0] = [std::f32::consts::PI, 0.0, 0.0];
-            (b, [0.0; 3])
-        }
-    };
+    let (bones, root) = mesh_pose(&args, &avatar)?;
     let (poses, kp3d) = avatar.pose_from_bones(&bones, root)?;
     let mut field = AvatarField::new(&avatar, &poses)?;
     field.mask_outside_boxes = !args.no_box_mask;
     let (lo, hi) = field.bounds();
     let grid = Grid::covering(lo, hi, args.res, 2)?;
 
-    let bar = if args.quiet {
-        indicatif::ProgressBar::hidden()
-    } else {
-        indicatif::ProgressBar::new(grid.len() as u64).with_style(
-            indicatif::ProgressStyle::with_template(
-                "density {bar:40} {human_pos}/{human_len} points ({elapsed} < {eta})",
-            )
-            .expect("static template"),
-        )
-    };
+    let bar = progress::bar(args.quiet, grid.len() as u64, "density points");
     let t0 = Instant::now();
     let values = sample_grid(
         &grid,
@@ -168,6 +123,65 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     let t_colour = t2.elapsed().as_secs_f64();
     write_ply(&mesh, &args.out).with_context(|| format!("writing {}", args.out.display()))?;
+    print_mesh(&args, &mesh);
+    println!(
+        "grid {:?} ({} points, spacing {:.4}): density {t_density:.2} s, marching cubes {t_mc:.2} s, colours {t_colour:.2} s",
+        grid.dims,
+        grid.len(),
+        grid.spacing
+    );
+    if let Some(png) = &args.preview {
+        write_preview(&mesh, &kp3d, &bones, args.preview_res, png)?;
+        println!("wrote preview {}", png.display());
+    }
+    Ok(())
+}
+
+fn check_args(args: &Args) -> anyhow::Result<()> {
+    if !(2..=1024).contains(&args.res) {
+        bail!("--res must be in 2..=1024, found {}", args.res);
+    }
+    if !args.threshold.is_finite() {
+        bail!("--threshold must be finite");
+    }
+    if args.chunk == 0 {
+        bail!("--chunk must be >= 1");
+    }
+    if !(8..=4096).contains(&args.preview_res) {
+        bail!("--preview-res must be in 8..=4096");
+    }
+    Ok(())
+}
+
+/// Bone rotations and root of the pose to mesh: frame `--frame` of `--poses` retargeted onto
+/// the avatar, or the rest pose upright.
+fn mesh_pose(args: &Args, avatar: &Avatar) -> anyhow::Result<(Joints, [f32; 3])> {
+    let Some(p) = &args.poses else {
+        // The rest pose, turned from SMPL's y-up to the training convention's head −y.
+        let mut b = [[0f32; 3]; 24];
+        b[0] = [std::f32::consts::PI, 0.0, 0.0];
+        return Ok((b, [0.0; 3]));
+    };
+    let (clip, _) = read_motion(avatar, p)?;
+    if args.frame >= clip.len() {
+        bail!(
+            "--frame {} is past the {} pose(s) of {}",
+            args.frame,
+            clip.len(),
+            p.display()
+        );
+    }
+    let one = MotionClip {
+        bones: vec![clip.bones[args.frame]],
+        roots: vec![clip.roots[args.frame]],
+        ..clip
+    };
+    let scale: RootScale = args.root_scale.parse()?;
+    let f = retarget(&one, avatar.rest_pose(), scale)?.frames.remove(0);
+    Ok((f.bones, f.root))
+}
+
+fn print_mesh(args: &Args, mesh: &Mesh) {
     let stats = mesh.edge_stats();
     let (mlo, mhi) = mesh.bounds().expect("non-empty mesh");
     println!(
@@ -186,26 +200,19 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         mlo,
         mhi
     );
-    println!(
-        "grid {:?} ({} points, spacing {:.4}): density {t_density:.2} s, marching cubes {t_mc:.2} s, colours {t_colour:.2} s",
-        grid.dims,
-        grid.len(),
-        grid.spacing
-    );
-    if let Some(png) = &args.preview {
-        let cam = framing_camera(
-            &kp3d,
-            HeadDir::NegY,
-            facing(&bones),
-            args.preview_res,
-            args.preview_res,
-        )?;
-        let rgb = render_preview(&mesh, &cam, [1.0; 3])?;
-        let px: Vec<u8> = rgb.iter().map(|v| (v * 255.0).round() as u8).collect();
-        let img =
-            RgbImage::from_raw(cam.width as u32, cam.height as u32, px).expect("H·W·3 values");
-        write_png_atomic(&img, png)?;
-        println!("wrote preview {}", png.display());
-    }
-    Ok(())
+}
+
+/// The mesh rasterised from a framing camera, as a PNG.
+fn write_preview(
+    mesh: &Mesh,
+    kp3d: &Joints,
+    bones: &Joints,
+    res: usize,
+    png: &std::path::Path,
+) -> anyhow::Result<()> {
+    let cam = framing_camera(kp3d, HeadDir::NegY, facing(bones), res, res)?;
+    let rgb = render_preview(mesh, &cam, [1.0; 3])?;
+    let px: Vec<u8> = rgb.iter().map(|v| (v * 255.0).round() as u8).collect();
+    let img = RgbImage::from_raw(cam.width as u32, cam.height as u32, px).expect("H·W·3 values");
+    write_png(&img, png)
 }

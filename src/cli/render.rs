@@ -3,8 +3,8 @@
 //! Sources of poses:
 //! * `--data DS [--split S]`: the images of a dataset split, each with its own pose;
 //! * `--poses POSES.npz`: a motion (e.g. from `pma convert motion`), retargeted onto the avatar
-//!   (spec data.md §9.2: FK with the avatar's rest pose, head turned to −y, the root trajectory
-//!   scaled by the leg-length ratio; see `pma_model::retarget`).
+//!   (FK with the avatar's rest pose, head turned to −y, the root trajectory scaled by the
+//!   leg-length ratio; see `pma_model::retarget` and `docs/conventions.md`, "Motion files").
 //!
 //! Cameras (`--camera`):
 //! * `dataset`: each image's own camera (needs `--data` without `--poses`);
@@ -12,7 +12,8 @@
 //!   training camera's distance and height (`--data`'s camera `--cam`, default the first
 //!   image's), or `--distance`; without a dataset, a framing camera in front of the body;
 //! * `bullet`: one pose (`--frame`) frozen while the camera turns `--views` times about the
-//!   vertical axis through the root (spec §9.1, the reference's transposed Ry);
+//!   vertical axis through the root (the reference's transposed Ry; see
+//!   `pma_model::camera_path`);
 //! * `follow`: the orbit's starting camera for every frame, moving with the body (retargeted
 //!   motion seen from the training camera).
 //!
@@ -38,16 +39,19 @@ use image::{Delay, Frame, RgbImage, RgbaImage};
 use pma_data::camera::Camera;
 use pma_data::cylinder::{cylinder_from_joints, CylinderParams, HeadDir};
 use pma_data::dataset::{Dataset, Profile, ReadOptions};
+use pma_data::fsio::AtomicFile;
 use pma_data::skeleton::Joints;
 use pma_model::avatar::{Avatar, Poses, Rays};
 use pma_model::camera_path::{
     bullet_time, facing, framing_camera, load_avatar, parse_resolution, Orbit, ViewDirs,
 };
+use pma_model::config::Culling;
+use pma_model::eval::{dataset_pose, resolve_split, split_images, spread, Split};
 use pma_model::image::{body_box, render_image, ChunkRender, ImageOptions, RenderedImage};
 use pma_model::retarget::{retarget, MotionClip, RootScale};
 use serde::Serialize;
 
-use super::eval::{read_dataset, resolve_split, split_images, write_json_atomic, write_png_atomic};
+use super::{eval_error, progress, read_dataset, write_json, write_png};
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "lowercase")]
@@ -74,7 +78,9 @@ pub struct Args {
     /// (without `--poses`) and the training camera for orbit and bullet time.
     #[arg(long)]
     pub data: Option<PathBuf>,
-    /// Split of `--data` (`novel_view`, `novel_pose`, `train`, `val`).
+    /// Split of `--data` (`novel_view`, `novel_pose`, `train`, `val`). With `--poses` the
+    /// dataset lends only its camera: the split's first image's, or the file's first image's
+    /// when the file does not hold the split.
     #[arg(long, default_value = "novel_view")]
     pub split: String,
     /// Motion npz (`pma convert motion`), retargeted onto the avatar.
@@ -128,7 +134,7 @@ pub struct Args {
     #[arg(long)]
     pub quiet: bool,
     #[command(flatten)]
-    pub cull: super::bench::CullArgs,
+    pub cull: Culling,
     /// Compute device: cpu, cuda, cuda:N, metal (cuda/metal need a binary built with that
     /// feature).
     #[arg(long, default_value = "cpu")]
@@ -180,15 +186,7 @@ struct Report {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    if args.chunk == 0 {
-        bail!("--chunk must be >= 1");
-    }
-    if !(args.fps.is_finite() && args.fps > 0.0 && args.fps <= 100.0) {
-        bail!("--fps must be in (0, 100], found {}", args.fps);
-    }
-    if args.views == Some(0) {
-        bail!("--views must be >= 1");
-    }
+    check_args(&args)?;
     let res = args.res.as_deref().map(parse_resolution).transpose()?;
     let device = super::device(&args.device)?;
     let dirs = if args.reference_dirs {
@@ -198,14 +196,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     };
     let mut avatar = load_avatar(&args.model, &device, dirs)
         .with_context(|| format!("loading model {}", args.model.display()))?;
-    args.cull.apply(&mut avatar)?;
+    avatar.set_culling(args.cull.clone())?;
 
     let data = match &args.data {
-        Some(d) => {
-            let (path, split) = resolve_split(d, &args.split)?;
-            let ds = read_dataset(&path, Profile::Render)?;
-            Some((ds, split))
-        }
+        Some(d) => Some(SplitData::read(d, &args.split, args.poses.is_some())?),
         None => None,
     };
     let mode = match (args.camera, &args.poses, &data) {
@@ -213,54 +207,146 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         (None, None, Some(_)) => CameraMode::Dataset,
         _ => CameraMode::Orbit,
     };
+    let (items, head, root_scale) = pose_items(&args, &avatar, data.as_ref(), mode)?;
+    let jobs = camera_jobs(&args, &items, data.as_ref(), head, mode, res)?;
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("creating {}", args.out.display()))?;
+    let rendered = render_jobs(&args, &avatar, &jobs, head, &device)?;
 
-    // 1. Poses.
-    let mut root_scale = None;
-    let (items, head) = match (&args.poses, &data) {
+    let (w, h) = (jobs[0].camera.width, jobs[0].camera.height);
+    let report = Report {
+        model: args.model.clone(),
+        camera: mode,
+        width: w,
+        height: h,
+        view_dirs: match dirs {
+            ViewDirs::Normalized => "normalized",
+            ViewDirs::Reference => "reference",
+        },
+        root_scale,
+        seconds_per_frame: rendered.frames.iter().map(|f| f.seconds).sum::<f64>()
+            / rendered.frames.len() as f64,
+        frames: rendered.frames,
+        gif: rendered.gif.clone(),
+    };
+    write_json(&report, &args.out.join("render.json"))?;
+    println!(
+        "rendered {} frame(s) of {w}x{h} ({:?} camera, {:.2} s/frame) to {}{}",
+        report.frames.len(),
+        mode,
+        report.seconds_per_frame,
+        args.out.display(),
+        rendered
+            .gif
+            .map(|g| format!(", animation {}", g.display()))
+            .unwrap_or_default()
+    );
+    Ok(())
+}
+
+fn check_args(args: &Args) -> anyhow::Result<()> {
+    if args.chunk == 0 {
+        bail!("--chunk must be >= 1");
+    }
+    if !(args.fps.is_finite() && args.fps > 0.0 && args.fps <= 100.0) {
+        bail!("--fps must be in (0, 100], found {}", args.fps);
+    }
+    if args.views == Some(0) {
+        bail!("--views must be >= 1");
+    }
+    if args.strip == Some(0) {
+        bail!("--strip must be >= 1");
+    }
+    Ok(())
+}
+
+/// `--data` read for rendering, with the images of `--split`.
+struct SplitData {
+    data: Dataset,
+    images: Vec<usize>,
+}
+
+impl SplitData {
+    /// With `camera_only` (poses from elsewhere), a file without the split lends its first
+    /// image instead of being refused.
+    fn read(path: &Path, split: &str, camera_only: bool) -> anyhow::Result<Self> {
+        let (file, split) = resolve_split(path, split).map_err(eval_error)?;
+        let data = read_dataset(&file, Profile::Render)?;
+        let images = match split_images(&data, &file, &split) {
+            Ok(images) => images,
+            Err(_) if camera_only => split_images(&data, &file, &Split::whole_file(&split.name)?)?,
+            Err(e) => return Err(eval_error(e)),
+        };
+        Ok(Self { data, images })
+    }
+}
+
+/// Step 1: the poses to render (from `--poses`, or the split's images), the head direction
+/// and, for a motion, the root scale used.
+fn pose_items(
+    args: &Args,
+    avatar: &Avatar,
+    data: Option<&SplitData>,
+    mode: CameraMode,
+) -> anyhow::Result<(Vec<PoseItem>, HeadDir, Option<f64>)> {
+    match (&args.poses, data) {
         (Some(p), _) => {
             if mode == CameraMode::Dataset {
                 bail!("--camera dataset renders a dataset's own images: pass --data without --poses (or use orbit/bullet)");
             }
             let scale: RootScale = args.root_scale.parse()?;
-            let (items, s) = motion_items(&avatar, p, scale, args.frames.as_deref())?;
-            root_scale = Some(s);
-            (items, HeadDir::NegY)
+            let (items, s) = motion_items(avatar, p, scale, args.frames.as_deref())?;
+            Ok((items, HeadDir::NegY, Some(s)))
         }
-        (None, Some((ds, split))) => {
-            let images = split_images(ds, split)?;
-            let range = parse_range(args.frames.as_deref(), images.len(), "split images")?;
-            let items = images[range]
+        (None, Some(sd)) => {
+            let range = parse_range(args.frames.as_deref(), sd.images.len(), "split images")?;
+            let items = sd.images[range]
                 .iter()
-                .map(|&n| dataset_item(&avatar, ds, n))
+                .map(|&n| dataset_item(avatar, &sd.data, n))
                 .collect::<anyhow::Result<Vec<_>>>()?;
-            (items, ds.head()?)
+            Ok((items, sd.data.head()?, None))
         }
         (None, None) => bail!("nothing to render: pass --data DS and/or --poses POSES.npz"),
-    };
+    }
+}
 
-    // 2. Cameras.
-    let reference = |first: &PoseItem| -> anyhow::Result<Camera> {
-        let cam = match (&data, args.cam) {
-            (Some((ds, _)), Some(c)) => ds.camera(c)?,
-            (Some(_), None) => match &first.camera {
-                Some(c) => c.clone(),
-                None => {
-                    let (ds, split) = data.as_ref().expect("matched Some");
-                    ds.image_camera(split_images(ds, split)?[0])?
-                }
-            },
-            (None, Some(_)) => bail!("--cam needs --data"),
-            (None, None) => {
-                let (w, h) = res.unwrap_or((256, 256));
-                framing_camera(&first.kp3d, head, facing(&first.bones), w, h)?
-            }
-        };
-        Ok(match res {
-            Some((w, h)) => cam.resized(w, h),
-            None => cam,
-        })
+/// The camera orbit and bullet time start from: `--cam` of `--data`, the first item's own
+/// camera, the split's first image's, or a framing camera in front of the body.
+fn reference_camera(
+    args: &Args,
+    first: &PoseItem,
+    data: Option<&SplitData>,
+    head: HeadDir,
+    res: Option<(usize, usize)>,
+) -> anyhow::Result<Camera> {
+    let cam = match (data, args.cam) {
+        (Some(sd), Some(c)) => sd.data.camera(c)?,
+        (Some(sd), None) => match &first.camera {
+            Some(c) => c.clone(),
+            None => sd.data.image_camera(sd.images[0])?,
+        },
+        (None, Some(_)) => bail!("--cam needs --data"),
+        (None, None) => {
+            let (w, h) = res.unwrap_or((256, 256));
+            framing_camera(&first.kp3d, head, facing(&first.bones), w, h)?
+        }
     };
-    let jobs: Vec<Job> = match mode {
+    Ok(match res {
+        Some((w, h)) => cam.resized(w, h),
+        None => cam,
+    })
+}
+
+/// Step 2: one job (pose and camera) per output frame.
+fn camera_jobs<'a>(
+    args: &Args,
+    items: &'a [PoseItem],
+    data: Option<&SplitData>,
+    head: HeadDir,
+    mode: CameraMode,
+    res: Option<(usize, usize)>,
+) -> anyhow::Result<Vec<Job<'a>>> {
+    Ok(match mode {
         CameraMode::Dataset => items
             .iter()
             .map(|it| {
@@ -277,7 +363,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         CameraMode::Orbit | CameraMode::Follow => {
             let first = &items[0];
             let target0 = body_centre(&first.kp3d, head);
-            let mut orbit = Orbit::through(&reference(first)?, target0, head)?;
+            let mut orbit = Orbit::through(
+                &reference_camera(args, first, data, head, res)?,
+                target0,
+                head,
+            )?;
             if let Some(d) = args.distance {
                 orbit = orbit.at_distance(d)?;
             }
@@ -306,7 +396,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                     items.len()
                 )
             })?;
-            let mut cam = reference(it)?;
+            let mut cam = reference_camera(args, it, data, head, res)?;
             if let Some(d) = args.distance {
                 let target = body_centre(&it.kp3d, head);
                 cam = Orbit::through(&cam, target, head)?
@@ -318,20 +408,30 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 .map(|camera| Job { item: it, camera })
                 .collect()
         }
-    };
+    })
+}
 
-    // 3. Render.
-    std::fs::create_dir_all(&args.out)
-        .with_context(|| format!("creating {}", args.out.display()))?;
+/// What step 3 wrote.
+struct Rendered {
+    frames: Vec<FrameReport>,
+    gif: Option<PathBuf>,
+}
+
+/// Step 3: render every job into `frame_NNNN.png`, the GIF and the strip.
+fn render_jobs(
+    args: &Args,
+    avatar: &Avatar,
+    jobs: &[Job],
+    head: HeadDir,
+    device: &candle_core::Device,
+) -> anyhow::Result<Rendered> {
     let (w, h) = (jobs[0].camera.width, jobs[0].camera.height);
-    let total: u64 = jobs
-        .iter()
-        .map(|j| {
-            let b = body_box(&j.camera, &j.item.kp3d, head);
-            (b.width() * b.height()) as u64
-        })
-        .sum();
-    let bar = progress_bar(args.quiet, total);
+    let rays = |j: &Job| {
+        let b = body_box(&j.camera, &j.item.kp3d, head);
+        b.width() * b.height()
+    };
+    let total: u64 = jobs.iter().map(|j| rays(j) as u64).sum();
+    let bar = progress::bar(args.quiet, total, "rays");
     let bg = match args.background {
         Background::Black => [0.0f32; 3],
         Background::White => [1.0; 3],
@@ -348,24 +448,21 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     } else {
         Some(GifStream::create(&gif_path, args.fps)?)
     };
-    if args.strip == Some(0) {
-        bail!("--strip must be >= 1");
-    }
     let strip_frames: Vec<usize> = args
         .strip
-        .map(|n| super::eval::spread(&(0..jobs.len()).collect::<Vec<_>>(), n))
+        .map(|n| spread(&(0..jobs.len()).collect::<Vec<_>>(), n))
         .unwrap_or_default();
     let mut strip = Vec::with_capacity(strip_frames.len());
     let mut frames = Vec::with_capacity(jobs.len());
     for (k, job) in jobs.iter().enumerate() {
         bar.set_message(format!("frame {}/{}", k + 1, jobs.len()));
         let t = Instant::now();
-        let img = render_job(&avatar, job, &background, &opts, &bar)
+        let img = render_job(avatar, job, &background, &opts, &bar)
             .with_context(|| format!("rendering frame {k} ({})", job.item.label))?;
         let seconds = t.elapsed().as_secs_f64();
         let rgb = to_rgb8(&img);
         let file = format!("frame_{k:04}.png");
-        write_png_atomic(&rgb, &args.out.join(&file))?;
+        write_png(&rgb, &args.out.join(&file))?;
         if let Some(g) = gif.as_mut() {
             g.push(&rgb)?;
         }
@@ -376,17 +473,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             file,
             pose: job.item.label.clone(),
             camera_origin: job.camera.origin(),
-            rays: {
-                let b = body_box(&job.camera, &job.item.kp3d, head);
-                b.width() * b.height()
-            },
+            rays: rays(job),
             seconds,
         });
     }
     bar.finish_and_clear();
-    let gif_written = match gif {
+    let gif = match gif {
         Some(g) => {
-            g.finish(&gif_path)?;
+            g.finish()?;
             Some(gif_path)
         }
         None => None,
@@ -396,34 +490,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         for (i, f) in strip.iter().enumerate() {
             image::imageops::replace(&mut img, f, (i * w) as i64, 0);
         }
-        write_png_atomic(&img, &args.out.join("strip.png"))?;
+        write_png(&img, &args.out.join("strip.png"))?;
     }
-    let report = Report {
-        model: args.model.clone(),
-        camera: mode,
-        width: w,
-        height: h,
-        view_dirs: match dirs {
-            ViewDirs::Normalized => "normalized",
-            ViewDirs::Reference => "reference",
-        },
-        root_scale,
-        seconds_per_frame: frames.iter().map(|f| f.seconds).sum::<f64>() / frames.len() as f64,
-        frames,
-        gif: gif_written.clone(),
-    };
-    write_json_atomic(&report, &args.out.join("render.json"))?;
-    println!(
-        "rendered {} frame(s) of {w}x{h} ({:?} camera, {:.2} s/frame) to {}{}",
-        report.frames.len(),
-        mode,
-        report.seconds_per_frame,
-        args.out.display(),
-        gif_written
-            .map(|g| format!(", animation {}", g.display()))
-            .unwrap_or_default()
-    );
-    Ok(())
+    Ok(Rendered { frames, gif })
 }
 
 /// `a:b`, `a:`, `:b` or `k` over `n` items; `None` = all.
@@ -456,29 +525,13 @@ fn parse_range(s: Option<&str>, n: usize, what: &str) -> anyhow::Result<Range<us
 }
 
 fn dataset_item(avatar: &Avatar, ds: &Dataset, n: usize) -> anyhow::Result<PoseItem> {
-    let device = avatar.device();
     let p = ds.pose_row(n)?;
-    let (Some(skts), Some(cyls), Some(kp3d)) = (&ds.skts, &ds.cyls, ds.pose_kp3d(p)) else {
-        bail!(
-            "{}: pose {p} lacks skts/cyls/kp3d (derived on import; is the file valid?)",
-            ds.source
-        );
-    };
-    let skts: Vec<f32> = skts
-        .outer_iter()
-        .nth(p)
-        .map(|m| m.iter().copied().collect())
-        .unwrap_or_default();
-    let bones = ds.pose_bones(p);
+    let (poses, kp3d) = dataset_pose(ds, p, avatar.device())?;
     Ok(PoseItem {
         label: format!("image {n} (pose {p})"),
-        poses: Poses {
-            bones: vec![bones],
-            skts: Tensor::from_vec(skts, (1, 24, 4, 4), device)?,
-            cyls: Tensor::from_vec(cyls.row(p).to_vec(), (1, 5), device)?,
-        },
+        bones: poses.bones[0],
+        poses,
         kp3d,
-        bones,
         camera: Some(ds.image_camera(n)?),
     })
 }
@@ -518,7 +571,7 @@ fn motion_items(
 }
 
 /// A motion (or any pma-npz) file's pose rows. Kinematics that the file leaves out use the
-/// avatar's rest pose (spec §4.3 note 1).
+/// avatar's rest pose (see `docs/conventions.md`, "pma-npz v1").
 pub fn read_motion(avatar: &Avatar, path: &Path) -> anyhow::Result<(MotionClip, Dataset)> {
     let mut opts = ReadOptions::new(Profile::Motion);
     opts.rest_pose = Some(*avatar.rest_pose());
@@ -587,40 +640,24 @@ fn to_rgb8(img: &RenderedImage) -> RgbImage {
     RgbImage::from_raw(img.width as u32, img.height as u32, px).expect("H·W·3 values")
 }
 
-fn progress_bar(quiet: bool, rays: u64) -> indicatif::ProgressBar {
-    if quiet {
-        return indicatif::ProgressBar::hidden();
-    }
-    indicatif::ProgressBar::new(rays).with_style(
-        indicatif::ProgressStyle::with_template(
-            "{msg} {bar:40} {human_pos}/{human_len} rays ({elapsed} < {eta})",
-        )
-        .expect("static template"),
-    )
-}
-
 /// A GIF written frame by frame into a temporary file beside its destination, renamed into
 /// place when complete: memory stays bounded and readers never see a partial animation.
 struct GifStream {
     encoder: GifEncoder<std::io::BufWriter<std::fs::File>>,
-    tmp: tempfile::NamedTempFile,
+    file: AtomicFile,
     delay: Delay,
 }
 
 impl GifStream {
     fn create(path: &Path, fps: f64) -> anyhow::Result<Self> {
-        let dir = match path.parent() {
-            Some(d) if !d.as_os_str().is_empty() => d,
-            _ => Path::new("."),
-        };
         let err = || format!("writing {}", path.display());
-        let tmp = tempfile::NamedTempFile::new_in(dir).with_context(err)?;
-        let file = tmp.as_file().try_clone().with_context(err)?;
-        let mut encoder = GifEncoder::new_with_speed(std::io::BufWriter::new(file), 10);
+        let file = AtomicFile::create(path).with_context(err)?;
+        let handle = file.file().try_clone().with_context(err)?;
+        let mut encoder = GifEncoder::new_with_speed(std::io::BufWriter::new(handle), 10);
         encoder.set_repeat(Repeat::Infinite).with_context(err)?;
         Ok(Self {
             encoder,
-            tmp,
+            file,
             delay: Delay::from_numer_denom_ms(1000, fps.round().max(1.0) as u32),
         })
     }
@@ -635,12 +672,13 @@ impl GifStream {
             .context("encoding a GIF frame")
     }
 
-    fn finish(self, path: &Path) -> anyhow::Result<()> {
+    fn finish(self) -> anyhow::Result<()> {
+        let path = self.file.path().to_path_buf();
         let err = || format!("writing {}", path.display());
         // Dropping the encoder writes the GIF trailer and flushes the buffer, both without
         // reporting errors: check that the file ends with the trailer byte instead.
         drop(self.encoder);
-        let mut f = self.tmp.as_file();
+        let mut f = self.file.file();
         use std::io::{Read as _, Seek as _, SeekFrom};
         f.seek(SeekFrom::End(-1)).with_context(err)?;
         let mut last = [0u8; 1];
@@ -651,17 +689,9 @@ impl GifStream {
                 path.display()
             );
         }
-        f.sync_all().with_context(err)?;
-        #[cfg(unix)]
-        {
-            use std::os::unix::fs::PermissionsExt;
-            f.set_permissions(std::fs::Permissions::from_mode(0o644))
-                .with_context(err)?;
-        }
-        self.tmp
-            .persist(path)
-            .with_context(|| format!("replacing {}", path.display()))?;
-        Ok(())
+        self.file
+            .commit()
+            .with_context(|| format!("replacing {}", path.display()))
     }
 }
 

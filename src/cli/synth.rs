@@ -71,20 +71,7 @@ impl Args {
 
 pub fn run(args: Args) -> anyhow::Result<()> {
     let cfg = args.config();
-    let bar = if args.quiet {
-        indicatif::ProgressBar::hidden()
-    } else {
-        let b = indicatif::ProgressBar::new(0);
-        b.set_style(
-            indicatif::ProgressStyle::with_template(
-                "{msg} [{bar:40}] {pos}/{len} images ({elapsed}, eta {eta})",
-            )
-            .expect("static template")
-            .progress_chars("=> "),
-        );
-        b.set_message("rendering");
-        b
-    };
+    let bar = super::progress::bar(args.quiet, 0, "rendering images");
     let start = Instant::now();
     let summary = generate(&cfg, &args.out, &mut |done, total| {
         bar.set_length(total as u64);

@@ -86,14 +86,60 @@ fn eval_rejects_bad_split_and_missing_model() {
     ]);
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("/nonexistent/m.safetensors"));
+
+    // A real model, so that the split is what gets refused.
+    let scene = tmp.path().join("scene");
+    let train = tiny_scene(&scene, 2);
+    let run = tmp.path().join("run");
+    ok(pma(&[
+        "train",
+        "--data",
+        train.to_str().unwrap(),
+        "--out",
+        run.to_str().unwrap(),
+        "--preset",
+        "tiny",
+        "--iters",
+        "1",
+        "--quiet",
+    ]));
+    let model = run.join("model.safetensors");
     let out = pma(&[
         "eval",
         "--model",
-        "/nonexistent/m.safetensors",
+        model.to_str().unwrap(),
         "--data",
-        tmp.path().to_str().unwrap(),
+        scene.to_str().unwrap(),
         "--split",
         "holdout",
     ]);
     assert!(!out.status.success());
+    assert_eq!(
+        out.status.code(),
+        Some(2),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(String::from_utf8_lossy(&out.stderr).contains("unknown split \"holdout\""));
+
+    // train.npz has no eval_tag: it does not hold the novel-pose images, and must not be
+    // scored as if it did.
+    let out = pma(&[
+        "eval",
+        "--model",
+        model.to_str().unwrap(),
+        "--data",
+        train.to_str().unwrap(),
+        "--split",
+        "novel_pose",
+        "--out",
+        tmp.path().join("e").to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("train.npz") && err.contains("novel_pose"),
+        "{err}"
+    );
+    assert!(!tmp.path().join("e/eval.json").exists());
 }

@@ -1,5 +1,5 @@
 //! Adam with parameter groups, the reference's learning-rate schedule and global-norm
-//! gradient clipping (spec `model.md` §6).
+//! gradient clipping (see `docs/reference.md`, "Training schedule and Adam").
 //!
 //! candle's `AdamW` has no parameter groups and keeps its moments private, so it can neither
 //! reproduce the reference's two learning rates nor be checkpointed; this one holds its
@@ -18,7 +18,7 @@ use candle_core::{DType, Tensor, Var};
 use super::TrainError;
 
 /// Substrings that put a parameter into the "freq" group (lr 1e-4, `model.lr_freq`); every
-/// other parameter is in the "other" group (lr 5e-4). Spec §6.
+/// other parameter is in the "other" group (lr 5e-4).
 pub const FREQ_GROUP_PATTERNS: [&str; 6] = [
     "graph_net",
     "pose_extractor",

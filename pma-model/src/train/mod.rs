@@ -1,27 +1,37 @@
-//! Training (feature `train`): the reference's optimisation (spec `model.md` §5–§6) and the
-//! files a run writes.
+//! Training (feature `train`): the reference's optimisation (see `docs/reference.md`,
+//! "Training schedule and Adam") and the files a run writes.
 //!
 //! * [`adam`]: Adam with parameter groups, the lr schedule, global-norm clipping.
+//! * [`batch`]: what a step consumes ([`TrainBatch`]) and where it comes from ([`BatchSource`]).
 //! * [`state`]: the train-state file (optimizer moments, RNG, sampler, iteration).
 //! * `log`: `log.csv`.
-//! * [`source`]: training batches from a dataset (spec data.md §7).
+//! * [`source`]: training batches from a dataset (see `docs/conventions.md`, "Ray sampler").
 //! * [`trainer`]: one training step (forward, loss, backward, clip, Adam, schedule), run in
 //!   chunks of rays with gradient accumulation when the batch is large, non-finite step
 //!   skipping, checkpoint and resume.
+//! * [`run`]: a whole training run (run directory, loop, held-out evaluation schedule,
+//!   checkpoints, interruption), reporting to a [`TrainObserver`].
 //!
 //! The inference path of the crate does not depend on anything here.
 
 pub mod adam;
+pub mod batch;
 pub mod log;
+pub mod run;
 pub mod source;
 pub mod state;
 pub mod trainer;
 
-use std::io::Write as _;
 use std::path::{Path, PathBuf};
 
 pub use adam::{clip_grad_norm, decayed_lr, global_norm, Adam, ParamGroup, ParamState};
+pub use batch::{BatchSource, FixedBatch, TrainBatch};
 pub use log::{LogRow, TrainLog};
+pub use pma_data::metrics::psnr_from_mse;
+pub use run::{
+    train_run, ObserverError, Silent, StepReport, TrainObserver, TrainOutcome, TrainRequest,
+    CONFIG_FILE, LOG_FILE,
+};
 pub use source::DatasetSource;
 pub use state::{Progress, RngState, TrainState};
 pub use trainer::*;
@@ -61,6 +71,23 @@ pub enum TrainError {
     #[error("{count} consecutive non-finite steps up to iteration {iter}; stopping (the last checkpoint is intact)")]
     Diverged { count: u64, iter: u64 },
 
+    /// The output directory holds a run and neither resuming nor overwriting was asked for.
+    #[error("{} already holds a run (pass --resume to continue it, or choose another --out)", .0.display())]
+    RunExists(PathBuf),
+
+    /// Training stopped early; the checkpoint of `iter` is in `dir`.
+    #[error("training stopped; checkpoint of iteration {iter} written to {}", dir.display())]
+    Stopped {
+        iter: u64,
+        dir: PathBuf,
+        #[source]
+        source: Box<TrainError>,
+    },
+
+    /// A [`TrainObserver`]'s own work failed (e.g. the plot it writes at a checkpoint).
+    #[error(transparent)]
+    Observer(run::ObserverError),
+
     // The wrapped errors are boxed so `Result<_, TrainError>` stays small on the hot path.
     #[error(transparent)]
     Model(Box<crate::error::ModelError>),
@@ -70,6 +97,15 @@ pub enum TrainError {
 
     #[error(transparent)]
     Candle(Box<candle_core::Error>),
+
+    #[error(transparent)]
+    Eval(Box<crate::eval::EvalError>),
+}
+
+impl From<crate::eval::EvalError> for TrainError {
+    fn from(e: crate::eval::EvalError) -> Self {
+        TrainError::Eval(Box::new(e))
+    }
 }
 
 impl From<crate::error::ModelError> for TrainError {
@@ -90,28 +126,10 @@ impl From<candle_core::Error> for TrainError {
     }
 }
 
-/// Write `bytes` to `path` through a temporary file in the same directory, then rename, so
-/// readers see either the old or the new file, never a partial one.
+/// Write `bytes` to `path` atomically (see `pma_data::fsio`).
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), TrainError> {
-    let io = |source| TrainError::Io {
+    pma_data::fsio::write_atomic(path, bytes).map_err(|source| TrainError::Io {
         path: path.to_path_buf(),
         source,
-    };
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d,
-        _ => Path::new("."),
-    };
-    let mut tmp = tempfile::NamedTempFile::new_in(dir).map_err(io)?;
-    tmp.write_all(bytes).map_err(io)?;
-    tmp.as_file().sync_all().map_err(io)?;
-    // Temporary files are created 0600; a run's outputs are ordinary files.
-    #[cfg(unix)]
-    {
-        use std::os::unix::fs::PermissionsExt;
-        tmp.as_file()
-            .set_permissions(std::fs::Permissions::from_mode(0o644))
-            .map_err(io)?;
-    }
-    tmp.persist(path).map_err(|e| io(e.error))?;
-    Ok(())
+    })
 }

@@ -1,5 +1,5 @@
-//! Training batches from a pma-npz dataset (spec data.md §7, PM defaults), as a
-//! [`BatchSource`]:
+//! Training batches from a pma-npz dataset (PM defaults; see `docs/conventions.md`,
+//! "Ray sampler"), as a [`BatchSource`]:
 //!
 //! 1. images: the next `images_per_step` indices of a random permutation of all training
 //!    images (a fresh permutation when it runs out, so a batch across the boundary may repeat
@@ -21,8 +21,8 @@ use pma_data::dataset::Dataset;
 use pma_data::sampler::Sampler;
 use serde::{Deserialize, Serialize};
 
+use super::batch::{BatchSource, TrainBatch};
 use super::state::RngState;
-use super::trainer::{BatchSource, TrainBatch};
 use super::TrainError;
 use crate::avatar::{Poses, Rays};
 

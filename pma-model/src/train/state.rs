@@ -260,61 +260,7 @@ impl TrainState {
             }
             tensors.insert(name, candle_core::safetensors::Load::load(&view, device)?);
         }
-        let mut params = HashMap::new();
-        let mut seen = std::collections::HashSet::new();
-        for g in &groups {
-            for name in &g.params {
-                if !seen.insert(name.clone()) {
-                    problems.push(format!(
-                        "parameter `{name}` is listed in more than one group"
-                    ));
-                    continue;
-                }
-                let m = tensors.remove(&format!("exp_avg.{name}"));
-                let v = tensors.remove(&format!("exp_avg_sq.{name}"));
-                let step = steps.get(name).copied();
-                match (m, v, step) {
-                    (Some(m), Some(v), Some(step)) => {
-                        if m.dims() != v.dims() {
-                            problems.push(format!(
-                                "`{name}`: exp_avg {:?} and exp_avg_sq {:?} differ in shape",
-                                m.dims(),
-                                v.dims()
-                            ));
-                        }
-                        params.insert(
-                            name.clone(),
-                            ParamState {
-                                step,
-                                exp_avg: m,
-                                exp_avg_sq: v,
-                            },
-                        );
-                    }
-                    (m, v, step) => {
-                        for (what, missing) in [
-                            ("tensor exp_avg", m.is_none()),
-                            ("tensor exp_avg_sq", v.is_none()),
-                            ("steps entry", step.is_none()),
-                        ] {
-                            if missing {
-                                problems.push(format!("`{name}`: {what} is missing"));
-                            }
-                        }
-                    }
-                }
-            }
-        }
-        let mut left: Vec<_> = tensors.into_keys().collect();
-        left.sort();
-        for name in left {
-            problems.push(format!("tensor `{name}` belongs to no parameter group"));
-        }
-        for name in steps.keys().filter(|n| !seen.contains(*n)) {
-            problems.push(format!(
-                "`steps` names `{name}`, which is in no parameter group"
-            ));
-        }
+        let params = param_states(&groups, &steps, tensors, &mut problems);
         if !problems.is_empty() {
             return Err(TrainError::State(problems));
         }
@@ -340,6 +286,72 @@ impl TrainState {
             model_fingerprint,
         })
     }
+}
+
+/// The Adam state of every parameter of `groups` from the moment tensors and step counts;
+/// every missing, duplicated or left-over entry goes to `problems`.
+fn param_states(
+    groups: &[GroupMeta],
+    steps: &BTreeMap<String, u64>,
+    mut tensors: HashMap<String, Tensor>,
+    problems: &mut Vec<String>,
+) -> HashMap<String, ParamState> {
+    let mut params = HashMap::new();
+    let mut seen = std::collections::HashSet::new();
+    for g in groups {
+        for name in &g.params {
+            if !seen.insert(name.clone()) {
+                problems.push(format!(
+                    "parameter `{name}` is listed in more than one group"
+                ));
+                continue;
+            }
+            let m = tensors.remove(&format!("exp_avg.{name}"));
+            let v = tensors.remove(&format!("exp_avg_sq.{name}"));
+            let step = steps.get(name).copied();
+            match (m, v, step) {
+                (Some(m), Some(v), Some(step)) => {
+                    if m.dims() != v.dims() {
+                        problems.push(format!(
+                            "`{name}`: exp_avg {:?} and exp_avg_sq {:?} differ in shape",
+                            m.dims(),
+                            v.dims()
+                        ));
+                    }
+                    params.insert(
+                        name.clone(),
+                        ParamState {
+                            step,
+                            exp_avg: m,
+                            exp_avg_sq: v,
+                        },
+                    );
+                }
+                (m, v, step) => {
+                    for (what, missing) in [
+                        ("tensor exp_avg", m.is_none()),
+                        ("tensor exp_avg_sq", v.is_none()),
+                        ("steps entry", step.is_none()),
+                    ] {
+                        if missing {
+                            problems.push(format!("`{name}`: {what} is missing"));
+                        }
+                    }
+                }
+            }
+        }
+    }
+    let mut left: Vec<_> = tensors.into_keys().collect();
+    left.sort();
+    for name in left {
+        problems.push(format!("tensor `{name}` belongs to no parameter group"));
+    }
+    for name in steps.keys().filter(|n| !seen.contains(*n)) {
+        problems.push(format!(
+            "`steps` names `{name}`, which is in no parameter group"
+        ));
+    }
+    params
 }
 
 /// FNV-1a (64 bit) of a file's bytes, as hex: ties a train state to the model file written

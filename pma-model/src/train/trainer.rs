@@ -1,4 +1,5 @@
-//! One training iteration of the reference (`Trainer.train_batch`, spec `model.md` §6):
+//! One training iteration of the reference (`Trainer.train_batch`; see `docs/reference.md`,
+//! "Training schedule and Adam"):
 //! forward, loss, backward, global-norm clip, Adam, then the learning rates for the next step.
 //!
 //! [`Optimization`] is the model-agnostic half (clip, skip, Adam, schedule, counters);
@@ -17,21 +18,23 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
 use super::adam::{clip_grad_norm, global_norm, Adam};
+use super::batch::{BatchSource, TrainBatch};
 use super::source::DatasetSource;
 use super::state::{fingerprint, Progress, RngState, TrainState};
 use super::TrainError;
-use crate::avatar::{Avatar, Mode, Outputs, PoseFeatures, Poses, Rays};
+use crate::avatar::{Avatar, Mode, Outputs, PoseFeatures, Rays};
 use crate::config::Config;
 use crate::loss::LossWeights;
 use crate::presets::{RunConfig, TrainConfig};
 use pma_data::dataset::Dataset;
+use pma_data::metrics::psnr_from_mse;
 
 /// Model file of a run directory (a pma checkpoint).
 pub const MODEL_FILE: &str = "model.safetensors";
 /// Train-state file of a run directory.
 pub const STATE_FILE: &str = "train_state.safetensors";
 
-/// Loss terms of one step (spec §5), as plain numbers for logging.
+/// Loss terms of one step (the paper's loss, [`crate::loss`]), as plain numbers for logging.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LossParts {
     /// Weighted sum that was differentiated.
@@ -155,47 +158,7 @@ impl Optimization {
     }
 }
 
-/// PSNR from a mean squared error (`-10 log10 mse`; +inf for a perfect match).
-pub fn psnr_from_mse(mse: f64) -> f64 {
-    -10.0 * mse.log10()
-}
-
-/// One training batch: rays grouped by pose in equal contiguous blocks, their targets.
-#[derive(Debug, Clone)]
-pub struct TrainBatch {
-    /// Unit directions, per-ray backgrounds (random noise on background pixels), and the
-    /// training-image index of each ray as its frame code.
-    pub rays: Rays,
-    pub poses: Poses,
-    /// target: [R,3] pixel colour composited over the ray's background.
-    pub target: Tensor,
-}
-
-/// Where training batches come from. Its state is saved with every checkpoint, so it must
-/// capture everything that decides the next batches (permutation, cursor, RNG position).
-pub trait BatchSource {
-    fn next_batch(&mut self) -> Result<TrainBatch, TrainError>;
-    /// JSON state for the train-state file (`Value::Null` if stateless).
-    fn state(&self) -> serde_json::Value;
-    fn restore(&mut self, state: &serde_json::Value) -> Result<(), TrainError>;
-}
-
-/// The same batch every step (parity tests, overfitting a fixed batch).
-pub struct FixedBatch(pub TrainBatch);
-
-impl BatchSource for FixedBatch {
-    fn next_batch(&mut self) -> Result<TrainBatch, TrainError> {
-        Ok(self.0.clone())
-    }
-    fn state(&self) -> serde_json::Value {
-        serde_json::Value::Null
-    }
-    fn restore(&mut self, _: &serde_json::Value) -> Result<(), TrainError> {
-        Ok(())
-    }
-}
-
-/// The differentiated loss (spec §5, [`crate::loss`]) and its parts as numbers.
+/// The differentiated loss ([`crate::loss`]) and its parts as numbers.
 pub fn training_loss(
     out: &Outputs,
     target: &Tensor,
@@ -305,6 +268,91 @@ struct ChunkOut {
     finite: bool,
     /// Gradients aligned with the trainer's parameters (empty when not finite).
     grads: Vec<Option<Tensor>>,
+}
+
+/// The rows `rows` of `batch` (rays and targets), on `device`.
+fn select_rays(
+    batch: &TrainBatch,
+    rows: &[usize],
+    device: &Device,
+) -> Result<(Rays, Tensor), TrainError> {
+    let idx = Tensor::from_vec(
+        rows.iter().map(|&i| i as u32).collect::<Vec<_>>(),
+        rows.len(),
+        device,
+    )?;
+    let rays = Rays {
+        origins: batch.rays.origins.index_select(&idx, 0)?,
+        dirs: batch.rays.dirs.index_select(&idx, 0)?,
+        bgs: match &batch.rays.bgs {
+            Some(b) => Some(b.index_select(&idx, 0)?),
+            None => None,
+        },
+        framecodes: rows.iter().map(|&i| batch.rays.framecodes[i]).collect(),
+    };
+    Ok((rays, batch.target.index_select(&idx, 0)?))
+}
+
+/// Loss parts and gradients summed over a step's chunks, in chunk order.
+struct ChunkSums {
+    grads: Vec<Option<Tensor>>,
+    fine: f64,
+    coarse: f64,
+    sq: f64,
+    scale: f64,
+    finite: bool,
+}
+
+impl ChunkSums {
+    fn new(n_params: usize) -> Self {
+        Self {
+            grads: vec![None; n_params],
+            fine: 0.0,
+            coarse: 0.0,
+            sq: 0.0,
+            scale: 0.0,
+            finite: true,
+        }
+    }
+
+    fn add(&mut self, out: ChunkOut) -> Result<(), TrainError> {
+        self.fine += out.fine;
+        self.coarse += out.coarse;
+        self.sq += out.sq;
+        if let Some(v) = out.scale {
+            self.scale = v;
+        }
+        self.finite &= out.finite;
+        if !self.finite {
+            return Ok(());
+        }
+        for (g, d) in self.grads.iter_mut().zip(out.grads) {
+            if let Some(d) = d {
+                *g = Some(match g.take() {
+                    Some(sum) => (sum + d)?,
+                    None => d,
+                });
+            }
+        }
+        Ok(())
+    }
+
+    /// The step's loss parts, and its gradients (none when a chunk was not finite).
+    fn finish(mut self, cfg: &TrainConfig) -> (LossParts, Vec<Option<Tensor>>) {
+        let total =
+            self.fine * cfg.loss_fine + self.coarse * cfg.loss_coarse + self.scale * cfg.loss_scale;
+        let parts = LossParts {
+            total: if self.finite { total } else { f64::NAN },
+            fine: self.fine,
+            coarse: self.coarse,
+            scale: self.scale,
+            psnr: psnr_from_mse(self.sq),
+        };
+        if !self.finite {
+            self.grads = vec![None; self.grads.len()];
+        }
+        (parts, self.grads)
+    }
 }
 
 /// Gradient hook: sees (and may change) the gradients of a step before clipping, aligned
@@ -558,21 +606,7 @@ impl Trainer {
             let rows: Vec<usize> = (0..n_poses)
                 .flat_map(|p| p * k + start..p * k + start + len)
                 .collect();
-            let idx = Tensor::from_vec(
-                rows.iter().map(|&i| i as u32).collect::<Vec<_>>(),
-                rows.len(),
-                &device,
-            )?;
-            let rays = Rays {
-                origins: batch.rays.origins.index_select(&idx, 0)?,
-                dirs: batch.rays.dirs.index_select(&idx, 0)?,
-                bgs: match &batch.rays.bgs {
-                    Some(b) => Some(b.index_select(&idx, 0)?),
-                    None => None,
-                },
-                framecodes: rows.iter().map(|&i| batch.rays.framecodes[i]).collect(),
-            };
-            let target = batch.target.index_select(&idx, 0)?;
+            let (rays, target) = select_rays(batch, &rows, &device)?;
             let mut call = 0;
             let mut noise = |n: usize| {
                 let mut t = tape.lock().unwrap_or_else(|e| e.into_inner());
@@ -619,9 +653,7 @@ impl Trainer {
                 grads,
             })
         };
-        let mut grads: Vec<Option<Tensor>> = vec![None; self.params.len()];
-        let (mut fine, mut coarse, mut sq, mut scale) = (0f64, 0f64, 0f64, 0f64);
-        let mut finite = true;
+        let mut sums = ChunkSums::new(self.params.len());
         let starts: Vec<usize> = (0..k).step_by(per_pose).collect();
         // One wave of chunks per round of workers; sums are taken in chunk order, so the
         // result is the sequential loop's, bit for bit, whatever the worker count.
@@ -629,38 +661,10 @@ impl Trainer {
         for wave in starts.chunks(workers) {
             let outs = crate::parallel::map_ordered(workers, wave.len(), |i| run_chunk(wave[i]))?;
             for out in outs {
-                fine += out.fine;
-                coarse += out.coarse;
-                sq += out.sq;
-                if let Some(v) = out.scale {
-                    scale = v;
-                }
-                finite &= out.finite;
-                if !finite {
-                    continue;
-                }
-                for (g, d) in grads.iter_mut().zip(out.grads) {
-                    if let Some(d) = d {
-                        *g = Some(match g.take() {
-                            Some(sum) => (sum + d)?,
-                            None => d,
-                        });
-                    }
-                }
+                sums.add(out)?;
             }
         }
-        let total = fine * cfg.loss_fine + coarse * cfg.loss_coarse + scale * cfg.loss_scale;
-        let parts = LossParts {
-            total: if finite { total } else { f64::NAN },
-            fine,
-            coarse,
-            scale,
-            psnr: psnr_from_mse(sq),
-        };
-        if !finite {
-            grads = vec![None; self.params.len()];
-        }
-        Ok((parts, grads))
+        Ok(sums.finish(&cfg))
     }
 
     /// Forward pass and loss on `batch` in training mode (consumes density noise).

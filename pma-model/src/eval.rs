@@ -1,0 +1,731 @@
+//! Evaluation of a trained avatar: PSNR and SSIM on a held-out split, under the protocol of
+//! the project's notes (`docs/conventions.md`, "Evaluation protocol"): renders on a black
+//! background with the mean frame code, written as 8-bit (`uint8(truncate(255·clamp(rgb)))`)
+//! and read back; ground truth = image·mask on black; PSNR over the foreground-mask pixels
+//! (the reference's committed H36M code; [`PsnrRegion::Bbox`] uses the tight box instead);
+//! SSIM as scikit-image's `structural_similarity` on the tight-box crop (7×7 uniform window,
+//! sample covariance, data range 2.0 as in the reference's scikit-image 0.19). The metrics
+//! themselves live in `pma_data::metrics`.
+//!
+//! LPIPS is not reported: it needs pretrained AlexNet/VGG weights, which are not bundled and
+//! are never downloaded at run time.
+//!
+//! Which images form a split: a directory holds `<split>.npz` (the layout `pma synth`
+//! writes), all of whose images are the split; a file is filtered by its `eval_tag`. A file
+//! without `eval_tag` does not say which split its images belong to, so it counts only as
+//! the split its name gives (`novel_pose.npz`); any other split is refused, never silently
+//! replaced by the file's images.
+//!
+//! Training does not depend on anything here except through [`evaluate`], and nothing here
+//! depends on training.
+
+use std::path::{Path, PathBuf};
+
+use candle_core::{Device, Tensor};
+use pma_data::dataset::{Dataset, Profile, ReadOptions};
+use pma_data::skeleton::Joints;
+use serde::Serialize;
+
+use crate::avatar::{Avatar, Poses};
+use crate::image::{ImageOptions, RenderedImage};
+
+#[derive(Debug, thiserror::Error)]
+pub enum EvalError {
+    /// A split name other than the four known ones.
+    #[error("unknown split {0:?}; expected novel_view, novel_pose, train or val")]
+    UnknownSplit(String),
+
+    #[error("unknown PSNR region {0:?}; expected mask or bbox")]
+    UnknownRegion(String),
+
+    #[error("dataset {} does not exist", .0.display())]
+    NoData(PathBuf),
+
+    /// A directory given as the dataset lacks the split's file.
+    #[error("{} is a directory without {split}.npz (pass the npz file itself?)", dir.display())]
+    NoSplitFile { dir: PathBuf, split: String },
+
+    /// The file holds no image of the split (by its `eval_tag`, or, without one, by its name).
+    #[error("{}: no images of split {split:?} ({why})", path.display())]
+    SplitNotInFile {
+        path: PathBuf,
+        split: String,
+        why: String,
+    },
+
+    /// Keys the protocol needs are missing from a file that passed validation.
+    #[error("{source_name}: {what}")]
+    Incomplete { source_name: String, what: String },
+
+    /// Every image of the split had an empty mask.
+    #[error("{source_name}: no image of split {split:?} could be scored")]
+    NothingScored { source_name: String, split: String },
+
+    #[error("{}: {source}", path.display())]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+
+    #[error("encoding {}: {source}", path.display())]
+    Png {
+        path: PathBuf,
+        #[source]
+        source: ::image::ImageError,
+    },
+
+    /// A dataset that cannot be read for the profile it is used with.
+    #[error("reading dataset {} ({profile} profile): {source}", path.display())]
+    Read {
+        path: PathBuf,
+        profile: Profile,
+        #[source]
+        source: Box<pma_data::DataError>,
+    },
+
+    // Boxed so `Result<_, EvalError>` stays small.
+    #[error(transparent)]
+    Model(Box<crate::error::ModelError>),
+
+    #[error(transparent)]
+    Data(Box<pma_data::DataError>),
+
+    #[error(transparent)]
+    Candle(Box<candle_core::Error>),
+}
+
+impl EvalError {
+    /// The user asked for something the input does not have (a split, a file): a problem
+    /// with the command or its input rather than a failure of the evaluation.
+    pub fn is_bad_input(&self) -> bool {
+        matches!(
+            self,
+            Self::UnknownSplit(_)
+                | Self::UnknownRegion(_)
+                | Self::NoData(_)
+                | Self::NoSplitFile { .. }
+                | Self::SplitNotInFile { .. }
+        )
+    }
+
+    fn incomplete(data: &Dataset, what: String) -> Self {
+        Self::Incomplete {
+            source_name: data.source.clone(),
+            what,
+        }
+    }
+}
+
+impl From<crate::error::ModelError> for EvalError {
+    fn from(e: crate::error::ModelError) -> Self {
+        Self::Model(Box::new(e))
+    }
+}
+
+impl From<pma_data::DataError> for EvalError {
+    fn from(e: pma_data::DataError) -> Self {
+        Self::Data(Box::new(e))
+    }
+}
+
+impl From<candle_core::Error> for EvalError {
+    fn from(e: candle_core::Error) -> Self {
+        Self::Candle(Box::new(e))
+    }
+}
+
+pub type Result<T> = std::result::Result<T, EvalError>;
+
+/// Which images of a file form the split.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Split {
+    pub name: String,
+    /// The split's `eval_tag` value (0 train, 1 novel view, 2 novel pose, 3 val).
+    pub tag: i8,
+    /// Every image of the file belongs to the split (a `<split>.npz` of a scene directory).
+    pub whole_file: bool,
+}
+
+impl Split {
+    /// The split `name` (`train`, `novel_view`, `novel_pose` or `val`), filtered by tag.
+    pub fn named(name: &str) -> Result<Self> {
+        let tag = match name {
+            "train" => 0,
+            "novel_view" => 1,
+            "novel_pose" => 2,
+            "val" => 3,
+            other => return Err(EvalError::UnknownSplit(other.to_string())),
+        };
+        Ok(Self {
+            name: name.to_string(),
+            tag,
+            whole_file: false,
+        })
+    }
+
+    /// Every image of a file that holds only this split.
+    pub fn whole_file(name: &str) -> Result<Self> {
+        Ok(Self {
+            whole_file: true,
+            ..Self::named(name)?
+        })
+    }
+}
+
+/// The file to read for `split` of `data` (a file, or a directory holding `<split>.npz`).
+pub fn resolve_split(data: &Path, split: &str) -> Result<(PathBuf, Split)> {
+    if data.is_dir() {
+        let split = Split::whole_file(split)?;
+        let path = data.join(format!("{}.npz", split.name));
+        if !path.is_file() {
+            return Err(EvalError::NoSplitFile {
+                dir: data.to_path_buf(),
+                split: split.name,
+            });
+        }
+        return Ok((path, split));
+    }
+    let split = Split::named(split)?;
+    if !data.is_file() {
+        return Err(EvalError::NoData(data.to_path_buf()));
+    }
+    Ok((data.to_path_buf(), split))
+}
+
+/// Image indices of `split` in `data`, read from `path`.
+pub fn split_images(data: &Dataset, path: &Path, split: &Split) -> Result<Vec<usize>> {
+    let n = data.n_images();
+    let not_in_file = |why: String| EvalError::SplitNotInFile {
+        path: path.to_path_buf(),
+        split: split.name.clone(),
+        why,
+    };
+    let images: Vec<usize> = match (&data.eval_tag, split.whole_file) {
+        (_, true) => (0..n).collect(),
+        (Some(tags), false) => (0..n).filter(|&i| tags[i] == split.tag).collect(),
+        (None, false) => {
+            if file_split_name(path).as_deref() != Some(split.name.as_str()) {
+                return Err(not_in_file(format!(
+                    "the file has no eval_tag; without one a file holds only the split its name \
+                     gives, {}.npz",
+                    split.name
+                )));
+            }
+            (0..n).collect()
+        }
+    };
+    if images.is_empty() {
+        return Err(not_in_file(match &data.eval_tag {
+            Some(_) => format!("no image has eval_tag {}", split.tag),
+            None => "the file has no images".into(),
+        }));
+    }
+    Ok(images)
+}
+
+/// `novel_pose` for `DIR/novel_pose.npz` or `DIR/novel_pose.scene.npz`.
+fn file_split_name(path: &Path) -> Option<String> {
+    let name = path.file_name()?.to_str()?;
+    let stem = name
+        .strip_suffix(".scene.npz")
+        .or_else(|| name.strip_suffix(".npz"))?;
+    Some(stem.to_string())
+}
+
+/// The held-out images a training run scores: those tagged novel view when the file has
+/// any, otherwise all of them.
+pub fn held_out_images(data: &Dataset) -> Vec<usize> {
+    match &data.eval_tag {
+        Some(t) if t.iter().any(|&v| v == 1) => {
+            (0..data.n_images()).filter(|&i| t[i] == 1).collect()
+        }
+        _ => (0..data.n_images()).collect(),
+    }
+}
+
+/// Read a dataset for `profile`. Its warnings are in `Dataset::warnings` for the caller to
+/// show.
+pub fn read_dataset(path: &Path, profile: Profile) -> Result<Dataset> {
+    Dataset::read(path, &ReadOptions::new(profile)).map_err(|e| EvalError::Read {
+        path: path.to_path_buf(),
+        profile,
+        source: Box::new(e),
+    })
+}
+
+/// At most `k` of `items`, evenly spread, first and last included.
+pub fn spread(items: &[usize], k: usize) -> Vec<usize> {
+    if k >= items.len() {
+        return items.to_vec();
+    }
+    if k == 0 {
+        return Vec::new();
+    }
+    if k == 1 {
+        return vec![items[0]];
+    }
+    let mut out: Vec<usize> = (0..k)
+        .map(|i| items[i * (items.len() - 1) / (k - 1)])
+        .collect();
+    out.dedup();
+    out
+}
+
+/// Mean colour (in [0,1]) of the foreground pixels of every image: the trivial baseline
+/// predicts it inside the ground-truth mask and black elsewhere.
+pub fn mean_foreground_colour(data: &Dataset) -> Result<[f64; 3]> {
+    let mut sum = [0f64; 3];
+    let mut count = 0u64;
+    for n in 0..data.n_images() {
+        let (Some(img), Some(mask)) = (data.image(n), data.mask(n)) else {
+            return Err(EvalError::incomplete(
+                data,
+                format!("image {n} has no pixels or mask"),
+            ));
+        };
+        for (px, m) in img.outer_iter().zip(mask.outer_iter()) {
+            if m[0] > 0 {
+                for c in 0..3 {
+                    sum[c] += px[c] as f64 / 255.0;
+                }
+                count += 1;
+            }
+        }
+    }
+    if count == 0 {
+        return Err(EvalError::incomplete(
+            data,
+            "no foreground pixels to average".into(),
+        ));
+    }
+    Ok(sum.map(|s| s / count as f64))
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum PsnrRegion {
+    Mask,
+    Bbox,
+}
+
+impl std::str::FromStr for PsnrRegion {
+    type Err = EvalError;
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "mask" => Ok(Self::Mask),
+            "bbox" => Ok(Self::Bbox),
+            other => Err(EvalError::UnknownRegion(other.to_string())),
+        }
+    }
+}
+
+#[derive(Debug, Clone)]
+pub struct EvalOptions {
+    pub region: PsnrRegion,
+    pub ssim_data_range: f64,
+    pub chunk: usize,
+    /// Where side-by-side PNGs go (`None`: no PNGs).
+    pub png_dir: Option<PathBuf>,
+    pub pngs: usize,
+    /// Colour of the trivial baseline; `None` skips it.
+    pub baseline_colour: Option<[f64; 3]>,
+}
+
+impl EvalOptions {
+    /// Protocol defaults, no files.
+    pub fn quick(chunk: usize) -> Self {
+        Self {
+            region: PsnrRegion::Mask,
+            ssim_data_range: 2.0,
+            chunk,
+            png_dir: None,
+            pngs: 0,
+            baseline_colour: None,
+        }
+    }
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct ImageScore {
+    /// Image index in the dataset file.
+    pub index: usize,
+    pub psnr: f64,
+    pub ssim: f64,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub baseline_psnr: Option<f64>,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct EvalReport {
+    pub split: String,
+    pub psnr: f64,
+    pub ssim: f64,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub baseline_psnr: Option<f64>,
+    pub psnr_region: PsnrRegion,
+    pub ssim_data_range: f64,
+    pub lpips: Option<f64>,
+    pub lpips_note: &'static str,
+    pub images: usize,
+    pub render_s: f64,
+    pub per_image: Vec<ImageScore>,
+    pub pngs: Vec<PathBuf>,
+    /// Images left out because their mask is empty (no pixels to score).
+    #[serde(skip)]
+    pub empty_masks: Vec<usize>,
+}
+
+pub const LPIPS_NOTE: &str =
+    "LPIPS not computed: it needs pretrained AlexNet/VGG weights, which pma does not bundle or download";
+
+/// Render and score `images` of `data` (see the module docs for the protocol). `progress`
+/// receives (done, total).
+pub fn evaluate(
+    avatar: &Avatar,
+    data: &Dataset,
+    split: &str,
+    images: &[usize],
+    opts: &EvalOptions,
+    progress: &mut dyn FnMut(usize, usize),
+) -> Result<EvalReport> {
+    let png_set: Vec<usize> = if opts.png_dir.is_some() {
+        spread(images, opts.pngs)
+    } else {
+        Vec::new()
+    };
+    let (h, w) = (data.height(), data.width());
+    let start = std::time::Instant::now();
+    let mut per_image = Vec::with_capacity(images.len());
+    let mut pngs = Vec::new();
+    let mut empty_masks = Vec::new();
+    for (k, &n) in images.iter().enumerate() {
+        let rendered = render_dataset_image(avatar, data, n, opts.chunk)?;
+        let pred = quantize(&rendered);
+        let (gt, mask) = ground_truth(data, n)?;
+        let Some(scores) = score(&pred, &gt, &mask, h, w, opts)? else {
+            empty_masks.push(n);
+            continue;
+        };
+        let baseline_psnr = match opts.baseline_colour {
+            Some(c) => {
+                let base: Vec<f32> = mask
+                    .iter()
+                    .flat_map(|&m| if m > 0 { c.map(|v| v as f32) } else { [0.0; 3] })
+                    .collect();
+                score(&pma_data::metrics::quantize(&base), &gt, &mask, h, w, opts)?.map(|s| s.0)
+            }
+            None => None,
+        };
+        per_image.push(ImageScore {
+            index: n,
+            psnr: scores.0,
+            ssim: scores.1,
+            baseline_psnr,
+        });
+        if let (Some(dir), true) = (&opts.png_dir, png_set.contains(&n)) {
+            let path = dir.join(format!("{split}_{n:04}.png"));
+            write_png(&side_by_side(&gt, &pred, h, w), &path)?;
+            pngs.push(path);
+        }
+        progress(k + 1, images.len());
+    }
+    if per_image.is_empty() {
+        return Err(EvalError::NothingScored {
+            source_name: data.source.clone(),
+            split: split.to_string(),
+        });
+    }
+    let mean = |f: &dyn Fn(&ImageScore) -> f64| {
+        per_image.iter().map(f).sum::<f64>() / per_image.len() as f64
+    };
+    let baseline_psnr =
+        if per_image.iter().all(|s| s.baseline_psnr.is_some()) && opts.baseline_colour.is_some() {
+            Some(mean(&|s| s.baseline_psnr.unwrap_or(f64::NAN)))
+        } else {
+            None
+        };
+    Ok(EvalReport {
+        split: split.to_string(),
+        psnr: mean(&|s| s.psnr),
+        ssim: mean(&|s| s.ssim),
+        baseline_psnr,
+        psnr_region: opts.region,
+        ssim_data_range: opts.ssim_data_range,
+        lpips: None,
+        lpips_note: LPIPS_NOTE,
+        images: per_image.len(),
+        render_s: start.elapsed().as_secs_f64(),
+        per_image,
+        pngs,
+        empty_masks,
+    })
+}
+
+/// Pose row `p` of `data` as model input, with its posed joints (for the render box).
+pub fn dataset_pose(data: &Dataset, p: usize, device: &Device) -> Result<(Poses, Joints)> {
+    let (Some(skts), Some(cyls), Some(kp3d)) = (&data.skts, &data.cyls, data.pose_kp3d(p)) else {
+        return Err(EvalError::incomplete(
+            data,
+            format!("pose {p} lacks skts/cyls/kp3d (derived on import; is the file valid?)"),
+        ));
+    };
+    let skts: Vec<f32> = skts
+        .outer_iter()
+        .nth(p)
+        .map(|m| m.iter().copied().collect())
+        .unwrap_or_default();
+    let poses = Poses {
+        bones: vec![data.pose_bones(p)],
+        skts: Tensor::from_vec(skts, (1, 24, 4, 4), device)?,
+        cyls: Tensor::from_vec(cyls.row(p).to_vec(), (1, 5), device)?,
+    };
+    Ok((poses, kp3d))
+}
+
+/// Render image `n` of `data` with its pose and camera, black background, mean frame code
+/// (frame-code index −1, as for frames the model has not seen).
+pub fn render_dataset_image(
+    avatar: &Avatar,
+    data: &Dataset,
+    n: usize,
+    chunk: usize,
+) -> Result<RenderedImage> {
+    let device = avatar.device().clone();
+    let p = data.pose_row(n)?;
+    let cam = data.image_camera(n)?;
+    let (poses, kp3d) = dataset_pose(data, p, &device)?;
+    let opts = ImageOptions {
+        chunk,
+        head: data.head()?,
+        device,
+    };
+    Ok(avatar.render_image(&poses, &kp3d, &cam, None, &opts)?)
+}
+
+/// `uint8(truncate(255·clamp(rgb, 0, 1))) / 255`, what the reference scores after writing PNGs.
+pub fn quantize(img: &RenderedImage) -> Vec<f32> {
+    pma_data::metrics::quantize(&img.rgb)
+}
+
+/// Ground truth of image `n` composited on black ([H·W·3] in [0,1]) and its mask ([H·W]).
+pub fn ground_truth(data: &Dataset, n: usize) -> Result<(Vec<f32>, Vec<u8>)> {
+    let (Some(img), Some(mask)) = (data.image(n), data.mask(n)) else {
+        return Err(EvalError::incomplete(
+            data,
+            format!("image {n} has no pixels or mask (eval profile)"),
+        ));
+    };
+    let mask: Vec<u8> = mask.outer_iter().map(|m| (m[0] > 0) as u8).collect();
+    let gt = img
+        .outer_iter()
+        .zip(&mask)
+        .flat_map(|(px, &m)| [0, 1, 2].map(|c| if m > 0 { px[c] as f32 / 255.0 } else { 0.0 }))
+        .collect();
+    Ok((gt, mask))
+}
+
+/// (PSNR, SSIM) of `pred` against `gt` ([H·W·3] in [0,1]); `None` when the mask is empty.
+fn score(
+    pred: &[f32],
+    gt: &[f32],
+    mask: &[u8],
+    h: usize,
+    w: usize,
+    opts: &EvalOptions,
+) -> Result<Option<(f64, f64)>> {
+    let region = match opts.region {
+        PsnrRegion::Mask => pma_data::metrics::Region::Mask,
+        PsnrRegion::Bbox => pma_data::metrics::Region::Bbox,
+    };
+    Ok(pma_data::metrics::score_image(
+        pred,
+        gt,
+        mask,
+        h,
+        w,
+        region,
+        opts.ssim_data_range,
+    )?)
+}
+
+/// [GT | render | error heat map], upscaled so small images stay readable.
+pub fn side_by_side(gt: &[f32], pred: &[f32], h: usize, w: usize) -> ::image::RgbImage {
+    let k = 256usize.div_ceil(h.max(1)).clamp(1, 8) as u32;
+    let gap = 4u32;
+    let (pw, ph) = (w as u32 * k, h as u32 * k);
+    let mut out =
+        ::image::RgbImage::from_pixel(3 * pw + 2 * gap, ph, ::image::Rgb([255, 255, 255]));
+    let byte = |v: f32| (v.clamp(0.0, 1.0) * 255.0) as u8;
+    for y in 0..h {
+        for x in 0..w {
+            let i = 3 * (y * w + x);
+            let g = [byte(gt[i]), byte(gt[i + 1]), byte(gt[i + 2])];
+            let p = [byte(pred[i]), byte(pred[i + 1]), byte(pred[i + 2])];
+            let err = (0..3).map(|c| (pred[i + c] - gt[i + c]).abs()).sum::<f32>() / 3.0;
+            let e = heat(err / 0.25);
+            for dy in 0..k {
+                for dx in 0..k {
+                    let (px, py) = (x as u32 * k + dx, y as u32 * k + dy);
+                    out.put_pixel(px, py, ::image::Rgb(g));
+                    out.put_pixel(pw + gap + px, py, ::image::Rgb(p));
+                    out.put_pixel(2 * (pw + gap) + px, py, ::image::Rgb(e));
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Black → purple → orange → yellow-white colour ramp for t in [0,1] (clamped).
+pub fn heat(t: f32) -> [u8; 3] {
+    const STOPS: [[f32; 3]; 5] = [
+        [0.0, 0.0, 0.02],
+        [0.32, 0.07, 0.5],
+        [0.8, 0.2, 0.35],
+        [0.98, 0.6, 0.1],
+        [1.0, 1.0, 0.85],
+    ];
+    let t = if t.is_finite() {
+        t.clamp(0.0, 1.0)
+    } else {
+        1.0
+    };
+    let s = t * (STOPS.len() - 1) as f32;
+    let i = (s.floor() as usize).min(STOPS.len() - 2);
+    let f = s - i as f32;
+    let c = |k: usize| STOPS[i][k] + (STOPS[i + 1][k] - STOPS[i][k]) * f;
+    [0, 1, 2].map(|k| (c(k) * 255.0).round() as u8)
+}
+
+/// Encode `img` as PNG and replace `path` atomically.
+pub fn write_png(img: &::image::RgbImage, path: &Path) -> Result<()> {
+    let mut bytes = Vec::new();
+    img.write_to(
+        &mut std::io::Cursor::new(&mut bytes),
+        ::image::ImageFormat::Png,
+    )
+    .map_err(|source| EvalError::Png {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    pma_data::fsio::write_atomic(path, &bytes).map_err(|source| EvalError::Io {
+        path: path.to_path_buf(),
+        source,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn spread_picks_evenly_with_ends() {
+        let v: Vec<usize> = (10..20).collect();
+        assert_eq!(spread(&v, 3), vec![10, 14, 19]);
+        assert_eq!(spread(&v, 1), vec![10]);
+        assert_eq!(spread(&v, 0), Vec::<usize>::new());
+        assert_eq!(spread(&v, 50), v);
+    }
+
+    #[test]
+    fn heat_ramp_is_monotone_in_brightness() {
+        let lum = |c: [u8; 3]| c.iter().map(|&v| v as u32).sum::<u32>();
+        let mut last = 0;
+        for i in 0..=20 {
+            let l = lum(heat(i as f32 / 20.0));
+            assert!(l >= last, "{i}");
+            last = l;
+        }
+        assert_eq!(heat(f32::NAN), heat(1.0));
+    }
+
+    fn ssim_skimage(a: &[f64], b: &[f64], h: usize, w: usize, data_range: f64) -> Result<f64> {
+        Ok(pma_data::metrics::ssim(a, b, h, w, data_range)?)
+    }
+
+    #[test]
+    fn ssim_is_one_for_identical_images_and_drops_with_noise() {
+        let (h, w) = (12, 10);
+        let a: Vec<f64> = (0..h * w * 3)
+            .map(|i| ((i * 37) % 101) as f64 / 100.0)
+            .collect();
+        assert!((ssim_skimage(&a, &a, h, w, 2.0).unwrap() - 1.0).abs() < 1e-12);
+        let b: Vec<f64> = a
+            .iter()
+            .enumerate()
+            .map(|(i, v)| v + if i % 2 == 0 { 0.2 } else { -0.2 })
+            .collect();
+        let s = ssim_skimage(&a, &b, h, w, 2.0).unwrap();
+        assert!(s < 0.95, "{s}");
+        // A smaller data range makes the same error count more.
+        assert!(ssim_skimage(&a, &b, h, w, 1.0).unwrap() < s);
+        assert!(ssim_skimage(&a, &b, 6, w, 2.0).is_err());
+    }
+
+    /// A hand-computed case: constant images a, b in one 7×7 window (all variances 0), so
+    /// SSIM = (2ab + C1) / (a² + b² + C1).
+    #[test]
+    fn ssim_constant_windows_reduce_to_the_luminance_term() {
+        let (a, b) = (0.5f64, 0.25f64);
+        let c1 = (0.01f64 * 2.0).powi(2);
+        let want = (2.0 * a * b + c1) / (a * a + b * b + c1);
+        let got = ssim_skimage(&vec![a; 7 * 7 * 3], &vec![b; 7 * 7 * 3], 7, 7, 2.0).unwrap();
+        assert!((got - want).abs() < 1e-12, "{got} vs {want}");
+    }
+
+    #[test]
+    fn psnr_regions_and_empty_masks() {
+        let (h, w) = (8, 8);
+        let mut mask = vec![0u8; h * w];
+        for y in 1..8 {
+            for x in 0..7 {
+                if (x + y) % 3 != 0 {
+                    mask[y * w + x] = 1;
+                }
+            }
+        }
+        let gt = vec![0.5f32; h * w * 3];
+        // Error 0.1 on foreground pixels only: mask PSNR = 20 dB, box PSNR higher.
+        let pred: Vec<f32> = (0..h * w * 3)
+            .map(|i| if mask[i / 3] > 0 { 0.6 } else { 0.5 })
+            .collect();
+        let mut opts = EvalOptions::quick(16);
+        let (p_mask, _) = score(&pred, &gt, &mask, h, w, &opts).unwrap().unwrap();
+        assert!((p_mask - 20.0).abs() < 1e-4, "{p_mask}");
+        opts.region = PsnrRegion::Bbox;
+        let (p_box, _) = score(&pred, &gt, &mask, h, w, &opts).unwrap().unwrap();
+        assert!(p_box > p_mask);
+        assert!(score(&pred, &gt, &vec![0; h * w], h, w, &opts)
+            .unwrap()
+            .is_none());
+        let b = pma_data::metrics::tight_box(&mask, h, w).map(|b| (b.y0, b.x0, b.y1, b.x1));
+        assert_eq!(b, Some((1, 0, 8, 7)));
+    }
+
+    #[test]
+    fn quantization_truncates_like_the_reference() {
+        assert_eq!(
+            pma_data::metrics::quantize(&[1.001, -0.001, 0.5, 0.99999]),
+            vec![1.0, 0.0, 127.0 / 255.0, 254.0 / 255.0]
+        );
+    }
+
+    #[test]
+    fn split_names_and_files() {
+        assert!(matches!(
+            Split::named("holdout"),
+            Err(EvalError::UnknownSplit(_))
+        ));
+        assert_eq!(Split::named("novel_pose").unwrap().tag, 2);
+        assert_eq!(
+            file_split_name(Path::new("a/novel_pose.npz")).as_deref(),
+            Some("novel_pose")
+        );
+        assert_eq!(
+            file_split_name(Path::new("train.scene.npz")).as_deref(),
+            Some("train")
+        );
+        assert_eq!(file_split_name(Path::new("x.h5")), None);
+    }
+}

@@ -1,0 +1,483 @@
+//! A whole training run: resolve the configuration, train until the iteration target, the
+//! time budget or an interruption, evaluate on held-out data on schedule, and keep the run
+//! directory current.
+//!
+//! The run directory holds everything a run writes:
+//!
+//! | file | content |
+//! | --- | --- |
+//! | `config.toml` | the resolved run configuration (preset + overrides) |
+//! | `model.safetensors` | the latest model (pma checkpoint) |
+//! | `train_state.safetensors` | optimizer moments, RNG and sampler state, iteration |
+//! | `log.csv` | one row per log interval (see [`super::log`]) |
+//!
+//! Checkpoints are written every `ckpt_every` iterations, at the end, and when the
+//! interrupt flag is raised; every file is replaced atomically. Progress, notes and
+//! checkpoints are reported to a [`TrainObserver`], which is how a front end draws a
+//! progress bar or plots the log; this module prints nothing and installs no signal
+//! handler.
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use candle_core::Device;
+use pma_data::dataset::{Dataset, Profile};
+
+use super::log::{LogRow, TrainLog};
+use super::trainer::{StepStats, Trainer, MODEL_FILE, STATE_FILE};
+use super::{write_atomic, TrainError};
+use crate::eval::{evaluate, held_out_images, read_dataset, spread, EvalOptions};
+use crate::presets::{Preset, RunConfig};
+
+/// The resolved run configuration inside a run directory.
+pub const CONFIG_FILE: &str = "config.toml";
+/// The training log inside a run directory.
+pub const LOG_FILE: &str = "log.csv";
+
+/// What to train.
+#[derive(Debug, Clone)]
+pub struct TrainRequest {
+    pub data: PathBuf,
+    pub out: PathBuf,
+    /// `None`: the run directory's `config.toml` (resume) or the `default` preset.
+    pub run: Option<RunConfig>,
+    pub resume: bool,
+    /// Start afresh even if `out` holds a run (its files are replaced); otherwise refuse.
+    pub overwrite: bool,
+    pub iters: Option<u64>,
+    pub minutes: Option<f64>,
+    /// Held-out data for the periodic evaluation (images with `eval_tag` 1 if tagged).
+    pub eval_data: Option<PathBuf>,
+    /// Overrides `train.chunk_rays` (memory only: the step is the same).
+    pub chunk_rays: Option<usize>,
+    /// Where the model trains.
+    pub device: Device,
+}
+
+/// What a training session did.
+#[derive(Debug, Clone)]
+pub struct TrainOutcome {
+    /// Completed iterations of the run (all sessions).
+    pub iterations: u64,
+    /// Iterations done by this session.
+    pub session_iterations: u64,
+    /// Wall-clock seconds of the run (all sessions), including held-out evaluations.
+    pub wall_s: f64,
+    /// Seconds of this session.
+    pub session_s: f64,
+    /// Seconds of this session spent in held-out evaluation.
+    pub eval_s: f64,
+    pub skipped: u64,
+    /// The interrupt flag stopped the session (after a checkpoint).
+    pub interrupted: bool,
+    pub model: PathBuf,
+}
+
+/// Progress after one step.
+#[derive(Debug, Clone)]
+pub struct StepReport<'a> {
+    pub stats: &'a StepStats,
+    /// The run's iteration target.
+    pub target: u64,
+    /// Iterations per second of this session, held-out evaluations excluded.
+    pub it_per_s: f64,
+    /// Seconds to the target or to the end of the time budget, whichever comes first.
+    pub eta_s: f64,
+    /// Exponential moving averages of the loss and the training PSNR (`None` before the
+    /// first finite step).
+    pub ema: Option<(f64, f64)>,
+}
+
+/// An error from an observer's own work (a plot it writes).
+pub type ObserverError = Box<dyn std::error::Error + Send + Sync>;
+
+/// What a front end hears from [`train_run`]. Every method has a do-nothing default.
+pub trait TrainObserver {
+    /// A dataset or evaluation warning (names the file).
+    fn warning(&mut self, _line: &str) {}
+    /// Before the first step: the iteration the session starts from and the target.
+    fn start(&mut self, _iter: u64, _target: u64) {}
+    fn step(&mut self, _report: &StepReport) {}
+    /// A line for the user (a skipped step, a held-out score).
+    fn note(&mut self, _line: &str) {}
+    /// After each checkpoint, with the log as written.
+    fn checkpoint(&mut self, _dir: &Path, _log: &TrainLog) -> Result<(), ObserverError> {
+        Ok(())
+    }
+}
+
+/// An observer that ignores everything.
+pub struct Silent;
+
+impl TrainObserver for Silent {}
+
+/// Mean loss and training PSNR over a log interval.
+#[derive(Default)]
+struct Interval {
+    loss: f64,
+    psnr: f64,
+    n: u64,
+}
+
+impl Interval {
+    fn add(&mut self, stats: &StepStats) {
+        self.loss += stats.loss.total;
+        self.psnr += stats.loss.psnr;
+        self.n += 1;
+    }
+
+    fn take(&mut self) -> (f64, f64) {
+        let out = if self.n == 0 {
+            (f64::NAN, f64::NAN)
+        } else {
+            (self.loss / self.n as f64, self.psnr / self.n as f64)
+        };
+        *self = Interval::default();
+        out
+    }
+}
+
+/// The held-out data a run scores itself on, and the images it scores.
+struct HeldOut {
+    data: Dataset,
+    images: Vec<usize>,
+    opts: EvalOptions,
+}
+
+/// Train until `iters`, the time budget or `interrupt`, checkpointing as configured.
+pub fn train_run(
+    req: &TrainRequest,
+    interrupt: &AtomicBool,
+    observer: &mut dyn TrainObserver,
+) -> Result<TrainOutcome, TrainError> {
+    let run = resolve_run(req)?;
+    if !req.resume && !req.overwrite && req.out.join(STATE_FILE).exists() {
+        return Err(TrainError::RunExists(req.out.clone()));
+    }
+    let data = Arc::new(read_warned(&req.data, Profile::Train, observer)?);
+    std::fs::create_dir_all(&req.out).map_err(|source| TrainError::Io {
+        path: req.out.clone(),
+        source,
+    })?;
+    let held_out = match &req.eval_data {
+        Some(p) => {
+            let data = read_warned(p, Profile::Eval, observer)?;
+            let images = spread(&held_out_images(&data), run.train.eval_images.max(1));
+            Some(HeldOut {
+                data,
+                images,
+                opts: EvalOptions::quick(run.train.render_chunk),
+            })
+        }
+        None => None,
+    };
+    let trainer = if req.resume {
+        Trainer::resume(&req.out, run.clone(), data, &req.device)?
+    } else {
+        let t = Trainer::new(run.clone(), data, &req.device)?;
+        // Written after construction: the trainer sets the frame-code count from the data.
+        write_config(t.run_config(), &req.out.join(CONFIG_FILE))?;
+        t
+    };
+    let mut log = if req.resume {
+        TrainLog::read(&req.out.join(LOG_FILE))?
+    } else {
+        TrainLog::default()
+    };
+    log.truncate_after(trainer.iteration());
+    let mut session = Session::new(req, run, trainer, log, held_out, observer);
+    session.run(interrupt)
+}
+
+fn read_warned(
+    path: &Path,
+    profile: Profile,
+    observer: &mut dyn TrainObserver,
+) -> Result<Dataset, TrainError> {
+    let data = read_dataset(path, profile)?;
+    for w in &data.warnings {
+        observer.warning(&format!("{}: {w}", path.display()));
+    }
+    Ok(data)
+}
+
+/// The run's configuration: the request's, or on resume the run directory's (which the
+/// request may only lengthen).
+fn resolve_run(req: &TrainRequest) -> Result<RunConfig, TrainError> {
+    let saved = req.out.join(CONFIG_FILE);
+    let mut run = if req.resume {
+        let resume_error = |reason: String| TrainError::Resume {
+            dir: req.out.clone(),
+            reason,
+        };
+        let from_dir = RunConfig::from_toml_file(&saved)
+            .map_err(|e| resume_error(format!("it needs the run's {CONFIG_FILE}: {e}")))?;
+        if let Some(given) = &req.run {
+            let mut a = given.clone();
+            let mut b = from_dir.clone();
+            // Only the length of the run may change on resume (the frame-code count
+            // comes from the data).
+            a.train.iters = 0;
+            b.train.iters = 0;
+            a.train.chunk_rays = b.train.chunk_rays;
+            a.model.n_framecodes = b.model.n_framecodes;
+            if a != b {
+                return Err(resume_error(format!(
+                    "the configuration given differs from the run's {} (beyond `iters`); a resumed run keeps its configuration",
+                    saved.display()
+                )));
+            }
+        }
+        from_dir
+    } else {
+        req.run
+            .clone()
+            .unwrap_or_else(|| RunConfig::from_preset(Preset::Paper))
+    };
+    if let Some(n) = req.iters {
+        run.train.iters = n;
+    }
+    if let Some(c) = req.chunk_rays {
+        run.train.chunk_rays = c;
+    }
+    run.validate()?;
+    Ok(run)
+}
+
+fn write_config(run: &RunConfig, path: &Path) -> Result<(), TrainError> {
+    let text = format!(
+        "# Resolved run configuration, written by `pma train`; `--resume` reads it back.\n{}",
+        run.to_toml_string()?
+    );
+    write_atomic(path, text.as_bytes())
+}
+
+/// One invocation's state while the loop runs.
+struct Session<'a> {
+    out: PathBuf,
+    run: RunConfig,
+    trainer: Trainer,
+    log: TrainLog,
+    held_out: Option<HeldOut>,
+    observer: &'a mut dyn TrainObserver,
+    start_iter: u64,
+    base_wall: f64,
+    clock: Instant,
+    budget: Option<Duration>,
+    eval_s: f64,
+    interval: Interval,
+    ema: Option<(f64, f64)>,
+}
+
+impl<'a> Session<'a> {
+    fn new(
+        req: &TrainRequest,
+        run: RunConfig,
+        trainer: Trainer,
+        log: TrainLog,
+        held_out: Option<HeldOut>,
+        observer: &'a mut dyn TrainObserver,
+    ) -> Self {
+        Self {
+            out: req.out.clone(),
+            start_iter: trainer.iteration(),
+            base_wall: trainer.progress().wall_s,
+            clock: Instant::now(),
+            budget: req
+                .minutes
+                .map(|m| Duration::from_secs_f64((m * 60.0).max(0.0))),
+            run,
+            trainer,
+            log,
+            held_out,
+            observer,
+            eval_s: 0.0,
+            interval: Interval::default(),
+            ema: None,
+        }
+    }
+
+    fn run(&mut self, interrupt: &AtomicBool) -> Result<TrainOutcome, TrainError> {
+        let target = self.run.train.iters;
+        self.observer.start(self.start_iter, target);
+        // The curve starts at the initial model.
+        if self.start_iter == 0 && self.held_out.is_some() {
+            let e = self.evaluate_now()?;
+            let row = self.row(0, (f64::NAN, f64::NAN), e);
+            self.log.push(LogRow { skipped: 0, ..row });
+        }
+        let mut interrupted = false;
+        let mut last_logged = self.trainer.iteration();
+        let mut failure = None;
+        while self.trainer.iteration() < target {
+            if interrupt.load(Ordering::SeqCst) {
+                interrupted = true;
+                break;
+            }
+            if self.budget.is_some_and(|b| self.clock.elapsed() >= b) {
+                break;
+            }
+            let stats = match self.trainer.step() {
+                Ok(s) => s,
+                Err(e @ TrainError::Diverged { .. }) => {
+                    failure = Some(e);
+                    break;
+                }
+                Err(e) => return Err(e),
+            };
+            self.trainer.set_wall_s(self.wall());
+            self.record_step(&stats, target);
+            if self.after_step(stats.iter)? {
+                last_logged = stats.iter;
+            }
+        }
+        self.finish(last_logged, failure, interrupted)
+    }
+
+    fn wall(&self) -> f64 {
+        self.base_wall + self.clock.elapsed().as_secs_f64()
+    }
+
+    /// Held-out (PSNR, SSIM) now, if the run has held-out data.
+    fn evaluate_now(&mut self) -> Result<Option<(f64, f64)>, TrainError> {
+        let Some(h) = &self.held_out else {
+            return Ok(None);
+        };
+        let t = Instant::now();
+        let r = evaluate(
+            self.trainer.avatar(),
+            &h.data,
+            "held-out",
+            &h.images,
+            &h.opts,
+            &mut |_, _| {},
+        )?;
+        for n in &r.empty_masks {
+            self.observer.warning(&format!(
+                "{}: image {n} has an empty mask; skipped",
+                h.data.source
+            ));
+        }
+        self.eval_s += t.elapsed().as_secs_f64();
+        Ok(Some((r.psnr, r.ssim)))
+    }
+
+    /// A log row at `iter` with the interval means and an optional held-out score.
+    fn row(&self, iter: u64, (loss, psnr): (f64, f64), e: Option<(f64, f64)>) -> LogRow {
+        LogRow {
+            iter,
+            wall_s: self.wall(),
+            loss,
+            train_psnr: psnr,
+            eval_psnr: e.map(|v| v.0),
+            eval_ssim: e.map(|v| v.1),
+            lr: self.trainer.lrs().last().copied().unwrap_or(f64::NAN),
+            skipped: self.trainer.progress().skipped,
+        }
+    }
+
+    /// Account for a finished step and report it.
+    fn record_step(&mut self, stats: &StepStats, target: u64) {
+        if let Some(reason) = &stats.skipped {
+            self.observer.note(&format!(
+                "iteration {}: {reason}; step skipped (weights unchanged)",
+                stats.iter
+            ));
+        } else {
+            self.interval.add(stats);
+            self.ema = Some(match self.ema {
+                None => (stats.loss.total, stats.loss.psnr),
+                Some((l, p)) => (
+                    0.9 * l + 0.1 * stats.loss.total,
+                    0.9 * p + 0.1 * stats.loss.psnr,
+                ),
+            });
+        }
+        let elapsed = self.clock.elapsed().as_secs_f64();
+        let done = (stats.iter - self.start_iter) as f64;
+        let it_per_s = done / (elapsed - self.eval_s).max(1e-9);
+        let mut eta_s = (target - stats.iter) as f64 / it_per_s.max(1e-9);
+        if let Some(b) = self.budget {
+            eta_s = eta_s.min((b.as_secs_f64() - elapsed).max(0.0));
+        }
+        self.observer.step(&StepReport {
+            stats,
+            target,
+            it_per_s,
+            eta_s,
+            ema: self.ema,
+        });
+    }
+
+    /// Log, evaluate and checkpoint as scheduled after step `it`; true if a row was logged.
+    fn after_step(&mut self, it: u64) -> Result<bool, TrainError> {
+        let cfg = &self.run.train;
+        let (log_every, ckpt_every) = (cfg.log_every, cfg.ckpt_every);
+        let eval_due = cfg.eval_every > 0 && it % cfg.eval_every == 0;
+        let logged = it % log_every == 0 || eval_due;
+        if logged {
+            let e = if eval_due { self.evaluate_now()? } else { None };
+            let means = self.interval.take();
+            self.log.push(self.row(it, means, e));
+            if let Some((p, s)) = e {
+                self.observer.note(&format!(
+                    "iteration {it}: held-out PSNR {p:.2} dB, SSIM {s:.4}"
+                ));
+            }
+            self.log.write(&self.out.join(LOG_FILE))?;
+        }
+        if it % ckpt_every == 0 {
+            self.trainer.set_wall_s(self.wall());
+            self.trainer.save_checkpoint(&self.out)?;
+            self.observer
+                .checkpoint(&self.out, &self.log)
+                .map_err(TrainError::Observer)?;
+        }
+        Ok(logged)
+    }
+
+    /// Final row (with a held-out evaluation), checkpoint and log.
+    fn finish(
+        &mut self,
+        last_logged: u64,
+        failure: Option<TrainError>,
+        interrupted: bool,
+    ) -> Result<TrainOutcome, TrainError> {
+        let it = self.trainer.iteration();
+        let evaluated_here = self
+            .log
+            .rows
+            .last()
+            .is_some_and(|r| r.iter == it && r.eval_psnr.is_some());
+        if failure.is_none() && !evaluated_here && (it > last_logged || self.held_out.is_some()) {
+            let e = self.evaluate_now()?;
+            let means = self.interval.take();
+            self.log.push(self.row(it, means, e));
+        }
+        self.trainer.set_wall_s(self.wall());
+        self.trainer.save_checkpoint(&self.out)?;
+        self.log.write(&self.out.join(LOG_FILE))?;
+        self.observer
+            .checkpoint(&self.out, &self.log)
+            .map_err(TrainError::Observer)?;
+        if let Some(e) = failure {
+            return Err(TrainError::Stopped {
+                iter: it,
+                dir: self.out.clone(),
+                source: Box::new(e),
+            });
+        }
+        Ok(TrainOutcome {
+            iterations: it,
+            session_iterations: it - self.start_iter,
+            wall_s: self.wall(),
+            session_s: self.clock.elapsed().as_secs_f64(),
+            eval_s: self.eval_s,
+            skipped: self.trainer.progress().skipped,
+            interrupted,
+            model: self.out.join(MODEL_FILE),
+        })
+    }
+}

@@ -1,0 +1,176 @@
+//! The PNG plots of the command line, drawn with plotters on a bundled font.
+
+use std::path::Path;
+
+use anyhow::Context as _;
+use plotters::prelude::*;
+
+use super::bench::BenchReport;
+
+/// Bundled font for plot text: plotters has no fonts of its own without system libraries.
+static FONT: &[u8] = include_bytes!("../../assets/fonts/DejaVuSans.ttf");
+
+fn register_font() {
+    static REGISTER: std::sync::Once = std::sync::Once::new();
+    REGISTER.call_once(|| {
+        // A font that fails to parse leaves text unrendered; the curves are still drawn.
+        let _ = plotters::style::register_font("sans-serif", FontStyle::Normal, FONT);
+    });
+}
+
+/// Plot held-out PSNR (and, lighter, training PSNR) against wall-clock time and write it
+/// atomically as a PNG.
+pub fn plot_psnr_vs_time(
+    eval: &[(f64, f64)],
+    train: &[(f64, f64)],
+    title: &str,
+    path: &Path,
+) -> anyhow::Result<()> {
+    register_font();
+
+    let (w, h) = (900u32, 540u32);
+    let mut buf = vec![0u8; (w * h * 3) as usize];
+    {
+        let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
+        root.fill(&WHITE)
+            .map_err(|e| anyhow::anyhow!("plot: {e}"))?;
+        let finite = |v: &&(f64, f64)| v.0.is_finite() && v.1.is_finite();
+        let all: Vec<(f64, f64)> = eval.iter().chain(train).filter(finite).copied().collect();
+        let minutes = |s: f64| s / 60.0;
+        let x_max = all
+            .iter()
+            .map(|p| minutes(p.0))
+            .fold(0.0f64, f64::max)
+            .max(1e-3)
+            * 1.02;
+        let (mut y_min, mut y_max) = all
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| {
+                (lo.min(p.1), hi.max(p.1))
+            });
+        if !y_min.is_finite() {
+            (y_min, y_max) = (0.0, 30.0);
+        }
+        let pad = ((y_max - y_min) * 0.08).max(0.5);
+        let mut chart = ChartBuilder::on(&root)
+            .caption(title, ("sans-serif", 22))
+            .margin(16)
+            .x_label_area_size(44)
+            .y_label_area_size(56)
+            .build_cartesian_2d(0.0..x_max, (y_min - pad)..(y_max + pad))
+            .map_err(|e| anyhow::anyhow!("plot: {e}"))?;
+        chart
+            .configure_mesh()
+            .x_desc("wall-clock time [min]")
+            .y_desc("PSNR [dB]")
+            .label_style(("sans-serif", 15))
+            .draw()
+            .map_err(|e| anyhow::anyhow!("plot: {e}"))?;
+        let train_colour = RGBColor(150, 150, 150);
+        if !train.is_empty() {
+            chart
+                .draw_series(LineSeries::new(
+                    train.iter().filter(finite).map(|p| (minutes(p.0), p.1)),
+                    train_colour.stroke_width(1),
+                ))
+                .map_err(|e| anyhow::anyhow!("plot: {e}"))?
+                .label("training batch PSNR")
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], train_colour));
+        }
+        if !eval.is_empty() {
+            let blue = RGBColor(31, 90, 180);
+            chart
+                .draw_series(LineSeries::new(
+                    eval.iter().filter(finite).map(|p| (minutes(p.0), p.1)),
+                    blue.stroke_width(2),
+                ))
+                .map_err(|e| anyhow::anyhow!("plot: {e}"))?
+                .label("held-out PSNR")
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 20, y)], blue.stroke_width(2))
+                });
+            chart
+                .draw_series(
+                    eval.iter()
+                        .filter(finite)
+                        .map(|p| Circle::new((minutes(p.0), p.1), 3, blue.filled())),
+                )
+                .map_err(|e| anyhow::anyhow!("plot: {e}"))?;
+        }
+        chart
+            .configure_series_labels()
+            .position(SeriesLabelPosition::LowerRight)
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .label_font(("sans-serif", 15))
+            .draw()
+            .map_err(|e| anyhow::anyhow!("plot: {e}"))?;
+        root.present().map_err(|e| anyhow::anyhow!("plot: {e}"))?;
+    }
+    let img = image::RgbImage::from_raw(w, h, buf).context("plot buffer has the wrong size")?;
+    super::write_png(&img, path)
+}
+
+/// Error against time: x = seconds per image, y = held-out PSNR loss against parity.
+pub fn plot_error_vs_time(r: &BenchReport, path: &Path) -> anyhow::Result<()> {
+    register_font();
+    let pts: Vec<(f64, f64, &str)> = r
+        .options
+        .iter()
+        .map(|o| {
+            (
+                o.ms_per_image / 1e3,
+                if o.psnr_loss_vs_parity_db.is_finite() {
+                    o.psnr_loss_vs_parity_db
+                } else {
+                    0.0
+                },
+                o.name.as_str(),
+            )
+        })
+        .collect();
+    let x_max = pts.iter().map(|p| p.0).fold(0.0, f64::max).max(1e-3) * 1.15;
+    let y_lo = pts.iter().map(|p| p.1).fold(0.0, f64::min) - 0.05;
+    let y_hi = pts.iter().map(|p| p.1).fold(0.1, f64::max) * 1.2 + 0.05;
+    let (w, h) = (900u32, 540u32);
+    let mut buf = vec![0u8; (w * h * 3) as usize];
+    {
+        let e = |e: &dyn std::fmt::Display| anyhow::anyhow!("plot: {e}");
+        let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
+        root.fill(&WHITE).map_err(|x| e(&x))?;
+        let mut chart = ChartBuilder::on(&root)
+            .caption(
+                format!("pma bench ({}, {}x{})", r.preset, r.res, r.res),
+                ("sans-serif", 22),
+            )
+            .margin(16)
+            .x_label_area_size(44)
+            .y_label_area_size(60)
+            .build_cartesian_2d(0.0..x_max, y_lo..y_hi)
+            .map_err(|x| e(&x))?;
+        chart
+            .configure_mesh()
+            .x_desc("seconds per image")
+            .y_desc("held-out PSNR loss vs parity [dB]")
+            .label_style(("sans-serif", 15))
+            .draw()
+            .map_err(|x| e(&x))?;
+        chart
+            .draw_series(
+                pts.iter()
+                    .map(|p| Circle::new((p.0, p.1), 5, BLUE.filled())),
+            )
+            .map_err(|x| e(&x))?;
+        chart
+            .draw_series(
+                pts.iter().map(|p| {
+                    Text::new(p.2.to_string(), (p.0, p.1), ("sans-serif", 13).into_font())
+                }),
+            )
+            .map_err(|x| e(&x))?;
+        root.present().map_err(|x| e(&x))?;
+    }
+    let img = image::RgbImage::from_raw(w, h, buf)
+        .ok_or_else(|| anyhow::anyhow!("plot buffer has the wrong size"))?;
+    super::write_png(&img, path)
+}
