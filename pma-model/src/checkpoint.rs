@@ -289,10 +289,13 @@ pub fn load(path: &Path, device: &Device) -> Result<Checkpoint> {
     })
 }
 
-/// The metadata of a pma checkpoint: config, skeleton and rest pose, or every problem found.
+/// Config, skeleton and rest pose from a pma checkpoint's metadata.
+type PmaMeta = (Config, SkeletonMeta, Vec<[f32; 3]>);
+
+/// The metadata of a pma checkpoint, or every problem found.
 fn read_pma_meta(
     meta_map: &HashMap<String, String>,
-) -> std::result::Result<(Config, SkeletonMeta, Vec<[f32; 3]>), Vec<String>> {
+) -> std::result::Result<PmaMeta, Vec<String>> {
     let mut problems = Vec::new();
     let mut get = |key: &str| -> Option<String> {
         let v = meta_map.get(key).cloned();

@@ -17,8 +17,6 @@ use crate::config::Config;
 use crate::error::{ModelError, Result};
 use crate::host::host_f32_shaped;
 
-/// Number of skeleton parts with a box (SMPL).
-
 /// Tolerance of the box-face test: a plane hit is valid while every coordinate lies within
 /// `bound + BOX_EPS`.
 pub const BOX_EPS: f64 = 1e-5;
