@@ -118,7 +118,7 @@ pub fn warn_empty_masks(report: &EvalReport, source: &str) {
     }
 }
 
-pub fn print_table(report: &EvalReport) {
+fn print_table(report: &EvalReport) {
     println!("split {} ({} images)", report.split, report.images);
     println!("{:>6}  {:>8}  {:>7}", "image", "PSNR", "SSIM");
     for s in &report.per_image {

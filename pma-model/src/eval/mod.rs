@@ -16,8 +16,7 @@
 //! the split its name gives (`novel_pose.npz`); any other split is refused, never silently
 //! replaced by the file's images.
 //!
-//! Training does not depend on anything here except through [`evaluate`], and nothing here
-//! depends on training.
+//! Training scores its held-out curve with [`evaluate`]; nothing here depends on training.
 
 use std::path::{Path, PathBuf};
 
@@ -28,6 +27,12 @@ use serde::Serialize;
 
 use crate::avatar::{Avatar, Poses};
 use crate::image::{ImageOptions, RenderedImage};
+
+mod png;
+mod split;
+
+pub use png::{heat, side_by_side, write_png};
+pub use split::{held_out_images, resolve_split, split_images, spread, Split};
 
 #[derive(Debug, thiserror::Error)]
 pub enum EvalError {
@@ -137,113 +142,6 @@ impl From<candle_core::Error> for EvalError {
 
 pub type Result<T> = std::result::Result<T, EvalError>;
 
-/// Which images of a file form the split.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Split {
-    pub name: String,
-    /// The split's `eval_tag` value (0 train, 1 novel view, 2 novel pose, 3 val).
-    pub tag: i8,
-    /// Every image of the file belongs to the split (a `<split>.npz` of a scene directory).
-    pub whole_file: bool,
-}
-
-impl Split {
-    /// The split `name` (`train`, `novel_view`, `novel_pose` or `val`), filtered by tag.
-    pub fn named(name: &str) -> Result<Self> {
-        let tag = match name {
-            "train" => 0,
-            "novel_view" => 1,
-            "novel_pose" => 2,
-            "val" => 3,
-            other => return Err(EvalError::UnknownSplit(other.to_string())),
-        };
-        Ok(Self {
-            name: name.to_string(),
-            tag,
-            whole_file: false,
-        })
-    }
-
-    /// Every image of a file that holds only this split.
-    pub fn whole_file(name: &str) -> Result<Self> {
-        Ok(Self {
-            whole_file: true,
-            ..Self::named(name)?
-        })
-    }
-}
-
-/// The file to read for `split` of `data` (a file, or a directory holding `<split>.npz`).
-pub fn resolve_split(data: &Path, split: &str) -> Result<(PathBuf, Split)> {
-    if data.is_dir() {
-        let split = Split::whole_file(split)?;
-        let path = data.join(format!("{}.npz", split.name));
-        if !path.is_file() {
-            return Err(EvalError::NoSplitFile {
-                dir: data.to_path_buf(),
-                split: split.name,
-            });
-        }
-        return Ok((path, split));
-    }
-    let split = Split::named(split)?;
-    if !data.is_file() {
-        return Err(EvalError::NoData(data.to_path_buf()));
-    }
-    Ok((data.to_path_buf(), split))
-}
-
-/// Image indices of `split` in `data`, read from `path`.
-pub fn split_images(data: &Dataset, path: &Path, split: &Split) -> Result<Vec<usize>> {
-    let n = data.n_images();
-    let not_in_file = |why: String| EvalError::SplitNotInFile {
-        path: path.to_path_buf(),
-        split: split.name.clone(),
-        why,
-    };
-    let images: Vec<usize> = match (&data.eval_tag, split.whole_file) {
-        (_, true) => (0..n).collect(),
-        (Some(tags), false) => (0..n).filter(|&i| tags[i] == split.tag).collect(),
-        (None, false) => {
-            if file_split_name(path).as_deref() != Some(split.name.as_str()) {
-                return Err(not_in_file(format!(
-                    "the file has no eval_tag; without one a file holds only the split its name \
-                     gives, {}.npz",
-                    split.name
-                )));
-            }
-            (0..n).collect()
-        }
-    };
-    if images.is_empty() {
-        return Err(not_in_file(match &data.eval_tag {
-            Some(_) => format!("no image has eval_tag {}", split.tag),
-            None => "the file has no images".into(),
-        }));
-    }
-    Ok(images)
-}
-
-/// `novel_pose` for `DIR/novel_pose.npz` or `DIR/novel_pose.scene.npz`.
-fn file_split_name(path: &Path) -> Option<String> {
-    let name = path.file_name()?.to_str()?;
-    let stem = name
-        .strip_suffix(".scene.npz")
-        .or_else(|| name.strip_suffix(".npz"))?;
-    Some(stem.to_string())
-}
-
-/// The held-out images a training run scores: those tagged novel view when the file has
-/// any, otherwise all of them.
-pub fn held_out_images(data: &Dataset) -> Vec<usize> {
-    match &data.eval_tag {
-        Some(t) if t.iter().any(|&v| v == 1) => {
-            (0..data.n_images()).filter(|&i| t[i] == 1).collect()
-        }
-        _ => (0..data.n_images()).collect(),
-    }
-}
-
 /// Read a dataset for `profile`. Its warnings are in `Dataset::warnings` for the caller to
 /// show.
 pub fn read_dataset(path: &Path, profile: Profile) -> Result<Dataset> {
@@ -252,24 +150,6 @@ pub fn read_dataset(path: &Path, profile: Profile) -> Result<Dataset> {
         profile,
         source: Box::new(e),
     })
-}
-
-/// At most `k` of `items`, evenly spread, first and last included.
-pub fn spread(items: &[usize], k: usize) -> Vec<usize> {
-    if k >= items.len() {
-        return items.to_vec();
-    }
-    if k == 0 {
-        return Vec::new();
-    }
-    if k == 1 {
-        return vec![items[0]];
-    }
-    let mut out: Vec<usize> = (0..k)
-        .map(|i| items[i * (items.len() - 1) / (k - 1)])
-        .collect();
-    out.dedup();
-    out
 }
 
 /// Mean colour (in [0,1]) of the foreground pixels of every image: the trivial baseline
@@ -549,72 +429,6 @@ fn score(
     )?)
 }
 
-/// [GT | render | error heat map], upscaled so small images stay readable.
-pub fn side_by_side(gt: &[f32], pred: &[f32], h: usize, w: usize) -> ::image::RgbImage {
-    let k = 256usize.div_ceil(h.max(1)).clamp(1, 8) as u32;
-    let gap = 4u32;
-    let (pw, ph) = (w as u32 * k, h as u32 * k);
-    let mut out =
-        ::image::RgbImage::from_pixel(3 * pw + 2 * gap, ph, ::image::Rgb([255, 255, 255]));
-    let byte = |v: f32| (v.clamp(0.0, 1.0) * 255.0) as u8;
-    for y in 0..h {
-        for x in 0..w {
-            let i = 3 * (y * w + x);
-            let g = [byte(gt[i]), byte(gt[i + 1]), byte(gt[i + 2])];
-            let p = [byte(pred[i]), byte(pred[i + 1]), byte(pred[i + 2])];
-            let err = (0..3).map(|c| (pred[i + c] - gt[i + c]).abs()).sum::<f32>() / 3.0;
-            let e = heat(err / 0.25);
-            for dy in 0..k {
-                for dx in 0..k {
-                    let (px, py) = (x as u32 * k + dx, y as u32 * k + dy);
-                    out.put_pixel(px, py, ::image::Rgb(g));
-                    out.put_pixel(pw + gap + px, py, ::image::Rgb(p));
-                    out.put_pixel(2 * (pw + gap) + px, py, ::image::Rgb(e));
-                }
-            }
-        }
-    }
-    out
-}
-
-/// Black → purple → orange → yellow-white colour ramp for t in [0,1] (clamped).
-pub fn heat(t: f32) -> [u8; 3] {
-    const STOPS: [[f32; 3]; 5] = [
-        [0.0, 0.0, 0.02],
-        [0.32, 0.07, 0.5],
-        [0.8, 0.2, 0.35],
-        [0.98, 0.6, 0.1],
-        [1.0, 1.0, 0.85],
-    ];
-    let t = if t.is_finite() {
-        t.clamp(0.0, 1.0)
-    } else {
-        1.0
-    };
-    let s = t * (STOPS.len() - 1) as f32;
-    let i = (s.floor() as usize).min(STOPS.len() - 2);
-    let f = s - i as f32;
-    let c = |k: usize| STOPS[i][k] + (STOPS[i + 1][k] - STOPS[i][k]) * f;
-    [0, 1, 2].map(|k| (c(k) * 255.0).round() as u8)
-}
-
-/// Encode `img` as PNG and replace `path` atomically.
-pub fn write_png(img: &::image::RgbImage, path: &Path) -> Result<()> {
-    let mut bytes = Vec::new();
-    img.write_to(
-        &mut std::io::Cursor::new(&mut bytes),
-        ::image::ImageFormat::Png,
-    )
-    .map_err(|source| EvalError::Png {
-        path: path.to_path_buf(),
-        source,
-    })?;
-    pma_data::fsio::write_atomic(path, &bytes).map_err(|source| EvalError::Io {
-        path: path.to_path_buf(),
-        source,
-    })
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -709,23 +523,5 @@ mod tests {
             pma_data::metrics::quantize(&[1.001, -0.001, 0.5, 0.99999]),
             vec![1.0, 0.0, 127.0 / 255.0, 254.0 / 255.0]
         );
-    }
-
-    #[test]
-    fn split_names_and_files() {
-        assert!(matches!(
-            Split::named("holdout"),
-            Err(EvalError::UnknownSplit(_))
-        ));
-        assert_eq!(Split::named("novel_pose").unwrap().tag, 2);
-        assert_eq!(
-            file_split_name(Path::new("a/novel_pose.npz")).as_deref(),
-            Some("novel_pose")
-        );
-        assert_eq!(
-            file_split_name(Path::new("train.scene.npz")).as_deref(),
-            Some("train")
-        );
-        assert_eq!(file_split_name(Path::new("x.h5")), None);
     }
 }
