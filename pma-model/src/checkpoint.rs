@@ -293,9 +293,7 @@ pub fn load(path: &Path, device: &Device) -> Result<Checkpoint> {
 type PmaMeta = (Config, SkeletonMeta, Vec<[f32; 3]>);
 
 /// The metadata of a pma checkpoint, or every problem found.
-fn read_pma_meta(
-    meta_map: &HashMap<String, String>,
-) -> std::result::Result<PmaMeta, Vec<String>> {
+fn read_pma_meta(meta_map: &HashMap<String, String>) -> std::result::Result<PmaMeta, Vec<String>> {
     let mut problems = Vec::new();
     let mut get = |key: &str| -> Option<String> {
         let v = meta_map.get(key).cloned();
