@@ -17,15 +17,24 @@ fn infer(args: &[&str]) -> std::process::Output {
 fn renders_one_png_and_rejects_bad_input() {
     let tmp = tempfile::tempdir().unwrap();
     let model = tmp.path().join("tiny.safetensors");
-    Avatar::new(
+    // A fresh avatar whose density head is a constant 50: opaque wherever it is asked, so
+    // the body must show up in the render (a random density head may be empty everywhere).
+    let fresh = Avatar::new(
         Config::tiny(),
         &pma_data::synth::rest_pose(),
         2,
         &Device::Cpu,
     )
-    .unwrap()
-    .save(&model)
     .unwrap();
+    let mut t = fresh.tensors();
+    let w = t["sigma_linear.weight"].zeros_like().unwrap();
+    t.insert("sigma_linear.weight".into(), w);
+    let b = candle_core::Tensor::new(&[50f32], &Device::Cpu).unwrap();
+    t.insert("sigma_linear.bias".into(), b);
+    Avatar::from_tensors(fresh.config().clone(), t, &Device::Cpu)
+        .unwrap()
+        .save(&model)
+        .unwrap();
     let png = tmp.path().join("out.png");
     let out = infer(&[model.to_str().unwrap(), png.to_str().unwrap(), "24"]);
     assert!(
@@ -35,6 +44,13 @@ fn renders_one_png_and_rejects_bad_input() {
     );
     assert_eq!(image::image_dimensions(&png).unwrap(), (24, 24));
     assert!(String::from_utf8_lossy(&out.stdout).contains("render"));
+    // The body is drawn over the black background: the corners stay black and the centre,
+    // where the rest pose stands, does not.
+    let img = image::open(&png).unwrap().to_rgb8();
+    assert_eq!(img.get_pixel(0, 0).0, [0, 0, 0], "background corner");
+    let lit = img.pixels().filter(|p| p.0 != [0, 0, 0]).count();
+    assert!(lit > 0 && lit < 24 * 24, "{lit} non-black pixels");
+    assert_ne!(img.get_pixel(12, 12).0, [0, 0, 0], "the body at the centre");
 
     for (args, needle) in [
         (vec![model.to_str().unwrap()], "usage"),

@@ -76,6 +76,16 @@ fn quick_bench_writes_every_field() {
     // only touches rays that miss every box): its points are fewer than parity's.
     let pts = |i: usize| options[i]["network_points_per_image"].as_u64().unwrap();
     assert!(pts(2) < pts(0), "culling did not leave points out");
+    // Sample culling at threshold 0 only skips samples whose window is exactly 0, whose
+    // outputs the far-away constant reproduces: on top of ray culling it changes nothing
+    // beyond last-bit differences of the network calls' sizes.
+    let diff_vs_parity = |i: usize| options[i]["max_abs_diff_vs_parity"].as_f64().unwrap();
+    assert!(
+        diff_vs_parity(2) <= diff_vs_parity(1) + 1e-5 && diff_vs_parity(2) < 1e-4,
+        "threshold 0 moved the render: {} (rays alone {})",
+        diff_vs_parity(2),
+        diff_vs_parity(1)
+    );
     // The vectorised sine leaves out no points, and its render is near parity's (last-bit
     // differences through the network), not identical and not far.
     assert_eq!(pts(4), pts(0));

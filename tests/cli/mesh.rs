@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use crate::run::{fails_with, ok, pma};
 use candle_core::{Device, Tensor};
 use pma_model::avatar::Avatar;
-use pma_model::mesh::{read_ply, AvatarField};
+use pma_model::mesh::read_ply;
 use pma_model::Config;
 
 fn s(p: &Path) -> &str {
@@ -33,11 +33,41 @@ fn solid_model(dir: &Path) -> PathBuf {
     path
 }
 
-/// Bounds of the union of part boxes for `bones` at `root`.
+/// Bounds of the union of part boxes for `bones` at `root`, computed here from the posed
+/// bone frames and the box sizes (not through the mesh code's own box list): each box is
+/// `|M_j x| <= bound·s_j` with M_j = A_j·skt_j rigid, so its corners are `R_jᵀ (c − t_j)`.
 fn box_bounds(model: &Path, bones: &[[f32; 3]; 24], root: [f32; 3]) -> ([f32; 3], [f32; 3]) {
     let a = Avatar::load(model, &Device::Cpu).unwrap();
     let (poses, _) = a.pose_from_bones(bones, root).unwrap();
-    AvatarField::new(&a, &poses).unwrap().bounds()
+    let frames = a.bone_frames(&poses.skts).unwrap();
+    let scales = a
+        .axis_scale()
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .to_vec1::<f32>()
+        .unwrap();
+    let bound = a.config().box_bound;
+    let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
+    for j in 0..24 {
+        let m = frames.world_to_box_f64(0, j);
+        for corner in 0..8 {
+            let c: [f64; 3] = std::array::from_fn(|k| {
+                let h = bound * scales[3 * j + k] as f64;
+                if corner >> k & 1 == 1 {
+                    h
+                } else {
+                    -h
+                }
+            });
+            for axis in 0..3 {
+                let x: f64 = (0..3).map(|r| m[r][axis] * (c[r] - m[r][3])).sum();
+                lo[axis] = lo[axis].min(x as f32);
+                hi[axis] = hi[axis].max(x as f32);
+            }
+        }
+    }
+    (lo, hi)
 }
 
 fn upright() -> [[f32; 3]; 24] {

@@ -60,5 +60,18 @@ fn half_precision_forward_on_the_golden_case() {
             format!("{dtype:?}")
         );
         assert!(rgb <= bound, "{dtype:?}: rgb error {rgb:e} > {bound:e}");
+        if dtype != DType::F64 {
+            // The network really ran in half precision: its outputs carry the dtype, and the
+            // error is above what f32 itself reaches against the reference.
+            assert_eq!(
+                out.raw.dtype(),
+                dtype,
+                "raw outputs of the {dtype:?} network"
+            );
+            assert!(
+                rgb > f32_err.max(1e-6),
+                "{dtype:?}: rgb error {rgb:e} is not above f32's {f32_err:e}"
+            );
+        }
     }
 }
