@@ -40,16 +40,21 @@ struct Network {
     rest_pose: Tensor,
     /// A_j for the network's bone-aligned frames (`pts_embedder.transforms`).
     align: Tensor,
-    pts_enc_pose: PointEnc,
-    pts_enc_point: PointEnc,
+    /// Point encoder of the feature window (absent without w^f).
+    pts_enc_pose: Option<PointEnc>,
+    /// Point encoder of the synthesis branch (absent in `only-gnn`).
+    pts_enc_point: Option<PointEnc>,
     /// A_j for ray casting (`raycast.transforms`, equal to `align` in practice).
     raycast_align: Tensor,
     field: Field,
     framecodes: Option<FrameCodes>,
     gnn: GnnSine,
-    modulator: Modulator,
-    win_fun: WinFun,
-    pose_extractor: PoseExtractor,
+    /// The sine layers of the synthesis branch (absent in `only-gnn`).
+    modulator: Option<Modulator>,
+    /// The projection of the GNN features and the feature window (absent in `only-syn`).
+    win_fun: Option<WinFun>,
+    /// Frequencies and phases from f^m (present only in modulated variants).
+    pose_extractor: Option<PoseExtractor>,
 }
 
 impl Network {
@@ -58,8 +63,15 @@ impl Network {
         let rest_pose = p.buffer([j, 3], "rest_pose", Init::Rest(RestValue::Joints))?;
         let align_init = Init::Rest(RestValue::BoneAlign);
         let align = p.buffer([j, 4, 4], "pts_embedder.transforms", align_init.clone())?;
-        let pts_enc_pose = PointEnc::new(p.pp("pts_enc_pose"), ce, cfg.sin_w0_pose)?;
-        let pts_enc_point = PointEnc::new(p.pp("pts_enc_point"), ce, cfg.sin_w0_point)?;
+        let v = cfg.variant;
+        let pts_enc_pose = v
+            .feature_window()
+            .then(|| PointEnc::new(p.pp("pts_enc_pose"), ce, cfg.sin_w0_pose))
+            .transpose()?;
+        let pts_enc_point = v
+            .synthesis()
+            .then(|| PointEnc::new(p.pp("pts_enc_point"), ce, cfg.sin_w0_point))
+            .transpose()?;
         let raycast_align = p.buffer([j, 4, 4], "raycast.transforms", align_init)?;
         let field = Field::new(p.clone(), cfg)?;
         let framecodes = match cfg.use_framecodes {
@@ -75,9 +87,18 @@ impl Network {
             field,
             framecodes,
             gnn: GnnSine::new(p.pp("graph_net"), cfg)?,
-            modulator: Modulator::new(p.pp("modulator"), cfg)?,
-            win_fun: WinFun::new(p.pp("win_fun"), cfg)?,
-            pose_extractor: PoseExtractor::new(p.pp("pose_extractor"), cfg)?,
+            modulator: v
+                .synthesis()
+                .then(|| Modulator::new(p.pp("modulator"), cfg))
+                .transpose()?,
+            win_fun: v
+                .gnn_features()
+                .then(|| WinFun::new(p.pp("win_fun"), cfg))
+                .transpose()?,
+            pose_extractor: v
+                .modulation()
+                .then(|| PoseExtractor::new(p.pp("pose_extractor"), cfg))
+                .transpose()?,
         })
     }
 }
@@ -346,13 +367,19 @@ impl Avatar {
             ));
         }
         let theta = pose6d(&poses.bones, &self.device)?.to_dtype(self.dtype)?;
+        let scales = self.net.gnn.axis_scale()?;
+        let Some(win_fun) = &self.net.win_fun else {
+            // No GNN features (`only-syn`): an empty feature per joint keeps the pose count.
+            let g = Tensor::zeros((p, N_JOINTS, 0), self.dtype, &self.device)?;
+            let skts = poses.skts.to_dtype(self.dtype)?;
+            return Ok(PoseFeatures { g, skts, scales });
+        };
         let mut layers = Vec::new();
         let g_feat = self
             .net
             .gnn
             .forward(&theta, trace.is_some().then_some(&mut layers))?;
-        let g = self.net.win_fun.project_pose(&g_feat)?;
-        let scales = self.net.gnn.axis_scale()?;
+        let g = win_fun.project_pose(&g_feat)?;
         if let Some(t) = trace {
             t.put("pose6d", &theta);
             for (l, pre) in layers.iter().enumerate() {
@@ -403,56 +430,100 @@ impl Avatar {
             .broadcast_add(&self.align_trans)?;
         // Bone-normalised points x̄ and the spatial window w^p (Eq. 4).
         let x_bar = x_hat.broadcast_div(&pose.scales)?;
-        let w_p = spatial_window(&x_bar, self.cfg.window_alpha, self.cfg.window_beta)?;
+        let v = self.cfg.variant;
+        let w_p = match v.spatial_window() {
+            true => spatial_window(&x_bar, self.cfg.window_alpha, self.cfg.window_beta)?,
+            false => Tensor::ones((n, j), x_bar.dtype(), x_bar.device())?,
+        };
         // Feature window w^f and w = w^p·w^f (Eqs. 5–6), then f^m = Σ_j w_j g_j.
-        let e = net.pts_enc_pose.forward(&x_bar)?;
         let g = pose.g.get(p)?;
-        let win = net.win_fun.forward(&g, &e, &w_p)?;
-        let f_m = aggregate(&win.w, &g)?;
-        // Frequencies and phases from f^m drive the modulated sine layers (Eqs. 7–8).
-        let modulation = net.pose_extractor.forward(&f_m)?;
-        let z = net.pts_enc_point.forward(&x_bar)?;
-        let x_tilde = z
-            .broadcast_mul(&win.w.unsqueeze(D::Minus1)?)?
-            .reshape((n, j * self.cfg.point_enc_dim))?;
-        let s = net.modulator.forward(&x_tilde, &modulation)?;
+        let (win, e) = match (&net.win_fun, &net.pts_enc_pose) {
+            (Some(win_fun), Some(enc)) if v.feature_window() => {
+                let e = enc.forward(&x_bar)?;
+                (Some(win_fun.forward(&g, &e, &w_p)?), Some(e))
+            }
+            _ => (None, None),
+        };
+        let w = match &win {
+            Some(win) => win.w.clone(),
+            None => w_p.clone(),
+        };
+        let f_m = match v.gnn_features() {
+            true => Some(aggregate(&w, &g)?),
+            false => None,
+        };
+        // Frequencies and phases from f^m drive the sine layers (Eqs. 7–8); `only-gnn` feeds
+        // f^m to the NeRF trunk instead, `only-syn` runs the layers unmodulated.
+        let modulation = match (&net.pose_extractor, &f_m) {
+            (Some(ext), Some(f_m)) => Some(ext.forward(f_m)?),
+            _ => None,
+        };
+        let (s, z) = match (&net.modulator, &net.pts_enc_point) {
+            (Some(modulator), Some(enc)) => {
+                let z = enc.forward(&x_bar)?;
+                let x_tilde = z
+                    .broadcast_mul(&w.unsqueeze(D::Minus1)?)?
+                    .reshape((n, j * self.cfg.point_enc_dim))?;
+                let s = match &modulation {
+                    Some(m) => modulator.forward(&x_tilde, m)?,
+                    None => modulator.forward_fixed(&x_tilde)?,
+                };
+                (s, Some(z))
+            }
+            _ => (
+                f_m.clone()
+                    .ok_or_else(|| ModelError::Config("no trunk input".into()))?,
+                None,
+            ),
+        };
         // NeRF density and colour heads.
         let out = net.field.forward(&s, view)?;
         if let Some((tr, stage)) = trace {
-            let gammas = modulation
-                .freq
-                .iter()
-                .map(|f| net.modulator.gamma(f))
-                .collect::<Result<Vec<_>>>()?;
-            let (gammas, phases) = (
-                Tensor::stack(&gammas, 0)?,
-                Tensor::stack(&modulation.phase, 0)?,
-            );
-            tr.put_stage(
-                stage,
-                &[
-                    ("pts_jt", &x_jt),
-                    ("pts_t", &x_hat),
-                    ("x_bar", &x_bar),
-                    ("w_p", &w_p),
-                    ("pts_enc_pose", &e),
+            let mut items: Vec<(&str, &Tensor)> = vec![
+                ("pts_jt", &x_jt),
+                ("pts_t", &x_hat),
+                ("x_bar", &x_bar),
+                ("w_p", &w_p),
+                ("w", &w),
+            ];
+            if let (Some(win), Some(e)) = (&win, &e) {
+                items.extend([
+                    ("pts_enc_pose", e),
                     ("win_maxpool", &win.pooled),
                     ("win_logits", &win.logits),
                     ("w_f", &win.w_f),
-                    ("w", &win.w),
-                    ("f_m", &f_m),
-                    ("pts_enc_point", &z),
-                    ("mod_freq", &gammas),
-                    ("mod_phase", &phases),
-                    ("modulator_out", &s),
-                    ("density_l0_pre_relu", &out.l0_pre),
-                    ("density_feat", &out.feature),
-                    ("sigma_raw", &out.sigma_raw),
-                    ("feature_linear", &out.feature_linear),
-                    ("view_l0_pre_relu", &out.view_pre),
-                    ("rgb_logits", &out.rgb_logits),
-                ],
-            );
+                ]);
+            }
+            if let Some(f_m) = &f_m {
+                items.push(("f_m", f_m));
+            }
+            if let Some(z) = &z {
+                items.push(("pts_enc_point", z));
+            }
+            let modulation_stack = match (&modulation, &net.modulator) {
+                (Some(m), Some(modulator)) => {
+                    let gammas = m
+                        .freq
+                        .iter()
+                        .map(|f| modulator.gamma(f))
+                        .collect::<Result<Vec<_>>>()?;
+                    Some((Tensor::stack(&gammas, 0)?, Tensor::stack(&m.phase, 0)?))
+                }
+                _ => None,
+            };
+            if let Some((gammas, phases)) = &modulation_stack {
+                items.extend([("mod_freq", gammas), ("mod_phase", phases)]);
+            }
+            items.extend([
+                ("modulator_out", &s),
+                ("density_l0_pre_relu", &out.l0_pre),
+                ("density_feat", &out.feature),
+                ("sigma_raw", &out.sigma_raw),
+                ("feature_linear", &out.feature_linear),
+                ("view_l0_pre_relu", &out.view_pre),
+                ("rgb_logits", &out.rgb_logits),
+            ]);
+            tr.put_stage(stage, &items);
         }
         Ok((out.rgb, out.sigma_raw))
     }

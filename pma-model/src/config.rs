@@ -163,6 +163,93 @@ pub struct Config {
     /// Work left out at evaluation time (off = parity).
     #[serde(skip_serializing_if = "Culling::is_off")]
     pub culling: Culling,
+    /// Which parts of the model exist (the paper's ablations); omitted from checkpoint JSON
+    /// for the full model.
+    #[serde(skip_serializing_if = "Variant::is_full")]
+    pub variant: Variant,
+}
+
+/// The paper's ablations (Sec. 5, "Ablation Study"): which branches the model keeps. A
+/// variant leaves out what it does not use: those layers are neither built, computed nor
+/// saved, so a checkpoint's tensors say which variant it is (and its config names it).
+///
+/// | variant | window w | point features into the NeRF trunk |
+/// | --- | --- | --- |
+/// | `full` | w^p · w^f | sine layers modulated by (γ, Φ) predicted from f^m |
+/// | `only-gnn` | w^p · w^f | f^m itself (upper branch only, no sine layers) |
+/// | `only-syn` | w^p | the same sine layers at a fixed frequency γ(0), no GNN features |
+/// | `only-wp` | w^p | modulated sine layers |
+/// | `only-wf` | w^f (max-pool without w^p) | modulated sine layers |
+/// | `no-window` | 1 for every joint | modulated sine layers |
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
+pub enum Variant {
+    #[default]
+    Full,
+    OnlyGnn,
+    OnlySyn,
+    OnlyWp,
+    OnlyWf,
+    NoWindow,
+}
+
+impl Variant {
+    pub const ALL: [Variant; 6] = [
+        Variant::Full,
+        Variant::OnlyGnn,
+        Variant::OnlySyn,
+        Variant::OnlyWp,
+        Variant::OnlyWf,
+        Variant::NoWindow,
+    ];
+
+    pub fn is_full(&self) -> bool {
+        *self == Variant::Full
+    }
+
+    /// The name used in configs and on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            Variant::Full => "full",
+            Variant::OnlyGnn => "only-gnn",
+            Variant::OnlySyn => "only-syn",
+            Variant::OnlyWp => "only-wp",
+            Variant::OnlyWf => "only-wf",
+            Variant::NoWindow => "no-window",
+        }
+    }
+
+    /// Per-joint GNN features (the upper branch) exist.
+    pub fn gnn_features(self) -> bool {
+        self != Variant::OnlySyn
+    }
+
+    /// The spatial window w^p weighs the joints (and sample culling can use it).
+    pub fn spatial_window(self) -> bool {
+        !matches!(self, Variant::OnlyWf | Variant::NoWindow)
+    }
+
+    /// The learned feature window w^f weighs the joints.
+    pub fn feature_window(self) -> bool {
+        matches!(self, Variant::Full | Variant::OnlyGnn | Variant::OnlyWf)
+    }
+
+    /// The sine-layer synthesis branch exists (modulated or not).
+    pub fn synthesis(self) -> bool {
+        self != Variant::OnlyGnn
+    }
+
+    /// The synthesis branch is modulated by frequencies and phases predicted from f^m.
+    pub fn modulation(self) -> bool {
+        !matches!(self, Variant::OnlyGnn | Variant::OnlySyn)
+    }
+}
+
+impl std::fmt::Display for Variant {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
 }
 
 impl Default for Config {
@@ -208,6 +295,16 @@ impl Config {
             box_bound: 1.1,
             quirks: Quirks::default(),
             culling: Culling::default(),
+            variant: Variant::Full,
+        }
+    }
+
+    /// Width of what the NeRF trunk reads per point: the synthesis layers' concatenated
+    /// outputs, or f^m for `only-gnn`.
+    pub fn trunk_input_dim(&self) -> usize {
+        match self.variant.synthesis() {
+            true => self.n_pm * self.freq_dim,
+            false => self.win_hidden,
         }
     }
 }
@@ -264,6 +361,12 @@ impl Config {
             if !(t.is_finite() && (0.0..1.0).contains(&t)) {
                 bad.push(format!(
                     "culling.sample_threshold must be in [0, 1), found {t}"
+                ));
+            }
+            if !self.variant.spatial_window() {
+                bad.push(format!(
+                    "culling.sample_threshold needs the spatial window, which variant `{}` does not use",
+                    self.variant
                 ));
             }
         }

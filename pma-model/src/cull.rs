@@ -81,20 +81,6 @@ impl WindowTest {
         beta: u32,
         threshold: f64,
     ) -> Result<Self> {
-        if align.len() != N_JOINTS * 16 {
-            return Err(ModelError::shape(
-                "pts_embedder.transforms",
-                [N_JOINTS, 4, 4],
-                format!("{} values", align.len()),
-            ));
-        }
-        if skts.is_empty() || skts.len() % (N_JOINTS * 16) != 0 {
-            return Err(ModelError::shape(
-                "skts",
-                "[P,24,4,4] with P >= 1",
-                format!("{} values", skts.len()),
-            ));
-        }
         if scales.len() != N_JOINTS * 3 {
             return Err(ModelError::shape(
                 "scales",

@@ -43,7 +43,7 @@ impl Field {
     pub fn new<'a>(p: impl Into<Params<'a>>, cfg: &Config) -> Result<Self> {
         let p = p.into();
         let w = cfg.trunk_width;
-        let s_dim = cfg.n_pm * cfg.freq_dim;
+        let s_dim = cfg.trunk_input_dim();
         let linear = |name: &str, fan_in: usize, out: usize| {
             Linear::new(p.pp(name), fan_in, out, Init::torch_default(fan_in))
         };

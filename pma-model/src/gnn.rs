@@ -83,7 +83,12 @@ impl GnnSine {
         let base_scale = p.buffer([j, 3], "base_scale", Init::Rest(RestValue::HalfExtents))?;
         let adj = adjacency(j);
         let mut layers = Vec::new();
-        for l in 0..cfg.gnn_graph_layers + cfg.gnn_fc_layers {
+        // Without GNN features (`only-syn`) only the box sizes above remain.
+        let n_layers = match cfg.variant.gnn_features() {
+            true => cfg.gnn_graph_layers + cfg.gnn_fc_layers,
+            false => 0,
+        };
+        for l in 0..n_layers {
             let pl = p.pp(format!("layers.{l}"));
             let fan_in = if l == 0 { 6 } else { gw };
             // The reference's SIREN init reads the weight's last dim as fan-in: for the

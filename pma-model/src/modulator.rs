@@ -120,6 +120,26 @@ impl Modulator {
         })
     }
 
+    /// The frequency of an unmodulated layer: γ at Θ = 0 (`only-syn`, with Φ = 0).
+    pub fn gamma0(&self) -> f64 {
+        if self.w0 > 15.0 {
+            30.0
+        } else {
+            2.0 * self.w0
+        }
+    }
+
+    /// The same layers without modulation: `h_k = sin(γ(0) (M_k h_{k-1} + ν_k))`.
+    pub fn forward_fixed(&self, x_tilde: &Tensor) -> Result<Tensor> {
+        let mut h = x_tilde.clone();
+        let mut outs = Vec::with_capacity(self.layers.len());
+        for layer in &self.layers {
+            h = crate::fast_sine::sin(&(layer.forward(&h)? * self.gamma0())?)?;
+            outs.push(h.clone());
+        }
+        Ok(Tensor::cat(&outs, 1)?)
+    }
+
     /// x_tilde: [N,J·Ce] windowed point encodings -> S: [N,K·F], the concatenated outputs
     /// `h_k = sin(γ_k ⊙ (M_k h_{k-1} + ν_k) + Φ_k)` of all modulated layers.
     pub fn forward(&self, x_tilde: &Tensor, m: &Modulation) -> Result<Tensor> {

@@ -40,6 +40,12 @@ pub struct Window {
 #[derive(Debug, Clone)]
 pub struct WinFun {
     layer_pose: Linear,
+    /// The learned feature window; absent in variants that do not use w^f.
+    feature: Option<FeatureWindow>,
+}
+
+#[derive(Debug, Clone)]
+struct FeatureWindow {
     layer_point: Linear,
     sin0: SineLayer,
     sin1: SineLayer,
@@ -52,17 +58,24 @@ impl WinFun {
         let p = p.into();
         let (h, w0) = (cfg.win_hidden, cfg.sin_w0_pose);
         let (gw, ce) = (cfg.gnn_width, cfg.point_enc_dim);
+        let layer_pose = Linear::new(p.pp("layer_pose.layer"), gw, h, Init::siren(gw, w0))?;
+        let feature = match cfg.variant.feature_window() {
+            true => Some(FeatureWindow {
+                layer_point: Linear::new(p.pp("layer_point.layer"), ce, h, Init::siren(ce, w0))?,
+                sin0: SineLayer::new(p.pp("sin_lin0"), h, h, w0, Init::siren(h, w0))?,
+                sin1: SineLayer::new(p.pp("sin_lin1"), h, h, w0, Init::siren(h, w0))?,
+                last: Linear::new(
+                    p.pp("last_layer.layer"),
+                    h,
+                    cfg.n_joints,
+                    Init::siren(h, w0),
+                )?,
+            }),
+            false => None,
+        };
         Ok(Self {
-            layer_pose: Linear::new(p.pp("layer_pose.layer"), gw, h, Init::siren(gw, w0))?,
-            layer_point: Linear::new(p.pp("layer_point.layer"), ce, h, Init::siren(ce, w0))?,
-            sin0: SineLayer::new(p.pp("sin_lin0"), h, h, w0, Init::siren(h, w0))?,
-            sin1: SineLayer::new(p.pp("sin_lin1"), h, h, w0, Init::siren(h, w0))?,
-            last: Linear::new(
-                p.pp("last_layer.layer"),
-                h,
-                cfg.n_joints,
-                Init::siren(h, w0),
-            )?,
+            layer_pose,
+            feature,
         })
     }
 
@@ -78,15 +91,18 @@ impl WinFun {
         // layer_point's bias is added to the per-pose g ([J,H]) rather than to every point:
         // one pass over the [N,J,H] part features fewer, forward and backward (the bias
         // gradient is then a sum over J rows, not over N·J).
+        let f = self.feature.as_ref().ok_or_else(|| {
+            crate::error::ModelError::Config("this variant has no feature window".into())
+        })?;
         let (n, j, ce) = e.dims3()?;
         let q = e
             .reshape((n * j, ce))?
-            .matmul(&self.layer_point.weight.t()?)?
+            .matmul(&f.layer_point.weight.t()?)?
             .reshape((n, j, ()))?;
-        let g_b = g.broadcast_add(&self.layer_point.bias)?;
+        let g_b = g.broadcast_add(&f.layer_point.bias)?;
         let pooled = crate::fused::window_pool(&q, &g_b, w_p)?;
-        let h = self.sin1.forward(&self.sin0.forward(&pooled)?)?;
-        let logits = self.last.forward(&h)?;
+        let h = f.sin1.forward(&f.sin0.forward(&pooled)?)?;
+        let logits = f.last.forward(&h)?;
         let w_f = candle_nn::ops::sigmoid(&logits)?;
         let w = (w_p * &w_f)?;
         Ok(Window {

@@ -42,6 +42,10 @@ pub struct Args {
     /// the default preset); overrides the config, also on resume.
     #[arg(long)]
     pub chunk_rays: Option<usize>,
+    /// Which parts of the model to build (the paper's ablations: full, only-gnn, only-syn,
+    /// only-wp, only-wf, no-window); overrides the config. Not for a resumed run.
+    #[arg(long, value_enum)]
+    pub variant: Option<pma_model::config::Variant>,
     /// No progress bar (log lines only).
     #[arg(long)]
     pub quiet: bool,
@@ -94,6 +98,11 @@ mod imp {
             run.train.seed = seed;
         } else if args.seed.is_some() {
             bail!("--seed cannot change a resumed run (its seed is in {CONFIG_FILE})");
+        }
+        if let (Some(variant), Some(run)) = (args.variant, run.as_mut()) {
+            run.model.variant = variant;
+        } else if args.variant.is_some() {
+            bail!("--variant cannot change a resumed run (its variant is in {CONFIG_FILE})");
         }
         let eval_data = args.eval_data.clone().or_else(|| {
             let beside = args.data.parent()?.join("novel_view.npz");

@@ -31,3 +31,4 @@ mod stability_train;
 mod train_chunked;
 mod train_nan_skip;
 mod train_parity;
+mod variants;
