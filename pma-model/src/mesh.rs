@@ -134,6 +134,7 @@ where
     let mut pts = Vec::with_capacity(chunk);
     let mut start = 0;
     while start < n {
+        crate::interrupt::check()?;
         let end = (start + chunk).min(n);
         pts.clear();
         pts.extend((start..end).map(|p| grid.point(p % nx, (p / nx) % ny, p / (nx * ny))));
@@ -569,6 +570,7 @@ where
     let normals = mesh.vertex_normals();
     let mut colours = Vec::with_capacity(mesh.vertices.len());
     for (pts, ns) in mesh.vertices.chunks(chunk).zip(normals.chunks(chunk)) {
+        crate::interrupt::check()?;
         let dirs: Vec<[f32; 3]> = ns
             .iter()
             .map(|n| {
@@ -976,6 +978,7 @@ impl<'a> AvatarField<'a> {
             .chunks(self.chunk.max(1))
             .zip(dirs.chunks(self.chunk.max(1)))
         {
+            crate::interrupt::check()?;
             let t = Tensor::from_vec(
                 p.iter().flatten().copied().collect::<Vec<f32>>(),
                 (p.len(), 3),
