@@ -49,7 +49,8 @@ fn refused_input_exits_2_in_every_command() {
             "--out",
             s(&out.join("o.npz")),
         ]),
-        &["garbage.safetensors"],
+        // A dataset is not a ray batch.
+        &["train.npz", "rays_o"],
     );
     refused(
         pma(&[
