@@ -72,8 +72,8 @@ mod imp {
 
     use anyhow::Context as _;
     use pma_model::train::{
-        train_run, ObserverError, Preset, RunConfig, StepReport, TrainLog,
-        TrainObserver, TrainOutcome, TrainRequest, CONFIG_FILE,
+        train_run, ObserverError, Preset, RunConfig, StepReport, TrainLog, TrainObserver,
+        TrainOutcome, TrainRequest, CONFIG_FILE,
     };
 
     use super::super::plot::plot_psnr_vs_time;

@@ -38,7 +38,10 @@ fn refused_input_exits_2_in_every_command() {
     std::fs::write(&cfg, "preset = \"tiny\"\n[train]\nrays_per_stp = 4\n").unwrap();
 
     refused(pma(&["synth", "--out", s(&out), "--res", "0"]), &["res"]);
-    refused(pma(&["inspect", s(&nan_bones)]), &["nan_bones.npz", "bones"]);
+    refused(
+        pma(&["inspect", s(&nan_bones)]),
+        &["nan_bones.npz", "bones"],
+    );
     refused(
         pma(&[
             "forward",

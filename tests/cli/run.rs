@@ -73,7 +73,12 @@ pub fn assert_default_modes(dir: &std::path::Path) {
                 stack.push(path);
             } else {
                 let mode = meta.permissions().mode() & 0o777;
-                assert_eq!(mode, want, "{}: mode {mode:o}, expected {want:o}", path.display());
+                assert_eq!(
+                    mode,
+                    want,
+                    "{}: mode {mode:o}, expected {want:o}",
+                    path.display()
+                );
                 files += 1;
             }
         }

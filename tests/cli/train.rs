@@ -263,7 +263,10 @@ fn ctrl_c_mid_step_on_the_default_network_resumes_bit_for_bit() {
 
     let out = tmp.path().join("run");
     let child = Command::new(env!("CARGO_BIN_EXE_pma"))
-        .args(train(&out, &["--config", cfg.to_str().unwrap(), "--iters", "1000"]))
+        .args(train(
+            &out,
+            &["--config", cfg.to_str().unwrap(), "--iters", "1000"],
+        ))
         .stderr(std::process::Stdio::piped())
         .spawn()
         .unwrap();
