@@ -61,9 +61,11 @@ enum Command {
 }
 
 /// Errors go to stderr as one `error: ...` line with their causes, as clap reports usage
-/// errors; the exit status is 2 for refused input ([`cli::Refused`]) and 1 otherwise.
+/// errors. Exit status (one rule for every command, see `cli::exit_code`): 0 success,
+/// 2 input refused, 130 interrupted by Ctrl-C, 1 any other failure.
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    cli::install_interrupt_handler();
     // Before any candle op: candle sizes its thread pool once.
     pma_model::parallel::configure_cpu(cli.workers);
     pma_model::fast_sine::set_enabled(cli.fast_sine);
@@ -83,8 +85,13 @@ fn main() -> ExitCode {
     match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("error: {}", cli::report(&e));
-            ExitCode::from(cli::exit_code(&e))
+            let code = cli::exit_code(&e);
+            if code == cli::EXIT_INTERRUPTED {
+                eprintln!("{}", cli::interrupted_report(&e));
+            } else {
+                eprintln!("error: {}", cli::report(&e));
+            }
+            ExitCode::from(code)
         }
     }
 }

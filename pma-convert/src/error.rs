@@ -103,6 +103,11 @@ pub enum ConvertError {
 
     #[error("{0}")]
     Usage(String),
+
+    /// The process-wide interrupt flag was raised (see `pma_data::interrupt`); the output
+    /// was not written.
+    #[error("{0}")]
+    Interrupted(#[from] pma_data::interrupt::Interrupted),
 }
 
 pub type Result<T> = std::result::Result<T, ConvertError>;

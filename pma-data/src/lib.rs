@@ -11,6 +11,7 @@ pub mod cylinder;
 pub mod dataset;
 pub mod error;
 pub mod fsio;
+pub mod interrupt;
 pub mod metrics;
 pub mod motion;
 pub mod sampler;

@@ -76,6 +76,9 @@ pub enum SynthError {
     },
     #[error("{path}: {msg}")]
     Encode { path: PathBuf, msg: String },
+    /// The process-wide interrupt flag was raised (see [`crate::interrupt`]).
+    #[error("{0}")]
+    Interrupted(#[from] crate::interrupt::Interrupted),
 }
 
 fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> SynthError + '_ {
@@ -442,6 +445,7 @@ pub fn render_split(
             glam::DVec3::from(pose.root.map(f64::from)),
         );
         for &cam in &split.cams {
+            crate::interrupt::check()?;
             let out = render(&plan.figure, &l2w, &plan.cameras[cam], &plan.light);
             let grown = dilate(&out.mask, cfg.res, cfg.res, cfg.sampling_margin);
             for px in 0..hw {

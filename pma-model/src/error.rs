@@ -51,9 +51,18 @@ pub enum ModelError {
 
     #[error(transparent)]
     Data(#[from] pma_data::DataError),
+
+    /// The process-wide interrupt flag was raised (see [`crate::interrupt`]).
+    #[error("{0}")]
+    Interrupted(#[from] pma_data::interrupt::Interrupted),
 }
 
 impl ModelError {
+    /// Whether the work stopped because an interruption was requested.
+    pub fn is_interrupted(&self) -> bool {
+        pma_data::interrupt::caused(self)
+    }
+
     /// Shape error helper: `what` names the tensor (and its source, if any).
     pub fn shape(
         what: impl Into<String>,

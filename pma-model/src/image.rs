@@ -167,6 +167,7 @@ pub fn render_image<R: ChunkRenderer + ?Sized>(
         .collect();
     let origin = cam.origin();
     for chunk in pixels.chunks(opts.chunk) {
+        crate::interrupt::check()?;
         let c = chunk.len();
         let mut o = Vec::with_capacity(3 * c);
         let mut d = Vec::with_capacity(3 * c);

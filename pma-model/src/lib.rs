@@ -32,6 +32,8 @@ pub mod fused;
 pub mod gnn;
 pub mod host;
 pub mod image;
+/// The process-wide interrupt flag (see `pma_data::interrupt`).
+pub use pma_data::interrupt;
 pub mod loss;
 pub mod mesh;
 pub mod modulator;

@@ -135,6 +135,7 @@ fn dense(
     let k = r / n_poses;
     let (mut rgbs, mut sigmas, mut traces) = (Vec::new(), Vec::new(), Vec::new());
     for p in 0..n_poses {
+        crate::interrupt::check()?;
         let (pts_p, view_p) = pose_block(pts, view, p, k)?;
         let mut tp = Trace::default();
         let traced = trace.is_some().then_some((&mut tp, stage));
@@ -168,6 +169,7 @@ fn chunked(
         .collect::<Result<Vec<_>>>()?;
     let workers = crate::parallel::workers_on(pts.device());
     let outs = crate::parallel::map_ordered(workers, n_poses * per_pose, |i| {
+        crate::interrupt::check()?;
         let (p, c) = (i / per_pose, i % per_pose);
         let (start, len) = (c * chunk, chunk.min(n - c * chunk));
         let (pts_p, view_p) = &inputs[p];
@@ -396,6 +398,7 @@ impl CullCtx {
     ) -> Result<(Vec<Tensor>, Vec<Tensor>, usize)> {
         let workers = crate::parallel::workers_on(avatar.device());
         let outs = crate::parallel::map_ordered(workers, jobs.len(), |i| {
+            crate::interrupt::check()?;
             let job = &jobs[i];
             let (rgb, sigma_raw) = avatar.eval_points(pose, job.p, &job.pts, &job.view, None)?;
             // In inference the chunk's graph goes at once (see `chunked`).

@@ -221,7 +221,7 @@ mod imp {
     use pma_model::train::{Preset, RunConfig, Trainer};
 
     use super::super::plot::plot_error_vs_time;
-    use super::super::{progress, read_dataset, write_json};
+    use super::super::{progress, read_dataset, refuse, write_json};
     use super::*;
 
     /// (name, culling, fast sine): parity, each culling option, then the vectorised sine
@@ -374,13 +374,16 @@ mod imp {
             args.budget_seconds = args.budget_seconds.min(2.0);
             args.eval_images = 1;
         }
-        anyhow::ensure!(args.repeats >= 1, "--repeats must be >= 1");
-        anyhow::ensure!(args.res >= 8, "--res must be >= 8, found {}", args.res);
+        if args.repeats < 1 {
+            refuse!("--repeats must be >= 1");
+        }
+        if args.res < 8 {
+            refuse!("--res must be >= 8, found {}", args.res);
+        }
         for &t in &args.thresholds {
-            anyhow::ensure!(
-                t.is_finite() && (0.0..1.0).contains(&t),
-                "--thresholds: {t} is not in [0, 1)"
-            );
+            if !(t.is_finite() && (0.0..1.0).contains(&t)) {
+                refuse!("--thresholds: {t} is not in [0, 1)");
+            }
         }
         Ok(())
     }

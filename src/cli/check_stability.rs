@@ -6,6 +6,8 @@
 use std::path::PathBuf;
 
 use anyhow::{bail, Context, Result};
+
+use super::refuse;
 use pma_model::avatar::Avatar;
 use pma_model::stability::{self, ProbeOptions};
 use pma_model::Config;
@@ -45,7 +47,7 @@ pub fn run(args: Args) -> Result<()> {
                 "default" | "paper" => Config::paper(),
                 "cpu-small" => Config::cpu_small(),
                 "tiny" => Config::tiny(),
-                other => bail!("--preset: expected default, cpu-small or tiny, found `{other}`"),
+                other => refuse!("--preset: expected default, cpu-small or tiny, found `{other}`"),
             };
             Avatar::new(cfg, &pma_data::synth::rest_pose(), 0, &device)?
         }

@@ -174,6 +174,9 @@ fn layout(l: LayoutArg) -> Layout {
 pub fn run(args: Args) -> anyhow::Result<()> {
     let inputs = args.what.inputs();
     convert(args).map_err(|e| {
+        if let ConvertError::Interrupted(i) = e {
+            return i.into();
+        }
         let line = one_line(&e.to_string());
         if is_bad_input(&e, &inputs) {
             Refused::new(line).into()

@@ -15,7 +15,7 @@ use pma_model::eval::{
     LPIPS_NOTE,
 };
 
-use super::{eval_error, read_dataset, write_json};
+use super::{read_dataset, write_json};
 
 #[derive(clap::Args, Debug, Clone)]
 pub struct Args {
@@ -66,9 +66,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let mut avatar = Avatar::load(&args.model, &device)
         .with_context(|| format!("loading model {}", args.model.display()))?;
     avatar.set_culling(args.cull.clone())?;
-    let (data_path, split) = resolve_split(&args.data, &args.split).map_err(eval_error)?;
+    let (data_path, split) = resolve_split(&args.data, &args.split)?;
     let data = read_dataset(&data_path, Profile::Eval)?;
-    let images = split_images(&data, &data_path, &split).map_err(eval_error)?;
+    let images = split_images(&data, &data_path, &split)?;
     let images = spread(&images, args.max_images.unwrap_or(usize::MAX));
     let out = args.out.clone().unwrap_or_else(|| {
         args.model
@@ -82,7 +82,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         None => None,
     };
     let opts = EvalOptions {
-        region: args.psnr_region.parse().map_err(eval_error)?,
+        region: args.psnr_region.parse()?,
         ssim_data_range: args.ssim_data_range,
         chunk: args.chunk,
         png_dir: Some(out.clone()),

@@ -6,7 +6,9 @@ use std::collections::HashMap;
 use std::io::{BufWriter, Write as _};
 use std::path::PathBuf;
 
-use anyhow::{bail, Context, Result};
+use anyhow::{Context, Result};
+
+use super::{refuse, Refused};
 use candle_core::Tensor;
 use pma_data::dataset::npz::{MemberData, NpyData, NpzReader, NpzWriter};
 use pma_data::fsio::AtomicFile;
@@ -51,7 +53,7 @@ impl Batch {
         let (s, d) = self
             .arrays
             .get(key)
-            .with_context(|| format!("{}: missing key `{key}`", self.file))?;
+            .ok_or_else(|| Refused::new(format!("{}: missing key `{key}`", self.file)))?;
         let ok =
             s.len() == shape.len() && s.iter().zip(shape).all(|(a, b)| b.is_none_or(|b| *a == b));
         if !ok {
@@ -59,7 +61,7 @@ impl Batch {
                 .iter()
                 .map(|d| d.map_or("*".into(), |v| v.to_string()))
                 .collect();
-            bail!(
+            refuse!(
                 "{}: key `{key}`: expected shape [{}], found {s:?}",
                 self.file,
                 want.join(",")
@@ -73,14 +75,14 @@ impl Batch {
         let v = match d {
             NpyData::F32(v) => v.clone(),
             NpyData::F64(v) => v.iter().map(|x| *x as f32).collect(),
-            other => bail!(
+            other => refuse!(
                 "{}: key `{key}`: expected float32, found {:?}",
                 self.file,
                 other.elem()
             ),
         };
         if let Some(i) = v.iter().position(|x| !x.is_finite()) {
-            bail!(
+            refuse!(
                 "{}: key `{key}`: non-finite value at flat index {i}",
                 self.file
             );
@@ -93,7 +95,7 @@ impl Batch {
         Ok(match d {
             NpyData::I64(v) => v.clone(),
             NpyData::I32(v) => v.iter().map(|x| *x as i64).collect(),
-            other => bail!(
+            other => refuse!(
                 "{}: key `{key}`: expected an integer array, found {:?}",
                 self.file,
                 other.elem()
@@ -168,7 +170,7 @@ impl Batch {
             None => 1,
         };
         if r == 0 || n_unique == 0 || r % n_unique != 0 {
-            bail!(
+            refuse!(
                 "{file}: {r} rays cannot be split into N_unique = {n_unique} equal per-pose blocks"
             );
         }
@@ -214,24 +216,24 @@ fn load_model(args: &Args, rest: &[f32], file: &str, dev: &candle_core::Device) 
         .zip(rest)
         .fold(0f32, |m, (a, b)| m.max((a - b).abs()));
     if rest_err > 1e-5 {
-        bail!("{file}: key `rest_pose` differs from the model's rest pose by {rest_err:.2e} (the batch was made for another subject)");
+        refuse!("{file}: key `rest_pose` differs from the model's rest pose by {rest_err:.2e} (the batch was made for another subject)");
     }
     let mut tensors = ck.tensors;
     if let Some(path) = &args.sigma_override {
         for (k, v) in candle_core::safetensors::load(path, dev)
-            .with_context(|| format!("reading {}", path.display()))?
+            .map_err(|e| Refused::new(format!("reading {}: {e}", path.display())))?
         {
             match tensors.get(&k) {
                 Some(old) if old.dims() == v.dims() => {
                     tensors.insert(k, v);
                 }
-                Some(old) => bail!(
+                Some(old) => refuse!(
                     "{}: tensor `{k}`: expected shape {:?}, found {:?}",
                     path.display(),
                     old.dims(),
                     v.dims()
                 ),
-                None => bail!("{}: tensor `{k}` is not a model tensor", path.display()),
+                None => refuse!("{}: tensor `{k}` is not a model tensor", path.display()),
             }
         }
     }

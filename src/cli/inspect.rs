@@ -5,7 +5,9 @@
 
 use std::path::{Path, PathBuf};
 
-use anyhow::{bail, Context as _};
+use anyhow::Context as _;
+
+use super::Refused;
 use pma_data::dataset::npz::NpzReader;
 use pma_data::dataset::{frames_path_for, Dataset, Profile, ReadOptions};
 
@@ -54,7 +56,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         Ok(ds) => ds,
         Err(e) => {
             println!("validation: FAILED");
-            bail!("invalid dataset ({profile} profile): {e}");
+            return Err(Refused::new(format!("invalid dataset ({profile} profile): {e}")).into());
         }
     };
     summary(&ds);

@@ -14,7 +14,7 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
-use anyhow::{bail, Context as _};
+use anyhow::Context as _;
 use candle_core::Device;
 use image::RgbImage;
 use pma_data::cylinder::HeadDir;
@@ -28,7 +28,7 @@ use pma_model::mesh::{
 use pma_model::retarget::{retarget, MotionClip, RootScale};
 
 use super::render::read_motion;
-use super::{progress, write_png};
+use super::{progress, refuse, write_png};
 
 #[derive(clap::Args, Debug, Clone)]
 pub struct Args {
@@ -110,7 +110,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let t_mc = t1.elapsed().as_secs_f64();
     if mesh.triangles.is_empty() {
         let max = values.iter().copied().fold(0f32, f32::max);
-        bail!(
+        refuse!(
             "no surface at density threshold {}: the largest density on the {:?} grid is {max:.3} \
              (pass a lower --threshold)",
             args.threshold,
@@ -139,16 +139,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 
 fn check_args(args: &Args) -> anyhow::Result<()> {
     if !(2..=1024).contains(&args.res) {
-        bail!("--res must be in 2..=1024, found {}", args.res);
+        refuse!("--res must be in 2..=1024, found {}", args.res);
     }
     if !args.threshold.is_finite() {
-        bail!("--threshold must be finite");
+        refuse!("--threshold must be finite");
     }
     if args.chunk == 0 {
-        bail!("--chunk must be >= 1");
+        refuse!("--chunk must be >= 1");
     }
     if !(8..=4096).contains(&args.preview_res) {
-        bail!("--preview-res must be in 8..=4096");
+        refuse!("--preview-res must be in 8..=4096");
     }
     Ok(())
 }
@@ -164,7 +164,7 @@ fn mesh_pose(args: &Args, avatar: &Avatar) -> anyhow::Result<(Joints, [f32; 3])>
     };
     let (clip, _) = read_motion(avatar, p)?;
     if args.frame >= clip.len() {
-        bail!(
+        refuse!(
             "--frame {} is past the {} pose(s) of {}",
             args.frame,
             clip.len(),

@@ -51,7 +51,7 @@ use pma_model::image::{body_box, render_image, ChunkRender, ImageOptions, Render
 use pma_model::retarget::{retarget, MotionClip, RootScale};
 use serde::Serialize;
 
-use super::{eval_error, progress, read_dataset, write_json, write_png};
+use super::{progress, read_dataset, refuse, write_json, write_png, Refused};
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "lowercase")]
@@ -246,16 +246,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 
 fn check_args(args: &Args) -> anyhow::Result<()> {
     if args.chunk == 0 {
-        bail!("--chunk must be >= 1");
+        refuse!("--chunk must be >= 1");
     }
     if !(args.fps.is_finite() && args.fps > 0.0 && args.fps <= 100.0) {
-        bail!("--fps must be in (0, 100], found {}", args.fps);
+        refuse!("--fps must be in (0, 100], found {}", args.fps);
     }
     if args.views == Some(0) {
-        bail!("--views must be >= 1");
+        refuse!("--views must be >= 1");
     }
     if args.strip == Some(0) {
-        bail!("--strip must be >= 1");
+        refuse!("--strip must be >= 1");
     }
     Ok(())
 }
@@ -270,12 +270,12 @@ impl SplitData {
     /// With `camera_only` (poses from elsewhere), a file without the split lends its first
     /// image instead of being refused.
     fn read(path: &Path, split: &str, camera_only: bool) -> anyhow::Result<Self> {
-        let (file, split) = resolve_split(path, split).map_err(eval_error)?;
+        let (file, split) = resolve_split(path, split)?;
         let data = read_dataset(&file, Profile::Render)?;
         let images = match split_images(&data, &file, &split) {
             Ok(images) => images,
             Err(_) if camera_only => split_images(&data, &file, &Split::whole_file(&split.name)?)?,
-            Err(e) => return Err(eval_error(e)),
+            Err(e) => return Err(e.into()),
         };
         Ok(Self { data, images })
     }
@@ -292,7 +292,7 @@ fn pose_items(
     match (&args.poses, data) {
         (Some(p), _) => {
             if mode == CameraMode::Dataset {
-                bail!("--camera dataset renders a dataset's own images: pass --data without --poses (or use orbit/bullet)");
+                refuse!("--camera dataset renders a dataset's own images: pass --data without --poses (or use orbit/bullet)");
             }
             let scale: RootScale = args.root_scale.parse()?;
             let (items, s) = motion_items(avatar, p, scale, args.frames.as_deref())?;
@@ -306,7 +306,7 @@ fn pose_items(
                 .collect::<anyhow::Result<Vec<_>>>()?;
             Ok((items, sd.data.head()?, None))
         }
-        (None, None) => bail!("nothing to render: pass --data DS and/or --poses POSES.npz"),
+        (None, None) => refuse!("nothing to render: pass --data DS and/or --poses POSES.npz"),
     }
 }
 
@@ -325,7 +325,7 @@ fn reference_camera(
             Some(c) => c.clone(),
             None => sd.data.image_camera(sd.images[0])?,
         },
-        (None, Some(_)) => bail!("--cam needs --data"),
+        (None, Some(_)) => refuse!("--cam needs --data"),
         (None, None) => {
             let (w, h) = res.unwrap_or((256, 256));
             framing_camera(&first.kp3d, head, facing(&first.bones), w, h)?
@@ -499,7 +499,7 @@ fn render_jobs(
 fn parse_range(s: Option<&str>, n: usize, what: &str) -> anyhow::Result<Range<usize>> {
     let Some(s) = s else {
         if n == 0 {
-            bail!("no {what} to render");
+            refuse!("no {what} to render");
         }
         return Ok(0..n);
     };
@@ -509,7 +509,7 @@ fn parse_range(s: Option<&str>, n: usize, what: &str) -> anyhow::Result<Range<us
             return Ok(default);
         }
         t.parse()
-            .with_context(|| format!("--frames {s:?}: {t:?} is not a frame index"))
+            .map_err(|_| Refused::new(format!("--frames {s:?}: {t:?} is not a frame index")).into())
     };
     let r = match s.split_once(':') {
         Some((a, b)) => num(a, 0)?..num(b, n)?,
@@ -519,7 +519,7 @@ fn parse_range(s: Option<&str>, n: usize, what: &str) -> anyhow::Result<Range<us
         }
     };
     if r.start >= r.end || r.end > n {
-        bail!("--frames {s:?} selects nothing within the {n} {what} (use a:b with a < b <= {n})");
+        refuse!("--frames {s:?} selects nothing within the {n} {what} (use a:b with a < b <= {n})");
     }
     Ok(r)
 }

@@ -1,7 +1,8 @@
 //! `pma train`: train an avatar on a pma-npz dataset. The run itself is
-//! `pma_model::train::train_run`; this command resolves the flags, installs the Ctrl-C
-//! handler, draws the progress bar and writes `psnr_vs_time.png` (held-out PSNR against
-//! wall-clock time) at every checkpoint.
+//! `pma_model::train::train_run`; this command resolves the flags, draws the progress bar
+//! and writes `psnr_vs_time.png` (held-out PSNR against wall-clock time) at every
+//! checkpoint. Ctrl-C (the handler is `main`'s) stops the run with a checkpoint of its last
+//! complete step and exit status 130.
 
 use std::path::PathBuf;
 
@@ -71,18 +72,18 @@ pub use imp::{train, PLOT_FILE};
 #[cfg(feature = "train")]
 mod imp {
     use std::path::Path;
-    use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
-    use std::sync::Arc;
     use std::time::Duration;
 
-    use anyhow::{bail, Context as _};
+    use anyhow::Context as _;
     use pma_model::train::{
-        train_run, ObserverError, Preset, RunConfig, StepReport, TrainError, TrainLog,
-        TrainObserver, TrainOutcome, TrainRequest, CONFIG_FILE,
+        train_run, ObserverError, Preset, RunConfig, StepReport, TrainLog, TrainObserver,
+        TrainOutcome, TrainRequest, CONFIG_FILE,
     };
 
     use super::super::plot::plot_psnr_vs_time;
-    use super::super::{progress, Refused};
+    use pma_model::interrupt::Interrupted;
+
+    use super::super::{progress, refuse};
     use super::*;
 
     /// The plot a run directory gets at every checkpoint.
@@ -97,12 +98,12 @@ mod imp {
         if let (Some(seed), Some(run)) = (args.seed, run.as_mut()) {
             run.train.seed = seed;
         } else if args.seed.is_some() {
-            bail!("--seed cannot change a resumed run (its seed is in {CONFIG_FILE})");
+            refuse!("--seed cannot change a resumed run (its seed is in {CONFIG_FILE})");
         }
         if let (Some(variant), Some(run)) = (args.variant, run.as_mut()) {
             run.model.variant = variant;
         } else if args.variant.is_some() {
-            bail!("--variant cannot change a resumed run (its variant is in {CONFIG_FILE})");
+            refuse!("--variant cannot change a resumed run (its variant is in {CONFIG_FILE})");
         }
         let eval_data = args.eval_data.clone().or_else(|| {
             let beside = args.data.parent()?.join("novel_view.npz");
@@ -126,12 +127,7 @@ mod imp {
             "pma train: held-out PSNR vs wall-clock time",
         )?;
         println!(
-            "{} at iteration {} ({} this session, {:.1} it/s, {} skipped); model: {}",
-            if outcome.interrupted {
-                "stopped"
-            } else {
-                "done"
-            },
+            "done at iteration {} ({} this session, {:.1} it/s, {} skipped); model: {}",
             outcome.iterations,
             outcome.session_iterations,
             outcome.session_iterations as f64 / (outcome.session_s - outcome.eval_s).max(1e-9),
@@ -141,63 +137,27 @@ mod imp {
         Ok(())
     }
 
-    /// Run `req` with a progress bar (unless `quiet`), the Ctrl-C handler and the plot
-    /// titled `title`.
+    /// Run `req` with a progress bar (unless `quiet`) and the plot titled `title`. A run
+    /// stopped by Ctrl-C is an [`Interrupted`] error (exit status 130) that says where
+    /// `--resume` continues.
     pub fn train(req: &TrainRequest, quiet: bool, title: &str) -> anyhow::Result<TrainOutcome> {
         let mut view = Terminal {
             quiet,
             title,
             bar: indicatif::ProgressBar::hidden(),
         };
-        let result = train_run(req, &interrupt_flag(), &mut view);
+        let result = train_run(req, &mut view);
         view.bar.finish_and_clear();
-        let outcome = result.map_err(refuse_input)?;
+        let outcome = result?;
         if outcome.interrupted {
-            eprintln!(
-                "interrupted at iteration {}; continue with `pma train --resume --out {}`",
-                outcome.iterations,
-                req.out.display()
-            );
+            return Err(anyhow::Error::new(Interrupted).context(format!(
+                "interrupted at iteration {n}; the checkpoint in {dir} is complete, and \
+                 `pma train --resume --out {dir}` continues from iteration {n}",
+                n = outcome.iterations,
+                dir = req.out.display()
+            )));
         }
         Ok(outcome)
-    }
-
-    /// A run directory that holds another run, or data without what was asked of it, is
-    /// refused input.
-    fn refuse_input(e: TrainError) -> anyhow::Error {
-        match e {
-            TrainError::RunExists(_) => Refused::new(e).into(),
-            TrainError::Eval(e) if e.is_bad_input() => Refused::new(*e).into(),
-            e => e.into(),
-        }
-    }
-
-    /// Set once per process: the first Ctrl-C asks the loop to checkpoint and stop, a second
-    /// one exits at once.
-    fn interrupt_flag() -> Arc<AtomicBool> {
-        static FLAG: std::sync::OnceLock<Arc<AtomicBool>> = std::sync::OnceLock::new();
-        FLAG.get_or_init(|| {
-            let flag = Arc::new(AtomicBool::new(false));
-            let presses = Arc::new(AtomicUsize::new(0));
-            let f = flag.clone();
-            let handler = ctrlc::set_handler(move || {
-                if presses.fetch_add(1, Ordering::SeqCst) > 0 {
-                    eprintln!("\nsecond Ctrl-C: exiting without a checkpoint");
-                    std::process::exit(130);
-                }
-                eprintln!(
-                    "\nCtrl-C: writing a checkpoint, then stopping (press again to exit at once)"
-                );
-                f.store(true, Ordering::SeqCst);
-            });
-            if let Err(e) = handler {
-                eprintln!(
-                    "warning: cannot install the Ctrl-C handler ({e}); Ctrl-C will not checkpoint"
-                );
-            }
-            flag
-        })
-        .clone()
     }
 
     /// The training run as the terminal shows it.

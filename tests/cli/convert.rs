@@ -144,7 +144,7 @@ fn bad_datasets_exit_2_naming_file_and_key() {
 }
 
 /// Copies an npz, passing the f32 member `key` through `edit`.
-fn rewrite_npz(from: &Path, to: &Path, key: &str, edit: impl Fn(&mut Vec<f32>)) {
+pub(crate) fn rewrite_npz(from: &Path, to: &Path, key: &str, edit: impl Fn(&mut Vec<f32>)) {
     use pma_data::dataset::npz::{NpyData, NpzReader};
     let mut r = NpzReader::open(from).unwrap();
     let mut w = NpzWriter::new(std::fs::File::create(to).unwrap(), false, "x");

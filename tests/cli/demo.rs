@@ -38,6 +38,10 @@ fn demo_writes_summary_renders_and_plot() {
         String::from_utf8_lossy(&out.stderr)
     );
 
+    // Scene, run, evaluations, renders and plots: one mode rule for all of them.
+    #[cfg(unix)]
+    crate::run::assert_default_modes(&out_dir);
+
     let summary: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out_dir.join("summary.json")).unwrap())
             .unwrap();

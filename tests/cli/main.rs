@@ -8,6 +8,7 @@ mod check_stability;
 mod convert;
 mod demo;
 mod eval;
+mod exit_codes;
 mod forward;
 mod inspect;
 mod mesh;

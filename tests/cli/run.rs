@@ -48,3 +48,40 @@ pub fn tiny_scene(dir: &std::path::Path, novel_view_stride: usize) -> std::path:
     pma_data::synth::generate(&cfg, dir, &mut |_, _| {}).expect("synth");
     dir.join("train.npz")
 }
+
+/// Every file under `dir` (recursively) has the mode `File::create` gives: 0666 less the
+/// umask (0644 under the usual 022). pma inherits the test's umask.
+#[cfg(unix)]
+pub fn assert_default_modes(dir: &std::path::Path) {
+    use std::os::unix::fs::PermissionsExt;
+    let umask = std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find_map(|l| l.strip_prefix("Umask:"))
+                .and_then(|v| u32::from_str_radix(v.trim(), 8).ok())
+        })
+        .unwrap_or(0o022);
+    let want = 0o666 & !umask;
+    let mut files = 0;
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for entry in std::fs::read_dir(&d).unwrap() {
+            let path = entry.unwrap().path();
+            let meta = std::fs::symlink_metadata(&path).unwrap();
+            if meta.is_dir() {
+                stack.push(path);
+            } else {
+                let mode = meta.permissions().mode() & 0o777;
+                assert_eq!(
+                    mode,
+                    want,
+                    "{}: mode {mode:o}, expected {want:o}",
+                    path.display()
+                );
+                files += 1;
+            }
+        }
+    }
+    assert!(files > 0, "no files under {}", dir.display());
+}

@@ -174,6 +174,7 @@ pub(super) fn write_h5_output(
         let shape = [m.rows, plan.hw, m.channels_out];
         start_member(&mut zip, output, m.key, &shape, opts.compression)?;
         for row in 0..m.rows {
+            pma_data::interrupt::check()?;
             let raw = h5.read_u8_rows(m.key, row, row + 1)?;
             let px = prepare_row(raw, m, row, opts, h5.path(), rep)?;
             zip.write_all(&px)

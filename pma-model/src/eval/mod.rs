@@ -114,11 +114,22 @@ impl EvalError {
         )
     }
 
+    /// Whether the evaluation stopped because an interruption was requested.
+    pub fn is_interrupted(&self) -> bool {
+        pma_data::interrupt::caused(self)
+    }
+
     fn incomplete(data: &Dataset, what: String) -> Self {
         Self::Incomplete {
             source_name: data.source.clone(),
             what,
         }
+    }
+}
+
+impl From<pma_data::interrupt::Interrupted> for EvalError {
+    fn from(e: pma_data::interrupt::Interrupted) -> Self {
+        Self::Model(Box::new(e.into()))
     }
 }
 
@@ -280,6 +291,7 @@ pub fn evaluate(
     let mut pngs = Vec::new();
     let mut empty_masks = Vec::new();
     for (k, &n) in images.iter().enumerate() {
+        crate::interrupt::check()?;
         let rendered = render_dataset_image(avatar, data, n, opts.chunk)?;
         let pred = quantize(&rendered);
         let (gt, mask) = ground_truth(data, n)?;

@@ -132,6 +132,7 @@ impl<'a> AvatarField<'a> {
             .chunks(self.chunk.max(1))
             .zip(dirs.chunks(self.chunk.max(1)))
         {
+            crate::interrupt::check()?;
             let t = Tensor::from_vec(
                 p.iter().flatten().copied().collect::<Vec<f32>>(),
                 (p.len(), 3),

@@ -136,6 +136,7 @@ where
     let mut pts = Vec::with_capacity(chunk);
     let mut start = 0;
     while start < n {
+        crate::interrupt::check()?;
         let end = (start + chunk).min(n);
         pts.clear();
         pts.extend((start..end).map(|p| grid.point(p % nx, (p / nx) % ny, p / (nx * ny))));
@@ -307,6 +308,7 @@ where
     let normals = mesh.vertex_normals();
     let mut colours = Vec::with_capacity(mesh.vertices.len());
     for (pts, ns) in mesh.vertices.chunks(chunk).zip(normals.chunks(chunk)) {
+        crate::interrupt::check()?;
         let dirs: Vec<[f32; 3]> = ns
             .iter()
             .map(|n| {

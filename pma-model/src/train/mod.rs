@@ -102,6 +102,19 @@ pub enum TrainError {
     Eval(Box<crate::eval::EvalError>),
 }
 
+impl TrainError {
+    /// Whether the work stopped because an interruption was requested.
+    pub fn is_interrupted(&self) -> bool {
+        pma_data::interrupt::caused(self)
+    }
+}
+
+impl From<pma_data::interrupt::Interrupted> for TrainError {
+    fn from(e: pma_data::interrupt::Interrupted) -> Self {
+        TrainError::Model(Box::new(e.into()))
+    }
+}
+
 impl From<crate::eval::EvalError> for TrainError {
     fn from(e: crate::eval::EvalError) -> Self {
         TrainError::Eval(Box::new(e))

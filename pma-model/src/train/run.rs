@@ -12,13 +12,16 @@
 //! | `log.csv` | one row per log interval (see [`super::log`]) |
 //!
 //! Checkpoints are written every `ckpt_every` iterations, at the end, and when the
-//! interrupt flag is raised; every file is replaced atomically. Progress, notes and
+//! interrupt flag ([`crate::interrupt`]) is raised; every file is replaced atomically. The
+//! flag is polled inside a step (between chunks of rays) and inside held-out evaluations
+//! (between chunks of pixels), so an interruption takes effect within one chunk's time:
+//! a step cut short is undone (see [`Trainer::step`]) and the checkpoint is that of the
+//! last complete step, without the final held-out evaluation. Progress, notes and
 //! checkpoints are reported to a [`TrainObserver`], which is how a front end draws a
 //! progress bar or plots the log; this module prints nothing and installs no signal
 //! handler.
 
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -70,7 +73,8 @@ pub struct TrainOutcome {
     /// Seconds of this session spent in held-out evaluation.
     pub eval_s: f64,
     pub skipped: u64,
-    /// The interrupt flag stopped the session (after a checkpoint).
+    /// The interrupt flag stopped the session; `iterations` is the checkpoint's iteration,
+    /// where a resumed run continues.
     pub interrupted: bool,
     pub model: PathBuf,
 }
@@ -146,10 +150,12 @@ struct HeldOut {
     opts: EvalOptions,
 }
 
-/// Train until `iters`, the time budget or `interrupt`, checkpointing as configured.
+/// Train until `iters`, the time budget or an interruption ([`crate::interrupt`]),
+/// checkpointing as configured. An interruption before the trainer exists returns the
+/// error (nothing was written); after that the session ends with a checkpoint and
+/// `TrainOutcome::interrupted`.
 pub fn train_run(
     req: &TrainRequest,
-    interrupt: &AtomicBool,
     observer: &mut dyn TrainObserver,
 ) -> Result<TrainOutcome, TrainError> {
     let run = resolve_run(req)?;
@@ -188,7 +194,7 @@ pub fn train_run(
     };
     log.truncate_after(trainer.iteration());
     let mut session = Session::new(req, run, trainer, log, held_out, observer);
-    session.run(interrupt)
+    session.run()
 }
 
 fn read_warned(
@@ -299,20 +305,25 @@ impl<'a> Session<'a> {
         }
     }
 
-    fn run(&mut self, interrupt: &AtomicBool) -> Result<TrainOutcome, TrainError> {
+    fn run(&mut self) -> Result<TrainOutcome, TrainError> {
         let target = self.run.train.iters;
         self.observer.start(self.start_iter, target);
+        let mut interrupted = false;
         // The curve starts at the initial model.
         if self.start_iter == 0 && self.held_out.is_some() {
-            let e = self.evaluate_now()?;
-            let row = self.row(0, (f64::NAN, f64::NAN), e);
-            self.log.push(LogRow { skipped: 0, ..row });
+            match self.evaluate_now() {
+                Ok(e) => {
+                    let row = self.row(0, (f64::NAN, f64::NAN), e);
+                    self.log.push(LogRow { skipped: 0, ..row });
+                }
+                Err(e) if e.is_interrupted() => interrupted = true,
+                Err(e) => return Err(e),
+            }
         }
-        let mut interrupted = false;
         let mut last_logged = self.trainer.iteration();
         let mut failure = None;
-        while self.trainer.iteration() < target {
-            if interrupt.load(Ordering::SeqCst) {
+        while !interrupted && self.trainer.iteration() < target {
+            if crate::interrupt::requested() {
                 interrupted = true;
                 break;
             }
@@ -321,6 +332,10 @@ impl<'a> Session<'a> {
             }
             let stats = match self.trainer.step() {
                 Ok(s) => s,
+                Err(e) if e.is_interrupted() => {
+                    interrupted = true;
+                    break;
+                }
                 Err(e @ TrainError::Diverged { .. }) => {
                     failure = Some(e);
                     break;
@@ -329,8 +344,18 @@ impl<'a> Session<'a> {
             };
             self.trainer.set_wall_s(self.wall());
             self.record_step(&stats, target);
-            if self.after_step(stats.iter)? {
-                last_logged = stats.iter;
+            match self.after_step(stats.iter) {
+                Ok(logged) => {
+                    if logged {
+                        last_logged = stats.iter;
+                    }
+                }
+                // The step is complete; only its held-out score is missing.
+                Err(e) if e.is_interrupted() => {
+                    interrupted = true;
+                    break;
+                }
+                Err(e) => return Err(e),
             }
         }
         self.finish(last_logged, failure, interrupted)
@@ -438,7 +463,7 @@ impl<'a> Session<'a> {
         Ok(logged)
     }
 
-    /// Final row (with a held-out evaluation), checkpoint and log.
+    /// Final row (with a held-out evaluation unless interrupted), checkpoint and log.
     fn finish(
         &mut self,
         last_logged: u64,
@@ -451,8 +476,13 @@ impl<'a> Session<'a> {
             .rows
             .last()
             .is_some_and(|r| r.iter == it && r.eval_psnr.is_some());
-        if failure.is_none() && !evaluated_here && (it > last_logged || self.held_out.is_some()) {
-            let e = self.evaluate_now()?;
+        let evaluate = self.held_out.is_some() && !interrupted;
+        if failure.is_none() && !evaluated_here && (it > last_logged || evaluate) {
+            let e = if interrupted {
+                None
+            } else {
+                self.evaluate_now()?
+            };
             let means = self.interval.take();
             self.log.push(self.row(it, means, e));
         }

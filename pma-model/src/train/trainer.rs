@@ -495,15 +495,35 @@ impl Trainer {
     }
 
     /// One iteration on the next batch of the source.
+    ///
+    /// A step cut short by an interruption (see [`crate::interrupt`]) is undone: it stops
+    /// before the optimizer, so only the batch source and the noise generator have moved, and
+    /// both are put back. The trainer is then exactly as after the last complete step, and a
+    /// checkpoint of it resumes bit for bit.
     pub fn step(&mut self) -> Result<StepStats, TrainError> {
-        let batch = self.source.next_batch()?;
-        self.step_on(&batch, None)
+        self.step_undoable(None)
     }
 
     /// [`Self::step`] with a gradient hook (e.g. to inject a fault in tests).
     pub fn step_hooked(&mut self, hook: GradHook) -> Result<StepStats, TrainError> {
-        let batch = self.source.next_batch()?;
-        self.step_on(&batch, Some(hook))
+        self.step_undoable(Some(hook))
+    }
+
+    fn step_undoable(&mut self, hook: Option<GradHook>) -> Result<StepStats, TrainError> {
+        let noise = self.noise_rng.clone();
+        let source = self.source.state();
+        let result = self
+            .source
+            .next_batch()
+            .and_then(|batch| self.step_on(&batch, hook));
+        match result {
+            Err(e) if e.is_interrupted() => {
+                self.noise_rng = noise;
+                self.source.restore(&source)?;
+                Err(e)
+            }
+            r => r,
+        }
     }
 
     /// One iteration on `batch`: forward (training mode, density noise), loss, backward,
@@ -659,6 +679,7 @@ impl Trainer {
         // result is the sequential loop's, bit for bit, whatever the worker count.
         let workers = crate::parallel::workers_on(&device);
         for wave in starts.chunks(workers) {
+            crate::interrupt::check()?;
             let outs = crate::parallel::map_ordered(workers, wave.len(), |i| run_chunk(wave[i]))?;
             for out in outs {
                 sums.add(out)?;

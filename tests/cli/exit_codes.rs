@@ -1,0 +1,142 @@
+//! One rule for exit codes in every command: refused input exits 2 with a message that names
+//! what was wrong. One refused input per command, each refused before any real work.
+
+use std::path::Path;
+use std::process::Output;
+
+use crate::convert::rewrite_npz;
+use crate::run::{pma, tiny_scene};
+
+/// Exit status 2, no panic, and every needle in stderr.
+fn refused(out: Output, needles: &[&str]) {
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "expected exit 2: {err}");
+    for n in needles {
+        assert!(err.contains(n), "stderr lacks {n:?}:\n{err}");
+    }
+    assert!(!err.contains("panicked"), "{err}");
+    // One line: scripts read the message.
+    assert_eq!(err.trim_end().lines().count(), 1, "{err}");
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+#[test]
+fn refused_input_exits_2_in_every_command() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    let train = tiny_scene(&dir.join("scene"), 2);
+    let scene = dir.join("scene");
+    let garbage = dir.join("garbage.safetensors");
+    std::fs::write(&garbage, b"this is not a safetensors file").unwrap();
+    let nan_bones = dir.join("nan_bones.npz");
+    rewrite_npz(&train, &nan_bones, "bones", |v| v[4] = f32::NAN);
+    let out = dir.join("out");
+    let cfg = dir.join("bad.toml");
+    std::fs::write(&cfg, "preset = \"tiny\"\n[train]\nrays_per_stp = 4\n").unwrap();
+
+    refused(pma(&["synth", "--out", s(&out), "--res", "0"]), &["res"]);
+    refused(
+        pma(&["inspect", s(&nan_bones)]),
+        &["nan_bones.npz", "bones"],
+    );
+    refused(
+        pma(&[
+            "forward",
+            "--model",
+            s(&garbage),
+            "--batch",
+            s(&train),
+            "--out",
+            s(&out.join("o.npz")),
+        ]),
+        // A dataset is not a ray batch.
+        &["train.npz", "rays_o"],
+    );
+    refused(
+        pma(&[
+            "convert",
+            "checkpoint",
+            s(&garbage),
+            "-o",
+            s(&out.join("c.safetensors")),
+        ]),
+        &["garbage.safetensors"],
+    );
+    refused(
+        pma(&[
+            "train",
+            "--data",
+            s(&train),
+            "--out",
+            s(&out.join("run")),
+            "--config",
+            s(&cfg),
+        ]),
+        &["train.rays_per_stp"],
+    );
+    refused(
+        pma(&[
+            "train",
+            "--data",
+            s(&nan_bones),
+            "--out",
+            s(&out.join("run")),
+            "--preset",
+            "tiny",
+        ]),
+        &["nan_bones.npz", "bones"],
+    );
+    let model = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/golden/model.safetensors");
+    refused(
+        pma(&[
+            "eval",
+            "--model",
+            s(&model),
+            "--data",
+            s(&scene),
+            "--split",
+            "novel_vew",
+        ]),
+        &["novel_vew"],
+    );
+    refused(
+        pma(&["demo", "--out", s(&out.join("demo")), "--preset", "huge"]),
+        &["huge"],
+    );
+    refused(
+        pma(&[
+            "render",
+            "--model",
+            s(&garbage),
+            "--data",
+            s(&scene),
+            "--res",
+            "0x0",
+            "--out",
+            s(&out.join("r")),
+        ]),
+        &["0x0"],
+    );
+    refused(
+        pma(&["mesh", "--model", s(&garbage), "-o", s(&out.join("m.ply"))]),
+        &["garbage.safetensors"],
+    );
+    refused(
+        pma(&[
+            "bench",
+            "--quick",
+            "--thresholds",
+            "2",
+            "--out",
+            s(&out.join("b")),
+        ]),
+        &["--thresholds"],
+    );
+    refused(
+        pma(&["check-stability", "--model", s(&garbage)]),
+        &["garbage.safetensors"],
+    );
+}
