@@ -50,6 +50,9 @@ enum Command {
     Eval(cli::eval::Args),
     /// The main job on the embedded default: synthesise the scene, train, evaluate, render.
     Demo(cli::demo::Args),
+    /// The paper's ablations: train each model variant on the same budget, score novel views
+    /// and poses, and tabulate error against run time.
+    Ablate(cli::ablate::Args),
     /// Render a trained avatar: dataset views, an orbit, bullet time, or retargeted motion (PNG + GIF).
     Render(cli::render::Args),
     /// Extract a coloured mesh (PLY) of a trained avatar in one pose by marching cubes.
@@ -77,6 +80,7 @@ fn main() -> ExitCode {
         Command::Train(a) => cli::train::run(a),
         Command::Eval(a) => cli::eval::run(a),
         Command::Demo(a) => cli::demo::run(a),
+        Command::Ablate(a) => cli::ablate::run(a),
         Command::Render(a) => cli::render::run(a),
         Command::Mesh(a) => cli::mesh::run(a),
         Command::Bench(a) => cli::bench::run(a),

@@ -95,7 +95,7 @@ pub struct Summary {
 }
 
 #[cfg(feature = "train")]
-mod imp {
+pub(crate) mod imp {
     use std::collections::BTreeMap;
     use std::path::{Path, PathBuf};
 
@@ -121,7 +121,7 @@ mod imp {
         let preset: Preset = args.preset.parse()?;
         let out = args.out.clone();
         std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
-        let scene = make_scene(&args, &out.join("scene"))?;
+        let scene = make_scene(args.res, args.frames, args.quiet, &out.join("scene"))?;
         let (outcome, it_per_s) = train_scene(&args, preset, &scene, &out.join("run"))?;
         println!("[3/4] evaluating");
         let renders = out.join("renders");
@@ -157,12 +157,17 @@ mod imp {
     }
 
     /// Step 1: the scene (reused when an identical one is already there).
-    fn make_scene(args: &Args, scene: &Path) -> anyhow::Result<PathBuf> {
+    pub(crate) fn make_scene(
+        res: Option<usize>,
+        frames: Option<usize>,
+        quiet: bool,
+        scene: &Path,
+    ) -> anyhow::Result<PathBuf> {
         let mut synth = SynthConfig::default();
-        if let Some(r) = args.res {
+        if let Some(r) = res {
             synth.res = r;
         }
-        if let Some(f) = args.frames {
+        if let Some(f) = frames {
             synth.frames = f;
         }
         if scene_matches(scene, &synth) {
@@ -170,7 +175,7 @@ mod imp {
             return Ok(scene.to_path_buf());
         }
         println!("[1/4] synthesising the scene into {}", scene.display());
-        let bar = progress::bar(args.quiet, 0, "      images");
+        let bar = progress::bar(quiet, 0, "      images");
         let summary = generate(&synth, scene, &mut |done, total| {
             bar.set_length(total as u64);
             bar.set_position(done as u64);

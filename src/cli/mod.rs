@@ -1,6 +1,7 @@
 //! One module per subcommand: clap `Args` plus `run`. The pipelines live in the libraries;
 //! these modules parse, call and print.
 
+pub mod ablate;
 pub mod bench;
 pub mod check_stability;
 pub mod convert;

@@ -174,3 +174,80 @@ pub fn plot_error_vs_time(r: &BenchReport, path: &Path) -> anyhow::Result<()> {
         .ok_or_else(|| anyhow::anyhow!("plot buffer has the wrong size"))?;
     super::write_png(&img, path)
 }
+
+/// Several held-out PSNR curves against wall-clock time, one per labelled series.
+pub fn plot_curves(
+    series: &[(String, Vec<(f64, f64)>)],
+    title: &str,
+    path: &Path,
+) -> anyhow::Result<()> {
+    register_font();
+    let e = |e: &dyn std::fmt::Display| anyhow::anyhow!("plot: {e}");
+    let finite = |p: &&(f64, f64)| p.0.is_finite() && p.1.is_finite();
+    let all: Vec<(f64, f64)> = series
+        .iter()
+        .flat_map(|s| s.1.iter().filter(finite).copied())
+        .collect();
+    let x_max = all.iter().map(|p| p.0 / 60.0).fold(0.0, f64::max).max(1e-3) * 1.02;
+    let (mut y_min, mut y_max) = all
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| {
+            (lo.min(p.1), hi.max(p.1))
+        });
+    if !y_min.is_finite() {
+        (y_min, y_max) = (0.0, 30.0);
+    }
+    let pad = ((y_max - y_min) * 0.08).max(0.5);
+    let (w, h) = (900u32, 540u32);
+    let mut buf = vec![0u8; (w * h * 3) as usize];
+    {
+        let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
+        root.fill(&WHITE).map_err(|x| e(&x))?;
+        let mut chart = ChartBuilder::on(&root)
+            .caption(title, ("sans-serif", 22))
+            .margin(16)
+            .x_label_area_size(44)
+            .y_label_area_size(56)
+            .build_cartesian_2d(0.0..x_max, (y_min - pad)..(y_max + pad))
+            .map_err(|x| e(&x))?;
+        chart
+            .configure_mesh()
+            .x_desc("wall-clock time [min]")
+            .y_desc("held-out PSNR [dB]")
+            .label_style(("sans-serif", 15))
+            .draw()
+            .map_err(|x| e(&x))?;
+        for (i, (label, pts)) in series.iter().enumerate() {
+            const COLOURS: [RGBColor; 6] = [
+                RGBColor(31, 90, 180),
+                RGBColor(214, 96, 30),
+                RGBColor(44, 150, 60),
+                RGBColor(190, 40, 50),
+                RGBColor(120, 80, 170),
+                RGBColor(110, 110, 110),
+            ];
+            let colour = COLOURS[i % COLOURS.len()];
+            chart
+                .draw_series(LineSeries::new(
+                    pts.iter().filter(finite).map(|p| (p.0 / 60.0, p.1)),
+                    colour.stroke_width(2),
+                ))
+                .map_err(|x| e(&x))?
+                .label(label.as_str())
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 20, y)], colour.stroke_width(2))
+                });
+        }
+        chart
+            .configure_series_labels()
+            .position(SeriesLabelPosition::LowerRight)
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .label_font(("sans-serif", 15))
+            .draw()
+            .map_err(|x| e(&x))?;
+        root.present().map_err(|x| e(&x))?;
+    }
+    let img = image::RgbImage::from_raw(w, h, buf).context("plot buffer has the wrong size")?;
+    super::write_png(&img, path)
+}

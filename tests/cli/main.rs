@@ -3,6 +3,7 @@
 
 mod run;
 
+mod ablate;
 mod bench;
 mod check_stability;
 mod convert;
