@@ -33,6 +33,7 @@ pub mod gnn;
 pub mod host;
 pub mod image;
 pub mod loss;
+pub mod lpips;
 pub mod mesh;
 pub mod modulator;
 pub mod nn;
