@@ -222,7 +222,9 @@ pub fn grow_crop(b: TightBox, h: usize, w: usize, min: usize) -> TightBox {
         if hi - lo >= min || n < min {
             return (lo, hi);
         }
-        let lo = lo.saturating_sub((min - (hi - lo)).div_ceil(2)).min(n - min);
+        let lo = lo
+            .saturating_sub((min - (hi - lo)).div_ceil(2))
+            .min(n - min);
         (lo, lo + min)
     };
     let ((y0, y1), (x0, x1)) = (grow(b.y0, b.y1, h), grow(b.x0, b.x1, w));

@@ -69,9 +69,9 @@ impl Lpips {
         let device = Device::Cpu;
         let mut tensors = candle_core::safetensors::load_buffer(WEIGHTS, &device)?;
         let mut take = |name: String, shape: &[usize]| -> Result<Tensor> {
-            let t = tensors
-                .remove(&name)
-                .ok_or_else(|| ModelError::shape(format!("LPIPS weights: {name}"), shape, "absent"))?;
+            let t = tensors.remove(&name).ok_or_else(|| {
+                ModelError::shape(format!("LPIPS weights: {name}"), shape, "absent")
+            })?;
             if t.dims() != shape || t.dtype() != DType::F32 {
                 return Err(ModelError::shape(
                     format!("LPIPS weights: {name}"),
@@ -120,18 +120,28 @@ impl Lpips {
                 "LPIPS needs images of at least {MIN_SIDE}x{MIN_SIDE} pixels, got {w}x{h}"
             )));
         }
-        // Both images in one batch, NCHW, already through the [−1,1] map and scaling layer.
-        let mut x = vec![0f32; 2 * 3 * h * w];
-        for (n, img) in [a, b].into_iter().enumerate() {
-            for c in 0..3 {
-                let plane = &mut x[(n * 3 + c) * h * w..(n * 3 + c + 1) * h * w];
-                for (p, v) in plane.iter_mut().enumerate() {
-                    *v = ((2.0 * img[3 * p + c] - 1.0) - SHIFT[c]) / SCALE[c];
-                }
+        // The two feature stacks are independent: on the data-parallel workers (pma's
+        // binaries turn candle's intra-op threads off) they run side by side.
+        let workers = crate::parallel::workers().min(2);
+        let feats = crate::parallel::map_ordered(workers, 2, |i| self.features([a, b][i], h, w))?;
+        let mut total = 0f64;
+        for (s, (fa, fb)) in self.stages.iter().zip(feats[0].iter().zip(&feats[1])) {
+            total += tap_distance(fa, fb, &s.head)?;
+        }
+        Ok(total)
+    }
+
+    /// The five ReLU taps of one `[h·w·3]` image in [0,1].
+    fn features(&self, img: &[f32], h: usize, w: usize) -> Result<Vec<Tensor>> {
+        // NCHW, through the [−1,1] map and the scaling layer.
+        let mut x = vec![0f32; 3 * h * w];
+        for c in 0..3 {
+            for (p, v) in x[c * h * w..(c + 1) * h * w].iter_mut().enumerate() {
+                *v = ((2.0 * img[3 * p + c] - 1.0) - SHIFT[c]) / SCALE[c];
             }
         }
-        let mut x = Tensor::from_vec(x, (2, 3, h, w), &self.device)?;
-        let mut total = 0f64;
+        let mut x = Tensor::from_vec(x, (1, 3, h, w), &self.device)?;
+        let mut taps = Vec::with_capacity(self.stages.len());
         for (i, s) in self.stages.iter().enumerate() {
             if i == 1 || i == 2 {
                 x = x.max_pool2d_with_stride(3, 2)?;
@@ -140,9 +150,9 @@ impl Lpips {
                 .conv2d(&s.weight, s.padding, s.stride, 1, 1)?
                 .broadcast_add(&s.bias)?
                 .relu()?;
-            total += tap_distance(&x, &s.head)?;
+            taps.push(x.clone());
         }
-        Ok(total)
+        Ok(taps)
     }
 
     /// LPIPS of `pred` against `gt` (`[h·w·3]`) on the tight box of `mask` (`[h·w]`, nonzero
@@ -188,12 +198,14 @@ impl Lpips {
     }
 }
 
-/// One tap's term: head-weighted squared difference of the channel-normalised features of
-/// the two batch entries, averaged over space.
-fn tap_distance(feats: &Tensor, head: &Tensor) -> Result<f64> {
-    let norm = feats.sqr()?.sum_keepdim(1)?.sqrt()?;
-    let unit = feats.broadcast_div(&(norm + NORM_EPS)?)?;
-    let d = (unit.get(0)? - unit.get(1)?)?.sqr()?.unsqueeze(0)?;
+/// One tap's term: head-weighted squared difference of the channel-normalised features
+/// (`[1, C, H, W]` each), averaged over space.
+fn tap_distance(fa: &Tensor, fb: &Tensor, head: &Tensor) -> Result<f64> {
+    let unit = |f: &Tensor| -> Result<Tensor> {
+        let norm = f.sqr()?.sum_keepdim(1)?.sqrt()?;
+        Ok(f.broadcast_div(&(norm + NORM_EPS)?)?)
+    };
+    let d = (unit(fa)? - unit(fb)?)?.sqr()?;
     let weighted = d.broadcast_mul(head)?.sum_keepdim(1)?;
     Ok(weighted
         .flatten_all()?
@@ -210,7 +222,9 @@ mod tests {
     fn identical_images_are_at_distance_zero() {
         let l = Lpips::load().unwrap();
         let (h, w) = (40, 33);
-        let a: Vec<f32> = (0..h * w * 3).map(|i| ((i * 37) % 101) as f32 / 100.0).collect();
+        let a: Vec<f32> = (0..h * w * 3)
+            .map(|i| ((i * 37) % 101) as f32 / 100.0)
+            .collect();
         assert_eq!(l.distance(&a, &a, h, w).unwrap(), 0.0);
         assert!(l.distance(&a, &a, 30, 44).is_err());
         assert!(l.distance(&a[1..], &a[1..], h, w).is_err());

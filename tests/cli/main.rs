@@ -11,6 +11,7 @@ mod eval;
 mod forward;
 mod inspect;
 mod mesh;
+mod metrics;
 mod render;
 mod synth;
 mod train;

