@@ -13,6 +13,7 @@
 //! | `render` | volume rendering |
 //! | `points`, `cull` | how samples reach the network; leaving work out |
 //! | `params`, `checkpoint` | tensor registration and init; the file format |
+//! | `eval`, `lpips` | the evaluation protocol; the LPIPS network |
 //! | `train` (feature) | optimiser, losses, the training loop |
 
 pub mod avatar;
