@@ -46,8 +46,10 @@ enum Command {
     Convert(cli::convert::Args),
     /// Train an avatar on a pma-npz dataset.
     Train(cli::train::Args),
-    /// Evaluate a trained avatar (PSNR/SSIM per image and mean, side-by-side PNGs).
+    /// Evaluate a trained avatar (PSNR/SSIM/LPIPS per image and mean, side-by-side PNGs).
     Eval(cli::eval::Args),
+    /// PSNR, SSIM and LPIPS of two images (optionally under a mask), as `pma eval` scores.
+    Metrics(cli::metrics::Args),
     /// The main job on the embedded default: synthesise the scene, train, evaluate, render.
     Demo(cli::demo::Args),
     /// The paper's ablations: train each model variant on the same budget, score novel views
@@ -79,6 +81,7 @@ fn main() -> ExitCode {
         Command::Convert(a) => cli::convert::run(a),
         Command::Train(a) => cli::train::run(a),
         Command::Eval(a) => cli::eval::run(a),
+        Command::Metrics(a) => cli::metrics::run(a),
         Command::Demo(a) => cli::demo::run(a),
         Command::Ablate(a) => cli::ablate::run(a),
         Command::Render(a) => cli::render::run(a),

@@ -211,14 +211,21 @@ pub fn ssim(a: &[f64], b: &[f64], h: usize, w: usize, data_range: f64) -> Result
 /// scikit-image refuses smaller inputs and a thin limb seen edge-on in a
 /// small image would otherwise drop the image.
 pub fn ssim_crop(b: TightBox, h: usize, w: usize) -> TightBox {
+    grow_crop(b, h, w, SSIM_WIN)
+}
+
+/// `b` grown symmetrically (and kept inside the `h`×`w` image) to at least
+/// `min`×`min` where the image allows; a side the image cannot supply stays
+/// as it is.
+pub fn grow_crop(b: TightBox, h: usize, w: usize, min: usize) -> TightBox {
     let grow = |lo: usize, hi: usize, n: usize| -> (usize, usize) {
-        if hi - lo >= SSIM_WIN || n < SSIM_WIN {
+        if hi - lo >= min || n < min {
             return (lo, hi);
         }
         let lo = lo
-            .saturating_sub((SSIM_WIN - (hi - lo)).div_ceil(2))
-            .min(n - SSIM_WIN);
-        (lo, lo + SSIM_WIN)
+            .saturating_sub((min - (hi - lo)).div_ceil(2))
+            .min(n - min);
+        (lo, lo + min)
     };
     let ((y0, y1), (x0, x1)) = (grow(b.y0, b.y1, h), grow(b.x0, b.x1, w));
     TightBox { y0, x0, y1, x1 }

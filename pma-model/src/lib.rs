@@ -13,6 +13,7 @@
 //! | `render` | volume rendering |
 //! | `points`, `cull` | how samples reach the network; leaving work out |
 //! | `params`, `checkpoint` | tensor registration and init; the file format |
+//! | `eval`, `lpips` | the evaluation protocol; the LPIPS network |
 //! | `train` (feature) | optimiser, losses, the training loop |
 
 pub mod avatar;
@@ -35,6 +36,7 @@ pub mod image;
 /// The process-wide interrupt flag (see `pma_data::interrupt`).
 pub use pma_data::interrupt;
 pub mod loss;
+pub mod lpips;
 pub mod mesh;
 pub mod modulator;
 pub mod nn;

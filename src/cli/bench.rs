@@ -1,8 +1,8 @@
 //! `pma bench`: parity mode against each culling option, side by side in one process.
 //! For every option: network points/s and rays/s of inference, ms per rendered
 //! W×H image, ms per training step, peak RSS of each phase, PSNR of the render against the
-//! parity render, the change of held-out PSNR against ground truth, held-out PSNR after the
-//! same wall-clock training budget, and the achieved GFLOP/s against an estimate of the
+//! parity render, the change of held-out PSNR against ground truth, held-out PSNR (and LPIPS)
+//! after the same wall-clock training budget, and the achieved GFLOP/s against an estimate of the
 //! machine's fp32 peak. Writes `bench.json` and `error_vs_time.png`.
 //!
 //! FLOPs are the matmul FLOPs of one network evaluation per point ([`flops_per_point`],
@@ -179,8 +179,11 @@ pub struct OptionResult {
     /// Held-out PSNR (rendered model vs ground truth) and its loss against parity.
     pub heldout_psnr: f64,
     pub psnr_loss_vs_parity_db: f64,
+    /// Held-out LPIPS of the whole image (`None` under LPIPS's 31×31 minimum).
+    pub heldout_lpips: Option<f64>,
     /// Held-out PSNR after `budget_seconds` of training with this option from the same init.
     pub budget_heldout_psnr: Option<f64>,
+    pub budget_heldout_lpips: Option<f64>,
     pub budget_iterations: Option<u64>,
     /// Speed-up of rays/s against parity.
     pub speedup_vs_parity: f64,
@@ -288,15 +291,27 @@ mod imp {
         Ok((trainer, times))
     }
 
-    /// Mean PSNR of the unquantised renders of `images` against their ground truth.
-    fn heldout_psnr(avatar: &Avatar, data: &Dataset, images: &[usize]) -> anyhow::Result<f64> {
-        let mut scores = Vec::new();
+    /// Mean PSNR and LPIPS of the unquantised renders of `images` against their ground
+    /// truth, over the whole image (LPIPS `None` for images under its minimum size).
+    fn heldout_psnr(
+        avatar: &Avatar,
+        data: &Dataset,
+        images: &[usize],
+    ) -> anyhow::Result<(f64, Option<f64>)> {
+        let lpips = pma_model::lpips::Lpips::shared()?;
+        let (h, w) = (data.height(), data.width());
+        let big_enough = h.min(w) >= pma_model::lpips::MIN_SIDE;
+        let (mut scores, mut lp) = (Vec::new(), Vec::new());
         for &n in images {
             let img = render_dataset_image(avatar, data, n, 4096)?;
             let (gt, _) = ground_truth(data, n)?;
             scores.push(psnr(&img.rgb, &gt)?);
+            if big_enough {
+                lp.push(lpips.distance(&img.rgb, &gt, h, w)?);
+            }
         }
-        Ok(scores.iter().sum::<f64>() / scores.len().max(1) as f64)
+        let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+        Ok((mean(&scores), big_enough.then(|| mean(&lp))))
     }
 
     /// The scene's training split and the held-out images the PSNR columns use.
@@ -324,6 +339,8 @@ mod imp {
             .with_context(|| format!("creating {}", args.out.display()))?;
         let rss_reset = reset_peak_rss();
         let scene = prepare_scene(&args)?;
+        // Loaded before the per-option peak-RSS resets, so no option's phase pays for it.
+        pma_model::lpips::Lpips::shared()?;
         let preset: Preset = args.preset.parse()?;
         let (mut avatar, model_desc) = bench_model(&args, preset, &scene, &dev)?;
         let cfg = avatar.config().clone();
@@ -528,7 +545,7 @@ mod imp {
                 points = avatar.points_evaluated() - before;
             }
             let sec = median(&mut times);
-            let held_psnr = heldout_psnr(avatar, &scene.held, &scene.eval_set)?;
+            let (held_psnr, held_lpips) = heldout_psnr(avatar, &scene.held, &scene.eval_set)?;
             let peak_rss = peak_rss_mib().unwrap_or(f64::NAN);
             let (vs_parity, max_diff) = match &parity {
                 None => (f64::INFINITY, 0.0),
@@ -560,6 +577,7 @@ mod imp {
                 max_abs_diff_vs_parity: max_diff,
                 heldout_psnr: held_psnr,
                 psnr_loss_vs_parity_db: parity_psnr - held_psnr,
+                heldout_lpips: held_lpips,
                 ..Default::default()
             });
             b.inc(1);
@@ -609,7 +627,9 @@ mod imp {
                     &dev,
                 )?;
                 a.set_culling(culling.clone())?;
-                res.budget_heldout_psnr = Some(heldout_psnr(&a, &scene.held, &scene.eval_set)?);
+                let (p, l) = heldout_psnr(&a, &scene.held, &scene.eval_set)?;
+                res.budget_heldout_psnr = Some(p);
+                res.budget_heldout_lpips = l;
                 res.budget_iterations = Some(trainer.iteration());
             }
             b.inc(1);
@@ -681,7 +701,7 @@ mod imp {
             100.0 * r.inactive_joint_fraction
         );
         println!(
-            "{:<22} {:>9} {:>9} {:>7} {:>11} {:>11} {:>8} {:>8} {:>9} {:>9} {:>8} {:>9} {:>9}",
+            "{:<22} {:>9} {:>9} {:>7} {:>11} {:>11} {:>8} {:>8} {:>9} {:>9} {:>8} {:>9} {:>7} {:>9}",
             "option",
             "ms/img",
             "rays/s",
@@ -694,11 +714,12 @@ mod imp {
             "PSNR/par",
             "ΔPSNR dB",
             "held dB",
+            "LPIPS",
             "budget dB"
         );
         for o in &r.options {
             println!(
-                "{:<22} {:>9.1} {:>9.0} {:>7.2} {:>11.0} {:>11.0} {:>8.2} {:>8.1} {:>9.0} {:>9.2} {:>8.3} {:>9.2} {:>9}",
+                "{:<22} {:>9.1} {:>9.0} {:>7.2} {:>11.0} {:>11.0} {:>8.2} {:>8.1} {:>9.0} {:>9.2} {:>8.3} {:>9.2} {:>7} {:>9}",
                 o.name,
                 o.ms_per_image,
                 o.rays_per_s,
@@ -711,6 +732,7 @@ mod imp {
                 o.psnr_vs_parity_render,
                 o.psnr_loss_vs_parity_db,
                 o.heldout_psnr,
+                o.heldout_lpips.map_or("-".to_string(), |v| format!("{v:.4}")),
                 o.budget_heldout_psnr
                     .map_or("-".to_string(), |v| format!("{v:.2}")),
             );

@@ -64,6 +64,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 pub struct SplitSummary {
     pub psnr: f64,
     pub ssim: f64,
+    /// `null` when the images are under LPIPS's 31×31 minimum.
+    pub lpips: Option<f64>,
     pub baseline_psnr: f64,
     pub images: usize,
     /// The file the split was scored on.
@@ -90,8 +92,6 @@ pub struct Summary {
     pub plot: PathBuf,
     pub log: PathBuf,
     pub renders: PathBuf,
-    pub lpips: Option<f64>,
-    pub lpips_note: String,
 }
 
 #[cfg(feature = "train")]
@@ -105,7 +105,6 @@ pub(crate) mod imp {
     use pma_model::avatar::Avatar;
     use pma_model::eval::{
         evaluate, mean_foreground_colour, split_images, spread, EvalOptions, PsnrRegion, Split,
-        LPIPS_NOTE,
     };
     use pma_model::train::{Preset, RunConfig, TrainOutcome, TrainRequest, LOG_FILE};
 
@@ -146,8 +145,6 @@ pub(crate) mod imp {
             plot,
             log: out.join("run").join(LOG_FILE),
             renders,
-            lpips: None,
-            lpips_note: LPIPS_NOTE.to_string(),
         };
         let path = out.join("summary.json");
         write_json(&summary, &path)?;
@@ -274,14 +271,18 @@ pub(crate) mod imp {
             write_json(&report, &out.join(format!("eval_{name}.json")))?;
             let baseline_psnr = report.baseline_psnr.unwrap_or(f64::NAN);
             println!(
-                "      {name}: PSNR {:.2} dB, SSIM {:.4} over {} images (baseline PSNR {baseline_psnr:.2} dB)",
-                report.psnr, report.ssim, report.images
+                "      {name}: PSNR {:.2} dB, SSIM {:.4}, LPIPS {} over {} images (baseline PSNR {baseline_psnr:.2} dB)",
+                report.psnr,
+                report.ssim,
+                super::super::eval::lpips_cell(report.lpips),
+                report.images
             );
             splits.insert(
                 name.to_string(),
                 SplitSummary {
                     psnr: report.psnr,
                     ssim: report.ssim,
+                    lpips: (!report.lpips.is_nan()).then_some(report.lpips),
                     baseline_psnr,
                     images: report.images,
                     data: path,

@@ -1,7 +1,8 @@
-//! `pma eval`: PSNR and SSIM of a trained avatar on a held-out split (the protocol is
+//! `pma eval`: PSNR, SSIM and LPIPS of a trained avatar on a held-out split (the protocol is
 //! `pma_model::eval`'s).
 //!
-//! Output: a table on stdout, `eval.json` (`{"split", "psnr", "ssim", "per_image": [...]}`)
+//! Output: a table on stdout, `eval.json` (`{"split", "psnr", "ssim", "lpips", "per_image":
+//! [...]}`; `lpips` is null for images under 31×31 pixels)
 //! and side-by-side PNGs (ground truth | render | error heat map) for a few images.
 
 use std::path::{Path, PathBuf};
@@ -12,7 +13,6 @@ use pma_model::avatar::Avatar;
 use pma_model::config::Culling;
 use pma_model::eval::{
     evaluate, mean_foreground_colour, resolve_split, split_images, spread, EvalOptions, EvalReport,
-    LPIPS_NOTE,
 };
 
 use super::{read_dataset, write_json};
@@ -120,16 +120,42 @@ pub fn warn_empty_masks(report: &EvalReport, source: &str) {
 
 fn print_table(report: &EvalReport) {
     println!("split {} ({} images)", report.split, report.images);
-    println!("{:>6}  {:>8}  {:>7}", "image", "PSNR", "SSIM");
+    println!(
+        "{:>6}  {:>8}  {:>7}  {:>7}",
+        "image", "PSNR", "SSIM", "LPIPS"
+    );
     for s in &report.per_image {
-        println!("{:>6}  {:>8.3}  {:>7.4}", s.index, s.psnr, s.ssim);
+        println!(
+            "{:>6}  {:>8.3}  {:>7.4}  {:>7}",
+            s.index,
+            s.psnr,
+            s.ssim,
+            lpips_cell(s.lpips)
+        );
     }
-    println!("{:>6}  {:>8.3}  {:>7.4}", "mean", report.psnr, report.ssim);
+    println!(
+        "{:>6}  {:>8.3}  {:>7.4}  {:>7}",
+        "mean",
+        report.psnr,
+        report.ssim,
+        lpips_cell(report.lpips)
+    );
     if let Some(b) = report.baseline_psnr {
         println!("baseline (mean training colour inside the mask): PSNR {b:.3}");
     }
-    println!(
-        "LPIPS: n/a ({})",
-        LPIPS_NOTE.trim_start_matches("LPIPS not computed: ")
-    );
+    if report.lpips.is_nan() {
+        println!(
+            "LPIPS: n/a for images under {0}x{0} pixels (AlexNet's minimum)",
+            pma_model::lpips::MIN_SIDE
+        );
+    }
+}
+
+/// LPIPS to 4 decimals, `n/a` where it could not be computed.
+pub fn lpips_cell(v: f64) -> String {
+    if v.is_nan() {
+        "n/a".to_string()
+    } else {
+        format!("{v:.4}")
+    }
 }

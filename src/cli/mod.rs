@@ -10,6 +10,7 @@ pub mod eval;
 pub mod forward;
 pub mod inspect;
 pub mod mesh;
+pub mod metrics;
 #[cfg(feature = "train")]
 pub mod plot;
 pub mod progress;

@@ -13,6 +13,7 @@ mod exit_codes;
 mod forward;
 mod inspect;
 mod mesh;
+mod metrics;
 mod render;
 mod synth;
 mod train;

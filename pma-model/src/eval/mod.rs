@@ -1,14 +1,13 @@
-//! Evaluation of a trained avatar: PSNR and SSIM on a held-out split, under the protocol of
+//! Evaluation of a trained avatar: PSNR, SSIM and LPIPS on a held-out split, under the protocol of
 //! the project's notes (`docs/conventions.md`, "Evaluation protocol"): renders on a black
 //! background with the mean frame code, written as 8-bit (`uint8(truncate(255·clamp(rgb)))`)
 //! and read back; ground truth = image·mask on black; PSNR over the foreground-mask pixels
 //! (the reference's committed H36M code; [`PsnrRegion::Bbox`] uses the tight box instead);
 //! SSIM as scikit-image's `structural_similarity` on the tight-box crop (7×7 uniform window,
-//! sample covariance, data range 2.0 as in the reference's scikit-image 0.19). The metrics
-//! themselves live in `pma_data::metrics`.
-//!
-//! LPIPS is not reported: it needs pretrained AlexNet/VGG weights, which are not bundled and
-//! are never downloaded at run time.
+//! sample covariance, data range 2.0 as in the reference's scikit-image 0.19); LPIPS (AlexNet,
+//! v0.1 heads, inputs mapped to [−1,1]) on the same tight-box crop, grown to the 31×31 the
+//! network needs where the image allows. PSNR and SSIM live in `pma_data::metrics`, LPIPS in
+//! [`crate::lpips`]; [`score_image`] combines them.
 //!
 //! Which images form a split: a directory holds `<split>.npz` (the layout `pma synth`
 //! writes), all of whose images are the split; a file is filtered by its `eval_tag`. A file
@@ -243,6 +242,8 @@ pub struct ImageScore {
     pub index: usize,
     pub psnr: f64,
     pub ssim: f64,
+    /// NaN (`null` in JSON) when the image is smaller than LPIPS's 31×31 minimum.
+    pub lpips: f64,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub baseline_psnr: Option<f64>,
 }
@@ -254,10 +255,9 @@ pub struct EvalReport {
     pub ssim: f64,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub baseline_psnr: Option<f64>,
+    pub lpips: f64,
     pub psnr_region: PsnrRegion,
     pub ssim_data_range: f64,
-    pub lpips: Option<f64>,
-    pub lpips_note: &'static str,
     pub images: usize,
     pub render_s: f64,
     pub per_image: Vec<ImageScore>,
@@ -266,9 +266,6 @@ pub struct EvalReport {
     #[serde(skip)]
     pub empty_masks: Vec<usize>,
 }
-
-pub const LPIPS_NOTE: &str =
-    "LPIPS not computed: it needs pretrained AlexNet/VGG weights, which pma does not bundle or download";
 
 /// Render and score `images` of `data` (see the module docs for the protocol). `progress`
 /// receives (done, total).
@@ -305,14 +302,22 @@ pub fn evaluate(
                     .iter()
                     .flat_map(|&m| if m > 0 { c.map(|v| v as f32) } else { [0.0; 3] })
                     .collect();
-                score(&pma_data::metrics::quantize(&base), &gt, &mask, h, w, opts)?.map(|s| s.0)
+                pma_data::metrics::psnr_masked(
+                    &pma_data::metrics::quantize(&base),
+                    &gt,
+                    &mask,
+                    h,
+                    w,
+                    opts.region.into(),
+                )?
             }
             None => None,
         };
         per_image.push(ImageScore {
             index: n,
-            psnr: scores.0,
-            ssim: scores.1,
+            psnr: scores.psnr,
+            ssim: scores.ssim,
+            lpips: scores.lpips,
             baseline_psnr,
         });
         if let (Some(dir), true) = (&opts.png_dir, png_set.contains(&n)) {
@@ -342,10 +347,9 @@ pub fn evaluate(
         psnr: mean(&|s| s.psnr),
         ssim: mean(&|s| s.ssim),
         baseline_psnr,
+        lpips: mean(&|s| s.lpips),
         psnr_region: opts.region,
         ssim_data_range: opts.ssim_data_range,
-        lpips: None,
-        lpips_note: LPIPS_NOTE,
         images: per_image.len(),
         render_s: start.elapsed().as_secs_f64(),
         per_image,
@@ -417,7 +421,48 @@ pub fn ground_truth(data: &Dataset, n: usize) -> Result<(Vec<f32>, Vec<u8>)> {
     Ok((gt, mask))
 }
 
-/// (PSNR, SSIM) of `pred` against `gt` ([H·W·3] in [0,1]); `None` when the mask is empty.
+impl From<PsnrRegion> for pma_data::metrics::Region {
+    fn from(r: PsnrRegion) -> Self {
+        match r {
+            PsnrRegion::Mask => Self::Mask,
+            PsnrRegion::Bbox => Self::Bbox,
+        }
+    }
+}
+
+/// The protocol's scores of one image.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Scores {
+    pub psnr: f64,
+    pub ssim: f64,
+    /// NaN when the image is smaller than [`crate::lpips::MIN_SIDE`] on a side.
+    pub lpips: f64,
+}
+
+/// PSNR over `region`, SSIM and LPIPS on the tight box of `mask` (see the module docs) of
+/// `pred` against `gt` (`[h·w·3]` in [0,1]; `mask`: `[h·w]`, nonzero = foreground); `None`
+/// when the mask is empty. `pma eval`, training's held-out curve and `pma metrics` all score
+/// through here.
+pub fn score_image(
+    pred: &[f32],
+    gt: &[f32],
+    mask: &[u8],
+    h: usize,
+    w: usize,
+    region: PsnrRegion,
+    ssim_data_range: f64,
+) -> Result<Option<Scores>> {
+    let Some((psnr, ssim)) =
+        pma_data::metrics::score_image(pred, gt, mask, h, w, region.into(), ssim_data_range)?
+    else {
+        return Ok(None);
+    };
+    let lpips = crate::lpips::Lpips::shared()?
+        .distance_masked(pred, gt, mask, h, w)?
+        .unwrap_or(f64::NAN);
+    Ok(Some(Scores { psnr, ssim, lpips }))
+}
+
 fn score(
     pred: &[f32],
     gt: &[f32],
@@ -425,20 +470,8 @@ fn score(
     h: usize,
     w: usize,
     opts: &EvalOptions,
-) -> Result<Option<(f64, f64)>> {
-    let region = match opts.region {
-        PsnrRegion::Mask => pma_data::metrics::Region::Mask,
-        PsnrRegion::Bbox => pma_data::metrics::Region::Bbox,
-    };
-    Ok(pma_data::metrics::score_image(
-        pred,
-        gt,
-        mask,
-        h,
-        w,
-        region,
-        opts.ssim_data_range,
-    )?)
+) -> Result<Option<Scores>> {
+    score_image(pred, gt, mask, h, w, opts.region, opts.ssim_data_range)
 }
 
 #[cfg(test)]
@@ -517,10 +550,10 @@ mod tests {
             .map(|i| if mask[i / 3] > 0 { 0.6 } else { 0.5 })
             .collect();
         let mut opts = EvalOptions::quick(16);
-        let (p_mask, _) = score(&pred, &gt, &mask, h, w, &opts).unwrap().unwrap();
+        let p_mask = score(&pred, &gt, &mask, h, w, &opts).unwrap().unwrap().psnr;
         assert!((p_mask - 20.0).abs() < 1e-4, "{p_mask}");
         opts.region = PsnrRegion::Bbox;
-        let (p_box, _) = score(&pred, &gt, &mask, h, w, &opts).unwrap().unwrap();
+        let p_box = score(&pred, &gt, &mask, h, w, &opts).unwrap().unwrap().psnr;
         assert!(p_box > p_mask);
         assert!(score(&pred, &gt, &vec![0; h * w], h, w, &opts)
             .unwrap()

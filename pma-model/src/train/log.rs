@@ -1,9 +1,11 @@
 //! `log.csv`: one row per log interval.
 //!
-//! Columns: `iter, wall_s, loss, train_psnr, eval_psnr, eval_ssim, lr, skipped`. `loss` and
-//! `train_psnr` are means over the interval's finite steps; `eval_*` are empty unless a
-//! held-out evaluation ran at that iteration; `skipped` is the run's running count of
-//! non-finite steps. The whole file is rewritten atomically at each row (it is small), so a
+//! Columns: `iter, wall_s, loss, train_psnr, eval_psnr, eval_ssim, eval_lpips, lr, skipped`.
+//! `loss` and `train_psnr` are means over the interval's finite steps; `eval_*` are empty
+//! unless a held-out evaluation ran at that iteration (`eval_lpips` also when the held-out
+//! images are under LPIPS's 31×31 minimum); `skipped` is the run's running count of
+//! non-finite steps. Logs from before `eval_lpips` existed ([`HEADER_NO_LPIPS`]) still read,
+//! so such runs resume; they are rewritten with the new header. The whole file is rewritten atomically at each row (it is small), so a
 //! reader never sees a torn line and a resumed run can drop the rows after its checkpoint.
 
 use std::fmt::Write as _;
@@ -11,7 +13,9 @@ use std::path::Path;
 
 use super::{write_atomic, TrainError};
 
-pub const HEADER: &str = "iter,wall_s,loss,train_psnr,eval_psnr,eval_ssim,lr,skipped";
+pub const HEADER: &str = "iter,wall_s,loss,train_psnr,eval_psnr,eval_ssim,eval_lpips,lr,skipped";
+/// The header of logs written before LPIPS was computed.
+pub const HEADER_NO_LPIPS: &str = "iter,wall_s,loss,train_psnr,eval_psnr,eval_ssim,lr,skipped";
 
 #[derive(Debug, Clone, PartialEq)]
 pub struct LogRow {
@@ -21,6 +25,7 @@ pub struct LogRow {
     pub train_psnr: f64,
     pub eval_psnr: Option<f64>,
     pub eval_ssim: Option<f64>,
+    pub eval_lpips: Option<f64>,
     /// Learning rate of the "other" group for the next step.
     pub lr: f64,
     pub skipped: u64,
@@ -49,18 +54,20 @@ impl TrainLog {
 
     pub fn parse(text: &str) -> Result<Self, String> {
         let mut lines = text.lines();
-        match lines.next() {
+        let has_lpips = match lines.next() {
             None => return Ok(Self::default()),
-            Some(h) if h.trim() == HEADER => {}
+            Some(h) if h.trim() == HEADER => true,
+            Some(h) if h.trim() == HEADER_NO_LPIPS => false,
             Some(h) => return Err(format!("unexpected header {h:?}, expected {HEADER:?}")),
-        }
+        };
+        let fields = if has_lpips { 9 } else { 8 };
         let mut rows = Vec::new();
         for (i, line) in lines.enumerate().filter(|(_, l)| !l.trim().is_empty()) {
             let lineno = i + 2;
             let f: Vec<&str> = line.split(',').collect();
-            if f.len() != 8 {
+            if f.len() != fields {
                 return Err(format!(
-                    "line {lineno}: expected 8 fields, found {}",
+                    "line {lineno}: expected {fields} fields, found {}",
                     f.len()
                 ));
             }
@@ -81,6 +88,8 @@ impl TrainLog {
                     .parse::<u64>()
                     .map_err(|_| format!("line {lineno}: field {k} = {:?} is not an integer", f[k]))
             };
+            // Fields after `eval_ssim` sit one column later when `eval_lpips` is there.
+            let k = fields - 8;
             rows.push(LogRow {
                 iter: int(0)?,
                 wall_s: num(1)?,
@@ -88,8 +97,9 @@ impl TrainLog {
                 train_psnr: num(3)?,
                 eval_psnr: opt(4)?,
                 eval_ssim: opt(5)?,
-                lr: num(6)?,
-                skipped: int(7)?,
+                eval_lpips: if has_lpips { opt(6)? } else { None },
+                lr: num(6 + k)?,
+                skipped: int(7 + k)?,
             });
         }
         Ok(Self { rows })
@@ -103,13 +113,14 @@ impl TrainLog {
         for r in &self.rows {
             let _ = writeln!(
                 s,
-                "{},{:.3},{:.6},{:.4},{},{},{:.6e},{}",
+                "{},{:.3},{:.6},{:.4},{},{},{},{:.6e},{}",
                 r.iter,
                 r.wall_s,
                 r.loss,
                 r.train_psnr,
                 opt(r.eval_psnr),
                 opt(r.eval_ssim),
+                opt(r.eval_lpips),
                 r.lr,
                 r.skipped
             );
@@ -128,6 +139,7 @@ impl TrainLog {
             Some(last) if last.iter == row.iter => {
                 last.eval_psnr = row.eval_psnr.or(last.eval_psnr);
                 last.eval_ssim = row.eval_ssim.or(last.eval_ssim);
+                last.eval_lpips = row.eval_lpips.or(last.eval_lpips);
             }
             _ => self.rows.push(row),
         }
@@ -168,6 +180,7 @@ mod tests {
             train_psnr: 12.5,
             eval_psnr: eval,
             eval_ssim: eval.map(|_| 0.5),
+            eval_lpips: eval.map(|_| 0.25),
             lr: 5e-4,
             skipped: 0,
         }
@@ -207,7 +220,26 @@ mod tests {
         assert!(err.contains("line 2"), "{err}");
         let err = TrainLog::parse("a,b\n").unwrap_err();
         assert!(err.contains("unexpected header"), "{err}");
-        let err = TrainLog::parse(&format!("{HEADER}\nx,1,1,1,,,1,0\n")).unwrap_err();
+        let err = TrainLog::parse(&format!("{HEADER}\nx,1,1,1,,,,1,0\n")).unwrap_err();
         assert!(err.contains("not an integer"), "{err}");
+    }
+
+    #[test]
+    fn logs_without_the_lpips_column_still_read() {
+        let old =
+            format!("{HEADER_NO_LPIPS}\n10,5.000,0.250000,12.5000,18.2500,0.5000,5.000000e-4,2\n");
+        let log = TrainLog::parse(&old).unwrap();
+        let r = &log.rows[0];
+        assert_eq!((r.iter, r.skipped), (10, 2));
+        assert_eq!(
+            (r.eval_psnr, r.eval_ssim, r.eval_lpips),
+            (Some(18.25), Some(0.5), None)
+        );
+        assert_eq!(r.lr, 5e-4);
+        assert!(log.to_csv().starts_with(HEADER));
+        let mut with = TrainLog::default();
+        with.push(row(20, Some(18.25)));
+        let back = TrainLog::parse(&with.to_csv()).unwrap();
+        assert_eq!(back.rows[0].eval_lpips, Some(0.25));
     }
 }

@@ -365,8 +365,8 @@ impl<'a> Session<'a> {
         self.base_wall + self.clock.elapsed().as_secs_f64()
     }
 
-    /// Held-out (PSNR, SSIM) now, if the run has held-out data.
-    fn evaluate_now(&mut self) -> Result<Option<(f64, f64)>, TrainError> {
+    /// Held-out (PSNR, SSIM, LPIPS) now, if the run has held-out data.
+    fn evaluate_now(&mut self) -> Result<Option<(f64, f64, f64)>, TrainError> {
         let Some(h) = &self.held_out else {
             return Ok(None);
         };
@@ -386,11 +386,11 @@ impl<'a> Session<'a> {
             ));
         }
         self.eval_s += t.elapsed().as_secs_f64();
-        Ok(Some((r.psnr, r.ssim)))
+        Ok(Some((r.psnr, r.ssim, r.lpips)))
     }
 
     /// A log row at `iter` with the interval means and an optional held-out score.
-    fn row(&self, iter: u64, (loss, psnr): (f64, f64), e: Option<(f64, f64)>) -> LogRow {
+    fn row(&self, iter: u64, (loss, psnr): (f64, f64), e: Option<(f64, f64, f64)>) -> LogRow {
         LogRow {
             iter,
             wall_s: self.wall(),
@@ -398,6 +398,7 @@ impl<'a> Session<'a> {
             train_psnr: psnr,
             eval_psnr: e.map(|v| v.0),
             eval_ssim: e.map(|v| v.1),
+            eval_lpips: e.map(|v| v.2).filter(|v| !v.is_nan()),
             lr: self.trainer.lrs().last().copied().unwrap_or(f64::NAN),
             skipped: self.trainer.progress().skipped,
         }
@@ -446,9 +447,14 @@ impl<'a> Session<'a> {
             let e = if eval_due { self.evaluate_now()? } else { None };
             let means = self.interval.take();
             self.log.push(self.row(it, means, e));
-            if let Some((p, s)) = e {
+            if let Some((p, s, l)) = e {
+                let lpips = if l.is_nan() {
+                    String::new()
+                } else {
+                    format!(", LPIPS {l:.4}")
+                };
                 self.observer.note(&format!(
-                    "iteration {it}: held-out PSNR {p:.2} dB, SSIM {s:.4}"
+                    "iteration {it}: held-out PSNR {p:.2} dB, SSIM {s:.4}{lpips}"
                 ));
             }
             self.log.write(&self.out.join(LOG_FILE))?;

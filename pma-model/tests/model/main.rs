@@ -14,6 +14,7 @@ mod golden;
 mod grad;
 mod image_render;
 mod layers;
+mod lpips;
 mod mesh;
 mod overfit_tiny;
 mod raycast_golden;
