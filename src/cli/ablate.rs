@@ -5,7 +5,7 @@
 //! ```text
 //! DIR/scene/...                      the embedded synthetic scene (unless --data)
 //! DIR/runs/<variant>/...             each variant's run (model, log.csv, plot)
-//! DIR/ablation.json, ablation.md     parameters, ms/step, iterations, PSNR/SSIM per split
+//! DIR/ablation.json, ablation.md     parameters, ms/step, iterations, PSNR/SSIM/LPIPS per split
 //! DIR/error_vs_time.png              held-out PSNR against wall time, one curve per variant
 //! ```
 
@@ -80,6 +80,7 @@ pub struct VariantRow {
 pub struct SplitScore {
     pub psnr: f64,
     pub ssim: f64,
+    pub lpips: f64,
     pub images: usize,
 }
 
@@ -241,12 +242,13 @@ mod imp {
         })?;
         bar.finish_and_clear();
         println!(
-            "      {name}: PSNR {:.2} dB, SSIM {:.4} over {} images",
-            report.psnr, report.ssim, report.images
+            "      {name}: PSNR {:.2} dB, SSIM {:.4}, LPIPS {:.4} over {} images",
+            report.psnr, report.ssim, report.lpips, report.images
         );
         Ok(SplitScore {
             psnr: report.psnr,
             ssim: report.ssim,
+            lpips: report.lpips,
             images: report.images,
         })
     }
@@ -261,9 +263,9 @@ mod imp {
         );
         let _ = writeln!(
             s,
-            "| variant | parameters | ms/step | iterations | novel view PSNR | SSIM | novel pose PSNR | SSIM |"
+            "| variant | parameters | ms/step | iterations | novel view PSNR | SSIM | LPIPS | novel pose PSNR | SSIM | LPIPS |"
         );
-        let _ = writeln!(s, "|---|---|---|---|---|---|---|---|");
+        let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|");
         for r in rows {
             let (nv, np) = (&r.splits["novel_view"], &r.splits["novel_pose"]);
             let _ = writeln!(
