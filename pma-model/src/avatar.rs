@@ -479,50 +479,39 @@ impl Avatar {
         // NeRF density and colour heads.
         let out = net.field.forward(&s, view)?;
         if let Some((tr, stage)) = trace {
-            let mut items: Vec<(&str, &Tensor)> = vec![
-                ("pts_jt", &x_jt),
-                ("pts_t", &x_hat),
-                ("x_bar", &x_bar),
-                ("w_p", &w_p),
-                ("w", &w),
-            ];
-            if let (Some(win), Some(e)) = (&win, &e) {
-                items.extend([
-                    ("pts_enc_pose", e),
-                    ("win_maxpool", &win.pooled),
-                    ("win_logits", &win.logits),
-                    ("w_f", &win.w_f),
-                ]);
-            }
-            if let Some(f_m) = &f_m {
-                items.push(("f_m", f_m));
-            }
-            if let Some(z) = &z {
-                items.push(("pts_enc_point", z));
-            }
-            let modulation_stack = match (&modulation, &net.modulator) {
-                (Some(m), Some(modulator)) => {
-                    let gammas = m
-                        .freq
-                        .iter()
-                        .map(|f| modulator.gamma(f))
-                        .collect::<Result<Vec<_>>>()?;
-                    Some((Tensor::stack(&gammas, 0)?, Tensor::stack(&m.phase, 0)?))
+            // Θ mapped to the frequencies γ the layers use, stacked per layer like Φ.
+            let gp = match (&modulation, &net.modulator) {
+                (Some(m), Some(md)) => {
+                    let g: Vec<_> = m.freq.iter().map(|f| md.gamma(f)).collect::<Result<_>>()?;
+                    Some((Tensor::stack(&g, 0)?, Tensor::stack(&m.phase, 0)?))
                 }
                 _ => None,
             };
-            if let Some((gammas, phases)) = &modulation_stack {
-                items.extend([("mod_freq", gammas), ("mod_phase", phases)]);
-            }
-            items.extend([
-                ("modulator_out", &s),
-                ("density_l0_pre_relu", &out.l0_pre),
-                ("density_feat", &out.feature),
-                ("sigma_raw", &out.sigma_raw),
-                ("feature_linear", &out.feature_linear),
-                ("view_l0_pre_relu", &out.view_pre),
-                ("rgb_logits", &out.rgb_logits),
-            ]);
+            let items: Vec<(&str, &Tensor)> = [
+                Some(("pts_jt", &x_jt)),
+                Some(("pts_t", &x_hat)),
+                Some(("x_bar", &x_bar)),
+                Some(("w_p", &w_p)),
+                Some(("w", &w)),
+                e.as_ref().map(|e| ("pts_enc_pose", e)),
+                win.as_ref().map(|w| ("win_maxpool", &w.pooled)),
+                win.as_ref().map(|w| ("win_logits", &w.logits)),
+                win.as_ref().map(|w| ("w_f", &w.w_f)),
+                f_m.as_ref().map(|f| ("f_m", f)),
+                z.as_ref().map(|z| ("pts_enc_point", z)),
+                gp.as_ref().map(|g| ("mod_freq", &g.0)),
+                gp.as_ref().map(|g| ("mod_phase", &g.1)),
+                Some(("modulator_out", &s)),
+                Some(("density_l0_pre_relu", &out.l0_pre)),
+                Some(("density_feat", &out.feature)),
+                Some(("sigma_raw", &out.sigma_raw)),
+                Some(("feature_linear", &out.feature_linear)),
+                Some(("view_l0_pre_relu", &out.view_pre)),
+                Some(("rgb_logits", &out.rgb_logits)),
+            ]
+            .into_iter()
+            .flatten()
+            .collect();
             tr.put_stage(stage, &items);
         }
         Ok((out.rgb, out.sigma_raw))

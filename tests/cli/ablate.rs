@@ -46,8 +46,12 @@ fn ablate_tabulates_each_variant() {
         for split in ["novel_view", "novel_pose"] {
             let psnr = r["splits"][split]["psnr"].as_f64().unwrap();
             assert!(psnr.is_finite() && psnr > 0.0, "{split}: {psnr}");
-            let lpips = r["splits"][split]["lpips"].as_f64().unwrap();
-            assert!(lpips.is_finite() && lpips >= 0.0, "{split}: {lpips}");
+            // LPIPS needs crops of 31×31 pixels or more; this scene's are smaller (null).
+            let lpips = &r["splits"][split]["lpips"];
+            assert!(
+                lpips.is_null() || lpips.as_f64().is_some_and(|v| v >= 0.0),
+                "{split}: {lpips}"
+            );
         }
         // Each variant's checkpoint names it.
         let model = std::path::PathBuf::from(r["model"].as_str().unwrap());

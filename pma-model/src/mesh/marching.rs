@@ -265,8 +265,6 @@ fn triangulate(mesh: &mut Mesh, lp: &[usize], ids: &[u32]) {
     }
 }
 
-/// Sample `field` on `grid` and run marching cubes at `threshold`.
-
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -282,6 +282,7 @@ impl Mesh {
     }
 }
 
+/// Sample `field` on `grid` and run marching cubes at `threshold`.
 pub fn extract<F>(
     grid: &Grid,
     threshold: f32,
