@@ -270,15 +270,17 @@ mod imp {
             let (nv, np) = (&r.splits["novel_view"], &r.splits["novel_pose"]);
             let _ = writeln!(
                 s,
-                "| {} | {} | {:.1} | {} | {:.2} | {:.4} | {:.2} | {:.4} |",
+                "| {} | {} | {:.1} | {} | {:.2} | {:.4} | {:.4} | {:.2} | {:.4} | {:.4} |",
                 r.variant,
                 r.parameters,
                 r.ms_per_step,
                 r.iterations,
                 nv.psnr,
                 nv.ssim,
+                nv.lpips,
                 np.psnr,
-                np.ssim
+                np.ssim,
+                np.lpips
             );
         }
         s
