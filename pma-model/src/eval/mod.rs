@@ -5,7 +5,8 @@
 //! (the reference's committed H36M code; [`PsnrRegion::Bbox`] uses the tight box instead);
 //! SSIM as scikit-image's `structural_similarity` on the tight-box crop (7×7 uniform window,
 //! sample covariance, data range 2.0 as in the reference's scikit-image 0.19). The metrics
-//! themselves live in `pma_data::metrics`.
+//! themselves live in `pma_data::metrics`. On the same crop, [`spectrum`] compares the
+//! radially binned power spectra of render and ground truth (`freq_distance`).
 //!
 //! LPIPS is not reported: it needs pretrained AlexNet/VGG weights, which are not bundled and
 //! are never downloaded at run time.
@@ -29,6 +30,7 @@ use crate::avatar::{Avatar, Poses};
 use crate::image::{ImageOptions, RenderedImage};
 
 mod png;
+pub mod spectrum;
 mod split;
 
 pub use png::{heat, side_by_side, write_png};
@@ -245,6 +247,8 @@ pub struct ImageScore {
     pub ssim: f64,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub baseline_psnr: Option<f64>,
+    /// Frequency-histogram distance of the render to the ground truth ([`spectrum`]).
+    pub freq_distance: f64,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -262,6 +266,9 @@ pub struct EvalReport {
     pub render_s: f64,
     pub per_image: Vec<ImageScore>,
     pub pngs: Vec<PathBuf>,
+    /// `freq_distance`, `freq_bin_edges`, `freq_hist_render`, `freq_hist_gt`.
+    #[serde(flatten)]
+    pub freq: spectrum::FreqSummary,
     /// Images left out because their mask is empty (no pixels to score).
     #[serde(skip)]
     pub empty_masks: Vec<usize>,
@@ -290,6 +297,7 @@ pub fn evaluate(
     let mut per_image = Vec::with_capacity(images.len());
     let mut pngs = Vec::new();
     let mut empty_masks = Vec::new();
+    let mut freq = spectrum::FreqAccumulator::default();
     for (k, &n) in images.iter().enumerate() {
         crate::interrupt::check()?;
         let rendered = render_dataset_image(avatar, data, n, opts.chunk)?;
@@ -309,11 +317,15 @@ pub fn evaluate(
             }
             None => None,
         };
+        let spectra = spectrum::image_spectra(&pred, &gt, &mask, h, w);
+        let freq_distance = spectra.as_ref().map_or(f64::NAN, |s| s.distance);
+        spectra.iter().for_each(|s| freq.add(s));
         per_image.push(ImageScore {
             index: n,
             psnr: scores.0,
             ssim: scores.1,
             baseline_psnr,
+            freq_distance,
         });
         if let (Some(dir), true) = (&opts.png_dir, png_set.contains(&n)) {
             let path = dir.join(format!("{split}_{n:04}.png"));
@@ -350,6 +362,7 @@ pub fn evaluate(
         render_s: start.elapsed().as_secs_f64(),
         per_image,
         pngs,
+        freq: freq.finish(),
         empty_masks,
     })
 }
