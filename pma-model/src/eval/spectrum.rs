@@ -23,7 +23,7 @@
 //!    A bin's value is the **mean** power of its samples (the radially averaged power
 //!    spectrum, so the outer bins are not favoured for holding more samples), and the
 //!    histogram is **normalised to sum 1**: it describes the shape of the spectrum, not the
-//!    image's contrast, which PSNR already scores. A flat crop (no power) gives all zeros.
+//!    image's contrast, which PSNR already scores. A flat crop (no variation) gives all zeros.
 //!
 //! **Distance** between a render's histogram `p` and the ground truth's `q`: the mean
 //! absolute log-ratio over the bins, `D = (1/B) Σ_k |log10(p_k + ε) − log10(q_k + ε)|` with
@@ -32,10 +32,13 @@
 //! few low-frequency bins holding nearly all the power; on a log scale a blurred render's
 //! missing high frequencies count as much as a wrong low-frequency level. `D = 0` for
 //! identical spectra (up to overall contrast) and grows as the render's spectrum departs
-//! from the ground truth's, whichever side it is on (too smooth or too noisy).
+//! from the ground truth's, whichever side it is on (too smooth or too noisy). A flat
+//! render against a textured ground truth scores about `12 − mean_k |log10 q_k|`, roughly
+//! 10: the largest distances come from renders with no structure at all.
 //!
 //! A split reports the mean of the per-image distances and the per-bin mean of the
-//! per-image histograms of render and ground truth (each still sums to 1).
+//! per-image histograms of render and ground truth (each sums to 1 unless some crops were
+//! flat, which add zeros).
 
 use rustfft::num_complex::Complex;
 use rustfft::FftPlanner;
@@ -53,6 +56,10 @@ pub const MIN_FFT: usize = 64;
 /// Floor added to normalised bin values before the log, so a bin without power (a flat
 /// crop) gives a finite distance.
 pub const EPS: f64 = 1e-12;
+
+/// Luminance deviation from the crop's mean below which the crop counts as flat (8-bit
+/// images vary by at least 0.0722/255 where they vary at all).
+const FLAT: f64 = 1e-9;
 
 /// The [`FREQ_BINS`]` + 1` bin edges, in cycles per pixel.
 pub fn bin_edges() -> Vec<f64> {
@@ -74,6 +81,10 @@ pub fn radial_power_histogram(img: &[f64], h: usize, w: usize) -> Vec<f64> {
         .map(|p| 0.2126 * p[0] + 0.7152 * p[1] + 0.0722 * p[2])
         .collect();
     let mean = lum.iter().sum::<f64>() / lum.len().max(1) as f64;
+    // The mean's rounding error would otherwise leave a flat crop with a spectrum of noise.
+    if lum.iter().all(|v| (v - mean).abs() <= FLAT) {
+        return vec![0.0; FREQ_BINS];
+    }
     let hann = |n: usize, len: usize| {
         (std::f64::consts::PI * (n as f64 + 0.5) / len as f64)
             .sin()
