@@ -4,6 +4,8 @@
 //! Output: a table on stdout, `eval.json` (`{"split", "psnr", "ssim", "lpips", "per_image":
 //! [...]}`; `lpips` is null for images under 31×31 pixels)
 //! and side-by-side PNGs (ground truth | render | error heat map) for a few images.
+//! `--freq-png` also plots the split's mean frequency histograms of render and ground truth
+//! (`pma_model::eval::spectrum`).
 
 use std::path::{Path, PathBuf};
 
@@ -46,6 +48,10 @@ pub struct Args {
     /// Side-by-side PNGs to write (evenly spread).
     #[arg(long, default_value_t = 4)]
     pub pngs: usize,
+    /// Also write the split's mean frequency histograms (render against ground truth, log
+    /// scale) as a PNG here.
+    #[arg(long)]
+    pub freq_png: Option<PathBuf>,
     /// Rays per render chunk.
     #[arg(long, default_value_t = 4096)]
     pub chunk: usize,
@@ -100,6 +106,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         report.pngs.len(),
         out.display()
     );
+    if let Some(path) = &args.freq_png {
+        let title = format!(
+            "frequency histograms, {} ({} images)",
+            report.split, report.images
+        );
+        super::plot::plot_freq_hist(&report.freq, &title, path)?;
+        println!("wrote {}", path.display());
+    }
     Ok(())
 }
 
@@ -139,6 +153,11 @@ fn print_table(report: &EvalReport) {
         report.psnr,
         report.ssim,
         lpips_cell(report.lpips)
+    );
+    println!(
+        "frequency-histogram distance (mean |log10 ratio| over {} bins): {:.4}",
+        report.freq.hist_gt.len(),
+        report.freq.distance
     );
     if let Some(b) = report.baseline_psnr {
         println!("baseline (mean training colour inside the mask): PSNR {b:.3}");

@@ -251,3 +251,87 @@ pub fn plot_curves(
     let img = image::RgbImage::from_raw(w, h, buf).context("plot buffer has the wrong size")?;
     super::write_png(&img, path)
 }
+
+/// The mean frequency histograms of an evaluation (render against ground truth), one line
+/// each over the bin centres, log-scaled power fraction.
+pub fn plot_freq_hist(
+    freq: &pma_model::eval::spectrum::FreqSummary,
+    title: &str,
+    path: &Path,
+) -> anyhow::Result<()> {
+    register_font();
+    let centres: Vec<f64> = freq
+        .bin_edges
+        .windows(2)
+        .map(|e| 0.5 * (e[0] + e[1]))
+        .collect();
+    // Log axis: empty bins (a flat crop) have no point on it and are left out.
+    let positive = |v: &[f64]| -> Vec<(f64, f64)> {
+        centres
+            .iter()
+            .zip(v)
+            .filter(|(_, &p)| p > 0.0 && p.is_finite())
+            .map(|(&c, &p)| (c, p))
+            .collect()
+    };
+    let (render, gt) = (positive(&freq.hist_render), positive(&freq.hist_gt));
+    let (mut lo, mut hi) = render
+        .iter()
+        .chain(&gt)
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| {
+            (lo.min(p.1), hi.max(p.1))
+        });
+    if !lo.is_finite() {
+        (lo, hi) = (1e-6, 1.0);
+    }
+    let x_max = freq.bin_edges.last().copied().unwrap_or(1.0);
+    let (w, h) = (900u32, 540u32);
+    let mut buf = vec![0u8; (w * h * 3) as usize];
+    {
+        let e = |e: &dyn std::fmt::Display| anyhow::anyhow!("plot: {e}");
+        let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
+        root.fill(&WHITE).map_err(|x| e(&x))?;
+        let mut chart = ChartBuilder::on(&root)
+            .caption(title, ("sans-serif", 22))
+            .margin(16)
+            .x_label_area_size(44)
+            .y_label_area_size(70)
+            .build_cartesian_2d(0.0..x_max, (lo / 2.0..hi * 2.0).log_scale())
+            .map_err(|x| e(&x))?;
+        chart
+            .configure_mesh()
+            .x_desc("radial frequency [cycles/pixel]")
+            .y_desc("share of power (mean per bin, normalised)")
+            .y_label_formatter(&|v| format!("{v:.0e}"))
+            .label_style(("sans-serif", 15))
+            .draw()
+            .map_err(|x| e(&x))?;
+        let series = [
+            (&gt, RGBColor(40, 40, 40), "ground truth"),
+            (&render, RGBColor(200, 60, 30), "render"),
+        ];
+        for (pts, colour, label) in series {
+            chart
+                .draw_series(LineSeries::new(pts.iter().copied(), colour.stroke_width(2)))
+                .map_err(|x| e(&x))?
+                .label(label)
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 20, y)], colour.stroke_width(2))
+                });
+            chart
+                .draw_series(pts.iter().map(|&p| Circle::new(p, 3, colour.filled())))
+                .map_err(|x| e(&x))?;
+        }
+        chart
+            .configure_series_labels()
+            .position(SeriesLabelPosition::UpperRight)
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .label_font(("sans-serif", 15))
+            .draw()
+            .map_err(|x| e(&x))?;
+        root.present().map_err(|x| e(&x))?;
+    }
+    let img = image::RgbImage::from_raw(w, h, buf).context("plot buffer has the wrong size")?;
+    super::write_png(&img, path)
+}

@@ -24,6 +24,7 @@ fn eval_writes_table_json_and_pngs() {
     ]));
     let model = run.join("model.safetensors");
     let out_dir = tmp.path().join("eval");
+    let freq_png = tmp.path().join("freq.png");
     let out = ok(pma(&[
         "eval",
         "--model",
@@ -36,6 +37,8 @@ fn eval_writes_table_json_and_pngs() {
         out_dir.to_str().unwrap(),
         "--pngs",
         "2",
+        "--freq-png",
+        freq_png.to_str().unwrap(),
     ]));
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(
@@ -78,6 +81,40 @@ fn eval_writes_table_json_and_pngs() {
         // Ground truth | render | error map of a square image, with two 4-px gaps.
         assert_eq!(img.width(), 3 * img.height() + 8);
     }
+
+    // Frequency histograms: a distance per image and for the split, the split's mean
+    // histograms over the bins, and their plot.
+    let freq = |r: &serde_json::Value| r["freq_distance"].as_f64().unwrap();
+    assert!(per_image
+        .iter()
+        .all(|r| freq(r).is_finite() && freq(r) >= 0.0));
+    let mean_freq = per_image.iter().map(freq).sum::<f64>() / per_image.len() as f64;
+    assert!((freq(&json) - mean_freq).abs() < 1e-9);
+    let edges = json["freq_bin_edges"].as_array().unwrap();
+    for key in ["freq_hist_render", "freq_hist_gt"] {
+        let hist: Vec<f64> = json[key]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_f64().unwrap())
+            .collect();
+        assert_eq!(hist.len() + 1, edges.len(), "{key}");
+        // Each image's histogram sums to 1, or is all zeros for a flat crop: a 2-step
+        // model may render one.
+        let sum = hist.iter().sum::<f64>();
+        assert!(
+            hist.iter().all(|&v| v >= 0.0) && sum < 1.0 + 1e-9,
+            "{key}: {hist:?}"
+        );
+        if key == "freq_hist_gt" {
+            assert!((sum - 1.0).abs() < 1e-9, "{key}: {hist:?}");
+        }
+    }
+    let plot = image::open(&freq_png).unwrap().to_rgb8();
+    assert_eq!((plot.width(), plot.height()), (900, 540));
+    // Not blank: axes, labels, at least the ground truth's curve.
+    let inked = plot.pixels().filter(|p| p.0 != [255, 255, 255]).count();
+    assert!(inked > 5000, "{inked} non-white pixels");
 }
 
 #[test]

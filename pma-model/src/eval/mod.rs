@@ -8,6 +8,8 @@
 //! v0.1 heads, inputs mapped to [−1,1]) on the same tight-box crop, grown to the 31×31 the
 //! network needs where the image allows. PSNR and SSIM live in `pma_data::metrics`, LPIPS in
 //! [`crate::lpips`]; [`score_image`] combines them.
+//! On the same crop, [`spectrum`] compares the radially binned power spectra of render and
+//! ground truth (`freq_distance`).
 //!
 //! Which images form a split: a directory holds `<split>.npz` (the layout `pma synth`
 //! writes), all of whose images are the split; a file is filtered by its `eval_tag`. A file
@@ -28,6 +30,7 @@ use crate::avatar::{Avatar, Poses};
 use crate::image::{ImageOptions, RenderedImage};
 
 mod png;
+pub mod spectrum;
 mod split;
 
 pub use png::{heat, side_by_side, write_png};
@@ -246,6 +249,8 @@ pub struct ImageScore {
     pub lpips: f64,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub baseline_psnr: Option<f64>,
+    /// Frequency-histogram distance of the render to the ground truth ([`spectrum`]).
+    pub freq_distance: f64,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -262,6 +267,9 @@ pub struct EvalReport {
     pub render_s: f64,
     pub per_image: Vec<ImageScore>,
     pub pngs: Vec<PathBuf>,
+    /// `freq_distance`, `freq_bin_edges`, `freq_hist_render`, `freq_hist_gt`.
+    #[serde(flatten)]
+    pub freq: spectrum::FreqSummary,
     /// Images left out because their mask is empty (no pixels to score).
     #[serde(skip)]
     pub empty_masks: Vec<usize>,
@@ -287,6 +295,7 @@ pub fn evaluate(
     let mut per_image = Vec::with_capacity(images.len());
     let mut pngs = Vec::new();
     let mut empty_masks = Vec::new();
+    let mut freq = spectrum::FreqAccumulator::default();
     for (k, &n) in images.iter().enumerate() {
         crate::interrupt::check()?;
         let rendered = render_dataset_image(avatar, data, n, opts.chunk)?;
@@ -313,12 +322,16 @@ pub fn evaluate(
             }
             None => None,
         };
+        let spectra = spectrum::image_spectra(&pred, &gt, &mask, h, w);
+        let freq_distance = spectra.as_ref().map_or(f64::NAN, |s| s.distance);
+        spectra.iter().for_each(|s| freq.add(s));
         per_image.push(ImageScore {
             index: n,
             psnr: scores.psnr,
             ssim: scores.ssim,
             lpips: scores.lpips,
             baseline_psnr,
+            freq_distance,
         });
         if let (Some(dir), true) = (&opts.png_dir, png_set.contains(&n)) {
             let path = dir.join(format!("{split}_{n:04}.png"));
@@ -354,6 +367,7 @@ pub fn evaluate(
         render_s: start.elapsed().as_secs_f64(),
         per_image,
         pngs,
+        freq: freq.finish(),
         empty_masks,
     })
 }

@@ -23,6 +23,7 @@ mod render_golden;
 mod render_props;
 mod resume_exact;
 mod retarget;
+mod spectrum;
 mod stability_gradcheck;
 mod stability_model;
 mod stability_precision;
