@@ -15,7 +15,8 @@
 //! * **no dataset-specific corrections are applied.** In particular the
 //!   PerfCap scale undo and the ÷1.05 camera fudge are loader
 //!   behaviours: the file stays in scaled SPIN units with its `pose_scale`,
-//!   so a loader can still reproduce the reference exactly (`--perfcap-undo-scale`);
+//!   so a loader can still reproduce the reference exactly (pma's loader does not undo
+//!   the scale; the file keeps what the reference's loader would start from);
 //! * `head_dir` is +y for AIST and −y for every other layout;
 //! * absent derivable keys (`skts`, `cyls`, centres, root locations) are filled
 //!   by `pma_data` and the result is validated (docs/conventions.md, "Validation").
