@@ -53,7 +53,7 @@ impl Npz {
     fn f64s(&mut self, k: &str) -> (Vec<u64>, Vec<f64>) {
         let a = self.0.by_name(k).unwrap().unwrap();
         let shape = a.shape().to_vec();
-        let v = match a.dtype().descr().as_str() {
+        let v = match a.dtype().descr().trim_matches('\'') {
             "<f4" => a.into_vec::<f32>().unwrap().into_iter().map(f64::from).collect(),
             "<f8" => a.into_vec::<f64>().unwrap(),
             "<i8" => a.into_vec::<i64>().unwrap().into_iter().map(|x| x as f64).collect(),
@@ -230,7 +230,7 @@ fn camera_count_mismatch_is_refused() {
     // Frame 0 lists 3 images for 4 cameras.
     let bad = fixture().join("data/annots_cam_mismatch.npy");
     std::fs::copy(bad, dir.join("annots.npy")).unwrap();
-    refused(&dir, &opts(Split::Train), "ims[0].ims: expected one image per camera (4 cameras");
+    refused(&dir, &opts(Split::Train), "key `ims[0].ims`: expected one image per camera (4 cameras");
     // A dict without cameras.
     std::fs::copy(dir.join("params/0.npy"), dir.join("annots.npy")).unwrap();
     refused(&dir, &opts(Split::Train), "key `cams` is missing");
