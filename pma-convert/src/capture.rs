@@ -296,7 +296,11 @@ impl Annots {
         let t = per_camera(&heap, get(&heap, cams, path, "T")?, path, "cams.T", 3)?;
         let d = per_camera(&heap, get(&heap, cams, path, "D")?, path, "cams.D", 5)?;
         let n = k.len();
-        for (key, len) in [("cams.R", r.len()), ("cams.T", t.len()), ("cams.D", d.len())] {
+        for (key, len) in [
+            ("cams.R", r.len()),
+            ("cams.T", t.len()),
+            ("cams.D", d.len()),
+        ] {
             if len != n {
                 return Err(ConvertError::mismatch(
                     path,
@@ -386,7 +390,11 @@ fn dv(a: [f64; 3]) -> DVec3 {
 }
 
 /// The views and frame rows of a split (the reference protocol).
-pub(crate) fn select_images(annots: &Annots, opts: &CaptureOptions, path: &Path) -> Result<(Vec<usize>, Vec<ImageRef>)> {
+pub(crate) fn select_images(
+    annots: &Annots,
+    opts: &CaptureOptions,
+    path: &Path,
+) -> Result<(Vec<usize>, Vec<ImageRef>)> {
     let n_cams = annots.cams.len();
     if let Some(&v) = opts.train_views.iter().find(|&&v| v >= n_cams) {
         return Err(ConvertError::Usage(format!(
@@ -397,7 +405,9 @@ pub(crate) fn select_images(annots: &Annots, opts: &CaptureOptions, path: &Path)
     let views: Vec<usize> = match opts.split {
         Split::Train => opts.train_views.clone(),
         _ => {
-            let v: Vec<usize> = (0..n_cams).filter(|c| !opts.train_views.contains(c)).collect();
+            let v: Vec<usize> = (0..n_cams)
+                .filter(|c| !opts.train_views.contains(c))
+                .collect();
             if v.is_empty() {
                 vec![0]
             } else {
@@ -490,7 +500,11 @@ pub fn capture_poses(smpl: &SmplModel, params: &[FrameParams]) -> Poses {
         let root_rot = rn * axis_angle_to_matrix(dv(x.rh));
         let root_aa = matrix_to_axis_angle(root_rot);
         for j in 0..N_JOINTS {
-            let v = if j == 0 { root_aa.to_array() } else { x.poses[j] };
+            let v = if j == 0 {
+                root_aa.to_array()
+            } else {
+                x.poses[j]
+            };
             for k in 0..3 {
                 bones[[i, j, k]] = v[k] as f32;
             }
@@ -617,7 +631,9 @@ pub fn convert_capture(
     ds.focals = Some(focals);
     ds.centers = Some(centers);
     let cam_idx = Array1::from_iter(refs.iter().map(|r| r.cam as i64));
-    ds.kp_idxs = Some(Array1::from_iter(refs.iter().map(|r| row_of[&r.frame] as i64)));
+    ds.kp_idxs = Some(Array1::from_iter(
+        refs.iter().map(|r| row_of[&r.frame] as i64),
+    ));
     ds.img_pose_indices = Some(cam_idx.clone());
     ds.bkgd_idxs = Some(cam_idx);
 

@@ -20,8 +20,8 @@ use std::{collections::BTreeMap, path::Path};
 use pma_data::skeleton::{N_JOINTS, PARENTS};
 
 use crate::{
-    error::{ConvertError, Result},
     capture::npy::{read_npy_bytes, NpyContent},
+    error::{ConvertError, Result},
     pickle::{
         self,
         numpy::{dense, NumpyData},
@@ -206,10 +206,15 @@ const MODEL_KEYS: [&str; 8] = [
 
 fn read_pkl(path: &Path) -> Result<BTreeMap<String, Dense>> {
     let bytes = std::fs::read(path).map_err(|e| ConvertError::io(path, e))?;
-    let name = path.file_name().map_or_else(String::new, |n| n.to_string_lossy().into_owned());
+    let name = path
+        .file_name()
+        .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
     let tree = pickle::parse(&bytes, &NumpyData, path, &name)?;
     let items = tree.heap.items(&tree.root).ok_or_else(|| {
-        ConvertError::format(path, format!("the pickle holds a {}, expected a dict", tree.root.kind()))
+        ConvertError::format(
+            path,
+            format!("the pickle holds a {}, expected a dict", tree.root.kind()),
+        )
     })?;
     let mut out = BTreeMap::new();
     for (k, v) in items {
@@ -247,7 +252,8 @@ fn read_npz(path: &Path) -> Result<BTreeMap<String, Dense>> {
         let d = match read_npy_bytes(&b, path, &key)? {
             NpyContent::Array(a) => (
                 a.shape.clone(),
-                a.to_f64().map_err(|m| ConvertError::invalid(path, &key, m))?,
+                a.to_f64()
+                    .map_err(|m| ConvertError::invalid(path, &key, m))?,
             ),
             NpyContent::Pickled(_) => {
                 return Err(ConvertError::invalid(

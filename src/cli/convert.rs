@@ -160,7 +160,9 @@ enum LayoutArg {
 #[derive(Clone, Copy, ValueEnum)]
 enum SplitArg {
     Train,
+    #[value(name = "novel_view")]
     NovelView,
+    #[value(name = "novel_pose")]
     NovelPose,
 }
 

@@ -203,13 +203,32 @@ fn capture_converts_trains_and_evaluates() {
     let train = dir.path().join("train.npz");
     let novel = dir.path().join("novel_pose.npz");
     let common = ["--frames", "0:4:2", "--smpl"];
-    let o = pma(&["capture"], &[&cap, Path::new(common[0]), Path::new(common[1]), Path::new(common[2]), &smpl, Path::new("-o"), &train]);
+    let o = pma(
+        &["capture"],
+        &[
+            &cap,
+            Path::new(common[0]),
+            Path::new(common[1]),
+            Path::new(common[2]),
+            &smpl,
+            Path::new("-o"),
+            &train,
+        ],
+    );
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let stdout = String::from_utf8_lossy(&o.stdout);
     assert!(stdout.contains("12 images of 64x64"), "{stdout}");
     let o = pma(
         &["capture", "--split", "novel_pose", "--eval-frames", "1"],
-        &[&cap, Path::new(common[0]), Path::new(common[1]), Path::new(common[2]), &smpl, Path::new("-o"), &novel],
+        &[
+            &cap,
+            Path::new(common[0]),
+            Path::new(common[1]),
+            Path::new(common[2]),
+            &smpl,
+            Path::new("-o"),
+            &novel,
+        ],
     );
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
 
@@ -222,8 +241,17 @@ fn capture_converts_trains_and_evaluates() {
     let model = s(&run.join("model.safetensors"));
     let out_dir = s(&dir.path().join("eval"));
     let o = crate::run::ok(crate::run::pma(&[
-        "eval", "--model", &model, "--data", &novel_s, "--split", "novel_pose", "--out", &out_dir,
-        "--train-data", &train_s,
+        "eval",
+        "--model",
+        &model,
+        "--data",
+        &novel_s,
+        "--split",
+        "novel_pose",
+        "--out",
+        &out_dir,
+        "--train-data",
+        &train_s,
     ]));
     let stdout = String::from_utf8_lossy(&o.stdout);
     assert!(stdout.contains("PSNR"), "{stdout}");
@@ -236,11 +264,19 @@ fn bad_capture_exits_2_without_output() {
     let out = dir.path().join("c.npz");
     let bad_smpl = dir.path().join("smpl.pkl");
     std::fs::write(&bad_smpl, b"\x80\x02cbuiltins\neval\nq\x00.").unwrap();
-    let o = pma(&["capture", "--smpl"], &[&bad_smpl, &cap, Path::new("-o"), &out]);
+    let o = pma(
+        &["capture", "--smpl"],
+        &[&bad_smpl, &cap, Path::new("-o"), &out],
+    );
     refused(&o, &["smpl.pkl", "forbidden global `builtins.eval`"]);
     let o = pma(
         &["capture", "--train-views", "0,7", "--smpl"],
-        &[&root().join("fixtures/capture/data/smpl_neutral.npz"), &cap, Path::new("-o"), &out],
+        &[
+            &root().join("fixtures/capture/data/smpl_neutral.npz"),
+            &cap,
+            Path::new("-o"),
+            &out,
+        ],
     );
     refused(&o, &["view 7 does not exist", "4 cameras"]);
     assert!(!out.exists());

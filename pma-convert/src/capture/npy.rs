@@ -46,7 +46,8 @@ pub(crate) fn read_npy_bytes(bytes: &[u8], path: &Path, key: &str) -> Result<Npy
         })
         .ok_or_else(|| bad(format!("no `descr` in the .npy header {header:?}")))?;
     let fortran = header_field(&header, "fortran_order").is_some_and(|s| s.starts_with("True"));
-    let shape = header_shape(&header).ok_or_else(|| bad(format!("no readable `shape` in the .npy header {header:?}")))?;
+    let shape = header_shape(&header)
+        .ok_or_else(|| bad(format!("no readable `shape` in the .npy header {header:?}")))?;
     let dtype = Dtype::parse(&descr).ok_or_else(|| bad(format!("unsupported dtype `{descr}`")))?;
     let payload = &bytes[end..];
     if dtype.kind == 'O' {

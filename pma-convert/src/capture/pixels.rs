@@ -30,7 +30,10 @@ pub(super) fn check_inputs(dir: &Path, rel: &str) -> Result<()> {
     if !img.is_file() {
         return Err(ConvertError::io(
             img,
-            std::io::Error::new(std::io::ErrorKind::NotFound, "image listed in annots.npy is missing"),
+            std::io::Error::new(
+                std::io::ErrorKind::NotFound,
+                "image listed in annots.npy is missing",
+            ),
         ));
     }
     let [m, c] = mask_paths(dir, rel);
@@ -100,7 +103,9 @@ fn read_mask(path: &Path) -> Result<Plane> {
     let img = image::open(path).map_err(|e| image_err(path, e))?;
     let (w, h) = (img.width() as usize, img.height() as usize);
     let px = match img {
-        image::DynamicImage::ImageLuma8(g) => g.into_raw().into_iter().map(|v| (v != 0) as u8).collect(),
+        image::DynamicImage::ImageLuma8(g) => {
+            g.into_raw().into_iter().map(|v| (v != 0) as u8).collect()
+        }
         other => other
             .to_rgba8()
             .pixels()
@@ -202,7 +207,12 @@ pub fn remap(src: &Plane, map: &[MapEntry]) -> Vec<u8> {
             (32 - tx) * ty * 32,
             tx * ty * 32,
         ];
-        let taps = [(m.sx, m.sy), (m.sx + 1, m.sy), (m.sx, m.sy + 1), (m.sx + 1, m.sy + 1)];
+        let taps = [
+            (m.sx, m.sy),
+            (m.sx + 1, m.sy),
+            (m.sx, m.sy + 1),
+            (m.sx + 1, m.sy + 1),
+        ];
         for (ch, o) in o.iter_mut().enumerate() {
             let mut acc = 0i32;
             for (&(x, y), &wk) in taps.iter().zip(&wt) {
@@ -387,8 +397,14 @@ pub(super) fn write_capture(
         let mut size_in = None;
         for r in refs {
             pma_data::interrupt::check()?;
-            let (rgb, m, s) =
-                process_image(dir, &r.rel, &annots.cams[r.cam], (h, w), &mut size_in, opts.erode_border)?;
+            let (rgb, m, s) = process_image(
+                dir,
+                &r.rel,
+                &annots.cams[r.cam],
+                (h, w),
+                &mut size_in,
+                opts.erode_border,
+            )?;
             bw.write_all(&rgb).map_err(terr)?;
             bw.write_all(&m).map_err(terr)?;
             bw.write_all(&s).map_err(terr)?;
@@ -417,11 +433,14 @@ pub(super) fn write_capture(
             let nr = r1 - r0;
             for (k, &i) in imgs.iter().enumerate() {
                 let base = (i * per) as u64;
-                tmp.seek(SeekFrom::Start(base + (r0 * w * 3) as u64)).map_err(terr)?;
+                tmp.seek(SeekFrom::Start(base + (r0 * w * 3) as u64))
+                    .map_err(terr)?;
                 tmp.read_exact(&mut rgb_blk[k * rows * w * 3..k * rows * w * 3 + nr * w * 3])
                     .map_err(terr)?;
-                tmp.seek(SeekFrom::Start(base + (3 * hw + r0 * w) as u64)).map_err(terr)?;
-                tmp.read_exact(&mut m_blk[k * rows * w..k * rows * w + nr * w]).map_err(terr)?;
+                tmp.seek(SeekFrom::Start(base + (3 * hw + r0 * w) as u64))
+                    .map_err(terr)?;
+                tmp.read_exact(&mut m_blk[k * rows * w..k * rows * w + nr * w])
+                    .map_err(terr)?;
             }
             for p in 0..nr * w {
                 for ch in 0..3 {
@@ -450,11 +469,13 @@ pub(super) fn write_capture(
             compression: opts.compression,
         },
     )?;
-    let scene_zip = zip::ZipArchive::new(File::open(scene.path()).map_err(|e| ConvertError::io(scene.path(), e))?)
-        .map_err(|cause| ConvertError::Zip {
-            path: scene.path().to_path_buf(),
-            cause,
-        })?;
+    let scene_zip = zip::ZipArchive::new(
+        File::open(scene.path()).map_err(|e| ConvertError::io(scene.path(), e))?,
+    )
+    .map_err(|cause| ConvertError::Zip {
+        path: scene.path().to_path_buf(),
+        cause,
+    })?;
     let out = AtomicFile::create(output).map_err(|e| ConvertError::io(odir, e))?;
     let zerr = |cause| ConvertError::Zip {
         path: output.to_path_buf(),
@@ -472,7 +493,8 @@ pub(super) fn write_capture(
         start_member(&mut zip, output, key, &[n, hw, ch], opts.compression)?;
         for i in 0..n {
             pma_data::interrupt::check()?;
-            tmp.seek(SeekFrom::Start((i * per + off) as u64)).map_err(terr)?;
+            tmp.seek(SeekFrom::Start((i * per + off) as u64))
+                .map_err(terr)?;
             tmp.read_exact(&mut buf[..len]).map_err(terr)?;
             zip.write_all(&buf[..len]).map_err(oerr)?;
             if key == "imgs" {
@@ -481,7 +503,13 @@ pub(super) fn write_capture(
             }
         }
     }
-    start_member(&mut zip, output, "bkgds", &[n_cams, hw, 3], opts.compression)?;
+    start_member(
+        &mut zip,
+        output,
+        "bkgds",
+        &[n_cams, hw, 3],
+        opts.compression,
+    )?;
     zip.write_all(&bkgds).map_err(oerr)?;
     let mut bw = zip.finish().map_err(zerr)?;
     bw.flush().map_err(oerr)?;

@@ -54,10 +54,25 @@ impl Npz {
         let a = self.0.by_name(k).unwrap().unwrap();
         let shape = a.shape().to_vec();
         let v = match a.dtype().descr().trim_matches('\'') {
-            "<f4" => a.into_vec::<f32>().unwrap().into_iter().map(f64::from).collect(),
+            "<f4" => a
+                .into_vec::<f32>()
+                .unwrap()
+                .into_iter()
+                .map(f64::from)
+                .collect(),
             "<f8" => a.into_vec::<f64>().unwrap(),
-            "<i8" => a.into_vec::<i64>().unwrap().into_iter().map(|x| x as f64).collect(),
-            "|u1" => a.into_vec::<u8>().unwrap().into_iter().map(f64::from).collect(),
+            "<i8" => a
+                .into_vec::<i64>()
+                .unwrap()
+                .into_iter()
+                .map(|x| x as f64)
+                .collect(),
+            "|u1" => a
+                .into_vec::<u8>()
+                .unwrap()
+                .into_iter()
+                .map(f64::from)
+                .collect(),
             d => panic!("{k}: dtype {d}"),
         };
         (shape, v)
@@ -66,7 +81,10 @@ impl Npz {
 
 fn max_diff(a: &[f64], b: &[f64]) -> f64 {
     assert_eq!(a.len(), b.len());
-    a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f64::max)
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f64::max)
 }
 
 fn flat<T: Copy + Into<f64>, D: ndarray::Dimension>(a: &ndarray::Array<T, D>) -> Vec<f64> {
@@ -89,7 +107,12 @@ fn check_parity(split: Split, name: &str) {
         ("betas", flat(ds.betas.as_ref().unwrap())),
         (
             "rest_pose",
-            ds.rest_pose.unwrap().iter().flatten().map(|&x| x as f64).collect(),
+            ds.rest_pose
+                .unwrap()
+                .iter()
+                .flatten()
+                .map(|&x| x as f64)
+                .collect(),
         ),
     ] {
         let (_, theirs) = r.f64s(key);
@@ -101,7 +124,10 @@ fn check_parity(split: Split, name: &str) {
     for (i, (a, b)) in flat(&ds.bones).chunks(3).zip(bones.chunks(3)).enumerate() {
         let ma = axis_angle_to_matrix(glam::DVec3::from_slice(a));
         let mb = axis_angle_to_matrix(glam::DVec3::from_slice(b));
-        let d = (ma - mb).to_cols_array().iter().fold(0.0f64, |m, x| m.max(x.abs()));
+        let d = (ma - mb)
+            .to_cols_array()
+            .iter()
+            .fold(0.0f64, |m, x| m.max(x.abs()));
         assert!(d < 1e-5, "{name} bone {i}: rotations differ by {d}");
     }
     for (key, ours) in [
@@ -123,12 +149,21 @@ fn check_parity(split: Split, name: &str) {
     ] {
         let (shape, theirs) = r.f64s(key);
         let ours = flat(ours);
-        assert_eq!(ours.len() as u64, shape.iter().product::<u64>(), "{name} {key}");
+        assert_eq!(
+            ours.len() as u64,
+            shape.iter().product::<u64>(),
+            "{name} {key}"
+        );
         let d = max_diff(&ours, &theirs);
         assert!(d <= tol, "{name} {key}: max difference {d}");
     }
     // The fixture has both undistortion border values and boundary marks.
-    assert!(ds.sampling_masks.as_ref().unwrap().iter().any(|&v| v > 1 && v < 100));
+    assert!(ds
+        .sampling_masks
+        .as_ref()
+        .unwrap()
+        .iter()
+        .any(|&v| v > 1 && v < 100));
 }
 
 #[test]
@@ -191,7 +226,11 @@ fn missing_mask_is_refused() {
     let (_t, dir) = scratch();
     // Camera 3 has only mask/; camera 1 only mask_cihp/.
     std::fs::remove_file(dir.join("mask/Camera_B3/000002.png")).unwrap();
-    refused(&dir, &opts(Split::Train), "no mask for image Camera_B3/000002.png");
+    refused(
+        &dir,
+        &opts(Split::Train),
+        "no mask for image Camera_B3/000002.png",
+    );
 }
 
 #[test]
@@ -230,7 +269,11 @@ fn camera_count_mismatch_is_refused() {
     // Frame 0 lists 3 images for 4 cameras.
     let bad = fixture().join("data/annots_cam_mismatch.npy");
     std::fs::copy(bad, dir.join("annots.npy")).unwrap();
-    refused(&dir, &opts(Split::Train), "key `ims[0].ims`: expected one image per camera (4 cameras");
+    refused(
+        &dir,
+        &opts(Split::Train),
+        "key `ims[0].ims`: expected one image per camera (4 cameras",
+    );
     // A dict without cameras.
     std::fs::copy(dir.join("params/0.npy"), dir.join("annots.npy")).unwrap();
     refused(&dir, &opts(Split::Train), "key `cams` is missing");
@@ -260,7 +303,10 @@ fn wrong_smpl_shape_is_refused() {
         put("kintree_table", &[2, 24], &[0.0; 48]);
     }
     let e = SmplModel::read(&p).unwrap_err().to_string();
-    assert!(e.contains("shapedirs") && e.contains("(5,3,B)") && e.contains("[4, 3, 2]"), "{e}");
+    assert!(
+        e.contains("shapedirs") && e.contains("(5,3,B)") && e.contains("[4, 3, 2]"),
+        "{e}"
+    );
     let mut o = opts(Split::Train);
     o.smpl = p;
     let (_t, dir) = scratch();
