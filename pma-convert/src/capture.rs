@@ -542,12 +542,12 @@ pub fn capture_c2w(cam: &CaptureCamera) -> [[f32; 4]; 4] {
     let rot = rn * DMat3::from_mat4(c2w);
     let tr = rn * c2w.w_axis.truncate();
     let mut out = [[0f32; 4]; 4];
-    for i in 0..3 {
-        for j in 0..3 {
+    for (i, row) in out.iter_mut().take(3).enumerate() {
+        for (j, x) in row.iter_mut().take(3).enumerate() {
             let s = if j == 0 { 1.0 } else { -1.0 };
-            out[i][j] = (s * rot.col(j)[i]) as f32;
+            *x = (s * rot.col(j)[i]) as f32;
         }
-        out[i][3] = tr[i] as f32;
+        row[3] = tr[i] as f32;
     }
     out[3] = [0.0, 0.0, 0.0, 1.0];
     out

@@ -113,12 +113,11 @@ impl NpArray {
                 .map(|c| {
                     c.chunks_exact(4)
                         .map(|u| {
-                            let x = if self.dtype.big_endian {
+                            if self.dtype.big_endian {
                                 u32::from_be_bytes([u[0], u[1], u[2], u[3]])
                             } else {
                                 u32::from_le_bytes([u[0], u[1], u[2], u[3]])
-                            };
-                            x
+                            }
                         })
                         .take_while(|&x| x != 0)
                         .map(|x| char::from_u32(x).unwrap_or('\u{fffd}'))
@@ -310,20 +309,13 @@ impl Policy for NumpyData {
             ("copy_reg" | "copyreg", "_reconstructor") => NpObject::Reconstructor,
             ("collections", "OrderedDict") => NpObject::OrderedDict,
             ("chumpy.ch", "Ch") => NpObject::Class(StateClass::Chumpy),
-            (m, "csc_matrix" | "csr_matrix")
-                if matches!(
-                    m,
-                    "scipy.sparse.csc"
-                        | "scipy.sparse._csc"
-                        | "scipy.sparse.csr"
-                        | "scipy.sparse._csr"
-                        | "scipy.sparse"
-                ) =>
-            {
-                NpObject::Class(StateClass::Sparse {
-                    csr: name == "csr_matrix",
-                })
-            }
+            (
+                "scipy.sparse.csc" | "scipy.sparse._csc" | "scipy.sparse.csr" | "scipy.sparse._csr"
+                | "scipy.sparse",
+                "csc_matrix" | "csr_matrix",
+            ) => NpObject::Class(StateClass::Sparse {
+                csr: name == "csr_matrix",
+            }),
             _ => return None,
         })
     }

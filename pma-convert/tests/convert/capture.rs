@@ -215,7 +215,9 @@ fn copy_dir(src: &Path, dst: &Path) {
 
 fn refused(dir: &Path, o: &CaptureOptions, needle: &str) {
     let out = dir.parent().unwrap().join("out.npz");
-    let e = convert(dir, &out, o).err().expect("conversion must fail");
+    let Err(e) = convert(dir, &out, o) else {
+        panic!("conversion must fail");
+    };
     let msg = e.to_string();
     assert!(msg.contains(needle), "{needle:?} not in: {msg}");
     assert!(!out.exists(), "no output on error");
