@@ -38,7 +38,7 @@ use crate::{
 };
 
 mod h5_scene;
-mod pixels;
+pub(crate) mod pixels;
 
 pub(crate) use h5_scene::joints;
 use h5_scene::read_h5_scene;

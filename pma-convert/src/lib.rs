@@ -1,6 +1,7 @@
 //! Importers for foreign files: reference PyTorch checkpoints, A-NeRF/DANBO
-//! `.h5`/`.npz` datasets and real motion.
+//! `.h5`/`.npz` datasets, raw ZJU-MoCap captures and real motion.
 
+pub mod capture;
 pub mod checkpoint;
 pub mod dataset;
 pub mod error;
@@ -8,6 +9,7 @@ pub mod h5;
 pub mod motion;
 pub mod pickle;
 pub mod raw;
+pub mod smpl;
 pub mod torch;
 pub mod train_state;
 

@@ -21,6 +21,7 @@
 
 use std::{fmt::Debug, path::Path, rc::Rc};
 
+pub mod numpy;
 mod vm;
 
 use crate::error::Result;
@@ -45,6 +46,9 @@ pub enum Value<O> {
     Int(i64),
     Float(f64),
     Str(Rc<str>),
+    /// `bytes` (protocol 3+); a Python 2 `str` is a [`Value::Str`] decoded as
+    /// Latin-1, as Python 3 reads such pickles with `encoding='latin1'`.
+    Bytes(Rc<[u8]>),
     Tuple(usize),
     List(usize),
     /// Insertion-ordered (an OrderedDict's order is kept).
@@ -62,6 +66,7 @@ impl<O: Object> Value<O> {
             Value::Int(_) => "int",
             Value::Float(_) => "float",
             Value::Str(_) => "str",
+            Value::Bytes(_) => "bytes",
             Value::Tuple(_) => "tuple",
             Value::List(_) => "list",
             Value::Dict(_) => "dict",
@@ -185,6 +190,32 @@ pub trait Policy {
         f: &Self::Object,
         args: &Value<Self::Object>,
     ) -> std::result::Result<Value<Self::Object>, String>;
+
+    /// Whether `NEWOBJ` is interpreted (by [`Policy::new_object`]) rather
+    /// than refused as an opcode; only the numpy policy needs it.
+    const NEWOBJ: bool = false;
+
+    /// `NEWOBJ` (`cls.__new__(cls, *args)`), when [`Policy::NEWOBJ`] is set.
+    fn new_object(
+        &self,
+        _heap: &mut Heap<Self::Object>,
+        _cls: &Self::Object,
+        _args: &Value<Self::Object>,
+    ) -> std::result::Result<Value<Self::Object>, String> {
+        Err("NEWOBJ is not accepted".into())
+    }
+
+    /// `BUILD` (`target.__setstate__(state)`): `None` keeps the default, which
+    /// accepts only a dict with dict state and drops the state; `Some` replaces
+    /// the target with the value returned.
+    fn build(
+        &self,
+        _heap: &mut Heap<Self::Object>,
+        _target: &Value<Self::Object>,
+        _state: &Value<Self::Object>,
+    ) -> Option<std::result::Result<Value<Self::Object>, String>> {
+        None
+    }
 
     /// `BINPERSID`: what a persistent id refers to (outside the pickle).
     fn persistent_load(

@@ -9,6 +9,7 @@ use std::{ops::Range, path::PathBuf};
 
 use clap::{Subcommand, ValueEnum};
 use pma_convert::{
+    capture::{convert_capture, CaptureOptions, Split},
     checkpoint::{convert_checkpoint, CheckpointOptions},
     dataset::{convert_dataset, DatasetOptions, Layout},
     motion::{convert_motion, read_rest_pose, MotionOptions, DEFAULT_NPZ_FPS},
@@ -72,6 +73,47 @@ enum What {
         #[arg(long)]
         drop_alpha: bool,
     },
+    /// A raw ZJU-MoCap capture folder (annots.npy, images, masks, params) → pma-npz v1.
+    ///
+    /// Follows the reference H36M-ZJU preprocessing: SMPL joints from the
+    /// user's model, ground plane to x-z, images and masks undistorted,
+    /// per-camera median backgrounds. Pickled `.npy`/`.pkl` files are read
+    /// without running code.
+    Capture {
+        /// The capture folder (holds annots.npy; H36M-ZJU: `S9/Posing`).
+        dir: PathBuf,
+        /// The SMPL model (`SMPL_NEUTRAL.pkl` as distributed, or an .npz conversion).
+        #[arg(long)]
+        smpl: PathBuf,
+        /// Output `.npz`.
+        #[arg(short, long)]
+        output: PathBuf,
+        /// Which images: training views and frames; the other views (novel_view);
+        /// the other views on the frames after the training ones (novel_pose).
+        #[arg(long, value_enum, default_value_t = SplitArg::Train)]
+        split: SplitArg,
+        /// Training camera indices.
+        #[arg(long, value_delimiter = ',', default_value = "0,1,2")]
+        train_views: Vec<usize>,
+        /// Training frames START:COUNT:INTERVAL (COUNT empty: to the end). novel_pose needs COUNT.
+        #[arg(long, default_value = "0::5")]
+        frames: pma_convert::capture::Frames,
+        /// Number of novel-pose frames (default: all after the training ones).
+        #[arg(long)]
+        eval_frames: Option<usize>,
+        /// Resize factor in (0, 1]: images area-averaged, masks nearest, intrinsics scaled.
+        #[arg(long)]
+        res: Option<f64>,
+        /// Parameter folder inside DIR (default: new_params if present, else params).
+        #[arg(long)]
+        params: Option<String>,
+        /// Do not mark the mask boundary band (value 100) in the sampling masks.
+        #[arg(long)]
+        no_border: bool,
+        /// Deflate the members.
+        #[arg(long)]
+        compress: bool,
+    },
     /// Real motion (AIST++/SMPL npz or CMU BVH) → a motion-profile npz for retargeting.
     Motion {
         /// SMPL npz (`poses (T,72)` + `trans (T,3)`) or CMU `.bvh`.
@@ -113,6 +155,15 @@ enum LayoutArg {
     Surreal,
     Mixamo,
     Aist,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum SplitArg {
+    Train,
+    #[value(name = "novel_view")]
+    NovelView,
+    #[value(name = "novel_pose")]
+    NovelPose,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -191,6 +242,7 @@ impl What {
     fn inputs(&self) -> Vec<PathBuf> {
         match self {
             What::Checkpoint { input, .. } | What::Dataset { input, .. } => vec![input.clone()],
+            What::Capture { dir, smpl, .. } => vec![dir.clone(), smpl.clone()],
             What::Motion {
                 input, rest_pose, ..
             } => std::iter::once(input.clone())
@@ -202,7 +254,8 @@ impl What {
 
 fn is_bad_input(e: &ConvertError, inputs: &[PathBuf]) -> bool {
     match e.io_path() {
-        Some(p) => inputs.iter().any(|i| i == p),
+        // A capture's inputs are the files under its folder.
+        Some(p) => inputs.iter().any(|i| p.starts_with(i)),
         None => true,
     }
 }
@@ -286,6 +339,54 @@ fn convert(args: Args) -> Result<(), ConvertError> {
             for d in &rep.derived {
                 println!("  derived: {d}");
             }
+        }
+        What::Capture {
+            dir,
+            smpl,
+            output,
+            split,
+            train_views,
+            frames,
+            eval_frames,
+            res,
+            params,
+            no_border,
+            compress,
+        } => {
+            let mut opts = CaptureOptions::new(smpl);
+            opts.split = match split {
+                SplitArg::Train => Split::Train,
+                SplitArg::NovelView => Split::NovelView,
+                SplitArg::NovelPose => Split::NovelPose,
+            };
+            opts.train_views = train_views;
+            opts.frames = frames;
+            opts.eval_frames = eval_frames;
+            opts.res = res;
+            opts.params_dir = params;
+            opts.erode_border = !no_border;
+            if compress {
+                opts.compression = Compression::Deflated;
+            }
+            let bar = super::progress::bar(false, 0, "capture images");
+            let rep = convert_capture(&dir, &output, &opts, &mut |done, total| {
+                bar.set_length(total);
+                bar.set_position(done);
+            });
+            bar.finish_and_clear();
+            let rep = rep?;
+            println!(
+                "{}: {} split, views {:?}, {} poses ({}/), {} cameras, {} images of {}x{}",
+                output.display(),
+                opts.split.name(),
+                rep.views,
+                rep.n_poses,
+                rep.params_dir,
+                rep.n_cameras,
+                rep.n_images,
+                rep.width,
+                rep.height
+            );
         }
         What::Motion {
             input,

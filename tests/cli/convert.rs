@@ -192,3 +192,92 @@ fn bad_motion_exits_2_naming_the_frame() {
     refused(&o, &["broken.bvh:4", "zero"]);
     assert!(!out.exists());
 }
+
+/// A raw ZJU-MoCap capture (fixtures/capture) converted, trained on for a few
+/// iterations of `tiny`, and evaluated on its converted novel poses.
+#[test]
+fn capture_converts_trains_and_evaluates() {
+    let dir = tempfile::tempdir().unwrap();
+    let cap = root().join("fixtures/capture/data/S1/Posing");
+    let smpl = root().join("fixtures/capture/data/smplx/smpl/SMPL_NEUTRAL.pkl");
+    let train = dir.path().join("train.npz");
+    let novel = dir.path().join("novel_pose.npz");
+    let common = ["--frames", "0:4:2", "--smpl"];
+    let o = pma(
+        &["capture"],
+        &[
+            &cap,
+            Path::new(common[0]),
+            Path::new(common[1]),
+            Path::new(common[2]),
+            &smpl,
+            Path::new("-o"),
+            &train,
+        ],
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(stdout.contains("12 images of 64x64"), "{stdout}");
+    let o = pma(
+        &["capture", "--split", "novel_pose", "--eval-frames", "1"],
+        &[
+            &cap,
+            Path::new(common[0]),
+            Path::new(common[1]),
+            Path::new(common[2]),
+            &smpl,
+            Path::new("-o"),
+            &novel,
+        ],
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+
+    let run = dir.path().join("run");
+    let s = |p: &Path| p.to_str().unwrap().to_string();
+    let (train_s, run_s, novel_s) = (s(&train), s(&run), s(&novel));
+    crate::run::ok(crate::run::pma(&[
+        "train", "--data", &train_s, "--out", &run_s, "--preset", "tiny", "--iters", "2", "--quiet",
+    ]));
+    let model = s(&run.join("model.safetensors"));
+    let out_dir = s(&dir.path().join("eval"));
+    let o = crate::run::ok(crate::run::pma(&[
+        "eval",
+        "--model",
+        &model,
+        "--data",
+        &novel_s,
+        "--split",
+        "novel_pose",
+        "--out",
+        &out_dir,
+        "--train-data",
+        &train_s,
+    ]));
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(stdout.contains("PSNR"), "{stdout}");
+}
+
+#[test]
+fn bad_capture_exits_2_without_output() {
+    let dir = tempfile::tempdir().unwrap();
+    let cap = root().join("fixtures/capture/data/S1/Posing");
+    let out = dir.path().join("c.npz");
+    let bad_smpl = dir.path().join("smpl.pkl");
+    std::fs::write(&bad_smpl, b"\x80\x02cbuiltins\neval\nq\x00.").unwrap();
+    let o = pma(
+        &["capture", "--smpl"],
+        &[&bad_smpl, &cap, Path::new("-o"), &out],
+    );
+    refused(&o, &["smpl.pkl", "forbidden global `builtins.eval`"]);
+    let o = pma(
+        &["capture", "--train-views", "0,7", "--smpl"],
+        &[
+            &root().join("fixtures/capture/data/smpl_neutral.npz"),
+            &cap,
+            Path::new("-o"),
+            &out,
+        ],
+    );
+    refused(&o, &["view 7 does not exist", "4 cameras"]);
+    assert!(!out.exists());
+}

@@ -260,7 +260,7 @@ fn prepare_row(
 /// Starts `<key>.npy` in the archive and writes its NPY header; the payload
 /// is appended by the caller. Options match the data layer's writer (fixed
 /// timestamp and permissions) so outputs are byte-deterministic.
-fn start_member<W: Write + Seek>(
+pub(crate) fn start_member<W: Write + Seek>(
     zip: &mut zip::ZipWriter<W>,
     output: &Path,
     key: &str,

@@ -166,7 +166,13 @@ impl<'a, P: Policy> Vm<'a, P> {
                 let v = self.constant(op)?;
                 self.stack.push(v);
             }
+            // Python 2 strings (numpy's raw data in Python 2 pickles) and bytes.
+            b'T' | b'U' | b'B' | b'C' | 0x8e => {
+                let v = self.byte_string(op)?;
+                self.stack.push(v);
+            }
             b'q' | b'r' | 0x94 | b'h' | b'j' => self.memo_op(op)?,
+            0x81 => self.new_object(op)?,
             b'c' | 0x93 | b'R' | b'b' | b'Q' => self.object_op(op)?,
             _ => {
                 return Err(ConvertError::ForbiddenOpcode {
@@ -257,6 +263,44 @@ impl<'a, P: Policy> Vm<'a, P> {
             0x88 => Value::Bool(true),
             _ => Value::Bool(false),
         })
+    }
+
+    /// BINSTRING, SHORT_BINSTRING (Latin-1 text), BINBYTES, SHORT_BINBYTES, BINBYTES8.
+    fn byte_string(&mut self, op: u8) -> Result<Value<P::Object>> {
+        let n = match op {
+            b'T' => i32::from_le_bytes(self.le()?) as i64,
+            b'B' => u32::from_le_bytes(self.le()?) as i64,
+            b'U' | b'C' => self.u8()? as i64,
+            _ => i64::try_from(u64::from_le_bytes(self.le()?)).unwrap_or(-1),
+        };
+        let n = usize::try_from(n).map_err(|_| self.err("negative or huge string length"))?;
+        let b = self.take(n)?;
+        Ok(match op {
+            b'T' | b'U' => Value::Str(Rc::from(b.iter().map(|&c| c as char).collect::<String>())),
+            _ => Value::Bytes(Rc::from(b)),
+        })
+    }
+
+    /// NEWOBJ, where the policy allows it; refused as an opcode otherwise.
+    fn new_object(&mut self, op: u8) -> Result<()> {
+        if !P::NEWOBJ {
+            return Err(ConvertError::ForbiddenOpcode {
+                path: self.path.to_path_buf(),
+                entry: self.entry.to_string(),
+                offset: self.op_start,
+                opcode: op,
+                name: opcode_name(op),
+            });
+        }
+        let args = self.pop()?;
+        let cls = self.pop()?;
+        let Value::Object(c) = &cls else {
+            return Err(self.err(format!("NEWOBJ on a {}", cls.kind())));
+        };
+        let r = self.policy.new_object(&mut self.heap, c, &args);
+        let v = r.map_err(|m| self.err(m))?;
+        self.stack.push(v);
+        Ok(())
     }
 
     /// LONG1: a little-endian two's-complement integer of up to 8 bytes here.
@@ -370,6 +414,12 @@ impl<'a, P: Policy> Vm<'a, P> {
     /// OrderedDict's instance state; it carries no data and is dropped.
     fn build(&mut self) -> Result<()> {
         let state = self.pop()?;
+        let target = self.top()?.clone();
+        if let Some(r) = self.policy.build(&mut self.heap, &target, &state) {
+            let v = r.map_err(|m| self.err(m))?;
+            *self.stack.last_mut().expect("top was checked") = v;
+            return Ok(());
+        }
         let target_ok = matches!(self.top()?, Value::Dict(_));
         let state_ok = matches!(state, Value::Dict(_) | Value::None);
         if !(target_ok && state_ok) {
