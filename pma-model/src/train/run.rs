@@ -343,6 +343,10 @@ impl<'a> Session<'a> {
                 Err(e) => return Err(e),
             };
             self.trainer.set_wall_s(self.wall());
+            if let Some(p) = crate::ops::profile::take_report() {
+                self.observer
+                    .note(&format!("iteration {} profile (PMA_PROFILE=1): {p}", stats.iter));
+            }
             self.record_step(&stats, target);
             match self.after_step(stats.iter) {
                 Ok(logged) => {
