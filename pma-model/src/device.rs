@@ -120,7 +120,12 @@ pub struct Tf32Error {
 pub fn set_tf32(on: bool, device: &Device) -> Result<(), Tf32Error> {
     if on && !device.is_cuda() {
         return Err(Tf32Error {
-            device: if device.is_metal() { "metal" } else { "the cpu" }.to_string(),
+            device: if device.is_metal() {
+                "metal"
+            } else {
+                "the cpu"
+            }
+            .to_string(),
         });
     }
     candle_core::cuda::set_gemm_reduced_precision_f32(on);

@@ -145,7 +145,15 @@ impl CustomOp2 for GatherRows {
         l2: &Layout,
     ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
         let [b, n, m, c] = dims_bmc(l1, l2, "gather rows")?;
-        let out = cuda::launch("pma_gather_rows_f32", s1, l1, s2, l2, [b, n, m, c], b * m * c)?;
+        let out = cuda::launch(
+            "pma_gather_rows_f32",
+            s1,
+            l1,
+            s2,
+            l2,
+            [b, n, m, c],
+            b * m * c,
+        )?;
         Ok((out, Shape::from((b, m, c))))
     }
 
@@ -157,7 +165,9 @@ impl CustomOp2 for GatherRows {
         grad: &Tensor,
     ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>)> {
         let n = x.dim(1)?;
-        let gx = grad.contiguous()?.apply_op2_no_bwd(ids, &ScatterAddRows { n })?;
+        let gx = grad
+            .contiguous()?
+            .apply_op2_no_bwd(ids, &ScatterAddRows { n })?;
         Ok((Some(gx), None))
     }
 }
@@ -329,9 +339,19 @@ mod tests {
         let up = Tensor::from_vec(values(m * c, 2), (m, c), &dev).unwrap();
 
         let plain = x.as_tensor().index_select(&ids, 0).unwrap();
-        let g_plain = (plain.clone() * &up).unwrap().sum_all().unwrap().backward().unwrap();
+        let g_plain = (plain.clone() * &up)
+            .unwrap()
+            .sum_all()
+            .unwrap()
+            .backward()
+            .unwrap();
         let ours = select_rows(x.as_tensor(), &ids).unwrap();
-        let g_ours = (ours.clone() * &up).unwrap().sum_all().unwrap().backward().unwrap();
+        let g_ours = (ours.clone() * &up)
+            .unwrap()
+            .sum_all()
+            .unwrap()
+            .backward()
+            .unwrap();
 
         assert_eq!(bits(&ours), bits(&plain));
         let (a, b) = (g_ours.get(&x).unwrap(), g_plain.get(&x).unwrap());
@@ -359,12 +379,25 @@ mod tests {
 
         let idx = ids.unsqueeze(2).unwrap().broadcast_as((b, n, c)).unwrap();
         let plain = x.as_tensor().gather(&idx.contiguous().unwrap(), 1).unwrap();
-        let g_plain = (plain.clone() * &up).unwrap().sum_all().unwrap().backward().unwrap();
+        let g_plain = (plain.clone() * &up)
+            .unwrap()
+            .sum_all()
+            .unwrap()
+            .backward()
+            .unwrap();
         let ours = gather_rows(x.as_tensor(), &ids).unwrap();
-        let g_ours = (ours.clone() * &up).unwrap().sum_all().unwrap().backward().unwrap();
+        let g_ours = (ours.clone() * &up)
+            .unwrap()
+            .sum_all()
+            .unwrap()
+            .backward()
+            .unwrap();
 
         assert_eq!(bits(&ours), bits(&plain));
-        assert_eq!(bits(g_ours.get(&x).unwrap()), bits(g_plain.get(&x).unwrap()));
+        assert_eq!(
+            bits(g_ours.get(&x).unwrap()),
+            bits(g_plain.get(&x).unwrap())
+        );
     }
 
     #[test]
@@ -391,7 +424,12 @@ mod tests {
             let ids = Tensor::from_vec(ids, (b, m), dev).unwrap();
             let up = Tensor::from_vec(values(b * m * c, 6), (b, m, c), dev).unwrap();
             let y = gather_rows(x.as_tensor(), &ids).unwrap();
-            let g = (y.clone() * &up).unwrap().sum_all().unwrap().backward().unwrap();
+            let g = (y.clone() * &up)
+                .unwrap()
+                .sum_all()
+                .unwrap()
+                .backward()
+                .unwrap();
             let gx = g.get(&x).unwrap().to_device(&Device::Cpu).unwrap();
             (y.to_device(&Device::Cpu).unwrap(), gx)
         };
@@ -406,7 +444,16 @@ mod tests {
             .unwrap()
             .to_scalar::<f32>()
             .unwrap();
-        let scale = g_cpu.abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap();
-        assert!(diff <= 1e-5 * scale.max(1.0), "max |cuda - cpu| {diff} (scale {scale})");
+        let scale = g_cpu
+            .abs()
+            .unwrap()
+            .max_all()
+            .unwrap()
+            .to_scalar::<f32>()
+            .unwrap();
+        assert!(
+            diff <= 1e-5 * scale.max(1.0),
+            "max |cuda - cpu| {diff} (scale {scale})"
+        );
     }
 }

@@ -344,8 +344,10 @@ impl<'a> Session<'a> {
             };
             self.trainer.set_wall_s(self.wall());
             if let Some(p) = crate::ops::profile::take_report() {
-                self.observer
-                    .note(&format!("iteration {} profile (PMA_PROFILE=1): {p}", stats.iter));
+                self.observer.note(&format!(
+                    "iteration {} profile (PMA_PROFILE=1): {p}",
+                    stats.iter
+                ));
             }
             self.record_step(&stats, target);
             match self.after_step(stats.iter) {

@@ -174,9 +174,12 @@ pub fn training_loss(
     // One read-back for the five numbers (one device sync on a GPU).
     let parts = [&loss.total, &loss.fine, &loss.coarse, &loss.scale, &mse]
         .map(|t| t.to_dtype(candle_core::DType::F32));
-    let v = Tensor::stack(&parts.into_iter().collect::<candle_core::Result<Vec<_>>>()?, 0)?
-        .to_device(&Device::Cpu)?
-        .to_vec1::<f32>()?;
+    let v = Tensor::stack(
+        &parts.into_iter().collect::<candle_core::Result<Vec<_>>>()?,
+        0,
+    )?
+    .to_device(&Device::Cpu)?
+    .to_vec1::<f32>()?;
     let parts = LossParts {
         total: v[0] as f64,
         fine: v[1] as f64,
