@@ -6,6 +6,9 @@
 //! down: the profile is for finding the expensive stage, not for it/s figures. Off (the
 //! default), a mark is one relaxed load.
 //!
+//! The per-step line goes straight to stderr ([`print_step`]): a diagnostic that must reach
+//! a log file even when the front end shows nothing (no terminal, `--quiet`).
+//!
 //! Marks are attributed per thread: with several CPU workers running chunks at once the
 //! stages overlap, so the figures are meaningful with one worker (GPU runs, or
 //! `RAYON_NUM_THREADS=1`).
@@ -79,4 +82,11 @@ pub fn take_report() -> Option<String> {
         parts.push(format!("{name} {:.1} ms ({n}x)", s * 1e3));
     }
     Some(parts.join(", "))
+}
+
+/// Print the stages of step `iter` to stderr and reset (nothing when profiling is off).
+pub fn print_step(iter: u64) {
+    if let Some(p) = take_report() {
+        eprintln!("iteration {iter} profile (PMA_PROFILE=1): {p}");
+    }
 }
