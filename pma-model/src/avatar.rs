@@ -314,22 +314,29 @@ impl Avatar {
             &poses.skts,
             &pose.scales.detach(),
         )?;
+        let prof = crate::ops::profile::mark;
+        prof("cast", &self.device);
         let (view, d_root) = self.ray_view_features(rays, poses, mode.is_training())?;
         let mut points = PointEval::new(self, mode, poses, pose, &coarse.bounds, trace.is_some())?;
         // 3. Coarse pass and render.
         let tr = trace.as_deref_mut();
         let raw_coarse = points.run(self, pose, &coarse.pts, &view, mode, "coarse", tr)?;
+        prof("coarse network", &self.device);
         let render_coarse = raw2outputs(&raw_coarse, &coarse.z, &rays.dirs, rays.bgs.as_ref())?;
+        prof("coarse render", &self.device);
         // 4. Importance samples from the coarse weights, then the fine pass on those only.
         let weights = render_coarse.weights.detach();
         let fine = self
             .caster
             .resample(&rays.origins, &rays.dirs, &coarse.z, &weights)?;
+        prof("resample", &self.device);
         let tr = trace.as_deref_mut();
         let raw_fine = points.run(self, pose, &fine.pts, &view, mode, "fine", tr)?;
+        prof("fine network", &self.device);
         // 5. Merge with the coarse outputs (reused, noise included) and render again.
         let raw = merge_raw(&raw_coarse, &raw_fine, &fine.perm)?;
         let render_fine = raw2outputs(&raw, &fine.z_all, &rays.dirs, rays.bgs.as_ref())?;
+        prof("merge + fine render", &self.device);
         if let Some(t) = trace {
             let r = rays.origins.dim(0)?;
             for (stage, samples) in [("coarse", coarse.z.dim(1)?), ("fine", fine.z.dim(1)?)] {

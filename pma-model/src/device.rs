@@ -53,7 +53,12 @@ pub fn parse_device(spec: &str) -> Result<Device, DeviceError> {
                     feature: "cuda",
                 });
             }
-            open(Device::new_cuda(ordinal))
+            let dev = open(Device::new_cuda(ordinal))?;
+            keep_pool_memory(&dev).map_err(|source| DeviceError::Open {
+                spec: spec.to_string(),
+                source,
+            })?;
+            Ok(dev)
         }
         "metal" => {
             if !candle_core::utils::metal_is_available() {
@@ -66,6 +71,65 @@ pub fn parse_device(spec: &str) -> Result<Device, DeviceError> {
         }
         _ => Err(DeviceError::Unknown(spec.to_string())),
     }
+}
+
+/// Keep freed GPU memory in the stream-ordered pool instead of handing it back to the driver.
+///
+/// cudarc allocates with `cuMemAllocAsync` from the device's pool, whose release threshold
+/// is 0: every synchronisation returns the pool's free memory to the driver, and the next
+/// step allocates it again. A threshold of `u64::MAX` keeps it (the peak of one training
+/// step stays reserved, as PyTorch's caching allocator does).
+#[cfg(feature = "cuda")]
+fn keep_pool_memory(dev: &Device) -> candle_core::Result<()> {
+    use candle_core::cuda_backend::cudarc::driver::{result, sys};
+    use candle_core::cuda_backend::WrapErr;
+    let Device::Cuda(cuda) = dev else {
+        return Ok(());
+    };
+    let cu_device = cuda.cuda_stream().context().cu_device();
+    let mut threshold: u64 = u64::MAX;
+    // SAFETY: `cu_device` comes from a live context; the attribute takes a cuuint64_t.
+    unsafe {
+        let pool = result::device::get_mem_pool(cu_device).w()?;
+        result::mem_pool::set_attribute(
+            pool,
+            sys::CUmemPool_attribute::CU_MEMPOOL_ATTR_RELEASE_THRESHOLD,
+            (&mut threshold as *mut u64).cast(),
+        )
+        .w()?;
+    }
+    Ok(())
+}
+
+#[cfg(not(feature = "cuda"))]
+fn keep_pool_memory(_dev: &Device) -> candle_core::Result<()> {
+    Ok(())
+}
+
+/// Why `--tf32` was refused.
+#[derive(Debug, thiserror::Error)]
+#[error("--tf32 needs a CUDA device (this run is on {device}): TF32 is a mode of the GPU's tensor cores, the CPU always computes in full f32")]
+pub struct Tf32Error {
+    pub device: String,
+}
+
+/// Let cuBLAS run f32 matrix products in TF32 on tensor cores (`--tf32`) or not (the
+/// default). A process-wide switch of candle's CUDA backend: it changes results (10-bit
+/// mantissa products, f32 accumulation; see docs/numerics.md, "Low precision"), so it is
+/// never on unless asked for. Refused on a device other than CUDA, where it would do nothing.
+pub fn set_tf32(on: bool, device: &Device) -> Result<(), Tf32Error> {
+    if on && !device.is_cuda() {
+        return Err(Tf32Error {
+            device: if device.is_metal() {
+                "metal"
+            } else {
+                "the cpu"
+            }
+            .to_string(),
+        });
+    }
+    candle_core::cuda::set_gemm_reduced_precision_f32(on);
+    Ok(())
 }
 
 #[cfg(test)]
@@ -82,6 +146,13 @@ mod tests {
                 "{bad}"
             );
         }
+    }
+
+    #[test]
+    fn tf32_is_refused_off_cuda() {
+        let e = set_tf32(true, &Device::Cpu).unwrap_err().to_string();
+        assert!(e.contains("--tf32 needs a CUDA device"), "{e}");
+        assert!(set_tf32(false, &Device::Cpu).is_ok());
     }
 
     #[test]

@@ -40,6 +40,7 @@ pub mod lpips;
 pub mod mesh;
 pub mod modulator;
 pub mod nn;
+pub mod ops;
 pub mod parallel;
 pub mod params;
 pub mod points;

@@ -54,6 +54,13 @@ pub struct Args {
     /// No progress bars.
     #[arg(long)]
     pub quiet: bool,
+    /// Compute device: cpu, cuda, cuda:N, metal (cuda/metal need a binary built with that
+    /// feature). Ray casting and the scoring stay on the CPU.
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
+    /// TF32 matrix products on CUDA (changes results; refused on other devices).
+    #[arg(long)]
+    pub tf32: bool,
 }
 
 #[cfg(not(feature = "train"))]
@@ -334,7 +341,7 @@ mod imp {
 
     pub fn run(mut args: Args) -> anyhow::Result<()> {
         check_args(&mut args)?;
-        let dev = Device::Cpu;
+        let dev = super::super::device_tf32(&args.device, args.tf32)?;
         std::fs::create_dir_all(&args.out)
             .with_context(|| format!("creating {}", args.out.display()))?;
         let rss_reset = reset_peak_rss();
@@ -597,7 +604,7 @@ mod imp {
         results: &mut [OptionResult],
         rss_reset: bool,
     ) -> anyhow::Result<()> {
-        let dev = Device::Cpu;
+        let dev = super::super::device(&args.device)?;
         let budget = args.budget_seconds.max(0.0);
         let b = progress::bar(args.quiet, opts.len() as u64, "training per option");
         for (res, (name, culling, fast_sine)) in results.iter_mut().zip(opts) {

@@ -46,6 +46,10 @@ pub struct Args {
     /// No progress bars.
     #[arg(long)]
     pub quiet: bool,
+    /// Compute device for training and evaluation: cpu, cuda, cuda:N, metal (cuda/metal
+    /// need a binary built with that feature). Scene synthesis runs on the CPU.
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
 }
 
 #[cfg(not(feature = "train"))]
@@ -118,13 +122,15 @@ pub(crate) mod imp {
 
     pub fn run(args: Args) -> anyhow::Result<()> {
         let preset: Preset = args.preset.parse()?;
+        // Opened first: a device this build cannot use is refused before any work.
+        let device = super::super::device(&args.device)?;
         let out = args.out.clone();
         std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
         let scene = make_scene(args.res, args.frames, args.quiet, &out.join("scene"))?;
-        let (outcome, it_per_s) = train_scene(&args, preset, &scene, &out.join("run"))?;
+        let (outcome, it_per_s) = train_scene(&args, preset, &scene, &out.join("run"), &device)?;
         println!("[3/4] evaluating");
         let renders = out.join("renders");
-        let splits = evaluate_splits(&args, preset, &scene, &outcome.model, &out)?;
+        let splits = evaluate_splits(&args, preset, &scene, &outcome.model, &out, &device)?;
 
         let plot = out.join(PLOT_FILE);
         let run_plot = out.join("run").join(PLOT_FILE);
@@ -196,6 +202,7 @@ pub(crate) mod imp {
         preset: Preset,
         scene: &Path,
         run_dir: &Path,
+        device: &candle_core::Device,
     ) -> anyhow::Result<(TrainOutcome, f64)> {
         println!("[2/4] training preset `{preset}` for {} min", args.minutes);
         let mut run = RunConfig::from_preset(preset);
@@ -211,7 +218,7 @@ pub(crate) mod imp {
             minutes: Some(args.minutes),
             eval_data: Some(scene.join("novel_view.npz")),
             chunk_rays: None,
-            device: candle_core::Device::Cpu,
+            device: device.clone(),
         };
         let outcome = train(
             &req,
@@ -234,9 +241,10 @@ pub(crate) mod imp {
         scene: &Path,
         model: &Path,
         out: &Path,
+        device: &candle_core::Device,
     ) -> anyhow::Result<BTreeMap<String, SplitSummary>> {
         let renders = out.join("renders");
-        let avatar = Avatar::load(model, &candle_core::Device::Cpu)?;
+        let avatar = Avatar::load(model, device)?;
         let baseline =
             mean_foreground_colour(&read_dataset(&scene.join("train.npz"), Profile::Eval)?)?;
         std::fs::create_dir_all(&renders)

@@ -65,10 +65,14 @@ pub struct Args {
     /// feature).
     #[arg(long, default_value = "cpu")]
     pub device: String,
+    /// TF32 matrix products on CUDA: faster, changes results (see docs/numerics.md, "Low
+    /// precision"); refused on other devices.
+    #[arg(long)]
+    pub tf32: bool,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let device = super::device(&args.device)?;
+    let device = super::device_tf32(&args.device, args.tf32)?;
     let mut avatar = Avatar::load(&args.model, &device)
         .with_context(|| format!("loading model {}", args.model.display()))?;
     avatar.set_culling(args.cull.clone())?;

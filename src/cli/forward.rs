@@ -37,6 +37,10 @@ pub struct Args {
     /// feature).
     #[arg(long, default_value = "cpu")]
     device: String,
+    /// TF32 matrix products on CUDA: faster, changes results (see docs/numerics.md, "Low
+    /// precision"); refused on other devices.
+    #[arg(long)]
+    tf32: bool,
     /// After the forward whose outputs are written, run this many more and print their
     /// median wall time (the first call pays one-off costs such as GPU kernel loading).
     #[arg(long, default_value_t = 0)]
@@ -105,7 +109,7 @@ impl Batch {
 }
 
 pub fn run(args: Args) -> Result<()> {
-    let dev = super::device(&args.device)?;
+    let dev = super::device_tf32(&args.device, args.tf32)?;
     let file = args.batch.display().to_string();
     let b = Batch::read(&args.batch)?;
     let input = b.model_input(&dev)?;

@@ -15,7 +15,6 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::Context as _;
-use candle_core::Device;
 use image::RgbImage;
 use pma_data::cylinder::HeadDir;
 use pma_data::skeleton::Joints;
@@ -71,6 +70,10 @@ pub struct Args {
     /// No progress bar.
     #[arg(long)]
     pub quiet: bool,
+    /// Compute device of the density and colour queries: cpu, cuda, cuda:N, metal (cuda/metal
+    /// need a binary built with that feature). Marching cubes runs on the CPU.
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
     /// Output PLY.
     #[arg(short = 'o', long)]
     pub out: PathBuf,
@@ -80,7 +83,7 @@ pub struct Args {
 #[allow(clippy::result_large_err)]
 pub fn run(args: Args) -> anyhow::Result<()> {
     check_args(&args)?;
-    let device = Device::Cpu;
+    let device = super::device(&args.device)?;
     let dirs = if args.reference_dirs {
         ViewDirs::Reference
     } else {

@@ -123,6 +123,9 @@ pub fn is_input_error(e: &(dyn std::error::Error + 'static)) -> Option<bool> {
     if let Some(e) = e.downcast_ref::<pma_model::train::TrainError>() {
         return Some(train_input(e));
     }
+    if e.is::<pma_model::device::Tf32Error>() {
+        return Some(true);
+    }
     if let Some(e) = e.downcast_ref::<pma_model::device::DeviceError>() {
         use pma_model::device::DeviceError;
         return Some(matches!(
@@ -238,6 +241,13 @@ pub fn interrupted_report(e: &anyhow::Error) -> String {
 /// A backend missing from this build is reported with the cargo feature that brings it.
 pub fn device(spec: &str) -> anyhow::Result<candle_core::Device> {
     Ok(pma_model::device::parse_device(spec)?)
+}
+
+/// [`device`], then TF32 matrix products on (`--tf32`, CUDA only: refused elsewhere) or off.
+pub fn device_tf32(spec: &str, tf32: bool) -> anyhow::Result<candle_core::Device> {
+    let dev = device(spec)?;
+    pma_model::device::set_tf32(tf32, &dev)?;
+    Ok(dev)
 }
 
 /// Read a dataset for `profile`, printing its warnings.

@@ -139,6 +139,10 @@ pub struct Args {
     /// feature).
     #[arg(long, default_value = "cpu")]
     pub device: String,
+    /// TF32 matrix products on CUDA: faster, changes results (see docs/numerics.md, "Low
+    /// precision"); refused on other devices.
+    #[arg(long)]
+    pub tf32: bool,
     /// Output directory.
     #[arg(long)]
     pub out: PathBuf,
@@ -188,7 +192,7 @@ struct Report {
 pub fn run(args: Args) -> anyhow::Result<()> {
     check_args(&args)?;
     let res = args.res.as_deref().map(parse_resolution).transpose()?;
-    let device = super::device(&args.device)?;
+    let device = super::device_tf32(&args.device, args.tf32)?;
     let dirs = if args.reference_dirs {
         ViewDirs::Reference
     } else {

@@ -54,6 +54,10 @@ pub struct Args {
     /// feature).
     #[arg(long, default_value = "cpu")]
     pub device: String,
+    /// TF32 matrix products on CUDA: faster, changes results (see docs/numerics.md, "Low
+    /// precision"); refused on other devices.
+    #[arg(long)]
+    pub tf32: bool,
 }
 
 #[cfg(not(feature = "train"))]
@@ -119,7 +123,7 @@ mod imp {
             minutes: args.minutes,
             eval_data,
             chunk_rays: args.chunk_rays,
-            device: super::super::device(&args.device)?,
+            device: super::super::device_tf32(&args.device, args.tf32)?,
         };
         let outcome = train(
             &req,

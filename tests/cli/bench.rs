@@ -11,6 +11,8 @@ fn quick_bench_writes_every_field() {
             "bench",
             "--quick",
             "--quiet",
+            "--device",
+            "cpu",
             "--thresholds",
             "0,1e-2",
             "--out",

@@ -29,6 +29,8 @@ fn demo_writes_summary_renders_and_plot() {
             "--pngs",
             "1",
             "--quiet",
+            "--device",
+            "cpu",
         ])
         .output()
         .unwrap();

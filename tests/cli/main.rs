@@ -8,6 +8,7 @@ mod bench;
 mod check_stability;
 mod convert;
 mod demo;
+mod devices;
 mod eval;
 mod exit_codes;
 mod forward;

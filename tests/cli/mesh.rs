@@ -95,6 +95,8 @@ fn solid_avatar_mesh_is_the_closed_union_of_its_part_boxes() {
         "-o",
         s(&ply),
         "--quiet",
+        "--device",
+        "cpu",
     ]))
     .stdout;
     let text = String::from_utf8_lossy(&stdout);

@@ -8,7 +8,7 @@
 //! [`RayCaster::resample`] wrap the host code for the network; [`merge_raw`] reorders the
 //! network outputs (differentiably, it is a gather).
 
-use candle_core::{DType, Tensor, D};
+use candle_core::Tensor;
 
 use pma_data::skeleton::N_JOINTS;
 
@@ -605,12 +605,9 @@ pub fn merge_raw(raw_coarse: &Tensor, raw_fine: &Tensor, perm: &Tensor) -> Resul
         return Err(ModelError::shape("perm", [r, sc + sf], perm.dims()));
     }
     let cat = Tensor::cat(&[raw_coarse, raw_fine], 1)?;
-    let idx = perm
-        .to_dtype(DType::U32)?
-        .unsqueeze(D::Minus1)?
-        .broadcast_as((r, sc + sf, c))?
-        .contiguous()?;
-    Ok(cat.gather(&idx, 1)?)
+    // candle's gather backward (scatter_add) loops over the samples serially on CUDA; the
+    // row op's does not, and is bit-identical on the CPU.
+    crate::ops::gather_rows(&cat, perm)
 }
 
 /// `torch.linspace(0, 1, n)` in float32: the step is rounded once and the second half is

@@ -284,14 +284,20 @@ impl Adam {
 /// Global L2 norm of all gradients together, accumulated in f64. Non-finite if any
 /// gradient element is non-finite.
 pub fn global_norm(grads: &[Option<Tensor>]) -> Result<f64, TrainError> {
-    let mut sum = 0.0f64;
-    for g in grads.iter().flatten() {
-        sum += g
-            .to_dtype(DType::F64)?
-            .sqr()?
-            .sum_all()?
-            .to_scalar::<f64>()?;
+    let sums = grads
+        .iter()
+        .flatten()
+        .map(|g| g.to_dtype(DType::F64)?.sqr()?.sum_all())
+        .collect::<candle_core::Result<Vec<_>>>()?;
+    if sums.is_empty() {
+        return Ok(0.0);
     }
+    // One read-back for all tensors (one device sync on a GPU, not one per tensor), then
+    // the same sum in the same order as reading them one by one.
+    let host = Tensor::stack(&sums, 0)?
+        .to_device(&candle_core::Device::Cpu)?
+        .to_vec1::<f64>()?;
+    let sum = host.iter().fold(0.0f64, |a, v| a + v);
     Ok(sum.sqrt())
 }
 

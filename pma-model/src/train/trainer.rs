@@ -170,17 +170,22 @@ pub fn training_loss(
         scale: cfg.loss_scale,
     };
     let loss = crate::loss::training_loss(out, target, &weights)?;
-    let mse = (&out.fine.rgb.detach() - target)?
-        .sqr()?
-        .mean_all()?
-        .to_scalar::<f32>()? as f64;
-    let scalar = |t: &Tensor| -> Result<f64, TrainError> { Ok(t.to_scalar::<f32>()? as f64) };
+    let mse = (&out.fine.rgb.detach() - target)?.sqr()?.mean_all()?;
+    // One read-back for the five numbers (one device sync on a GPU).
+    let parts = [&loss.total, &loss.fine, &loss.coarse, &loss.scale, &mse]
+        .map(|t| t.to_dtype(candle_core::DType::F32));
+    let v = Tensor::stack(
+        &parts.into_iter().collect::<candle_core::Result<Vec<_>>>()?,
+        0,
+    )?
+    .to_device(&Device::Cpu)?
+    .to_vec1::<f32>()?;
     let parts = LossParts {
-        total: scalar(&loss.total)?,
-        fine: scalar(&loss.fine)?,
-        coarse: scalar(&loss.coarse)?,
-        scale: scalar(&loss.scale)?,
-        psnr: psnr_from_mse(mse),
+        total: v[0] as f64,
+        fine: v[1] as f64,
+        coarse: v[2] as f64,
+        scale: v[3] as f64,
+        psnr: psnr_from_mse(v[4] as f64),
     };
     Ok((loss.total, parts))
 }
@@ -537,6 +542,7 @@ impl Trainer {
         hook: Option<GradHook>,
     ) -> Result<StepStats, TrainError> {
         let rays = batch.rays.origins.dim(0)?;
+        crate::ops::profile::start(self.avatar.device());
         let mut chunk = chunk_rays(&self.run.train, self.avatar.config());
         let workers = crate::parallel::workers_on(self.avatar.device());
         if workers > 1 {
@@ -547,8 +553,10 @@ impl Trainer {
             self.chunked_grads(batch, chunk)?
         } else {
             let (loss, parts) = self.loss_on(batch)?;
+            crate::ops::profile::mark("loss", self.avatar.device());
             let grads = if parts.total.is_finite() {
                 let store = loss.backward()?;
+                crate::ops::profile::mark("backward", self.avatar.device());
                 self.params
                     .iter()
                     .map(|v| store.get(v.as_tensor()).cloned())
@@ -561,7 +569,9 @@ impl Trainer {
         if let Some(h) = hook {
             h(&mut grads);
         }
-        self.opt.apply(parts, grads)
+        let stats = self.opt.apply(parts, grads);
+        crate::ops::profile::mark("grad norm + Adam", self.avatar.device());
+        stats
     }
 
     /// Loss parts and gradients of one step on `batch`, computed `chunk` rays at a time
@@ -585,6 +595,7 @@ impl Trainer {
             Ok(t.flatten_all()?.to_device(&Device::Cpu)?.to_vec1::<f32>()?)
         };
         let pose = self.avatar.pose_features(&batch.poses, None)?;
+        crate::ops::profile::mark("pose features", self.avatar.device());
         let bounds = self.avatar.ray_caster().near_far(
             &host(&batch.rays.origins)?,
             &host(&batch.rays.dirs)?,
@@ -627,6 +638,7 @@ impl Trainer {
                 .flat_map(|p| p * k + start..p * k + start + len)
                 .collect();
             let (rays, target) = select_rays(batch, &rows, &device)?;
+            crate::ops::profile::mark("chunk select + batch near/far", &device);
             let mut call = 0;
             let mut noise = |n: usize| {
                 let mut t = tape.lock().unwrap_or_else(|e| e.into_inner());
@@ -641,22 +653,30 @@ impl Trainer {
             };
             let mut loss =
                 (l1(&out.fine.rgb, cfg.loss_fine)? + l1(&out.coarse.rgb, cfg.loss_coarse)?)?;
-            let scalar = |t: &Tensor| -> Result<f64, TrainError> {
-                Ok(t.to_dtype(candle_core::DType::F64)?.to_scalar::<f64>()?)
-            };
-            let fine = scalar(&(&out.fine.rgb.detach() - &target)?.abs()?.sum_all()?)? * inv_n;
-            let coarse = scalar(&(&out.coarse.rgb.detach() - &target)?.abs()?.sum_all()?)? * inv_n;
-            let sq = scalar(&(&out.fine.rgb.detach() - &target)?.sqr()?.sum_all()?)? * inv_n;
-            let mut scale = None;
+            let f64_of = |t: &Tensor| t.to_dtype(candle_core::DType::F64);
+            let mut numbers = vec![
+                f64_of(&(&out.fine.rgb.detach() - &target)?.abs()?.sum_all()?)?,
+                f64_of(&(&out.coarse.rgb.detach() - &target)?.abs()?.sum_all()?)?,
+                f64_of(&(&out.fine.rgb.detach() - &target)?.sqr()?.sum_all()?)?,
+            ];
             if start == 0 {
                 let volume = crate::loss::box_volume(&out.vol_scale)?;
-                scale = Some(scalar(&volume)?);
+                numbers.push(f64_of(&volume)?);
                 loss = (loss + (volume * cfg.loss_scale)?)?;
             }
+            numbers.push(f64_of(&loss)?);
+            // One read-back for the chunk's numbers (one device sync on a GPU).
+            let v = Tensor::stack(&numbers, 0)?
+                .to_device(&Device::Cpu)?
+                .to_vec1::<f64>()?;
+            let (fine, coarse, sq) = (v[0] * inv_n, v[1] * inv_n, v[2] * inv_n);
+            let scale = (start == 0).then(|| v[3]);
             // A non-finite chunk is not differentiated; the step is then skipped.
-            let finite = scalar(&loss)?.is_finite();
+            let finite = v[v.len() - 1].is_finite();
+            crate::ops::profile::mark("loss", &device);
             let grads = if finite {
                 let store = loss.backward()?;
+                crate::ops::profile::mark("backward", &device);
                 params
                     .iter()
                     .map(|v| store.get(v.as_tensor()).map(|d| d.detach()))

@@ -8,8 +8,22 @@ use candle_core::{DType, Device, Tensor};
 use pma_model::avatar::{Avatar, Mode, Outputs, Poses, Rays, Trace};
 use pma_model::checkpoint;
 
+/// The device the golden cases run on: the CPU, or `PMA_TEST_DEVICE` (e.g. `cuda` for
+/// scripts/gpu-check.sh with a `--features cuda` test binary).
+pub fn test_device() -> Device {
+    match std::env::var("PMA_TEST_DEVICE") {
+        Ok(spec) => pma_model::device::parse_device(&spec).expect("PMA_TEST_DEVICE"),
+        Err(_) => Device::Cpu,
+    }
+}
+
+/// The fixtures directory; `PMA_FIXTURES` overrides the build-time path (a test binary run
+/// on another machine, scripts/gpu-check.sh).
 pub fn fixtures() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../fixtures")
+    match std::env::var_os("PMA_FIXTURES") {
+        Some(dir) => PathBuf::from(dir),
+        None => PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../fixtures"),
+    }
 }
 
 pub struct Golden(pub HashMap<String, Tensor>);
@@ -92,7 +106,7 @@ pub struct GoldenCase {
 impl GoldenCase {
     /// dir: "golden" or "golden/dense" under fixtures/.
     pub fn load(dir: &str, sigma_override: bool) -> Self {
-        let dev = Device::Cpu;
+        let dev = test_device();
         let base = fixtures().join(dir);
         let golden =
             Golden(candle_core::safetensors::load(base.join("golden.safetensors"), &dev).unwrap());

@@ -27,7 +27,7 @@ fn gradients(
         let idx = candle_core::Tensor::from_vec(
             (0..r as u32).rev().collect::<Vec<_>>(),
             r,
-            &candle_core::Device::Cpu,
+            c_rays.origins.device(),
         )
         .unwrap();
         c_rays.origins = c_rays.origins.index_select(&idx, 0).unwrap();

@@ -1,0 +1,47 @@
+#!/bin/bash
+# Build pma with `--features cuda` on a machine without a GPU, so the CUDA code paths keep
+# compiling, and leave what scripts/gpu-check.sh needs on a GPU machine:
+#
+#   scripts/check-cuda-build.sh [TOOLCHAIN_DIR]   # default /tmp/cuda-tc; needs network once
+#
+#   target-cuda/gpu-check/pma            the CUDA build of the CLI (stripped)
+#   target-cuda/gpu-check/model-tests    the golden/gradient tests (PMA_TEST_DEVICE=cuda)
+#
+# Steps: the nvcc toolchain from NVIDIA's wheels (scripts/cuda-toolchain-from-wheels.sh,
+# skipped when DIR/env.sh exists), nvcc on pma's own kernels (scripts/check-cuda-kernels.sh),
+# then the two release builds. Prints the time of each step. On a 2-core machine the cold
+# build takes far longer than CI's budget, hence a script rather than a CI step.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+TC=$(realpath -m "${1:-/tmp/cuda-tc}")
+export CARGO_TARGET_DIR=${CARGO_TARGET_DIR:-$PWD/target-cuda}
+t() { local s; s=$(date +%s); "$@"; echo "   ($(( $(date +%s) - s )) s: $*)"; }
+
+echo "== toolchain ($TC)"
+[ -f "$TC/env.sh" ] || t scripts/cuda-toolchain-from-wheels.sh "$TC"
+# shellcheck disable=SC1091
+. "$TC/env.sh"
+export CUDA_COMPUTE_CAP=${CUDA_COMPUTE_CAP:-90}
+
+echo "== pma's kernels (nvcc --ptx)"
+t scripts/check-cuda-kernels.sh "$CUDA_COMPUTE_CAP"
+
+echo "== pma --features cuda (release)"
+t cargo build --release --locked -p pma --features cuda
+
+echo "== pma-model model tests --features cuda (release)"
+t cargo test --release --locked -p pma-model --features cuda,train --test model --no-run
+bin=$(cargo test --release --locked -p pma-model --features cuda,train --test model --no-run \
+  --message-format json 2>/dev/null \
+  | python3 -c 'import json,sys
+for l in sys.stdin:
+    m = json.loads(l)
+    if m.get("reason") == "compiler-artifact" and m["target"]["name"] == "model" and m.get("executable"):
+        print(m["executable"])' | tail -1)
+# Stripped copies in one folder: what a GPU session carries over (its carry limit is 64 MiB).
+kit="$CARGO_TARGET_DIR/gpu-check"
+mkdir -p "$kit"
+strip -o "$kit/pma" "$CARGO_TARGET_DIR/release/pma"
+strip -o "$kit/model-tests" "$bin"
+ls -la "$kit"
+echo "== ok: scripts/gpu-check.sh finds $kit/pma and $kit/model-tests (run it from the repo root)"

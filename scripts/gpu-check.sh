@@ -1,0 +1,148 @@
+#!/bin/bash
+# One run on a CUDA machine (H100/H200, PyTorch installed, no network) that prints what pma's
+# GPU work needs measured (docs/gpu.md). Builds nothing: the binaries come from a build
+# machine: scripts/check-cuda-build.sh leaves them in target-cuda/gpu-check/, which a GPU
+# session carries over (an ignored path).
+#
+#   scripts/gpu-check.sh                       # everything, ~8–9 minutes
+#
+# Environment (all optional):
+#   PMA_BIN      CUDA build of pma                      (default target-cuda/gpu-check/pma)
+#   PMA_TESTBIN  CUDA build of pma-model's `model` test binary: golden forward + gradient
+#                parity on CUDA (default target-cuda/gpu-check/model-tests; skipped if absent)
+#   OFFICIAL     official PM-Avatars checkout: its training it/s via bench/official/run_official.py
+#   OUT          output directory                       (default runs/gpu-check)
+#   MINUTES      wall-clock minutes per timed training run (default 0.75)
+#   PYTHON       python with PyTorch                    (default python3)
+#
+# Prints one summary at the end (also OUT/summary.txt). Each phase's peak GPU memory comes from
+# nvidia-smi sampled every 200 ms while it runs.
+set -uo pipefail
+cd "$(dirname "$0")/.."
+PMA_BIN=${PMA_BIN:-target-cuda/gpu-check/pma}
+PMA_TESTBIN=${PMA_TESTBIN:-target-cuda/gpu-check/model-tests}
+OFFICIAL=${OFFICIAL:-}
+OUT=${OUT:-runs/gpu-check}
+MINUTES=${MINUTES:-0.75}
+PYTHON=${PYTHON:-python3}
+mkdir -p "$OUT"
+SUMMARY="$OUT/summary.txt"
+: > "$SUMMARY"
+say() { echo "$*" | tee -a "$SUMMARY"; }
+start=$(date +%s)
+
+# The binary dlopens libcublas(Lt).so.13, libcurand.so.10, libcudart.so.13 and libnvrtc: take
+# them from the PyTorch install's nvidia-* packages.
+libs=$("$PYTHON" - <<'PY' 2>/dev/null
+import glob, os
+try:
+    import nvidia
+    roots = list(nvidia.__path__)
+except Exception:
+    roots = []
+dirs = set()
+for r in roots:
+    for so in glob.glob(os.path.join(r, "**", "lib*.so*"), recursive=True):
+        dirs.add(os.path.dirname(so))
+print(":".join(sorted(dirs)))
+PY
+)
+export LD_LIBRARY_PATH="${libs}${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
+
+[ -x "$PMA_BIN" ] || { echo "gpu-check: no pma binary at $PMA_BIN (set PMA_BIN)" >&2; exit 1; }
+say "== gpu-check $(date -u +%FT%TZ)"
+say "gpu: $(nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader 2>/dev/null | head -1)"
+
+# phase NAME CMD...: run CMD, log to OUT/NAME.log, record wall seconds and peak GPU memory.
+phase() {
+  local name=$1; shift
+  local mem="$OUT/$name.mem"
+  nvidia-smi --query-gpu=memory.used --format=csv,noheader,nounits -lms 200 > "$mem" 2>/dev/null &
+  local mon=$!
+  local t0; t0=$(date +%s.%N)
+  "$@" > "$OUT/$name.log" 2>&1
+  local rc=$?
+  local t1; t1=$(date +%s.%N)
+  kill "$mon" 2>/dev/null; wait "$mon" 2>/dev/null
+  local peak; peak=$(sort -n "$mem" 2>/dev/null | tail -1)
+  PHASE_S=$(echo "$t1 - $t0" | bc)
+  printf '%-28s rc %d  %7.1f s  peak GPU memory %s MiB\n' "$name" "$rc" "$PHASE_S" "${peak:-?}" | tee -a "$SUMMARY"
+  return $rc
+}
+itps() { grep -oE '[0-9.]+ it/s' "$OUT/$1.log" | tail -1; }
+
+# 1. Golden forward + gradient parity on CUDA (the tests' own 1e-4 tolerances).
+if [ -n "$PMA_TESTBIN" ] && [ -x "$PMA_TESTBIN" ]; then
+  phase parity-golden env PMA_TEST_DEVICE=cuda PMA_FIXTURES="$PWD/fixtures" "$PMA_TESTBIN" golden:: grad:: --test-threads 1 --nocapture
+  say "  $(grep -E '^test result' "$OUT/parity-golden.log" | tail -1)"
+  grep -iE 'max (abs|rel)|worst' "$OUT/parity-golden.log" | head -8 | sed 's/^/  /' | tee -a "$SUMMARY"
+else
+  say "parity-golden: skipped (set PMA_TESTBIN to a --features cuda build of the model tests)"
+fi
+
+# 2. Data: the synthetic scene (CPU). Training runs read a copy of train.npz in a directory of
+# its own, so no periodic held-out evaluation enters the it/s.
+phase synth "$PMA_BIN" synth --out "$OUT/scene"
+mkdir -p "$OUT/train-only" && cp -f "$OUT/scene/train.npz" "$OUT/train-only/train.npz"
+DATA="$OUT/train-only/train.npz"
+printf 'preset = "cpu-small"\n[train]\nrays_per_step = 3072\n' > "$OUT/cpu-small-3072.toml"
+
+# 3. Warm-up: the first CUDA use compiles PTX (~20 s), cached for the runs below.
+rm -rf "$OUT/warmup"
+phase warmup "$PMA_BIN" train --data "$DATA" --out "$OUT/warmup" --preset tiny --iters 3 --device cuda --quiet
+
+train() { # NAME ARGS...: a timed training run of MINUTES
+  local name=$1; shift
+  rm -rf "$OUT/$name"
+  phase "$name" "$PMA_BIN" train --data "$DATA" --out "$OUT/$name" --iters 100000 \
+    --minutes "$MINUTES" --device cuda --quiet "$@"
+  say "  $name: $(itps "$name")"
+}
+
+# 4. Training it/s at 3,072 rays.
+train default-auto --preset default
+train default-3072 --preset default --chunk-rays 3072
+train default-3072-tf32 --preset default --chunk-rays 3072 --tf32
+train cpu-small-3072 --config "$OUT/cpu-small-3072.toml"
+
+# 5. TF32's effect on quality: the same 300 cpu-small steps with and without, then held-out
+# PSNR on the novel-view split (4 images).
+for tf in off on; do
+  flag=(); [ $tf = on ] && flag=(--tf32)
+  rm -rf "$OUT/tf32-$tf"
+  phase "tf32-$tf-train" "$PMA_BIN" train --data "$DATA" --out "$OUT/tf32-$tf" --preset cpu-small \
+    --iters 300 --seed 0 --device cuda --quiet "${flag[@]}"
+  phase "tf32-$tf-eval" "$PMA_BIN" eval --model "$OUT/tf32-$tf/model.safetensors" \
+    --data "$OUT/scene" --split novel_view --max-images 4 --device cuda "${flag[@]}" \
+    --out "$OUT/tf32-$tf-eval"
+  say "  tf32 $tf: $("$PYTHON" -c 'import json,sys; r=json.load(open(sys.argv[1])); print("held-out PSNR %.3f dB, SSIM %.4f" % (r["psnr"], r["ssim"]))' "$OUT/tf32-$tf-eval/eval.json" 2>&1)"
+done
+
+# 6. Per-stage profile of `default` steps (device syncs at every stage boundary).
+rm -rf "$OUT/profile"
+phase profile-default env PMA_PROFILE=1 "$PMA_BIN" train --data "$DATA" --out "$OUT/profile" \
+  --preset default --iters 3 --device cuda
+say "  $(grep -E 'profile \(PMA_PROFILE=1\)' "$OUT/profile-default.log" | tail -1)"
+rm -rf "$OUT/profile-3072"
+phase profile-default-3072 env PMA_PROFILE=1 "$PMA_BIN" train --data "$DATA" --out "$OUT/profile-3072" \
+  --preset default --chunk-rays 3072 --iters 3 --device cuda
+say "  $(grep -E 'profile \(PMA_PROFILE=1\)' "$OUT/profile-default-3072.log" | tail -1)"
+
+# 7. A 512×512 render of a `default` avatar (the 3,072-ray run's; twice, the second is timed).
+MODEL="$OUT/default-3072/model.safetensors"
+for i in 1 2; do
+  phase "render512-$i" "$PMA_BIN" render --model "$MODEL" --data "$OUT/scene/novel_view.npz" \
+    --res 512x512 --frames 0:1 --no-gif --quiet --device cuda --out "$OUT/render512"
+done
+say "  512x512 render of a default avatar: ${PHASE_S} s (second run)"
+
+# 8. The official code on the same GPU (bench/official/run_official.py).
+if [ -n "$OFFICIAL" ] && [ -f bench/official/run_official.py ]; then
+  phase official-train "$PYTHON" bench/official/run_official.py --official "$OFFICIAL" \
+    --what train --rays 3072 --repeats 5 --device cuda --json "$OUT/official-train.json"
+  say "  official: $(cat "$OUT/official-train.json" 2>/dev/null | tr -d '\n' | head -c 300)"
+else
+  say "official-train: skipped (set OFFICIAL to the official checkout; needs bench/official/run_official.py)"
+fi
+
+say "== done in $(( $(date +%s) - start )) s; logs in $OUT"
