@@ -8,7 +8,9 @@
 //! * **chunked**: bounded chunks on the CPU workers, outputs detached (inference);
 //! * **culled**: only the samples culling keeps ([`crate::cull`]); the rest are filled
 //!   from the network's far-away constant or with zeros. Gradients reach the evaluated
-//!   samples and the constants, so training with culling at threshold 0 is parity too.
+//!   samples and the constants, so training with culling at threshold 0 has parity's loss
+//!   and its gradients up to float summation order (docs/numerics.md, "Empty rays and
+//!   culling").
 //!
 //! Whatever the route, the result is raw [R,S,4] (rgb, density after noise and ReLU).
 
@@ -211,16 +213,41 @@ struct ConstRows {
     probed: bool,
 }
 
-/// One network call of the culled route: the kept samples of one chunk of pose p, then
-/// the far-away points of the rays that still need their constant.
-struct Job {
-    p: usize,
+/// The network calls of one culled stage: every row they read, gathered once per pass
+/// (the kept samples in sample order, then the far-away points), and the calls as ranges
+/// of those rows.
+struct Plan {
+    /// [rows,3] points and the view features of their rays.
     pts: Tensor,
     view: Tensor,
-    /// Kept samples at the front of the call.
+    jobs: Vec<Job>,
+}
+
+/// One network call of the culled route on rows `start..start + len + far_rays.len()` of
+/// the plan, all of pose p: `len` kept samples, or the far-away points of `far_rays` (the
+/// rays that still need their constant).
+struct Job {
+    p: usize,
+    start: usize,
     len: usize,
-    /// Rays whose far-away constant rides at the back of the call.
     far_rays: Vec<usize>,
+}
+
+/// Sizes of the calls for `rows` rows of one pose: at most `chunk` each, as even as
+/// possible, their count a multiple of `workers` where that keeps every call at two rows
+/// or more (so that no worker idles on the last call), never one row where there are two.
+fn call_sizes(rows: usize, chunk: usize, workers: usize) -> Vec<usize> {
+    if rows == 0 {
+        return Vec::new();
+    }
+    let mut calls = rows.div_ceil(chunk);
+    let balanced = calls.next_multiple_of(workers.max(1));
+    if rows >= 2 * balanced {
+        calls = balanced;
+    }
+    calls = calls.min((rows / 2).max(1));
+    let (base, extra) = (rows / calls, rows % calls);
+    (0..calls).map(|c| base + usize::from(c < extra)).collect()
 }
 
 impl CullCtx {
@@ -294,8 +321,17 @@ impl CullCtx {
                 .filter(|&ray| self.consts.row_of_ray[ray] == u32::MAX)
                 .collect()
         };
-        let jobs = self.plan(pose, pts, view, &fates, &far_rays, mode.is_inference())?;
-        let (rgbs, sigmas, evaluated) = self.evaluate(avatar, pose, jobs, mode.is_inference())?;
+        let workers = crate::parallel::workers_on(avatar.device());
+        let plan = self.plan(
+            pose.g.dim(0)?,
+            pts,
+            view,
+            &fates,
+            &far_rays,
+            mode.is_inference(),
+            workers,
+        )?;
+        let (rgbs, sigmas, evaluated) = self.evaluate(avatar, pose, plan, mode.is_inference())?;
         let (rgb, sigma_raw, any_zero) =
             self.scatter(rgbs, sigmas, evaluated, &fates, s, network_fill, pts)?;
         let alive = if noisy && any_zero {
@@ -314,77 +350,105 @@ impl CullCtx {
         Ok((rgb, sigma_raw, alive))
     }
 
-    /// The network calls: per pose, the kept samples in chunks (one chunk when the graph is
-    /// kept), the far-away points of `far_rays` at the back of the pose's last call.
+    /// The network calls: per pose, the kept samples, then the far-away points of
+    /// `far_rays`, each in calls of even sizes (one call each when the graph is kept).
+    ///
+    /// A point's output does not depend on the size of its call or its place in it, from
+    /// two rows up (gemm blocks the depth by a size set by the depth alone; every other op
+    /// is per row), so the grouping is free: calls are sized to keep the workers balanced.
+    /// A single row would take gemm's matrix-vector path, which rounds differently, so a
+    /// one-row call is padded with a copy of its row.
     fn plan(
         &self,
-        pose: &PoseFeatures,
+        n_poses: usize,
         pts: &Tensor,
         view: &Tensor,
         fates: &[SampleFate],
         far_rays: &[usize],
         inference: bool,
-    ) -> Result<Vec<Job>> {
+        workers: usize,
+    ) -> Result<Plan> {
         let (r, s, _) = pts.dims3()?;
-        let n_poses = pose.g.dim(0)?;
         let k = r / n_poses;
         let dev = pts.device();
-        let pts_flat = pts.reshape((r * s, 3))?;
+        let n = r * s;
+        let chunk = |rows: usize| {
+            if inference {
+                call_sizes(rows, INFERENCE_POINT_CHUNK, workers)
+            } else if rows > 0 {
+                vec![rows]
+            } else {
+                Vec::new()
+            }
+        };
+        // Rows of the source: i < n is sample i; n + p is pose p's far-away point.
+        let mut src: Vec<u32> = Vec::new();
+        let mut rays_of: Vec<u32> = Vec::new();
         let mut jobs = Vec::new();
         for p in 0..n_poses {
-            let idx: Vec<u32> = (p * k * s..(p + 1) * k * s)
-                .filter(|&i| fates[i] == SampleFate::Evaluate)
-                .map(|i| i as u32)
-                .collect();
+            let first = src.len();
+            src.extend(
+                (p * k * s..(p + 1) * k * s)
+                    .filter(|&i| fates[i] == SampleFate::Evaluate)
+                    .map(|i| i as u32),
+            );
+            rays_of.extend(src[first..].iter().map(|&i| i / s as u32));
+            let mut start = first;
+            for len in chunk(src.len() - first) {
+                jobs.push(Job {
+                    p,
+                    start,
+                    len,
+                    far_rays: Vec::new(),
+                });
+                start += len;
+            }
+        }
+        let mut far_points = Vec::new();
+        for p in 0..n_poses {
             let far_p: Vec<usize> = far_rays
                 .iter()
                 .copied()
                 .filter(|&ray| ray / k == p)
                 .collect();
-            if idx.is_empty() && far_p.is_empty() {
+            if far_p.is_empty() {
                 continue;
             }
-            let chunk = if inference {
-                INFERENCE_POINT_CHUNK
-            } else {
-                idx.len().max(1)
-            };
-            let parts: Vec<&[u32]> = if idx.is_empty() {
-                vec![&[]]
-            } else {
-                idx.chunks(chunk).collect()
-            };
-            let last = parts.len() - 1;
-            for (c, part) in parts.iter().enumerate() {
-                let len = part.len();
-                let far = if c == last { far_p.clone() } else { Vec::new() };
-                let mut rays_of: Vec<u32> = part.iter().map(|&i| i / s as u32).collect();
-                let mut pts_c = Vec::new();
-                if len > 0 {
-                    let ids = Tensor::from_vec(part.to_vec(), len, dev)?;
-                    pts_c.push(pts_flat.index_select(&ids, 0)?);
-                }
-                if !far.is_empty() {
-                    let test = self.test.as_ref().ok_or_else(|| {
-                        ModelError::Input("culling: constants need the window test".into())
-                    })?;
-                    let x = test.far_point(p)?;
-                    let far_pts = Tensor::from_vec(x.repeat(far.len()), (far.len(), 3), dev)?;
-                    pts_c.push(far_pts.to_dtype(pts.dtype())?);
-                    rays_of.extend(far.iter().map(|&ray| ray as u32));
-                }
-                let rows = rays_of.len();
-                let view_c = view.index_select(&Tensor::from_vec(rays_of, rows, dev)?, 0)?;
+            let test = self.test.as_ref().ok_or_else(|| {
+                ModelError::Input("culling: constants need the window test".into())
+            })?;
+            far_points.extend(test.far_point(p)?);
+            let row = (n + far_points.len() / 3 - 1) as u32;
+            let mut start = src.len();
+            src.extend(std::iter::repeat_n(row, far_p.len()));
+            rays_of.extend(far_p.iter().map(|&ray| ray as u32));
+            let mut rest = &far_p[..];
+            for len in chunk(far_p.len()) {
+                let (these, tail) = rest.split_at(len);
                 jobs.push(Job {
                     p,
-                    pts: Tensor::cat(&pts_c, 0)?,
-                    view: view_c,
-                    len,
-                    far_rays: far,
+                    start,
+                    len: 0,
+                    far_rays: these.to_vec(),
                 });
+                start += len;
+                rest = tail;
             }
         }
-        Ok(jobs)
+        let rows = src.len();
+        let pts_flat = pts.reshape((n, 3))?;
+        let source = if far_points.is_empty() {
+            pts_flat
+        } else {
+            let m = far_points.len() / 3;
+            let far = Tensor::from_vec(far_points, (m, 3), dev)?.to_dtype(pts.dtype())?;
+            Tensor::cat(&[pts_flat, far], 0)?
+        };
+        Ok(Plan {
+            pts: source.index_select(&Tensor::from_vec(src, rows, dev)?, 0)?,
+            view: view.index_select(&Tensor::from_vec(rays_of, rows, dev)?, 0)?,
+            jobs,
+        })
     }
 
     /// Run the jobs on the workers; keep the kept samples' rows in order and file the
@@ -393,14 +457,29 @@ impl CullCtx {
         &mut self,
         avatar: &Avatar,
         pose: &PoseFeatures,
-        jobs: Vec<Job>,
+        plan: Plan,
         inference: bool,
     ) -> Result<(Vec<Tensor>, Vec<Tensor>, usize)> {
+        let Plan { pts, view, jobs } = plan;
         let workers = crate::parallel::workers_on(avatar.device());
         let outs = crate::parallel::map_ordered(workers, jobs.len(), |i| {
             crate::interrupt::check()?;
             let job = &jobs[i];
-            let (rgb, sigma_raw) = avatar.eval_points(pose, job.p, &job.pts, &job.view, None)?;
+            let rows = job.len + job.far_rays.len();
+            let (mut pts_c, mut view_c) = (
+                pts.narrow(0, job.start, rows)?,
+                view.narrow(0, job.start, rows)?,
+            );
+            if rows == 1 {
+                // See `plan`: one row would round differently.
+                pts_c = Tensor::cat(&[&pts_c, &pts_c], 0)?;
+                view_c = Tensor::cat(&[&view_c, &view_c], 0)?;
+            }
+            let (mut rgb, mut sigma_raw) = avatar.eval_points(pose, job.p, &pts_c, &view_c, None)?;
+            if rows == 1 {
+                rgb = rgb.narrow(0, 0, 1)?;
+                sigma_raw = sigma_raw.narrow(0, 0, 1)?;
+            }
             // In inference the chunk's graph goes at once (see `chunked`).
             Ok::<_, ModelError>(if inference {
                 (rgb.detach(), sigma_raw.detach())
@@ -523,5 +602,126 @@ impl CullCtx {
             consts.sigma = vec![sigma.detach()];
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cull::WindowTest;
+    use candle_core::Device;
+    use pma_data::skeleton::N_JOINTS;
+
+    #[test]
+    fn calls_are_even_balanced_and_never_one_row_where_two_exist() {
+        assert_eq!(call_sizes(0, 4096, 2), Vec::<usize>::new());
+        assert_eq!(call_sizes(1, 4096, 2), vec![1]);
+        assert_eq!(call_sizes(3, 4096, 2), vec![3]);
+        assert_eq!(call_sizes(4, 4096, 2), vec![2, 2]);
+        assert_eq!(call_sizes(4097, 4096, 1), vec![2049, 2048]);
+        assert_eq!(call_sizes(8193, 4096, 2), vec![2049, 2048, 2048, 2048]);
+        for rows in [2, 5, 4095, 4096, 4097, 10_000, 123_457] {
+            for workers in [1, 2, 3, 16] {
+                let sizes = call_sizes(rows, 4096, workers);
+                assert_eq!(sizes.iter().sum::<usize>(), rows);
+                assert!(sizes.iter().all(|&n| (2..=4096).contains(&n)), "{sizes:?}");
+                let (lo, hi) = (sizes.iter().min().unwrap(), sizes.iter().max().unwrap());
+                assert!(hi - lo <= 1, "{rows} rows, {workers} workers: {sizes:?}");
+                if rows >= 2 * 4096 * workers {
+                    assert_eq!(sizes.len() % workers, 0, "{rows}, {workers}: {sizes:?}");
+                }
+            }
+        }
+    }
+
+    /// The plan's calls read exactly the kept samples of their pose in sample order, then the
+    /// far-away point once per ray that needs it, with the view features of the right rays.
+    #[test]
+    fn the_plan_reads_every_kept_sample_and_far_point_once() {
+        let dev = Device::Cpu;
+        let mut eye = vec![0f32; N_JOINTS * 16];
+        for j in 0..N_JOINTS {
+            for d in 0..4 {
+                eye[j * 16 + 5 * d] = 1.0;
+            }
+        }
+        let n_poses = 2;
+        let test = WindowTest::new(
+            &eye,
+            &eye.repeat(n_poses),
+            &vec![0.3f32; N_JOINTS * 3],
+            2.0,
+            6,
+            0.2,
+        )
+        .unwrap();
+        let (r, s, vdim) = (2 * 300, 16, 5);
+        let mut state = 12345u64;
+        let mut rnd = || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((state >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
+        };
+        let host: Vec<f32> = (0..r * s * 3).map(|_| rnd()).collect();
+        let view_host: Vec<f32> = (0..r * vdim).map(|_| rnd()).collect();
+        let pts = Tensor::from_vec(host.clone(), (r, s, 3), &dev).unwrap();
+        let view = Tensor::from_vec(view_host.clone(), (r, vdim), &dev).unwrap();
+        let mut alive = vec![true; r];
+        alive[7] = false;
+        alive[400] = false;
+        let fates = test.fates(&host, r, s, Some(&alive)).unwrap();
+        let kept: Vec<usize> = (0..r * s)
+            .filter(|&i| fates[i] == SampleFate::Evaluate)
+            .collect();
+        assert!(kept.len() > INFERENCE_POINT_CHUNK, "{} kept", kept.len());
+        let far_rays: Vec<usize> = (0..r)
+            .filter(|&ray| fates[ray * s..(ray + 1) * s].contains(&SampleFate::Outside))
+            .step_by(3)
+            .collect();
+        assert!(!far_rays.is_empty());
+        let ctx = CullCtx {
+            test: Some(test.clone()),
+            ray_alive: Some(alive),
+            fill: SampleFill::Network,
+            consts: ConstRows::default(),
+        };
+        for (inference, workers) in [(true, 1), (true, 2), (false, 2)] {
+            let plan = ctx
+                .plan(n_poses, &pts, &view, &fates, &far_rays, inference, workers)
+                .unwrap();
+            let rows = plan.pts.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+            let views = plan.view.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+            let (mut next_kept, mut next_far, mut next_row) = (0, 0, 0);
+            for job in &plan.jobs {
+                assert_eq!(job.start, next_row, "calls cover the rows in order");
+                assert!(job.len == 0 || job.far_rays.is_empty());
+                let n = job.len + job.far_rays.len();
+                assert!(n >= 2 && (!inference || n <= INFERENCE_POINT_CHUNK), "{n} rows");
+                for i in 0..n {
+                    let row = job.start + i;
+                    let (sample_x, ray) = if i < job.len {
+                        let sample = kept[next_kept + i];
+                        (host[3 * sample..3 * sample + 3].to_vec(), sample / s)
+                    } else {
+                        let ray = job.far_rays[i - job.len];
+                        (test.far_point(job.p).unwrap().to_vec(), ray)
+                    };
+                    assert_eq!(ray / (r / n_poses), job.p, "a call stays within its pose");
+                    assert_eq!(rows[3 * row..3 * row + 3], sample_x[..], "row {row}");
+                    assert_eq!(
+                        views[vdim * row..vdim * (row + 1)],
+                        view_host[vdim * ray..vdim * (ray + 1)]
+                    );
+                }
+                if job.len > 0 {
+                    assert_eq!(next_far, 0, "kept samples come before far-away points");
+                }
+                next_kept += job.len;
+                next_far += job.far_rays.len();
+                next_row += n;
+            }
+            assert_eq!((next_kept, next_far), (kept.len(), far_rays.len()));
+        }
     }
 }

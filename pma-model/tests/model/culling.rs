@@ -262,3 +262,75 @@ fn small_sample_threshold_changes_the_render_by_a_bounded_amount() {
     // The comparison can fail: at 1e-2 the culled samples do move the render.
     assert!(prev > 0.0, "culling at 1e-2 left the render bit-identical");
 }
+
+/// Every point's network output is the same bit for bit whatever the size of the call it
+/// rides in (from 2 rows up) and wherever it sits in it. The culled route relies on this to
+/// regroup the kept samples of a pass into calls of its choosing (docs/numerics.md, "Empty
+/// rays and culling"): gemm blocks the inner (depth) dimension by a size that depends on
+/// the depth only, and every other op is per row. A 1-row call takes gemm's matrix-vector
+/// path, which sums in another order, so the route never makes one.
+#[test]
+fn a_points_output_does_not_depend_on_the_call_it_rides_in() {
+    let dev = Device::Cpu;
+    let rest = pma_data::synth::rest_pose();
+    for (name, cfg) in [("cpu-small", Config::cpu_small()), ("paper", Config::paper())] {
+        let avatar = Avatar::new(cfg, &rest, 5, &dev).unwrap();
+        let (poses, _) = avatar.pose_from_bones(&[[0.0; 3]; 24], [0.0; 3]).unwrap();
+        let pose = avatar.pose_features(&poses, None).unwrap();
+        let n = 4096 + 700;
+        let mut state = 7u64;
+        let mut rnd = || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((state >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
+        };
+        let pts: Vec<f32> = (0..3 * n).map(|_| rnd()).collect();
+        let dirs: Vec<f32> = (0..3 * n).map(|_| rnd()).collect();
+        let pts = Tensor::from_vec(pts, (n, 3), &dev).unwrap();
+        let dirs = Tensor::from_vec(dirs, (n, 3), &dev).unwrap();
+        let view = avatar.view_features(&dirs, &vec![-1; n], false).unwrap();
+        let eval = |start: usize, len: usize| -> (Vec<u32>, Vec<u32>) {
+            let (rgb, sigma) = avatar
+                .eval_points(
+                    &pose,
+                    0,
+                    &pts.narrow(0, start, len).unwrap(),
+                    &view.narrow(0, start, len).unwrap(),
+                    None,
+                )
+                .unwrap();
+            let bits = |t: &Tensor| flat(t).into_iter().map(f32::to_bits).collect();
+            (bits(&rgb), bits(&sigma))
+        };
+        let (rgb_all, sigma_all) = eval(0, n);
+        // Splits with calls of 2, 3, 63, 64, 65, 1000, 4096 rows, at several offsets.
+        for cuts in [
+            vec![2, 3, 63, 64, 65, 1000],
+            vec![4096, 700],
+            vec![1, 2],
+            vec![700, 4096],
+        ] {
+            let mut start = 0;
+            let mut sizes = cuts.clone();
+            let used: usize = sizes.iter().sum();
+            sizes.push(n - used);
+            for len in sizes {
+                if len >= 2 {
+                    let (rgb, sigma) = eval(start, len);
+                    assert_eq!(
+                        rgb,
+                        rgb_all[3 * start..3 * (start + len)],
+                        "{name}: rgb of rows {start}..+{len} differs from the {n}-row call"
+                    );
+                    assert_eq!(
+                        sigma,
+                        sigma_all[start..start + len],
+                        "{name}: sigma of rows {start}..+{len}"
+                    );
+                }
+                start += len;
+            }
+        }
+    }
+}
