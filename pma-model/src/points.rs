@@ -214,8 +214,8 @@ struct ConstRows {
 }
 
 /// The network calls of one culled stage: every row they read, gathered once per pass
-/// (the kept samples in sample order, then the far-away points), and the calls as ranges
-/// of those rows.
+/// (per pose, its kept samples in sample order, then its far-away points), and the calls
+/// as ranges of those rows.
 struct Plan {
     /// [rows,3] points and the view features of their rays.
     pts: Tensor,
@@ -224,30 +224,13 @@ struct Plan {
 }
 
 /// One network call of the culled route on rows `start..start + len + far_rays.len()` of
-/// the plan, all of pose p: `len` kept samples, or the far-away points of `far_rays` (the
+/// the plan, all of pose p: `len` kept samples, then the far-away points of `far_rays` (the
 /// rays that still need their constant).
 struct Job {
     p: usize,
     start: usize,
     len: usize,
     far_rays: Vec<usize>,
-}
-
-/// Sizes of the calls for `rows` rows of one pose: at most `chunk` each, as even as
-/// possible, their count a multiple of `workers` where that keeps every call at two rows
-/// or more (so that no worker idles on the last call), never one row where there are two.
-fn call_sizes(rows: usize, chunk: usize, workers: usize) -> Vec<usize> {
-    if rows == 0 {
-        return Vec::new();
-    }
-    let mut calls = rows.div_ceil(chunk);
-    let balanced = calls.next_multiple_of(workers.max(1));
-    if rows >= 2 * balanced {
-        calls = balanced;
-    }
-    calls = calls.min((rows / 2).max(1));
-    let (base, extra) = (rows / calls, rows % calls);
-    (0..calls).map(|c| base + usize::from(c < extra)).collect()
 }
 
 impl CullCtx {
@@ -321,7 +304,6 @@ impl CullCtx {
                 .filter(|&ray| self.consts.row_of_ray[ray] == u32::MAX)
                 .collect()
         };
-        let workers = crate::parallel::workers_on(avatar.device());
         let plan = self.plan(
             pose.g.dim(0)?,
             pts,
@@ -329,7 +311,6 @@ impl CullCtx {
             &fates,
             &far_rays,
             mode.is_inference(),
-            workers,
         )?;
         let (rgbs, sigmas, evaluated) = self.evaluate(avatar, pose, plan, mode.is_inference())?;
         let (rgb, sigma_raw, any_zero) =
@@ -350,14 +331,14 @@ impl CullCtx {
         Ok((rgb, sigma_raw, alive))
     }
 
-    /// The network calls: per pose, the kept samples, then the far-away points of
-    /// `far_rays`, each in calls of even sizes (one call each when the graph is kept).
+    /// The network calls: per pose, the kept samples in chunks (one chunk when the graph is
+    /// kept), the far-away points of `far_rays` at the back of the pose's last call.
     ///
-    /// A point's output does not depend on the size of its call or its place in it, from
-    /// two rows up (gemm blocks the depth by a size set by the depth alone; every other op
-    /// is per row), so the grouping is free: calls are sized to keep the workers balanced.
-    /// A single row would take gemm's matrix-vector path, which rounds differently, so a
-    /// one-row call is padded with a copy of its row.
+    /// All rows are gathered at once and each call reads a range of them, but every call
+    /// gets the rows, in the order and number, of a gather per call: a point's output can
+    /// change in the last bits with its call's size and its place in it (gemm's
+    /// matrix-vector path for the one-column σ head treats the rows past the last full
+    /// vector apart), so regrouping the calls would change the outputs.
     fn plan(
         &self,
         n_poses: usize,
@@ -366,24 +347,15 @@ impl CullCtx {
         fates: &[SampleFate],
         far_rays: &[usize],
         inference: bool,
-        workers: usize,
     ) -> Result<Plan> {
         let (r, s, _) = pts.dims3()?;
         let k = r / n_poses;
         let dev = pts.device();
         let n = r * s;
-        let chunk = |rows: usize| {
-            if inference {
-                call_sizes(rows, INFERENCE_POINT_CHUNK, workers)
-            } else if rows > 0 {
-                vec![rows]
-            } else {
-                Vec::new()
-            }
-        };
-        // Rows of the source: i < n is sample i; n + p is pose p's far-away point.
+        // Rows of the source: i < n is sample i; n + q is the q-th far-away point.
         let mut src: Vec<u32> = Vec::new();
         let mut rays_of: Vec<u32> = Vec::new();
+        let mut far_points = Vec::new();
         let mut jobs = Vec::new();
         for p in 0..n_poses {
             let first = src.len();
@@ -392,47 +364,42 @@ impl CullCtx {
                     .filter(|&i| fates[i] == SampleFate::Evaluate)
                     .map(|i| i as u32),
             );
+            let kept = src.len() - first;
             rays_of.extend(src[first..].iter().map(|&i| i / s as u32));
-            let mut start = first;
-            for len in chunk(src.len() - first) {
-                jobs.push(Job {
-                    p,
-                    start,
-                    len,
-                    far_rays: Vec::new(),
-                });
-                start += len;
-            }
-        }
-        let mut far_points = Vec::new();
-        for p in 0..n_poses {
             let far_p: Vec<usize> = far_rays
                 .iter()
                 .copied()
                 .filter(|&ray| ray / k == p)
                 .collect();
-            if far_p.is_empty() {
+            if kept == 0 && far_p.is_empty() {
                 continue;
             }
-            let test = self.test.as_ref().ok_or_else(|| {
-                ModelError::Input("culling: constants need the window test".into())
-            })?;
-            far_points.extend(test.far_point(p)?);
-            let row = (n + far_points.len() / 3 - 1) as u32;
-            let mut start = src.len();
-            src.extend(std::iter::repeat_n(row, far_p.len()));
-            rays_of.extend(far_p.iter().map(|&ray| ray as u32));
-            let mut rest = &far_p[..];
-            for len in chunk(far_p.len()) {
-                let (these, tail) = rest.split_at(len);
+            let chunk = if inference {
+                INFERENCE_POINT_CHUNK
+            } else {
+                kept.max(1)
+            };
+            let n_calls = kept.div_ceil(chunk).max(1);
+            for c in 0..n_calls {
                 jobs.push(Job {
                     p,
-                    start,
-                    len: 0,
-                    far_rays: these.to_vec(),
+                    start: first + c * chunk,
+                    len: chunk.min(kept - c * chunk),
+                    far_rays: if c + 1 == n_calls {
+                        far_p.clone()
+                    } else {
+                        Vec::new()
+                    },
                 });
-                start += len;
-                rest = tail;
+            }
+            if !far_p.is_empty() {
+                let test = self.test.as_ref().ok_or_else(|| {
+                    ModelError::Input("culling: constants need the window test".into())
+                })?;
+                far_points.extend(test.far_point(p)?);
+                let row = (n + far_points.len() / 3 - 1) as u32;
+                src.extend(std::iter::repeat_n(row, far_p.len()));
+                rays_of.extend(far_p.iter().map(|&ray| ray as u32));
             }
         }
         let rows = src.len();
@@ -466,20 +433,13 @@ impl CullCtx {
             crate::interrupt::check()?;
             let job = &jobs[i];
             let rows = job.len + job.far_rays.len();
-            let (mut pts_c, mut view_c) = (
-                pts.narrow(0, job.start, rows)?,
-                view.narrow(0, job.start, rows)?,
-            );
-            if rows == 1 {
-                // See `plan`: one row would round differently.
-                pts_c = Tensor::cat(&[&pts_c, &pts_c], 0)?;
-                view_c = Tensor::cat(&[&view_c, &view_c], 0)?;
-            }
-            let (mut rgb, mut sigma_raw) = avatar.eval_points(pose, job.p, &pts_c, &view_c, None)?;
-            if rows == 1 {
-                rgb = rgb.narrow(0, 0, 1)?;
-                sigma_raw = sigma_raw.narrow(0, 0, 1)?;
-            }
+            let (rgb, sigma_raw) = avatar.eval_points(
+                pose,
+                job.p,
+                &pts.narrow(0, job.start, rows)?,
+                &view.narrow(0, job.start, rows)?,
+                None,
+            )?;
             // In inference the chunk's graph goes at once (see `chunked`).
             Ok::<_, ModelError>(if inference {
                 (rgb.detach(), sigma_raw.detach())
@@ -612,32 +572,62 @@ mod tests {
     use candle_core::Device;
     use pma_data::skeleton::N_JOINTS;
 
-    #[test]
-    fn calls_are_even_balanced_and_never_one_row_where_two_exist() {
-        assert_eq!(call_sizes(0, 4096, 2), Vec::<usize>::new());
-        assert_eq!(call_sizes(1, 4096, 2), vec![1]);
-        assert_eq!(call_sizes(3, 4096, 2), vec![3]);
-        assert_eq!(call_sizes(4, 4096, 2), vec![2, 2]);
-        assert_eq!(call_sizes(4097, 4096, 1), vec![2049, 2048]);
-        assert_eq!(call_sizes(8193, 4096, 2), vec![2049, 2048, 2048, 2048]);
-        for rows in [2, 5, 4095, 4096, 4097, 10_000, 123_457] {
-            for workers in [1, 2, 3, 16] {
-                let sizes = call_sizes(rows, 4096, workers);
-                assert_eq!(sizes.iter().sum::<usize>(), rows);
-                assert!(sizes.iter().all(|&n| (2..=4096).contains(&n)), "{sizes:?}");
-                let (lo, hi) = (sizes.iter().min().unwrap(), sizes.iter().max().unwrap());
-                assert!(hi - lo <= 1, "{rows} rows, {workers} workers: {sizes:?}");
-                if rows >= 2 * 4096 * workers {
-                    assert_eq!(sizes.len() % workers, 0, "{rows}, {workers}: {sizes:?}");
+    /// The rows of each network call as a gather per call builds them: per pose, the kept
+    /// samples in chunks, the far-away points after the last chunk.
+    fn per_call_rows(
+        test: &WindowTest,
+        host: &[f32],
+        view: &[f32],
+        vdim: usize,
+        (r, s, n_poses): (usize, usize, usize),
+        fates: &[SampleFate],
+        far_rays: &[usize],
+    ) -> Vec<(usize, Vec<f32>, Vec<f32>, usize)> {
+        let k = r / n_poses;
+        let mut out = Vec::new();
+        for p in 0..n_poses {
+            let idx: Vec<usize> = (p * k * s..(p + 1) * k * s)
+                .filter(|&i| fates[i] == SampleFate::Evaluate)
+                .collect();
+            let far_p: Vec<usize> = far_rays
+                .iter()
+                .copied()
+                .filter(|&ray| ray / k == p)
+                .collect();
+            if idx.is_empty() && far_p.is_empty() {
+                continue;
+            }
+            let parts: Vec<&[usize]> = if idx.is_empty() {
+                vec![&[]]
+            } else {
+                idx.chunks(INFERENCE_POINT_CHUNK).collect()
+            };
+            for (c, part) in parts.iter().enumerate() {
+                let mut rows: Vec<f32> = part
+                    .iter()
+                    .flat_map(|&i| host[3 * i..3 * i + 3].to_vec())
+                    .collect();
+                let mut rays: Vec<usize> = part.iter().map(|&i| i / s).collect();
+                if c + 1 == parts.len() {
+                    for &ray in &far_p {
+                        rows.extend(test.far_point(p).unwrap());
+                        rays.push(ray);
+                    }
                 }
+                let v = rays
+                    .iter()
+                    .flat_map(|&ray| view[vdim * ray..vdim * (ray + 1)].to_vec())
+                    .collect();
+                out.push((p, rows, v, part.len()));
             }
         }
+        out
     }
 
-    /// The plan's calls read exactly the kept samples of their pose in sample order, then the
-    /// far-away point once per ray that needs it, with the view features of the right rays.
+    /// Gathering once per pass changes no network call: same pose, same rows bit for bit,
+    /// same size, with several calls per pose, far-away points and a threshold of 0.2.
     #[test]
-    fn the_plan_reads_every_kept_sample_and_far_point_once() {
+    fn one_gather_per_pass_feeds_every_call_the_rows_of_a_gather_per_call() {
         let dev = Device::Cpu;
         let mut eye = vec![0f32; N_JOINTS * 16];
         for j in 0..N_JOINTS {
@@ -649,13 +639,13 @@ mod tests {
         let test = WindowTest::new(
             &eye,
             &eye.repeat(n_poses),
-            &vec![0.3f32; N_JOINTS * 3],
+            &vec![0.7f32; N_JOINTS * 3],
             2.0,
             6,
             0.2,
         )
         .unwrap();
-        let (r, s, vdim) = (2 * 300, 16, 5);
+        let (r, s, vdim) = (2 * 400, 16, 5);
         let mut state = 12345u64;
         let mut rnd = || {
             state = state
@@ -669,59 +659,48 @@ mod tests {
         let view = Tensor::from_vec(view_host.clone(), (r, vdim), &dev).unwrap();
         let mut alive = vec![true; r];
         alive[7] = false;
-        alive[400] = false;
+        alive[500] = false;
         let fates = test.fates(&host, r, s, Some(&alive)).unwrap();
-        let kept: Vec<usize> = (0..r * s)
-            .filter(|&i| fates[i] == SampleFate::Evaluate)
-            .collect();
-        assert!(kept.len() > INFERENCE_POINT_CHUNK, "{} kept", kept.len());
+        let kept = fates.iter().filter(|f| **f == SampleFate::Evaluate).count();
+        let outside = fates.iter().filter(|f| **f == SampleFate::Outside).count();
+        assert!(
+            kept > 2 * INFERENCE_POINT_CHUNK && outside > 0,
+            "kept {kept}, outside {outside}"
+        );
         let far_rays: Vec<usize> = (0..r)
             .filter(|&ray| fates[ray * s..(ray + 1) * s].contains(&SampleFate::Outside))
             .step_by(3)
             .collect();
-        assert!(!far_rays.is_empty());
         let ctx = CullCtx {
             test: Some(test.clone()),
             ray_alive: Some(alive),
             fill: SampleFill::Network,
             consts: ConstRows::default(),
         };
-        for (inference, workers) in [(true, 1), (true, 2), (false, 2)] {
-            let plan = ctx
-                .plan(n_poses, &pts, &view, &fates, &far_rays, inference, workers)
-                .unwrap();
-            let rows = plan.pts.flatten_all().unwrap().to_vec1::<f32>().unwrap();
-            let views = plan.view.flatten_all().unwrap().to_vec1::<f32>().unwrap();
-            let (mut next_kept, mut next_far, mut next_row) = (0, 0, 0);
-            for job in &plan.jobs {
-                assert_eq!(job.start, next_row, "calls cover the rows in order");
-                assert!(job.len == 0 || job.far_rays.is_empty());
-                let n = job.len + job.far_rays.len();
-                assert!(n >= 2 && (!inference || n <= INFERENCE_POINT_CHUNK), "{n} rows");
-                for i in 0..n {
-                    let row = job.start + i;
-                    let (sample_x, ray) = if i < job.len {
-                        let sample = kept[next_kept + i];
-                        (host[3 * sample..3 * sample + 3].to_vec(), sample / s)
-                    } else {
-                        let ray = job.far_rays[i - job.len];
-                        (test.far_point(job.p).unwrap().to_vec(), ray)
-                    };
-                    assert_eq!(ray / (r / n_poses), job.p, "a call stays within its pose");
-                    assert_eq!(rows[3 * row..3 * row + 3], sample_x[..], "row {row}");
-                    assert_eq!(
-                        views[vdim * row..vdim * (row + 1)],
-                        view_host[vdim * ray..vdim * (ray + 1)]
-                    );
-                }
-                if job.len > 0 {
-                    assert_eq!(next_far, 0, "kept samples come before far-away points");
-                }
-                next_kept += job.len;
-                next_far += job.far_rays.len();
-                next_row += n;
-            }
-            assert_eq!((next_kept, next_far), (kept.len(), far_rays.len()));
+        let bits = |x: &[f32]| x.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+        let reference = per_call_rows(
+            &test,
+            &host,
+            &view_host,
+            vdim,
+            (r, s, n_poses),
+            &fates,
+            &far_rays,
+        );
+        let plan = ctx
+            .plan(n_poses, &pts, &view, &fates, &far_rays, true)
+            .unwrap();
+        assert_eq!(plan.jobs.len(), reference.len());
+        assert!(reference.len() > n_poses, "some pose needs several calls");
+        for (job, (p, rows, v, len)) in plan.jobs.iter().zip(&reference) {
+            let n = job.len + job.far_rays.len();
+            assert_eq!((job.p, job.len, n), (*p, *len, rows.len() / 3));
+            let got = plan.pts.narrow(0, job.start, n).unwrap();
+            let got_v = plan.view.narrow(0, job.start, n).unwrap();
+            let got: Vec<f32> = got.flatten_all().unwrap().to_vec1().unwrap();
+            let got_v: Vec<f32> = got_v.flatten_all().unwrap().to_vec1().unwrap();
+            assert_eq!(bits(&got), bits(rows));
+            assert_eq!(bits(&got_v), bits(v));
         }
     }
 }

@@ -285,8 +285,8 @@ mod imp {
         dev: &Device,
         bar: &indicatif::ProgressBar,
     ) -> anyhow::Result<(Trainer, Vec<f64>, f64)> {
-        let samples_per_step = (run.train.rays_per_step
-            * (run.model.n_samples + run.model.n_importance)) as f64;
+        let samples_per_step =
+            (run.train.rays_per_step * (run.model.n_samples + run.model.n_importance)) as f64;
         let mut trainer = Trainer::new(run, data, dev)?;
         let points_before = trainer.avatar().points_evaluated();
         let start = Instant::now();

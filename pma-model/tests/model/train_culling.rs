@@ -1,5 +1,9 @@
 //! Culling in training (`culling.*` of the model config): at threshold 0 a training step —
-//! unchunked and in ray chunks — has the loss and every gradient of parity mode.
+//! unchunked and in ray chunks — has parity mode's loss bit for bit and its gradients up to
+//! float summation order. Not bit for bit: the culled samples of a ray share one far-away
+//! row, so the weight gradients form aᵀ(Σᵢ δᵢ) over that row where parity forms Σᵢ aᵀδᵢ over
+//! one row per sample (docs/numerics.md, "Empty rays and culling"). The tolerance is the
+//! one of a chunked step (1e-6); measured: 1.1e-8.
 #![cfg(feature = "train")]
 
 use std::sync::Arc;
@@ -77,7 +81,7 @@ fn differences(a: &Step, b: &Step) -> Vec<(String, usize, usize, f32)> {
 }
 
 #[test]
-fn threshold_zero_training_step_is_parity() {
+fn threshold_zero_training_step_has_paritys_loss_and_gradients() {
     let dir = tempfile::tempdir().unwrap();
     let data = tiny_scene(dir.path());
     let run = tiny_run();
@@ -108,10 +112,17 @@ fn threshold_zero_training_step_is_parity() {
             parity.stats.loss.total.to_bits(),
             "chunk {chunk}: loss differs"
         );
-        assert!(diffs.is_empty(), "chunk {chunk}: gradients differ");
-        assert_eq!(
-            culled.stats.grad_norm.to_bits(),
-            parity.stats.grad_norm.to_bits()
+        let worst = diffs.iter().map(|d| d.3).fold(0f32, f32::max);
+        assert!(
+            worst <= 1e-6,
+            "chunk {chunk}: gradients differ by {worst:e}"
+        );
+        assert!(
+            (culled.stats.grad_norm - parity.stats.grad_norm).abs()
+                <= 1e-6 * parity.stats.grad_norm.max(1.0),
+            "chunk {chunk}: grad norm {} vs {}",
+            culled.stats.grad_norm,
+            parity.stats.grad_norm
         );
     }
 }
