@@ -645,7 +645,7 @@ mod tests {
             0.2,
         )
         .unwrap();
-        let (r, s, vdim) = (2 * 400, 16, 5);
+        let (r, s, vdim) = (2 * 1200, 16, 5);
         let mut state = 12345u64;
         let mut rnd = || {
             state = state
@@ -659,7 +659,7 @@ mod tests {
         let view = Tensor::from_vec(view_host.clone(), (r, vdim), &dev).unwrap();
         let mut alive = vec![true; r];
         alive[7] = false;
-        alive[500] = false;
+        alive[1500] = false;
         let fates = test.fates(&host, r, s, Some(&alive)).unwrap();
         let kept = fates.iter().filter(|f| **f == SampleFate::Evaluate).count();
         let outside = fates.iter().filter(|f| **f == SampleFate::Outside).count();
