@@ -8,7 +8,9 @@
 //! * **chunked**: bounded chunks on the CPU workers, outputs detached (inference);
 //! * **culled**: only the samples culling keeps ([`crate::cull`]); the rest are filled
 //!   from the network's far-away constant or with zeros. Gradients reach the evaluated
-//!   samples and the constants, so training with culling at threshold 0 is parity too.
+//!   samples and the constants, so training with culling at threshold 0 has parity's loss
+//!   and its gradients up to float summation order (docs/numerics.md, "Empty rays and
+//!   culling").
 //!
 //! Whatever the route, the result is raw [R,S,4] (rgb, density after noise and ReLU).
 
@@ -211,15 +213,23 @@ struct ConstRows {
     probed: bool,
 }
 
-/// One network call of the culled route: the kept samples of one chunk of pose p, then
-/// the far-away points of the rays that still need their constant.
-struct Job {
-    p: usize,
+/// The network calls of one culled stage: every row they read, gathered once per pass
+/// (per pose, its kept samples in sample order, then its far-away points), and the calls
+/// as ranges of those rows.
+struct Plan {
+    /// [rows,3] points and the view features of their rays.
     pts: Tensor,
     view: Tensor,
-    /// Kept samples at the front of the call.
+    jobs: Vec<Job>,
+}
+
+/// One network call of the culled route on rows `start..start + len + far_rays.len()` of
+/// the plan, all of pose p: `len` kept samples, then the far-away points of `far_rays` (the
+/// rays that still need their constant).
+struct Job {
+    p: usize,
+    start: usize,
     len: usize,
-    /// Rays whose far-away constant rides at the back of the call.
     far_rays: Vec<usize>,
 }
 
@@ -294,8 +304,15 @@ impl CullCtx {
                 .filter(|&ray| self.consts.row_of_ray[ray] == u32::MAX)
                 .collect()
         };
-        let jobs = self.plan(pose, pts, view, &fates, &far_rays, mode.is_inference())?;
-        let (rgbs, sigmas, evaluated) = self.evaluate(avatar, pose, jobs, mode.is_inference())?;
+        let plan = self.plan(
+            pose.g.dim(0)?,
+            pts,
+            view,
+            &fates,
+            &far_rays,
+            mode.is_inference(),
+        )?;
+        let (rgbs, sigmas, evaluated) = self.evaluate(avatar, pose, plan, mode.is_inference())?;
         let (rgb, sigma_raw, any_zero) =
             self.scatter(rgbs, sigmas, evaluated, &fates, s, network_fill, pts)?;
         let alive = if noisy && any_zero {
@@ -316,75 +333,89 @@ impl CullCtx {
 
     /// The network calls: per pose, the kept samples in chunks (one chunk when the graph is
     /// kept), the far-away points of `far_rays` at the back of the pose's last call.
+    ///
+    /// All rows are gathered at once and each call reads a range of them, but every call
+    /// gets the rows, in the order and number, of a gather per call: a point's output can
+    /// change in the last bits with its call's size and its place in it (gemm's
+    /// matrix-vector path for the one-column σ head treats the rows past the last full
+    /// vector apart), so regrouping the calls would change the outputs.
     fn plan(
         &self,
-        pose: &PoseFeatures,
+        n_poses: usize,
         pts: &Tensor,
         view: &Tensor,
         fates: &[SampleFate],
         far_rays: &[usize],
         inference: bool,
-    ) -> Result<Vec<Job>> {
+    ) -> Result<Plan> {
         let (r, s, _) = pts.dims3()?;
-        let n_poses = pose.g.dim(0)?;
         let k = r / n_poses;
         let dev = pts.device();
-        let pts_flat = pts.reshape((r * s, 3))?;
+        let n = r * s;
+        // Rows of the source: i < n is sample i; n + q is the q-th far-away point.
+        let mut src: Vec<u32> = Vec::new();
+        let mut rays_of: Vec<u32> = Vec::new();
+        let mut far_points = Vec::new();
         let mut jobs = Vec::new();
         for p in 0..n_poses {
-            let idx: Vec<u32> = (p * k * s..(p + 1) * k * s)
-                .filter(|&i| fates[i] == SampleFate::Evaluate)
-                .map(|i| i as u32)
-                .collect();
+            let first = src.len();
+            src.extend(
+                (p * k * s..(p + 1) * k * s)
+                    .filter(|&i| fates[i] == SampleFate::Evaluate)
+                    .map(|i| i as u32),
+            );
+            let kept = src.len() - first;
+            rays_of.extend(src[first..].iter().map(|&i| i / s as u32));
             let far_p: Vec<usize> = far_rays
                 .iter()
                 .copied()
                 .filter(|&ray| ray / k == p)
                 .collect();
-            if idx.is_empty() && far_p.is_empty() {
+            if kept == 0 && far_p.is_empty() {
                 continue;
             }
             let chunk = if inference {
                 INFERENCE_POINT_CHUNK
             } else {
-                idx.len().max(1)
+                kept.max(1)
             };
-            let parts: Vec<&[u32]> = if idx.is_empty() {
-                vec![&[]]
-            } else {
-                idx.chunks(chunk).collect()
-            };
-            let last = parts.len() - 1;
-            for (c, part) in parts.iter().enumerate() {
-                let len = part.len();
-                let far = if c == last { far_p.clone() } else { Vec::new() };
-                let mut rays_of: Vec<u32> = part.iter().map(|&i| i / s as u32).collect();
-                let mut pts_c = Vec::new();
-                if len > 0 {
-                    let ids = Tensor::from_vec(part.to_vec(), len, dev)?;
-                    pts_c.push(pts_flat.index_select(&ids, 0)?);
-                }
-                if !far.is_empty() {
-                    let test = self.test.as_ref().ok_or_else(|| {
-                        ModelError::Input("culling: constants need the window test".into())
-                    })?;
-                    let x = test.far_point(p)?;
-                    let far_pts = Tensor::from_vec(x.repeat(far.len()), (far.len(), 3), dev)?;
-                    pts_c.push(far_pts.to_dtype(pts.dtype())?);
-                    rays_of.extend(far.iter().map(|&ray| ray as u32));
-                }
-                let rows = rays_of.len();
-                let view_c = view.index_select(&Tensor::from_vec(rays_of, rows, dev)?, 0)?;
+            let n_calls = kept.div_ceil(chunk).max(1);
+            for c in 0..n_calls {
                 jobs.push(Job {
                     p,
-                    pts: Tensor::cat(&pts_c, 0)?,
-                    view: view_c,
-                    len,
-                    far_rays: far,
+                    start: first + c * chunk,
+                    len: chunk.min(kept - c * chunk),
+                    far_rays: if c + 1 == n_calls {
+                        far_p.clone()
+                    } else {
+                        Vec::new()
+                    },
                 });
             }
+            if !far_p.is_empty() {
+                let test = self.test.as_ref().ok_or_else(|| {
+                    ModelError::Input("culling: constants need the window test".into())
+                })?;
+                far_points.extend(test.far_point(p)?);
+                let row = (n + far_points.len() / 3 - 1) as u32;
+                src.extend(std::iter::repeat_n(row, far_p.len()));
+                rays_of.extend(far_p.iter().map(|&ray| ray as u32));
+            }
         }
-        Ok(jobs)
+        let rows = src.len();
+        let pts_flat = pts.reshape((n, 3))?;
+        let source = if far_points.is_empty() {
+            pts_flat
+        } else {
+            let m = far_points.len() / 3;
+            let far = Tensor::from_vec(far_points, (m, 3), dev)?.to_dtype(pts.dtype())?;
+            Tensor::cat(&[pts_flat, far], 0)?
+        };
+        Ok(Plan {
+            pts: source.index_select(&Tensor::from_vec(src, rows, dev)?, 0)?,
+            view: view.index_select(&Tensor::from_vec(rays_of, rows, dev)?, 0)?,
+            jobs,
+        })
     }
 
     /// Run the jobs on the workers; keep the kept samples' rows in order and file the
@@ -393,14 +424,22 @@ impl CullCtx {
         &mut self,
         avatar: &Avatar,
         pose: &PoseFeatures,
-        jobs: Vec<Job>,
+        plan: Plan,
         inference: bool,
     ) -> Result<(Vec<Tensor>, Vec<Tensor>, usize)> {
+        let Plan { pts, view, jobs } = plan;
         let workers = crate::parallel::workers_on(avatar.device());
         let outs = crate::parallel::map_ordered(workers, jobs.len(), |i| {
             crate::interrupt::check()?;
             let job = &jobs[i];
-            let (rgb, sigma_raw) = avatar.eval_points(pose, job.p, &job.pts, &job.view, None)?;
+            let rows = job.len + job.far_rays.len();
+            let (rgb, sigma_raw) = avatar.eval_points(
+                pose,
+                job.p,
+                &pts.narrow(0, job.start, rows)?,
+                &view.narrow(0, job.start, rows)?,
+                None,
+            )?;
             // In inference the chunk's graph goes at once (see `chunked`).
             Ok::<_, ModelError>(if inference {
                 (rgb.detach(), sigma_raw.detach())
@@ -523,5 +562,145 @@ impl CullCtx {
             consts.sigma = vec![sigma.detach()];
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cull::WindowTest;
+    use candle_core::Device;
+    use pma_data::skeleton::N_JOINTS;
+
+    /// The rows of each network call as a gather per call builds them: per pose, the kept
+    /// samples in chunks, the far-away points after the last chunk.
+    fn per_call_rows(
+        test: &WindowTest,
+        host: &[f32],
+        view: &[f32],
+        vdim: usize,
+        (r, s, n_poses): (usize, usize, usize),
+        fates: &[SampleFate],
+        far_rays: &[usize],
+    ) -> Vec<(usize, Vec<f32>, Vec<f32>, usize)> {
+        let k = r / n_poses;
+        let mut out = Vec::new();
+        for p in 0..n_poses {
+            let idx: Vec<usize> = (p * k * s..(p + 1) * k * s)
+                .filter(|&i| fates[i] == SampleFate::Evaluate)
+                .collect();
+            let far_p: Vec<usize> = far_rays
+                .iter()
+                .copied()
+                .filter(|&ray| ray / k == p)
+                .collect();
+            if idx.is_empty() && far_p.is_empty() {
+                continue;
+            }
+            let parts: Vec<&[usize]> = if idx.is_empty() {
+                vec![&[]]
+            } else {
+                idx.chunks(INFERENCE_POINT_CHUNK).collect()
+            };
+            for (c, part) in parts.iter().enumerate() {
+                let mut rows: Vec<f32> = part
+                    .iter()
+                    .flat_map(|&i| host[3 * i..3 * i + 3].to_vec())
+                    .collect();
+                let mut rays: Vec<usize> = part.iter().map(|&i| i / s).collect();
+                if c + 1 == parts.len() {
+                    for &ray in &far_p {
+                        rows.extend(test.far_point(p).unwrap());
+                        rays.push(ray);
+                    }
+                }
+                let v = rays
+                    .iter()
+                    .flat_map(|&ray| view[vdim * ray..vdim * (ray + 1)].to_vec())
+                    .collect();
+                out.push((p, rows, v, part.len()));
+            }
+        }
+        out
+    }
+
+    /// Gathering once per pass changes no network call: same pose, same rows bit for bit,
+    /// same size, with several calls per pose, far-away points and a threshold of 0.2.
+    #[test]
+    fn one_gather_per_pass_feeds_every_call_the_rows_of_a_gather_per_call() {
+        let dev = Device::Cpu;
+        let mut eye = vec![0f32; N_JOINTS * 16];
+        for j in 0..N_JOINTS {
+            for d in 0..4 {
+                eye[j * 16 + 5 * d] = 1.0;
+            }
+        }
+        let n_poses = 2;
+        let test = WindowTest::new(
+            &eye,
+            &eye.repeat(n_poses),
+            &vec![0.7f32; N_JOINTS * 3],
+            2.0,
+            6,
+            0.2,
+        )
+        .unwrap();
+        let (r, s, vdim) = (2 * 1200, 16, 5);
+        let mut state = 12345u64;
+        let mut rnd = || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((state >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
+        };
+        let host: Vec<f32> = (0..r * s * 3).map(|_| rnd()).collect();
+        let view_host: Vec<f32> = (0..r * vdim).map(|_| rnd()).collect();
+        let pts = Tensor::from_vec(host.clone(), (r, s, 3), &dev).unwrap();
+        let view = Tensor::from_vec(view_host.clone(), (r, vdim), &dev).unwrap();
+        let mut alive = vec![true; r];
+        alive[7] = false;
+        alive[1500] = false;
+        let fates = test.fates(&host, r, s, Some(&alive)).unwrap();
+        let kept = fates.iter().filter(|f| **f == SampleFate::Evaluate).count();
+        let outside = fates.iter().filter(|f| **f == SampleFate::Outside).count();
+        assert!(
+            kept > 2 * INFERENCE_POINT_CHUNK && outside > 0,
+            "kept {kept}, outside {outside}"
+        );
+        let far_rays: Vec<usize> = (0..r)
+            .filter(|&ray| fates[ray * s..(ray + 1) * s].contains(&SampleFate::Outside))
+            .step_by(3)
+            .collect();
+        let ctx = CullCtx {
+            test: Some(test.clone()),
+            ray_alive: Some(alive),
+            fill: SampleFill::Network,
+            consts: ConstRows::default(),
+        };
+        let bits = |x: &[f32]| x.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+        let reference = per_call_rows(
+            &test,
+            &host,
+            &view_host,
+            vdim,
+            (r, s, n_poses),
+            &fates,
+            &far_rays,
+        );
+        let plan = ctx
+            .plan(n_poses, &pts, &view, &fates, &far_rays, true)
+            .unwrap();
+        assert_eq!(plan.jobs.len(), reference.len());
+        assert!(reference.len() > n_poses, "some pose needs several calls");
+        for (job, (p, rows, v, len)) in plan.jobs.iter().zip(&reference) {
+            let n = job.len + job.far_rays.len();
+            assert_eq!((job.p, job.len, n), (*p, *len, rows.len() / 3));
+            let got = plan.pts.narrow(0, job.start, n).unwrap();
+            let got_v = plan.view.narrow(0, job.start, n).unwrap();
+            let got: Vec<f32> = got.flatten_all().unwrap().to_vec1().unwrap();
+            let got_v: Vec<f32> = got_v.flatten_all().unwrap().to_vec1().unwrap();
+            assert_eq!(bits(&got), bits(rows));
+            assert_eq!(bits(&got_v), bits(v));
+        }
     }
 }

@@ -1,5 +1,6 @@
 //! Data-parallel workers (`pma_model::parallel`) change nothing but the speed: a chunked
-//! training step and an inference pass give bit-identical results with 1 and with 3 workers.
+//! training step and an inference pass (plain and culled) give bit-identical results with 1
+//! and with 3 workers.
 #![cfg(feature = "train")]
 
 mod train_support;
@@ -69,5 +70,24 @@ fn worker_count_does_not_change_results() {
     assert!(acc1.iter().any(|&a| a > 0.0), "the batch sees the body");
     assert_eq!(rgb1, rgb3, "rendered colour");
     assert_eq!(acc1, acc3, "accumulated opacity");
+
+    // The culled route sizes its network calls by the worker count: still the same result.
+    let mut avatar = avatar;
+    avatar
+        .set_culling(pma_model::config::Culling {
+            rays: true,
+            sample_threshold: Some(0.2),
+            sample_fill: pma_model::config::SampleFill::Network,
+        })
+        .unwrap();
+    let render = |w: usize| {
+        set_workers(w);
+        let out = avatar.render_rays(&batch.rays, &batch.poses).unwrap();
+        (flat(&out.fine.rgb), flat(&out.raw))
+    };
+    let (rgb1, raw1) = render(1);
+    let (rgb3, raw3) = render(3);
+    assert_eq!(rgb1, rgb3, "culled: rendered colour");
+    assert_eq!(raw1, raw3, "culled: raw outputs");
     set_workers(1);
 }

@@ -177,6 +177,13 @@ pub struct OptionResult {
     pub gflops: f64,
     /// Median ms per training step (the option's culling in training).
     pub ms_per_step: f64,
+    /// Parity's median ms per step over this option's (training speed-up).
+    #[serde(default)]
+    pub step_speedup_vs_parity: f64,
+    /// Share of a training step's samples that ran the network (far-away constants
+    /// included), over the option's training steps.
+    #[serde(default)]
+    pub train_evaluated_fraction: f64,
     /// Peak RSS of this option's phases (VmHWM after a reset; process-wide if no reset).
     pub peak_rss_mib: f64,
     /// PSNR of this option's W×H render against the parity render (inf = identical).
@@ -275,7 +282,8 @@ mod imp {
         v[v.len() / 2]
     }
 
-    /// Train `run` for `seconds` (at least 2 steps); returns the trainer and the step times.
+    /// Train `run` for `seconds` (at least 2 steps); returns the trainer, the step times
+    /// and the share of the steps' samples that ran the network.
     fn train_for(
         run: RunConfig,
         data: Arc<Dataset>,
@@ -283,8 +291,11 @@ mod imp {
         max_steps: u64,
         dev: &Device,
         bar: &indicatif::ProgressBar,
-    ) -> anyhow::Result<(Trainer, Vec<f64>)> {
+    ) -> anyhow::Result<(Trainer, Vec<f64>, f64)> {
+        let samples_per_step =
+            (run.train.rays_per_step * (run.model.n_samples + run.model.n_importance)) as f64;
         let mut trainer = Trainer::new(run, data, dev)?;
+        let points_before = trainer.avatar().points_evaluated();
         let start = Instant::now();
         let mut times = Vec::new();
         while (times.len() < 2 || start.elapsed().as_secs_f64() < seconds)
@@ -295,7 +306,9 @@ mod imp {
             times.push(t.elapsed().as_secs_f64() * 1e3);
             bar.set_position((start.elapsed().as_secs_f64().min(seconds)) as u64);
         }
-        Ok((trainer, times))
+        let points = (trainer.avatar().points_evaluated() - points_before) as f64;
+        let fraction = points / (samples_per_step * times.len().max(1) as f64);
+        Ok((trainer, times, fraction))
     }
 
     /// Mean PSNR and LPIPS of the unquantised renders of `images` against their ground
@@ -361,9 +374,10 @@ mod imp {
         let mut results =
             measure_inference(&args, &mut avatar, &scene, &view, &opts, fpp, rss_reset)?;
         measure_training(&args, preset, &cfg, &scene, &opts, &mut results, rss_reset)?;
-        let parity_rays = results[0].rays_per_s;
+        let (parity_rays, parity_step) = (results[0].rays_per_s, results[0].ms_per_step);
         for r in &mut results {
             r.speedup_vs_parity = r.rays_per_s / parity_rays;
+            r.step_speedup_vs_parity = parity_step / r.ms_per_step;
         }
         let report = BenchReport {
             preset: args.preset.clone(),
@@ -456,7 +470,7 @@ mod imp {
             args.train_seconds as u64,
             "training the bench model (s)",
         );
-        let (trainer, _) = train_for(
+        let (trainer, _, _) = train_for(
             RunConfig::from_preset(preset),
             scene.train.clone(),
             args.train_seconds,
@@ -617,7 +631,7 @@ mod imp {
                 reset_peak_rss();
             }
             let hidden = indicatif::ProgressBar::hidden();
-            let (trainer, mut times) = if budget > 0.0 {
+            let (trainer, mut times, fraction) = if budget > 0.0 {
                 train_for(run, scene.train.clone(), budget, u64::MAX, &dev, &hidden)?
             } else {
                 train_for(run, scene.train.clone(), 0.0, 3, &dev, &hidden)?
@@ -626,6 +640,7 @@ mod imp {
                 times.remove(0); // warm-up
             }
             res.ms_per_step = median(&mut times);
+            res.train_evaluated_fraction = fraction;
             res.peak_rss_mib = res.peak_rss_mib.max(peak_rss_mib().unwrap_or(f64::NAN));
             if budget > 0.0 {
                 let mut a = Avatar::from_tensors(
@@ -708,7 +723,7 @@ mod imp {
             100.0 * r.inactive_joint_fraction
         );
         println!(
-            "{:<22} {:>9} {:>9} {:>7} {:>11} {:>11} {:>8} {:>8} {:>9} {:>9} {:>8} {:>9} {:>7} {:>9}",
+            "{:<22} {:>9} {:>9} {:>7} {:>11} {:>11} {:>8} {:>8} {:>7} {:>7} {:>9} {:>9} {:>8} {:>9} {:>7} {:>9}",
             "option",
             "ms/img",
             "rays/s",
@@ -717,6 +732,8 @@ mod imp {
             "samples/s",
             "GFLOP/s",
             "ms/step",
+            "x step",
+            "tr pts",
             "RSS MiB",
             "PSNR/par",
             "ΔPSNR dB",
@@ -726,7 +743,7 @@ mod imp {
         );
         for o in &r.options {
             println!(
-                "{:<22} {:>9.1} {:>9.0} {:>7.2} {:>11.0} {:>11.0} {:>8.2} {:>8.1} {:>9.0} {:>9.2} {:>8.3} {:>9.2} {:>7} {:>9}",
+                "{:<22} {:>9.1} {:>9.0} {:>7.2} {:>11.0} {:>11.0} {:>8.2} {:>8.1} {:>7.2} {:>6.1}% {:>9.0} {:>9.2} {:>8.3} {:>9.2} {:>7} {:>9}",
                 o.name,
                 o.ms_per_image,
                 o.rays_per_s,
@@ -735,6 +752,8 @@ mod imp {
                 o.samples_per_s,
                 o.gflops,
                 o.ms_per_step,
+                o.step_speedup_vs_parity,
+                100.0 * o.train_evaluated_fraction,
                 o.peak_rss_mib,
                 o.psnr_vs_parity_render,
                 o.psnr_loss_vs_parity_db,

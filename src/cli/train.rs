@@ -47,6 +47,11 @@ pub struct Args {
     /// only-wp, only-wf, no-window); overrides the config. Not for a resumed run.
     #[arg(long, value_enum)]
     pub variant: Option<pma_model::config::Variant>,
+    /// Culling in training (docs/numerics.md, "Empty rays and culling"): overrides the
+    /// config's `[model.culling]` when `--cull-rays` or `--cull-samples` is given. Not for a
+    /// resumed run (its culling is in its config).
+    #[command(flatten)]
+    pub cull: pma_model::config::Culling,
     /// No progress bar (log lines only).
     #[arg(long)]
     pub quiet: bool,
@@ -108,6 +113,14 @@ mod imp {
             run.model.variant = variant;
         } else if args.variant.is_some() {
             refuse!("--variant cannot change a resumed run (its variant is in {CONFIG_FILE})");
+        }
+        if !args.cull.is_off() {
+            match run.as_mut() {
+                Some(run) => run.model.culling = args.cull.clone(),
+                None => refuse!(
+                    "--cull-rays/--cull-samples cannot change a resumed run (its culling is in {CONFIG_FILE})"
+                ),
+            }
         }
         let eval_data = args.eval_data.clone().or_else(|| {
             let beside = args.data.parent()?.join("novel_view.npz");

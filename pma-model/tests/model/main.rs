@@ -31,6 +31,7 @@ mod stability_raycast;
 mod stability_render;
 mod stability_train;
 mod train_chunked;
+mod train_culling;
 mod train_nan_skip;
 mod train_parity;
 mod variants;

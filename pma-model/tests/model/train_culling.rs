@@ -1,0 +1,128 @@
+//! Culling in training (`culling.*` of the model config): at threshold 0 a training step —
+//! unchunked and in ray chunks — has parity mode's loss bit for bit and its gradients up to
+//! float summation order. Not bit for bit: the culled samples of a ray share one far-away
+//! row, so the weight gradients form aᵀ(Σᵢ δᵢ) over that row where parity forms Σᵢ aᵀδᵢ over
+//! one row per sample (docs/numerics.md, "Empty rays and culling"). The tolerance is the
+//! one of a chunked step (1e-6); measured: 1.1e-8.
+#![cfg(feature = "train")]
+
+use std::sync::Arc;
+
+use crate::train_support::{first_batch, tiny_run, tiny_scene};
+use candle_core::{Device, Tensor};
+use pma_data::dataset::Dataset;
+use pma_model::avatar::Avatar;
+use pma_model::config::{Culling, SampleFill};
+use pma_model::train::{FixedBatch, StepStats, TrainBatch, Trainer};
+
+fn flat(t: &Tensor) -> Vec<f32> {
+    t.flatten_all().unwrap().to_vec1::<f32>().unwrap()
+}
+
+struct Step {
+    stats: StepStats,
+    /// Gradients before clipping, in optimizer order.
+    grads: Vec<Vec<f32>>,
+    names: Vec<String>,
+    /// Network points of the step.
+    points: u64,
+}
+
+fn one_step(data: &Arc<Dataset>, batch: &TrainBatch, chunk: usize, culling: Culling) -> Step {
+    let mut run = tiny_run();
+    run.model.n_framecodes = data.n_images();
+    run.model.culling = culling;
+    run.train.chunk_rays = chunk;
+    let rest = data.rest_pose.unwrap();
+    let avatar = Avatar::new(run.model.clone(), &rest, run.train.seed, &Device::Cpu).unwrap();
+    let mut trainer =
+        Trainer::with_source(run, avatar, Box::new(FixedBatch(batch.clone()))).unwrap();
+    let names = trainer.param_names().to_vec();
+    let mut grads = Vec::new();
+    let before = trainer.avatar().points_evaluated();
+    let stats = trainer
+        .step_hooked(&mut |g: &mut [Option<Tensor>]| {
+            grads = g
+                .iter()
+                .map(|t| t.as_ref().map(flat).unwrap_or_default())
+                .collect();
+        })
+        .unwrap();
+    let points = trainer.avatar().points_evaluated() - before;
+    Step {
+        stats,
+        grads,
+        names,
+        points,
+    }
+}
+
+/// (differing values, max |diff|) per named gradient that is not bit-identical.
+fn differences(a: &Step, b: &Step) -> Vec<(String, usize, usize, f32)> {
+    assert_eq!(a.grads.len(), b.grads.len());
+    let mut out = Vec::new();
+    for ((name, x), y) in a.names.iter().zip(&a.grads).zip(&b.grads) {
+        assert_eq!(x.len(), y.len(), "{name}: present in only one of the steps");
+        let bad = x
+            .iter()
+            .zip(y)
+            .filter(|(p, q)| p.to_bits() != q.to_bits())
+            .count();
+        if bad > 0 {
+            let max = x
+                .iter()
+                .zip(y)
+                .map(|(p, q)| (p - q).abs())
+                .fold(0f32, f32::max);
+            out.push((name.clone(), bad, x.len(), max));
+        }
+    }
+    out
+}
+
+#[test]
+fn threshold_zero_training_step_has_paritys_loss_and_gradients() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let run = tiny_run();
+    let batch = first_batch(&data, &run);
+    let r = run.train.rays_per_step;
+    let cull = Culling {
+        rays: false,
+        sample_threshold: Some(0.0),
+        sample_fill: SampleFill::Network,
+    };
+    for chunk in [r, 24] {
+        let parity = one_step(&data, &batch, chunk, Culling::default());
+        let culled = one_step(&data, &batch, chunk, cull.clone());
+        println!(
+            "chunk {chunk}: network points {} culled vs {} parity; loss {} vs {}",
+            culled.points, parity.points, culled.stats.loss.total, parity.stats.loss.total
+        );
+        assert!(
+            culled.points < parity.points,
+            "chunk {chunk}: no sample was culled, the test would not exercise culling"
+        );
+        let diffs = differences(&culled, &parity);
+        for (name, bad, n, max) in &diffs {
+            println!("chunk {chunk}: {name}: {bad} of {n} differ, max |diff| {max:e}");
+        }
+        assert_eq!(
+            culled.stats.loss.total.to_bits(),
+            parity.stats.loss.total.to_bits(),
+            "chunk {chunk}: loss differs"
+        );
+        let worst = diffs.iter().map(|d| d.3).fold(0f32, f32::max);
+        assert!(
+            worst <= 1e-6,
+            "chunk {chunk}: gradients differ by {worst:e}"
+        );
+        assert!(
+            (culled.stats.grad_norm - parity.stats.grad_norm).abs()
+                <= 1e-6 * parity.stats.grad_norm.max(1.0),
+            "chunk {chunk}: grad norm {} vs {}",
+            culled.stats.grad_norm,
+            parity.stats.grad_norm
+        );
+    }
+}
