@@ -259,12 +259,15 @@ pub fn time_forward_process(
     let mut runs = Vec::with_capacity(repeats);
     for i in 0..=repeats {
         let mut cmd = std::process::Command::new(&exe);
-        if pma_model::parallel::workers() > 1 {
+        let workers = pma_model::parallel::workers();
+        if workers > 1 {
             // This process set these for its own workers (`configure_cpu`); a child that
             // inherited them would take them for the user's and run one worker.
             cmd.env_remove("RAYON_NUM_THREADS")
                 .env_remove("CANDLE_NUM_THREADS");
         }
+        // The same worker count as this process (`pma --workers N bench` included).
+        cmd.args(["--workers", &workers.to_string()]);
         let t = std::time::Instant::now();
         let o = cmd
             .args(["forward", "--model"])
