@@ -1,8 +1,7 @@
-//! CPU throughput of the paper configuration in parity mode, in network samples per second
-//! (rays × (48 + 24)). The printed ratios divide by `REF_TRAIN` and `REF_INFER`: the
-//! reference's throughput at 512 training rays and 4,096 inference rays, measured once on the
-//! 2-core machine pma was developed on. On any other machine only the samples/s are
-//! meaningful; compare against the reference run there.
+//! CPU throughput of the paper configuration in parity mode: seconds per training step or
+//! inference pass and network samples per second (rays × (48 + 24)). Raw figures only; to
+//! compare with the official code, run both on the same machine in the same session
+//! (`bench/official/compare.sh` does).
 //!
 //! cargo run --release -p pma-model --features train --example throughput -- [--train-rays 512]
 //!     [--infer-rays 4096] [--repeats 3]
@@ -21,9 +20,6 @@ use pma_model::train::{BatchSource, DatasetSource, Preset, RunConfig, Trainer};
 // The same allocator as the `pma` binary, so these figures are the CLI's.
 #[global_allocator]
 static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
-
-const REF_TRAIN: f64 = 4223.0;
-const REF_INFER: f64 = 8823.0;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     // Data-parallel workers with candle's intra-op threads off (0 = one per core), as the
@@ -68,11 +64,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         }
         let m = scene::median(times);
         let sps = train_rays as f64 * samples / m;
-        println!(
-            "training  {train_rays:>5} rays: median {:.2} s/step, {sps:.0} samples/s ({:.2}x the reference's {REF_TRAIN})",
-            m,
-            sps / REF_TRAIN
-        );
+        println!("training  {train_rays:>5} rays: median {m:.3} s/step, {sps:.0} samples/s");
     }
 
     if infer_rays > 0 {
@@ -91,11 +83,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         }
         let m = scene::median(times);
         let sps = infer_rays as f64 * samples / m;
-        println!(
-            "inference {infer_rays:>5} rays: median {:.2} s, {sps:.0} samples/s ({:.2}x the reference's {REF_INFER})",
-            m,
-            sps / REF_INFER
-        );
+        println!("inference {infer_rays:>5} rays: median {m:.3} s, {sps:.0} samples/s");
     }
     println!(
         "peak RSS {:.0} MiB",

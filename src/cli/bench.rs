@@ -61,6 +61,18 @@ pub struct Args {
     /// TF32 matrix products on CUDA (changes results; refused on other devices).
     #[arg(long)]
     pub tf32: bool,
+    /// Also time the whole `pma forward` process on this ray batch (npz, as `pma forward
+    /// --batch` reads it): one warm-up run, then `--repeats` runs; the median wall time is
+    /// the `forward` row of bench.json.
+    #[arg(long)]
+    pub forward_batch: Option<PathBuf>,
+    /// Model for the `forward` row (default: the bench's model; it must have been made for
+    /// the batch's rest pose).
+    #[arg(long, requires = "forward_batch")]
+    pub forward_model: Option<PathBuf>,
+    /// Only the `forward` row: no scene, no training, no option rows.
+    #[arg(long, requires = "forward_batch")]
+    pub forward_only: bool,
 }
 
 #[cfg(not(feature = "train"))]
@@ -217,6 +229,106 @@ pub struct BenchReport {
     /// the chunk (what skipping optional joints could leave out).
     pub inactive_joint_fraction: f64,
     pub options: Vec<OptionResult>,
+    /// Whole-process `pma forward` on `--forward-batch`, if asked for.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub forward: Option<ForwardResult>,
+}
+
+/// Wall time of whole `pma forward` processes (start-up, loading, the pass, writing).
+#[derive(Debug, Clone, Default, serde::Serialize, serde::Deserialize)]
+pub struct ForwardResult {
+    pub batch: String,
+    pub model: String,
+    pub rays: usize,
+    /// Seconds of each timed run (after one warm-up run), in run order.
+    pub runs_s: Vec<f64>,
+    pub median_s: f64,
+    pub rays_per_s: f64,
+}
+
+/// Rays in a `pma forward` batch (the first dimension of its `rays_o`).
+fn batch_rays(path: &std::path::Path) -> anyhow::Result<usize> {
+    let mut r = pma_data::dataset::npz::NpzReader::open(path)?;
+    let a = r.read("rays_o")?;
+    match a.shape.as_slice() {
+        [n, 3] => Ok(*n),
+        s => anyhow::bail!(
+            "{}: key `rays_o`: expected shape [*,3], found {s:?}",
+            path.display()
+        ),
+    }
+}
+
+/// One warm-up and `repeats` timed runs of this executable's `pma forward`.
+pub fn time_forward_process(
+    batch: &std::path::Path,
+    model: &std::path::Path,
+    repeats: usize,
+    scratch: &std::path::Path,
+) -> anyhow::Result<ForwardResult> {
+    use anyhow::Context as _;
+    let rays = batch_rays(batch)?;
+    let exe = std::env::current_exe().context("locating the pma executable")?;
+    let out = scratch.join("forward_out.npz");
+    let mut runs = Vec::with_capacity(repeats);
+    for i in 0..=repeats {
+        let mut cmd = std::process::Command::new(&exe);
+        let workers = pma_model::parallel::workers();
+        if workers > 1 {
+            // This process set these for its own workers (`configure_cpu`); a child that
+            // inherited them would take them for the user's and run one worker.
+            cmd.env_remove("RAYON_NUM_THREADS")
+                .env_remove("CANDLE_NUM_THREADS");
+        }
+        // The same worker count as this process (`pma --workers N bench` included).
+        cmd.args(["--workers", &workers.to_string()]);
+        let t = std::time::Instant::now();
+        let o = cmd
+            .args(["forward", "--model"])
+            .arg(model)
+            .arg("--batch")
+            .arg(batch)
+            .arg("--out")
+            .arg(&out)
+            .output()
+            .with_context(|| format!("running {} forward", exe.display()))?;
+        let secs = t.elapsed().as_secs_f64();
+        if !o.status.success() {
+            anyhow::bail!(
+                "pma forward on {} failed: {}",
+                batch.display(),
+                String::from_utf8_lossy(&o.stderr).trim()
+            );
+        }
+        if i > 0 {
+            runs.push(secs);
+        }
+    }
+    // The output is only a by-product of the timing.
+    let _ = std::fs::remove_file(&out);
+    let mut sorted = runs.clone();
+    sorted.sort_by(f64::total_cmp);
+    let median = sorted[sorted.len() / 2];
+    Ok(ForwardResult {
+        batch: batch.display().to_string(),
+        model: model.display().to_string(),
+        rays,
+        runs_s: runs,
+        median_s: median,
+        rays_per_s: rays as f64 / median,
+    })
+}
+
+/// The `forward` line of the table.
+pub fn print_forward(f: &ForwardResult) {
+    println!(
+        "pma forward (whole process) {} rays: median {:.3} s over {} runs ({:.0} rays/s; {})",
+        f.rays,
+        f.median_s,
+        f.runs_s.len(),
+        f.rays_per_s,
+        f.batch
+    );
 }
 
 #[cfg(feature = "train")]
@@ -357,6 +469,9 @@ mod imp {
         let dev = super::super::device_tf32(&args.device, args.tf32)?;
         std::fs::create_dir_all(&args.out)
             .with_context(|| format!("creating {}", args.out.display()))?;
+        if args.forward_only {
+            return forward_only(&args);
+        }
         let rss_reset = reset_peak_rss();
         let scene = prepare_scene(&args)?;
         // Loaded before the per-option peak-RSS resets, so no option's phase pays for it.
@@ -379,7 +494,7 @@ mod imp {
             r.speedup_vs_parity = r.rays_per_s / parity_rays;
             r.step_speedup_vs_parity = parity_step / r.ms_per_step;
         }
-        let report = BenchReport {
+        let mut report = BenchReport {
             preset: args.preset.clone(),
             res: args.res,
             repeats: args.repeats,
@@ -390,7 +505,20 @@ mod imp {
             rss_reset_supported: rss_reset,
             inactive_joint_fraction: inactive,
             options: results,
+            forward: None,
         };
+        if let Some(batch) = &args.forward_batch {
+            let model = match &args.forward_model {
+                Some(m) => m.clone(),
+                None => bench_model_path(&args),
+            };
+            report.forward = Some(time_forward_process(
+                batch,
+                &model,
+                args.repeats,
+                &args.out,
+            )?);
+        }
         print_table(&report);
         write_json(&report, &args.out.join("bench.json"))?;
         plot_error_vs_time(&report, &args.out.join("error_vs_time.png"))?;
@@ -399,6 +527,34 @@ mod imp {
             args.out.join("bench.json").display(),
             args.out.join("error_vs_time.png").display()
         );
+        Ok(())
+    }
+
+    /// Where the rendered model lives: `--model`, or the one trained in-process.
+    fn bench_model_path(args: &Args) -> PathBuf {
+        args.model
+            .clone()
+            .unwrap_or_else(|| args.out.join("model.safetensors"))
+    }
+
+    /// `--forward-only`: the whole-process `pma forward` row alone.
+    fn forward_only(args: &Args) -> anyhow::Result<()> {
+        let Some(batch) = &args.forward_batch else {
+            refuse!("--forward-only needs --forward-batch");
+        };
+        let Some(model) = args.forward_model.clone().or_else(|| args.model.clone()) else {
+            refuse!("--forward-only needs --forward-model (or --model)");
+        };
+        let f = time_forward_process(batch, &model, args.repeats, &args.out)?;
+        print_forward(&f);
+        let report = BenchReport {
+            repeats: args.repeats,
+            model: model.display().to_string(),
+            forward: Some(f),
+            ..Default::default()
+        };
+        write_json(&report, &args.out.join("bench.json"))?;
+        println!("wrote {}", args.out.join("bench.json").display());
         Ok(())
     }
 
@@ -712,6 +868,9 @@ mod imp {
     }
 
     fn print_table(r: &BenchReport) {
+        if let Some(f) = &r.forward {
+            print_forward(f);
+        }
         println!(
             "\npreset {} | {}x{} | {:.3} MFLOP/point | peak ≈ {:.0} GFLOP/s ({}) | inactive joints per chunk {:.0}%",
             r.preset,

@@ -1,6 +1,11 @@
 //! `pma forward`: run the model on a ray batch stored as npz (the parity hook for outside
 //! tools). The batch holds the golden `input/*` arrays without the prefix: per-ray copies of
 //! the pose data, as the reference's data loader delivers them.
+//!
+//! No gradient is needed here, so by default the batch runs on the inference path
+//! (`Mode::Infer`: detached, chunked, on the data-parallel workers), which writes the same
+//! bytes as the graph-keeping path (`--grad`, `Mode::Train`/`Mode::Eval`) that this command
+//! ran before; `tests/cli/forward.rs` compares the two output files byte for byte.
 
 use std::collections::HashMap;
 use std::io::{BufWriter, Write as _};
@@ -30,9 +35,15 @@ pub struct Args {
     /// safetensors whose tensors replace the model's (e.g. the golden `dense` case's sigma head).
     #[arg(long)]
     sigma_override: Option<PathBuf>,
-    /// Evaluate in training mode (frame codes looked up directly; no density noise).
+    /// Frame codes as in training: looked up by index, and a batch whose indices are all −1 is
+    /// refused (with `false`, as in evaluation, such a batch gets the mean code). No density
+    /// noise either way.
     #[arg(long, default_value_t = true, action = clap::ArgAction::Set)]
     train_mode: bool,
+    /// Keep the autograd graph (the pass gradients would need): one network call per pose
+    /// instead of the inference path's detached chunks on all cores. Same outputs, slower.
+    #[arg(long)]
+    grad: bool,
     /// Compute device: cpu, cuda, cuda:N, metal (cuda/metal need a binary built with that
     /// feature).
     #[arg(long, default_value = "cpu")]
@@ -114,10 +125,15 @@ pub fn run(args: Args) -> Result<()> {
     let b = Batch::read(&args.batch)?;
     let input = b.model_input(&dev)?;
     let avatar = load_model(&args, &input.rest, &file, &dev)?;
-    let mut opts = if args.train_mode {
-        Mode::Train(None)
-    } else {
-        Mode::Eval
+    let mut opts = match (args.grad, args.train_mode) {
+        (true, true) => Mode::Train(None),
+        (true, false) => Mode::Eval,
+        (false, train_mode) => {
+            if train_mode && avatar.config().use_framecodes {
+                check_training_codes(&input.rays.framecodes, &file)?;
+            }
+            Mode::Infer
+        }
     };
     let out = avatar.forward(&input.rays, &input.poses, &mut opts, None)?;
     if args.time > 0 {
@@ -130,6 +146,19 @@ pub fn run(args: Args) -> Result<()> {
         input.rays.framecodes.len(),
         input.poses.bones.len()
     );
+    Ok(())
+}
+
+/// The inference path looks frame codes up as evaluation does; the two rules differ only on
+/// a batch whose indices are all negative (evaluation: the mean code; training: an error),
+/// so `--train-mode` refuses that batch up front, as the graph path in training mode does.
+fn check_training_codes(codes: &[i64], file: &str) -> Result<()> {
+    if let Some(bad) = codes.iter().find(|&&i| i < 0) {
+        refuse!(
+            "{file}: key `cam_idxs`: frame-code index {bad} is negative in training mode \
+             (pass `--train-mode false` for the mean code)"
+        );
+    }
     Ok(())
 }
 

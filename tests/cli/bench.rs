@@ -109,3 +109,74 @@ fn bad_thresholds_are_refused() {
     assert!(err.contains("--thresholds"), "{err}");
     assert!(!err.contains("panicked"), "{err}");
 }
+
+/// `--forward-only`: one warm-up and `--repeats` whole `pma forward` processes on a batch,
+/// reported as the `forward` row (structure only; times are not asserted).
+#[test]
+fn forward_only_bench_times_whole_forward_processes() {
+    let dir = tempfile::tempdir().unwrap();
+    let batch = dir.path().join("batch.npz");
+    super::forward::write_batch(&batch, None);
+    let fixtures = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("fixtures/golden");
+    let out = Command::new(env!("CARGO_BIN_EXE_pma"))
+        .args([
+            "bench",
+            "--quiet",
+            "--forward-only",
+            "--repeats",
+            "2",
+            "--forward-batch",
+        ])
+        .arg(&batch)
+        .arg("--forward-model")
+        .arg(fixtures.join("model.safetensors"))
+        .arg("--out")
+        .arg(dir.path())
+        .output()
+        .expect("running pma");
+    assert!(
+        out.status.success(),
+        "pma bench failed:\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        stdout.contains("pma forward (whole process) 64 rays"),
+        "{stdout}"
+    );
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("bench.json")).unwrap()).unwrap();
+    let f = &json["forward"];
+    assert_eq!(f["rays"].as_u64(), Some(64));
+    let runs = f["runs_s"].as_array().unwrap();
+    assert_eq!(runs.len(), 2, "one warm-up, then --repeats runs");
+    let median = f["median_s"].as_f64().unwrap();
+    assert!(runs.iter().all(|r| r.as_f64().is_some_and(|r| r > 0.0)));
+    assert!(
+        runs.iter().any(|r| r.as_f64() == Some(median)),
+        "median is one of the runs"
+    );
+    assert!(f["rays_per_s"].as_f64().is_some_and(|v| v > 0.0));
+    assert!(json["options"].as_array().unwrap().is_empty());
+    assert!(!dir.path().join("forward_out.npz").exists());
+}
+
+#[test]
+fn forward_bench_reports_a_failing_forward() {
+    let dir = tempfile::tempdir().unwrap();
+    let batch = dir.path().join("batch.npz");
+    super::forward::write_batch(&batch, Some("skts"));
+    let fixtures = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("fixtures/golden");
+    let out = Command::new(env!("CARGO_BIN_EXE_pma"))
+        .args(["bench", "--quiet", "--forward-only", "--forward-batch"])
+        .arg(&batch)
+        .arg("--forward-model")
+        .arg(fixtures.join("model.safetensors"))
+        .arg("--out")
+        .arg(dir.path())
+        .output()
+        .expect("running pma");
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("skts"), "{err}");
+}

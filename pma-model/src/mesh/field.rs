@@ -124,15 +124,16 @@ impl<'a> AvatarField<'a> {
         self.avatar.view_features(&d, &vec![-1; dirs.len()], false)
     }
 
-    /// (rgb, density) of the network at `pts` seen along `dirs`, in chunks.
+    /// (rgb, density) of the network at `pts` seen along `dirs`, in chunks on the CPU
+    /// workers (each chunk's values are its own, so the result does not depend on them).
     fn query(&self, pts: &[[f32; 3]], dirs: &[[f32; 3]]) -> Result<(Vec<[f32; 3]>, Vec<f32>)> {
-        let mut rgb = Vec::with_capacity(pts.len());
-        let mut sigma = Vec::with_capacity(pts.len());
-        for (p, d) in pts
-            .chunks(self.chunk.max(1))
-            .zip(dirs.chunks(self.chunk.max(1)))
-        {
+        let chunk = self.chunk.max(1);
+        let n = pts.len().div_ceil(chunk);
+        let workers = crate::parallel::workers_on(self.device());
+        let outs = crate::parallel::map_ordered(workers, n, |i| {
             crate::interrupt::check()?;
+            let p = &pts[i * chunk..((i + 1) * chunk).min(pts.len())];
+            let d = &dirs[i * chunk..((i + 1) * chunk).min(dirs.len())];
             let t = Tensor::from_vec(
                 p.iter().flatten().copied().collect::<Vec<f32>>(),
                 (p.len(), 3),
@@ -142,13 +143,18 @@ impl<'a> AvatarField<'a> {
                 .avatar
                 .eval_points(&self.pose, 0, &t, &self.view(d)?, None)?;
             let c = c.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()?;
+            let s = s
+                .relu()?
+                .to_dtype(DType::F32)?
+                .flatten_all()?
+                .to_vec1::<f32>()?;
+            Ok::<_, ModelError>((c, s))
+        })?;
+        let mut rgb = Vec::with_capacity(pts.len());
+        let mut sigma = Vec::with_capacity(pts.len());
+        for (c, s) in outs {
             rgb.extend(c.chunks_exact(3).map(|x| [x[0], x[1], x[2]]));
-            sigma.extend(
-                s.relu()?
-                    .to_dtype(DType::F32)?
-                    .flatten_all()?
-                    .to_vec1::<f32>()?,
-            );
+            sigma.extend(s);
         }
         Ok((rgb, sigma))
     }

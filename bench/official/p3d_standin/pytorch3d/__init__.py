@@ -1,0 +1,1 @@
+"""Stand-in package (see transforms/rotation_conversions.py)."""

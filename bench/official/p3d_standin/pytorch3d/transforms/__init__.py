@@ -1,0 +1,1 @@
+from . import rotation_conversions  # noqa: F401
