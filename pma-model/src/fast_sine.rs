@@ -32,10 +32,27 @@ pub fn enabled() -> bool {
 
 /// `sin(x)`: the vectorised kernel for f32 CPU tensors when enabled, candle's otherwise.
 pub fn sin(x: &Tensor) -> Result<Tensor> {
-    if enabled() && x.device().is_cpu() && x.dtype() == DType::F32 {
-        Ok(x.apply_op1(FastSin)?)
+    sin_flavour(x, enabled())
+}
+
+/// `sin(x)` with the flavour chosen by the caller rather than the global switch.
+/// In parity mode (`fast` false) f32 CPU tensors take [`crate::libm_sine`], libm's own bits
+/// at vector speed; other devices and dtypes take candle's `sin`.
+pub(crate) fn sin_flavour(x: &Tensor, fast: bool) -> Result<Tensor> {
+    if x.device().is_cpu() && x.dtype() == DType::F32 {
+        Ok(x.contiguous()?.apply_op1(Sine { fast })?)
     } else {
         Ok(x.sin()?)
+    }
+}
+
+/// sin (`shift` 0) or cos (`shift` 1) of every value: the vectorised kernel (`fast`) or
+/// libm's values ([`crate::libm_sine`]).
+pub(crate) fn trig(x: &[f32], shift: u64, fast: bool) -> Vec<f32> {
+    if fast {
+        sin_or_cos(x, shift)
+    } else {
+        crate::libm_sine::map(x, shift == 1)
     }
 }
 
@@ -133,17 +150,22 @@ fn values<'a>(s: &'a CpuStorage, l: &Layout) -> candle_core::Result<&'a [f32]> {
     }
 }
 
-struct FastSin;
-struct FastCos;
+/// `sin`, whose backward multiplies by [`Cosine`] of the same flavour.
+struct Sine {
+    fast: bool,
+}
+struct Cosine {
+    fast: bool,
+}
 
-impl CustomOp1 for FastSin {
+impl CustomOp1 for Sine {
     fn name(&self) -> &'static str {
-        "pma-fast-sin"
+        "pma-sin"
     }
 
     fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> candle_core::Result<(CpuStorage, Shape)> {
         let x = values(s, l)?;
-        Ok((CpuStorage::F32(sin_or_cos(x, 0)), l.shape().clone()))
+        Ok((CpuStorage::F32(trig(x, 0, self.fast)), l.shape().clone()))
     }
 
     fn bwd(
@@ -152,18 +174,20 @@ impl CustomOp1 for FastSin {
         _res: &Tensor,
         grad: &Tensor,
     ) -> candle_core::Result<Option<Tensor>> {
-        Ok(Some(grad.mul(&arg.contiguous()?.apply_op1(FastCos)?)?))
+        // candle's own rule for sin, `grad · cos(arg)`, so parity mode keeps its bits.
+        let cos = arg.contiguous()?.apply_op1(Cosine { fast: self.fast })?;
+        Ok(Some(grad.mul(&cos)?))
     }
 }
 
-impl CustomOp1 for FastCos {
+impl CustomOp1 for Cosine {
     fn name(&self) -> &'static str {
-        "pma-fast-cos"
+        "pma-cos"
     }
 
     fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> candle_core::Result<(CpuStorage, Shape)> {
         let x = values(s, l)?;
-        Ok((CpuStorage::F32(sin_or_cos(x, 1)), l.shape().clone()))
+        Ok((CpuStorage::F32(trig(x, 1, self.fast)), l.shape().clone()))
     }
 }
 
@@ -257,7 +281,7 @@ mod tests {
         let xs = grid(-30.0, 30.0, 1001);
         let x = Var::from_vec(xs.clone(), 1001, &dev).unwrap();
         // The op itself, not the process-wide switch: other tests run alongside.
-        let y = x.as_tensor().apply_op1(FastSin).unwrap();
+        let y = x.as_tensor().apply_op1(Sine { fast: true }).unwrap();
         let g = y.sum_all().unwrap().backward().unwrap();
         let y = y.to_vec1::<f32>().unwrap();
         let dx = g.get(x.as_tensor()).unwrap().to_vec1::<f32>().unwrap();
@@ -265,11 +289,14 @@ mod tests {
             assert!((s - v.sin()).abs() <= 1.2e-7, "sin({v}) = {s}");
             assert!((d - v.cos()).abs() <= 1.2e-7, "cos({v}) = {d}");
         }
-        // Switched off (the default): candle's own sine, bit for bit.
-        let plain = sin(x.as_tensor()).unwrap().to_vec1::<f32>().unwrap();
-        assert!(plain
-            .iter()
-            .zip(&xs)
-            .all(|(p, v)| p.to_bits() == v.sin().to_bits()));
+        // Switched off (the default): libm's sine and cosine, bit for bit, forward and back.
+        let y = sin(x.as_tensor()).unwrap();
+        let g = y.sum_all().unwrap().backward().unwrap();
+        let dx = g.get(x.as_tensor()).unwrap().to_vec1::<f32>().unwrap();
+        let y = y.to_vec1::<f32>().unwrap();
+        for ((v, s), d) in xs.iter().zip(&y).zip(&dx) {
+            assert_eq!(s.to_bits(), v.sin().to_bits(), "sin({v})");
+            assert_eq!(d.to_bits(), v.cos().to_bits(), "cos({v})");
+        }
     }
 }

@@ -66,6 +66,176 @@ pub fn window_pool(q: &Tensor, g: &Tensor, w_p: &Tensor) -> Result<Tensor> {
         .apply_op3(&g.contiguous()?, &w_p.detach().contiguous()?, WindowPool)?)
 }
 
+/// One FiLM-SIREN layer, `sin(pre ⊙ (m·Θ_k + c) + Φ_k)`, with Θ_k and Φ_k read straight out of
+/// the pose extractor's head `o` = [Θ_0..Θ_{K-1}, Φ_0..Φ_{K-1}] (each block `f` wide):
+/// pre: [N,f], o: [N,2·K·f] -> [N,f].
+///
+/// The plain path is four ops forward (a strided affine, a product, a strided add, the sine)
+/// and, backward, about a dozen passes over [N,f] plus two zero-padded [N,2Kf] gradients for
+/// the narrowed blocks. Here it is one pass each way and one gradient for `o`, computed with
+/// the same f32 operations in the same order (sine and cosine from libm, or from
+/// [`crate::fast_sine`] when that is on), so values and gradients are bit-identical.
+pub fn film_sine(
+    pre: &Tensor,
+    o: &Tensor,
+    k: usize,
+    n_layers: usize,
+    mul: f64,
+    add: f64,
+) -> Result<Tensor> {
+    let fast = crate::fast_sine::enabled();
+    let fused = applies(&[pre, o]);
+    film_sine_with(pre, o, (k, n_layers), (mul, add), fast, fused)
+}
+
+/// [`film_sine`] with the sine flavour and the kernel choice made by the caller.
+fn film_sine_with(
+    pre: &Tensor,
+    o: &Tensor,
+    (k, n_layers): (usize, usize),
+    (mul, add): (f64, f64),
+    fast: bool,
+    fused: bool,
+) -> Result<Tensor> {
+    let f = pre.dim(candle_core::D::Minus1)?;
+    let fits = pre.rank() == 2
+        && o.rank() == 2
+        && k < n_layers
+        && o.dim(1)? == 2 * n_layers * f
+        && o.dim(0)? == pre.dim(0)?;
+    if !(fused && fits) {
+        let theta = o.narrow(1, k * f, f)?;
+        let phi = o.narrow(1, (n_layers + k) * f, f)?;
+        let arg = (pre * theta.affine(mul, add)?)?.add(&phi)?;
+        return crate::fast_sine::sin_flavour(&arg, fast);
+    }
+    let op = FilmSine {
+        k,
+        n_layers,
+        mul: mul as f32,
+        add: add as f32,
+        fast,
+    };
+    Ok(pre.contiguous()?.apply_op2(&o.contiguous()?, op)?)
+}
+
+struct FilmSine {
+    k: usize,
+    n_layers: usize,
+    mul: f32,
+    add: f32,
+    /// Sine flavour fixed when the graph is built, so the backward matches its forward.
+    fast: bool,
+}
+
+impl FilmSine {
+    /// Row `i`'s Θ_k and Φ_k blocks inside `o`.
+    fn blocks<'a>(&self, o: &'a [f32], i: usize, f: usize) -> (&'a [f32], &'a [f32]) {
+        let row = &o[i * 2 * self.n_layers * f..(i + 1) * 2 * self.n_layers * f];
+        let t = self.k * f;
+        let p = (self.n_layers + self.k) * f;
+        (&row[t..t + f], &row[p..p + f])
+    }
+
+    /// The sine's argument, `(pre · (Θ·mul + add)) + Φ`, row by row.
+    fn argument(&self, pre: &[f32], o: &[f32], f: usize) -> Vec<f32> {
+        let mut a = Vec::with_capacity(pre.len());
+        for (i, prow) in pre.chunks_exact(f).enumerate() {
+            let (theta, phi) = self.blocks(o, i, f);
+            a.extend(
+                prow.iter()
+                    .zip(theta)
+                    .zip(phi)
+                    .map(|((&x, &t), &p)| x * (t * self.mul + self.add) + p),
+            );
+        }
+        a
+    }
+
+    /// sin (`shift` 0) or cos (`shift` 1) in place, libm or the vectorised kernel.
+    fn trig(&self, a: Vec<f32>, shift: u64) -> Vec<f32> {
+        crate::fast_sine::trig(&a, shift, self.fast)
+    }
+
+    fn check(&self, l1: &Layout, l2: &Layout) -> candle_core::Result<(usize, usize)> {
+        let (n, f) = l1.shape().dims2()?;
+        let (n2, w) = l2.shape().dims2()?;
+        if n2 != n || w != 2 * self.n_layers * f {
+            candle_core::bail!(
+                "film sine: o {:?} does not hold 2·{}·{f} columns for pre {:?}",
+                l2.shape(),
+                self.n_layers,
+                l1.shape()
+            )
+        }
+        Ok((n, f))
+    }
+}
+
+impl CustomOp2 for FilmSine {
+    fn name(&self) -> &'static str {
+        "pma-film-sine"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let (_, f) = self.check(l1, l2)?;
+        let (pre, o) = (
+            slice(s1, l1, "film sine: pre")?,
+            slice(s2, l2, "film sine: o")?,
+        );
+        let a = self.argument(pre, o, f);
+        Ok((CpuStorage::F32(self.trig(a, 0)), l1.shape().clone()))
+    }
+
+    fn bwd(
+        &self,
+        pre: &Tensor,
+        o: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>)> {
+        let (n, f) = pre.dims2()?;
+        let w = 2 * self.n_layers * f;
+        let (pre_c, o_c, d_c) = (pre.contiguous()?, o.contiguous()?, grad.contiguous()?);
+        let guards = [&pre_c, &o_c, &d_c].map(|t| t.storage_and_layout());
+        let [p, oo, d] = [0, 1, 2].map(|i| cpu_slice(&guards[i].0, guards[i].1));
+        let (p, oo, d) = (p?, oo?, d?);
+        let cos = self.trig(self.argument(p, oo, f), 1);
+        let mut g_pre = Vec::with_capacity(n * f);
+        let mut g_o = vec![0f32; n * w];
+        // The plain graph's steps, each gradient starting from candle's zero accumulator:
+        // g_a = grad·cos(a); the add passes it to the product and to Φ; the product gives
+        // pre g_a·γ and γ g_a·pre; the affine gives Θ (g_γ·mul) + 0.
+        for i in 0..n {
+            let (theta, _) = self.blocks(oo, i, f);
+            let prow = &p[i * f..(i + 1) * f];
+            let row = i * f..(i + 1) * f;
+            let (dr, cr) = (&d[row.clone()], &cos[row]);
+            let go = &mut g_o[i * w..(i + 1) * w];
+            let (t0, p0) = (self.k * f, (self.n_layers + self.k) * f);
+            for c in 0..f {
+                let ga = dr[c] * cr[c];
+                let gt = 0f32 + ga;
+                let gamma = theta[c] * self.mul + self.add;
+                g_pre.push(gt * gamma);
+                let gg = 0f32 + gt * prow[c];
+                go[t0 + c] = gg * self.mul + 0f32;
+                go[p0 + c] = 0f32 + ga;
+            }
+        }
+        drop(guards);
+        let g_pre = Tensor::from_vec(g_pre, (n, f), pre.device())?;
+        let g_o = Tensor::from_vec(g_o, (n, w), o.device())?;
+        Ok((Some(g_pre), Some(g_o)))
+    }
+}
+
 /// A contiguous f32 CPU slice of `s` under layout `l`.
 fn slice<'a>(s: &'a CpuStorage, l: &Layout, what: &str) -> candle_core::Result<&'a [f32]> {
     let CpuStorage::F32(v) = s else {
@@ -319,6 +489,59 @@ mod tests {
         assert_eq!(max_abs(&a.5, &b.5), 0.0, "grad bias");
         // The kernels actually ran (they are off when disabled or for other dtypes).
         assert!(applies(&[&a.0]));
+    }
+
+    /// The fused FiLM-sine layer gives the plain ops' values and gradients bit for bit, with
+    /// libm's sine and with the vectorised one, for every layer of a 3-layer head, including
+    /// large frequencies and arguments.
+    #[test]
+    fn film_sine_matches_plain_ops_bit_for_bit() {
+        let (n, kk, f) = (29, 3, 8);
+        for fast in [false, true] {
+            for k in 0..kk {
+                let run = |fused: bool| {
+                    let pre = Var::from_tensor(&(rand(&[n, f], 11) * 3.0).unwrap()).unwrap();
+                    let o =
+                        Var::from_tensor(&(rand(&[n, 2 * kk * f], 12) * 40.0).unwrap()).unwrap();
+                    let y = film_sine_with(
+                        pre.as_tensor(),
+                        o.as_tensor(),
+                        (k, kk),
+                        (15.0, 30.0),
+                        fast,
+                        fused,
+                    )
+                    .unwrap();
+                    // Distinct weights per element, so every gradient entry is tested.
+                    let wts = rand(&[n, f], 13);
+                    let grads = (&y * &wts).unwrap().sum_all().unwrap().backward().unwrap();
+                    let get = |v: &Var| grads.get(v.as_tensor()).unwrap().clone();
+                    (y, get(&pre), get(&o))
+                };
+                let (a, b) = (run(true), run(false));
+                let bits = |t: &Tensor| {
+                    t.flatten_all()
+                        .unwrap()
+                        .to_vec1::<f32>()
+                        .unwrap()
+                        .iter()
+                        .map(|v| v.to_bits())
+                        .collect::<Vec<_>>()
+                };
+                assert_eq!(bits(&a.0), bits(&b.0), "values, fast={fast} k={k}");
+                assert_eq!(bits(&a.1), bits(&b.1), "grad pre, fast={fast} k={k}");
+                assert_eq!(bits(&a.2), bits(&b.2), "grad head, fast={fast} k={k}");
+                assert!(
+                    a.2.abs()
+                        .unwrap()
+                        .sum_all()
+                        .unwrap()
+                        .to_scalar::<f32>()
+                        .unwrap()
+                        > 0.0
+                );
+            }
+        }
     }
 
     #[test]

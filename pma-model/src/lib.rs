@@ -35,6 +35,7 @@ pub mod host;
 pub mod image;
 /// The process-wide interrupt flag (see `pma_data::interrupt`).
 pub use pma_data::interrupt;
+pub mod libm_sine;
 pub mod loss;
 pub mod lpips;
 pub mod mesh;

@@ -15,6 +15,10 @@ use crate::params::{Init, Params};
 pub struct Modulation {
     pub freq: Vec<Tensor>,
     pub phase: Vec<Tensor>,
+    /// The pose extractor's whole head output [N,2·K·F] that `freq` and `phase` are views
+    /// of, when they are. The fused FiLM-sine kernel reads both blocks from it and returns a
+    /// single gradient for it, instead of two zero-padded ones per layer.
+    pub head: Option<Tensor>,
 }
 
 #[derive(Debug, Clone)]
@@ -76,7 +80,11 @@ impl PoseExtractor {
         let phase = (0..k)
             .map(|i| o.narrow(1, (k + i) * f, f))
             .collect::<candle_core::Result<Vec<_>>>()?;
-        Ok(Modulation { freq, phase })
+        Ok(Modulation {
+            freq,
+            phase,
+            head: Some(o),
+        })
     }
 }
 
@@ -113,11 +121,17 @@ impl Modulator {
     /// Map raw predictions Θ to frequencies γ. pi-GAN's `15Θ + 30` is what the reference
     /// takes whenever ω > 15 (ω = 16 by default); otherwise `ωΘ + 2ω`.
     pub fn gamma(&self, theta: &Tensor) -> Result<Tensor> {
-        Ok(if self.w0 > 15.0 {
-            theta.affine(15.0, 30.0)?
+        let (mul, add) = self.gamma_affine();
+        Ok(theta.affine(mul, add)?)
+    }
+
+    /// γ = mul·Θ + add.
+    fn gamma_affine(&self) -> (f64, f64) {
+        if self.w0 > 15.0 {
+            (15.0, 30.0)
         } else {
-            theta.affine(self.w0, 2.0 * self.w0)?
-        })
+            (self.w0, 2.0 * self.w0)
+        }
     }
 
     /// The frequency of an unmodulated layer: γ at Θ = 0 (`only-syn`, with Φ = 0).
@@ -147,7 +161,13 @@ impl Modulator {
         let mut outs = Vec::with_capacity(self.layers.len());
         for (k, layer) in self.layers.iter().enumerate() {
             let pre = layer.forward(&h)?;
-            h = crate::fast_sine::sin(&(pre * self.gamma(&m.freq[k])?)?.add(&m.phase[k])?)?;
+            h = match &m.head {
+                Some(o) => {
+                    let (mul, add) = self.gamma_affine();
+                    crate::fused::film_sine(&pre, o, k, self.layers.len(), mul, add)?
+                }
+                None => crate::fast_sine::sin(&(pre * self.gamma(&m.freq[k])?)?.add(&m.phase[k])?)?,
+            };
             outs.push(h.clone());
         }
         Ok(Tensor::cat(&outs, 1)?)

@@ -839,16 +839,35 @@ fn pose_extractor_matches_torch() {
 fn modulator_matches_torch() {
     let fx = fixture("modulator");
     let cfg = tiny_config();
-    for case in ["normal", "extreme", "negative"] {
+    // Θ, Φ as separate tensors (plain ops) and as views of one head output (the fused
+    // FiLM-sine kernel the full model uses).
+    for (case, fused) in ["normal", "extreme", "negative"]
+        .into_iter()
+        .flat_map(|c| [(c, false), (c, true)])
+    {
         let (vm, vb) = tiny_vars(&[]);
         let modulator = Modulator::new(vb.pp("modulator"), &cfg).unwrap();
         let x_tilde = input_var(&fx, case, "x_tilde");
         let theta = input_var(&fx, case, "theta");
         let phi = input_var(&fx, case, "phi");
         let split = |t: &Tensor| (0..cfg.n_pm).map(|k| t.get(k).unwrap()).collect::<Vec<_>>();
-        let m = Modulation {
-            freq: split(theta.as_tensor()),
-            phase: split(phi.as_tensor()),
+        let (freq, phase) = (split(theta.as_tensor()), split(phi.as_tensor()));
+        let m = if fused {
+            let (k, w) = (cfg.n_pm, cfg.freq_dim);
+            let o = Tensor::cat(&freq.iter().chain(&phase).collect::<Vec<_>>(), 1).unwrap();
+            Modulation {
+                freq: (0..k).map(|i| o.narrow(1, i * w, w).unwrap()).collect(),
+                phase: (0..k)
+                    .map(|i| o.narrow(1, (k + i) * w, w).unwrap())
+                    .collect(),
+                head: Some(o),
+            }
+        } else {
+            Modulation {
+                freq,
+                phase,
+                head: None,
+            }
         };
         fx.check_t(
             case,

@@ -290,6 +290,7 @@ fn pose_extractor_and_modulator_at_huge_frequencies() {
             let m = Modulation {
                 freq: freq.iter().map(|v| v.as_tensor().clone()).collect(),
                 phase: phase.clone(),
+                head: None,
             };
             (modu.forward(&x, &m).unwrap() * &out_w)
                 .unwrap()

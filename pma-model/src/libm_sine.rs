@@ -1,0 +1,272 @@
+//! libm's own `sinf`/`cosf`, vectorised: the parity-mode sine at vector speed.
+//!
+//! Parity mode must produce the bits candle gets from `f32::sin`/`f32::cos`, one scalar libm
+//! call per value, which `perf` puts at ~15 % of a paper-config training step. glibc (2.28 on)
+//! computes these with a fixed double-precision recipe: one multiply-subtract by π/2 for
+//! |x| < 120 (the quadrant from a scaled truncation), then a degree-7 sine or degree-8 cosine
+//! polynomial on the remainder, rounded once to f32. The recipe is arithmetic only, so running
+//! it lane-wise over a slice gives the same bits, and the compiler vectorises it.
+//!
+//! glibc builds the recipe twice: with fused multiply-adds (picked on CPUs with FMA) and
+//! without. Which one (if either) this process's libm is, is settled once, at first use,
+//! by comparing both against `f32::sin`/`f32::cos` on a fixed set of arguments that covers
+//! every branch, the branch edges and the sign and quadrant cases. A libm that matches neither
+//! (musl, macOS, an older glibc) keeps the scalar libm calls, so parity never depends on the
+//! check passing. Arguments outside the fast range (|x| ≥ 120, inf, NaN) always go to libm.
+//! `cargo run --release -p pma-model --example libm_sine_sweep` compares every f32.
+
+use std::sync::OnceLock;
+
+/// 2/π · 2^24: the quadrant lands in bits 24 and up after truncation.
+const HPI_INV: f64 = f64::from_bits(0x4164_5f30_6dc9_c883);
+/// π/2 rounded to double.
+const HPI: f64 = f64::from_bits(0x3ff9_21fb_5444_2d18);
+/// Cosine polynomial 1 + c1·x² + … + c4·x⁸.
+const C: [f64; 5] = [
+    1.0,
+    f64::from_bits(0xbfdf_ffff_fd0c_621c),
+    f64::from_bits(0x3fa5_5553_e106_8f19),
+    f64::from_bits(0xbf56_c087_e89a_359d),
+    f64::from_bits(0x3ef9_9343_027b_f8c3),
+];
+/// Sine polynomial x + s1·x³ + s2·x⁵ + s3·x⁷.
+const S: [f64; 3] = [
+    f64::from_bits(0xbfc5_5554_5995_a603),
+    f64::from_bits(0x3f81_1076_0523_0bc4),
+    f64::from_bits(0xbf29_94eb_3774_cf24),
+];
+/// glibc compares the top 12 bits of |x|: below 0x398 (|x| < 2^-12) sin x = x and cos x = 1;
+/// from 0x42f (|x| ≥ 120, and NaN) the fast reduction no longer applies. Both edges have
+/// zero low bits, so plain comparisons of |x| are the same tests.
+const TINY: f32 = 1.0 / 4096.0;
+const LARGE: f32 = 120.0;
+
+/// Which build of the recipe this process's libm matches.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Flavour {
+    /// glibc's FMA build (multiply-adds fused, one rounding each).
+    Fused,
+    /// glibc's plain build (separate multiply and add).
+    Plain,
+    /// Neither: every value goes to libm.
+    Libm,
+}
+
+/// The flavour in use, decided on first call.
+pub fn flavour() -> Flavour {
+    static F: OnceLock<Flavour> = OnceLock::new();
+    *F.get_or_init(|| {
+        let args = check_arguments();
+        [Flavour::Fused, Flavour::Plain]
+            .into_iter()
+            .find(|&f| agrees(f, &args))
+            .unwrap_or(Flavour::Libm)
+    })
+}
+
+#[inline(always)]
+fn madd<const FMA: bool>(a: f64, b: f64, c: f64) -> f64 {
+    if FMA {
+        a.mul_add(b, c)
+    } else {
+        a * b + c
+    }
+}
+
+/// sin (`cos` false) or cos (`cos` true) of one value in the fast range by the recipe.
+/// Written without integer conversions or branches so that it vectorises: glibc's quadrant
+/// `((int32) (x·hpi_inv) + 2^23) >> 24` is `floor((trunc(x·hpi_inv) + 2^23) / 2^24)`, exact in
+/// f64, and its low two bits come from `n − 4·floor(n/4)`.
+#[inline(always)]
+fn lane<const FMA: bool>(y: f32, cos: bool) -> f32 {
+    let x = y as f64;
+    let n = (((x * HPI_INV).trunc() + 8_388_608.0) * (1.0 / 16_777_216.0)).floor();
+    let xr = madd::<FMA>(-n, HPI, x);
+    let q = n - 4.0 * (n * 0.25).floor();
+    // glibc negates the sine's argument in quadrants 1 and 2 and the cosine's coefficients
+    // in quadrants 2 and 3. Both polynomials are odd or even under those negations and
+    // rounding is symmetric, so the negation can move onto the result, exactly.
+    let odd = (q == 1.0 || q == 3.0) != cos;
+    let flip = if odd { q >= 2.0 } else { q == 1.0 || q == 2.0 };
+    let x2 = xr * xr;
+    let x4 = x2 * x2;
+    let c2 = madd::<FMA>(x2, C[4], C[3]);
+    let c1 = madd::<FMA>(x2, C[1], C[0]);
+    let x6 = x4 * x2;
+    let c = madd::<FMA>(x6, c2, madd::<FMA>(x4, C[2], c1));
+    let x3 = xr * x2;
+    let s1 = madd::<FMA>(x2, S[2], S[1]);
+    let x7 = x3 * x2;
+    let s = madd::<FMA>(x7, s1, madd::<FMA>(x3, S[0], xr));
+    let v = if odd { c } else { s };
+    let v = if flip { -v } else { v } as f32;
+    if y.abs() < TINY {
+        if cos {
+            1.0
+        } else {
+            y
+        }
+    } else {
+        v
+    }
+}
+
+/// |v| ≥ 120 or NaN: libm's slow reduction.
+#[inline(always)]
+fn outside(v: f32) -> bool {
+    v.abs() >= LARGE || v.is_nan()
+}
+
+#[inline(always)]
+fn body<const FMA: bool>(x: &[f32], out: &mut [f32], cos: bool) {
+    let mut large = 0u32;
+    for (o, &v) in out.iter_mut().zip(x) {
+        *o = lane::<FMA>(v, cos);
+        large |= u32::from(outside(v));
+    }
+    if large != 0 {
+        for (o, &v) in out.iter_mut().zip(x) {
+            if outside(v) {
+                *o = if cos { v.cos() } else { v.sin() };
+            }
+        }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn body_fma_avx2(x: &[f32], out: &mut [f32], cos: bool) {
+    body::<true>(x, out, cos)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn body_plain_avx2(x: &[f32], out: &mut [f32], cos: bool) {
+    body::<false>(x, out, cos)
+}
+
+fn run(f: Flavour, x: &[f32], out: &mut [f32], cos: bool) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        let avx2 = std::is_x86_feature_detected!("avx2");
+        let fma = std::is_x86_feature_detected!("fma");
+        match f {
+            // SAFETY: the CPU has the features the functions are compiled for (checked).
+            Flavour::Fused if avx2 && fma => return unsafe { body_fma_avx2(x, out, cos) },
+            Flavour::Plain if avx2 => return unsafe { body_plain_avx2(x, out, cos) },
+            _ => {}
+        }
+    }
+    match f {
+        Flavour::Fused => body::<true>(x, out, cos),
+        Flavour::Plain => body::<false>(x, out, cos),
+        Flavour::Libm => {
+            for (o, &v) in out.iter_mut().zip(x) {
+                *o = if cos { v.cos() } else { v.sin() };
+            }
+        }
+    }
+}
+
+/// `out[i] = sin(x[i])` (`cos` false) or `cos(x[i])`, bit-identical to `f32::sin`/`f32::cos`.
+pub fn apply(x: &[f32], out: &mut [f32], cos: bool) {
+    run(flavour(), x, out, cos)
+}
+
+/// [`apply`] into a new vector.
+pub fn map(x: &[f32], cos: bool) -> Vec<f32> {
+    let mut out = vec![0f32; x.len()];
+    apply(x, &mut out, cos);
+    out
+}
+
+/// The arguments the flavour check compares on: the edges of every branch (tiny, fast range,
+/// libm), zeros and subnormals, neighbours of multiples of π/4 (quadrant changes), a dense
+/// grid over the network's range and bit patterns spread over the whole fast range.
+fn check_arguments() -> Vec<f32> {
+    let mut v = vec![
+        0.0f32,
+        -0.0,
+        f32::MIN_POSITIVE,
+        1e-40,
+        0.75,
+        120.0,
+        119.99999,
+    ];
+    for edge in [0x3980_0000u32, 0x3f40_0000, 0x42f0_0000, 0x3f49_0fdb] {
+        for d in 0..16u32 {
+            v.push(f32::from_bits(edge + d));
+            v.push(f32::from_bits(edge - 1 - d));
+        }
+    }
+    for k in 1..153 {
+        let m = k as f32 * std::f32::consts::FRAC_PI_4;
+        for d in -4i32..=4 {
+            v.push(f32::from_bits((m.to_bits() as i32 + d) as u32));
+        }
+    }
+    v.extend((0..20_001).map(|i| -100.0 + i as f32 * 0.01));
+    // A multiplicative walk over the bit patterns below 120.
+    let mut b = 0x1234_5677u32;
+    for _ in 0..40_000 {
+        b = b.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+        v.push(f32::from_bits(b % 0x42f0_0000));
+    }
+    let neg: Vec<f32> = v.iter().map(|x| -x).collect();
+    v.extend(neg);
+    v
+}
+
+fn agrees(f: Flavour, args: &[f32]) -> bool {
+    let mut out = vec![0f32; args.len()];
+    [false, true].into_iter().all(|cos| {
+        run(f, args, &mut out, cos);
+        args.iter().zip(&out).all(|(&a, &o)| {
+            let want = if cos { a.cos() } else { a.sin() };
+            want.to_bits() == o.to_bits()
+        })
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Both flavours against libm on arguments the start-up check does not use (a different
+    /// walk), and, where glibc's FMA build is the libm (x86-64 Linux with FMA), that the
+    /// vector kernel is the one in use, so a wrong kernel cannot hide behind the fallback.
+    #[test]
+    fn matches_libm_bit_for_bit() {
+        let mut b = 0x9e37_79b9u32;
+        let xs: Vec<f32> = (0..200_000)
+            .map(|_| {
+                b = b.wrapping_mul(22_695_477).wrapping_add(1);
+                f32::from_bits(b)
+            })
+            .filter(|x| !x.is_nan())
+            .collect();
+        for cos in [false, true] {
+            let got = map(&xs, cos);
+            for (x, g) in xs.iter().zip(&got) {
+                let want = if cos { x.cos() } else { x.sin() };
+                assert_eq!(g.to_bits(), want.to_bits(), "x = {x:e} cos = {cos}");
+            }
+        }
+        let glibc_fma = cfg!(all(
+            target_arch = "x86_64",
+            target_os = "linux",
+            target_env = "gnu"
+        )) && {
+            #[cfg(target_arch = "x86_64")]
+            let has = std::is_x86_feature_detected!("fma");
+            #[cfg(not(target_arch = "x86_64"))]
+            let has = false;
+            has
+        };
+        if glibc_fma {
+            assert_eq!(flavour(), Flavour::Fused);
+        }
+        assert!(map(&[f32::NAN], false)[0].is_nan());
+        assert!(map(&[f32::INFINITY], true)[0].is_nan());
+    }
+}
