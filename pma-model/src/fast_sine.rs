@@ -140,16 +140,6 @@ pub fn sin_or_cos(x: &[f32], shift: u64) -> Vec<f32> {
     out
 }
 
-fn values<'a>(s: &'a CpuStorage, l: &Layout) -> candle_core::Result<&'a [f32]> {
-    let CpuStorage::F32(v) = s else {
-        candle_core::bail!("fast sine expects f32")
-    };
-    match l.contiguous_offsets() {
-        Some((a, b)) => Ok(&v[a..b]),
-        None => candle_core::bail!("fast sine expects a contiguous tensor"),
-    }
-}
-
 /// `sin`, whose backward multiplies by [`Cosine`] of the same flavour.
 struct Sine {
     fast: bool,
@@ -164,7 +154,7 @@ impl CustomOp1 for Sine {
     }
 
     fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> candle_core::Result<(CpuStorage, Shape)> {
-        let x = values(s, l)?;
+        let x = crate::ops::f32_slice(s, l, "sine")?;
         Ok((CpuStorage::F32(trig(x, 0, self.fast)), l.shape().clone()))
     }
 
@@ -186,7 +176,7 @@ impl CustomOp1 for Cosine {
     }
 
     fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> candle_core::Result<(CpuStorage, Shape)> {
-        let x = values(s, l)?;
+        let x = crate::ops::f32_slice(s, l, "sine")?;
         Ok((CpuStorage::F32(trig(x, 1, self.fast)), l.shape().clone()))
     }
 }

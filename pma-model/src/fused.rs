@@ -22,6 +22,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use candle_core::{CpuStorage, CustomOp2, CustomOp3, DType, Layout, Shape, Storage, Tensor};
 
 use crate::error::Result;
+use crate::ops::f32_slice;
 
 static ENABLED: AtomicBool = AtomicBool::new(true);
 
@@ -186,8 +187,8 @@ impl CustomOp2 for FilmSine {
     ) -> candle_core::Result<(CpuStorage, Shape)> {
         let (_, f) = self.check(l1, l2)?;
         let (pre, o) = (
-            slice(s1, l1, "film sine: pre")?,
-            slice(s2, l2, "film sine: o")?,
+            f32_slice(s1, l1, "film sine: pre")?,
+            f32_slice(s2, l2, "film sine: o")?,
         );
         let a = self.argument(pre, o, f);
         Ok((CpuStorage::F32(self.trig(a, 0)), l1.shape().clone()))
@@ -236,23 +237,12 @@ impl CustomOp2 for FilmSine {
     }
 }
 
-/// A contiguous f32 CPU slice of `s` under layout `l`.
-fn slice<'a>(s: &'a CpuStorage, l: &Layout, what: &str) -> candle_core::Result<&'a [f32]> {
-    let CpuStorage::F32(v) = s else {
-        candle_core::bail!("{what}: fused kernel expects f32")
-    };
-    match l.contiguous_offsets() {
-        Some((a, b)) => Ok(&v[a..b]),
-        None => candle_core::bail!("{what}: fused kernel expects a contiguous tensor"),
-    }
-}
-
 /// The f32 data of a contiguous CPU tensor's storage.
 fn cpu_slice<'a>(s: &'a Storage, l: &Layout) -> candle_core::Result<&'a [f32]> {
     let Storage::Cpu(cpu) = s else {
         candle_core::bail!("fused kernel: tensor is not on the CPU")
     };
-    slice(cpu, l, "fused kernel")
+    f32_slice(cpu, l, "fused kernel")
 }
 
 struct BiasAdd;
@@ -269,7 +259,10 @@ impl CustomOp2 for BiasAdd {
         s2: &CpuStorage,
         l2: &Layout,
     ) -> candle_core::Result<(CpuStorage, Shape)> {
-        let (y, b) = (slice(s1, l1, "bias add: y")?, slice(s2, l2, "bias add: b")?);
+        let (y, b) = (
+            f32_slice(s1, l1, "bias add: y")?,
+            f32_slice(s2, l2, "bias add: b")?,
+        );
         let out = b.len();
         if out == 0 || y.len() % out != 0 {
             candle_core::bail!(
@@ -344,9 +337,9 @@ impl CustomOp3 for WindowPool {
         l3: &Layout,
     ) -> candle_core::Result<(CpuStorage, Shape)> {
         let (n, j, h) = l1.shape().dims3()?;
-        let q = slice(s1, l1, "window pool: q")?;
-        let g = slice(s2, l2, "window pool: g")?;
-        let w = slice(s3, l3, "window pool: w_p")?;
+        let q = f32_slice(s1, l1, "window pool: q")?;
+        let g = f32_slice(s2, l2, "window pool: g")?;
+        let w = f32_slice(s3, l3, "window pool: w_p")?;
         if g.len() != j * h || w.len() != n * j || j == 0 {
             candle_core::bail!("window pool: shapes do not agree with q [{n},{j},{h}]")
         }

@@ -412,8 +412,8 @@ impl CullCtx {
             Tensor::cat(&[pts_flat, far], 0)?
         };
         Ok(Plan {
-            pts: source.index_select(&Tensor::from_vec(src, rows, dev)?, 0)?,
-            view: view.index_select(&Tensor::from_vec(rays_of, rows, dev)?, 0)?,
+            pts: crate::ops::select_rows(&source, &Tensor::from_vec(src, rows, dev)?)?,
+            view: crate::ops::select_rows(view, &Tensor::from_vec(rays_of, rows, dev)?)?,
             jobs,
         })
     }
@@ -523,8 +523,9 @@ impl CullCtx {
         sigma_rows.push(Tensor::zeros((1, 1), out_dtype, dev)?);
         let n = fates.len();
         let idx = Tensor::from_vec(idx, n, dev)?;
-        let rgb = Tensor::cat(&rgb_rows, 0)?.index_select(&idx, 0)?;
-        let sigma_raw = Tensor::cat(&sigma_rows, 0)?.index_select(&idx, 0)?;
+        // Row gathers whose backward (training with culling) is parallel on CUDA.
+        let rgb = crate::ops::select_rows(&Tensor::cat(&rgb_rows, 0)?, &idx)?;
+        let sigma_raw = crate::ops::select_rows(&Tensor::cat(&sigma_rows, 0)?, &idx)?;
         Ok((rgb, sigma_raw, any_zero))
     }
 

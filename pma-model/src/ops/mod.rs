@@ -76,7 +76,13 @@ pub fn gather_rows(x: &Tensor, ids: &Tensor) -> Result<Tensor> {
 }
 
 /// The f32 data of a contiguous CPU tensor.
-fn f32_slice<'a>(s: &'a CpuStorage, l: &Layout, what: &str) -> candle_core::Result<&'a [f32]> {
+/// The f32 values of a contiguous CPU storage under `l` (every CPU kernel of pma reads its
+/// inputs this way).
+pub(crate) fn f32_slice<'a>(
+    s: &'a CpuStorage,
+    l: &Layout,
+    what: &str,
+) -> candle_core::Result<&'a [f32]> {
     let CpuStorage::F32(v) = s else {
         candle_core::bail!("{what}: expected f32, found {:?}", s.dtype())
     };
