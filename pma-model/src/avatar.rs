@@ -314,7 +314,7 @@ impl Avatar {
             &poses.skts,
             &pose.scales.detach(),
         )?;
-        let prof = crate::ops::profile::mark;
+        let prof = crate::profile::mark;
         prof("cast", &self.device);
         let (view, d_root) = self.ray_view_features(rays, poses, mode.is_training())?;
         let mut points = PointEval::new(self, mode, poses, pose, &coarse.bounds, trace.is_some())?;

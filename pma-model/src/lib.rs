@@ -46,6 +46,7 @@ pub mod parallel;
 pub mod params;
 pub mod points;
 pub mod presets;
+pub mod profile;
 pub mod raycast;
 pub mod render;
 pub mod retarget;

@@ -17,8 +17,6 @@
 //! The kernels (`kernels/rows.cu`) are compiled at run time with NVRTC, once per process;
 //! `scripts/check-cuda-kernels.sh` compiles them with nvcc ahead of time.
 
-pub mod profile;
-
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use candle_core::backend::BackendStorage;

@@ -19,7 +19,7 @@
 //! last complete step, without the final held-out evaluation. Progress, notes and
 //! checkpoints are reported to a [`TrainObserver`], which is how a front end draws a
 //! progress bar or plots the log; this module prints nothing (but `PMA_PROFILE=1`'s
-//! per-step line, [`crate::ops::profile`]) and installs no signal handler.
+//! per-step line, [`crate::profile`]) and installs no signal handler.
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -343,7 +343,7 @@ impl<'a> Session<'a> {
                 Err(e) => return Err(e),
             };
             self.trainer.set_wall_s(self.wall());
-            crate::ops::profile::print_step(stats.iter);
+            crate::profile::print_step(stats.iter);
             self.record_step(&stats, target);
             match self.after_step(stats.iter) {
                 Ok(logged) => {

@@ -542,7 +542,7 @@ impl Trainer {
         hook: Option<GradHook>,
     ) -> Result<StepStats, TrainError> {
         let rays = batch.rays.origins.dim(0)?;
-        crate::ops::profile::start(self.avatar.device());
+        crate::profile::start(self.avatar.device());
         let mut chunk = chunk_rays(&self.run.train, self.avatar.config());
         let workers = crate::parallel::workers_on(self.avatar.device());
         if workers > 1 {
@@ -553,10 +553,10 @@ impl Trainer {
             self.chunked_grads(batch, chunk)?
         } else {
             let (loss, parts) = self.loss_on(batch)?;
-            crate::ops::profile::mark("loss", self.avatar.device());
+            crate::profile::mark("loss", self.avatar.device());
             let grads = if parts.total.is_finite() {
                 let store = loss.backward()?;
-                crate::ops::profile::mark("backward", self.avatar.device());
+                crate::profile::mark("backward", self.avatar.device());
                 self.params
                     .iter()
                     .map(|v| store.get(v.as_tensor()).cloned())
@@ -570,7 +570,7 @@ impl Trainer {
             h(&mut grads);
         }
         let stats = self.opt.apply(parts, grads);
-        crate::ops::profile::mark("grad norm + Adam", self.avatar.device());
+        crate::profile::mark("grad norm + Adam", self.avatar.device());
         stats
     }
 
@@ -595,7 +595,7 @@ impl Trainer {
             Ok(t.flatten_all()?.to_device(&Device::Cpu)?.to_vec1::<f32>()?)
         };
         let pose = self.avatar.pose_features(&batch.poses, None)?;
-        crate::ops::profile::mark("pose features", self.avatar.device());
+        crate::profile::mark("pose features", self.avatar.device());
         let bounds = self.avatar.ray_caster().near_far(
             &host(&batch.rays.origins)?,
             &host(&batch.rays.dirs)?,
@@ -638,7 +638,7 @@ impl Trainer {
                 .flat_map(|p| p * k + start..p * k + start + len)
                 .collect();
             let (rays, target) = select_rays(batch, &rows, &device)?;
-            crate::ops::profile::mark("chunk select + batch near/far", &device);
+            crate::profile::mark("chunk select + batch near/far", &device);
             let mut call = 0;
             let mut noise = |n: usize| {
                 let mut t = tape.lock().unwrap_or_else(|e| e.into_inner());
@@ -673,10 +673,10 @@ impl Trainer {
             let scale = (start == 0).then(|| v[3]);
             // A non-finite chunk is not differentiated; the step is then skipped.
             let finite = v[v.len() - 1].is_finite();
-            crate::ops::profile::mark("loss", &device);
+            crate::profile::mark("loss", &device);
             let grads = if finite {
                 let store = loss.backward()?;
-                crate::ops::profile::mark("backward", &device);
+                crate::profile::mark("backward", &device);
                 params
                     .iter()
                     .map(|v| store.get(v.as_tensor()).map(|d| d.detach()))

@@ -19,14 +19,10 @@ use std::time::Instant;
 
 use candle_core::Device;
 
-fn enabled_env() -> bool {
+/// Whether `PMA_PROFILE=1` is set (read once).
+pub fn enabled() -> bool {
     static ON: OnceLock<bool> = OnceLock::new();
     *ON.get_or_init(|| std::env::var("PMA_PROFILE").is_ok_and(|v| v == "1"))
-}
-
-/// Whether `PMA_PROFILE=1` is set.
-pub fn enabled() -> bool {
-    enabled_env()
 }
 
 thread_local! {
