@@ -321,6 +321,12 @@ mod tests {
             .collect()
     }
 
+    /// d/dx of `sum(y ⊙ up)`: the gradient `up` pulled back through whatever made `y`.
+    fn grad_of(y: &Tensor, up: &Tensor, x: &Var) -> Tensor {
+        let g = (y * up).unwrap().sum_all().unwrap().backward().unwrap();
+        g.get(x).unwrap().clone()
+    }
+
     /// Values with mixed magnitudes, so that a different summation order shows in the bits.
     fn values(len: usize, seed: u32) -> Vec<f32> {
         (0..len as u32)
@@ -343,25 +349,12 @@ mod tests {
         let up = Tensor::from_vec(values(m * c, 2), (m, c), &dev).unwrap();
 
         let plain = x.as_tensor().index_select(&ids, 0).unwrap();
-        let g_plain = (plain.clone() * &up)
-            .unwrap()
-            .sum_all()
-            .unwrap()
-            .backward()
-            .unwrap();
         let ours = select_rows(x.as_tensor(), &ids).unwrap();
-        let g_ours = (ours.clone() * &up)
-            .unwrap()
-            .sum_all()
-            .unwrap()
-            .backward()
-            .unwrap();
-
         assert_eq!(bits(&ours), bits(&plain));
-        let (a, b) = (g_ours.get(&x).unwrap(), g_plain.get(&x).unwrap());
-        assert_eq!(bits(a), bits(b));
+        let (a, b) = (grad_of(&ours, &up, &x), grad_of(&plain, &up, &x));
+        assert_eq!(bits(&a), bits(&b));
         // The gradient really accumulates: a row picked k times gets k contributions.
-        assert!(bits(a).iter().any(|&v| v != 0));
+        assert!(bits(&a).iter().any(|&v| v != 0));
     }
 
     #[test]
@@ -383,24 +376,11 @@ mod tests {
 
         let idx = ids.unsqueeze(2).unwrap().broadcast_as((b, n, c)).unwrap();
         let plain = x.as_tensor().gather(&idx.contiguous().unwrap(), 1).unwrap();
-        let g_plain = (plain.clone() * &up)
-            .unwrap()
-            .sum_all()
-            .unwrap()
-            .backward()
-            .unwrap();
         let ours = gather_rows(x.as_tensor(), &ids).unwrap();
-        let g_ours = (ours.clone() * &up)
-            .unwrap()
-            .sum_all()
-            .unwrap()
-            .backward()
-            .unwrap();
-
         assert_eq!(bits(&ours), bits(&plain));
         assert_eq!(
-            bits(g_ours.get(&x).unwrap()),
-            bits(g_plain.get(&x).unwrap())
+            bits(&grad_of(&ours, &up, &x)),
+            bits(&grad_of(&plain, &up, &x))
         );
     }
 
@@ -428,33 +408,21 @@ mod tests {
             let ids = Tensor::from_vec(ids, (b, m), dev).unwrap();
             let up = Tensor::from_vec(values(b * m * c, 6), (b, m, c), dev).unwrap();
             let y = gather_rows(x.as_tensor(), &ids).unwrap();
-            let g = (y.clone() * &up)
-                .unwrap()
-                .sum_all()
-                .unwrap()
-                .backward()
-                .unwrap();
-            let gx = g.get(&x).unwrap().to_device(&Device::Cpu).unwrap();
+            let gx = grad_of(&y, &up, &x).to_device(&Device::Cpu).unwrap();
             (y.to_device(&Device::Cpu).unwrap(), gx)
         };
         let (y_cpu, g_cpu) = run(&Device::Cpu);
         let (y_gpu, g_gpu) = run(&cuda);
         assert_eq!(bits(&y_gpu), bits(&y_cpu));
-        let diff = (g_gpu - &g_cpu)
-            .unwrap()
-            .abs()
-            .unwrap()
-            .max_all()
-            .unwrap()
-            .to_scalar::<f32>()
-            .unwrap();
-        let scale = g_cpu
-            .abs()
-            .unwrap()
-            .max_all()
-            .unwrap()
-            .to_scalar::<f32>()
-            .unwrap();
+        let max_abs = |t: &Tensor| {
+            t.abs()
+                .unwrap()
+                .max_all()
+                .unwrap()
+                .to_scalar::<f32>()
+                .unwrap()
+        };
+        let (diff, scale) = (max_abs(&(g_gpu - &g_cpu).unwrap()), max_abs(&g_cpu));
         assert!(
             diff <= 1e-5 * scale.max(1.0),
             "max |cuda - cpu| {diff} (scale {scale})"
