@@ -2,20 +2,16 @@
 //! plates, and the streamed output (docs/conventions.md, "ZJU-MoCap capture").
 
 use std::{
-    fs::File,
     io::{BufWriter, Read, Seek, SeekFrom, Write},
     path::{Path, PathBuf},
 };
 
 use glam::{DMat3, DVec3};
-use pma_data::{
-    dataset::{Dataset, WriteOptions},
-    fsio::{parent_dir, AtomicFile},
-};
+use pma_data::{dataset::Dataset, fsio::parent_dir};
 
 use super::{Annots, CaptureCamera, CaptureOptions, ImageRef, Progress};
 use crate::{
-    dataset::pixels::start_member,
+    dataset::pixels::{start_member, write_archive},
     error::{ConvertError, Result},
 };
 
@@ -462,57 +458,29 @@ pub(super) fn write_capture(
     }
 
     // The archive: scene members from the data layer's writer, then pixels.
-    let scene = tempfile::NamedTempFile::new_in(odir).map_err(|e| ConvertError::io(odir, e))?;
-    ds.write(
-        scene.path(),
-        &WriteOptions {
-            compression: opts.compression,
-        },
-    )?;
-    let scene_zip = zip::ZipArchive::new(
-        File::open(scene.path()).map_err(|e| ConvertError::io(scene.path(), e))?,
-    )
-    .map_err(|cause| ConvertError::Zip {
-        path: scene.path().to_path_buf(),
-        cause,
-    })?;
-    let out = AtomicFile::create(output).map_err(|e| ConvertError::io(odir, e))?;
-    let zerr = |cause| ConvertError::Zip {
-        path: output.to_path_buf(),
-        cause,
-    };
     let oerr = |e| ConvertError::io(output, e);
-    let mut zip = zip::ZipWriter::new(BufWriter::new(out.file()));
-    zip.merge_archive(scene_zip).map_err(zerr)?;
-    let mut buf = vec![0u8; 3 * hw];
-    for (key, off, len, ch) in [
-        ("imgs", 0, 3 * hw, 3),
-        ("masks", 3 * hw, hw, 1),
-        ("sampling_masks", 4 * hw, hw, 1),
-    ] {
-        start_member(&mut zip, output, key, &[n, hw, ch], opts.compression)?;
-        for i in 0..n {
-            pma_data::interrupt::check()?;
-            tmp.seek(SeekFrom::Start((i * per + off) as u64))
-                .map_err(terr)?;
-            tmp.read_exact(&mut buf[..len]).map_err(terr)?;
-            zip.write_all(&buf[..len]).map_err(oerr)?;
-            if key == "imgs" {
-                done += 1;
-                progress(done, total);
+    write_archive(ds, output, opts.compression, |zip| {
+        let mut buf = vec![0u8; 3 * hw];
+        for (key, off, len, ch) in [
+            ("imgs", 0, 3 * hw, 3),
+            ("masks", 3 * hw, hw, 1),
+            ("sampling_masks", 4 * hw, hw, 1),
+        ] {
+            start_member(zip, output, key, &[n, hw, ch], opts.compression)?;
+            for i in 0..n {
+                pma_data::interrupt::check()?;
+                tmp.seek(SeekFrom::Start((i * per + off) as u64))
+                    .map_err(terr)?;
+                tmp.read_exact(&mut buf[..len]).map_err(terr)?;
+                zip.write_all(&buf[..len]).map_err(oerr)?;
+                if key == "imgs" {
+                    done += 1;
+                    progress(done, total);
+                }
             }
         }
-    }
-    start_member(
-        &mut zip,
-        output,
-        "bkgds",
-        &[n_cams, hw, 3],
-        opts.compression,
-    )?;
-    zip.write_all(&bkgds).map_err(oerr)?;
-    let mut bw = zip.finish().map_err(zerr)?;
-    bw.flush().map_err(oerr)?;
-    drop(bw);
-    out.commit().map_err(oerr)
+        start_member(zip, output, "bkgds", &[n_cams, hw, 3], opts.compression)?;
+        zip.write_all(&bkgds).map_err(oerr)?;
+        Ok(())
+    })
 }

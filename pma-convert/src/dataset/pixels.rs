@@ -141,68 +141,68 @@ pub(super) fn write_h5_output(
     rep: &mut DatasetReport,
     progress: Progress,
 ) -> Result<()> {
-    let dir = parent_dir(output);
-    // The data layer writes the scene members; they are copied verbatim into
-    // the final archive, followed by the streamed pixel members.
-    let scene = tempfile::NamedTempFile::new_in(dir).map_err(|e| ConvertError::io(dir, e))?;
-    ds.write(
-        scene.path(),
-        &WriteOptions {
-            compression: opts.compression,
-        },
-    )?;
-    let scene_zip = zip::ZipArchive::new(
-        File::open(scene.path()).map_err(|e| ConvertError::io(scene.path(), e))?,
-    )
-    .map_err(|source| ConvertError::Zip {
-        path: scene.path().to_path_buf(),
-        cause: source,
-    })?;
-
-    let out = AtomicFile::create(output).map_err(|e| ConvertError::io(dir, e))?;
-    let zerr = |source| ConvertError::Zip {
-        path: output.to_path_buf(),
-        cause: source,
-    };
-    let mut zip = zip::ZipWriter::new(BufWriter::new(out.file()));
-    zip.merge_archive(scene_zip).map_err(zerr)?;
-
-    let total: u64 = streamed.iter().map(|m| m.rows as u64).sum::<u64>() + plan.white_plate as u64;
-    let mut done = 0u64;
-    progress(done, total);
-    for m in streamed {
-        let shape = [m.rows, plan.hw, m.channels_out];
-        start_member(&mut zip, output, m.key, &shape, opts.compression)?;
-        for row in 0..m.rows {
-            pma_data::interrupt::check()?;
-            let raw = h5.read_u8_rows(m.key, row, row + 1)?;
-            let px = prepare_row(raw, m, row, opts, h5.path(), rep)?;
-            zip.write_all(&px)
-                .map_err(|e| ConvertError::io(output, e))?;
+    write_archive(ds, output, opts.compression, |zip| {
+        let total: u64 =
+            streamed.iter().map(|m| m.rows as u64).sum::<u64>() + plan.white_plate as u64;
+        let mut done = 0u64;
+        progress(done, total);
+        for m in streamed {
+            let shape = [m.rows, plan.hw, m.channels_out];
+            start_member(zip, output, m.key, &shape, opts.compression)?;
+            for row in 0..m.rows {
+                pma_data::interrupt::check()?;
+                let raw = h5.read_u8_rows(m.key, row, row + 1)?;
+                let px = prepare_row(raw, m, row, opts, h5.path(), rep)?;
+                zip.write_all(&px)
+                    .map_err(|e| ConvertError::io(output, e))?;
+                done += 1;
+                progress(done, total);
+            }
+        }
+        if plan.white_plate && opts.profile >= Profile::Render {
+            start_member(zip, output, "bkgds", &[1, plan.hw, 3], opts.compression)?;
+            // In pieces: a plate is as large as one image, whatever that is.
+            let piece = vec![255u8; (plan.hw * 3).min(1 << 20)];
+            let mut left = plan.hw * 3;
+            while left > 0 {
+                let k = left.min(piece.len());
+                zip.write_all(&piece[..k])
+                    .map_err(|e| ConvertError::io(output, e))?;
+                left -= k;
+            }
             done += 1;
             progress(done, total);
         }
-    }
-    if plan.white_plate && opts.profile >= Profile::Render {
-        start_member(
-            &mut zip,
-            output,
-            "bkgds",
-            &[1, plan.hw, 3],
-            opts.compression,
-        )?;
-        // In pieces: a plate is as large as one image, whatever that is.
-        let piece = vec![255u8; (plan.hw * 3).min(1 << 20)];
-        let mut left = plan.hw * 3;
-        while left > 0 {
-            let k = left.min(piece.len());
-            zip.write_all(&piece[..k])
-                .map_err(|e| ConvertError::io(output, e))?;
-            left -= k;
-        }
-        done += 1;
-        progress(done, total);
-    }
+        Ok(())
+    })
+}
+
+/// A converted archive, written atomically: the scene members the data layer writes for
+/// `ds`, copied verbatim, then the pixel members `pixels` streams into the zip.
+pub(crate) fn write_archive(
+    ds: &Dataset,
+    output: &Path,
+    compression: Compression,
+    pixels: impl FnOnce(&mut zip::ZipWriter<BufWriter<&File>>) -> Result<()>,
+) -> Result<()> {
+    let dir = parent_dir(output);
+    let scene = tempfile::NamedTempFile::new_in(dir).map_err(|e| ConvertError::io(dir, e))?;
+    ds.write(scene.path(), &WriteOptions { compression })?;
+    let scene_zip = zip::ZipArchive::new(
+        File::open(scene.path()).map_err(|e| ConvertError::io(scene.path(), e))?,
+    )
+    .map_err(|cause| ConvertError::Zip {
+        path: scene.path().to_path_buf(),
+        cause,
+    })?;
+    let out = AtomicFile::create(output).map_err(|e| ConvertError::io(dir, e))?;
+    let zerr = |cause| ConvertError::Zip {
+        path: output.to_path_buf(),
+        cause,
+    };
+    let mut zip = zip::ZipWriter::new(BufWriter::new(out.file()));
+    zip.merge_archive(scene_zip).map_err(zerr)?;
+    pixels(&mut zip)?;
     let mut buf = zip.finish().map_err(zerr)?;
     buf.flush().map_err(|e| ConvertError::io(output, e))?;
     drop(buf);
