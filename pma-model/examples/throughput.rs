@@ -7,7 +7,9 @@
 //!     [--infer-rays 4096] [--repeats 3]
 //!
 //! Medians over `--repeats` after one warm-up each; a training step includes backward, clip and
-//! Adam. Inference is `Avatar::render_rays` (no gradient, bounded chunks).
+//! Adam. Inference is `Avatar::render_rays` (no gradient, bounded chunks). GFLOP/s are the
+//! network's matmul FLOPs over the median time, also as a share of this machine's estimated
+//! fp32 peak (`pma_model::flops`).
 
 #[path = "support/scene.rs"]
 mod scene;
@@ -36,6 +38,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let data = scene::scene(dir.path())?;
     let mut run = RunConfig::from_preset(Preset::Paper);
     let samples = (run.model.n_samples + run.model.n_importance) as f64;
+    let flops_per_point = pma_model::flops::per_point(&run.model);
+    let (peak, peak_how) = pma_model::flops::fp32_peak();
+    let gflops = |points: f64, factor: f64, secs: f64| {
+        let g = points * flops_per_point * factor / secs / 1e9;
+        format!("{g:.1} GFLOP/s matmul = {:.1} % of peak", 100.0 * g / peak)
+    };
     println!(
         "paper config, {}, {workers} workers x {} candle threads, fused kernels {}",
         if pma_model::fast_sine::enabled() {
@@ -64,7 +72,14 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         }
         let m = scene::median(times);
         let sps = train_rays as f64 * samples / m;
-        println!("training  {train_rays:>5} rays: median {m:.3} s/step, {sps:.0} samples/s");
+        println!(
+            "training  {train_rays:>5} rays: median {m:.3} s/step, {sps:.0} samples/s, {}",
+            gflops(
+                train_rays as f64 * samples,
+                pma_model::flops::TRAIN_FACTOR,
+                m
+            )
+        );
     }
 
     if infer_rays > 0 {
@@ -83,8 +98,15 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         }
         let m = scene::median(times);
         let sps = infer_rays as f64 * samples / m;
-        println!("inference {infer_rays:>5} rays: median {m:.3} s, {sps:.0} samples/s");
+        println!(
+            "inference {infer_rays:>5} rays: median {m:.3} s, {sps:.0} samples/s, {}",
+            gflops(infer_rays as f64 * samples, 1.0, m)
+        );
     }
+    println!(
+        "{:.3} MFLOP/point; estimated peak {peak:.0} GFLOP/s: {peak_how}",
+        flops_per_point / 1e6
+    );
     println!(
         "peak RSS {:.0} MiB",
         scene::peak_rss_mib().unwrap_or(f64::NAN)

@@ -13,6 +13,7 @@
 //! arguments go to libm.
 
 use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Mutex;
 
 use candle_core::{CpuStorage, CustomOp1, DType, Layout, Shape, Tensor};
 
@@ -40,7 +41,9 @@ pub fn sin(x: &Tensor) -> Result<Tensor> {
 /// at vector speed; other devices and dtypes take candle's `sin`.
 pub(crate) fn sin_flavour(x: &Tensor, fast: bool) -> Result<Tensor> {
     if x.device().is_cpu() && x.dtype() == DType::F32 {
-        Ok(x.contiguous()?.apply_op1(Sine { fast })?)
+        let x = x.contiguous()?;
+        let cos = x.track_op().then(Mutex::default);
+        Ok(x.apply_op1(Sine { fast, cos })?)
     } else {
         Ok(x.sin()?)
     }
@@ -53,6 +56,15 @@ pub(crate) fn trig(x: &[f32], shift: u64, fast: bool) -> Vec<f32> {
         sin_or_cos(x, shift)
     } else {
         crate::libm_sine::map(x, shift == 1)
+    }
+}
+
+/// sin and cos of every value in one pass (libm's bits, or the vectorised kernel's).
+pub(crate) fn trig_pair(x: &[f32], fast: bool) -> (Vec<f32>, Vec<f32>) {
+    if fast {
+        (sin_or_cos(x, 0), sin_or_cos(x, 1))
+    } else {
+        crate::libm_sine::map_pair(x)
     }
 }
 
@@ -140,9 +152,12 @@ pub fn sin_or_cos(x: &[f32], shift: u64) -> Vec<f32> {
     out
 }
 
-/// `sin`, whose backward multiplies by [`Cosine`] of the same flavour.
+/// `sin`, whose backward multiplies by cos of the same flavour: kept by the forward when
+/// the graph tracks gradients (libm's recipe yields both for the price of one), else
+/// computed by [`Cosine`].
 struct Sine {
     fast: bool,
+    cos: Option<Mutex<Option<Vec<f32>>>>,
 }
 struct Cosine {
     fast: bool,
@@ -155,7 +170,15 @@ impl CustomOp1 for Sine {
 
     fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> candle_core::Result<(CpuStorage, Shape)> {
         let x = crate::ops::f32_slice(s, l, "sine")?;
-        Ok((CpuStorage::F32(trig(x, 0, self.fast)), l.shape().clone()))
+        let sin = match &self.cos {
+            Some(slot) => {
+                let (sin, cos) = trig_pair(x, self.fast);
+                *slot.lock().unwrap_or_else(|e| e.into_inner()) = Some(cos);
+                sin
+            }
+            None => trig(x, 0, self.fast),
+        };
+        Ok((CpuStorage::F32(sin), l.shape().clone()))
     }
 
     fn bwd(
@@ -164,8 +187,18 @@ impl CustomOp1 for Sine {
         _res: &Tensor,
         grad: &Tensor,
     ) -> candle_core::Result<Option<Tensor>> {
-        // candle's own rule for sin, `grad · cos(arg)`, so parity mode keeps its bits.
-        let cos = arg.contiguous()?.apply_op1(Cosine { fast: self.fast })?;
+        // candle's own rule for sin, `grad · cos(arg)`, so parity mode keeps its bits. The
+        // kept cosine is used once (a second backward over the graph recomputes it).
+        let kept = self
+            .cos
+            .as_ref()
+            .and_then(|slot| slot.lock().unwrap_or_else(|e| e.into_inner()).take());
+        let cos = match kept {
+            Some(c) if c.len() == arg.elem_count() => {
+                Tensor::from_vec(c, arg.shape(), arg.device())?
+            }
+            _ => arg.contiguous()?.apply_op1(Cosine { fast: self.fast })?,
+        };
         Ok(Some(grad.mul(&cos)?))
     }
 }
@@ -270,23 +303,31 @@ mod tests {
         let dev = Device::Cpu;
         let xs = grid(-30.0, 30.0, 1001);
         let x = Var::from_vec(xs.clone(), 1001, &dev).unwrap();
-        // The op itself, not the process-wide switch: other tests run alongside.
-        let y = x.as_tensor().apply_op1(Sine { fast: true }).unwrap();
-        let g = y.sum_all().unwrap().backward().unwrap();
-        let y = y.to_vec1::<f32>().unwrap();
-        let dx = g.get(x.as_tensor()).unwrap().to_vec1::<f32>().unwrap();
-        for ((v, s), d) in xs.iter().zip(&y).zip(&dx) {
-            assert!((s - v.sin()).abs() <= 1.2e-7, "sin({v}) = {s}");
-            assert!((d - v.cos()).abs() <= 1.2e-7, "cos({v}) = {d}");
+        // The op itself, not the process-wide switch: other tests run alongside. With the
+        // cosine kept by the forward and without it (recomputed by the backward).
+        for keep in [false, true] {
+            let cos = keep.then(Mutex::default);
+            let y = x.as_tensor().apply_op1(Sine { fast: true, cos }).unwrap();
+            let g = y.sum_all().unwrap().backward().unwrap();
+            let y = y.to_vec1::<f32>().unwrap();
+            let dx = g.get(x.as_tensor()).unwrap().to_vec1::<f32>().unwrap();
+            for ((v, s), d) in xs.iter().zip(&y).zip(&dx) {
+                assert!((s - v.sin()).abs() <= 1.2e-7, "sin({v}) = {s}");
+                assert!((d - v.cos()).abs() <= 1.2e-7, "cos({v}) = {d}");
+            }
         }
         // Switched off (the default): libm's sine and cosine, bit for bit, forward and back.
+        // A second backward over the same graph finds the kept cosine used and recomputes it.
         let y = sin(x.as_tensor()).unwrap();
-        let g = y.sum_all().unwrap().backward().unwrap();
-        let dx = g.get(x.as_tensor()).unwrap().to_vec1::<f32>().unwrap();
-        let y = y.to_vec1::<f32>().unwrap();
-        for ((v, s), d) in xs.iter().zip(&y).zip(&dx) {
-            assert_eq!(s.to_bits(), v.sin().to_bits(), "sin({v})");
-            assert_eq!(d.to_bits(), v.cos().to_bits(), "cos({v})");
+        let loss = y.sum_all().unwrap();
+        for pass in 0..2 {
+            let g = loss.backward().unwrap();
+            let dx = g.get(x.as_tensor()).unwrap().to_vec1::<f32>().unwrap();
+            let y = y.to_vec1::<f32>().unwrap();
+            for ((v, s), d) in xs.iter().zip(&y).zip(&dx) {
+                assert_eq!(s.to_bits(), v.sin().to_bits(), "sin({v})");
+                assert_eq!(d.to_bits(), v.cos().to_bits(), "cos({v}), pass {pass}");
+            }
         }
     }
 }

@@ -1,5 +1,5 @@
-//! Two CPU kernels that replace the places where candle's generic autograd costs most
-//! (in a profile of a paper-config training step):
+//! CPU kernels that replace the places where candle's generic autograd costs most (in a
+//! profile of a paper-config training step):
 //!
 //! * **Bias add** of every linear layer. candle differentiates `broadcast_add` with a
 //!   strided reduction over the rows that runs element by element; [`add_bias`] computes the
@@ -7,17 +7,23 @@
 //! * **The window's max-pool** `m = max_j (q_j + g_j) · w^p_j`. In plain ops this builds two
 //!   [N,24,128] tensors forward and about ten passes over that size backward (equality mask,
 //!   casts, products, candle's zero-then-add accumulation). [`window_pool`] reads `q` once
-//!   forward and scatters the gradient to the arg-max joint backward.
+//!   forward, keeps the arg-max joints when the graph tracks gradients, and scatters the
+//!   gradient to them backward.
+//! * **The FiLM-sine layers** of the modulator, reading Θ and Φ out of the pose extractor's
+//!   head ([`FilmHead`]).
 //!
-//! Both compute the same f32 operations in the same order as the plain path, so forward
+//! All compute the same f32 operations in the same order as the plain path, so forward
 //! values are bit-identical and gradients identical except on exact ties of the max, where
 //! the gradient goes to the first maximal joint (PyTorch's rule, the reference) instead of
 //! to every tied joint (candle's rule). Ties only occur where w^p = 0, so both give 0 there.
+//! What a backward needs from its forward (the arg-max, cos of the sine's argument) is kept
+//! once and used once; a second backward over the same graph computes it again.
 //!
 //! They run on CPU in f32; other devices and dtypes take the plain path.
 //! [`set_enabled`]`(false)` forces the plain path everywhere, for A/B measurements.
 
 use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
 
 use candle_core::{CpuStorage, CustomOp2, CustomOp3, DType, Layout, Shape, Storage, Tensor};
 
@@ -63,61 +69,114 @@ pub fn window_pool(q: &Tensor, g: &Tensor, w_p: &Tensor) -> Result<Tensor> {
     if !applies(&[q, g, w_p]) || q.rank() != 3 {
         return plain();
     }
-    Ok(q.contiguous()?
-        .apply_op3(&g.contiguous()?, &w_p.detach().contiguous()?, WindowPool)?)
+    let (q, g) = (q.contiguous()?, g.contiguous()?);
+    let arg = (q.track_op() || g.track_op()).then(Mutex::default);
+    Ok(q.apply_op3(&g, &w_p.detach().contiguous()?, WindowPool { arg })?)
 }
 
-/// One FiLM-SIREN layer, `sin(pre ⊙ (m·Θ_k + c) + Φ_k)`, with Θ_k and Φ_k read straight out of
-/// the pose extractor's head `o` = [Θ_0..Θ_{K-1}, Φ_0..Φ_{K-1}] (each block `f` wide):
-/// pre: [N,f], o: [N,2·K·f] -> [N,f].
+/// The pose extractor's head `o` = [Θ_0..Θ_{K-1}, Φ_0..Φ_{K-1}] (each block `f` wide), as
+/// read by the K FiLM-SIREN layers `sin(pre ⊙ (m·Θ_k + c) + Φ_k)` of one forward pass.
 ///
-/// The plain path is four ops forward (a strided affine, a product, a strided add, the sine)
-/// and, backward, about a dozen passes over [N,f] plus two zero-padded [N,2Kf] gradients for
-/// the narrowed blocks. Here it is one pass each way and one gradient for `o`, computed with
-/// the same f32 operations in the same order (sine and cosine from libm, or from
-/// [`crate::fast_sine`] when that is on), so values and gradients are bit-identical.
-pub fn film_sine(
-    pre: &Tensor,
-    o: &Tensor,
-    k: usize,
+/// The plain path is four ops forward per layer (a strided affine, a product, a strided add,
+/// the sine) and, backward, about a dozen passes over [N,f] plus two zero-padded [N,2Kf]
+/// gradients for the narrowed blocks, which candle then adds. Here a layer is one pass each
+/// way, computed with the same f32 operations in the same order (sine and cosine from libm,
+/// or from [`crate::fast_sine`] when that is on), so values and gradients are bit-identical.
+/// When the graph tracks gradients the forward keeps cos of the argument (the sine kernel
+/// computes it anyway), so the backward evaluates no trigonometry.
+///
+/// Through [`FilmHead::stack`] the layers also share one head gradient: layers 1..K write
+/// their columns into it and layer 0, whose backward necessarily runs last (every later
+/// layer's input depends on its output), hands it to candle. The sum candle formed of K
+/// zero-padded gradients had the same bits: every entry the kernel writes already carries
+/// the `+ 0` of the plain graph's accumulation.
+pub struct FilmHead {
+    o: Tensor,
     n_layers: usize,
     mul: f64,
     add: f64,
-) -> Result<Tensor> {
-    let fast = crate::fast_sine::enabled();
-    let fused = applies(&[pre, o]);
-    film_sine_with(pre, o, (k, n_layers), (mul, add), fast, fused)
-}
-
-/// [`film_sine`] with the sine flavour and the kernel choice made by the caller.
-fn film_sine_with(
-    pre: &Tensor,
-    o: &Tensor,
-    (k, n_layers): (usize, usize),
-    (mul, add): (f64, f64),
     fast: bool,
     fused: bool,
-) -> Result<Tensor> {
-    let f = pre.dim(candle_core::D::Minus1)?;
-    let fits = pre.rank() == 2
-        && o.rank() == 2
-        && k < n_layers
-        && o.dim(1)? == 2 * n_layers * f
-        && o.dim(0)? == pre.dim(0)?;
-    if !(fused && fits) {
-        let theta = o.narrow(1, k * f, f)?;
-        let phi = o.narrow(1, (n_layers + k) * f, f)?;
-        let arg = (pre * theta.affine(mul, add)?)?.add(&phi)?;
-        return crate::fast_sine::sin_flavour(&arg, fast);
+    grad: Arc<Mutex<HeadGrad>>,
+}
+
+/// The head gradient the layers of one [`FilmHead::stack`] fill in.
+#[derive(Default)]
+struct HeadGrad {
+    buf: Option<Vec<f32>>,
+    /// Layer 0 has handed the buffer over: a later backward pass over the same graph makes
+    /// every layer return its own gradient.
+    taken: bool,
+}
+
+impl FilmHead {
+    /// `o`: [N,2·K·f] for K = `n_layers`; γ = `mul`·Θ + `add`.
+    pub fn new(o: &Tensor, n_layers: usize, (mul, add): (f64, f64)) -> Self {
+        Self::with(
+            o,
+            n_layers,
+            (mul, add),
+            crate::fast_sine::enabled(),
+            applies(&[o]),
+        )
     }
-    let op = FilmSine {
-        k,
-        n_layers,
-        mul: mul as f32,
-        add: add as f32,
-        fast,
-    };
-    Ok(pre.contiguous()?.apply_op2(&o.contiguous()?, op)?)
+
+    /// [`Self::new`] with the sine flavour and the kernel choice made by the caller.
+    fn with(o: &Tensor, n_layers: usize, (mul, add): (f64, f64), fast: bool, fused: bool) -> Self {
+        Self {
+            o: o.clone(),
+            n_layers,
+            mul,
+            add,
+            fast,
+            fused,
+            grad: Arc::default(),
+        }
+    }
+
+    /// Layer `k` on its own: pre: [N,f] -> [N,f].
+    pub fn layer(&self, pre: &Tensor, k: usize) -> Result<Tensor> {
+        self.apply(pre, k, false)
+    }
+
+    /// The whole modulated stack: `h_k = layer_k(linears[k](h_{k-1}))` from `h_{-1} = x`;
+    /// returns every `h_k`.
+    pub fn stack(&self, x: &Tensor, linears: &[crate::nn::Linear]) -> Result<Vec<Tensor>> {
+        let mut h = x.clone();
+        let mut outs = Vec::with_capacity(linears.len());
+        for (k, linear) in linears.iter().enumerate() {
+            h = self.apply(&linear.forward(&h)?, k, true)?;
+            outs.push(h.clone());
+        }
+        Ok(outs)
+    }
+
+    fn apply(&self, pre: &Tensor, k: usize, chained: bool) -> Result<Tensor> {
+        let (o, n_layers, (mul, add)) = (&self.o, self.n_layers, (self.mul, self.add));
+        let f = pre.dim(candle_core::D::Minus1)?;
+        let fits = pre.rank() == 2
+            && o.rank() == 2
+            && k < n_layers
+            && o.dim(1)? == 2 * n_layers * f
+            && o.dim(0)? == pre.dim(0)?;
+        if !(self.fused && fits && applies(&[pre])) {
+            let theta = o.narrow(1, k * f, f)?;
+            let phi = o.narrow(1, (n_layers + k) * f, f)?;
+            let arg = (pre * theta.affine(mul, add)?)?.add(&phi)?;
+            return crate::fast_sine::sin_flavour(&arg, self.fast);
+        }
+        let (pre, o) = (pre.contiguous()?, o.contiguous()?);
+        let op = FilmSine {
+            k,
+            n_layers,
+            mul: mul as f32,
+            add: add as f32,
+            fast: self.fast,
+            cos: (pre.track_op() || o.track_op()).then(Mutex::default),
+            shared: chained.then(|| self.grad.clone()),
+        };
+        Ok(pre.apply_op2(&o, op)?)
+    }
 }
 
 struct FilmSine {
@@ -127,6 +186,10 @@ struct FilmSine {
     add: f32,
     /// Sine flavour fixed when the graph is built, so the backward matches its forward.
     fast: bool,
+    /// cos of the argument, kept by the forward for the backward (`None`: not tracked).
+    cos: Option<Mutex<Option<Vec<f32>>>>,
+    /// The head gradient shared along a [`FilmHead::stack`].
+    shared: Option<Arc<Mutex<HeadGrad>>>,
 }
 
 impl FilmSine {
@@ -191,7 +254,15 @@ impl CustomOp2 for FilmSine {
             f32_slice(s2, l2, "film sine: o")?,
         );
         let a = self.argument(pre, o, f);
-        Ok((CpuStorage::F32(self.trig(a, 0)), l1.shape().clone()))
+        let sin = match &self.cos {
+            Some(slot) => {
+                let (sin, cos) = crate::fast_sine::trig_pair(&a, self.fast);
+                *slot.lock().unwrap_or_else(|e| e.into_inner()) = Some(cos);
+                sin
+            }
+            None => self.trig(a, 0),
+        };
+        Ok((CpuStorage::F32(sin), l1.shape().clone()))
     }
 
     fn bwd(
@@ -207,9 +278,29 @@ impl CustomOp2 for FilmSine {
         let guards = [&pre_c, &o_c, &d_c].map(|t| t.storage_and_layout());
         let [p, oo, d] = [0, 1, 2].map(|i| cpu_slice(&guards[i].0, guards[i].1));
         let (p, oo, d) = (p?, oo?, d?);
-        let cos = self.trig(self.argument(p, oo, f), 1);
+        let kept = self
+            .cos
+            .as_ref()
+            .and_then(|slot| slot.lock().unwrap_or_else(|e| e.into_inner()).take());
+        let cos = match kept {
+            Some(c) if c.len() == n * f => c,
+            _ => self.trig(self.argument(p, oo, f), 1),
+        };
         let mut g_pre = Vec::with_capacity(n * f);
-        let mut g_o = vec![0f32; n * w];
+        // Layers after the first write into the stack's shared head gradient and return
+        // none of their own; layer 0 (run last) returns it. See [`FilmHead`].
+        let mut shared = self
+            .shared
+            .as_ref()
+            .map(|s| s.lock().unwrap_or_else(|e| e.into_inner()));
+        let defer = shared.as_ref().is_some_and(|s| !s.taken);
+        let mut g_o = match shared.as_mut() {
+            Some(s) if defer => s.buf.take().unwrap_or_else(|| vec![0f32; n * w]),
+            _ => vec![0f32; n * w],
+        };
+        if g_o.len() != n * w {
+            candle_core::bail!("film sine: shared head gradient has the wrong size")
+        }
         // The plain graph's steps, each gradient starting from candle's zero accumulator:
         // g_a = grad·cos(a); the add passes it to the product and to Φ; the product gives
         // pre g_a·γ and γ g_a·pre; the affine gives Θ (g_γ·mul) + 0.
@@ -232,6 +323,13 @@ impl CustomOp2 for FilmSine {
         }
         drop(guards);
         let g_pre = Tensor::from_vec(g_pre, (n, f), pre.device())?;
+        if let Some(s) = shared.as_mut().filter(|_| defer) {
+            if self.k > 0 {
+                s.buf = Some(g_o);
+                return Ok((Some(g_pre), None));
+            }
+            s.taken = true;
+        }
         let g_o = Tensor::from_vec(g_o, (n, w), o.device())?;
         Ok((Some(g_pre), Some(g_o)))
     }
@@ -300,24 +398,29 @@ impl CustomOp2 for BiasAdd {
     }
 }
 
-struct WindowPool;
+/// The fused max-pool; when the graph tracks gradients its forward keeps the arg-max joint
+/// of every output for the backward, which then need not pool again.
+struct WindowPool {
+    arg: Option<Mutex<Option<Vec<u32>>>>,
+}
 
 /// One point's pooled row: `best[k] = max_j (q[j,k] + g[j,k]) · w[j]` and the first joint
-/// reaching it in `arg` (a NaN wins and stays, as PyTorch's max propagates it).
-fn pool_row(q: &[f32], g: &[f32], w: &[f32], best: &mut [f32], arg: &mut [usize]) {
+/// reaching it in `arg` (a NaN wins and stays, as PyTorch's max propagates it). Written with
+/// selects rather than branches, so it vectorises.
+fn pool_row(q: &[f32], g: &[f32], w: &[f32], best: &mut [f32], arg: &mut [u32]) {
     let h = best.len();
-    for k in 0..h {
-        best[k] = (q[k] + g[k]) * w[0];
-        arg[k] = 0;
+    for (k, (b, a)) in best.iter_mut().zip(arg.iter_mut()).enumerate() {
+        *b = (q[k] + g[k]) * w[0];
+        *a = 0;
     }
     for (jj, &wj) in w.iter().enumerate().skip(1) {
         let (qj, gj) = (&q[jj * h..(jj + 1) * h], &g[jj * h..(jj + 1) * h]);
-        for k in 0..h {
-            let v = (qj[k] + gj[k]) * wj;
-            if v > best[k] || (v.is_nan() && !best[k].is_nan()) {
-                best[k] = v;
-                arg[k] = jj;
-            }
+        let joint = jj as u32;
+        for ((b, a), (&qv, &gv)) in best.iter_mut().zip(arg.iter_mut()).zip(qj.iter().zip(gj)) {
+            let v = (qv + gv) * wj;
+            let take = v > *b || (v.is_nan() & !b.is_nan());
+            *b = if take { v } else { *b };
+            *a = if take { joint } else { *a };
         }
     }
 }
@@ -343,16 +446,28 @@ impl CustomOp3 for WindowPool {
         if g.len() != j * h || w.len() != n * j || j == 0 {
             candle_core::bail!("window pool: shapes do not agree with q [{n},{j},{h}]")
         }
+        if j > u32::MAX as usize {
+            candle_core::bail!("window pool: {j} joints")
+        }
         let mut dst = vec![0f32; n * h];
-        let mut arg = vec![0usize; h];
+        // Every row's arg-max when it is kept for the backward, else one row's scratch.
+        let mut arg = vec![0u32; if self.arg.is_some() { n * h } else { h }];
         for (i, m) in dst.chunks_exact_mut(h).enumerate() {
+            let a = if self.arg.is_some() {
+                &mut arg[i * h..(i + 1) * h]
+            } else {
+                &mut arg[..]
+            };
             pool_row(
                 &q[i * j * h..(i + 1) * j * h],
                 g,
                 &w[i * j..(i + 1) * j],
                 m,
-                &mut arg,
+                a,
             );
+        }
+        if let Some(slot) = &self.arg {
+            *slot.lock().unwrap_or_else(|e| e.into_inner()) = Some(arg);
         }
         Ok((CpuStorage::F32(dst), Shape::from((n, h))))
     }
@@ -377,14 +492,26 @@ impl CustomOp3 for WindowPool {
         let (q, g, w, dm) = (q?, g?, w?, dm?);
         let mut gq = vec![0f32; n * j * h];
         let mut gg = vec![0f32; j * h];
-        let mut arg = vec![0usize; h];
+        // The forward's arg-max (used once; a second backward pools again).
+        let kept = self
+            .arg
+            .as_ref()
+            .and_then(|slot| slot.lock().unwrap_or_else(|e| e.into_inner()).take())
+            .filter(|a| a.len() == n * h);
+        let mut arg = vec![0u32; h];
         let mut best = vec![0f32; h];
         for i in 0..n {
             let wn = &w[i * j..(i + 1) * j];
-            pool_row(&q[i * j * h..(i + 1) * j * h], g, wn, &mut best, &mut arg);
+            let arg_i = match &kept {
+                Some(a) => &a[i * h..(i + 1) * h],
+                None => {
+                    pool_row(&q[i * j * h..(i + 1) * j * h], g, wn, &mut best, &mut arg);
+                    &arg[..]
+                }
+            };
             let dmn = &dm[i * h..(i + 1) * h];
             for k in 0..h {
-                let jj = arg[k];
+                let jj = arg_i[k] as usize;
                 let d = dmn[k] * wn[jj];
                 gq[i * j * h + jj * h + k] = d;
                 gg[jj * h + k] += d;
@@ -470,6 +597,17 @@ mod tests {
             let loss = (a + c).unwrap();
             let grads = loss.backward().unwrap();
             let get = |v: &Var| grads.get(v.as_tensor()).unwrap().clone();
+            // A second backward over the same graph: the pool's kept arg-max is used up, so
+            // its backward pools again and must give the same gradients.
+            let again = loss.backward().unwrap();
+            for v in [&q, &g] {
+                let (first, second) = (get(v), again.get(v.as_tensor()).unwrap().clone());
+                assert_eq!(
+                    max_abs(&first, &second),
+                    0.0,
+                    "second backward, fused={fused}"
+                );
+            }
             (m, z, get(&q), get(&g), get(&y), get(&b))
         };
         let a = run(true);
@@ -496,15 +634,9 @@ mod tests {
                     let pre = Var::from_tensor(&(rand(&[n, f], 11) * 3.0).unwrap()).unwrap();
                     let o =
                         Var::from_tensor(&(rand(&[n, 2 * kk * f], 12) * 40.0).unwrap()).unwrap();
-                    let y = film_sine_with(
-                        pre.as_tensor(),
-                        o.as_tensor(),
-                        (k, kk),
-                        (15.0, 30.0),
-                        fast,
-                        fused,
-                    )
-                    .unwrap();
+                    let y = FilmHead::with(o.as_tensor(), kk, (15.0, 30.0), fast, fused)
+                        .layer(pre.as_tensor(), k)
+                        .unwrap();
                     // Distinct weights per element, so every gradient entry is tested.
                     let wts = rand(&[n, f], 13);
                     let grads = (&y * &wts).unwrap().sum_all().unwrap().backward().unwrap();
@@ -534,6 +666,82 @@ mod tests {
                         > 0.0
                 );
             }
+        }
+    }
+
+    /// A whole stack with its shared head gradient against the plain ops, bit for bit:
+    /// values and the gradients of the input, the head and every linear layer. A second
+    /// backward pass over the same graph (the shared gradient already handed over, the kept
+    /// cosines used) gives the same bits again.
+    #[test]
+    fn film_stack_shares_one_head_gradient_bit_for_bit() {
+        let (n, kk, f) = (23, 3, 8);
+        let bits = |t: &Tensor| -> Vec<u32> {
+            let v = t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+            v.iter().map(|v| v.to_bits()).collect()
+        };
+        let run = |fused: bool| {
+            let x = Var::from_tensor(&rand(&[n, f], 21)).unwrap();
+            let o = Var::from_tensor(&(rand(&[n, 2 * kk * f], 22) * 4.0).unwrap()).unwrap();
+            let vars: Vec<(Var, Var)> = (0..kk as u64)
+                .map(|k| {
+                    let w = Var::from_tensor(&rand(&[f, f], 30 + k)).unwrap();
+                    let b = Var::from_tensor(&rand(&[f], 40 + k)).unwrap();
+                    (w, b)
+                })
+                .collect();
+            let linears: Vec<crate::nn::Linear> = vars
+                .iter()
+                .map(|(w, b)| crate::nn::Linear {
+                    weight: w.as_tensor().clone(),
+                    bias: b.as_tensor().clone(),
+                })
+                .collect();
+            let head = FilmHead::with(o.as_tensor(), kk, (15.0, 30.0), false, fused);
+            let outs = head.stack(x.as_tensor(), &linears).unwrap();
+            let y = Tensor::cat(&outs, 1).unwrap();
+            let wts = rand(&[n, kk * f], 23);
+            let loss = (&y * &wts).unwrap().sum_all().unwrap();
+            let mut passes = Vec::new();
+            for _ in 0..2 {
+                let g = loss.backward().unwrap();
+                let mut all = vec![bits(&y)];
+                all.push(bits(g.get(x.as_tensor()).unwrap()));
+                all.push(bits(g.get(o.as_tensor()).unwrap()));
+                for (w, b) in &vars {
+                    all.push(bits(g.get(w.as_tensor()).unwrap()));
+                    all.push(bits(g.get(b.as_tensor()).unwrap()));
+                }
+                passes.push(all);
+            }
+            passes
+        };
+        let (a, b) = (run(true), run(false));
+        let names = [
+            "values",
+            "grad x",
+            "grad head",
+            "w0",
+            "b0",
+            "w1",
+            "b1",
+            "w2",
+            "b2",
+        ];
+        for pass in 0..2 {
+            for (i, name) in names.iter().enumerate() {
+                assert_eq!(a[pass][i], b[pass][i], "{name}, backward pass {pass}");
+            }
+        }
+        // Every layer's block of the head gradient is there (none lost to the sharing).
+        let head: Vec<f32> = a[0][2].iter().map(|&u| f32::from_bits(u)).collect();
+        for block in 0..2 * kk {
+            let nonzero = (0..n).any(|r| {
+                head[r * 2 * kk * f + block * f..][..f]
+                    .iter()
+                    .any(|v| *v != 0.0)
+            });
+            assert!(nonzero, "head gradient block {block} is empty");
         }
     }
 

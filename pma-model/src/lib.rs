@@ -29,6 +29,7 @@ pub mod error;
 pub mod eval;
 pub mod fast_sine;
 pub mod field;
+pub mod flops;
 pub mod fused;
 pub mod gnn;
 pub mod host;

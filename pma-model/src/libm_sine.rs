@@ -15,7 +15,11 @@
 //! check passing. Arguments outside the fast range (|x| ≥ 120, inf, NaN) always go to libm.
 //! `cargo run --release -p pma-model --example libm_sine_sweep` compares every f32.
 
+use std::mem::MaybeUninit;
 use std::sync::OnceLock;
+
+/// An output slot: the kernels only write, so outputs may start uninitialised.
+type Out = MaybeUninit<f32>;
 
 /// 2/π · 2^24: the quadrant lands in bits 24 and up after truncation.
 const HPI_INV: f64 = f64::from_bits(0x4164_5f30_6dc9_c883);
@@ -73,21 +77,17 @@ fn madd<const FMA: bool>(a: f64, b: f64, c: f64) -> f64 {
     }
 }
 
-/// sin (`cos` false) or cos (`cos` true) of one value in the fast range by the recipe.
-/// Written without integer conversions or branches so that it vectorises: glibc's quadrant
-/// `((int32) (x·hpi_inv) + 2^23) >> 24` is `floor((trunc(x·hpi_inv) + 2^23) / 2^24)`, exact in
-/// f64, and its low two bits come from `n − 4·floor(n/4)`.
+/// The recipe's shared part for one value in the fast range: the sine and cosine
+/// polynomials of the remainder and the quadrant. Written without integer conversions or
+/// branches so that it vectorises: glibc's quadrant `((int32) (x·hpi_inv) + 2^23) >> 24` is
+/// `floor((trunc(x·hpi_inv) + 2^23) / 2^24)`, exact in f64, and its low two bits come from
+/// `n − 4·floor(n/4)`.
 #[inline(always)]
-fn lane<const FMA: bool>(y: f32, cos: bool) -> f32 {
+fn reduced<const FMA: bool>(y: f32) -> (f64, f64, f64) {
     let x = y as f64;
     let n = (((x * HPI_INV).trunc() + 8_388_608.0) * (1.0 / 16_777_216.0)).floor();
     let xr = madd::<FMA>(-n, HPI, x);
     let q = n - 4.0 * (n * 0.25).floor();
-    // glibc negates the sine's argument in quadrants 1 and 2 and the cosine's coefficients
-    // in quadrants 2 and 3. Both polynomials are odd or even under those negations and
-    // rounding is symmetric, so the negation can move onto the result, exactly.
-    let odd = (q == 1.0 || q == 3.0) != cos;
-    let flip = if odd { q >= 2.0 } else { q == 1.0 || q == 2.0 };
     let x2 = xr * xr;
     let x4 = x2 * x2;
     let c2 = madd::<FMA>(x2, C[4], C[3]);
@@ -98,6 +98,17 @@ fn lane<const FMA: bool>(y: f32, cos: bool) -> f32 {
     let s1 = madd::<FMA>(x2, S[2], S[1]);
     let x7 = x3 * x2;
     let s = madd::<FMA>(x7, s1, madd::<FMA>(x3, S[0], xr));
+    (s, c, q)
+}
+
+/// sin (`cos` false) or cos (`cos` true) of `y` from [`reduced`]'s polynomials and quadrant.
+#[inline(always)]
+fn pick(y: f32, s: f64, c: f64, q: f64, cos: bool) -> f32 {
+    // glibc negates the sine's argument in quadrants 1 and 2 and the cosine's coefficients
+    // in quadrants 2 and 3. Both polynomials are odd or even under those negations and
+    // rounding is symmetric, so the negation can move onto the result, exactly.
+    let odd = (q == 1.0 || q == 3.0) != cos;
+    let flip = if odd { q >= 2.0 } else { q == 1.0 || q == 2.0 };
     let v = if odd { c } else { s };
     let v = if flip { -v } else { v } as f32;
     if y.abs() < TINY {
@@ -111,6 +122,13 @@ fn lane<const FMA: bool>(y: f32, cos: bool) -> f32 {
     }
 }
 
+/// sin (`cos` false) or cos (`cos` true) of one value in the fast range by the recipe.
+#[inline(always)]
+fn lane<const FMA: bool>(y: f32, cos: bool) -> f32 {
+    let (s, c, q) = reduced::<FMA>(y);
+    pick(y, s, c, q, cos)
+}
+
 /// |v| ≥ 120 or NaN: libm's slow reduction.
 #[inline(always)]
 fn outside(v: f32) -> bool {
@@ -118,16 +136,37 @@ fn outside(v: f32) -> bool {
 }
 
 #[inline(always)]
-fn body<const FMA: bool>(x: &[f32], out: &mut [f32], cos: bool) {
+fn body<const FMA: bool>(x: &[f32], out: &mut [Out], cos: bool) {
     let mut large = 0u32;
     for (o, &v) in out.iter_mut().zip(x) {
-        *o = lane::<FMA>(v, cos);
+        o.write(lane::<FMA>(v, cos));
         large |= u32::from(outside(v));
     }
     if large != 0 {
         for (o, &v) in out.iter_mut().zip(x) {
             if outside(v) {
-                *o = if cos { v.cos() } else { v.sin() };
+                o.write(if cos { v.cos() } else { v.sin() });
+            }
+        }
+    }
+}
+
+/// Sine and cosine together: the recipe computes both polynomials anyway, so the cosine
+/// costs one more select and store.
+#[inline(always)]
+fn body_pair<const FMA: bool>(x: &[f32], sin: &mut [Out], cos: &mut [Out]) {
+    let mut large = 0u32;
+    for ((os, oc), &v) in sin.iter_mut().zip(cos.iter_mut()).zip(x) {
+        let (s, c, q) = reduced::<FMA>(v);
+        os.write(pick(v, s, c, q, false));
+        oc.write(pick(v, s, c, q, true));
+        large |= u32::from(outside(v));
+    }
+    if large != 0 {
+        for ((os, oc), &v) in sin.iter_mut().zip(cos.iter_mut()).zip(x) {
+            if outside(v) {
+                os.write(v.sin());
+                oc.write(v.cos());
             }
         }
     }
@@ -135,17 +174,29 @@ fn body<const FMA: bool>(x: &[f32], out: &mut [f32], cos: bool) {
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-unsafe fn body_fma_avx2(x: &[f32], out: &mut [f32], cos: bool) {
+unsafe fn pair_fma_avx2(x: &[f32], sin: &mut [Out], cos: &mut [Out]) {
+    body_pair::<true>(x, sin, cos)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn pair_plain_avx2(x: &[f32], sin: &mut [Out], cos: &mut [Out]) {
+    body_pair::<false>(x, sin, cos)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn body_fma_avx2(x: &[f32], out: &mut [Out], cos: bool) {
     body::<true>(x, out, cos)
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-unsafe fn body_plain_avx2(x: &[f32], out: &mut [f32], cos: bool) {
+unsafe fn body_plain_avx2(x: &[f32], out: &mut [Out], cos: bool) {
     body::<false>(x, out, cos)
 }
 
-fn run(f: Flavour, x: &[f32], out: &mut [f32], cos: bool) {
+fn run(f: Flavour, x: &[f32], out: &mut [Out], cos: bool) {
     #[cfg(target_arch = "x86_64")]
     {
         let avx2 = std::is_x86_feature_detected!("avx2");
@@ -162,7 +213,7 @@ fn run(f: Flavour, x: &[f32], out: &mut [f32], cos: bool) {
         Flavour::Plain => body::<false>(x, out, cos),
         Flavour::Libm => {
             for (o, &v) in out.iter_mut().zip(x) {
-                *o = if cos { v.cos() } else { v.sin() };
+                o.write(if cos { v.cos() } else { v.sin() });
             }
         }
     }
@@ -170,14 +221,72 @@ fn run(f: Flavour, x: &[f32], out: &mut [f32], cos: bool) {
 
 /// `out[i] = sin(x[i])` (`cos` false) or `cos(x[i])`, bit-identical to `f32::sin`/`f32::cos`.
 pub fn apply(x: &[f32], out: &mut [f32], cos: bool) {
-    run(flavour(), x, out, cos)
+    run(flavour(), x, as_out(out), cos)
+}
+
+/// An initialised slice as output slots (the kernels only write valid f32 into them).
+fn as_out(v: &mut [f32]) -> &mut [Out] {
+    // SAFETY: MaybeUninit<f32> has f32's layout, and only initialised values are written.
+    unsafe { &mut *(v as *mut [f32] as *mut [Out]) }
+}
+
+/// A vector of `n` values written by `fill`, without zeroing it first.
+fn filled(n: usize, fill: impl FnOnce(&mut [Out])) -> Vec<f32> {
+    let mut v = Vec::with_capacity(n);
+    fill(&mut v.spare_capacity_mut()[..n]);
+    // SAFETY: `fill` wrote all n slots (every kernel writes each output it is given).
+    unsafe { v.set_len(n) };
+    v
+}
+
+/// `sin[i] = sin(x[i])` and `cos[i] = cos(x[i])` in one pass, the same bits as [`apply`].
+pub fn apply_pair(x: &[f32], sin: &mut [f32], cos: &mut [f32]) {
+    assert!(
+        sin.len() == x.len() && cos.len() == x.len(),
+        "apply_pair: lengths differ"
+    );
+    run_pair(flavour(), x, as_out(sin), as_out(cos))
+}
+
+fn run_pair(f: Flavour, x: &[f32], sin: &mut [Out], cos: &mut [Out]) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        let avx2 = std::is_x86_feature_detected!("avx2");
+        let fma = std::is_x86_feature_detected!("fma");
+        match f {
+            // SAFETY: the CPU has the features the functions are compiled for (checked).
+            Flavour::Fused if avx2 && fma => return unsafe { pair_fma_avx2(x, sin, cos) },
+            Flavour::Plain if avx2 => return unsafe { pair_plain_avx2(x, sin, cos) },
+            _ => {}
+        }
+    }
+    match f {
+        Flavour::Fused => body_pair::<true>(x, sin, cos),
+        Flavour::Plain => body_pair::<false>(x, sin, cos),
+        Flavour::Libm => {
+            for ((os, oc), &v) in sin.iter_mut().zip(cos.iter_mut()).zip(x) {
+                os.write(v.sin());
+                oc.write(v.cos());
+            }
+        }
+    }
+}
+
+/// [`apply_pair`] into new vectors: (sin, cos).
+pub fn map_pair(x: &[f32]) -> (Vec<f32>, Vec<f32>) {
+    let n = x.len();
+    let mut cos = Vec::with_capacity(n);
+    let sin = filled(n, |s| {
+        run_pair(flavour(), x, s, &mut cos.spare_capacity_mut()[..n])
+    });
+    // SAFETY: run_pair wrote all n cosines.
+    unsafe { cos.set_len(n) };
+    (sin, cos)
 }
 
 /// [`apply`] into a new vector.
 pub fn map(x: &[f32], cos: bool) -> Vec<f32> {
-    let mut out = vec![0f32; x.len()];
-    apply(x, &mut out, cos);
-    out
+    filled(x.len(), |o| run(flavour(), x, o, cos))
 }
 
 /// The arguments the flavour check compares on: the edges of every branch (tiny, fast range,
@@ -220,7 +329,7 @@ fn check_arguments() -> Vec<f32> {
 fn agrees(f: Flavour, args: &[f32]) -> bool {
     let mut out = vec![0f32; args.len()];
     [false, true].into_iter().all(|cos| {
-        run(f, args, &mut out, cos);
+        run(f, args, as_out(&mut out), cos);
         args.iter().zip(&out).all(|(&a, &o)| {
             let want = if cos { a.cos() } else { a.sin() };
             want.to_bits() == o.to_bits()
@@ -265,6 +374,24 @@ mod tests {
         };
         if glibc_fma {
             assert_eq!(flavour(), Flavour::Fused);
+        }
+        let (mut ps, mut pc) = (vec![0f32; xs.len()], vec![0f32; xs.len()]);
+        apply_pair(&xs, &mut ps, &mut pc);
+        let (ms, mc) = map_pair(&xs);
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(
+            bits(&ms),
+            bits(&ps),
+            "map_pair's sines differ from apply_pair's"
+        );
+        assert_eq!(
+            bits(&mc),
+            bits(&pc),
+            "map_pair's cosines differ from apply_pair's"
+        );
+        for (i, x) in xs.iter().enumerate() {
+            assert_eq!(ps[i].to_bits(), x.sin().to_bits(), "pair sin x = {x:e}");
+            assert_eq!(pc[i].to_bits(), x.cos().to_bits(), "pair cos x = {x:e}");
         }
         assert!(map(&[f32::NAN], false)[0].is_nan());
         assert!(map(&[f32::INFINITY], true)[0].is_nan());

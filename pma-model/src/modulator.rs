@@ -157,17 +157,15 @@ impl Modulator {
     /// x_tilde: [N,J·Ce] windowed point encodings -> S: [N,K·F], the concatenated outputs
     /// `h_k = sin(γ_k ⊙ (M_k h_{k-1} + ν_k) + Φ_k)` of all modulated layers.
     pub fn forward(&self, x_tilde: &Tensor, m: &Modulation) -> Result<Tensor> {
+        if let Some(o) = &m.head {
+            let head = crate::fused::FilmHead::new(o, self.layers.len(), self.gamma_affine());
+            return Ok(Tensor::cat(&head.stack(x_tilde, &self.layers)?, 1)?);
+        }
         let mut h = x_tilde.clone();
         let mut outs = Vec::with_capacity(self.layers.len());
         for (k, layer) in self.layers.iter().enumerate() {
             let pre = layer.forward(&h)?;
-            h = match &m.head {
-                Some(o) => {
-                    let (mul, add) = self.gamma_affine();
-                    crate::fused::film_sine(&pre, o, k, self.layers.len(), mul, add)?
-                }
-                None => crate::fast_sine::sin(&(pre * self.gamma(&m.freq[k])?)?.add(&m.phase[k])?)?,
-            };
+            h = crate::fast_sine::sin(&(pre * self.gamma(&m.freq[k])?)?.add(&m.phase[k])?)?;
             outs.push(h.clone());
         }
         Ok(Tensor::cat(&outs, 1)?)

@@ -5,13 +5,14 @@
 //! after the same wall-clock training budget, and the achieved GFLOP/s against an estimate of the
 //! machine's fp32 peak. Writes `bench.json` and `error_vs_time.png`.
 //!
-//! FLOPs are the matmul FLOPs of one network evaluation per point ([`flops_per_point`],
-//! 2·in·out per linear layer per row, per joint for the per-joint layers); element-wise
-//! work, the GNN (once per pose) and ray casting are not counted. The peak is
-//! cores × GHz × FLOP/cycle/core from /proc/cpuinfo: `cpu MHz` (the current clock, so a
-//! lower bound of the boost peak), the number of `processor` entries, and 32 FLOP/cycle with
-//! `avx2`+`fma` or `avx512f` (two 8-wide FMA pipes; Zen 4 runs 512-bit FMAs as two 256-bit
-//! halves), 8 otherwise.
+//! Render timings go round-robin over the options (every option's first repeat, then every
+//! option's second, ...), so a machine whose speed drifts during the run shifts all options
+//! alike. Training is timed per option within its wall-clock budget, one option after the
+//! other.
+//!
+//! FLOPs and the peak they are set against are [`pma_model::flops`]'s: matmul FLOPs per
+//! network point (3× for a training step: forward, input and weight gradients) over
+//! cores × GHz × FLOP/cycle from /proc/cpuinfo.
 
 // Without training support only the report types and flags are compiled, unused.
 #![cfg_attr(not(feature = "train"), allow(dead_code))]
@@ -85,76 +86,6 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     imp::run(args)
 }
 
-/// Matmul FLOPs of one network evaluation of one point (see the module docs).
-pub fn flops_per_point(c: &pma_model::Config) -> f64 {
-    let lin = |i: usize, o: usize| 2.0 * i as f64 * o as f64;
-    let j = c.n_joints as f64;
-    let (ce, h, f) = (c.point_enc_dim, c.win_hidden, c.freq_dim);
-    // World → joint frames ([3,72]) and bone alignment (24 × [3,3]).
-    let mut total = lin(3, 3 * c.n_joints) + j * lin(3, 3);
-    // Both point encoders and the window's point projection, per joint.
-    total += j * (2.0 * lin(3, ce) + lin(ce, h));
-    // Window: two sine layers and the last layer; f^m = w·g.
-    total += 2.0 * lin(h, h) + lin(h, c.n_joints) + lin(c.n_joints, c.gnn_width.max(h));
-    // Pose extractor: sine layers, then the frequency/phase head (2 · n_pm · freq_dim).
-    let ph = c.pose_extractor_hidden;
-    total += lin(h, ph)
-        + (c.pose_extractor_depth.saturating_sub(1)) as f64 * lin(ph, ph)
-        + lin(ph, 2 * c.n_pm * f);
-    // Modulated layers.
-    total += lin(c.n_joints * ce, f) + (c.n_pm.saturating_sub(1)) as f64 * lin(f, f);
-    // Density trunk (skip layers take the modulator output again), σ head, feature,
-    // colour head on [feature; SH; frame code].
-    let s_dim = c.n_pm * f;
-    let w = c.trunk_width;
-    total += lin(s_dim, w);
-    for l in 1..c.trunk_depth {
-        let input = if c.skips.contains(&(l - 1)) {
-            w + s_dim
-        } else {
-            w
-        };
-        total += lin(input, w);
-    }
-    let view = c.sh_degree * c.sh_degree + if c.use_framecodes { c.framecode_ch } else { 0 };
-    total += lin(w, 1) + lin(w, w) + lin(w + view, c.view_width) + lin(c.view_width, 3);
-    total
-}
-
-/// Estimated fp32 peak of this machine in GFLOP/s and how it was estimated.
-pub fn fp32_peak() -> (f64, String) {
-    let info = std::fs::read_to_string("/proc/cpuinfo").unwrap_or_default();
-    let cores = info
-        .lines()
-        .filter(|l| l.starts_with("processor"))
-        .count()
-        .max(1);
-    let mhz = info
-        .lines()
-        .find(|l| l.starts_with("cpu MHz"))
-        .and_then(|l| l.split(':').nth(1))
-        .and_then(|v| v.trim().parse::<f64>().ok())
-        .unwrap_or(2000.0);
-    let flags = info
-        .lines()
-        .find(|l| l.starts_with("flags"))
-        .unwrap_or_default();
-    let has = |f: &str| flags.split_whitespace().any(|x| x == f);
-    let per_cycle = if has("avx512f") || (has("avx2") && has("fma")) {
-        32.0
-    } else {
-        8.0
-    };
-    let peak = cores as f64 * mhz / 1e3 * per_cycle;
-    (
-        peak,
-        format!(
-            "{cores} logical cores x {:.2} GHz (cpu MHz) x {per_cycle} FLOP/cycle/core (avx2+fma: two 8-wide FMA pipes)",
-            mhz / 1e3
-        ),
-    )
-}
-
 /// Peak resident set size of this process so far (VmHWM), MiB.
 pub fn peak_rss_mib() -> Option<f64> {
     let status = std::fs::read_to_string("/proc/self/status").ok()?;
@@ -189,6 +120,10 @@ pub struct OptionResult {
     pub gflops: f64,
     /// Median ms per training step (the option's culling in training).
     pub ms_per_step: f64,
+    /// Achieved matmul GFLOP/s of a training step (evaluated points × FLOPs per point ×
+    /// `flops::TRAIN_FACTOR` / median step time).
+    #[serde(default)]
+    pub train_gflops: f64,
     /// Parity's median ms per step over this option's (training speed-up).
     #[serde(default)]
     pub step_speedup_vs_parity: f64,
@@ -479,8 +414,8 @@ mod imp {
         let preset: Preset = args.preset.parse()?;
         let (mut avatar, model_desc) = bench_model(&args, preset, &scene, &dev)?;
         let cfg = avatar.config().clone();
-        let fpp = flops_per_point(&cfg);
-        let (peak, peak_how) = fp32_peak();
+        let fpp = pma_model::flops::per_point(&cfg);
+        let (peak, peak_how) = pma_model::flops::fp32_peak();
         let view = bench_view(&args, &scene, &dev)?;
         let inactive =
             inactive_joint_fraction(&avatar, &view.poses, &view.cam, &view.kp3d, &view.opts)?;
@@ -700,28 +635,27 @@ mod imp {
         };
         let mut results: Vec<OptionResult> = Vec::new();
         let mut parity: Option<(RenderedImage, f64)> = None;
-        let b = progress::bar(args.quiet, opts.len() as u64, "inference per option");
-        for (name, culling, fast_sine) in opts {
-            b.set_message(format!("render {name}"));
-            avatar.set_culling(culling.clone())?;
+        let render = |a: &Avatar| -> anyhow::Result<RenderedImage> {
+            Ok(a.render_image(&view.poses, &view.kp3d, &view.cam, None, &view.opts)?)
+        };
+        let set = |a: &mut Avatar, (_, culling, fast_sine): &(String, Culling, bool)| {
             pma_model::fast_sine::set_enabled(*fast_sine);
+            a.set_culling(culling.clone()).map_err(anyhow::Error::from)
+        };
+        let b = progress::bar(
+            args.quiet,
+            (opts.len() * (1 + args.repeats)) as u64,
+            "inference per option",
+        );
+        // First each option's untimed render (the warm-up), its quality and memory.
+        for opt in opts {
+            let (name, culling, fast_sine) = opt;
+            b.set_message(format!("render {name}"));
+            set(avatar, opt)?;
             if rss_reset {
                 reset_peak_rss();
             }
-            let render = |a: &Avatar| -> anyhow::Result<RenderedImage> {
-                Ok(a.render_image(&view.poses, &view.kp3d, &view.cam, None, &view.opts)?)
-            };
-            let img = render(avatar)?; // warm-up
-            let mut times = Vec::new();
-            let mut points = 0;
-            for _ in 0..args.repeats {
-                let before = avatar.points_evaluated();
-                let t = Instant::now();
-                let _ = render(avatar)?;
-                times.push(t.elapsed().as_secs_f64());
-                points = avatar.points_evaluated() - before;
-            }
-            let sec = median(&mut times);
+            let img = render(avatar)?;
             let (held_psnr, held_lpips) = heldout_psnr(avatar, &scene.held, &scene.eval_set)?;
             let peak_rss = peak_rss_mib().unwrap_or(f64::NAN);
             let (vs_parity, max_diff) = match &parity {
@@ -743,12 +677,6 @@ mod imp {
                 name: name.clone(),
                 culling: culling.clone(),
                 fast_sine: *fast_sine,
-                ms_per_image: sec * 1e3,
-                rays_per_s: view.box_rays / sec,
-                network_points_per_s: points as f64 / sec,
-                samples_per_s: view.box_rays * samples_per_ray / sec,
-                network_points_per_image: points,
-                gflops: points as f64 * flops_per_point / sec / 1e9,
                 peak_rss_mib: peak_rss,
                 psnr_vs_parity_render: vs_parity,
                 max_abs_diff_vs_parity: max_diff,
@@ -759,7 +687,32 @@ mod imp {
             });
             b.inc(1);
         }
+        // Then the timed renders, round-robin over the options: a VM whose speed drifts
+        // during the run slows every option alike instead of the ones timed last.
+        let mut times = vec![Vec::new(); opts.len()];
+        for _ in 0..args.repeats {
+            for ((opt, t_opt), res) in opts.iter().zip(times.iter_mut()).zip(results.iter_mut()) {
+                b.set_message(format!("time {}", opt.0));
+                set(avatar, opt)?;
+                let before = avatar.points_evaluated();
+                let t = Instant::now();
+                let _ = render(avatar)?;
+                t_opt.push(t.elapsed().as_secs_f64());
+                res.network_points_per_image = avatar.points_evaluated() - before;
+                b.inc(1);
+            }
+        }
+        for (res, t_opt) in results.iter_mut().zip(times.iter_mut()) {
+            let sec = median(t_opt);
+            let points = res.network_points_per_image as f64;
+            res.ms_per_image = sec * 1e3;
+            res.rays_per_s = view.box_rays / sec;
+            res.network_points_per_s = points / sec;
+            res.samples_per_s = view.box_rays * samples_per_ray / sec;
+            res.gflops = points * flops_per_point / sec / 1e9;
+        }
         b.finish_and_clear();
+        pma_model::fast_sine::set_enabled(false);
         avatar.set_culling(Culling::default())?;
         Ok(results)
     }
@@ -783,6 +736,8 @@ mod imp {
             let mut run = RunConfig::from_preset(preset);
             run.model = cfg.clone();
             run.model.culling = culling.clone();
+            let samples_per_step =
+                (run.train.rays_per_step * (cfg.n_samples + cfg.n_importance)) as f64;
             if rss_reset {
                 reset_peak_rss();
             }
@@ -797,6 +752,11 @@ mod imp {
             }
             res.ms_per_step = median(&mut times);
             res.train_evaluated_fraction = fraction;
+            res.train_gflops = samples_per_step
+                * fraction
+                * pma_model::flops::per_point(cfg)
+                * pma_model::flops::TRAIN_FACTOR
+                / (res.ms_per_step * 1e6);
             res.peak_rss_mib = res.peak_rss_mib.max(peak_rss_mib().unwrap_or(f64::NAN));
             if budget > 0.0 {
                 let mut a = Avatar::from_tensors(
@@ -882,7 +842,7 @@ mod imp {
             100.0 * r.inactive_joint_fraction
         );
         println!(
-            "{:<22} {:>9} {:>9} {:>7} {:>11} {:>11} {:>8} {:>8} {:>7} {:>7} {:>9} {:>9} {:>8} {:>9} {:>7} {:>9}",
+            "{:<22} {:>9} {:>9} {:>7} {:>11} {:>11} {:>8} {:>8} {:>7} {:>8} {:>7} {:>9} {:>9} {:>8} {:>9} {:>7} {:>9}",
             "option",
             "ms/img",
             "rays/s",
@@ -892,6 +852,7 @@ mod imp {
             "GFLOP/s",
             "ms/step",
             "x step",
+            "tr GFLOP",
             "tr pts",
             "RSS MiB",
             "PSNR/par",
@@ -902,7 +863,7 @@ mod imp {
         );
         for o in &r.options {
             println!(
-                "{:<22} {:>9.1} {:>9.0} {:>7.2} {:>11.0} {:>11.0} {:>8.2} {:>8.1} {:>7.2} {:>6.1}% {:>9.0} {:>9.2} {:>8.3} {:>9.2} {:>7} {:>9}",
+                "{:<22} {:>9.1} {:>9.0} {:>7.2} {:>11.0} {:>11.0} {:>8.2} {:>8.1} {:>7.2} {:>8.2} {:>6.1}% {:>9.0} {:>9.2} {:>8.3} {:>9.2} {:>7} {:>9}",
                 o.name,
                 o.ms_per_image,
                 o.rays_per_s,
@@ -912,6 +873,7 @@ mod imp {
                 o.gflops,
                 o.ms_per_step,
                 o.step_speedup_vs_parity,
+                o.train_gflops,
                 100.0 * o.train_evaluated_fraction,
                 o.peak_rss_mib,
                 o.psnr_vs_parity_render,

@@ -61,6 +61,7 @@ fn quick_bench_writes_every_field() {
             "samples_per_s",
             "gflops",
             "ms_per_step",
+            "train_gflops",
             "peak_rss_mib",
             "heldout_psnr",
             "speedup_vs_parity",
