@@ -13,7 +13,6 @@
 //! arguments go to libm.
 
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Mutex;
 
 use candle_core::{CpuStorage, CustomOp1, DType, Layout, Shape, Tensor};
 
@@ -42,7 +41,7 @@ pub fn sin(x: &Tensor) -> Result<Tensor> {
 pub(crate) fn sin_flavour(x: &Tensor, fast: bool) -> Result<Tensor> {
     if x.device().is_cpu() && x.dtype() == DType::F32 {
         let x = x.contiguous()?;
-        let cos = x.track_op().then(Mutex::default);
+        let cos = crate::ops::Kept::new(x.track_op());
         Ok(x.apply_op1(Sine { fast, cos })?)
     } else {
         Ok(x.sin()?)
@@ -157,7 +156,7 @@ pub fn sin_or_cos(x: &[f32], shift: u64) -> Vec<f32> {
 /// computed by [`Cosine`].
 struct Sine {
     fast: bool,
-    cos: Option<Mutex<Option<Vec<f32>>>>,
+    cos: crate::ops::Kept<Vec<f32>>,
 }
 struct Cosine {
     fast: bool,
@@ -170,13 +169,12 @@ impl CustomOp1 for Sine {
 
     fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> candle_core::Result<(CpuStorage, Shape)> {
         let x = crate::ops::f32_slice(s, l, "sine")?;
-        let sin = match &self.cos {
-            Some(slot) => {
-                let (sin, cos) = trig_pair(x, self.fast);
-                *slot.lock().unwrap_or_else(|e| e.into_inner()) = Some(cos);
-                sin
-            }
-            None => trig(x, 0, self.fast),
+        let sin = if self.cos.wanted() {
+            let (sin, cos) = trig_pair(x, self.fast);
+            self.cos.put(cos);
+            sin
+        } else {
+            trig(x, 0, self.fast)
         };
         Ok((CpuStorage::F32(sin), l.shape().clone()))
     }
@@ -189,11 +187,7 @@ impl CustomOp1 for Sine {
     ) -> candle_core::Result<Option<Tensor>> {
         // candle's own rule for sin, `grad · cos(arg)`, so parity mode keeps its bits. The
         // kept cosine is used once (a second backward over the graph recomputes it).
-        let kept = self
-            .cos
-            .as_ref()
-            .and_then(|slot| slot.lock().unwrap_or_else(|e| e.into_inner()).take());
-        let cos = match kept {
+        let cos = match self.cos.take() {
             Some(c) if c.len() == arg.elem_count() => {
                 Tensor::from_vec(c, arg.shape(), arg.device())?
             }
@@ -306,7 +300,7 @@ mod tests {
         // The op itself, not the process-wide switch: other tests run alongside. With the
         // cosine kept by the forward and without it (recomputed by the backward).
         for keep in [false, true] {
-            let cos = keep.then(Mutex::default);
+            let cos = crate::ops::Kept::new(keep);
             let y = x.as_tensor().apply_op1(Sine { fast: true, cos }).unwrap();
             let g = y.sum_all().unwrap().backward().unwrap();
             let y = y.to_vec1::<f32>().unwrap();

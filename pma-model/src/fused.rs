@@ -70,7 +70,7 @@ pub fn window_pool(q: &Tensor, g: &Tensor, w_p: &Tensor) -> Result<Tensor> {
         return plain();
     }
     let (q, g) = (q.contiguous()?, g.contiguous()?);
-    let arg = (q.track_op() || g.track_op()).then(Mutex::default);
+    let arg = crate::ops::Kept::new(q.track_op() || g.track_op());
     Ok(q.apply_op3(&g, &w_p.detach().contiguous()?, WindowPool { arg })?)
 }
 
@@ -172,7 +172,7 @@ impl FilmHead {
             mul: mul as f32,
             add: add as f32,
             fast: self.fast,
-            cos: (pre.track_op() || o.track_op()).then(Mutex::default),
+            cos: crate::ops::Kept::new(pre.track_op() || o.track_op()),
             shared: chained.then(|| self.grad.clone()),
         };
         Ok(pre.apply_op2(&o, op)?)
@@ -186,8 +186,8 @@ struct FilmSine {
     add: f32,
     /// Sine flavour fixed when the graph is built, so the backward matches its forward.
     fast: bool,
-    /// cos of the argument, kept by the forward for the backward (`None`: not tracked).
-    cos: Option<Mutex<Option<Vec<f32>>>>,
+    /// cos of the argument, kept by the forward for the backward.
+    cos: crate::ops::Kept<Vec<f32>>,
     /// The head gradient shared along a [`FilmHead::stack`].
     shared: Option<Arc<Mutex<HeadGrad>>>,
 }
@@ -254,13 +254,12 @@ impl CustomOp2 for FilmSine {
             f32_slice(s2, l2, "film sine: o")?,
         );
         let a = self.argument(pre, o, f);
-        let sin = match &self.cos {
-            Some(slot) => {
-                let (sin, cos) = crate::fast_sine::trig_pair(&a, self.fast);
-                *slot.lock().unwrap_or_else(|e| e.into_inner()) = Some(cos);
-                sin
-            }
-            None => self.trig(a, 0),
+        let sin = if self.cos.wanted() {
+            let (sin, cos) = crate::fast_sine::trig_pair(&a, self.fast);
+            self.cos.put(cos);
+            sin
+        } else {
+            self.trig(a, 0)
         };
         Ok((CpuStorage::F32(sin), l1.shape().clone()))
     }
@@ -278,11 +277,7 @@ impl CustomOp2 for FilmSine {
         let guards = [&pre_c, &o_c, &d_c].map(|t| t.storage_and_layout());
         let [p, oo, d] = [0, 1, 2].map(|i| cpu_slice(&guards[i].0, guards[i].1));
         let (p, oo, d) = (p?, oo?, d?);
-        let kept = self
-            .cos
-            .as_ref()
-            .and_then(|slot| slot.lock().unwrap_or_else(|e| e.into_inner()).take());
-        let cos = match kept {
+        let cos = match self.cos.take() {
             Some(c) if c.len() == n * f => c,
             _ => self.trig(self.argument(p, oo, f), 1),
         };
@@ -401,7 +396,7 @@ impl CustomOp2 for BiasAdd {
 /// The fused max-pool; when the graph tracks gradients its forward keeps the arg-max joint
 /// of every output for the backward, which then need not pool again.
 struct WindowPool {
-    arg: Option<Mutex<Option<Vec<u32>>>>,
+    arg: crate::ops::Kept<Vec<u32>>,
 }
 
 /// One point's pooled row: `best[k] = max_j (q[j,k] + g[j,k]) · w[j]` and the first joint
@@ -451,9 +446,9 @@ impl CustomOp3 for WindowPool {
         }
         let mut dst = vec![0f32; n * h];
         // Every row's arg-max when it is kept for the backward, else one row's scratch.
-        let mut arg = vec![0u32; if self.arg.is_some() { n * h } else { h }];
+        let mut arg = vec![0u32; if self.arg.wanted() { n * h } else { h }];
         for (i, m) in dst.chunks_exact_mut(h).enumerate() {
-            let a = if self.arg.is_some() {
+            let a = if self.arg.wanted() {
                 &mut arg[i * h..(i + 1) * h]
             } else {
                 &mut arg[..]
@@ -466,8 +461,8 @@ impl CustomOp3 for WindowPool {
                 a,
             );
         }
-        if let Some(slot) = &self.arg {
-            *slot.lock().unwrap_or_else(|e| e.into_inner()) = Some(arg);
+        if self.arg.wanted() {
+            self.arg.put(arg);
         }
         Ok((CpuStorage::F32(dst), Shape::from((n, h))))
     }
@@ -493,11 +488,7 @@ impl CustomOp3 for WindowPool {
         let mut gq = vec![0f32; n * j * h];
         let mut gg = vec![0f32; j * h];
         // The forward's arg-max (used once; a second backward pools again).
-        let kept = self
-            .arg
-            .as_ref()
-            .and_then(|slot| slot.lock().unwrap_or_else(|e| e.into_inner()).take())
-            .filter(|a| a.len() == n * h);
+        let kept = self.arg.take().filter(|a| a.len() == n * h);
         let mut arg = vec![0u32; h];
         let mut best = vec![0f32; h];
         for i in 0..n {

@@ -135,36 +135,66 @@ fn outside(v: f32) -> bool {
     v.abs() >= LARGE || v.is_nan()
 }
 
+/// Where a pass writes: one function (`cos` false: sine, true: cosine), or both.
+enum Outs<'a> {
+    One(&'a mut [Out], bool),
+    /// Sine and cosine together: the recipe computes both polynomials anyway, so the
+    /// cosine costs one more select and store.
+    Both(&'a mut [Out], &'a mut [Out]),
+}
+
 #[inline(always)]
-fn body<const FMA: bool>(x: &[f32], out: &mut [Out], cos: bool) {
+fn body<const FMA: bool>(x: &[f32], outs: Outs) {
     let mut large = 0u32;
-    for (o, &v) in out.iter_mut().zip(x) {
-        o.write(lane::<FMA>(v, cos));
-        large |= u32::from(outside(v));
-    }
-    if large != 0 {
-        for (o, &v) in out.iter_mut().zip(x) {
-            if outside(v) {
-                o.write(if cos { v.cos() } else { v.sin() });
+    // One loop per case, so each stays a plain vectorisable loop.
+    match outs {
+        Outs::One(out, cos) => {
+            // `cos` as a constant in each loop, so the unused selects fold away.
+            large = if cos {
+                fill(x, out, |v| lane::<FMA>(v, true))
+            } else {
+                fill(x, out, |v| lane::<FMA>(v, false))
+            };
+            if large != 0 {
+                libm_where(x, Outs::One(out, cos), outside);
+            }
+        }
+        Outs::Both(sin, cos) => {
+            for ((os, oc), &v) in sin.iter_mut().zip(cos.iter_mut()).zip(x) {
+                let (s, c, q) = reduced::<FMA>(v);
+                os.write(pick(v, s, c, q, false));
+                oc.write(pick(v, s, c, q, true));
+                large |= u32::from(outside(v));
+            }
+            if large != 0 {
+                libm_where(x, Outs::Both(sin, cos), outside);
             }
         }
     }
 }
 
-/// Sine and cosine together: the recipe computes both polynomials anyway, so the cosine
-/// costs one more select and store.
+/// `out[i] = f(x[i])`; nonzero when some argument is outside the fast range.
 #[inline(always)]
-fn body_pair<const FMA: bool>(x: &[f32], sin: &mut [Out], cos: &mut [Out]) {
+fn fill(x: &[f32], out: &mut [Out], f: impl Fn(f32) -> f32) -> u32 {
     let mut large = 0u32;
-    for ((os, oc), &v) in sin.iter_mut().zip(cos.iter_mut()).zip(x) {
-        let (s, c, q) = reduced::<FMA>(v);
-        os.write(pick(v, s, c, q, false));
-        oc.write(pick(v, s, c, q, true));
+    for (o, &v) in out.iter_mut().zip(x) {
+        o.write(f(v));
         large |= u32::from(outside(v));
     }
-    if large != 0 {
-        for ((os, oc), &v) in sin.iter_mut().zip(cos.iter_mut()).zip(x) {
-            if outside(v) {
+    large
+}
+
+/// libm's values for the arguments where `pick` holds.
+fn libm_where(x: &[f32], outs: Outs, pick: impl Fn(f32) -> bool) {
+    match outs {
+        Outs::One(out, cos) => {
+            for (o, &v) in out.iter_mut().zip(x).filter(|(_, &v)| pick(v)) {
+                o.write(if cos { v.cos() } else { v.sin() });
+            }
+        }
+        Outs::Both(sin, cos) => {
+            let all = sin.iter_mut().zip(cos.iter_mut()).zip(x);
+            for ((os, oc), &v) in all.filter(|(_, &v)| pick(v)) {
                 os.write(v.sin());
                 oc.write(v.cos());
             }
@@ -174,54 +204,38 @@ fn body_pair<const FMA: bool>(x: &[f32], sin: &mut [Out], cos: &mut [Out]) {
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-unsafe fn pair_fma_avx2(x: &[f32], sin: &mut [Out], cos: &mut [Out]) {
-    body_pair::<true>(x, sin, cos)
+unsafe fn body_fma_avx2(x: &[f32], outs: Outs) {
+    body::<true>(x, outs)
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-unsafe fn pair_plain_avx2(x: &[f32], sin: &mut [Out], cos: &mut [Out]) {
-    body_pair::<false>(x, sin, cos)
+unsafe fn body_plain_avx2(x: &[f32], outs: Outs) {
+    body::<false>(x, outs)
 }
 
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-unsafe fn body_fma_avx2(x: &[f32], out: &mut [Out], cos: bool) {
-    body::<true>(x, out, cos)
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-unsafe fn body_plain_avx2(x: &[f32], out: &mut [Out], cos: bool) {
-    body::<false>(x, out, cos)
-}
-
-fn run(f: Flavour, x: &[f32], out: &mut [Out], cos: bool) {
+fn run(f: Flavour, x: &[f32], outs: Outs) {
     #[cfg(target_arch = "x86_64")]
     {
         let avx2 = std::is_x86_feature_detected!("avx2");
         let fma = std::is_x86_feature_detected!("fma");
         match f {
             // SAFETY: the CPU has the features the functions are compiled for (checked).
-            Flavour::Fused if avx2 && fma => return unsafe { body_fma_avx2(x, out, cos) },
-            Flavour::Plain if avx2 => return unsafe { body_plain_avx2(x, out, cos) },
+            Flavour::Fused if avx2 && fma => return unsafe { body_fma_avx2(x, outs) },
+            Flavour::Plain if avx2 => return unsafe { body_plain_avx2(x, outs) },
             _ => {}
         }
     }
     match f {
-        Flavour::Fused => body::<true>(x, out, cos),
-        Flavour::Plain => body::<false>(x, out, cos),
-        Flavour::Libm => {
-            for (o, &v) in out.iter_mut().zip(x) {
-                o.write(if cos { v.cos() } else { v.sin() });
-            }
-        }
+        Flavour::Fused => body::<true>(x, outs),
+        Flavour::Plain => body::<false>(x, outs),
+        Flavour::Libm => libm_where(x, outs, |_| true),
     }
 }
 
 /// `out[i] = sin(x[i])` (`cos` false) or `cos(x[i])`, bit-identical to `f32::sin`/`f32::cos`.
 pub fn apply(x: &[f32], out: &mut [f32], cos: bool) {
-    run(flavour(), x, as_out(out), cos)
+    run(flavour(), x, Outs::One(as_out(out), cos))
 }
 
 /// An initialised slice as output slots (the kernels only write valid f32 into them).
@@ -245,31 +259,7 @@ pub fn apply_pair(x: &[f32], sin: &mut [f32], cos: &mut [f32]) {
         sin.len() == x.len() && cos.len() == x.len(),
         "apply_pair: lengths differ"
     );
-    run_pair(flavour(), x, as_out(sin), as_out(cos))
-}
-
-fn run_pair(f: Flavour, x: &[f32], sin: &mut [Out], cos: &mut [Out]) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        let avx2 = std::is_x86_feature_detected!("avx2");
-        let fma = std::is_x86_feature_detected!("fma");
-        match f {
-            // SAFETY: the CPU has the features the functions are compiled for (checked).
-            Flavour::Fused if avx2 && fma => return unsafe { pair_fma_avx2(x, sin, cos) },
-            Flavour::Plain if avx2 => return unsafe { pair_plain_avx2(x, sin, cos) },
-            _ => {}
-        }
-    }
-    match f {
-        Flavour::Fused => body_pair::<true>(x, sin, cos),
-        Flavour::Plain => body_pair::<false>(x, sin, cos),
-        Flavour::Libm => {
-            for ((os, oc), &v) in sin.iter_mut().zip(cos.iter_mut()).zip(x) {
-                os.write(v.sin());
-                oc.write(v.cos());
-            }
-        }
-    }
+    run(flavour(), x, Outs::Both(as_out(sin), as_out(cos)))
 }
 
 /// [`apply_pair`] into new vectors: (sin, cos).
@@ -277,16 +267,20 @@ pub fn map_pair(x: &[f32]) -> (Vec<f32>, Vec<f32>) {
     let n = x.len();
     let mut cos = Vec::with_capacity(n);
     let sin = filled(n, |s| {
-        run_pair(flavour(), x, s, &mut cos.spare_capacity_mut()[..n])
+        run(
+            flavour(),
+            x,
+            Outs::Both(s, &mut cos.spare_capacity_mut()[..n]),
+        )
     });
-    // SAFETY: run_pair wrote all n cosines.
+    // SAFETY: run wrote all n cosines.
     unsafe { cos.set_len(n) };
     (sin, cos)
 }
 
 /// [`apply`] into a new vector.
 pub fn map(x: &[f32], cos: bool) -> Vec<f32> {
-    filled(x.len(), |o| run(flavour(), x, o, cos))
+    filled(x.len(), |o| run(flavour(), x, Outs::One(o, cos)))
 }
 
 /// The arguments the flavour check compares on: the edges of every branch (tiny, fast range,
@@ -329,7 +323,7 @@ fn check_arguments() -> Vec<f32> {
 fn agrees(f: Flavour, args: &[f32]) -> bool {
     let mut out = vec![0f32; args.len()];
     [false, true].into_iter().all(|cos| {
-        run(f, args, as_out(&mut out), cos);
+        run(f, args, Outs::One(as_out(&mut out), cos));
         args.iter().zip(&out).all(|(&a, &o)| {
             let want = if cos { a.cos() } else { a.sin() };
             want.to_bits() == o.to_bits()

@@ -73,6 +73,33 @@ pub fn gather_rows(x: &Tensor, ids: &Tensor) -> Result<Tensor> {
         .apply_op2(&ids.detach().contiguous()?, GatherRows)?)
 }
 
+/// A value a custom op's forward leaves for its backward (cos of a sine's argument, a
+/// max-pool's arg-max): kept only when the graph tracks gradients, and used once, so a
+/// second backward over the same graph finds it gone and computes it again.
+pub(crate) struct Kept<T>(Option<std::sync::Mutex<Option<T>>>);
+
+impl<T> Kept<T> {
+    pub(crate) fn new(tracked: bool) -> Self {
+        Self(tracked.then(Default::default))
+    }
+
+    /// Whether the forward should produce the value.
+    pub(crate) fn wanted(&self) -> bool {
+        self.0.is_some()
+    }
+
+    pub(crate) fn put(&self, v: T) {
+        if let Some(m) = &self.0 {
+            *m.lock().unwrap_or_else(|e| e.into_inner()) = Some(v);
+        }
+    }
+
+    pub(crate) fn take(&self) -> Option<T> {
+        let m = self.0.as_ref()?;
+        m.lock().unwrap_or_else(|e| e.into_inner()).take()
+    }
+}
+
 /// The f32 data of a contiguous CPU tensor.
 /// The f32 values of a contiguous CPU storage under `l` (every CPU kernel of pma reads its
 /// inputs this way).
