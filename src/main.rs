@@ -72,8 +72,8 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     cli::install_interrupt_handler();
     // Before any candle op: candle sizes its thread pool once.
-    pma_model::parallel::configure_cpu(cli.workers);
-    pma_model::fast_sine::set_enabled(cli.fast_sine);
+    pma_model::compute::parallel::configure_cpu(cli.workers);
+    pma_model::compute::fast_sine::set_enabled(cli.fast_sine);
     let result = match cli.command {
         Command::Synth(a) => cli::synth::run(a),
         Command::Inspect(a) => cli::inspect::run(a),

@@ -17,8 +17,8 @@ use std::{
 
 use candle_core::{Device, Tensor};
 use pma_model::{
-    checkpoint::{check_tensors, param_names, save},
     error::ModelError,
+    network::checkpoint::{check_tensors, param_names, save},
     train::state::fingerprint,
     Config,
 };

@@ -39,7 +39,7 @@ pub enum ConvertError {
         module: String,
         name: String,
         /// What the reader's policy accepts (a thin reference keeps the error small).
-        accepted: &'static crate::pickle::Accepted,
+        accepted: &'static Accepted,
     },
 
     #[error("{path}: pickle {entry}, byte {offset}: {msg}")]
@@ -230,5 +230,15 @@ fn hdf5_hint(e: &hdf5_reader::error::Error) -> &'static str {
         E::UnexpectedEof { .. } | E::OffsetOutOfBounds(_) => " (the file is truncated or corrupt)",
         E::Context { source, .. } => hdf5_hint(source),
         _ => "",
+    }
+}
+
+/// A policy's description of the globals it accepts, e.g. "collections.OrderedDict".
+#[derive(Debug, PartialEq, Eq)]
+pub struct Accepted(pub &'static str);
+
+impl std::fmt::Display for Accepted {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.0)
     }
 }

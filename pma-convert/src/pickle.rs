@@ -24,6 +24,7 @@ use std::{fmt::Debug, path::Path, rc::Rc};
 pub mod numpy;
 mod vm;
 
+pub use crate::error::Accepted;
 use crate::error::Result;
 
 /// A value a [`Policy`] builds from an allowed global: the global itself, or
@@ -157,16 +158,6 @@ impl<O> Heap<O> {
 pub struct Unpickled<O> {
     pub root: Value<O>,
     pub heap: Heap<O>,
-}
-
-/// A policy's description of the globals it accepts, e.g. "collections.OrderedDict".
-#[derive(Debug, PartialEq, Eq)]
-pub struct Accepted(pub &'static str);
-
-impl std::fmt::Display for Accepted {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(self.0)
-    }
 }
 
 /// Which globals a pickle may name and what is built from them. Every method

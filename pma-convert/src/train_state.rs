@@ -22,8 +22,8 @@ use std::{collections::HashMap, path::Path};
 
 use candle_core::{Device, Tensor};
 use pma_model::{
-    checkpoint::{param_names, tensor_layout},
     error::ModelError,
+    network::checkpoint::{param_names, tensor_layout},
     train::{
         adam::reference_group,
         state::{fingerprint, TrainState},

@@ -12,8 +12,8 @@ use std::time::Instant;
 use candle_core::Device;
 use pma_data::cylinder::HeadDir;
 use pma_data::fsio::{parent_dir, AtomicFile};
-use pma_model::camera_path::{facing, framing_camera, load_avatar, ViewDirs};
-use pma_model::image::ImageOptions;
+use pma_model::render::camera_path::{facing, framing_camera, load_avatar, ViewDirs};
+use pma_model::render::image::ImageOptions;
 
 const USAGE: &str =
     "usage: pma-infer MODEL.safetensors OUT.png [SIZE] [--device cpu|cuda|cuda:N|metal]";
@@ -25,7 +25,7 @@ static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 fn main() -> ExitCode {
     // Data-parallel CPU workers, one per core, set up before any candle op.
-    pma_model::parallel::configure_cpu(0);
+    pma_model::compute::parallel::configure_cpu(0);
     match parse(std::env::args().skip(1).collect()).and_then(|a| run(&a)) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
@@ -93,7 +93,7 @@ fn parse_positional(args: &[String]) -> Result<Args, BoxError> {
 
 fn run(args: &Args) -> Result<(), BoxError> {
     let t0 = Instant::now();
-    let device: Device = pma_model::device::parse_device(&args.device)?;
+    let device: Device = pma_model::compute::device::parse_device(&args.device)?;
     let avatar = load_avatar(&args.model, &device, ViewDirs::Normalized)
         .map_err(|e| format!("loading {}: {e}", args.model.display()))?;
     let t_load = t0.elapsed();

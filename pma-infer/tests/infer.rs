@@ -3,7 +3,7 @@
 use std::process::Command;
 
 use candle_core::Device;
-use pma_model::avatar::Avatar;
+use pma_model::render::avatar::Avatar;
 use pma_model::Config;
 
 fn infer(args: &[&str]) -> std::process::Output {

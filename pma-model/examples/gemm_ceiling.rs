@@ -6,7 +6,7 @@
 //! cargo run --release -p pma-model --example gemm_ceiling -- [--rows 384] [--threads 1]
 //!
 //! `--threads 1` is how a training step runs its gemms (one per data-parallel worker);
-//! medians of 7 timed calls after one warm-up, against `pma_model::flops::fp32_peak()`
+//! medians of 7 timed calls after one warm-up, against `pma_model::compute::flops::fp32_peak()`
 //! divided over the cores.
 
 #[path = "support/scene.rs"]
@@ -32,7 +32,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let w = Tensor::randn(0f32, 1., (n, k), &dev)?;
     let d = Tensor::randn(0f32, 1., (rows, n), &dev)?;
     let flop = 2.0 * (rows * k * n) as f64;
-    let (peak, _) = pma_model::flops::fp32_peak();
+    let (peak, _) = pma_model::compute::flops::fp32_peak();
     let cores = std::thread::available_parallelism().map_or(1, |c| c.get());
     let peak_here = peak / cores as f64 * threads.min(cores) as f64;
     let products: [(&str, Product); 3] = [

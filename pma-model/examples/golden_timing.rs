@@ -6,8 +6,8 @@
 use std::time::Instant;
 
 use candle_core::Device;
-use pma_model::avatar::{Avatar, Mode, Poses, Rays};
-use pma_model::loss::{training_loss, LossWeights};
+use pma_model::render::avatar::{Avatar, Mode, Poses, Rays};
+use pma_model::train::loss::{training_loss, LossWeights};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let dev = Device::Cpu;

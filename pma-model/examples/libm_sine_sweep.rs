@@ -1,4 +1,4 @@
-//! Every f32 through `pma_model::libm_sine` against `f32::sin`/`f32::cos` (libm), separately
+//! Every f32 through `pma_model::compute::libm_sine` against `f32::sin`/`f32::cos` (libm), separately
 //! and through the sine-and-cosine pass: prints the flavour in use and the number of
 //! differing bit patterns (0 is the claim).
 //!
@@ -7,7 +7,7 @@
 use std::thread;
 
 fn main() {
-    println!("flavour: {:?}", pma_model::libm_sine::flavour());
+    println!("flavour: {:?}", pma_model::compute::libm_sine::flavour());
     speed();
     let workers = thread::available_parallelism().map_or(1, |n| n.get()) as u64;
     let total = 1u64 << 32;
@@ -28,7 +28,7 @@ fn main() {
                         x.extend((b..e).map(|v| f32::from_bits(v as u32)));
                         for cos in [false, true] {
                             let o = &mut out[..x.len()];
-                            pma_model::libm_sine::apply(&x, o, cos);
+                            pma_model::compute::libm_sine::apply(&x, o, cos);
                             for (v, g) in x.iter().zip(o.iter()) {
                                 let want = if cos { v.cos() } else { v.sin() };
                                 let same = want.to_bits() == g.to_bits() || (want.is_nan() && g.is_nan());
@@ -42,7 +42,7 @@ fn main() {
                         }
                         // The sine-and-cosine pass must give the same bits as the separate ones.
                         let (ps, pc) = (&mut out[..x.len()], &mut out_cos[..x.len()]);
-                        pma_model::libm_sine::apply_pair(&x, ps, pc);
+                        pma_model::compute::libm_sine::apply_pair(&x, ps, pc);
                         for ((v, s), c) in x.iter().zip(ps.iter()).zip(pc.iter()) {
                             for (want, g) in [(v.sin(), s), (v.cos(), c)] {
                                 let same = want.to_bits() == g.to_bits() || (want.is_nan() && g.is_nan());
@@ -90,9 +90,9 @@ fn speed() {
         t.sort_by(f64::total_cmp);
         t[2] * 1e9 / x.len() as f64
     };
-    let kernel = time(&mut |o| pma_model::libm_sine::apply(&x, o, false));
+    let kernel = time(&mut |o| pma_model::compute::libm_sine::apply(&x, o, false));
     let mut cos = vec![0f32; x.len()];
-    let pair = time(&mut |o| pma_model::libm_sine::apply_pair(&x, o, &mut cos));
+    let pair = time(&mut |o| pma_model::compute::libm_sine::apply_pair(&x, o, &mut cos));
     let libm = time(&mut |o| {
         for (o, v) in o.iter_mut().zip(&x) {
             *o = v.sin();

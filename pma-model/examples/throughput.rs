@@ -9,7 +9,7 @@
 //! Medians over `--repeats` after one warm-up each; a training step includes backward, clip and
 //! Adam. Inference is `Avatar::render_rays` (no gradient, bounded chunks). GFLOP/s are the
 //! network's matmul FLOPs over the median time, also as a share of this machine's estimated
-//! fp32 peak (`pma_model::flops`).
+//! fp32 peak (`pma_model::compute::flops`).
 
 #[path = "support/scene.rs"]
 mod scene;
@@ -26,33 +26,33 @@ static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     // Data-parallel workers with candle's intra-op threads off (0 = one per core), as the
     // `pma` binary does; `--workers 1` keeps candle's own threading.
-    let workers = pma_model::parallel::configure_cpu(scene::arg("--workers", 0));
+    let workers = pma_model::compute::parallel::configure_cpu(scene::arg("--workers", 0));
     let train_rays: usize = scene::arg("--train-rays", 512);
     let infer_rays: usize = scene::arg("--infer-rays", 4096);
     let repeats: usize = scene::arg("--repeats", 3).max(1);
     // `--no-fused`: plain candle ops instead of the fused CPU kernels (A/B measurement).
-    pma_model::fused::set_enabled(!std::env::args().any(|a| a == "--no-fused"));
+    pma_model::compute::fused::set_enabled(!std::env::args().any(|a| a == "--no-fused"));
     // `--fast-sine`: the vectorised sine (not parity mode: last-bit differences).
-    pma_model::fast_sine::set_enabled(std::env::args().any(|a| a == "--fast-sine"));
+    pma_model::compute::fast_sine::set_enabled(std::env::args().any(|a| a == "--fast-sine"));
     let dir = tempfile::tempdir()?;
     let data = scene::scene(dir.path())?;
     let mut run = RunConfig::from_preset(Preset::Paper);
     let samples = (run.model.n_samples + run.model.n_importance) as f64;
-    let flops_per_point = pma_model::flops::per_point(&run.model);
-    let (peak, peak_how) = pma_model::flops::fp32_peak();
+    let flops_per_point = pma_model::compute::flops::per_point(&run.model);
+    let (peak, peak_how) = pma_model::compute::flops::fp32_peak();
     let gflops = |points: f64, factor: f64, secs: f64| {
         let g = points * flops_per_point * factor / secs / 1e9;
         format!("{g:.1} GFLOP/s matmul = {:.1} % of peak", 100.0 * g / peak)
     };
     println!(
         "paper config, {}, {workers} workers x {} candle threads, fused kernels {}",
-        if pma_model::fast_sine::enabled() {
+        if pma_model::compute::fast_sine::enabled() {
             "fast sine (not parity)"
         } else {
             "parity mode"
         },
         candle_core::utils::get_num_threads(),
-        if pma_model::fused::enabled() {
+        if pma_model::compute::fused::enabled() {
             "on"
         } else {
             "off"
@@ -76,7 +76,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             "training  {train_rays:>5} rays: median {m:.3} s/step, {sps:.0} samples/s, {}",
             gflops(
                 train_rays as f64 * samples,
-                pma_model::flops::TRAIN_FACTOR,
+                pma_model::compute::flops::TRAIN_FACTOR,
                 m
             )
         );
@@ -85,7 +85,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     if infer_rays > 0 {
         run.model.n_framecodes = data.n_images();
         let rest = data.rest_pose.ok_or("scene without rest pose")?;
-        let avatar = pma_model::avatar::Avatar::new(run.model.clone(), &rest, 0, &Device::Cpu)?;
+        let avatar =
+            pma_model::render::avatar::Avatar::new(run.model.clone(), &rest, 0, &Device::Cpu)?;
         let mut src = DatasetSource::new(data, infer_rays, 16, false, 0, &Device::Cpu)?;
         let batch = src.next_batch()?;
         let mut times = Vec::new();

@@ -16,7 +16,7 @@ use pma_model::train::{chunk_rays, Preset, RunConfig, Trainer};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     // As the `pma` binary: one data-parallel worker per core (`--workers 1`: candle threads).
-    let workers = pma_model::parallel::configure_cpu(scene::arg("--workers", 0));
+    let workers = pma_model::compute::parallel::configure_cpu(scene::arg("--workers", 0));
     println!("{workers} workers");
     let rays: usize = scene::arg("--rays", 3072);
     let images: usize = scene::arg("--images", 16);

@@ -1,61 +1,37 @@
-//! The PM-Avatar network in candle.
+//! The PM-Avatar (Song, Wandt, Rhodin, ICLR 2024) in candle.
 //!
-//! Modules follow the paper's concepts; `avatar.rs` wires them together top-down:
+//! The folders are the layers of the model, each depending only on those below it:
+//!
+//! ```text
+//! train/  eval/  tools/        training, scoring, meshes and probes   (use a whole Avatar)
+//!        render/               rays → samples → network → pixels      (the Avatar)
+//!        network/              the network on points                  (everything with weights)
+//!        compute/              kernels, workers, device, accounting   (knows no paper)
+//! ```
 //!
 //! | module | what |
 //! | --- | --- |
-//! | `skeleton` (pma-data) | SMPL joints, forward kinematics, bone alignment |
-//! | `gnn` | the pose graph network over the 24 joints, box half-extents |
-//! | `window` | spatial window w^p, feature window w^f |
-//! | `modulator` | pose-predicted frequencies/phases, modulated sine layers |
-//! | `field` | NeRF density/colour heads, frame codes |
-//! | `raycast`, `bones` | near/far from cylinder and bone boxes, samples |
-//! | `render` | volume rendering |
-//! | `points`, `cull` | how samples reach the network; leaving work out |
-//! | `params`, `checkpoint` | tensor registration and init; the file format |
-//! | `eval`, `lpips` | the evaluation protocol; the LPIPS network |
-//! | `train` (feature) | optimiser, losses, the training loop |
+//! | [`compute`] | fused CPU kernels, the libm sine, row ops, workers, host copies, device, profile, FLOPs |
+//! | [`network`] | config, parameters, checkpoints; GNN, windows, modulated sine layers, NeRF heads |
+//! | [`render`] | bone boxes, ray casting, culling, sample routes, volume rendering, [`Avatar`], images, camera paths |
+//! | [`eval`] | the evaluation protocol: PSNR/SSIM/LPIPS, frequency spectra, splits |
+//! | [`tools`] | meshes, stability probes, retargeting |
+//! | [`train`] (feature `train`) | presets, loss, Adam, one step, the training run |
+//! | [`error`] | the crate's error type |
+//!
+//! The skeleton (SMPL joints, forward kinematics, bone alignment) lives in `pma_data`.
 
-pub mod avatar;
-pub mod batch;
-pub mod bones;
-pub mod camera_path;
-pub mod checkpoint;
-pub mod config;
-pub mod cull;
-pub mod device;
-pub mod encoders;
+pub mod compute;
 pub mod error;
 pub mod eval;
-pub mod fast_sine;
-pub mod field;
-pub mod flops;
-pub mod fused;
-pub mod gnn;
-pub mod host;
-pub mod image;
 /// The process-wide interrupt flag (see `pma_data::interrupt`).
 pub use pma_data::interrupt;
-pub mod libm_sine;
-pub mod loss;
-pub mod lpips;
-pub mod mesh;
-pub mod modulator;
-pub mod nn;
-pub mod ops;
-pub mod parallel;
-pub mod params;
-pub mod points;
-pub mod presets;
-pub mod profile;
-pub mod raycast;
+pub mod network;
 pub mod render;
-pub mod retarget;
-pub mod stability;
-pub mod trace;
-pub mod window;
+pub mod tools;
 
 #[cfg(feature = "train")]
 pub mod train;
 
-pub use config::Config;
+pub use network::config::Config;
+pub use render::Avatar;

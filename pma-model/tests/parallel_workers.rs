@@ -1,4 +1,4 @@
-//! Data-parallel workers (`pma_model::parallel`) change nothing but the speed: a chunked
+//! Data-parallel workers (`pma_model::compute::parallel`) change nothing but the speed: a chunked
 //! training step and an inference pass (plain and culled) give bit-identical results with 1
 //! and with 3 workers.
 #![cfg(feature = "train")]
@@ -6,8 +6,8 @@
 mod train_support;
 
 use candle_core::{Device, Tensor};
-use pma_model::avatar::Avatar;
-use pma_model::parallel::{set_workers, workers};
+use pma_model::compute::parallel::{set_workers, workers};
+use pma_model::render::avatar::Avatar;
 use pma_model::train::{BatchSource, DatasetSource, FixedBatch, Trainer};
 use train_support::{first_batch, tiny_run, tiny_scene};
 
@@ -74,10 +74,10 @@ fn worker_count_does_not_change_results() {
     // The culled route sizes its network calls by the worker count: still the same result.
     let mut avatar = avatar;
     avatar
-        .set_culling(pma_model::config::Culling {
+        .set_culling(pma_model::network::config::Culling {
             rays: true,
             sample_threshold: Some(0.2),
-            sample_fill: pma_model::config::SampleFill::Network,
+            sample_fill: pma_model::network::config::SampleFill::Network,
         })
         .unwrap();
     let render = |w: usize| {

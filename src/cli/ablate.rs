@@ -1,5 +1,5 @@
 //! `pma ablate`: the paper's ablation table with the run-time column it lacks. Trains each
-//! model variant (`pma_model::config::Variant`) with the same seed, data and wall-clock
+//! model variant (`pma_model::network::config::Variant`) with the same seed, data and wall-clock
 //! budget, then scores novel views and novel poses:
 //!
 //! ```text
@@ -11,7 +11,7 @@
 
 use std::path::PathBuf;
 
-use pma_model::config::Variant;
+use pma_model::network::config::Variant;
 
 #[derive(clap::Args, Debug, Clone)]
 pub struct Args {
@@ -92,8 +92,8 @@ mod imp {
 
     use anyhow::Context as _;
     use pma_data::dataset::Profile;
-    use pma_model::avatar::Avatar;
     use pma_model::eval::{evaluate, split_images, spread, EvalOptions, PsnrRegion, Split};
+    use pma_model::render::avatar::Avatar;
     use pma_model::train::{Preset, RunConfig, TrainLog, TrainRequest, LOG_FILE};
 
     use super::super::demo::imp::make_scene;

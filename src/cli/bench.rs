@@ -10,7 +10,7 @@
 //! alike. Training is timed per option within its wall-clock budget, one option after the
 //! other.
 //!
-//! FLOPs and the peak they are set against are [`pma_model::flops`]'s: matmul FLOPs per
+//! FLOPs and the peak they are set against are [`pma_model::compute::flops`]'s: matmul FLOPs per
 //! network point (3× for a training step: forward, input and weight gradients) over
 //! cores × GHz × FLOP/cycle from /proc/cpuinfo.
 
@@ -103,7 +103,7 @@ pub fn reset_peak_rss() -> bool {
 #[derive(Debug, Clone, Default, serde::Serialize, serde::Deserialize)]
 pub struct OptionResult {
     pub name: String,
-    pub culling: pma_model::config::Culling,
+    pub culling: pma_model::network::config::Culling,
     /// The vectorised sine (`--fast-sine`) was on for this option.
     #[serde(default)]
     pub fast_sine: bool,
@@ -208,7 +208,7 @@ pub fn time_forward_process(
     let mut runs = Vec::with_capacity(repeats);
     for i in 0..=repeats {
         let mut cmd = std::process::Command::new(&exe);
-        let workers = pma_model::parallel::workers();
+        let workers = pma_model::compute::parallel::workers();
         if workers > 1 {
             // This process set these for its own workers (`configure_cpu`); a child that
             // inherited them would take them for the user's and run one worker.
@@ -278,10 +278,10 @@ mod imp {
     use pma_data::metrics::psnr;
     use pma_data::skeleton::Joints;
     use pma_data::synth::{generate, SynthConfig};
-    use pma_model::avatar::{Avatar, Poses};
-    use pma_model::config::{Culling, SampleFill};
     use pma_model::eval::{dataset_pose, ground_truth, render_dataset_image};
-    use pma_model::image::{ImageOptions, RenderedImage};
+    use pma_model::network::config::{Culling, SampleFill};
+    use pma_model::render::avatar::{Avatar, Poses};
+    use pma_model::render::image::{ImageOptions, RenderedImage};
     use pma_model::train::{Preset, RunConfig, Trainer};
 
     use super::super::plot::plot_error_vs_time;
@@ -365,9 +365,9 @@ mod imp {
         data: &Dataset,
         images: &[usize],
     ) -> anyhow::Result<(f64, Option<f64>)> {
-        let lpips = pma_model::lpips::Lpips::shared()?;
+        let lpips = pma_model::eval::lpips::Lpips::shared()?;
         let (h, w) = (data.height(), data.width());
-        let big_enough = h.min(w) >= pma_model::lpips::MIN_SIDE;
+        let big_enough = h.min(w) >= pma_model::eval::lpips::MIN_SIDE;
         let (mut scores, mut lp) = (Vec::new(), Vec::new());
         for &n in images {
             let img = render_dataset_image(avatar, data, n, 4096)?;
@@ -410,12 +410,12 @@ mod imp {
         let rss_reset = reset_peak_rss();
         let scene = prepare_scene(&args)?;
         // Loaded before the per-option peak-RSS resets, so no option's phase pays for it.
-        pma_model::lpips::Lpips::shared()?;
+        pma_model::eval::lpips::Lpips::shared()?;
         let preset: Preset = args.preset.parse()?;
         let (mut avatar, model_desc) = bench_model(&args, preset, &scene, &dev)?;
         let cfg = avatar.config().clone();
-        let fpp = pma_model::flops::per_point(&cfg);
-        let (peak, peak_how) = pma_model::flops::fp32_peak();
+        let fpp = pma_model::compute::flops::per_point(&cfg);
+        let (peak, peak_how) = pma_model::compute::flops::fp32_peak();
         let view = bench_view(&args, &scene, &dev)?;
         let inactive =
             inactive_joint_fraction(&avatar, &view.poses, &view.cam, &view.kp3d, &view.opts)?;
@@ -456,7 +456,20 @@ mod imp {
         }
         print_table(&report);
         write_json(&report, &args.out.join("bench.json"))?;
-        plot_error_vs_time(&report, &args.out.join("error_vs_time.png"))?;
+        let pts: Vec<(f64, f64, &str)> = report
+            .options
+            .iter()
+            .map(|o| {
+                let loss = o.psnr_loss_vs_parity_db;
+                let loss = if loss.is_finite() { loss } else { 0.0 };
+                (o.ms_per_image / 1e3, loss, o.name.as_str())
+            })
+            .collect();
+        let title = format!(
+            "pma bench ({}, {}x{})",
+            report.preset, report.res, report.res
+        );
+        plot_error_vs_time(&title, &pts, &args.out.join("error_vs_time.png"))?;
         println!(
             "wrote {} and {}",
             args.out.join("bench.json").display(),
@@ -606,7 +619,7 @@ mod imp {
             device: dev.clone(),
         };
         let box_rays = {
-            let b = pma_model::image::body_box(&cam, &kp3d, opts.head);
+            let b = pma_model::render::image::body_box(&cam, &kp3d, opts.head);
             ((b.x1.min(args.res as i64) - b.x0.max(0)).max(0)
                 * (b.y1.min(args.res as i64) - b.y0.max(0)).max(0)) as f64
         };
@@ -639,7 +652,7 @@ mod imp {
             Ok(a.render_image(&view.poses, &view.kp3d, &view.cam, None, &view.opts)?)
         };
         let set = |a: &mut Avatar, (_, culling, fast_sine): &(String, Culling, bool)| {
-            pma_model::fast_sine::set_enabled(*fast_sine);
+            pma_model::compute::fast_sine::set_enabled(*fast_sine);
             a.set_culling(culling.clone()).map_err(anyhow::Error::from)
         };
         let b = progress::bar(
@@ -712,7 +725,7 @@ mod imp {
             res.gflops = points * flops_per_point / sec / 1e9;
         }
         b.finish_and_clear();
-        pma_model::fast_sine::set_enabled(false);
+        pma_model::compute::fast_sine::set_enabled(false);
         avatar.set_culling(Culling::default())?;
         Ok(results)
     }
@@ -732,7 +745,7 @@ mod imp {
         let b = progress::bar(args.quiet, opts.len() as u64, "training per option");
         for (res, (name, culling, fast_sine)) in results.iter_mut().zip(opts) {
             b.set_message(format!("train {name}"));
-            pma_model::fast_sine::set_enabled(*fast_sine);
+            pma_model::compute::fast_sine::set_enabled(*fast_sine);
             let mut run = RunConfig::from_preset(preset);
             run.model = cfg.clone();
             run.model.culling = culling.clone();
@@ -754,8 +767,8 @@ mod imp {
             res.train_evaluated_fraction = fraction;
             res.train_gflops = samples_per_step
                 * fraction
-                * pma_model::flops::per_point(cfg)
-                * pma_model::flops::TRAIN_FACTOR
+                * pma_model::compute::flops::per_point(cfg)
+                * pma_model::compute::flops::TRAIN_FACTOR
                 / (res.ms_per_step * 1e6);
             res.peak_rss_mib = res.peak_rss_mib.max(peak_rss_mib().unwrap_or(f64::NAN));
             if budget > 0.0 {
@@ -773,7 +786,7 @@ mod imp {
             b.inc(1);
         }
         b.finish_and_clear();
-        pma_model::fast_sine::set_enabled(false);
+        pma_model::compute::fast_sine::set_enabled(false);
         Ok(())
     }
 
@@ -785,7 +798,7 @@ mod imp {
         kp3d: &[[f32; 3]; 24],
         opts: &ImageOptions,
     ) -> anyhow::Result<f64> {
-        let pbox = pma_model::image::body_box(cam, kp3d, opts.head);
+        let pbox = pma_model::render::image::body_box(cam, kp3d, opts.head);
         let (w, h) = (cam.width as i64, cam.height as i64);
         let pixels: Vec<(usize, usize)> = (pbox.y0.max(0)..pbox.y1.min(h))
             .flat_map(|y| (pbox.x0.max(0)..pbox.x1.min(w)).map(move |x| (x as usize, y as usize)))
@@ -795,7 +808,7 @@ mod imp {
             .flatten_all()?
             .to_vec1()?;
         let skts: Vec<f32> = poses.skts.flatten_all()?.to_vec1()?;
-        let test = pma_model::cull::WindowTest::new(
+        let test = pma_model::render::cull::WindowTest::new(
             &align,
             &skts,
             &scales.flatten_all()?.to_vec1::<f32>()?,

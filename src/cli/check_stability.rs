@@ -1,4 +1,4 @@
-//! `pma check-stability`: run the numerical-stability probes (`pma_model::stability`)
+//! `pma check-stability`: run the numerical-stability probes (`pma_model::tools::stability`)
 //! on a checkpoint or a freshly initialised avatar and print one table row per case. Exits
 //! non-zero when any output or gradient is non-finite (with `--strict`, also on broken
 //! invariants such as far < near).
@@ -8,8 +8,8 @@ use std::path::PathBuf;
 use anyhow::{bail, Context, Result};
 
 use super::refuse;
-use pma_model::avatar::Avatar;
-use pma_model::stability::{self, ProbeOptions};
+use pma_model::render::avatar::Avatar;
+use pma_model::tools::stability::{self, ProbeOptions};
 use pma_model::Config;
 
 #[derive(clap::Args)]

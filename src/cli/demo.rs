@@ -106,10 +106,10 @@ pub(crate) mod imp {
     use anyhow::Context as _;
     use pma_data::dataset::Profile;
     use pma_data::synth::{generate, SynthConfig};
-    use pma_model::avatar::Avatar;
     use pma_model::eval::{
         evaluate, mean_foreground_colour, split_images, spread, EvalOptions, PsnrRegion, Split,
     };
+    use pma_model::render::avatar::Avatar;
     use pma_model::train::{Preset, RunConfig, TrainOutcome, TrainRequest, LOG_FILE};
 
     use super::super::eval::warn_empty_masks;

@@ -11,11 +11,11 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context as _;
 use pma_data::dataset::Profile;
-use pma_model::avatar::Avatar;
-use pma_model::config::Culling;
 use pma_model::eval::{
     evaluate, mean_foreground_colour, resolve_split, split_images, spread, EvalOptions, EvalReport,
 };
+use pma_model::network::config::Culling;
+use pma_model::render::avatar::Avatar;
 
 use super::{read_dataset, write_json};
 
@@ -169,7 +169,7 @@ fn print_table(report: &EvalReport) {
     if report.lpips.is_nan() {
         println!(
             "LPIPS: n/a for images under {0}x{0} pixels (AlexNet's minimum)",
-            pma_model::lpips::MIN_SIDE
+            pma_model::eval::lpips::MIN_SIDE
         );
     }
 }

@@ -17,8 +17,8 @@ use super::{refuse, Refused};
 use candle_core::Tensor;
 use pma_data::dataset::npz::{MemberData, NpyData, NpzReader, NpzWriter};
 use pma_data::fsio::AtomicFile;
-use pma_model::avatar::{Avatar, Mode, Outputs, Poses, Rays};
-use pma_model::checkpoint;
+use pma_model::network::checkpoint;
+use pma_model::render::avatar::{Avatar, Mode, Outputs, Poses, Rays};
 
 #[derive(clap::Args)]
 pub struct Args {

@@ -18,13 +18,13 @@ use anyhow::Context as _;
 use image::RgbImage;
 use pma_data::cylinder::HeadDir;
 use pma_data::skeleton::Joints;
-use pma_model::avatar::Avatar;
-use pma_model::camera_path::{facing, framing_camera, load_avatar, ViewDirs};
-use pma_model::mesh::{
+use pma_model::render::avatar::Avatar;
+use pma_model::render::camera_path::{facing, framing_camera, load_avatar, ViewDirs};
+use pma_model::tools::mesh::{
     colour_vertices, marching_cubes, render_preview, sample_grid, write_ply, AvatarField, Grid,
     Mesh, DEFAULT_THRESHOLD,
 };
-use pma_model::retarget::{retarget, MotionClip, RootScale};
+use pma_model::tools::retarget::{retarget, MotionClip, RootScale};
 
 use super::render::read_motion;
 use super::{progress, refuse, write_png};

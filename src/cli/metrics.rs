@@ -77,7 +77,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if scores.lpips.is_nan() {
         println!(
             "LPIPS  n/a (needs at least {0}x{0} pixels)",
-            pma_model::lpips::MIN_SIDE
+            pma_model::eval::lpips::MIN_SIDE
         );
     } else {
         println!("LPIPS  {:.4}", scores.lpips);

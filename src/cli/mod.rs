@@ -123,11 +123,11 @@ pub fn is_input_error(e: &(dyn std::error::Error + 'static)) -> Option<bool> {
     if let Some(e) = e.downcast_ref::<pma_model::train::TrainError>() {
         return Some(train_input(e));
     }
-    if e.is::<pma_model::device::Tf32Error>() {
+    if e.is::<pma_model::compute::device::Tf32Error>() {
         return Some(true);
     }
-    if let Some(e) = e.downcast_ref::<pma_model::device::DeviceError>() {
-        use pma_model::device::DeviceError;
+    if let Some(e) = e.downcast_ref::<pma_model::compute::device::DeviceError>() {
+        use pma_model::compute::device::DeviceError;
         return Some(matches!(
             e,
             DeviceError::Unknown(_) | DeviceError::NotCompiled { .. }
@@ -240,13 +240,13 @@ pub fn interrupted_report(e: &anyhow::Error) -> String {
 /// Open the compute device named by a `--device` flag: cpu, cuda, cuda:N, metal or metal:N.
 /// A backend missing from this build is reported with the cargo feature that brings it.
 pub fn device(spec: &str) -> anyhow::Result<candle_core::Device> {
-    Ok(pma_model::device::parse_device(spec)?)
+    Ok(pma_model::compute::device::parse_device(spec)?)
 }
 
 /// [`device`], then TF32 matrix products on (`--tf32`, CUDA only: refused elsewhere) or off.
 pub fn device_tf32(spec: &str, tf32: bool) -> anyhow::Result<candle_core::Device> {
     let dev = device(spec)?;
-    pma_model::device::set_tf32(tf32, &dev)?;
+    pma_model::compute::device::set_tf32(tf32, &dev)?;
     Ok(dev)
 }
 

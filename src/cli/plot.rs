@@ -5,8 +5,6 @@ use std::path::Path;
 use anyhow::Context as _;
 use plotters::prelude::*;
 
-use super::bench::BenchReport;
-
 /// Bundled font for plot text: plotters has no fonts of its own without system libraries.
 static FONT: &[u8] = include_bytes!("../../assets/fonts/DejaVuSans.ttf");
 
@@ -111,24 +109,14 @@ pub fn plot_psnr_vs_time(
     super::write_png(&img, path)
 }
 
-/// Error against time: x = seconds per image, y = held-out PSNR loss against parity.
-pub fn plot_error_vs_time(r: &BenchReport, path: &Path) -> anyhow::Result<()> {
+/// Error against time: one labelled point per option, x = seconds per image, y = held-out
+/// PSNR loss against parity (dB).
+pub fn plot_error_vs_time(
+    title: &str,
+    pts: &[(f64, f64, &str)],
+    path: &Path,
+) -> anyhow::Result<()> {
     register_font();
-    let pts: Vec<(f64, f64, &str)> = r
-        .options
-        .iter()
-        .map(|o| {
-            (
-                o.ms_per_image / 1e3,
-                if o.psnr_loss_vs_parity_db.is_finite() {
-                    o.psnr_loss_vs_parity_db
-                } else {
-                    0.0
-                },
-                o.name.as_str(),
-            )
-        })
-        .collect();
     let x_max = pts.iter().map(|p| p.0).fold(0.0, f64::max).max(1e-3) * 1.15;
     let y_lo = pts.iter().map(|p| p.1).fold(0.0, f64::min) - 0.05;
     let y_hi = pts.iter().map(|p| p.1).fold(0.1, f64::max) * 1.2 + 0.05;
@@ -139,10 +127,7 @@ pub fn plot_error_vs_time(r: &BenchReport, path: &Path) -> anyhow::Result<()> {
         let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
         root.fill(&WHITE).map_err(|x| e(&x))?;
         let mut chart = ChartBuilder::on(&root)
-            .caption(
-                format!("pma bench ({}, {}x{})", r.preset, r.res, r.res),
-                ("sans-serif", 22),
-            )
+            .caption(title, ("sans-serif", 22))
             .margin(16)
             .x_label_area_size(44)
             .y_label_area_size(60)

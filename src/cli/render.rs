@@ -4,7 +4,7 @@
 //! * `--data DS [--split S]`: the images of a dataset split, each with its own pose;
 //! * `--poses POSES.npz`: a motion (e.g. from `pma convert motion`), retargeted onto the avatar
 //!   (FK with the avatar's rest pose, head turned to −y, the root trajectory scaled by the
-//!   leg-length ratio; see `pma_model::retarget` and `docs/conventions.md`, "Motion files").
+//!   leg-length ratio; see `pma_model::tools::retarget` and `docs/conventions.md`, "Motion files").
 //!
 //! Cameras (`--camera`):
 //! * `dataset`: each image's own camera (needs `--data` without `--poses`);
@@ -13,14 +13,14 @@
 //!   image's), or `--distance`; without a dataset, a framing camera in front of the body;
 //! * `bullet`: one pose (`--frame`) frozen while the camera turns `--views` times about the
 //!   vertical axis through the root (the reference's transposed Ry; see
-//!   `pma_model::camera_path`);
+//!   `pma_model::render::camera_path`);
 //! * `follow`: the orbit's starting camera for every frame, moving with the body (retargeted
 //!   motion seen from the training camera).
 //!
 //! Renders are chunked (bounded memory: `--chunk` rays at a time, the GIF is streamed to disk)
 //! and show a progress bar over the rays to trace. View directions are normalised before the
 //! view encoding, as in training (`--reference-dirs` keeps the reference's raw render-time
-//! directions; see `pma_model::camera_path`). MP4 is not offered: no pure-Rust H.264 encoder
+//! directions; see `pma_model::render::camera_path`). MP4 is not offered: no pure-Rust H.264 encoder
 //! fits, and no ffmpeg is assumed.
 //!
 //! Output: `OUT/frame_0000.png`…, `OUT/render.gif`, `OUT/render.json` (what was rendered and
@@ -41,14 +41,14 @@ use pma_data::cylinder::{cylinder_from_joints, CylinderParams, HeadDir};
 use pma_data::dataset::{Dataset, Profile, ReadOptions};
 use pma_data::fsio::AtomicFile;
 use pma_data::skeleton::Joints;
-use pma_model::avatar::{Avatar, Poses, Rays};
-use pma_model::camera_path::{
+use pma_model::eval::{dataset_pose, resolve_split, split_images, spread, Split};
+use pma_model::network::config::Culling;
+use pma_model::render::avatar::{Avatar, Poses, Rays};
+use pma_model::render::camera_path::{
     bullet_time, facing, framing_camera, load_avatar, parse_resolution, Orbit, ViewDirs,
 };
-use pma_model::config::Culling;
-use pma_model::eval::{dataset_pose, resolve_split, split_images, spread, Split};
-use pma_model::image::{body_box, render_image, ChunkRender, ImageOptions, RenderedImage};
-use pma_model::retarget::{retarget, MotionClip, RootScale};
+use pma_model::render::image::{body_box, render_image, ChunkRender, ImageOptions, RenderedImage};
+use pma_model::tools::retarget::{retarget, MotionClip, RootScale};
 use serde::Serialize;
 
 use super::{progress, read_dataset, refuse, write_json, write_png, Refused};

@@ -46,12 +46,12 @@ pub struct Args {
     /// Which parts of the model to build (the paper's ablations: full, only-gnn, only-syn,
     /// only-wp, only-wf, no-window); overrides the config. Not for a resumed run.
     #[arg(long, value_enum)]
-    pub variant: Option<pma_model::config::Variant>,
+    pub variant: Option<pma_model::network::config::Variant>,
     /// Culling in training (docs/numerics.md, "Empty rays and culling"): overrides the
     /// config's `[model.culling]` when `--cull-rays` or `--cull-samples` is given. Not for a
     /// resumed run (its culling is in its config).
     #[command(flatten)]
-    pub cull: pma_model::config::Culling,
+    pub cull: pma_model::network::config::Culling,
     /// No progress bar (log lines only).
     #[arg(long)]
     pub quiet: bool,

@@ -55,7 +55,7 @@ fn ablate_tabulates_each_variant() {
         }
         // Each variant's checkpoint names it.
         let model = std::path::PathBuf::from(r["model"].as_str().unwrap());
-        let ck = pma_model::checkpoint::load(&model, &candle_core::Device::Cpu).unwrap();
+        let ck = pma_model::network::checkpoint::load(&model, &candle_core::Device::Cpu).unwrap();
         assert_eq!(ck.config.variant.name(), r["variant"].as_str().unwrap());
     }
     let md = std::fs::read_to_string(out.join("ablation.md")).unwrap();

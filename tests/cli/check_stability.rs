@@ -4,7 +4,7 @@
 use std::process::Command;
 
 use candle_core::{Device, Tensor};
-use pma_model::avatar::Avatar;
+use pma_model::render::avatar::Avatar;
 use pma_model::Config;
 
 fn pma() -> Command {

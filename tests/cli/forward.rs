@@ -184,7 +184,7 @@ fn preset_model(path: &Path, cfg: pma_model::Config) {
     for (j, row) in rest.iter_mut().enumerate() {
         row.copy_from_slice(&r[j * 3..j * 3 + 3]);
     }
-    pma_model::avatar::Avatar::new(cfg, &rest, 7, &Device::Cpu)
+    pma_model::render::avatar::Avatar::new(cfg, &rest, 7, &Device::Cpu)
         .unwrap()
         .save(path)
         .unwrap();

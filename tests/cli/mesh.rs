@@ -5,8 +5,8 @@ use std::path::{Path, PathBuf};
 
 use crate::run::{fails_with, ok, pma};
 use candle_core::{Device, Tensor};
-use pma_model::avatar::Avatar;
-use pma_model::mesh::read_ply;
+use pma_model::render::avatar::Avatar;
+use pma_model::tools::mesh::read_ply;
 use pma_model::Config;
 
 fn s(p: &Path) -> &str {

@@ -7,7 +7,7 @@ use std::process::Output;
 use crate::run::{fails_with, ok, pma, tiny_scene};
 use candle_core::Device;
 use image::AnimationDecoder;
-use pma_model::avatar::Avatar;
+use pma_model::render::avatar::Avatar;
 use pma_model::Config;
 
 /// An untrained tiny avatar on the synthetic scene's rest pose.

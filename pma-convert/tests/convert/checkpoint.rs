@@ -11,8 +11,8 @@ use pma_convert::{
     ConvertError,
 };
 use pma_model::{
-    checkpoint::load,
     error::ModelError,
+    network::checkpoint::load,
     train::{state::fingerprint, TrainState},
     Config,
 };

@@ -10,8 +10,8 @@ use std::{collections::HashMap, path::PathBuf};
 use candle_core::{Device, Tensor};
 use pma_convert::checkpoint::{convert_checkpoint, CheckpointOptions};
 use pma_model::{
-    avatar::{Poses, Rays},
-    checkpoint,
+    network::checkpoint,
+    render::avatar::{Poses, Rays},
     train::{FixedBatch, Preset, RunConfig, TrainBatch, TrainConfig, Trainer, STATE_FILE},
 };
 

@@ -7,7 +7,7 @@
 //! sample covariance, data range 2.0 as in the reference's scikit-image 0.19); LPIPS (AlexNet,
 //! v0.1 heads, inputs mapped to [−1,1]) on the same tight-box crop, grown to the 31×31 the
 //! network needs where the image allows. PSNR and SSIM live in `pma_data::metrics`, LPIPS in
-//! [`crate::lpips`]; [`score_image`] combines them.
+//! [`crate::eval::lpips`]; [`score_image`] combines them.
 //! On the same crop, [`spectrum`] compares the radially binned power spectra of render and
 //! ground truth (`freq_distance`).
 //!
@@ -26,9 +26,10 @@ use pma_data::dataset::{Dataset, Profile, ReadOptions};
 use pma_data::skeleton::Joints;
 use serde::Serialize;
 
-use crate::avatar::{Avatar, Poses};
-use crate::image::{ImageOptions, RenderedImage};
+use crate::render::avatar::{Avatar, Poses};
+use crate::render::image::{ImageOptions, RenderedImage};
 
+pub mod lpips;
 mod png;
 pub mod spectrum;
 mod split;
@@ -449,7 +450,7 @@ impl From<PsnrRegion> for pma_data::metrics::Region {
 pub struct Scores {
     pub psnr: f64,
     pub ssim: f64,
-    /// NaN when the image is smaller than [`crate::lpips::MIN_SIDE`] on a side.
+    /// NaN when the image is smaller than [`crate::eval::lpips::MIN_SIDE`] on a side.
     pub lpips: f64,
 }
 
@@ -471,7 +472,7 @@ pub fn score_image(
     else {
         return Ok(None);
     };
-    let lpips = crate::lpips::Lpips::shared()?
+    let lpips = crate::eval::lpips::Lpips::shared()?
         .distance_masked(pred, gt, mask, h, w)?
         .unwrap_or(f64::NAN);
     Ok(Some(Scores { psnr, ssim, lpips }))

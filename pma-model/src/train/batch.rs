@@ -4,7 +4,7 @@
 use candle_core::Tensor;
 
 use super::TrainError;
-use crate::avatar::{Poses, Rays};
+use crate::render::avatar::{Poses, Rays};
 
 /// One training batch: rays grouped by pose in equal contiguous blocks, their targets.
 #[derive(Debug, Clone)]

@@ -19,7 +19,7 @@
 //! last complete step, without the final held-out evaluation. Progress, notes and
 //! checkpoints are reported to a [`TrainObserver`], which is how a front end draws a
 //! progress bar or plots the log; this module prints nothing (but `PMA_PROFILE=1`'s
-//! per-step line, [`crate::profile`]) and installs no signal handler.
+//! per-step line, [`crate::compute::profile`]) and installs no signal handler.
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -28,11 +28,11 @@ use std::time::{Duration, Instant};
 use candle_core::Device;
 use pma_data::dataset::{Dataset, Profile};
 
+use super::error::{write_atomic, ObserverError, TrainError};
 use super::log::{LogRow, TrainLog};
 use super::trainer::{StepStats, Trainer, MODEL_FILE, STATE_FILE};
-use super::{write_atomic, TrainError};
 use crate::eval::{evaluate, held_out_images, read_dataset, spread, EvalOptions};
-use crate::presets::{Preset, RunConfig};
+use crate::train::presets::{Preset, RunConfig};
 
 /// The resolved run configuration inside a run directory.
 pub const CONFIG_FILE: &str = "config.toml";
@@ -93,9 +93,6 @@ pub struct StepReport<'a> {
     /// first finite step).
     pub ema: Option<(f64, f64)>,
 }
-
-/// An error from an observer's own work (a plot it writes).
-pub type ObserverError = Box<dyn std::error::Error + Send + Sync>;
 
 /// What a front end hears from [`train_run`]. Every method has a do-nothing default.
 pub trait TrainObserver {
@@ -343,7 +340,7 @@ impl<'a> Session<'a> {
                 Err(e) => return Err(e),
             };
             self.trainer.set_wall_s(self.wall());
-            crate::profile::print_step(stats.iter);
+            crate::compute::profile::print_step(stats.iter);
             self.record_step(&stats, target);
             match self.after_step(stats.iter) {
                 Ok(logged) => {

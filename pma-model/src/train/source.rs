@@ -24,7 +24,7 @@ use serde::{Deserialize, Serialize};
 use super::batch::{BatchSource, TrainBatch};
 use super::state::RngState;
 use super::TrainError;
-use crate::avatar::{Poses, Rays};
+use crate::render::avatar::{Poses, Rays};
 
 pub struct DatasetSource {
     data: Arc<Dataset>,

@@ -22,10 +22,10 @@ use super::batch::{BatchSource, TrainBatch};
 use super::source::DatasetSource;
 use super::state::{fingerprint, Progress, RngState, TrainState};
 use super::TrainError;
-use crate::avatar::{Avatar, Mode, Outputs, PoseFeatures, Rays};
-use crate::config::Config;
-use crate::loss::LossWeights;
-use crate::presets::{RunConfig, TrainConfig};
+use crate::network::config::Config;
+use crate::render::avatar::{Avatar, Mode, Outputs, PoseFeatures, Rays};
+use crate::train::loss::LossWeights;
+use crate::train::presets::{RunConfig, TrainConfig};
 use pma_data::dataset::Dataset;
 use pma_data::metrics::psnr_from_mse;
 
@@ -34,7 +34,7 @@ pub const MODEL_FILE: &str = "model.safetensors";
 /// Train-state file of a run directory.
 pub const STATE_FILE: &str = "train_state.safetensors";
 
-/// Loss terms of one step (the paper's loss, [`crate::loss`]), as plain numbers for logging.
+/// Loss terms of one step (the paper's loss, [`crate::train::loss`]), as plain numbers for logging.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LossParts {
     /// Weighted sum that was differentiated.
@@ -158,7 +158,7 @@ impl Optimization {
     }
 }
 
-/// The differentiated loss ([`crate::loss`]) and its parts as numbers.
+/// The differentiated loss ([`crate::train::loss`]) and its parts as numbers.
 pub fn training_loss(
     out: &Outputs,
     target: &Tensor,
@@ -169,7 +169,7 @@ pub fn training_loss(
         coarse: cfg.loss_coarse,
         scale: cfg.loss_scale,
     };
-    let loss = crate::loss::training_loss(out, target, &weights)?;
+    let loss = crate::train::loss::training_loss(out, target, &weights)?;
     let mse = (&out.fine.rgb.detach() - target)?.sqr()?.mean_all()?;
     // One read-back for the five numbers (one device sync on a GPU).
     let parts = [&loss.total, &loss.fine, &loss.coarse, &loss.scale, &mse]
@@ -542,9 +542,9 @@ impl Trainer {
         hook: Option<GradHook>,
     ) -> Result<StepStats, TrainError> {
         let rays = batch.rays.origins.dim(0)?;
-        crate::profile::start(self.avatar.device());
+        crate::compute::profile::start(self.avatar.device());
         let mut chunk = chunk_rays(&self.run.train, self.avatar.config());
-        let workers = crate::parallel::workers_on(self.avatar.device());
+        let workers = crate::compute::parallel::workers_on(self.avatar.device());
         if workers > 1 {
             // Enough chunks to keep every worker busy (chunks stay at least one ray per pose).
             chunk = chunk.min(rays.div_ceil(workers));
@@ -553,10 +553,10 @@ impl Trainer {
             self.chunked_grads(batch, chunk)?
         } else {
             let (loss, parts) = self.loss_on(batch)?;
-            crate::profile::mark("loss", self.avatar.device());
+            crate::compute::profile::mark("loss", self.avatar.device());
             let grads = if parts.total.is_finite() {
                 let store = loss.backward()?;
-                crate::profile::mark("backward", self.avatar.device());
+                crate::compute::profile::mark("backward", self.avatar.device());
                 self.params
                     .iter()
                     .map(|v| store.get(v.as_tensor()).cloned())
@@ -570,7 +570,7 @@ impl Trainer {
             h(&mut grads);
         }
         let stats = self.opt.apply(parts, grads);
-        crate::profile::mark("grad norm + Adam", self.avatar.device());
+        crate::compute::profile::mark("grad norm + Adam", self.avatar.device());
         stats
     }
 
@@ -595,7 +595,7 @@ impl Trainer {
             Ok(t.flatten_all()?.to_device(&Device::Cpu)?.to_vec1::<f32>()?)
         };
         let pose = self.avatar.pose_features(&batch.poses, None)?;
-        crate::profile::mark("pose features", self.avatar.device());
+        crate::compute::profile::mark("pose features", self.avatar.device());
         let bounds = self.avatar.ray_caster().near_far(
             &host(&batch.rays.origins)?,
             &host(&batch.rays.dirs)?,
@@ -638,7 +638,7 @@ impl Trainer {
                 .flat_map(|p| p * k + start..p * k + start + len)
                 .collect();
             let (rays, target) = select_rays(batch, &rows, &device)?;
-            crate::profile::mark("chunk select + batch near/far", &device);
+            crate::compute::profile::mark("chunk select + batch near/far", &device);
             let mut call = 0;
             let mut noise = |n: usize| {
                 let mut t = tape.lock().unwrap_or_else(|e| e.into_inner());
@@ -660,7 +660,7 @@ impl Trainer {
                 f64_of(&(&out.fine.rgb.detach() - &target)?.sqr()?.sum_all()?)?,
             ];
             if start == 0 {
-                let volume = crate::loss::box_volume(&out.vol_scale)?;
+                let volume = crate::train::loss::box_volume(&out.vol_scale)?;
                 numbers.push(f64_of(&volume)?);
                 loss = (loss + (volume * cfg.loss_scale)?)?;
             }
@@ -673,10 +673,10 @@ impl Trainer {
             let scale = (start == 0).then(|| v[3]);
             // A non-finite chunk is not differentiated; the step is then skipped.
             let finite = v[v.len() - 1].is_finite();
-            crate::profile::mark("loss", &device);
+            crate::compute::profile::mark("loss", &device);
             let grads = if finite {
                 let store = loss.backward()?;
-                crate::profile::mark("backward", &device);
+                crate::compute::profile::mark("backward", &device);
                 params
                     .iter()
                     .map(|v| store.get(v.as_tensor()).map(|d| d.detach()))
@@ -697,10 +697,11 @@ impl Trainer {
         let starts: Vec<usize> = (0..k).step_by(per_pose).collect();
         // One wave of chunks per round of workers; sums are taken in chunk order, so the
         // result is the sequential loop's, bit for bit, whatever the worker count.
-        let workers = crate::parallel::workers_on(&device);
+        let workers = crate::compute::parallel::workers_on(&device);
         for wave in starts.chunks(workers) {
             crate::interrupt::check()?;
-            let outs = crate::parallel::map_ordered(workers, wave.len(), |i| run_chunk(wave[i]))?;
+            let outs =
+                crate::compute::parallel::map_ordered(workers, wave.len(), |i| run_chunk(wave[i]))?;
             for out in outs {
                 sums.add(out)?;
             }

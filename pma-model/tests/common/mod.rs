@@ -5,14 +5,14 @@ use std::collections::HashMap;
 use std::path::PathBuf;
 
 use candle_core::{DType, Device, Tensor};
-use pma_model::avatar::{Avatar, Mode, Outputs, Poses, Rays, Trace};
-use pma_model::checkpoint;
+use pma_model::network::checkpoint;
+use pma_model::render::avatar::{Avatar, Mode, Outputs, Poses, Rays, Trace};
 
 /// The device the golden cases run on: the CPU, or `PMA_TEST_DEVICE` (e.g. `cuda` for
 /// scripts/gpu-check.sh with a `--features cuda` test binary).
 pub fn test_device() -> Device {
     match std::env::var("PMA_TEST_DEVICE") {
-        Ok(spec) => pma_model::device::parse_device(&spec).expect("PMA_TEST_DEVICE"),
+        Ok(spec) => pma_model::compute::device::parse_device(&spec).expect("PMA_TEST_DEVICE"),
         Err(_) => Device::Cpu,
     }
 }

@@ -9,11 +9,11 @@ use pma_data::camera::Camera;
 use pma_data::cylinder::HeadDir;
 use pma_data::skeleton::forward_kinematics;
 use pma_data::synth;
-use pma_model::avatar::{Avatar, Rays};
-use pma_model::camera_path::{
+use pma_model::render::avatar::{Avatar, Rays};
+use pma_model::render::camera_path::{
     bullet_time, facing, framing_camera, load_avatar, look_at, Orbit, ViewDirs,
 };
-use pma_model::image::{render_image, ChunkRender, ImageOptions};
+use pma_model::render::image::{render_image, ChunkRender, ImageOptions};
 use pma_model::Config;
 
 fn dist(a: [f32; 3], b: [f32; 3]) -> f32 {

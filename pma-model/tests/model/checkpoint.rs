@@ -5,8 +5,8 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 use candle_core::{Device, Tensor};
-use pma_model::checkpoint::{self, param_names, tensor_layout, TensorKind};
 use pma_model::error::ModelError;
+use pma_model::network::checkpoint::{self, param_names, tensor_layout, TensorKind};
 use pma_model::Config;
 
 fn golden_dir() -> PathBuf {

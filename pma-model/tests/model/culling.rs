@@ -1,13 +1,13 @@
-//! Leaving work out (`pma_model::cull`): culling at threshold 0 is exactly parity
+//! Leaving work out (`pma_model::render::cull`): culling at threshold 0 is exactly parity
 //! mode on the golden cases; culled rays are exactly the background with zero weights while
 //! every other ray is untouched; a small sample threshold changes a render by a bounded amount.
 
 use crate::common::*;
 use candle_core::{Device, Tensor};
-use pma_model::avatar::{Avatar, Mode, Outputs};
-use pma_model::config::{Config, Culling, SampleFill};
-use pma_model::cull::{SampleFate, WindowTest};
-use pma_model::image::ImageOptions;
+use pma_model::network::config::{Config, Culling, SampleFill};
+use pma_model::render::avatar::{Avatar, Mode, Outputs};
+use pma_model::render::cull::{SampleFate, WindowTest};
+use pma_model::render::image::ImageOptions;
 
 fn culling(rays: bool, threshold: Option<f64>) -> Culling {
     Culling {
@@ -219,7 +219,7 @@ fn small_sample_threshold_changes_the_render_by_a_bounded_amount() {
     let samples = (cfg.n_samples + cfg.n_importance) as f64;
     // Untrained, the density head is ≤ 0 almost everywhere and every render is black; the
     // dense golden case's override (σ weights ×50, bias 2) gives the network visible density.
-    let mut tensors = pma_model::avatar::init_tensors(&cfg, &rest, 3, &dev).unwrap();
+    let mut tensors = pma_model::network::init_tensors(&cfg, &rest, 3, &dev).unwrap();
     let w = (tensors["sigma_linear.weight"].clone() * 50.0).unwrap();
     tensors.insert("sigma_linear.weight".into(), w);
     tensors.insert(

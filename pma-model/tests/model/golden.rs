@@ -8,7 +8,7 @@ use crate::common::*;
 
 fn check_case(dir: &str, sigma_override: bool) {
     let case = GoldenCase::load(dir, sigma_override);
-    let mut trace = pma_model::avatar::Trace::default();
+    let mut trace = pma_model::render::avatar::Trace::default();
     let out = case.forward(Some(&mut trace));
     let g = &case.golden;
     let s_c = case.avatar.config().n_samples;

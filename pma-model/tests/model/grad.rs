@@ -12,7 +12,7 @@
 //! max(1e-4, 10 × floor) per array (one perturbation only samples the floor, hence the margin), printing the floor next to each error.
 
 use crate::common::*;
-use pma_model::loss::{l1, training_loss, LossWeights};
+use pma_model::train::loss::{l1, training_loss, LossWeights};
 
 /// Every gradient (by parameter name) of `loss_kind` with the rays in the given order.
 fn gradients(
@@ -39,7 +39,7 @@ fn gradients(
         // rounding differences of the size that separate any two float32 implementations.
         c_rays.origins = (c_rays.origins * (1.0 + f32::EPSILON as f64)).unwrap();
     }
-    let mut opts = pma_model::avatar::Mode::Train(None);
+    let mut opts = pma_model::render::avatar::Mode::Train(None);
     let out = case
         .avatar
         .forward(&c_rays, &case.poses, &mut opts, None)
@@ -84,7 +84,7 @@ fn check(dir: &str, dense: bool) {
         if (our_loss - ref_loss).abs() > 1e-6 {
             failures.push(format!("{which}/loss {our_loss} vs {ref_loss}"));
         }
-        let names = pma_model::checkpoint::param_names(case.avatar.config());
+        let names = pma_model::network::checkpoint::param_names(case.avatar.config());
         let ref_norms = case
             .golden
             .t(&format!("{which}/grad_norms"))

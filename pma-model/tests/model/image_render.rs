@@ -13,7 +13,7 @@ use pma_data::camera::Camera;
 use pma_data::cylinder::{cylinder_box, cylinder_from_joints, CylinderParams, HeadDir};
 use pma_data::skeleton::Joints;
 use pma_model::error::Result;
-use pma_model::image::{body_box, render_image, ChunkRender, ImageOptions, RenderedImage};
+use pma_model::render::image::{body_box, render_image, ChunkRender, ImageOptions, RenderedImage};
 
 const W: usize = 64;
 const H: usize = 48;

@@ -24,17 +24,17 @@ use candle_nn::{VarBuilder, VarMap};
 use serde_json::Value;
 
 use pma_data::skeleton::Joints;
-use pma_model::avatar::{Avatar, Mode, Poses, Rays, Trace};
-use pma_model::checkpoint;
-use pma_model::config::Config;
-use pma_model::encoders::{pose6d, spherical_harmonics, PointEnc};
-use pma_model::field::{Field, FrameCodes};
-use pma_model::gnn::{GnnSine, GnnTrace};
-use pma_model::loss::{training_loss, LossWeights};
-use pma_model::modulator::{Modulation, Modulator, PoseExtractor};
-use pma_model::raycast::{merge_raw, merge_sorted, RayCaster};
-use pma_model::render::raw2outputs;
-use pma_model::window::{aggregate, spatial_window, WinFun};
+use pma_model::network::checkpoint;
+use pma_model::network::config::Config;
+use pma_model::network::encoders::{pose6d, spherical_harmonics, PointEnc};
+use pma_model::network::field::{Field, FrameCodes};
+use pma_model::network::gnn::{GnnSine, GnnTrace};
+use pma_model::network::modulator::{Modulation, Modulator, PoseExtractor};
+use pma_model::network::window::{aggregate, spatial_window, WinFun};
+use pma_model::render::avatar::{Avatar, Mode, Poses, Rays, Trace};
+use pma_model::render::raycast::{merge_raw, merge_sorted, RayCaster};
+use pma_model::render::volume::raw2outputs;
+use pma_model::train::loss::{training_loss, LossWeights};
 
 fn fixture_dir() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../fixtures/layers")
@@ -418,7 +418,8 @@ fn raycast_near_far_and_coarse_samples() {
         );
         let z = rc.coarse_z(&b.near, &b.far).expect("coarse_z");
         fx.check(case, "out/z_vals", &z);
-        let pts = pma_model::raycast::sample_points(&o, &d, &z, cfg.n_samples).expect("points");
+        let pts =
+            pma_model::render::raycast::sample_points(&o, &d, &z, cfg.n_samples).expect("points");
         fx.check(case, "out/pts", &pts);
     }
 }
@@ -620,8 +621,9 @@ fn check_axis_scale_case(case: &str) {
         let gnn = GnnSine::new(vb.pp("graph_net"), &cfg).unwrap();
         let s = gnn.axis_scale().unwrap();
         fx.check_t(case, "out/scale", &s);
-        let volume =
-            (pma_model::loss::box_volume(&s).unwrap() * LossWeights::default().scale).unwrap();
+        let volume = (pma_model::train::loss::box_volume(&s).unwrap()
+            * LossWeights::default().scale)
+            .unwrap();
         fx.check_t(case, "out/scale_loss", &volume);
         let loss = fx.loss(case, &[("scale", &s), ("scale_loss", &volume)]);
         let grads = loss.backward().unwrap();

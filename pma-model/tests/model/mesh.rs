@@ -7,7 +7,7 @@
 use glam::{DMat3, DVec3};
 use pma_data::skeleton::{local_to_world, rigid_inverse};
 use pma_data::synth::{self, primitive::Shape};
-use pma_model::mesh::{
+use pma_model::tools::mesh::{
     colour_vertices, extract, marching_cubes, read_ply, render_preview, sample_grid, write_ply,
     Grid, Mesh,
 };
@@ -279,15 +279,17 @@ fn ply_round_trip_keeps_geometry_and_colours() {
 #[test]
 fn preview_shows_the_mesh_in_front_of_the_camera() {
     let (_, mesh) = field_mesh([-0.5; 3], [0.5; 3], 16, |p| 0.5 - dist(p, [0.0; 3]));
-    let c2w = pma_model::camera_path::look_at([0.0, 0.0, 3.0], [0.0; 3], [0.0, -1.0, 0.0]).unwrap();
+    let c2w = pma_model::render::camera_path::look_at([0.0, 0.0, 3.0], [0.0; 3], [0.0, -1.0, 0.0])
+        .unwrap();
     let cam = pma_data::camera::Camera::new(32, 32, 40.0, 40.0, 16.0, 16.0, c2w).unwrap();
     let img = render_preview(&mesh, &cam, [0.0; 3]).unwrap();
     let px = |x: usize, y: usize| img[3 * (y * 32 + x)];
     assert!(px(16, 16) > 0.5, "centre is lit");
     assert_eq!(px(0, 0), 0.0, "corner is background");
     // Seen from behind, nothing.
-    let c2w = pma_model::camera_path::look_at([0.0, 0.0, 3.0], [0.0, 0.0, 6.0], [0.0, -1.0, 0.0])
-        .unwrap();
+    let c2w =
+        pma_model::render::camera_path::look_at([0.0, 0.0, 3.0], [0.0, 0.0, 6.0], [0.0, -1.0, 0.0])
+            .unwrap();
     let away = pma_data::camera::Camera::new(32, 32, 40.0, 40.0, 16.0, 16.0, c2w).unwrap();
     assert!(render_preview(&mesh, &away, [0.0; 3])
         .unwrap()

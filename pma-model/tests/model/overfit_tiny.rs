@@ -10,7 +10,7 @@
 
 use crate::train_support::*;
 use candle_core::{Device, Tensor};
-use pma_model::avatar::Mode;
+use pma_model::render::avatar::Mode;
 use pma_model::train::{psnr_from_mse, BatchSource, DatasetSource, TrainBatch, Trainer};
 use rand::SeedableRng;
 

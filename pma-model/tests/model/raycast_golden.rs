@@ -9,8 +9,8 @@ use std::path::PathBuf;
 
 use candle_core::{DType, Device, Tensor};
 use pma_data::skeleton::N_JOINTS;
-use pma_model::config::Config;
-use pma_model::raycast::{merge_sorted, sample_points, RayCaster};
+use pma_model::network::config::Config;
+use pma_model::render::raycast::{merge_sorted, sample_points, RayCaster};
 
 /// Max abs error allowed on every float output (the reference's own float32 results).
 const TOL: f32 = 1e-4;
@@ -217,7 +217,7 @@ fn tensor_entry_points_match_host_code() {
     // merge_raw applied to the z values themselves must reproduce the merged list.
     let zc = g["raycast/z_vals_coarse"].unsqueeze(2).unwrap();
     let zf = fine.z.unsqueeze(2).unwrap();
-    let merged = pma_model::raycast::merge_raw(&zc, &zf, &fine.perm)
+    let merged = pma_model::render::raycast::merge_raw(&zc, &zf, &fine.perm)
         .unwrap()
         .squeeze(2)
         .unwrap();

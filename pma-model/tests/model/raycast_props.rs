@@ -4,8 +4,8 @@
 
 use candle_core::{Device, Tensor, Var};
 use pma_data::skeleton::N_JOINTS;
-use pma_model::config::Config;
-use pma_model::raycast::{
+use pma_model::network::config::Config;
+use pma_model::render::raycast::{
     box_near_far, cylinder_near_far, fill_cylinder_misses, merge_raw, RayCaster,
 };
 
@@ -244,7 +244,7 @@ fn bad_inputs_are_errors() {
     let d = [0.0f32, 0.0, 1.0, 0.0, 0.0, 1.0, 0.0, 0.0, 1.0];
     assert!(rc.near_far(&o, &d, &cyls, &skts, &scales).is_ok());
     let err = |r: Result<_, pma_model::error::ModelError>| {
-        r.map(|_: pma_model::raycast::RayBounds| ())
+        r.map(|_: pma_model::render::raycast::RayBounds| ())
             .unwrap_err()
             .to_string()
     };

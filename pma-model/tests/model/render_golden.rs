@@ -6,7 +6,7 @@ use std::collections::HashMap;
 use std::path::PathBuf;
 
 use candle_core::{DType, Device, Tensor};
-use pma_model::render::raw2outputs;
+use pma_model::render::volume::raw2outputs;
 
 /// Max abs error allowed against the reference's float32 outputs.
 const TOL: f32 = 1e-4;

@@ -3,7 +3,7 @@
 //! densities, and shape errors.
 
 use candle_core::{DType, Device, Tensor, Var};
-use pma_model::render::raw2outputs;
+use pma_model::render::volume::raw2outputs;
 use proptest::prelude::*;
 
 /// Straightforward per-ray f64 evaluation of the compositing formulas (docs/numerics.md,

@@ -7,7 +7,7 @@ use pma_data::cylinder::HeadDir;
 use pma_data::dataset::Dataset;
 use pma_data::skeleton::{Joints, PARENTS};
 use pma_data::synth;
-use pma_model::retarget::{leg_length, retarget, root_scale, MotionClip, RootScale};
+use pma_model::tools::retarget::{leg_length, retarget, root_scale, MotionClip, RootScale};
 
 fn bone_lengths(k: &Joints) -> Vec<f64> {
     (1..24)

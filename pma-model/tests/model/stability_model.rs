@@ -6,8 +6,8 @@
 use candle_core::{DType, Device, Tensor};
 use pma_data::skeleton::{self, Joints};
 use pma_data::synth;
-use pma_model::avatar::Avatar;
-use pma_model::stability::{self, ProbeRow};
+use pma_model::render::avatar::Avatar;
+use pma_model::tools::stability::{self, ProbeRow};
 use pma_model::Config;
 use proptest::prelude::*;
 

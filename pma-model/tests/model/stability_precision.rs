@@ -7,10 +7,10 @@
 
 use crate::common::*;
 use candle_core::DType;
-use pma_model::avatar::{Mode, Outputs};
-use pma_model::stability::tensor_stats;
+use pma_model::render::avatar::{Mode, Outputs};
+use pma_model::tools::stability::tensor_stats;
 
-fn forward(case: &GoldenCase, avatar: &pma_model::avatar::Avatar) -> Outputs {
+fn forward(case: &GoldenCase, avatar: &pma_model::render::avatar::Avatar) -> Outputs {
     let mut opts = Mode::Train(None);
     avatar
         .forward(&case.rays, &case.poses, &mut opts, None)

@@ -6,8 +6,8 @@
 
 use candle_core::Device;
 use pma_data::synth;
-use pma_model::avatar::Avatar;
-use pma_model::stability;
+use pma_model::render::avatar::Avatar;
+use pma_model::tools::stability;
 use pma_model::Config;
 use proptest::prelude::*;
 
@@ -36,7 +36,7 @@ fn scene(a: &Avatar, bones: &pma_data::skeleton::Joints) -> Scene {
     }
 }
 
-fn bounds(a: &Avatar, s: &Scene, o: &[f32], d: &[f32]) -> pma_model::raycast::RayBounds {
+fn bounds(a: &Avatar, s: &Scene, o: &[f32], d: &[f32]) -> pma_model::render::raycast::RayBounds {
     a.ray_caster()
         .near_far(o, d, &s.cyls, &s.skts, &s.scales)
         .unwrap()

@@ -4,9 +4,9 @@
 //! are finite, and importance samples are sorted and inside the coarse span.
 
 use candle_core::{DType, Device, Tensor, Var};
-use pma_model::raycast::RayCaster;
-use pma_model::render::raw2outputs;
-use pma_model::stability;
+use pma_model::render::raycast::RayCaster;
+use pma_model::render::volume::raw2outputs;
+use pma_model::tools::stability;
 use pma_model::Config;
 use proptest::prelude::*;
 

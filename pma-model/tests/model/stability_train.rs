@@ -15,7 +15,7 @@ use candle_core::{Device, Tensor};
 use pma_data::cylinder::{cylinder_from_joints, CylinderParams, HeadDir};
 use pma_data::dataset::Dataset;
 use pma_data::skeleton::{self, Joints, N_JOINTS};
-use pma_model::stability;
+use pma_model::tools::stability;
 use pma_model::train::{
     BatchSource, DatasetSource, Preset, RunConfig, TrainBatch, TrainError, Trainer,
 };
@@ -85,9 +85,13 @@ fn stressed_trainer(data: &Arc<Dataset>, mut run: RunConfig) -> Trainer {
         poses: stability::extreme_poses().unwrap(),
         calls: 0,
     };
-    let avatar =
-        pma_model::avatar::Avatar::new(run.model.clone(), &rest, run.train.seed, &Device::Cpu)
-            .unwrap();
+    let avatar = pma_model::render::avatar::Avatar::new(
+        run.model.clone(),
+        &rest,
+        run.train.seed,
+        &Device::Cpu,
+    )
+    .unwrap();
     Trainer::with_source(run, avatar, Box::new(source)).unwrap()
 }
 

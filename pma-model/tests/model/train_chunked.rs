@@ -9,8 +9,8 @@ use std::sync::Arc;
 use crate::train_support::{first_batch, tiny_run, tiny_scene};
 use candle_core::{Device, Tensor};
 use pma_data::dataset::Dataset;
-use pma_model::avatar::Avatar;
-use pma_model::raycast::cylinder_near_far;
+use pma_model::render::avatar::Avatar;
+use pma_model::render::raycast::cylinder_near_far;
 use pma_model::train::{
     chunk_rays, FixedBatch, RunConfig, StepStats, TrainBatch, TrainConfig, Trainer,
 };
@@ -163,12 +163,18 @@ fn chunked_step_equals_the_unchunked_step() {
 fn automatic_chunks_bound_the_paper_step_and_leave_small_nets_whole() {
     let paper = TrainConfig::paper();
     assert_eq!(paper.chunk_rays, 0);
-    assert_eq!(chunk_rays(&paper, &pma_model::config::Config::paper()), 128);
+    assert_eq!(
+        chunk_rays(&paper, &pma_model::network::config::Config::paper()),
+        128
+    );
     let small = RunConfig::from_preset(pma_model::train::Preset::CpuSmall);
     assert!(chunk_rays(&small.train, &small.model) >= small.train.rays_per_step);
     let fixed = TrainConfig {
         chunk_rays: 100,
         ..TrainConfig::paper()
     };
-    assert_eq!(chunk_rays(&fixed, &pma_model::config::Config::paper()), 100);
+    assert_eq!(
+        chunk_rays(&fixed, &pma_model::network::config::Config::paper()),
+        100
+    );
 }

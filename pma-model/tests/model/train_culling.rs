@@ -11,8 +11,8 @@ use std::sync::Arc;
 use crate::train_support::{first_batch, tiny_run, tiny_scene};
 use candle_core::{Device, Tensor};
 use pma_data::dataset::Dataset;
-use pma_model::avatar::Avatar;
-use pma_model::config::{Culling, SampleFill};
+use pma_model::network::config::{Culling, SampleFill};
+use pma_model::render::avatar::Avatar;
 use pma_model::train::{FixedBatch, StepStats, TrainBatch, Trainer};
 
 fn flat(t: &Tensor) -> Vec<f32> {

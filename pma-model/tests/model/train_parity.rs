@@ -8,8 +8,8 @@ use std::collections::HashMap;
 use std::path::PathBuf;
 
 use candle_core::{DType, Device, Tensor};
-use pma_model::avatar::{Avatar, Poses, Rays};
-use pma_model::checkpoint;
+use pma_model::network::checkpoint;
+use pma_model::render::avatar::{Avatar, Poses, Rays};
 use pma_model::train::{FixedBatch, RunConfig, TrainBatch, TrainConfig, Trainer};
 
 fn golden_dir() -> PathBuf {

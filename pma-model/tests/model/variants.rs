@@ -4,9 +4,9 @@
 
 use crate::train_support::*;
 use candle_core::Device;
-use pma_model::avatar::{Avatar, Mode};
-use pma_model::checkpoint;
-use pma_model::config::Variant;
+use pma_model::network::checkpoint;
+use pma_model::network::config::Variant;
+use pma_model::render::avatar::{Avatar, Mode};
 use pma_model::train::{BatchSource, DatasetSource, Trainer};
 
 /// Name prefixes of the tensors a variant must have (`true`) or must not have (`false`).

@@ -1,0 +1,759 @@
+//! CPU kernels that replace the places where candle's generic autograd costs most (in a
+//! profile of a paper-config training step):
+//!
+//! * **Bias add** of every linear layer. candle differentiates `broadcast_add` with a
+//!   strided reduction over the rows that runs element by element; [`add_bias`] computes the
+//!   same column sums in one contiguous pass.
+//! * **The window's max-pool** `m = max_j (q_j + g_j) · w^p_j`. In plain ops this builds two
+//!   [N,24,128] tensors forward and about ten passes over that size backward (equality mask,
+//!   casts, products, candle's zero-then-add accumulation). [`window_pool`] reads `q` once
+//!   forward, keeps the arg-max joints when the graph tracks gradients, and scatters the
+//!   gradient to them backward.
+//! * **The FiLM-sine layers** of the modulator, reading Θ and Φ out of the pose extractor's
+//!   head ([`FilmHead`]).
+//!
+//! All compute the same f32 operations in the same order as the plain path, so forward
+//! values are bit-identical and gradients identical except on exact ties of the max, where
+//! the gradient goes to the first maximal joint (PyTorch's rule, the reference) instead of
+//! to every tied joint (candle's rule). Ties only occur where w^p = 0, so both give 0 there.
+//! What a backward needs from its forward (the arg-max, cos of the sine's argument) is kept
+//! once and used once; a second backward over the same graph computes it again.
+//!
+//! They run on CPU in f32; other devices and dtypes take the plain path.
+//! [`set_enabled`]`(false)` forces the plain path everywhere, for A/B measurements.
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+
+use candle_core::{CpuStorage, CustomOp2, CustomOp3, DType, Layout, Shape, Storage, Tensor};
+
+use crate::compute::ops::f32_slice;
+use crate::error::Result;
+
+static ENABLED: AtomicBool = AtomicBool::new(true);
+
+/// Turns the fused CPU kernels on (the default) or off (plain candle ops everywhere).
+pub fn set_enabled(on: bool) {
+    ENABLED.store(on, Ordering::Relaxed);
+}
+
+/// Whether the fused kernels are in use.
+pub fn enabled() -> bool {
+    ENABLED.load(Ordering::Relaxed)
+}
+
+fn applies(ts: &[&Tensor]) -> bool {
+    enabled()
+        && ts
+            .iter()
+            .all(|t| t.device().is_cpu() && t.dtype() == DType::F32)
+}
+
+/// `y + b` broadcast over rows: y: [rows,out], b: [out] -> [rows,out].
+pub fn add_bias(y: &Tensor, b: &Tensor) -> Result<Tensor> {
+    if !applies(&[y, b]) || y.rank() != 2 || b.rank() != 1 {
+        return Ok(y.broadcast_add(b)?);
+    }
+    Ok(y.contiguous()?.apply_op2(&b.contiguous()?, BiasAdd)?)
+}
+
+/// `max_j (q[n,j,:] + g[j,:]) · w_p[n,j]`: q: [N,J,H], g: [J,H], w_p: [N,J] -> [N,H].
+/// No gradient flows to `w_p` (the reference detaches the spatial window).
+pub fn window_pool(q: &Tensor, g: &Tensor, w_p: &Tensor) -> Result<Tensor> {
+    let plain = || -> Result<Tensor> {
+        let part = q.broadcast_add(&g.unsqueeze(0)?)?;
+        Ok(part
+            .broadcast_mul(&w_p.unsqueeze(candle_core::D::Minus1)?)?
+            .max(1)?)
+    };
+    if !applies(&[q, g, w_p]) || q.rank() != 3 {
+        return plain();
+    }
+    let (q, g) = (q.contiguous()?, g.contiguous()?);
+    let arg = crate::compute::ops::Kept::new(q.track_op() || g.track_op());
+    Ok(q.apply_op3(&g, &w_p.detach().contiguous()?, WindowPool { arg })?)
+}
+
+/// The pose extractor's head `o` = [Θ_0..Θ_{K-1}, Φ_0..Φ_{K-1}] (each block `f` wide), as
+/// read by the K FiLM-SIREN layers `sin(pre ⊙ (m·Θ_k + c) + Φ_k)` of one forward pass.
+///
+/// The plain path is four ops forward per layer (a strided affine, a product, a strided add,
+/// the sine) and, backward, about a dozen passes over [N,f] plus two zero-padded [N,2Kf]
+/// gradients for the narrowed blocks, which candle then adds. Here a layer is one pass each
+/// way, computed with the same f32 operations in the same order (sine and cosine from libm,
+/// or from [`crate::compute::fast_sine`] when that is on), so values and gradients are bit-identical.
+/// When the graph tracks gradients the forward keeps cos of the argument (the sine kernel
+/// computes it anyway), so the backward evaluates no trigonometry.
+///
+/// Through [`FilmHead::stack`] the layers also share one head gradient: layers 1..K write
+/// their columns into it and layer 0, whose backward necessarily runs last (every later
+/// layer's input depends on its output), hands it to candle. The sum candle formed of K
+/// zero-padded gradients had the same bits: every entry the kernel writes already carries
+/// the `+ 0` of the plain graph's accumulation.
+pub struct FilmHead {
+    o: Tensor,
+    n_layers: usize,
+    mul: f64,
+    add: f64,
+    fast: bool,
+    fused: bool,
+    grad: Arc<Mutex<HeadGrad>>,
+}
+
+/// The head gradient the layers of one [`FilmHead::stack`] fill in.
+#[derive(Default)]
+struct HeadGrad {
+    buf: Option<Vec<f32>>,
+    /// Layer 0 has handed the buffer over: a later backward pass over the same graph makes
+    /// every layer return its own gradient.
+    taken: bool,
+}
+
+impl FilmHead {
+    /// `o`: [N,2·K·f] for K = `n_layers`; γ = `mul`·Θ + `add`.
+    pub fn new(o: &Tensor, n_layers: usize, (mul, add): (f64, f64)) -> Self {
+        Self::with(
+            o,
+            n_layers,
+            (mul, add),
+            crate::compute::fast_sine::enabled(),
+            applies(&[o]),
+        )
+    }
+
+    /// [`Self::new`] with the sine flavour and the kernel choice made by the caller.
+    fn with(o: &Tensor, n_layers: usize, (mul, add): (f64, f64), fast: bool, fused: bool) -> Self {
+        Self {
+            o: o.clone(),
+            n_layers,
+            mul,
+            add,
+            fast,
+            fused,
+            grad: Arc::default(),
+        }
+    }
+
+    /// Layer `k` on its own: pre: [N,f] -> [N,f].
+    pub fn layer(&self, pre: &Tensor, k: usize) -> Result<Tensor> {
+        self.apply(pre, k, false)
+    }
+
+    /// The whole modulated stack: `h_k = layer_k(linear(k, h_{k-1}))` from `h_{-1} = x` for
+    /// the head's `n_layers` layers; returns every `h_k`.
+    pub fn stack(
+        &self,
+        x: &Tensor,
+        linear: impl Fn(usize, &Tensor) -> Result<Tensor>,
+    ) -> Result<Vec<Tensor>> {
+        let mut h = x.clone();
+        let mut outs = Vec::with_capacity(self.n_layers);
+        for k in 0..self.n_layers {
+            h = self.apply(&linear(k, &h)?, k, true)?;
+            outs.push(h.clone());
+        }
+        Ok(outs)
+    }
+
+    fn apply(&self, pre: &Tensor, k: usize, chained: bool) -> Result<Tensor> {
+        let (o, n_layers, (mul, add)) = (&self.o, self.n_layers, (self.mul, self.add));
+        let f = pre.dim(candle_core::D::Minus1)?;
+        let fits = pre.rank() == 2
+            && o.rank() == 2
+            && k < n_layers
+            && o.dim(1)? == 2 * n_layers * f
+            && o.dim(0)? == pre.dim(0)?;
+        if !(self.fused && fits && applies(&[pre])) {
+            let theta = o.narrow(1, k * f, f)?;
+            let phi = o.narrow(1, (n_layers + k) * f, f)?;
+            let arg = (pre * theta.affine(mul, add)?)?.add(&phi)?;
+            return crate::compute::fast_sine::sin_flavour(&arg, self.fast);
+        }
+        let (pre, o) = (pre.contiguous()?, o.contiguous()?);
+        let op = FilmSine {
+            k,
+            n_layers,
+            mul: mul as f32,
+            add: add as f32,
+            fast: self.fast,
+            cos: crate::compute::ops::Kept::new(pre.track_op() || o.track_op()),
+            shared: chained.then(|| self.grad.clone()),
+        };
+        Ok(pre.apply_op2(&o, op)?)
+    }
+}
+
+struct FilmSine {
+    k: usize,
+    n_layers: usize,
+    mul: f32,
+    add: f32,
+    /// Sine flavour fixed when the graph is built, so the backward matches its forward.
+    fast: bool,
+    /// cos of the argument, kept by the forward for the backward.
+    cos: crate::compute::ops::Kept<Vec<f32>>,
+    /// The head gradient shared along a [`FilmHead::stack`].
+    shared: Option<Arc<Mutex<HeadGrad>>>,
+}
+
+impl FilmSine {
+    /// Row `i`'s Θ_k and Φ_k blocks inside `o`.
+    fn blocks<'a>(&self, o: &'a [f32], i: usize, f: usize) -> (&'a [f32], &'a [f32]) {
+        let row = &o[i * 2 * self.n_layers * f..(i + 1) * 2 * self.n_layers * f];
+        let t = self.k * f;
+        let p = (self.n_layers + self.k) * f;
+        (&row[t..t + f], &row[p..p + f])
+    }
+
+    /// The sine's argument, `(pre · (Θ·mul + add)) + Φ`, row by row.
+    fn argument(&self, pre: &[f32], o: &[f32], f: usize) -> Vec<f32> {
+        let mut a = Vec::with_capacity(pre.len());
+        for (i, prow) in pre.chunks_exact(f).enumerate() {
+            let (theta, phi) = self.blocks(o, i, f);
+            a.extend(
+                prow.iter()
+                    .zip(theta)
+                    .zip(phi)
+                    .map(|((&x, &t), &p)| x * (t * self.mul + self.add) + p),
+            );
+        }
+        a
+    }
+
+    /// sin (`shift` 0) or cos (`shift` 1) in place, libm or the vectorised kernel.
+    fn trig(&self, a: Vec<f32>, shift: u64) -> Vec<f32> {
+        crate::compute::fast_sine::trig(&a, shift, self.fast)
+    }
+
+    fn check(&self, l1: &Layout, l2: &Layout) -> candle_core::Result<(usize, usize)> {
+        let (n, f) = l1.shape().dims2()?;
+        let (n2, w) = l2.shape().dims2()?;
+        if n2 != n || w != 2 * self.n_layers * f {
+            candle_core::bail!(
+                "film sine: o {:?} does not hold 2·{}·{f} columns for pre {:?}",
+                l2.shape(),
+                self.n_layers,
+                l1.shape()
+            )
+        }
+        Ok((n, f))
+    }
+}
+
+impl CustomOp2 for FilmSine {
+    fn name(&self) -> &'static str {
+        "pma-film-sine"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let (_, f) = self.check(l1, l2)?;
+        let (pre, o) = (
+            f32_slice(s1, l1, "film sine: pre")?,
+            f32_slice(s2, l2, "film sine: o")?,
+        );
+        let a = self.argument(pre, o, f);
+        let sin = if self.cos.wanted() {
+            let (sin, cos) = crate::compute::fast_sine::trig_pair(&a, self.fast);
+            self.cos.put(cos);
+            sin
+        } else {
+            self.trig(a, 0)
+        };
+        Ok((CpuStorage::F32(sin), l1.shape().clone()))
+    }
+
+    fn bwd(
+        &self,
+        pre: &Tensor,
+        o: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>)> {
+        let (n, f) = pre.dims2()?;
+        let w = 2 * self.n_layers * f;
+        let (pre_c, o_c, d_c) = (pre.contiguous()?, o.contiguous()?, grad.contiguous()?);
+        let guards = [&pre_c, &o_c, &d_c].map(|t| t.storage_and_layout());
+        let [p, oo, d] = [0, 1, 2].map(|i| cpu_slice(&guards[i].0, guards[i].1));
+        let (p, oo, d) = (p?, oo?, d?);
+        let cos = match self.cos.take() {
+            Some(c) if c.len() == n * f => c,
+            _ => self.trig(self.argument(p, oo, f), 1),
+        };
+        let mut g_pre = Vec::with_capacity(n * f);
+        // Layers after the first write into the stack's shared head gradient and return
+        // none of their own; layer 0 (run last) returns it. See [`FilmHead`].
+        let mut shared = self
+            .shared
+            .as_ref()
+            .map(|s| s.lock().unwrap_or_else(|e| e.into_inner()));
+        let defer = shared.as_ref().is_some_and(|s| !s.taken);
+        let mut g_o = match shared.as_mut() {
+            Some(s) if defer => s.buf.take().unwrap_or_else(|| vec![0f32; n * w]),
+            _ => vec![0f32; n * w],
+        };
+        if g_o.len() != n * w {
+            candle_core::bail!("film sine: shared head gradient has the wrong size")
+        }
+        // The plain graph's steps, each gradient starting from candle's zero accumulator:
+        // g_a = grad·cos(a); the add passes it to the product and to Φ; the product gives
+        // pre g_a·γ and γ g_a·pre; the affine gives Θ (g_γ·mul) + 0.
+        for i in 0..n {
+            let (theta, _) = self.blocks(oo, i, f);
+            let prow = &p[i * f..(i + 1) * f];
+            let row = i * f..(i + 1) * f;
+            let (dr, cr) = (&d[row.clone()], &cos[row]);
+            let go = &mut g_o[i * w..(i + 1) * w];
+            let (t0, p0) = (self.k * f, (self.n_layers + self.k) * f);
+            for c in 0..f {
+                let ga = dr[c] * cr[c];
+                let gt = 0f32 + ga;
+                let gamma = theta[c] * self.mul + self.add;
+                g_pre.push(gt * gamma);
+                let gg = 0f32 + gt * prow[c];
+                go[t0 + c] = gg * self.mul + 0f32;
+                go[p0 + c] = 0f32 + ga;
+            }
+        }
+        drop(guards);
+        let g_pre = Tensor::from_vec(g_pre, (n, f), pre.device())?;
+        if let Some(s) = shared.as_mut().filter(|_| defer) {
+            if self.k > 0 {
+                s.buf = Some(g_o);
+                return Ok((Some(g_pre), None));
+            }
+            s.taken = true;
+        }
+        let g_o = Tensor::from_vec(g_o, (n, w), o.device())?;
+        Ok((Some(g_pre), Some(g_o)))
+    }
+}
+
+/// The f32 data of a contiguous CPU tensor's storage.
+fn cpu_slice<'a>(s: &'a Storage, l: &Layout) -> candle_core::Result<&'a [f32]> {
+    let Storage::Cpu(cpu) = s else {
+        candle_core::bail!("fused kernel: tensor is not on the CPU")
+    };
+    f32_slice(cpu, l, "fused kernel")
+}
+
+struct BiasAdd;
+
+impl CustomOp2 for BiasAdd {
+    fn name(&self) -> &'static str {
+        "pma-bias-add"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let (y, b) = (
+            f32_slice(s1, l1, "bias add: y")?,
+            f32_slice(s2, l2, "bias add: b")?,
+        );
+        let out = b.len();
+        if out == 0 || y.len() % out != 0 {
+            candle_core::bail!(
+                "bias add: {} values do not split into rows of {out}",
+                y.len()
+            )
+        }
+        let mut dst = Vec::with_capacity(y.len());
+        for row in y.chunks_exact(out) {
+            dst.extend(row.iter().zip(b).map(|(a, c)| a + c));
+        }
+        Ok((CpuStorage::F32(dst), l1.shape().clone()))
+    }
+
+    fn bwd(
+        &self,
+        _y: &Tensor,
+        b: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>)> {
+        let out = b.elem_count();
+        // Row order, from zero: the same summation candle's reduction does.
+        let grad_c = grad.contiguous()?;
+        let (storage, layout) = grad_c.storage_and_layout();
+        let mut sums = vec![0f32; out];
+        for row in cpu_slice(&storage, layout)?.chunks_exact(out) {
+            for (a, v) in sums.iter_mut().zip(row) {
+                *a += v;
+            }
+        }
+        drop(storage);
+        let gb = Tensor::from_vec(sums, out, b.device())?;
+        Ok((Some(grad.clone()), Some(gb)))
+    }
+}
+
+/// The fused max-pool; when the graph tracks gradients its forward keeps the arg-max joint
+/// of every output for the backward, which then need not pool again.
+struct WindowPool {
+    arg: crate::compute::ops::Kept<Vec<u32>>,
+}
+
+/// One point's pooled row: `best[k] = max_j (q[j,k] + g[j,k]) · w[j]` and the first joint
+/// reaching it in `arg` (a NaN wins and stays, as PyTorch's max propagates it). Written with
+/// selects rather than branches, so it vectorises.
+fn pool_row(q: &[f32], g: &[f32], w: &[f32], best: &mut [f32], arg: &mut [u32]) {
+    let h = best.len();
+    for (k, (b, a)) in best.iter_mut().zip(arg.iter_mut()).enumerate() {
+        *b = (q[k] + g[k]) * w[0];
+        *a = 0;
+    }
+    for (jj, &wj) in w.iter().enumerate().skip(1) {
+        let (qj, gj) = (&q[jj * h..(jj + 1) * h], &g[jj * h..(jj + 1) * h]);
+        let joint = jj as u32;
+        for ((b, a), (&qv, &gv)) in best.iter_mut().zip(arg.iter_mut()).zip(qj.iter().zip(gj)) {
+            let v = (qv + gv) * wj;
+            let take = v > *b || (v.is_nan() & !b.is_nan());
+            *b = if take { v } else { *b };
+            *a = if take { joint } else { *a };
+        }
+    }
+}
+
+impl CustomOp3 for WindowPool {
+    fn name(&self) -> &'static str {
+        "pma-window-pool"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+        s3: &CpuStorage,
+        l3: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let (n, j, h) = l1.shape().dims3()?;
+        let q = f32_slice(s1, l1, "window pool: q")?;
+        let g = f32_slice(s2, l2, "window pool: g")?;
+        let w = f32_slice(s3, l3, "window pool: w_p")?;
+        if g.len() != j * h || w.len() != n * j || j == 0 {
+            candle_core::bail!("window pool: shapes do not agree with q [{n},{j},{h}]")
+        }
+        if j > u32::MAX as usize {
+            candle_core::bail!("window pool: {j} joints")
+        }
+        let mut dst = vec![0f32; n * h];
+        // Every row's arg-max when it is kept for the backward, else one row's scratch.
+        let mut arg = vec![0u32; if self.arg.wanted() { n * h } else { h }];
+        for (i, m) in dst.chunks_exact_mut(h).enumerate() {
+            let a = if self.arg.wanted() {
+                &mut arg[i * h..(i + 1) * h]
+            } else {
+                &mut arg[..]
+            };
+            pool_row(
+                &q[i * j * h..(i + 1) * j * h],
+                g,
+                &w[i * j..(i + 1) * j],
+                m,
+                a,
+            );
+        }
+        if self.arg.wanted() {
+            self.arg.put(arg);
+        }
+        Ok((CpuStorage::F32(dst), Shape::from((n, h))))
+    }
+
+    fn bwd(
+        &self,
+        q: &Tensor,
+        g: &Tensor,
+        w_p: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+        let (n, j, h) = q.dims3()?;
+        let (q_c, g_c, w_c, d_c) = (
+            q.contiguous()?,
+            g.contiguous()?,
+            w_p.contiguous()?,
+            grad.contiguous()?,
+        );
+        let guards = [&q_c, &g_c, &w_c, &d_c].map(|t| t.storage_and_layout());
+        let [q, g, w, dm] = [0, 1, 2, 3].map(|i| cpu_slice(&guards[i].0, guards[i].1));
+        let (q, g, w, dm) = (q?, g?, w?, dm?);
+        let mut gq = vec![0f32; n * j * h];
+        let mut gg = vec![0f32; j * h];
+        // The forward's arg-max (used once; a second backward pools again).
+        let kept = self.arg.take().filter(|a| a.len() == n * h);
+        let mut arg = vec![0u32; h];
+        let mut best = vec![0f32; h];
+        for i in 0..n {
+            let wn = &w[i * j..(i + 1) * j];
+            let arg_i = match &kept {
+                Some(a) => &a[i * h..(i + 1) * h],
+                None => {
+                    pool_row(&q[i * j * h..(i + 1) * j * h], g, wn, &mut best, &mut arg);
+                    &arg[..]
+                }
+            };
+            let dmn = &dm[i * h..(i + 1) * h];
+            for k in 0..h {
+                let jj = arg_i[k] as usize;
+                let d = dmn[k] * wn[jj];
+                gq[i * j * h + jj * h + k] = d;
+                gg[jj * h + k] += d;
+            }
+        }
+        drop(guards);
+        let gq = Tensor::from_vec(gq, (n, j, h), q_c.device())?;
+        let gg = Tensor::from_vec(gg, (j, h), g_c.device())?;
+        Ok((Some(gq), Some(gg), None))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use candle_core::{Device, Var};
+
+    fn rand(shape: &[usize], seed: u64) -> Tensor {
+        // Deterministic values in [-1, 1) without an RNG dependency.
+        let n: usize = shape.iter().product();
+        let mut x = seed
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        let v: Vec<f32> = (0..n)
+            .map(|_| {
+                x = x
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                ((x >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
+            })
+            .collect();
+        Tensor::from_vec(v, shape, &Device::Cpu).unwrap()
+    }
+
+    fn max_abs(a: &Tensor, b: &Tensor) -> f32 {
+        (a - b)
+            .unwrap()
+            .abs()
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .max(0)
+            .unwrap()
+            .to_scalar::<f32>()
+            .unwrap()
+    }
+
+    /// Forward values and gradients of both kernels equal the plain candle ops exactly,
+    /// including rows whose spatial window is 0 for every joint (all-tie rows).
+    #[test]
+    fn fused_kernels_match_plain_ops_bit_for_bit() {
+        let (n, j, h, out) = (37, 24, 16, 9);
+        let run = |fused: bool| {
+            let q = Var::from_tensor(&rand(&[n, j, h], 1)).unwrap();
+            let g = Var::from_tensor(&rand(&[j, h], 2)).unwrap();
+            // Half the rows far from every bone (w_p = 0), the rest in (0, 1).
+            let mut w = rand(&[n, j], 3).abs().unwrap();
+            let zero = Tensor::zeros((n / 2, j), DType::F32, &Device::Cpu).unwrap();
+            w = Tensor::cat(&[&zero, &w.narrow(0, n / 2, n - n / 2).unwrap()], 0).unwrap();
+            let y = Var::from_tensor(&rand(&[n, out], 4)).unwrap();
+            let b = Var::from_tensor(&rand(&[out], 5)).unwrap();
+            let (m, z) = if fused {
+                (
+                    window_pool(q.as_tensor(), g.as_tensor(), &w).unwrap(),
+                    add_bias(y.as_tensor(), b.as_tensor()).unwrap(),
+                )
+            } else {
+                let part = q
+                    .as_tensor()
+                    .broadcast_add(&g.as_tensor().unsqueeze(0).unwrap());
+                let att = part
+                    .unwrap()
+                    .broadcast_mul(&w.unsqueeze(2).unwrap())
+                    .unwrap();
+                (
+                    att.max(1).unwrap(),
+                    y.as_tensor().broadcast_add(b.as_tensor()).unwrap(),
+                )
+            };
+            // A loss with distinct weights per element, so every gradient entry is tested.
+            let a = m.sin().unwrap().sum_all().unwrap();
+            let c = (z.sqr().unwrap() * 0.5).unwrap().sum_all().unwrap();
+            let loss = (a + c).unwrap();
+            let grads = loss.backward().unwrap();
+            let get = |v: &Var| grads.get(v.as_tensor()).unwrap().clone();
+            // A second backward over the same graph: the pool's kept arg-max is used up, so
+            // its backward pools again and must give the same gradients.
+            let again = loss.backward().unwrap();
+            for v in [&q, &g] {
+                let (first, second) = (get(v), again.get(v.as_tensor()).unwrap().clone());
+                assert_eq!(
+                    max_abs(&first, &second),
+                    0.0,
+                    "second backward, fused={fused}"
+                );
+            }
+            (m, z, get(&q), get(&g), get(&y), get(&b))
+        };
+        let a = run(true);
+        let b = run(false);
+        assert_eq!(max_abs(&a.0, &b.0), 0.0, "pooled");
+        assert_eq!(max_abs(&a.1, &b.1), 0.0, "bias add");
+        assert_eq!(max_abs(&a.2, &b.2), 0.0, "grad q");
+        assert_eq!(max_abs(&a.3, &b.3), 0.0, "grad g");
+        assert_eq!(max_abs(&a.4, &b.4), 0.0, "grad y");
+        assert_eq!(max_abs(&a.5, &b.5), 0.0, "grad bias");
+        // The kernels actually ran (they are off when disabled or for other dtypes).
+        assert!(applies(&[&a.0]));
+    }
+
+    /// The fused FiLM-sine layer gives the plain ops' values and gradients bit for bit, with
+    /// libm's sine and with the vectorised one, for every layer of a 3-layer head, including
+    /// large frequencies and arguments.
+    #[test]
+    fn film_sine_matches_plain_ops_bit_for_bit() {
+        let (n, kk, f) = (29, 3, 8);
+        for fast in [false, true] {
+            for k in 0..kk {
+                let run = |fused: bool| {
+                    let pre = Var::from_tensor(&(rand(&[n, f], 11) * 3.0).unwrap()).unwrap();
+                    let o =
+                        Var::from_tensor(&(rand(&[n, 2 * kk * f], 12) * 40.0).unwrap()).unwrap();
+                    let y = FilmHead::with(o.as_tensor(), kk, (15.0, 30.0), fast, fused)
+                        .layer(pre.as_tensor(), k)
+                        .unwrap();
+                    // Distinct weights per element, so every gradient entry is tested.
+                    let wts = rand(&[n, f], 13);
+                    let grads = (&y * &wts).unwrap().sum_all().unwrap().backward().unwrap();
+                    let get = |v: &Var| grads.get(v.as_tensor()).unwrap().clone();
+                    (y, get(&pre), get(&o))
+                };
+                let (a, b) = (run(true), run(false));
+                let bits = |t: &Tensor| {
+                    t.flatten_all()
+                        .unwrap()
+                        .to_vec1::<f32>()
+                        .unwrap()
+                        .iter()
+                        .map(|v| v.to_bits())
+                        .collect::<Vec<_>>()
+                };
+                assert_eq!(bits(&a.0), bits(&b.0), "values, fast={fast} k={k}");
+                assert_eq!(bits(&a.1), bits(&b.1), "grad pre, fast={fast} k={k}");
+                assert_eq!(bits(&a.2), bits(&b.2), "grad head, fast={fast} k={k}");
+                assert!(
+                    a.2.abs()
+                        .unwrap()
+                        .sum_all()
+                        .unwrap()
+                        .to_scalar::<f32>()
+                        .unwrap()
+                        > 0.0
+                );
+            }
+        }
+    }
+
+    /// A whole stack with its shared head gradient against the plain ops, bit for bit:
+    /// values and the gradients of the input, the head and every linear layer. A second
+    /// backward pass over the same graph (the shared gradient already handed over, the kept
+    /// cosines used) gives the same bits again.
+    #[test]
+    fn film_stack_shares_one_head_gradient_bit_for_bit() {
+        let (n, kk, f) = (23, 3, 8);
+        let bits = |t: &Tensor| -> Vec<u32> {
+            let v = t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+            v.iter().map(|v| v.to_bits()).collect()
+        };
+        let run = |fused: bool| {
+            let x = Var::from_tensor(&rand(&[n, f], 21)).unwrap();
+            let o = Var::from_tensor(&(rand(&[n, 2 * kk * f], 22) * 4.0).unwrap()).unwrap();
+            let vars: Vec<(Var, Var)> = (0..kk as u64)
+                .map(|k| {
+                    let w = Var::from_tensor(&rand(&[f, f], 30 + k)).unwrap();
+                    let b = Var::from_tensor(&rand(&[f], 40 + k)).unwrap();
+                    (w, b)
+                })
+                .collect();
+            // What the network's linear layer computes: x Wᵀ, then the bias.
+            let linear = |k: usize, h: &Tensor| {
+                let (w, b) = &vars[k];
+                add_bias(&h.matmul(&w.as_tensor().t()?)?, b.as_tensor())
+            };
+            let head = FilmHead::with(o.as_tensor(), kk, (15.0, 30.0), false, fused);
+            let outs = head.stack(x.as_tensor(), linear).unwrap();
+            let y = Tensor::cat(&outs, 1).unwrap();
+            let wts = rand(&[n, kk * f], 23);
+            let loss = (&y * &wts).unwrap().sum_all().unwrap();
+            let mut passes = Vec::new();
+            for _ in 0..2 {
+                let g = loss.backward().unwrap();
+                let mut all = vec![bits(&y)];
+                all.push(bits(g.get(x.as_tensor()).unwrap()));
+                all.push(bits(g.get(o.as_tensor()).unwrap()));
+                for (w, b) in &vars {
+                    all.push(bits(g.get(w.as_tensor()).unwrap()));
+                    all.push(bits(g.get(b.as_tensor()).unwrap()));
+                }
+                passes.push(all);
+            }
+            passes
+        };
+        let (a, b) = (run(true), run(false));
+        let names = [
+            "values",
+            "grad x",
+            "grad head",
+            "w0",
+            "b0",
+            "w1",
+            "b1",
+            "w2",
+            "b2",
+        ];
+        for pass in 0..2 {
+            for (i, name) in names.iter().enumerate() {
+                assert_eq!(a[pass][i], b[pass][i], "{name}, backward pass {pass}");
+            }
+        }
+        // Every layer's block of the head gradient is there (none lost to the sharing).
+        let head: Vec<f32> = a[0][2].iter().map(|&u| f32::from_bits(u)).collect();
+        for block in 0..2 * kk {
+            let nonzero = (0..n).any(|r| {
+                head[r * 2 * kk * f + block * f..][..f]
+                    .iter()
+                    .any(|v| *v != 0.0)
+            });
+            assert!(nonzero, "head gradient block {block} is empty");
+        }
+    }
+
+    #[test]
+    fn window_pool_propagates_nan_and_falls_back_for_f64() {
+        let q = rand(&[3, 4, 5], 7);
+        let g = rand(&[4, 5], 8);
+        let mut wv = vec![0.5f32; 12];
+        wv[5] = f32::NAN;
+        let w = Tensor::from_vec(wv, (3, 4), &Device::Cpu).unwrap();
+        let m = window_pool(&q, &g, &w).unwrap().to_vec2::<f32>().unwrap();
+        assert!(m[1].iter().all(|v| v.is_nan()), "row 1 has a NaN window");
+        assert!(m[0].iter().chain(&m[2]).all(|v| v.is_finite()));
+        let m64 = window_pool(
+            &q.to_dtype(DType::F64).unwrap(),
+            &g.to_dtype(DType::F64).unwrap(),
+            &w.to_dtype(DType::F64).unwrap(),
+        )
+        .unwrap();
+        assert_eq!(m64.dtype(), DType::F64);
+    }
+}

@@ -1,0 +1,43 @@
+// Row gather and its gradient for pma's custom ops (pma-model/src/compute/ops/mod.rs).
+// Compiled at run time with NVRTC (no includes allowed) and checked ahead of time by
+// scripts/check-cuda-kernels.sh with nvcc --ptx.
+//
+// Shapes: x [B,N,C], ids [B,M] (u32, indices into N), out [B,M,C].
+// One thread per output element (b, m, c): no serial loop over the indices.
+
+extern "C" __global__ void pma_gather_rows_f32(
+    const float *x, const unsigned int *ids, float *out,
+    unsigned int b_size, unsigned int n, unsigned int m, unsigned int c)
+{
+    const unsigned long long total = (unsigned long long)b_size * m * c;
+    for (unsigned long long i = (unsigned long long)blockIdx.x * blockDim.x + threadIdx.x;
+         i < total; i += (unsigned long long)blockDim.x * gridDim.x) {
+        const unsigned long long row = i / c;  // b * m + j
+        const unsigned int col = (unsigned int)(i % c);
+        const unsigned long long b = row / m;
+        const unsigned int idx = ids[row];
+        // Indices are checked on the host before upload; an out-of-range one reads as 0
+        // rather than outside the buffer.
+        out[i] = idx < n ? x[(b * n + idx) * c + col] : 0.0f;
+    }
+}
+
+// grad_x [B,N,C] (zeroed by the caller) += grad_out [B,M,C] scattered by ids.
+// atomicAdd per element: rows that share an index (every ray of an image shares its frame
+// code) are summed in parallel, in no fixed order.
+extern "C" __global__ void pma_scatter_add_rows_f32(
+    const float *grad, const unsigned int *ids, float *grad_x,
+    unsigned int b_size, unsigned int n, unsigned int m, unsigned int c)
+{
+    const unsigned long long total = (unsigned long long)b_size * m * c;
+    for (unsigned long long i = (unsigned long long)blockIdx.x * blockDim.x + threadIdx.x;
+         i < total; i += (unsigned long long)blockDim.x * gridDim.x) {
+        const unsigned long long row = i / c;
+        const unsigned int col = (unsigned int)(i % c);
+        const unsigned long long b = row / m;
+        const unsigned int idx = ids[row];
+        if (idx < n) {
+            atomicAdd(&grad_x[(b * n + idx) * c + col], grad[i]);
+        }
+    }
+}

@@ -1,0 +1,170 @@
+//! The radiance field heads (paper Eq. 9 and the NeRF heads): the density trunk on the
+//! modulator output S, the density and colour heads, and the per-image frame codes.
+
+use candle_core::{Tensor, D};
+
+use crate::error::{ModelError, Result};
+use crate::network::config::Config;
+use crate::network::nn::Linear;
+use crate::network::params::{Init, Params};
+
+/// Intermediates of one field evaluation (for parity tests).
+#[derive(Debug, Clone)]
+pub struct FieldOutputs {
+    /// density_l0_pre_relu: [N,W]
+    pub l0_pre: Tensor,
+    /// density feature h: [N,W] (after the last ReLU)
+    pub feature: Tensor,
+    /// sigma_raw: [N,1] before noise and ReLU
+    pub sigma_raw: Tensor,
+    /// feature_linear(h): [N,W]
+    pub feature_linear: Tensor,
+    /// views_linears.0 before ReLU: [N,view_W]
+    pub view_pre: Tensor,
+    /// rgb logits: [N,3]
+    pub rgb_logits: Tensor,
+    /// rgb = 1.002·sigmoid(logits) − 0.001: [N,3]
+    pub rgb: Tensor,
+}
+
+#[derive(Debug, Clone)]
+pub struct Field {
+    pts_linears: Vec<Linear>,
+    skips: Vec<usize>,
+    sigma: Linear,
+    feature: Linear,
+    view: Linear,
+    rgb: Linear,
+}
+
+impl Field {
+    /// `pts_linears.*`, `sigma_linear`, `views_linears.0`, `feature_linear`, `rgb_linear`
+    /// (in that order, the reference's), all with torch's default init.
+    pub fn new<'a>(p: impl Into<Params<'a>>, cfg: &Config) -> Result<Self> {
+        let p = p.into();
+        let w = cfg.trunk_width;
+        let s_dim = cfg.trunk_input_dim();
+        let linear = |name: &str, fan_in: usize, out: usize| {
+            Linear::new(p.pp(name), fan_in, out, Init::torch_default(fan_in))
+        };
+        let mut pts_linears = Vec::new();
+        for i in 0..cfg.trunk_depth {
+            let fan_in = if i == 0 {
+                s_dim
+            } else if cfg.skips.contains(&(i - 1)) {
+                w + s_dim
+            } else {
+                w
+            };
+            pts_linears.push(linear(&format!("pts_linears.{i}"), fan_in, w)?);
+        }
+        let code = if cfg.use_framecodes {
+            cfg.framecode_ch
+        } else {
+            0
+        };
+        let sigma = linear("sigma_linear", w, 1)?;
+        let view_in = w + cfg.sh_degree * cfg.sh_degree + code;
+        let view = linear("views_linears.0", view_in, cfg.view_width)?;
+        let feature = linear("feature_linear", w, w)?;
+        let rgb = linear("rgb_linear", cfg.view_width, 3)?;
+        Ok(Self {
+            pts_linears,
+            skips: cfg.skips.clone(),
+            sigma,
+            feature,
+            view,
+            rgb,
+        })
+    }
+
+    /// s: [N,K·F] modulator output; view: [N,SH+code] view features -> outputs.
+    pub fn forward(&self, s: &Tensor, view: &Tensor) -> Result<FieldOutputs> {
+        let mut h = s.clone();
+        let mut l0_pre = None;
+        for (i, layer) in self.pts_linears.iter().enumerate() {
+            let pre = layer.forward(&h)?;
+            if i == 0 {
+                l0_pre = Some(pre.clone());
+            }
+            h = pre.relu()?;
+            if self.skips.contains(&i) {
+                // The reference concatenates the input first, then the features.
+                h = Tensor::cat(&[s, &h], D::Minus1)?;
+            }
+        }
+        let sigma_raw = self.sigma.forward(&h)?;
+        let feature_linear = self.feature.forward(&h)?;
+        let view_pre = self
+            .view
+            .forward(&Tensor::cat(&[&feature_linear, view], D::Minus1)?)?;
+        let rgb_logits = self.rgb.forward(&view_pre.relu()?)?;
+        let rgb = candle_nn::ops::sigmoid(&rgb_logits)?.affine(1.002, -0.001)?;
+        Ok(FieldOutputs {
+            l0_pre: l0_pre.expect("trunk has at least one layer"),
+            feature: h,
+            sigma_raw,
+            feature_linear,
+            view_pre,
+            rgb_logits,
+            rgb,
+        })
+    }
+}
+
+/// Per-training-image latent codes (`framecodes.codes.weight` [n,ch]).
+#[derive(Debug, Clone)]
+pub struct FrameCodes {
+    pub weight: Tensor,
+    fix_clamp: bool,
+}
+
+impl FrameCodes {
+    /// `framecodes.codes.weight` [n,ch], Xavier-normal.
+    pub fn new<'a>(p: impl Into<Params<'a>>, cfg: &Config) -> Result<Self> {
+        let (n, ch) = (cfg.n_framecodes, cfg.framecode_ch);
+        let std = (2.0 / (n + ch) as f64).sqrt();
+        Ok(Self {
+            weight: p.into().param([n, ch], "codes.weight", Init::Normal(std))?,
+            fix_clamp: cfg.quirks.fix_framecode_clamp,
+        })
+    }
+
+    /// Codes for indices idx: [R] -> [R,ch].
+    ///
+    /// Outside training, a call whose indices are all negative gets the mean of all codes
+    /// (unseen frames). Indices beyond the table are clamped to the last code when the
+    /// largest exceeds n (the reference's rule, which lets `idx == n` through and crashes:
+    /// here that is an error unless `quirks.fix_framecode_clamp`).
+    pub fn lookup(&self, idx: &[i64], training: bool) -> Result<Tensor> {
+        let n = self.weight.dim(0)? as i64;
+        let r = idx.len();
+        if !training && !idx.is_empty() && idx.iter().all(|&i| i < 0) {
+            return Ok(self
+                .weight
+                .mean_keepdim(0)?
+                .broadcast_as((r, self.weight.dim(1)?))?
+                .contiguous()?);
+        }
+        if let Some(&bad) = idx.iter().find(|&&i| i < 0) {
+            return Err(ModelError::Input(format!(
+                "frame-code index {bad} is negative while others are not (use -1 for every ray to get the mean code)"
+            )));
+        }
+        let max = idx.iter().copied().max().unwrap_or(0);
+        let clamp = if self.fix_clamp { max >= n } else { max > n };
+        if !clamp && max >= n {
+            return Err(ModelError::Input(format!(
+                "frame-code index {max} is out of range for {n} codes (the reference crashes here; \
+                 set quirks.fix_framecode_clamp to clamp it)"
+            )));
+        }
+        let ids: Vec<u32> = idx
+            .iter()
+            .map(|&i| if clamp { i.min(n - 1) as u32 } else { i as u32 })
+            .collect();
+        let ids = Tensor::from_vec(ids, r, self.weight.device())?;
+        // A row gather whose gradient is parallel on CUDA (bit-identical on the CPU).
+        crate::compute::ops::select_rows(&self.weight, &ids)
+    }
+}

@@ -1,0 +1,468 @@
+//! The PM-Avatar network on points: everything that has weights.
+//!
+//! [`Network::pose_features`] is the per-pose work (6D rotations → GNN → projected part
+//! features, box sizes), once per pose. [`Network::eval_points`] is the network on the points
+//! of one pose, in the paper's order: bone-normalised points, the two-stage window
+//! ([`window`]), the pose-modulated sine layers ([`modulator`]), the NeRF heads ([`field`]).
+//! Rays, samples and compositing are [`crate::render`]'s business; the layers here see
+//! points only.
+//!
+//! | module | what |
+//! | --- | --- |
+//! | [`config`], [`presets`] | the architecture's sizes and switches; named sizes |
+//! | [`params`], [`checkpoint`] | tensor registration and initialisation; the file format |
+//! | [`nn`] | linear and sine layers |
+//! | [`encoders`] | 6D joint rotations, per-joint point encoders, spherical harmonics |
+//! | [`gnn`] | the pose graph network over the 24 joints, box half-extents |
+//! | [`window`] | spatial window w^p, feature window w^f, the max-pool over joints |
+//! | [`modulator`] | pose-predicted frequencies/phases, modulated sine layers |
+//! | [`field`] | NeRF density/colour heads, frame codes |
+//! | [`trace`] | named intermediates for the golden comparisons |
+
+pub mod checkpoint;
+pub mod config;
+pub mod encoders;
+pub mod field;
+pub mod gnn;
+mod layers;
+pub mod modulator;
+pub mod nn;
+pub mod params;
+pub mod presets;
+pub mod trace;
+pub mod window;
+
+use std::collections::HashMap;
+use std::path::Path;
+
+use candle_core::{DType, Device, Tensor, Var, D};
+use candle_nn::{VarBuilder, VarMap};
+use pma_data::skeleton::{self, Joints, N_JOINTS};
+
+use crate::compute::host::host_f32;
+use crate::error::{ModelError, Result};
+use config::{Config, Culling};
+use encoders::{pose6d, spherical_harmonics};
+pub use layers::tensor_layout;
+use layers::Layers;
+use params::{Params, RestValues, TensorKind};
+use trace::Trace;
+use window::{aggregate, spatial_window};
+
+/// Pose-only work, computed once per pose of the batch.
+#[derive(Debug, Clone)]
+pub struct PoseFeatures {
+    /// g: [P,24,H] projected GNN features `layer_pose(G)`.
+    pub g: Tensor,
+    /// skts: [P,24,4,4] world → joint transforms.
+    pub skts: Tensor,
+    /// s: [24,3] effective half-extents.
+    pub scales: Tensor,
+}
+
+/// The network's tensors and what every pass derives from them once.
+pub struct Network {
+    cfg: Config,
+    device: Device,
+    /// The dtype of every tensor (f32 unless built by [`Network::with_dtype`]).
+    dtype: DType,
+    varmap: VarMap,
+    rest_pose: Joints,
+    layers: Layers,
+    /// Rotation of A_j, transposed: [24,3,3].
+    align_rot_t: Tensor,
+    /// Translation of A_j: [24,3].
+    align_trans: Tensor,
+    /// A_j on the host, [24,4,4] row-major: the culling test runs there.
+    align_host: Vec<f32>,
+}
+
+impl Network {
+    /// Load a checkpoint for inference (or to continue training). Strict: see
+    /// [`checkpoint::load`].
+    pub fn load(path: impl AsRef<Path>, device: &Device) -> Result<Self> {
+        let ck = checkpoint::load(path.as_ref(), device)?;
+        Self::from_tensors(ck.config, ck.tensors, device)
+    }
+
+    /// A freshly initialised network for `rest_pose` with the reference's initialisation,
+    /// deterministic for `seed`.
+    pub fn new(cfg: Config, rest_pose: &Joints, seed: u64, device: &Device) -> Result<Self> {
+        cfg.validate()?;
+        let base = skeleton::check_model_rest_pose(rest_pose)?;
+        let align = skeleton::bone_align(rest_pose)?;
+        let rest = RestValues {
+            joints: rest_pose.iter().flatten().copied().collect(),
+            bone_align: align
+                .transforms
+                .iter()
+                .flatten()
+                .flatten()
+                .copied()
+                .collect(),
+            half_extents: base.iter().flatten().copied().collect(),
+        };
+        let varmap = VarMap::new();
+        let p = Params::init(seed, rest, varmap.clone(), device);
+        let layers = Layers::new(&p, &cfg)?;
+        checkpoint::check_buffers(&varmap_tensors(&varmap))?;
+        Self::assemble(cfg, layers, varmap, DType::F32, device)
+    }
+
+    /// Build from named tensors (the reference's state_dict names), checked against `cfg`.
+    pub fn from_tensors(
+        cfg: Config,
+        tensors: HashMap<String, Tensor>,
+        device: &Device,
+    ) -> Result<Self> {
+        cfg.validate()?;
+        // The network runs in the dtype of its tensors (f32 from checkpoints; f16/bf16/f64 via
+        // [`Self::with_dtype`]), so the layout check only asks for one common float dtype.
+        let dtype = tensors.get("rest_pose").map_or(DType::F32, |t| t.dtype());
+        let as_f32 = |t: &Tensor| match t.dtype() == dtype && dtype.is_float() {
+            true => DType::F32,
+            false => t.dtype(),
+        };
+        let problems = checkpoint::check_tensors(
+            &cfg,
+            tensors
+                .iter()
+                .map(|(n, t)| (n.as_str(), t.dims(), as_f32(t))),
+        );
+        if !problems.is_empty() {
+            return Err(checkpoint::tensors_error(problems));
+        }
+        checkpoint::check_buffers(&tensors)?;
+        let varmap = VarMap::new();
+        {
+            let mut data = varmap.data().lock().expect("fresh VarMap lock");
+            for (name, t) in &tensors {
+                data.insert(name.clone(), Var::from_tensor(&t.to_device(device)?)?);
+            }
+        }
+        let vb = VarBuilder::from_varmap(&varmap, dtype, device);
+        let layers = Layers::new(&Params::from(vb), &cfg)?;
+        Self::assemble(cfg, layers, varmap, dtype, device)
+    }
+
+    /// The host-side pieces every pass needs, derived once from the network's buffers.
+    fn assemble(
+        cfg: Config,
+        layers: Layers,
+        varmap: VarMap,
+        dtype: DType,
+        device: &Device,
+    ) -> Result<Self> {
+        let mut rest_pose = [[0f32; 3]; N_JOINTS];
+        for (d, s) in rest_pose
+            .iter_mut()
+            .zip(host_f32(&layers.rest_pose)?.chunks_exact(3))
+        {
+            d.copy_from_slice(s);
+        }
+        let a = &layers.align;
+        Ok(Self {
+            align_rot_t: a
+                .narrow(1, 0, 3)?
+                .narrow(2, 0, 3)?
+                .transpose(1, 2)?
+                .contiguous()?,
+            align_trans: a.narrow(1, 0, 3)?.narrow(2, 3, 1)?.reshape((N_JOINTS, 3))?,
+            align_host: host_f32(a)?,
+            rest_pose,
+            layers,
+            varmap,
+            device: device.clone(),
+            dtype,
+            cfg,
+        })
+    }
+
+    /// The same network with every tensor converted to `dtype` (f16/bf16 inference, f64
+    /// checks).
+    pub fn with_dtype(&self, dtype: DType) -> Result<Self> {
+        let tensors = self
+            .tensors()
+            .into_iter()
+            .map(|(k, t)| Ok((k, t.to_dtype(dtype)?)))
+            .collect::<Result<HashMap<_, _>>>()?;
+        Self::from_tensors(self.cfg.clone(), tensors, &self.device)
+    }
+
+    /// Step 1, the pose-only work for every pose of the batch: 6D rotations, the GNN, its
+    /// projection `layer_pose(G)`, and the effective box half-extents.
+    pub fn pose_features(
+        &self,
+        bones: &[Joints],
+        skts: &Tensor,
+        trace: Option<&mut Trace>,
+    ) -> Result<PoseFeatures> {
+        let p = bones.len();
+        if skts.dims() != [p, N_JOINTS, 4, 4] {
+            return Err(ModelError::shape("skts", [p, N_JOINTS, 4, 4], skts.dims()));
+        }
+        let theta = pose6d(bones, &self.device)?.to_dtype(self.dtype)?;
+        let scales = self.layers.gnn.axis_scale()?;
+        let Some(win_fun) = &self.layers.win_fun else {
+            // No GNN features (`only-syn`): an empty feature per joint keeps the pose count.
+            let g = Tensor::zeros((p, N_JOINTS, 0), self.dtype, &self.device)?;
+            let skts = skts.to_dtype(self.dtype)?;
+            return Ok(PoseFeatures { g, skts, scales });
+        };
+        let mut layers = Vec::new();
+        let g_feat = self
+            .layers
+            .gnn
+            .forward(&theta, trace.is_some().then_some(&mut layers))?;
+        let g = win_fun.project_pose(&g_feat)?;
+        if let Some(t) = trace {
+            t.put("pose6d", &theta);
+            for (l, pre) in layers.iter().enumerate() {
+                t.put(format!("gnn_layer{l}_pre_sin"), pre);
+            }
+            t.put("gnn_feat", &g_feat);
+            let flat = g.reshape(((), g.dim(D::Minus1)?))?;
+            t.put("win_layer_pose", &flat);
+            t.put("axis_scale", &scales);
+        }
+        Ok(PoseFeatures {
+            g,
+            skts: skts.to_dtype(self.dtype)?,
+            scales,
+        })
+    }
+
+    /// The network on the points of pose p: pts: [n,3] world points, view: [n,V] view
+    /// features ([`Self::view_features`]). Returns (rgb [n,3], sigma_raw [n,1]).
+    pub fn eval_points(
+        &self,
+        pose: &PoseFeatures,
+        p: usize,
+        pts: &Tensor,
+        view: &Tensor,
+        trace: Option<(&mut Trace, &str)>,
+    ) -> Result<(Tensor, Tensor)> {
+        let n = pts.dim(0)?;
+        let j = N_JOINTS;
+        let net = &self.layers;
+        // World → joint frames of every joint at once (one [n,3]x[3,72] product), then into
+        // the bone-aligned frames. Two steps, in the reference's order: folding A_j into
+        // skt_j first changes the rounding enough to cost ~1e-4 after the ω=16 encoder.
+        let skt = pose.skts.get(p)?;
+        let rot = skt.narrow(1, 0, 3)?.narrow(2, 0, 3)?.reshape((3 * j, 3))?;
+        let trans = skt.narrow(1, 0, 3)?.narrow(2, 3, 1)?.reshape((j, 3))?;
+        let x_jt = pts
+            .matmul(&rot.t()?)?
+            .reshape((n, j, 3))?
+            .broadcast_add(&trans)?;
+        // `contiguous`: CUDA's batched gemm needs packed rows (the CPU gemm takes any
+        // strides), and the transposed [j,n,3] view has a row stride of 3j.
+        let x_hat = x_jt
+            .transpose(0, 1)?
+            .contiguous()?
+            .matmul(&self.align_rot_t)?
+            .transpose(0, 1)?
+            .broadcast_add(&self.align_trans)?;
+        // Bone-normalised points x̄ and the spatial window w^p (Eq. 4).
+        let x_bar = x_hat.broadcast_div(&pose.scales)?;
+        let v = self.cfg.variant;
+        let w_p = match v.spatial_window() {
+            true => spatial_window(&x_bar, self.cfg.window_alpha, self.cfg.window_beta)?,
+            false => Tensor::ones((n, j), x_bar.dtype(), x_bar.device())?,
+        };
+        // Feature window w^f and w = w^p·w^f (Eqs. 5–6), then f^m = Σ_j w_j g_j.
+        let g = pose.g.get(p)?;
+        let (win, e) = match (&net.win_fun, &net.pts_enc_pose) {
+            (Some(win_fun), Some(enc)) if v.feature_window() => {
+                let e = enc.forward(&x_bar)?;
+                (Some(win_fun.forward(&g, &e, &w_p)?), Some(e))
+            }
+            _ => (None, None),
+        };
+        let w = match &win {
+            Some(win) => win.w.clone(),
+            None => w_p.clone(),
+        };
+        let f_m = match v.gnn_features() {
+            true => Some(aggregate(&w, &g)?),
+            false => None,
+        };
+        // Frequencies and phases from f^m drive the sine layers (Eqs. 7–8); `only-gnn` feeds
+        // f^m to the NeRF trunk instead, `only-syn` runs the layers unmodulated.
+        let modulation = match (&net.pose_extractor, &f_m) {
+            (Some(ext), Some(f_m)) => Some(ext.forward(f_m)?),
+            _ => None,
+        };
+        let (s, z) = match (&net.modulator, &net.pts_enc_point) {
+            (Some(modulator), Some(enc)) => {
+                let z = enc.forward(&x_bar)?;
+                let x_tilde = z
+                    .broadcast_mul(&w.unsqueeze(D::Minus1)?)?
+                    .reshape((n, j * self.cfg.point_enc_dim))?;
+                let s = match &modulation {
+                    Some(m) => modulator.forward(&x_tilde, m)?,
+                    None => modulator.forward_fixed(&x_tilde)?,
+                };
+                (s, Some(z))
+            }
+            _ => (
+                f_m.clone()
+                    .ok_or_else(|| ModelError::Config("no trunk input".into()))?,
+                None,
+            ),
+        };
+        // NeRF density and colour heads.
+        let out = net.field.forward(&s, view)?;
+        if let Some((tr, stage)) = trace {
+            // Θ mapped to the frequencies γ the layers use, stacked per layer like Φ.
+            let gp = match (&modulation, &net.modulator) {
+                (Some(m), Some(md)) => {
+                    let g: Vec<_> = m.freq.iter().map(|f| md.gamma(f)).collect::<Result<_>>()?;
+                    Some((Tensor::stack(&g, 0)?, Tensor::stack(&m.phase, 0)?))
+                }
+                _ => None,
+            };
+            let items: Vec<(&str, &Tensor)> = [
+                Some(("pts_jt", &x_jt)),
+                Some(("pts_t", &x_hat)),
+                Some(("x_bar", &x_bar)),
+                Some(("w_p", &w_p)),
+                Some(("w", &w)),
+                e.as_ref().map(|e| ("pts_enc_pose", e)),
+                win.as_ref().map(|w| ("win_maxpool", &w.pooled)),
+                win.as_ref().map(|w| ("win_logits", &w.logits)),
+                win.as_ref().map(|w| ("w_f", &w.w_f)),
+                f_m.as_ref().map(|f| ("f_m", f)),
+                z.as_ref().map(|z| ("pts_enc_point", z)),
+                gp.as_ref().map(|g| ("mod_freq", &g.0)),
+                gp.as_ref().map(|g| ("mod_phase", &g.1)),
+                Some(("modulator_out", &s)),
+                Some(("density_l0_pre_relu", &out.l0_pre)),
+                Some(("density_feat", &out.feature)),
+                Some(("sigma_raw", &out.sigma_raw)),
+                Some(("feature_linear", &out.feature_linear)),
+                Some(("view_l0_pre_relu", &out.view_pre)),
+                Some(("rgb_logits", &out.rgb_logits)),
+            ]
+            .into_iter()
+            .flatten()
+            .collect();
+            tr.put_stage(stage, &items);
+        }
+        Ok((out.rgb, out.sigma_raw))
+    }
+
+    /// View features `[SH(d_root); frame code]`: [R,V] for directions d_root: [R,3] already in
+    /// the root joint's frame and one frame-code index per row (all −1 outside training:
+    /// the mean code).
+    pub fn view_features(
+        &self,
+        d_root: &Tensor,
+        framecodes: &[i64],
+        training: bool,
+    ) -> Result<Tensor> {
+        let d = if self.cfg.quirks.normalize_view_dirs {
+            let norm = d_root.sqr()?.sum_keepdim(1)?.sqrt()?;
+            d_root.broadcast_div(&norm.clamp(1e-12, f64::INFINITY)?)?
+        } else {
+            d_root.clone()
+        };
+        let sh = spherical_harmonics(&d, self.cfg.sh_degree)?;
+        Ok(match &self.layers.framecodes {
+            Some(codes) => Tensor::cat(&[&sh, &codes.lookup(framecodes, training)?], 1)?,
+            None => sh,
+        })
+    }
+
+    // ---- accessors ----------------------------------------------------------------------
+
+    pub fn config(&self) -> &Config {
+        &self.cfg
+    }
+
+    pub fn device(&self) -> &Device {
+        &self.device
+    }
+
+    /// The dtype the network computes in (that of its tensors).
+    pub fn dtype(&self) -> DType {
+        self.dtype
+    }
+
+    pub fn rest_pose(&self) -> &Joints {
+        &self.rest_pose
+    }
+
+    /// A_j of the network's bone-aligned frames on the host, [24,4,4] row-major.
+    pub fn bone_align(&self) -> &[f32] {
+        &self.align_host
+    }
+
+    /// Effective box half-extents s: [24,3].
+    pub fn axis_scale(&self) -> Result<Tensor> {
+        self.layers.gnn.axis_scale()
+    }
+
+    /// Switch culling (leaving work out, [`crate::render::cull`]) on or off for later passes.
+    pub fn set_culling(&mut self, culling: Culling) -> Result<()> {
+        let mut cfg = self.cfg.clone();
+        cfg.culling = culling;
+        cfg.validate()?;
+        self.cfg = cfg;
+        Ok(())
+    }
+
+    /// A_j of the ray caster's boxes (`raycast.transforms`): [24,4,4].
+    pub fn raycast_align(&self) -> &Tensor {
+        &self.layers.raycast_align
+    }
+
+    /// All tensors (parameters and buffers) by reference name, for saving.
+    pub fn tensors(&self) -> HashMap<String, Tensor> {
+        varmap_tensors(&self.varmap)
+    }
+
+    /// The trainable parameters in the reference's `named_parameters()` order.
+    pub fn trainable(&self) -> Vec<(String, Var)> {
+        let data = self.varmap.data().lock().expect("VarMap lock");
+        tensor_layout(&self.cfg)
+            .into_iter()
+            .filter(|s| s.kind == TensorKind::Param)
+            .map(|s| {
+                let v = data[&s.name].clone();
+                (s.name, v)
+            })
+            .collect()
+    }
+
+    /// Save as a pma checkpoint (atomic).
+    pub fn save(&self, path: impl AsRef<Path>) -> Result<()> {
+        checkpoint::save(path.as_ref(), &self.tensors(), &self.cfg)
+    }
+}
+
+impl std::fmt::Debug for Network {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Network")
+            .field("cfg", &self.cfg)
+            .field("device", &self.device)
+            .finish_non_exhaustive()
+    }
+}
+
+fn varmap_tensors(varmap: &VarMap) -> HashMap<String, Tensor> {
+    let data = varmap.data().lock().expect("VarMap lock");
+    data.iter()
+        .map(|(k, v)| (k.clone(), v.as_tensor().clone()))
+        .collect()
+}
+
+/// The tensors of a fresh network ([`Network::new`]) by name.
+pub fn init_tensors(
+    cfg: &Config,
+    rest: &Joints,
+    seed: u64,
+    device: &Device,
+) -> Result<HashMap<String, Tensor>> {
+    Ok(Network::new(cfg.clone(), rest, seed, device)?.tensors())
+}

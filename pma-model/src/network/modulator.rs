@@ -1,0 +1,177 @@
+//! Pose-dependent frequency modulation (paper Eqs. 7–8): the `PoseExtractor`
+//! predicts per-layer frequencies Θ and phases Φ from the aggregated pose feature f^m,
+//! and the FiLM-SIREN `Modulator` runs the windowed point encoding through sine layers
+//! whose frequencies and phases are those predictions.
+
+use candle_core::Tensor;
+
+use crate::error::Result;
+use crate::network::config::Config;
+use crate::network::nn::{Linear, SineLayer};
+use crate::network::params::{Init, Params};
+
+/// Frequencies Θ and phases Φ of the modulated layers, one [N,F] tensor per layer.
+#[derive(Debug, Clone)]
+pub struct Modulation {
+    pub freq: Vec<Tensor>,
+    pub phase: Vec<Tensor>,
+    /// The pose extractor's whole head output [N,2·K·F] that `freq` and `phase` are views
+    /// of, when they are. The fused FiLM-sine kernel reads both blocks from it and returns a
+    /// single gradient for it, instead of two zero-padded ones per layer.
+    pub head: Option<Tensor>,
+}
+
+#[derive(Debug, Clone)]
+pub struct PoseExtractor {
+    hidden: Vec<SineLayer>,
+    head: Linear,
+    n_pm: usize,
+    freq_dim: usize,
+}
+
+impl PoseExtractor {
+    /// `pose_extractor.*`, SIREN's init throughout (the linear head included).
+    pub fn new<'a>(p: impl Into<Params<'a>>, cfg: &Config) -> Result<Self> {
+        let p = p.into();
+        let (h, w0) = (cfg.pose_extractor_hidden, cfg.sin_w0_pose);
+        let mut hidden = Vec::new();
+        for l in 0..cfg.pose_extractor_depth {
+            let fan_in = if l == 0 { cfg.win_hidden } else { h };
+            let init = Init::siren(fan_in, w0);
+            hidden.push(SineLayer::new(
+                p.pp(format!("sin_lin{l}")),
+                fan_in,
+                h,
+                w0,
+                init,
+            )?);
+        }
+        let fan_in = if cfg.pose_extractor_depth == 0 {
+            cfg.win_hidden
+        } else {
+            h
+        };
+        let head = Linear::new(
+            p.pp(format!("sin_lin{}.layer", cfg.pose_extractor_depth)),
+            fan_in,
+            2 * cfg.n_pm * cfg.freq_dim,
+            Init::siren(fan_in, w0),
+        )?;
+        Ok(Self {
+            hidden,
+            head,
+            n_pm: cfg.n_pm,
+            freq_dim: cfg.freq_dim,
+        })
+    }
+
+    /// f_m: [N,H] -> Θ, Φ. The head's output is laid out as [Θ_0..Θ_{K-1}, Φ_0..Φ_{K-1}],
+    /// each block F wide.
+    pub fn forward(&self, f_m: &Tensor) -> Result<Modulation> {
+        let mut h = f_m.clone();
+        for layer in &self.hidden {
+            h = layer.forward(&h)?;
+        }
+        let o = self.head.forward(&h)?;
+        let (k, f) = (self.n_pm, self.freq_dim);
+        let freq = (0..k)
+            .map(|i| o.narrow(1, i * f, f))
+            .collect::<candle_core::Result<Vec<_>>>()?;
+        let phase = (0..k)
+            .map(|i| o.narrow(1, (k + i) * f, f))
+            .collect::<candle_core::Result<Vec<_>>>()?;
+        Ok(Modulation {
+            freq,
+            phase,
+            head: Some(o),
+        })
+    }
+}
+
+#[derive(Debug, Clone)]
+pub struct Modulator {
+    layers: Vec<Linear>,
+    w0: f64,
+}
+
+impl Modulator {
+    /// `modulator.sin_lin{k}.layer.*`, SIREN's init with the point frequency ω.
+    pub fn new<'a>(p: impl Into<Params<'a>>, cfg: &Config) -> Result<Self> {
+        let p = p.into();
+        let mut layers = Vec::new();
+        for k in 0..cfg.n_pm {
+            let fan_in = if k == 0 {
+                cfg.n_joints * cfg.point_enc_dim
+            } else {
+                cfg.freq_dim
+            };
+            layers.push(Linear::new(
+                p.pp(format!("sin_lin{k}.layer")),
+                fan_in,
+                cfg.freq_dim,
+                Init::siren(fan_in, cfg.sin_w0_point),
+            )?);
+        }
+        Ok(Self {
+            layers,
+            w0: cfg.sin_w0_point,
+        })
+    }
+
+    /// Map raw predictions Θ to frequencies γ. pi-GAN's `15Θ + 30` is what the reference
+    /// takes whenever ω > 15 (ω = 16 by default); otherwise `ωΘ + 2ω`.
+    pub fn gamma(&self, theta: &Tensor) -> Result<Tensor> {
+        let (mul, add) = self.gamma_affine();
+        Ok(theta.affine(mul, add)?)
+    }
+
+    /// γ = mul·Θ + add.
+    fn gamma_affine(&self) -> (f64, f64) {
+        if self.w0 > 15.0 {
+            (15.0, 30.0)
+        } else {
+            (self.w0, 2.0 * self.w0)
+        }
+    }
+
+    /// The frequency of an unmodulated layer: γ at Θ = 0 (`only-syn`, with Φ = 0).
+    pub fn gamma0(&self) -> f64 {
+        if self.w0 > 15.0 {
+            30.0
+        } else {
+            2.0 * self.w0
+        }
+    }
+
+    /// The same layers without modulation: `h_k = sin(γ(0) (M_k h_{k-1} + ν_k))`.
+    pub fn forward_fixed(&self, x_tilde: &Tensor) -> Result<Tensor> {
+        let mut h = x_tilde.clone();
+        let mut outs = Vec::with_capacity(self.layers.len());
+        for layer in &self.layers {
+            h = crate::compute::fast_sine::sin(&(layer.forward(&h)? * self.gamma0())?)?;
+            outs.push(h.clone());
+        }
+        Ok(Tensor::cat(&outs, 1)?)
+    }
+
+    /// x_tilde: [N,J·Ce] windowed point encodings -> S: [N,K·F], the concatenated outputs
+    /// `h_k = sin(γ_k ⊙ (M_k h_{k-1} + ν_k) + Φ_k)` of all modulated layers.
+    pub fn forward(&self, x_tilde: &Tensor, m: &Modulation) -> Result<Tensor> {
+        if let Some(o) = &m.head {
+            let head =
+                crate::compute::fused::FilmHead::new(o, self.layers.len(), self.gamma_affine());
+            let outs = head.stack(x_tilde, |k, h| self.layers[k].forward(h))?;
+            return Ok(Tensor::cat(&outs, 1)?);
+        }
+        let mut h = x_tilde.clone();
+        let mut outs = Vec::with_capacity(self.layers.len());
+        for (k, layer) in self.layers.iter().enumerate() {
+            let pre = layer.forward(&h)?;
+            h = crate::compute::fast_sine::sin(
+                &(pre * self.gamma(&m.freq[k])?)?.add(&m.phase[k])?,
+            )?;
+            outs.push(h.clone());
+        }
+        Ok(Tensor::cat(&outs, 1)?)
+    }
+}

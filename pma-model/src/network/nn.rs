@@ -1,0 +1,94 @@
+//! Small building blocks shared by the network modules: a plain linear layer with
+//! the PyTorch weight layout, the SIREN variant, and per-joint ("parallel") linears.
+
+use candle_core::{Tensor, D};
+
+use crate::error::Result;
+use crate::network::params::{Init, Params};
+
+/// `y = x Wᵀ + b` with PyTorch's layout: weight [out,in], bias [out]. Works on any
+/// leading batch shape (`x: [..., in]`).
+#[derive(Debug, Clone)]
+pub struct Linear {
+    pub weight: Tensor,
+    pub bias: Tensor,
+}
+
+impl Linear {
+    /// `{prefix}.weight` [out,in] starting from `weight_init`, and `{prefix}.bias` [out]
+    /// with torch's default U(±1/√in).
+    pub fn new(p: Params, in_dim: usize, out_dim: usize, weight_init: Init) -> Result<Self> {
+        Ok(Self {
+            weight: p.param([out_dim, in_dim], "weight", weight_init)?,
+            bias: p.param([out_dim], "bias", Init::torch_default(in_dim))?,
+        })
+    }
+
+    /// x: [..., in] -> [..., out]
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let dims = x.dims().to_vec();
+        let in_dim = *dims.last().unwrap_or(&0);
+        let rows = x.elem_count() / in_dim.max(1);
+        let y = crate::compute::fused::add_bias(
+            &x.reshape((rows, in_dim))?.matmul(&self.weight.t()?)?,
+            &self.bias,
+        )?;
+        let mut out_dims = dims;
+        *out_dims
+            .last_mut()
+            .expect("linear input has at least one dim") = self.weight.dim(0)?;
+        Ok(y.reshape(out_dims)?)
+    }
+}
+
+/// SIREN layer `sin(ω (W x + b))`: the reference multiplies the bias by ω as well.
+#[derive(Debug, Clone)]
+pub struct SineLayer {
+    pub linear: Linear,
+    pub w0: f64,
+}
+
+impl SineLayer {
+    /// `{prefix}.layer.weight` / `{prefix}.layer.bias` (the reference's key layout).
+    pub fn new(
+        p: Params,
+        in_dim: usize,
+        out_dim: usize,
+        w0: f64,
+        weight_init: Init,
+    ) -> Result<Self> {
+        Ok(Self {
+            linear: Linear::new(p.pp("layer"), in_dim, out_dim, weight_init)?,
+            w0,
+        })
+    }
+
+    /// Pre-activation `W x + b`: x: [..., in] -> [..., out]
+    pub fn pre(&self, x: &Tensor) -> Result<Tensor> {
+        self.linear.forward(x)
+    }
+
+    /// x: [..., in] -> [..., out]
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        // ω scales W and b ([out,in] work) rather than every output row: one pass over the
+        // activations fewer, forward and backward. For ω a power of two (the reference's 8
+        // and 16) the scaling is exact, so the result is bit-identical either way.
+        let scaled = Linear {
+            weight: (&self.linear.weight * self.w0)?,
+            bias: (&self.linear.bias * self.w0)?,
+        };
+        crate::compute::fast_sine::sin(&scaled.forward(x)?)
+    }
+}
+
+/// Per-joint weights applied to every batch row: x: [P,J,in], W: [J,in,out] -> [P,J,out].
+pub fn per_joint_matmul(x: &Tensor, w: &Tensor) -> Result<Tensor> {
+    // [J,P,in] @ [J,in,out] batches over joints; transposing back keeps [P,J,out].
+    let xt = x.transpose(0, 1)?.contiguous()?;
+    Ok(xt.matmul(w)?.transpose(0, 1)?.contiguous()?)
+}
+
+/// Sum over the last dim without keeping it.
+pub fn sum_last(x: &Tensor) -> Result<Tensor> {
+    Ok(x.sum(D::Minus1)?)
+}

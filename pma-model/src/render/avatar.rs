@@ -1,0 +1,336 @@
+//! The avatar: the network ([`crate::network`]) behind a ray caster, rendered top-down.
+//!
+//! [`Avatar::forward`] reads in the order the model computes: per-pose work (6D rotations →
+//! GNN → projected part features, box sizes) once per pose; ray casting; the coarse network
+//! pass and render; importance sampling; the fine pass on the new samples only; merge and
+//! the fine render. How the samples of a pass reach the network (densely, in chunks, or
+//! culled) is [`crate::render::points`]'s business.
+
+use std::collections::HashMap;
+use std::path::Path;
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use candle_core::{DType, Device, Tensor, Var};
+use pma_data::skeleton::Joints;
+
+use crate::compute::host::host_f32;
+use crate::error::{ModelError, Result};
+use crate::network::config::{Config, Culling};
+pub use crate::network::trace::Trace;
+use crate::network::Network;
+pub use crate::network::PoseFeatures;
+pub use crate::render::batch::{Mode, NoiseFn, Outputs, Poses, Rays};
+use crate::render::bones::BoneFrames;
+use crate::render::points::PointEval;
+pub use crate::render::points::INFERENCE_POINT_CHUNK;
+use crate::render::raycast::{merge_raw, RayCaster};
+use crate::render::volume::raw2outputs;
+
+/// A network and the ray caster of its bone boxes.
+pub struct Avatar {
+    net: Network,
+    caster: RayCaster,
+    /// Points that went through the network since construction (bench counters).
+    points_evaluated: AtomicU64,
+}
+
+impl Avatar {
+    /// Load a checkpoint for inference (or to continue training). Strict: see
+    /// [`crate::network::checkpoint::load`].
+    pub fn load(path: impl AsRef<Path>, device: &Device) -> Result<Self> {
+        Self::from_network(Network::load(path, device)?)
+    }
+
+    /// A freshly initialised avatar for `rest_pose` with the reference's initialisation,
+    /// deterministic for `seed`.
+    pub fn new(cfg: Config, rest_pose: &Joints, seed: u64, device: &Device) -> Result<Self> {
+        Self::from_network(Network::new(cfg, rest_pose, seed, device)?)
+    }
+
+    /// Build from named tensors (the reference's state_dict names), checked against `cfg`.
+    pub fn from_tensors(
+        cfg: Config,
+        tensors: HashMap<String, Tensor>,
+        device: &Device,
+    ) -> Result<Self> {
+        Self::from_network(Network::from_tensors(cfg, tensors, device)?)
+    }
+
+    /// The avatar of `net`: its ray caster is derived from the network's box transforms.
+    pub fn from_network(net: Network) -> Result<Self> {
+        let caster = RayCaster::from_tensor(net.config(), net.raycast_align())?;
+        Ok(Self {
+            net,
+            caster,
+            points_evaluated: AtomicU64::new(0),
+        })
+    }
+
+    /// The same avatar with every tensor converted to `dtype` (f16/bf16 inference, f64
+    /// checks). Inputs are converted at the forward entry points, and the ray caster keeps
+    /// working in f32 on the host.
+    pub fn with_dtype(&self, dtype: DType) -> Result<Self> {
+        Self::from_network(self.net.with_dtype(dtype)?)
+    }
+
+    // ---- forward pass -------------------------------------------------------------------
+
+    /// Render a ray batch: the full coarse + fine forward pass.
+    pub fn forward(
+        &self,
+        rays: &Rays,
+        poses: &Poses,
+        mode: &mut Mode,
+        mut trace: Option<&mut Trace>,
+    ) -> Result<Outputs> {
+        crate::render::batch::check_batch(rays, poses)?;
+        let cast = crate::render::batch::cast_batch(rays, poses, self.dtype())?;
+        let (rays, poses) = cast.as_ref().map_or((rays, poses), |(r, p)| (r, p));
+        // 1. Per-pose work.
+        let mut pose_trace = trace.as_ref().map(|_| Trace::default());
+        let pose = self.pose_features(poses, pose_trace.as_mut())?;
+        let out = self.forward_inner(rays, poses, &pose, mode, trace.as_deref_mut())?;
+        if let (Some(t), Some(pt)) = (trace, pose_trace) {
+            for stage in ["coarse", "fine"] {
+                for (k, v) in &pt.tensors {
+                    t.put(format!("{stage}/{k}"), v);
+                }
+            }
+        }
+        Ok(out)
+    }
+
+    /// [`Self::forward`] with the per-pose work already done (`pose` from
+    /// [`Self::pose_features`] of the same `poses`), so callers that split a pose's rays into
+    /// chunks run the GNN once per pose, not once per chunk.
+    pub fn forward_with_pose(
+        &self,
+        rays: &Rays,
+        poses: &Poses,
+        pose: &PoseFeatures,
+        mode: &mut Mode,
+    ) -> Result<Outputs> {
+        crate::render::batch::check_batch(rays, poses)?;
+        let cast = crate::render::batch::cast_batch(rays, poses, self.dtype())?;
+        let (rays, poses) = cast.as_ref().map_or((rays, poses), |(r, p)| (r, p));
+        if pose.g.dim(0)? != poses.bones.len() {
+            return Err(ModelError::shape(
+                "pose features",
+                [poses.bones.len()],
+                [pose.g.dim(0)?],
+            ));
+        }
+        self.forward_inner(rays, poses, pose, mode, None)
+    }
+
+    /// Steps 2–5 of the forward pass.
+    fn forward_inner(
+        &self,
+        rays: &Rays,
+        poses: &Poses,
+        pose: &PoseFeatures,
+        mode: &mut Mode,
+        mut trace: Option<&mut Trace>,
+    ) -> Result<Outputs> {
+        // 2. Ray casting (no gradient) with the current, detached box sizes.
+        let coarse = self.caster.cast(
+            &rays.origins,
+            &rays.dirs,
+            &poses.cyls,
+            &poses.skts,
+            &pose.scales.detach(),
+        )?;
+        let prof = crate::compute::profile::mark;
+        prof("cast", self.device());
+        let (view, d_root) = self.ray_view_features(rays, poses, mode.is_training())?;
+        let mut points = PointEval::new(
+            &self.net,
+            mode,
+            poses,
+            pose,
+            &coarse.bounds,
+            trace.is_some(),
+        )?;
+        // 3. Coarse pass and render.
+        let tr = trace.as_deref_mut();
+        let raw_coarse = points.run(&self.net, pose, &coarse.pts, &view, mode, "coarse", tr)?;
+        prof("coarse network", self.device());
+        let render_coarse = raw2outputs(&raw_coarse, &coarse.z, &rays.dirs, rays.bgs.as_ref())?;
+        prof("coarse render", self.device());
+        // 4. Importance samples from the coarse weights, then the fine pass on those only.
+        let weights = render_coarse.weights.detach();
+        let fine = self
+            .caster
+            .resample(&rays.origins, &rays.dirs, &coarse.z, &weights)?;
+        prof("resample", self.device());
+        let tr = trace.as_deref_mut();
+        let raw_fine = points.run(&self.net, pose, &fine.pts, &view, mode, "fine", tr)?;
+        prof("fine network", self.device());
+        // 5. Merge with the coarse outputs (reused, noise included) and render again.
+        let raw = merge_raw(&raw_coarse, &raw_fine, &fine.perm)?;
+        let render_fine = raw2outputs(&raw, &fine.z_all, &rays.dirs, rays.bgs.as_ref())?;
+        prof("merge + fine render", self.device());
+        self.points_evaluated
+            .fetch_add(points.evaluated() as u64, Ordering::Relaxed);
+        if let Some(t) = trace {
+            let r = rays.origins.dim(0)?;
+            for (stage, samples) in [("coarse", coarse.z.dim(1)?), ("fine", fine.z.dim(1)?)] {
+                let dr = d_root.unsqueeze(1)?.broadcast_as((r, samples, 3))?;
+                t.put(format!("{stage}/view_dir_root"), &dr);
+            }
+            t.put("raycast/pts_coarse", &coarse.pts);
+            t.put("raycast/z_vals_coarse", &coarse.z);
+            t.put("raycast/pts_is", &fine.pts);
+            t.put("raycast/z_vals_merged", &fine.z_all);
+            t.put("raycast/sorted_idxs", &fine.perm);
+            t.put("view_features", &view);
+        }
+        Ok(Outputs {
+            vol_scale: pose.scales.clone(),
+            bounds: coarse.bounds,
+            z_coarse: coarse.z,
+            z_vals: fine.z_all,
+            raw_coarse,
+            raw,
+            coarse: render_coarse,
+            fine: render_fine,
+        })
+    }
+
+    /// View features of a ray batch: the directions in each pose's root frame, then
+    /// [`Self::view_features`]. Returns ([R,V], d_root [R,3]).
+    fn ray_view_features(
+        &self,
+        rays: &Rays,
+        poses: &Poses,
+        training: bool,
+    ) -> Result<(Tensor, Tensor)> {
+        let r = rays.dirs.dim(0)?;
+        let p = poses.bones.len();
+        // Only the root's rotation: directions are expressed in the pelvis frame.
+        let r0 = poses
+            .skts
+            .narrow(1, 0, 1)?
+            .squeeze(1)?
+            .narrow(1, 0, 3)?
+            .narrow(2, 0, 3)?
+            // A 3×3 window of the 4×4 matrices: CUDA's gemm rejects its row stride of 4.
+            .contiguous()?;
+        let d = rays
+            .dirs
+            .reshape((p, r / p, 3))?
+            .matmul(&r0.transpose(1, 2)?)?
+            .reshape((r, 3))?;
+        Ok((self.net.view_features(&d, &rays.framecodes, training)?, d))
+    }
+
+    /// Step 1 of [`Self::forward`] for every pose of `poses` ([`Network::pose_features`]).
+    pub fn pose_features(&self, poses: &Poses, trace: Option<&mut Trace>) -> Result<PoseFeatures> {
+        self.net.pose_features(&poses.bones, &poses.skts, trace)
+    }
+
+    /// The network on the points of pose p ([`Network::eval_points`]).
+    pub fn eval_points(
+        &self,
+        pose: &PoseFeatures,
+        p: usize,
+        pts: &Tensor,
+        view: &Tensor,
+        trace: Option<(&mut Trace, &str)>,
+    ) -> Result<(Tensor, Tensor)> {
+        self.net.eval_points(pose, p, pts, view, trace)
+    }
+
+    /// View features of directions already in the root frame ([`Network::view_features`]).
+    pub fn view_features(
+        &self,
+        d_root: &Tensor,
+        framecodes: &[i64],
+        training: bool,
+    ) -> Result<Tensor> {
+        self.net.view_features(d_root, framecodes, training)
+    }
+
+    // ---- accessors ----------------------------------------------------------------------
+
+    pub fn network(&self) -> &Network {
+        &self.net
+    }
+
+    pub fn config(&self) -> &Config {
+        self.net.config()
+    }
+
+    pub fn device(&self) -> &Device {
+        self.net.device()
+    }
+
+    /// The dtype the network computes in (that of its tensors).
+    pub fn dtype(&self) -> DType {
+        self.net.dtype()
+    }
+
+    pub fn rest_pose(&self) -> &Joints {
+        self.net.rest_pose()
+    }
+
+    pub fn ray_caster(&self) -> &RayCaster {
+        &self.caster
+    }
+
+    /// A_j of the network's bone-aligned frames on the host, [24,4,4] row-major.
+    pub fn bone_align(&self) -> &[f32] {
+        self.net.bone_align()
+    }
+
+    /// The bone boxes the ray caster clips against, for poses with skts: [P,24,4,4].
+    pub fn bone_frames(&self, skts: &Tensor) -> Result<BoneFrames> {
+        BoneFrames::new(self.caster.bone_align(), &host_f32(skts)?)
+    }
+
+    /// Effective box half-extents s: [24,3].
+    pub fn axis_scale(&self) -> Result<Tensor> {
+        self.net.axis_scale()
+    }
+
+    /// Switch culling (leaving work out, [`crate::render::cull`]) on or off for later passes.
+    pub fn set_culling(&mut self, culling: Culling) -> Result<()> {
+        self.net.set_culling(culling)
+    }
+
+    /// Pin the (near, far) that rays missing the bounding cylinder get in later passes
+    /// ([`RayCaster::with_miss_fill`]; `None` unpins): chunked training casts every chunk
+    /// with its whole batch's values.
+    pub fn pin_miss_fill(&mut self, fill: Option<(f32, f32)>) {
+        self.caster = self.caster.with_miss_fill(fill);
+    }
+
+    /// Points evaluated by the network (far-away constants included) since construction.
+    pub fn points_evaluated(&self) -> u64 {
+        self.points_evaluated.load(Ordering::Relaxed)
+    }
+
+    /// All tensors (parameters and buffers) by reference name, for saving.
+    pub fn tensors(&self) -> HashMap<String, Tensor> {
+        self.net.tensors()
+    }
+
+    /// The trainable parameters in the reference's `named_parameters()` order.
+    pub fn trainable(&self) -> Vec<(String, Var)> {
+        self.net.trainable()
+    }
+
+    /// Save as a pma checkpoint (atomic).
+    pub fn save(&self, path: impl AsRef<Path>) -> Result<()> {
+        self.net.save(path)
+    }
+}
+
+impl std::fmt::Debug for Avatar {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Avatar")
+            .field("cfg", self.config())
+            .field("device", self.device())
+            .finish_non_exhaustive()
+    }
+}

@@ -1,0 +1,353 @@
+//! Leaving work out: which rays and samples may skip the network, decided on the
+//! host before any network work.
+//!
+//! * **Ray culling.** A ray that crosses no enlarged bone box (`RayBounds::ray_hits_body`
+//!   false) is given raw outputs 0 for every sample. Volume rendering then yields exactly the
+//!   background colour, zero weights and alpha, transmittance 1, acc, depth and disparity 0;
+//!   its (cylinder-fallback) samples are still placed, so the outputs keep their shapes. This
+//!   is an approximation: every sample of such a ray lies outside all ±1.1 boxes, where
+//!   w^p ≤ exp(−2·1.1⁶) ≈ 0.03 but not 0, and the network learned (not was forced) to be
+//!   empty there. Rays that do hit a box are evaluated exactly as in parity mode.
+//! * **Sample culling.** A sample whose spatial window w^p is ≤ t for every joint skips the
+//!   network. Where w^p = 0 for all joints the window product w = w^p·w^f is 0, so the max-pool,
+//!   f^m and every windowed point feature are 0, and the network's output is a global constant
+//!   density with a colour that depends only on the view: evaluating the network once per
+//!   ray at a far-away point reproduces it exactly (`SampleFill::Network`). At t = 0 only
+//!   samples whose w^p underflows to exactly 0 in f32 are culled (see [`exponent_cut`]), so
+//!   the outputs are those of parity mode.
+//!
+//! The test needs only the per-joint world → box transforms (A_j · skt_j), the effective
+//! half-extents s_j and sixth powers: a few dozen flops per sample and joint on the host,
+//! stopping at the first joint whose window is above the threshold.
+//!
+//! **Optional joints** (a joint whose window is 0 on every sample of a chunk) are measured
+//! ([`WindowTest::active_joints`]) but not skipped: the max-pool over joints in `WinFun` sees
+//! such a joint as an exact 0 entry, so dropping it changes the pooled value wherever every
+//! remaining joint is negative in a channel. Skipping is only sound with a 0 appended to the
+//! max, and it saves only the per-joint encoder/`layer_point` rows and the joint's block of
+//! the first modulated layer; see the bench report for the fraction that could be saved.
+
+use pma_data::skeleton::N_JOINTS;
+
+use crate::error::{ModelError, Result};
+use crate::render::bones::BoneFrames;
+
+/// `exp(−x)` is exactly 0 in f32 for x > 103.98 (half the smallest subnormal); culling at
+/// threshold 0 uses a cut a little above it so that the host test (f64, composed transform)
+/// and the network's window (f32, two-step transform) agree on every culled sample.
+pub const EXACT_ZERO_EXPONENT: f64 = 105.0;
+
+/// The exponent α·Σ_k x̄_k⁶ at or above which w^p ≤ `threshold`.
+pub fn exponent_cut(threshold: f64) -> f64 {
+    if threshold > 0.0 {
+        (-threshold.ln()).min(EXACT_ZERO_EXPONENT)
+    } else {
+        EXACT_ZERO_EXPONENT
+    }
+}
+
+/// Samples per block of the parallel window test (many blocks keep the workers balanced).
+const FATE_BLOCK_SAMPLES: usize = 16_384;
+
+/// What the culling of one forward pass decided for each sample.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SampleFate {
+    /// Run the network.
+    Evaluate,
+    /// w^p ≤ t for every joint: the network's far-away constant (or 0 with `SampleFill::Zero`).
+    Outside,
+    /// The ray crosses no bone box: raw outputs 0.
+    RayCulled,
+}
+
+/// Host-side spatial-window test for every pose of a batch.
+#[derive(Debug, Clone)]
+pub struct WindowTest {
+    /// Per pose and joint: the affine map world → x̄ (rows already divided by s_j), [P·24][3][4].
+    maps: Vec<[[f64; 4]; 3]>,
+    alpha: f64,
+    /// Half the window exponent β (x̄^β = (x̄²)^(β/2)).
+    half_beta: i32,
+    cut: f64,
+    /// World position of each pose's root joint (for the far-away point).
+    roots: Vec<[f64; 3]>,
+}
+
+impl WindowTest {
+    /// align: [24,4,4] A_j (`pts_embedder.transforms`); skts: [P,24,4,4]; scales: [24,3]
+    /// effective half-extents; `alpha`, `beta` the window's α and (even) β; `threshold` t ≥ 0.
+    pub fn new(
+        align: &[f32],
+        skts: &[f32],
+        scales: &[f32],
+        alpha: f64,
+        beta: u32,
+        threshold: f64,
+    ) -> Result<Self> {
+        if scales.len() != N_JOINTS * 3 {
+            return Err(ModelError::shape(
+                "scales",
+                [N_JOINTS, 3],
+                format!("{} values", scales.len()),
+            ));
+        }
+        if let Some(i) = scales.iter().position(|&s| !(s.is_finite() && s > 0.0)) {
+            return Err(ModelError::Input(format!(
+                "culling: half-extent of joint {} axis {} is {} (must be finite and > 0)",
+                i / 3,
+                i % 3,
+                scales[i]
+            )));
+        }
+        if !(threshold.is_finite() && threshold >= 0.0) {
+            return Err(ModelError::Input(format!(
+                "culling: sample threshold must be finite and >= 0, found {threshold}"
+            )));
+        }
+        Ok(Self::from_frames(
+            &BoneFrames::new(align, skts)?,
+            scales,
+            alpha,
+            beta,
+            threshold,
+        ))
+    }
+
+    /// The test for the bone boxes of `frames` (validated inputs: see [`Self::new`]).
+    fn from_frames(
+        frames: &BoneFrames,
+        scales: &[f32],
+        alpha: f64,
+        beta: u32,
+        threshold: f64,
+    ) -> Self {
+        let n_poses = frames.n_poses();
+        let mut maps = Vec::with_capacity(n_poses * N_JOINTS);
+        for p in 0..n_poses {
+            for j in 0..N_JOINTS {
+                let mut m = frames.world_to_box_f64(p, j);
+                for (i, row) in m.iter_mut().enumerate() {
+                    for v in row.iter_mut() {
+                        *v /= scales[3 * j + i] as f64;
+                    }
+                }
+                maps.push(m);
+            }
+        }
+        Self {
+            maps,
+            alpha,
+            half_beta: (beta / 2) as i32,
+            cut: exponent_cut(threshold),
+            roots: (0..n_poses).map(|p| frames.root_origin(p)).collect(),
+        }
+    }
+
+    pub fn n_poses(&self) -> usize {
+        self.roots.len()
+    }
+
+    /// α·Σ_k x̄_k⁶ of joint j of pose p at world point x (w^p = exp(−that)).
+    pub fn exponent(&self, p: usize, j: usize, x: [f32; 3]) -> f64 {
+        let m = &self.maps[p * N_JOINTS + j];
+        let mut sum = 0f64;
+        for row in m {
+            let v = row[0] * x[0] as f64 + row[1] * x[1] as f64 + row[2] * x[2] as f64 + row[3];
+            sum += (v * v).powi(self.half_beta);
+        }
+        self.alpha * sum
+    }
+
+    /// Largest spatial window over the joints of pose p at x (f64; for tests and reports).
+    pub fn max_window(&self, p: usize, x: [f32; 3]) -> f64 {
+        (0..N_JOINTS)
+            .map(|j| (-self.exponent(p, j, x)).exp())
+            .fold(0.0, f64::max)
+    }
+
+    /// True when w^p ≤ the threshold for every joint of pose p at x.
+    pub fn outside(&self, p: usize, x: [f32; 3]) -> bool {
+        (0..N_JOINTS).all(|j| self.exponent(p, j, x) >= self.cut)
+    }
+
+    /// A world point where every joint's window of pose p is exactly 0: 1 km (or further)
+    /// from the root along +x.
+    pub fn far_point(&self, p: usize) -> Result<[f32; 3]> {
+        let r = self.roots[p];
+        let mut d = 1e3;
+        for _ in 0..6 {
+            let x = [(r[0] + d) as f32, r[1] as f32, r[2] as f32];
+            if (0..N_JOINTS).all(|j| self.exponent(p, j, x) >= EXACT_ZERO_EXPONENT) {
+                return Ok(x);
+            }
+            d *= 10.0;
+        }
+        Err(ModelError::Input(format!(
+            "culling: no point with a zero window found for pose {p} (root at {r:?})"
+        )))
+    }
+
+    /// Fate of each sample of pts: [R,S,3] (host, row-major), rays grouped by pose in equal
+    /// contiguous blocks; `ray_alive[r]` false marks a culled ray.
+    pub fn fates(
+        &self,
+        pts: &[f32],
+        n_rays: usize,
+        s: usize,
+        ray_alive: Option<&[bool]>,
+    ) -> Result<Vec<SampleFate>> {
+        check_samples(pts, n_rays, s, self.n_poses())?;
+        if let Some(a) = ray_alive {
+            if a.len() != n_rays {
+                return Err(ModelError::shape("ray_hits_body", [n_rays], [a.len()]));
+            }
+        }
+        let per_pose = n_rays / self.n_poses();
+        // The test is a few hundred host flops per culled sample, as much as a fifth of a
+        // culled render on one core: blocks of rays go to the workers (the result does not
+        // depend on the split).
+        let workers = crate::compute::parallel::workers();
+        let blocks = if workers > 1 && n_rays * s >= 8 * FATE_BLOCK_SAMPLES {
+            (n_rays * s).div_ceil(FATE_BLOCK_SAMPLES)
+        } else {
+            1
+        };
+        let rays_per_block = n_rays.div_ceil(blocks);
+        let parts = crate::compute::parallel::map_ordered(workers, blocks, |b| {
+            let rays = (b * rays_per_block).min(n_rays)..((b + 1) * rays_per_block).min(n_rays);
+            let mut out = Vec::with_capacity(rays.len() * s);
+            for r in rays {
+                let p = r / per_pose;
+                let alive = ray_alive.is_none_or(|a| a[r]);
+                for k in 0..s {
+                    let i = 3 * (r * s + k);
+                    let x = [pts[i], pts[i + 1], pts[i + 2]];
+                    out.push(if !alive {
+                        SampleFate::RayCulled
+                    } else if self.outside(p, x) {
+                        SampleFate::Outside
+                    } else {
+                        SampleFate::Evaluate
+                    });
+                }
+            }
+            Ok::<_, ModelError>(out)
+        })?;
+        Ok(parts.concat())
+    }
+
+    /// Per pose, which joints have a window above the threshold at some sample of pts:
+    /// [R,S,3] (the "optional joints" measurement). Returns [P][24].
+    pub fn active_joints(&self, pts: &[f32], n_rays: usize, s: usize) -> Result<Vec<[bool; 24]>> {
+        check_samples(pts, n_rays, s, self.n_poses())?;
+        let per_pose = n_rays / self.n_poses();
+        let mut active = vec![[false; N_JOINTS]; self.n_poses()];
+        for r in 0..n_rays {
+            let p = r / per_pose;
+            for k in 0..s {
+                let i = 3 * (r * s + k);
+                let x = [pts[i], pts[i + 1], pts[i + 2]];
+                for (j, a) in active[p].iter_mut().enumerate() {
+                    if !*a && self.exponent(p, j, x) < self.cut {
+                        *a = true;
+                    }
+                }
+            }
+        }
+        Ok(active)
+    }
+}
+
+/// Fates when only rays are culled.
+pub fn ray_fates(n_rays: usize, s: usize, ray_alive: &[bool]) -> Result<Vec<SampleFate>> {
+    if ray_alive.len() != n_rays {
+        return Err(ModelError::shape(
+            "ray_hits_body",
+            [n_rays],
+            [ray_alive.len()],
+        ));
+    }
+    Ok(ray_alive
+        .iter()
+        .flat_map(|&a| {
+            std::iter::repeat_n(
+                if a {
+                    SampleFate::Evaluate
+                } else {
+                    SampleFate::RayCulled
+                },
+                s,
+            )
+        })
+        .collect())
+}
+
+fn check_samples(pts: &[f32], n_rays: usize, s: usize, n_poses: usize) -> Result<()> {
+    if pts.len() != n_rays * s * 3 {
+        return Err(ModelError::shape(
+            "pts",
+            [n_rays, s, 3],
+            format!("{} values", pts.len()),
+        ));
+    }
+    if n_poses == 0 || n_rays % n_poses != 0 {
+        return Err(ModelError::Input(format!(
+            "culling: {n_rays} rays cannot be split into {n_poses} equal per-pose blocks"
+        )));
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn identity_setup(scale: f32) -> WindowTest {
+        let mut eye = vec![0f32; N_JOINTS * 16];
+        for j in 0..N_JOINTS {
+            for d in 0..4 {
+                eye[j * 16 + 5 * d] = 1.0;
+            }
+        }
+        let scales = vec![scale; N_JOINTS * 3];
+        WindowTest::new(&eye, &eye, &scales, 2.0, 6, 0.0).unwrap()
+    }
+
+    #[test]
+    fn window_matches_the_formula_and_the_cut_is_exact_zero_in_f32() {
+        let w = identity_setup(0.5);
+        // x̄ = x / 0.5: at x = (0.5, 0, 0) the window is exp(−2).
+        assert!((w.max_window(0, [0.5, 0.0, 0.0]) - (-2f64).exp()).abs() < 1e-12);
+        // Right at the cut, f32's exp is already exactly 0.
+        assert_eq!((-(EXACT_ZERO_EXPONENT as f32)).exp(), 0.0);
+        assert!((-(EXACT_ZERO_EXPONENT as f32 - 2.0)).exp() > 0.0);
+        // x̄ = 2 on one axis: 2·64 = 128 > 105: outside at threshold 0.
+        assert!(w.outside(0, [1.0, 0.0, 0.0]));
+        assert!(!w.outside(0, [0.9, 0.0, 0.0]));
+        let far = w.far_point(0).unwrap();
+        assert!(w.outside(0, far));
+    }
+
+    #[test]
+    fn thresholds_cut_where_the_window_crosses_them() {
+        for t in [1e-6, 1e-4, 1e-2] {
+            assert!((exponent_cut(t) - (-t.ln())).abs() < 1e-12);
+        }
+        assert_eq!(exponent_cut(0.0), EXACT_ZERO_EXPONENT);
+        assert_eq!(exponent_cut(1e-60), EXACT_ZERO_EXPONENT);
+    }
+
+    #[test]
+    fn bad_inputs_are_errors() {
+        let eye = vec![0f32; N_JOINTS * 16];
+        let scales = vec![0.5f32; N_JOINTS * 3];
+        assert!(WindowTest::new(&eye[..10], &eye, &scales, 2.0, 6, 0.0).is_err());
+        let mut bad = scales.clone();
+        bad[7] = 0.0;
+        let err = WindowTest::new(&eye, &eye, &bad, 2.0, 6, 0.0).unwrap_err();
+        assert!(err.to_string().contains("joint 2 axis 1"), "{err}");
+        assert!(WindowTest::new(&eye, &eye, &scales, 2.0, 6, f64::NAN).is_err());
+        let w = identity_setup(0.5);
+        assert!(w.fates(&[0.0; 5], 1, 2, None).is_err());
+    }
+}

@@ -1,0 +1,27 @@
+//! From rays to pixels: the bone boxes, ray casting and importance sampling, how samples
+//! reach the network (densely, in chunks, or culled), volume rendering, and the [`Avatar`]
+//! that wires them to the network top-down.
+//!
+//! | module | what |
+//! | --- | --- |
+//! | [`batch`] | what a pass takes and returns: rays, poses, mode, outputs |
+//! | [`bones`] | world → bone-aligned box frames of a batch of poses |
+//! | [`raycast`] | near/far from the bounding cylinder and the boxes; 48 + 24 samples |
+//! | [`cull`] | which rays and samples may skip the network |
+//! | [`points`] | the routes of a pass's samples through the network |
+//! | [`volume`] | volume rendering (differentiable) |
+//! | [`avatar`] | the forward pass, top-down |
+//! | [`image`] | whole images in bounded memory |
+//! | [`camera_path`] | orbit, bullet-time and framing cameras |
+
+pub mod avatar;
+pub mod batch;
+pub mod bones;
+pub mod camera_path;
+pub mod cull;
+pub mod image;
+pub mod points;
+pub mod raycast;
+pub mod volume;
+
+pub use avatar::Avatar;

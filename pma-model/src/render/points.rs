@@ -1,0 +1,733 @@
+//! How the samples of a forward pass go through the network.
+//!
+//! [`Network::eval_points`] is the network on the points of one pose. A forward pass hands
+//! all samples of a stage (coarse, then fine) to one [`PointEval`], which decides how they
+//! reach it:
+//!
+//! * **dense**: one call per pose with the graph kept (training, the parity hook);
+//! * **chunked**: bounded chunks on the CPU workers, outputs detached (inference);
+//! * **culled**: only the samples culling keeps ([`crate::render::cull`]); the rest are filled
+//!   from the network's far-away constant or with zeros. Gradients reach the evaluated
+//!   samples and the constants, so training with culling at threshold 0 has parity's loss
+//!   and its gradients up to float summation order (docs/numerics.md, "Empty rays and
+//!   culling").
+//!
+//! Whatever the route, the result is raw [R,S,4] (rgb, density after noise and ReLU).
+
+use candle_core::{DType, Tensor};
+
+use crate::compute::host::host_f32;
+use crate::error::{ModelError, Result};
+use crate::network::config::{Culling, SampleFill};
+use crate::network::trace::Trace;
+use crate::network::{Network, PoseFeatures};
+use crate::render::batch::{Mode, Poses};
+use crate::render::cull::{ray_fates, SampleFate, WindowTest};
+use crate::render::raycast::RayBounds;
+
+/// Points per network call in inference: the largest per-point tensors are [n,24,128] f32,
+/// 48 MiB each at 4,096 points, a handful alive per worker; many chunks also keep the
+/// workers balanced. Larger chunks were no faster.
+pub const INFERENCE_POINT_CHUNK: usize = 4_096;
+
+/// The route of one forward pass's samples (see the module docs).
+pub(crate) struct PointEval {
+    route: Route,
+    /// Points that went through the network in this pass (far-away constants included).
+    evaluated: usize,
+}
+
+enum Route {
+    Dense,
+    Chunked,
+    Culled(Box<CullCtx>),
+}
+
+impl PointEval {
+    /// The route for `mode` and the avatar's culling options. A traced pass never culls:
+    /// the trace needs the intermediates of every sample.
+    pub fn new(
+        net: &Network,
+        mode: &Mode,
+        poses: &Poses,
+        pose: &PoseFeatures,
+        bounds: &RayBounds,
+        traced: bool,
+    ) -> Result<Self> {
+        let culling = &net.config().culling;
+        if !traced && !culling.is_off() {
+            let ctx = CullCtx::new(net, culling, poses, pose, bounds)?;
+            return Ok(Self::on(Route::Culled(Box::new(ctx))));
+        }
+        Ok(Self::on(if mode.is_inference() {
+            Route::Chunked
+        } else {
+            Route::Dense
+        }))
+    }
+
+    fn on(route: Route) -> Self {
+        Self {
+            route,
+            evaluated: 0,
+        }
+    }
+
+    /// Points that went through the network so far in this pass.
+    pub fn evaluated(&self) -> usize {
+        self.evaluated
+    }
+
+    /// raw: [R,S,4] for the samples pts: [R,S,3] with view features view: [R,V].
+    #[allow(clippy::too_many_arguments)]
+    pub fn run(
+        &mut self,
+        net: &Network,
+        pose: &PoseFeatures,
+        pts: &Tensor,
+        view: &Tensor,
+        mode: &mut Mode,
+        stage: &str,
+        trace: Option<&mut Trace>,
+    ) -> Result<Tensor> {
+        let (r, s, _) = pts.dims3()?;
+        let (rgb, sigma_raw, alive) = match &mut self.route {
+            Route::Dense => {
+                let (rgb, sigma) = dense(net, pose, pts, view, stage, trace)?;
+                self.evaluated += r * s;
+                (rgb, sigma, None)
+            }
+            Route::Chunked => {
+                let (rgb, sigma) = chunked(net, pose, pts, view)?;
+                self.evaluated += r * s;
+                (rgb, sigma, None)
+            }
+            Route::Culled(c) => {
+                let before = c.evaluated;
+                let out = c.run(net, pose, pts, view, mode)?;
+                self.evaluated += c.evaluated - before;
+                out
+            }
+        };
+        let density = density(net, sigma_raw, mode, r * s)?;
+        let density = match alive {
+            // Zero-filled samples have no density even where noise would have given some.
+            Some(alive) => density.broadcast_mul(&alive.to_dtype(density.dtype())?)?,
+            None => density,
+        };
+        Ok(Tensor::cat(&[rgb, density], 1)?.reshape((r, s, 4))?)
+    }
+}
+
+/// relu(σ_raw + noise): the noise is drawn for every sample, culled or not, so the noise
+/// stream of a culled pass stays aligned with parity mode.
+fn density(net: &Network, sigma_raw: Tensor, mode: &mut Mode, n: usize) -> Result<Tensor> {
+    let std = net.config().density_noise_std;
+    let sigma = match mode {
+        Mode::Train(Some(noise)) if std > 0.0 => {
+            let eps = noise(n)?.reshape((n, 1))?;
+            (&sigma_raw + (eps * std)?)?
+        }
+        _ => sigma_raw,
+    };
+    Ok(sigma.relu()?)
+}
+
+/// Every sample of pose p: pts [k·S,3] and the view features of its rays repeated per sample.
+fn pose_block(pts: &Tensor, view: &Tensor, p: usize, k: usize) -> Result<(Tensor, Tensor)> {
+    let (_, s, _) = pts.dims3()?;
+    let vdim = view.dim(1)?;
+    let pts_p = pts.narrow(0, p * k, k)?.reshape((k * s, 3))?;
+    let view_p = view
+        .narrow(0, p * k, k)?
+        .unsqueeze(1)?
+        .broadcast_as((k, s, vdim))?
+        .reshape((k * s, vdim))?;
+    Ok((pts_p, view_p))
+}
+
+/// One network call per pose, graph kept; per-pose traces joined in ray order.
+fn dense(
+    net: &Network,
+    pose: &PoseFeatures,
+    pts: &Tensor,
+    view: &Tensor,
+    stage: &str,
+    trace: Option<&mut Trace>,
+) -> Result<(Tensor, Tensor)> {
+    let r = pts.dim(0)?;
+    let n_poses = pose.g.dim(0)?;
+    let k = r / n_poses;
+    let (mut rgbs, mut sigmas, mut traces) = (Vec::new(), Vec::new(), Vec::new());
+    for p in 0..n_poses {
+        crate::interrupt::check()?;
+        let (pts_p, view_p) = pose_block(pts, view, p, k)?;
+        let mut tp = Trace::default();
+        let traced = trace.is_some().then_some((&mut tp, stage));
+        let (rgb, sigma_raw) = net.eval_points(pose, p, &pts_p, &view_p, traced)?;
+        traces.push(tp);
+        rgbs.push(rgb);
+        sigmas.push(sigma_raw);
+    }
+    if let Some(t) = trace {
+        t.concat_poses(&traces)?;
+    }
+    Ok((Tensor::cat(&rgbs, 0)?, Tensor::cat(&sigmas, 0)?))
+}
+
+/// Every (pose, chunk) pair is one job for the workers; outputs stay in ray order.
+fn chunked(
+    net: &Network,
+    pose: &PoseFeatures,
+    pts: &Tensor,
+    view: &Tensor,
+) -> Result<(Tensor, Tensor)> {
+    let (r, s, _) = pts.dims3()?;
+    let n_poses = pose.g.dim(0)?;
+    let k = r / n_poses;
+    let n = k * s;
+    let chunk = INFERENCE_POINT_CHUNK;
+    let per_pose = n.div_ceil(chunk);
+    let inputs = (0..n_poses)
+        .map(|p| pose_block(pts, view, p, k))
+        .collect::<Result<Vec<_>>>()?;
+    let workers = crate::compute::parallel::workers_on(pts.device());
+    let outs = crate::compute::parallel::map_ordered(workers, n_poses * per_pose, |i| {
+        crate::interrupt::check()?;
+        let (p, c) = (i / per_pose, i % per_pose);
+        let (start, len) = (c * chunk, chunk.min(n - c * chunk));
+        let (pts_p, view_p) = &inputs[p];
+        let (rgb, sigma_raw) = net.eval_points(
+            pose,
+            p,
+            &pts_p.narrow(0, start, len)?,
+            &view_p.narrow(0, start, len)?,
+            None,
+        )?;
+        // Detached at once: the weights are variables, so the outputs would otherwise keep
+        // the chunk's whole graph alive until every chunk is done.
+        Ok::<_, ModelError>((rgb.detach(), sigma_raw.detach()))
+    })?;
+    let (rgbs, sigmas): (Vec<_>, Vec<_>) = outs.into_iter().unzip();
+    Ok((Tensor::cat(&rgbs, 0)?, Tensor::cat(&sigmas, 0)?))
+}
+
+/// Culling state of one forward pass (coarse and fine share the far-away constants).
+pub(crate) struct CullCtx {
+    test: Option<WindowTest>,
+    /// `ray_hits_body` when rays are culled.
+    ray_alive: Option<Vec<bool>>,
+    fill: SampleFill,
+    consts: ConstRows,
+    /// Points this route sent through the network (far-away constants included).
+    evaluated: usize,
+}
+
+/// Network outputs at the far-away point, one row per ray that needed one.
+#[derive(Default)]
+struct ConstRows {
+    /// Row of each ray (u32::MAX: not computed).
+    row_of_ray: Vec<u32>,
+    rgb: Vec<Tensor>,
+    sigma: Vec<Tensor>,
+    rows: usize,
+    /// Row 0 serves every ray (inference, constant density 0).
+    shared: bool,
+    /// Whether the shared constant was tried in this forward pass.
+    probed: bool,
+}
+
+/// The network calls of one culled stage: every row they read, gathered once per pass
+/// (per pose, its kept samples in sample order, then its far-away points), and the calls
+/// as ranges of those rows.
+struct Plan {
+    /// [rows,3] points and the view features of their rays.
+    pts: Tensor,
+    view: Tensor,
+    jobs: Vec<Job>,
+}
+
+/// One network call of the culled route on rows `start..start + len + far_rays.len()` of
+/// the plan, all of pose p: `len` kept samples, then the far-away points of `far_rays` (the
+/// rays that still need their constant).
+struct Job {
+    p: usize,
+    start: usize,
+    len: usize,
+    far_rays: Vec<usize>,
+}
+
+impl CullCtx {
+    fn new(
+        net: &Network,
+        c: &Culling,
+        poses: &Poses,
+        pose: &PoseFeatures,
+        bounds: &RayBounds,
+    ) -> Result<Self> {
+        let cfg = net.config();
+        let test = match c.sample_threshold {
+            Some(t) => Some(WindowTest::new(
+                net.bone_align(),
+                &host_f32(&poses.skts)?,
+                &host_f32(&pose.scales)?,
+                cfg.window_alpha,
+                cfg.window_beta,
+                t,
+            )?),
+            None => None,
+        };
+        Ok(Self {
+            test,
+            ray_alive: c.rays.then(|| bounds.ray_hits_body.clone()),
+            fill: c.sample_fill,
+            consts: ConstRows::default(),
+            evaluated: 0,
+        })
+    }
+
+    /// (rgb [n,3], sigma_raw [n,1], the alive mask [n,1] when zero-filled samples must stay
+    /// empty under noise).
+    ///
+    /// The far-away points ride in the same network call as the evaluated samples: gemm's
+    /// result for a row depends (by an ulp) on the size of the call, not on the row's place
+    /// in it, and parity mode evaluates culled samples inside large calls.
+    fn run(
+        &mut self,
+        net: &Network,
+        pose: &PoseFeatures,
+        pts: &Tensor,
+        view: &Tensor,
+        mode: &Mode,
+    ) -> Result<(Tensor, Tensor, Option<Tensor>)> {
+        let (r, s, _) = pts.dims3()?;
+        let n = r * s;
+        let fates = match (&self.test, &self.ray_alive) {
+            (Some(t), alive) => t.fates(&host_f32(pts)?, r, s, alive.as_deref())?,
+            (None, Some(alive)) => ray_fates(r, s, alive)?,
+            (None, None) => vec![SampleFate::Evaluate; n],
+        };
+        let network_fill = self.fill == SampleFill::Network;
+        let noisy = matches!(mode, Mode::Train(Some(_))) && net.config().density_noise_std > 0.0;
+        let need: Vec<usize> = if network_fill {
+            (0..r)
+                .filter(|&ray| fates[ray * s..(ray + 1) * s].contains(&SampleFate::Outside))
+                .collect()
+        } else {
+            Vec::new()
+        };
+        if self.consts.row_of_ray.len() != r {
+            self.consts.row_of_ray = vec![u32::MAX; r];
+        }
+        if !need.is_empty() && mode.is_inference() && !noisy && !self.consts.probed {
+            self.probe_shared_constant(net, pose, view, need[0])?;
+        }
+        let far_rays: Vec<usize> = if self.consts.shared {
+            Vec::new()
+        } else {
+            need.into_iter()
+                .filter(|&ray| self.consts.row_of_ray[ray] == u32::MAX)
+                .collect()
+        };
+        let plan = self.plan(
+            pose.g.dim(0)?,
+            pts,
+            view,
+            &fates,
+            &far_rays,
+            mode.is_inference(),
+        )?;
+        let (rgbs, sigmas, evaluated) = self.evaluate(net, pose, plan, mode.is_inference())?;
+        let (rgb, sigma_raw, any_zero) =
+            self.scatter(rgbs, sigmas, evaluated, &fates, s, network_fill, pts)?;
+        let alive = if noisy && any_zero {
+            let alive: Vec<f32> = fates
+                .iter()
+                .map(|f| match f {
+                    SampleFate::Evaluate => 1.0,
+                    SampleFate::Outside if network_fill => 1.0,
+                    _ => 0.0,
+                })
+                .collect();
+            Some(Tensor::from_vec(alive, (n, 1), pts.device())?)
+        } else {
+            None
+        };
+        Ok((rgb, sigma_raw, alive))
+    }
+
+    /// The network calls: per pose, the kept samples in chunks (one chunk when the graph is
+    /// kept), the far-away points of `far_rays` at the back of the pose's last call.
+    ///
+    /// All rows are gathered at once and each call reads a range of them, but every call
+    /// gets the rows, in the order and number, of a gather per call: a point's output can
+    /// change in the last bits with its call's size and its place in it (gemm's
+    /// matrix-vector path for the one-column σ head treats the rows past the last full
+    /// vector apart), so regrouping the calls would change the outputs.
+    fn plan(
+        &self,
+        n_poses: usize,
+        pts: &Tensor,
+        view: &Tensor,
+        fates: &[SampleFate],
+        far_rays: &[usize],
+        inference: bool,
+    ) -> Result<Plan> {
+        let (r, s, _) = pts.dims3()?;
+        let k = r / n_poses;
+        let dev = pts.device();
+        let n = r * s;
+        // Rows of the source: i < n is sample i; n + q is the q-th far-away point.
+        let mut src: Vec<u32> = Vec::new();
+        let mut rays_of: Vec<u32> = Vec::new();
+        let mut far_points = Vec::new();
+        let mut jobs = Vec::new();
+        for p in 0..n_poses {
+            let first = src.len();
+            src.extend(
+                (p * k * s..(p + 1) * k * s)
+                    .filter(|&i| fates[i] == SampleFate::Evaluate)
+                    .map(|i| i as u32),
+            );
+            let kept = src.len() - first;
+            rays_of.extend(src[first..].iter().map(|&i| i / s as u32));
+            let far_p: Vec<usize> = far_rays
+                .iter()
+                .copied()
+                .filter(|&ray| ray / k == p)
+                .collect();
+            if kept == 0 && far_p.is_empty() {
+                continue;
+            }
+            let chunk = if inference {
+                INFERENCE_POINT_CHUNK
+            } else {
+                kept.max(1)
+            };
+            let n_calls = kept.div_ceil(chunk).max(1);
+            for c in 0..n_calls {
+                jobs.push(Job {
+                    p,
+                    start: first + c * chunk,
+                    len: chunk.min(kept - c * chunk),
+                    far_rays: if c + 1 == n_calls {
+                        far_p.clone()
+                    } else {
+                        Vec::new()
+                    },
+                });
+            }
+            if !far_p.is_empty() {
+                let test = self.test.as_ref().ok_or_else(|| {
+                    ModelError::Input("culling: constants need the window test".into())
+                })?;
+                far_points.extend(test.far_point(p)?);
+                let row = (n + far_points.len() / 3 - 1) as u32;
+                src.extend(std::iter::repeat_n(row, far_p.len()));
+                rays_of.extend(far_p.iter().map(|&ray| ray as u32));
+            }
+        }
+        let rows = src.len();
+        let pts_flat = pts.reshape((n, 3))?;
+        let source = if far_points.is_empty() {
+            pts_flat
+        } else {
+            let m = far_points.len() / 3;
+            let far = Tensor::from_vec(far_points, (m, 3), dev)?.to_dtype(pts.dtype())?;
+            Tensor::cat(&[pts_flat, far], 0)?
+        };
+        Ok(Plan {
+            pts: crate::compute::ops::select_rows(&source, &Tensor::from_vec(src, rows, dev)?)?,
+            view: crate::compute::ops::select_rows(view, &Tensor::from_vec(rays_of, rows, dev)?)?,
+            jobs,
+        })
+    }
+
+    /// Run the jobs on the workers; keep the kept samples' rows in order and file the
+    /// far-away rows under their rays. Returns (rgb rows, sigma rows, samples evaluated).
+    fn evaluate(
+        &mut self,
+        net: &Network,
+        pose: &PoseFeatures,
+        plan: Plan,
+        inference: bool,
+    ) -> Result<(Vec<Tensor>, Vec<Tensor>, usize)> {
+        let Plan { pts, view, jobs } = plan;
+        let workers = crate::compute::parallel::workers_on(net.device());
+        let outs = crate::compute::parallel::map_ordered(workers, jobs.len(), |i| {
+            crate::interrupt::check()?;
+            let job = &jobs[i];
+            let rows = job.len + job.far_rays.len();
+            let (rgb, sigma_raw) = net.eval_points(
+                pose,
+                job.p,
+                &pts.narrow(0, job.start, rows)?,
+                &view.narrow(0, job.start, rows)?,
+                None,
+            )?;
+            // In inference the chunk's graph goes at once (see `chunked`).
+            Ok::<_, ModelError>(if inference {
+                (rgb.detach(), sigma_raw.detach())
+            } else {
+                (rgb, sigma_raw)
+            })
+        })?;
+        let (mut rgbs, mut sigmas) = (Vec::new(), Vec::new());
+        let (mut evaluated, mut far_done) = (0usize, 0usize);
+        for (job, (rgb, sigma_raw)) in jobs.into_iter().zip(outs) {
+            if job.len > 0 {
+                rgbs.push(rgb.narrow(0, 0, job.len)?);
+                sigmas.push(sigma_raw.narrow(0, 0, job.len)?);
+            }
+            let far_len = job.far_rays.len();
+            if far_len > 0 {
+                let consts = &mut self.consts;
+                for (i, &ray) in job.far_rays.iter().enumerate() {
+                    consts.row_of_ray[ray] = (consts.rows + i) as u32;
+                }
+                consts.rows += far_len;
+                consts.rgb.push(rgb.narrow(0, job.len, far_len)?);
+                consts.sigma.push(sigma_raw.narrow(0, job.len, far_len)?);
+                far_done += far_len;
+            }
+            evaluated += job.len;
+        }
+        self.evaluated += evaluated + far_done;
+        Ok((rgbs, sigmas, evaluated))
+    }
+
+    /// Every sample's row: its own evaluation, its ray's far-away constant, or a zero row.
+    /// Returns (rgb [n,3], sigma_raw [n,1], whether any sample got the zero row).
+    #[allow(clippy::too_many_arguments)]
+    fn scatter(
+        &self,
+        rgbs: Vec<Tensor>,
+        sigmas: Vec<Tensor>,
+        evaluated: usize,
+        fates: &[SampleFate],
+        s: usize,
+        network_fill: bool,
+        pts: &Tensor,
+    ) -> Result<(Tensor, Tensor, bool)> {
+        let dev = pts.device();
+        let consts = &self.consts;
+        let zero_row = (evaluated + consts.rows) as u32;
+        let mut next = 0u32;
+        let mut any_zero = false;
+        let idx: Vec<u32> = fates
+            .iter()
+            .enumerate()
+            .map(|(i, fate)| match fate {
+                SampleFate::Evaluate => {
+                    next += 1;
+                    next - 1
+                }
+                SampleFate::Outside if network_fill => {
+                    evaluated as u32
+                        + if consts.shared {
+                            0
+                        } else {
+                            consts.row_of_ray[i / s]
+                        }
+                }
+                _ => {
+                    any_zero = true;
+                    zero_row
+                }
+            })
+            .collect();
+        let out_dtype = rgbs
+            .first()
+            .or(consts.rgb.first())
+            .map_or(pts.dtype(), |t| t.dtype());
+        let mut rgb_rows = rgbs;
+        let mut sigma_rows = sigmas;
+        rgb_rows.extend(consts.rgb.iter().cloned());
+        sigma_rows.extend(consts.sigma.iter().cloned());
+        rgb_rows.push(Tensor::zeros((1, 3), out_dtype, dev)?);
+        sigma_rows.push(Tensor::zeros((1, 1), out_dtype, dev)?);
+        let n = fates.len();
+        let idx = Tensor::from_vec(idx, n, dev)?;
+        // Row gathers whose backward (training with culling) is parallel on CUDA.
+        let rgb = crate::compute::ops::select_rows(&Tensor::cat(&rgb_rows, 0)?, &idx)?;
+        let sigma_raw = crate::compute::ops::select_rows(&Tensor::cat(&sigma_rows, 0)?, &idx)?;
+        Ok((rgb, sigma_raw, any_zero))
+    }
+
+    /// Inference without noise: the far-away density is one global constant (f^m and every
+    /// windowed feature are 0 there). When it is ≤ 0 the colour of culled samples carries zero
+    /// weight in every rendered output, so one evaluation (along ray `ray`) serves all rays;
+    /// their raw colour is then the one seen along that ray. Decided once per forward pass.
+    fn probe_shared_constant(
+        &mut self,
+        net: &Network,
+        pose: &PoseFeatures,
+        view: &Tensor,
+        ray: usize,
+    ) -> Result<()> {
+        let consts = &mut self.consts;
+        consts.probed = true;
+        let Some(test) = self.test.as_ref() else {
+            return Ok(());
+        };
+        let rays_per_pose = view.dim(0)? / pose.g.dim(0)?;
+        let p = ray / rays_per_pose;
+        let far = test.far_point(p)?;
+        let pts = Tensor::from_vec(far.to_vec(), (1, 3), view.device())?;
+        let view_c = view.narrow(0, ray, 1)?;
+        let (rgb, sigma) = net.eval_points(pose, p, &pts, &view_c, None)?;
+        self.evaluated += 1;
+        let sigma0 = sigma
+            .flatten_all()?
+            .to_dtype(DType::F32)?
+            .to_vec1::<f32>()?[0];
+        if sigma0 <= 0.0 {
+            consts.shared = true;
+            consts.rows = 1;
+            consts.rgb = vec![rgb.detach()];
+            consts.sigma = vec![sigma.detach()];
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::render::cull::WindowTest;
+    use candle_core::Device;
+    use pma_data::skeleton::N_JOINTS;
+
+    /// The rows of each network call as a gather per call builds them: per pose, the kept
+    /// samples in chunks, the far-away points after the last chunk.
+    fn per_call_rows(
+        test: &WindowTest,
+        host: &[f32],
+        view: &[f32],
+        vdim: usize,
+        (r, s, n_poses): (usize, usize, usize),
+        fates: &[SampleFate],
+        far_rays: &[usize],
+    ) -> Vec<(usize, Vec<f32>, Vec<f32>, usize)> {
+        let k = r / n_poses;
+        let mut out = Vec::new();
+        for p in 0..n_poses {
+            let idx: Vec<usize> = (p * k * s..(p + 1) * k * s)
+                .filter(|&i| fates[i] == SampleFate::Evaluate)
+                .collect();
+            let far_p: Vec<usize> = far_rays
+                .iter()
+                .copied()
+                .filter(|&ray| ray / k == p)
+                .collect();
+            if idx.is_empty() && far_p.is_empty() {
+                continue;
+            }
+            let parts: Vec<&[usize]> = if idx.is_empty() {
+                vec![&[]]
+            } else {
+                idx.chunks(INFERENCE_POINT_CHUNK).collect()
+            };
+            for (c, part) in parts.iter().enumerate() {
+                let mut rows: Vec<f32> = part
+                    .iter()
+                    .flat_map(|&i| host[3 * i..3 * i + 3].to_vec())
+                    .collect();
+                let mut rays: Vec<usize> = part.iter().map(|&i| i / s).collect();
+                if c + 1 == parts.len() {
+                    for &ray in &far_p {
+                        rows.extend(test.far_point(p).unwrap());
+                        rays.push(ray);
+                    }
+                }
+                let v = rays
+                    .iter()
+                    .flat_map(|&ray| view[vdim * ray..vdim * (ray + 1)].to_vec())
+                    .collect();
+                out.push((p, rows, v, part.len()));
+            }
+        }
+        out
+    }
+
+    /// Gathering once per pass changes no network call: same pose, same rows bit for bit,
+    /// same size, with several calls per pose, far-away points and a threshold of 0.2.
+    #[test]
+    fn one_gather_per_pass_feeds_every_call_the_rows_of_a_gather_per_call() {
+        let dev = Device::Cpu;
+        let mut eye = vec![0f32; N_JOINTS * 16];
+        for j in 0..N_JOINTS {
+            for d in 0..4 {
+                eye[j * 16 + 5 * d] = 1.0;
+            }
+        }
+        let n_poses = 2;
+        let test = WindowTest::new(
+            &eye,
+            &eye.repeat(n_poses),
+            &vec![0.7f32; N_JOINTS * 3],
+            2.0,
+            6,
+            0.2,
+        )
+        .unwrap();
+        let (r, s, vdim) = (2 * 1200, 16, 5);
+        let mut state = 12345u64;
+        let mut rnd = || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((state >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
+        };
+        let host: Vec<f32> = (0..r * s * 3).map(|_| rnd()).collect();
+        let view_host: Vec<f32> = (0..r * vdim).map(|_| rnd()).collect();
+        let pts = Tensor::from_vec(host.clone(), (r, s, 3), &dev).unwrap();
+        let view = Tensor::from_vec(view_host.clone(), (r, vdim), &dev).unwrap();
+        let mut alive = vec![true; r];
+        alive[7] = false;
+        alive[1500] = false;
+        let fates = test.fates(&host, r, s, Some(&alive)).unwrap();
+        let kept = fates.iter().filter(|f| **f == SampleFate::Evaluate).count();
+        let outside = fates.iter().filter(|f| **f == SampleFate::Outside).count();
+        assert!(
+            kept > 2 * INFERENCE_POINT_CHUNK && outside > 0,
+            "kept {kept}, outside {outside}"
+        );
+        let far_rays: Vec<usize> = (0..r)
+            .filter(|&ray| fates[ray * s..(ray + 1) * s].contains(&SampleFate::Outside))
+            .step_by(3)
+            .collect();
+        let ctx = CullCtx {
+            test: Some(test.clone()),
+            ray_alive: Some(alive),
+            fill: SampleFill::Network,
+            consts: ConstRows::default(),
+            evaluated: 0,
+        };
+        let bits = |x: &[f32]| x.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+        let reference = per_call_rows(
+            &test,
+            &host,
+            &view_host,
+            vdim,
+            (r, s, n_poses),
+            &fates,
+            &far_rays,
+        );
+        let plan = ctx
+            .plan(n_poses, &pts, &view, &fates, &far_rays, true)
+            .unwrap();
+        assert_eq!(plan.jobs.len(), reference.len());
+        assert!(reference.len() > n_poses, "some pose needs several calls");
+        for (job, (p, rows, v, len)) in plan.jobs.iter().zip(&reference) {
+            let n = job.len + job.far_rays.len();
+            assert_eq!((job.p, job.len, n), (*p, *len, rows.len() / 3));
+            let got = plan.pts.narrow(0, job.start, n).unwrap();
+            let got_v = plan.view.narrow(0, job.start, n).unwrap();
+            let got: Vec<f32> = got.flatten_all().unwrap().to_vec1().unwrap();
+            let got_v: Vec<f32> = got_v.flatten_all().unwrap().to_vec1().unwrap();
+            assert_eq!(bits(&got), bits(rows));
+            assert_eq!(bits(&got_v), bits(v));
+        }
+    }
+}

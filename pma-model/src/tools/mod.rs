@@ -1,0 +1,11 @@
+//! Tools on a trained avatar: meshes, numerical-stability probes, motion retargeting.
+//!
+//! | module | what |
+//! | --- | --- |
+//! | [`mesh`] | density field on a grid, marching cubes, PLY, a preview picture |
+//! | [`stability`] | the extreme-case probes of `pma check-stability` |
+//! | [`retarget`] | real motion (AIST++, CMU) onto the avatar's skeleton |
+
+pub mod mesh;
+pub mod retarget;
+pub mod stability;
