@@ -67,14 +67,35 @@ enum Command {
 
 /// Errors go to stderr as one `error: ...` line with their causes, as clap reports usage
 /// errors. Exit status (one rule for every command, see `cli::exit_code`): 0 success,
-/// 2 input refused, 130 interrupted by Ctrl-C, 1 any other failure.
+/// 2 input refused, 130/143/129 interrupted by SIGINT/SIGTERM/SIGHUP, 1 any other failure.
 fn main() -> ExitCode {
     let cli = Cli::parse();
     cli::install_interrupt_handler();
-    // Before any candle op: candle sizes its thread pool once.
-    pma_model::compute::parallel::configure_cpu(cli.workers);
-    pma_model::compute::fast_sine::set_enabled(cli.fast_sine);
-    let result = match cli.command {
+    let result = cli::check_workers(cli.workers).and_then(|()| {
+        // Before any candle op: candle sizes its thread pool once.
+        pma_model::compute::parallel::configure_cpu(cli.workers);
+        pma_model::compute::fast_sine::set_enabled(cli.fast_sine);
+        run(cli.command)
+    });
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            let code = cli::exit_code(&e);
+            let line = if pma_data::ErrorKind::Interrupted == cli::error_kind(&e) {
+                cli::interrupted_report(&e)
+            } else {
+                format!("error: {}", cli::report(&e))
+            };
+            // Best effort: stderr may be gone (a terminal closed with SIGHUP).
+            use std::io::Write as _;
+            let _ = writeln!(std::io::stderr(), "{line}");
+            ExitCode::from(code)
+        }
+    }
+}
+
+fn run(command: Command) -> anyhow::Result<()> {
+    match command {
         Command::Synth(a) => cli::synth::run(a),
         Command::Inspect(a) => cli::inspect::run(a),
         Command::Forward(a) => cli::forward::run(a),
@@ -88,17 +109,5 @@ fn main() -> ExitCode {
         Command::Mesh(a) => cli::mesh::run(a),
         Command::Bench(a) => cli::bench::run(a),
         Command::CheckStability(a) => cli::check_stability::run(a),
-    };
-    match result {
-        Ok(()) => ExitCode::SUCCESS,
-        Err(e) => {
-            let code = cli::exit_code(&e);
-            if code == cli::EXIT_INTERRUPTED {
-                eprintln!("{}", cli::interrupted_report(&e));
-            } else {
-                eprintln!("error: {}", cli::report(&e));
-            }
-            ExitCode::from(code)
-        }
     }
 }

@@ -12,13 +12,16 @@
 
 use std::{
     collections::HashMap,
+    io::Write,
     path::{Path, PathBuf},
 };
+
+use pma_data::fsio::{commit_all, AtomicFile};
 
 use candle_core::{Device, Tensor};
 use pma_model::{
     error::ModelError,
-    network::checkpoint::{check_tensors, param_names, save},
+    network::checkpoint::{check_tensors, param_names, to_bytes},
     train::state::fingerprint,
     Config,
 };
@@ -187,7 +190,11 @@ pub fn checked_config(path: &Path, model: &[(String, RawTensor)]) -> Result<Conf
 
 /// `pma convert checkpoint`: reads `input` (`.th`), writes a pma checkpoint to
 /// `output` and, with `opts.with_optimizer`, the training state beside it.
-/// Both files are written atomically; nothing is written if any check fails.
+/// Nothing is written if any check fails; the pair is committed together
+/// (`pma_data::fsio::commit_all`): both files are complete and synced before
+/// either is renamed into place, the model last, so a failed write (a full disk)
+/// leaves neither. The train state carries the model's fingerprint, which
+/// catches a pair split by a crash between the two renames.
 pub fn convert_checkpoint(
     input: &Path,
     output: &Path,
@@ -207,7 +214,7 @@ pub fn convert_checkpoint(
         let tensor = t.to_candle(&Device::Cpu).map_err(ModelError::Candle)?;
         tensors.insert(name.clone(), tensor);
     }
-    save(output, &tensors, &cfg)?;
+    let model_bytes = to_bytes(output, &tensors, &cfg)?;
     let n_parameters = param_names(&cfg)
         .iter()
         .map(|n| tensors[n].elem_count())
@@ -221,13 +228,24 @@ pub fn convert_checkpoint(
         train_state: None,
         n_moments: 0,
     };
+    let mut files = Vec::new();
     if let Some(mut state) = state {
-        let model_bytes = std::fs::read(output).map_err(|e| ConvertError::io(output, e))?;
         state.model_fingerprint = Some(fingerprint(&model_bytes));
         let side = sidecar_path(output);
-        state.save(&side)?;
+        files.push(staged(&side, &state.to_bytes(&side)?)?);
         report.n_moments = ck.optimizer.as_ref().map_or(0, |o| o.state.len());
         report.train_state = Some(side);
     }
+    files.push(staged(output, &model_bytes)?);
+    commit_all(files).map_err(|e| ConvertError::write(output, e))?;
     Ok(report)
+}
+
+/// `bytes` in a temporary file beside `path`, to be committed with the others.
+fn staged(path: &Path, bytes: &[u8]) -> Result<AtomicFile> {
+    let f = AtomicFile::create(path).map_err(|e| ConvertError::write(path, e))?;
+    f.writer()
+        .write_all(bytes)
+        .map_err(|e| ConvertError::write(path, e))?;
+    Ok(f)
 }

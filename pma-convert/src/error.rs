@@ -7,8 +7,16 @@ use std::path::PathBuf;
 /// fields rather than `#[source]` chains that a reporter would print twice.
 #[derive(Debug, thiserror::Error)]
 pub enum ConvertError {
+    /// Reading an input failed.
     #[error("{path}: {cause}")]
     Io {
+        path: PathBuf,
+        cause: std::io::Error,
+    },
+
+    /// Writing the output failed (a full disk, no permission); nothing was written.
+    #[error("writing {path}: {cause}")]
+    Write {
         path: PathBuf,
         cause: std::io::Error,
     },
@@ -138,36 +146,41 @@ impl From<pma_model::error::ModelError> for ConvertError {
     }
 }
 
-impl ConvertError {
-    /// The file of an operating-system I/O failure (reading or writing), if
-    /// that is what this error is. Everything else is about the content of an
-    /// input. The CLI uses this to tell bad input (exit 2) from a failure to
-    /// write the output (exit 1): an I/O error on an input file is still bad
-    /// input (missing, unreadable, truncated).
-    pub fn io_path(&self) -> Option<&std::path::Path> {
+impl pma_data::ExitKind for ConvertError {
+    fn kind(&self) -> pma_data::ErrorKind {
+        use pma_data::ErrorKind;
         match self {
-            Self::Io { path, .. } => Some(path),
+            Self::Io { cause, .. } => pma_data::error::input_io_kind(cause),
             Self::Zip {
-                path,
-                cause: zip::result::ZipError::Io(_),
-            } => Some(path),
-            Self::Data(e) => match &**e {
-                pma_data::DataError::Io { path, .. } => Some(path),
-                _ => None,
-            },
-            Self::Motion(e) => match &**e {
-                pma_data::motion::MotionError::Io { path, .. } => Some(path),
-                _ => None,
-            },
-            Self::Train(e) => match &**e {
-                pma_model::train::TrainError::Io { path, .. } => Some(path),
-                _ => None,
-            },
-            Self::Model(e) => match &**e {
-                pma_model::error::ModelError::Io { path, .. } => Some(path),
-                _ => None,
-            },
-            _ => None,
+                cause: zip::result::ZipError::Io(io),
+                ..
+            } => pma_data::error::input_io_kind(io),
+            Self::Write { .. } => ErrorKind::Failure,
+            Self::Data(e) => e.kind(),
+            Self::Motion(e) => e.kind(),
+            Self::Train(e) => e.kind(),
+            Self::Model(e) => e.kind(),
+            Self::Interrupted(_) => ErrorKind::Interrupted,
+            Self::Zip { .. }
+            | Self::Format { .. }
+            | Self::ForbiddenOpcode { .. }
+            | Self::ForbiddenGlobal { .. }
+            | Self::Pickle { .. }
+            | Self::MissingKey { .. }
+            | Self::Mismatch { .. }
+            | Self::Invalid { .. }
+            | Self::Hdf5 { .. }
+            | Self::Safetensors { .. }
+            | Self::Usage(_) => ErrorKind::Refused,
+        }
+    }
+}
+
+impl ConvertError {
+    pub(crate) fn write(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
+        Self::Write {
+            path: path.into(),
+            cause: source,
         }
     }
 

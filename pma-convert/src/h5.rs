@@ -71,7 +71,9 @@ pub struct H5File {
 
 impl H5File {
     pub fn open(path: &Path) -> Result<Self> {
-        let len = std::fs::metadata(path)
+        // Opened and checked first: a FIFO or a device is refused before the HDF5 reader opens it.
+        let len = pma_data::fsio::open_input(path)
+            .and_then(|f| f.metadata())
             .map_err(|e| ConvertError::io(path, e))?
             .len();
         let limit = len.saturating_mul(MAX_EXPANSION).max(MIN_READ_LIMIT);

@@ -14,6 +14,10 @@ pub mod torch;
 pub mod train_state;
 
 pub use error::{ConvertError, Result};
+
+/// The largest pickle, `.npy` or SMPL file a converter reads into memory (4 GiB); larger
+/// inputs are refused before they are read.
+pub const MAX_INPUT_BYTES: u64 = 4 << 30;
 pub use raw::RawTensor;
 
 /// A file's extension in lower case (empty when it has none), which picks its reader.

@@ -114,7 +114,11 @@ pub fn read_rest_pose(path: &Path) -> Result<Joints> {
     let ext = crate::extension(path);
     let (shape, values): (Vec<usize>, Vec<f32>) = match ext.as_str() {
         "safetensors" => {
-            let bytes = std::fs::read(path).map_err(|e| ConvertError::io(path, e))?;
+            let bytes = pma_data::fsio::read_input(
+                path,
+                pma_model::network::checkpoint::MAX_CHECKPOINT_BYTES,
+            )
+            .map_err(|e| ConvertError::io(path, e))?;
             let st =
                 SafeTensors::deserialize(&bytes).map_err(|source| ConvertError::Safetensors {
                     path: path.to_path_buf(),

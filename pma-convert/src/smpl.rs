@@ -205,7 +205,8 @@ const MODEL_KEYS: [&str; 8] = [
 ];
 
 fn read_pkl(path: &Path) -> Result<BTreeMap<String, Dense>> {
-    let bytes = std::fs::read(path).map_err(|e| ConvertError::io(path, e))?;
+    let bytes = pma_data::fsio::read_input(path, crate::MAX_INPUT_BYTES)
+        .map_err(|e| ConvertError::io(path, e))?;
     let name = path
         .file_name()
         .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
@@ -229,7 +230,7 @@ fn read_pkl(path: &Path) -> Result<BTreeMap<String, Dense>> {
 }
 
 fn read_npz(path: &Path) -> Result<BTreeMap<String, Dense>> {
-    let f = std::fs::File::open(path).map_err(|e| ConvertError::io(path, e))?;
+    let f = pma_data::fsio::open_input(path).map_err(|e| ConvertError::io(path, e))?;
     let mut zip = zip::ZipArchive::new(f).map_err(|cause| ConvertError::Zip {
         path: path.to_path_buf(),
         cause,

@@ -7,10 +7,82 @@ use std::path::PathBuf;
 /// Result alias for the data layer.
 pub type Result<T, E = DataError> = std::result::Result<T, E>;
 
+/// What an error means for the one who ran the command: the exit status of every pma
+/// command follows from it (`pma` maps [`ErrorKind::Refused`] to 2,
+/// [`ErrorKind::Interrupted`] to 128 + the signal, [`ErrorKind::Failure`] to 1).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ErrorKind {
+    /// The input or the command is wrong (a missing, corrupt or hostile file, a flag out of
+    /// range, an output path that cannot be used): the user has to change it.
+    Refused,
+    /// The work was stopped on request (Ctrl-C, SIGTERM, SIGHUP).
+    Interrupted,
+    /// Everything else: the environment (a full disk, an I/O error) or the work itself.
+    Failure,
+}
+
+/// An error type that says which [`ErrorKind`] it is. Every library error of pma
+/// implements it; front ends map the kind to their own reporting.
+pub trait ExitKind {
+    fn kind(&self) -> ErrorKind;
+}
+
+/// The kind of an I/O error met while reading an input: a path that does not lead to a
+/// readable file (missing, a directory, no permission, a symlink loop, a name too long, not
+/// a regular file) or content that is not what it claims (truncated, invalid) is refused
+/// input; anything else (a device error, out of memory) is a failure.
+pub fn input_io_kind(e: &std::io::Error) -> ErrorKind {
+    use std::io::ErrorKind as K;
+    let refused = matches!(
+        e.kind(),
+        K::NotFound
+            | K::PermissionDenied
+            | K::InvalidData
+            | K::InvalidInput
+            | K::UnexpectedEof
+            | K::IsADirectory
+            | K::NotADirectory
+    );
+    #[cfg(unix)]
+    let refused = refused
+        || matches!(
+            e.raw_os_error(),
+            Some(libc::ELOOP | libc::ENAMETOOLONG | libc::ENOTDIR | libc::EISDIR | libc::EACCES)
+        );
+    if refused {
+        ErrorKind::Refused
+    } else {
+        ErrorKind::Failure
+    }
+}
+
+/// `msg` on one line: line breaks (and the indentation after them) become "; ", list
+/// bullets are dropped. Every message pma prints for a refused input is one line.
+pub fn one_line(msg: &str) -> String {
+    let mut out = String::with_capacity(msg.len());
+    for line in msg.lines().map(str::trim).filter(|l| !l.is_empty()) {
+        let item = line.strip_prefix("- ").unwrap_or(line);
+        if !out.is_empty() {
+            out.push_str(if out.ends_with(':') { " " } else { "; " });
+        }
+        out.push_str(item);
+    }
+    out
+}
+
 #[derive(Debug, thiserror::Error)]
 pub enum DataError {
+    /// Reading an input failed (see [`input_io_kind`]).
     #[error("{path}: {source}")]
     Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+
+    /// Writing an output failed (a full disk, no permission): a failure, not bad input.
+    #[error("writing {path}: {source}")]
+    Write {
         path: PathBuf,
         #[source]
         source: std::io::Error,
@@ -112,6 +184,10 @@ pub enum DataError {
         found: String,
     },
 
+    /// The process-wide interrupt flag was raised while a file was read or written.
+    #[error("{0}")]
+    Interrupted(#[from] crate::interrupt::Interrupted),
+
     /// Invalid arguments to a data-layer function (sizes that do not fit, ...).
     #[error("invalid argument `{name}`: expected {expected}, found {found}")]
     Argument {
@@ -121,7 +197,25 @@ pub enum DataError {
     },
 }
 
+impl ExitKind for DataError {
+    fn kind(&self) -> ErrorKind {
+        match self {
+            DataError::Io { source, .. } => input_io_kind(source),
+            DataError::Write { .. } => ErrorKind::Failure,
+            DataError::Interrupted(_) => ErrorKind::Interrupted,
+            _ => ErrorKind::Refused,
+        }
+    }
+}
+
 impl DataError {
+    pub(crate) fn write(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
+        DataError::Write {
+            path: path.into(),
+            source,
+        }
+    }
+
     pub(crate) fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
         DataError::Io {
             path: path.into(),

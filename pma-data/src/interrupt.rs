@@ -11,13 +11,29 @@
 //! of several runs each in its own process. Once raised it stays raised ([`reset`] is for
 //! front ends that handle the interruption and carry on).
 
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicI32, Ordering};
 
 static REQUESTED: AtomicBool = AtomicBool::new(false);
+static SIGNAL: AtomicI32 = AtomicI32::new(0);
 
-/// Ask every long loop of the process to stop at its next check.
+/// SIGINT's number, the signal [`request`] stands for.
+pub const SIGINT: i32 = 2;
+
+/// Ask every long loop of the process to stop at its next check (as Ctrl-C does).
 pub fn request() {
+    request_by(SIGINT);
+}
+
+/// [`request`], recording the signal that asked (the first one counts): a front end exits
+/// with 128 + [`signal`] as a shell would report it.
+pub fn request_by(signal: i32) {
+    let _ = SIGNAL.compare_exchange(0, signal, Ordering::SeqCst, Ordering::SeqCst);
     REQUESTED.store(true, Ordering::SeqCst);
+}
+
+/// The signal of the first request (SIGINT = 2 for [`request`]); 0 when none was made.
+pub fn signal() -> i32 {
+    SIGNAL.load(Ordering::SeqCst)
 }
 
 /// Whether [`request`] was called (and not [`reset`] since).
@@ -28,6 +44,7 @@ pub fn requested() -> bool {
 /// Lower the flag again.
 pub fn reset() {
     REQUESTED.store(false, Ordering::SeqCst);
+    SIGNAL.store(0, Ordering::SeqCst);
 }
 
 /// `Err(Interrupted)` once an interruption is requested.
@@ -43,6 +60,12 @@ pub fn check() -> Result<(), Interrupted> {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
 #[error("interrupted")]
 pub struct Interrupted;
+
+impl crate::error::ExitKind for Interrupted {
+    fn kind(&self) -> crate::error::ErrorKind {
+        crate::error::ErrorKind::Interrupted
+    }
+}
 
 /// Whether `e` or one of its sources is [`Interrupted`].
 pub fn caused(e: &(dyn std::error::Error + 'static)) -> bool {

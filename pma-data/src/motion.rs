@@ -78,6 +78,15 @@ pub enum MotionError {
     },
 }
 
+impl crate::error::ExitKind for MotionError {
+    fn kind(&self) -> crate::error::ErrorKind {
+        match self {
+            MotionError::Io { source, .. } => crate::error::input_io_kind(source),
+            _ => crate::error::ErrorKind::Refused,
+        }
+    }
+}
+
 /// A sequence of SMPL poses.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Motion {

@@ -68,7 +68,8 @@ pub enum SynthError {
         expected: String,
         found: String,
     },
-    #[error("{path}: {source}")]
+    /// Writing the scene's files failed.
+    #[error("writing {path}: {source}")]
     Io {
         path: PathBuf,
         #[source]
@@ -79,6 +80,20 @@ pub enum SynthError {
     /// The process-wide interrupt flag was raised (see [`crate::interrupt`]).
     #[error("{0}")]
     Interrupted(#[from] crate::interrupt::Interrupted),
+}
+
+impl crate::error::ExitKind for SynthError {
+    fn kind(&self) -> crate::error::ErrorKind {
+        use crate::error::ErrorKind;
+        match self {
+            SynthError::Data(d) => d.kind(),
+            SynthError::Motion(m) => m.kind(),
+            SynthError::Config { .. } => ErrorKind::Refused,
+            // The scene is built in; its only files are the ones it writes.
+            SynthError::Io { .. } | SynthError::Encode { .. } => ErrorKind::Failure,
+            SynthError::Interrupted(_) => ErrorKind::Interrupted,
+        }
+    }
 }
 
 fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> SynthError + '_ {

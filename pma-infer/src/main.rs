@@ -132,10 +132,10 @@ fn run(args: &Args) -> Result<(), BoxError> {
 /// Encode, then replace `path` atomically.
 fn write_png(img: &image::RgbImage, path: &Path) -> Result<(), BoxError> {
     let named = |e: &dyn std::fmt::Display| format!("{}: {e}", path.display());
-    let mut tmp =
+    let tmp =
         AtomicFile::create(path).map_err(|e| format!("{}: {e}", parent_dir(path).display()))?;
     img.write_to(
-        &mut std::io::BufWriter::new(tmp.file_mut()),
+        &mut std::io::BufWriter::new(tmp.writer()),
         image::ImageFormat::Png,
     )
     .map_err(|e| named(&e))?;

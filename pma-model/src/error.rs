@@ -7,6 +7,7 @@ use std::path::PathBuf;
 
 #[derive(Debug, thiserror::Error)]
 pub enum ModelError {
+    /// Reading an input failed.
     #[error("{path}: {source}")]
     Io {
         path: PathBuf,
@@ -14,9 +15,18 @@ pub enum ModelError {
         source: std::io::Error,
     },
 
+    /// Writing an output failed (a full disk, no permission).
+    #[error("writing {path}: {source}")]
+    Write {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+
     /// A checkpoint is unusable; `problems` lists every issue found (missing, unexpected and
-    /// mis-shaped tensors, bad metadata), not just the first.
-    #[error("checkpoint {path}: {} problem(s):\n  - {}", problems.len(), problems.join("\n  - "))]
+    /// mis-shaped tensors, bad metadata), not just the first. The message is one line: the
+    /// first problem and how many more there are.
+    #[error("checkpoint {path}: {}", summarize(problems))]
     Checkpoint {
         path: PathBuf,
         problems: Vec<String>,
@@ -55,6 +65,42 @@ pub enum ModelError {
     /// The process-wide interrupt flag was raised (see [`crate::interrupt`]).
     #[error("{0}")]
     Interrupted(#[from] pma_data::interrupt::Interrupted),
+}
+
+/// The first problem of a list, the count of the others, and a closing note (an entry in
+/// parentheses) if the list ends with one: one line for a message.
+pub fn summarize(problems: &[String]) -> String {
+    let (note, list) = match problems.split_last() {
+        Some((last, rest)) if last.starts_with('(') && !rest.is_empty() => (Some(last), rest),
+        _ => (None, problems),
+    };
+    let mut out = match list {
+        [] => "unusable".to_string(),
+        [one] => one.clone(),
+        [first, rest @ ..] => format!("{first} (and {} more problem(s))", rest.len()),
+    };
+    if let Some(n) = note {
+        out.push(' ');
+        out.push_str(n);
+    }
+    pma_data::error::one_line(&out)
+}
+
+impl pma_data::ExitKind for ModelError {
+    fn kind(&self) -> pma_data::ErrorKind {
+        use pma_data::ErrorKind;
+        match self {
+            ModelError::Io { source, .. } => pma_data::error::input_io_kind(source),
+            ModelError::Write { .. } | ModelError::Candle(_) => ErrorKind::Failure,
+            ModelError::Checkpoint { .. }
+            | ModelError::Safetensors { .. }
+            | ModelError::Config(_)
+            | ModelError::Shape { .. }
+            | ModelError::Input(_) => ErrorKind::Refused,
+            ModelError::Data(d) => d.kind(),
+            ModelError::Interrupted(_) => ErrorKind::Interrupted,
+        }
+    }
 }
 
 impl ModelError {

@@ -109,6 +109,12 @@ mod imp {
         if args.variants.is_empty() {
             return Err(Refused::new("--variants: name at least one variant").into());
         }
+        super::super::check_minutes("--minutes", Some(args.minutes))?;
+        super::super::check_paths(
+            pma_data::fsio::PathCheck::new()
+                .input_opt("--data", args.data.as_deref())
+                .output_dir("--out", &args.out, ["ablation.json", "ablation.md"]),
+        )?;
         std::fs::create_dir_all(&args.out)
             .with_context(|| format!("creating {}", args.out.display()))?;
         let train_data = match &args.data {

@@ -519,9 +519,27 @@ mod imp {
         if args.repeats < 1 {
             refuse!("--repeats must be >= 1");
         }
-        if args.res < 8 {
-            refuse!("--res must be >= 8, found {}", args.res);
+        if !(8..=4096).contains(&args.res) {
+            refuse!("--res must be in 8..=4096, found {}", args.res);
         }
+        if args.repeats > 1000 {
+            refuse!("--repeats must be <= 1000, found {}", args.repeats);
+        }
+        for (flag, v) in [
+            ("--train-seconds", args.train_seconds),
+            ("--budget-seconds", args.budget_seconds),
+        ] {
+            if !(v.is_finite() && (0.0..=1e6).contains(&v)) {
+                refuse!("{flag} {v}: expected a finite number of seconds in [0, 1e6]");
+            }
+        }
+        super::super::check_paths(
+            pma_data::fsio::PathCheck::new()
+                .input_opt("--model", args.model.as_deref())
+                .input_opt("--forward-batch", args.forward_batch.as_deref())
+                .input_opt("--forward-model", args.forward_model.as_deref())
+                .output_dir("--out", &args.out, ["bench.json"]),
+        )?;
         for &t in &args.thresholds {
             if !(t.is_finite() && (0.0..1.0).contains(&t)) {
                 refuse!("--thresholds: {t} is not in [0, 1)");

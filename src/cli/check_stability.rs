@@ -37,8 +37,10 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> Result<()> {
+    let model = args.model.as_deref().map(super::model_path).transpose()?;
+    super::check_paths(pma_data::fsio::PathCheck::new().input_opt("--model", model.as_deref()))?;
     let device = super::device(&args.device)?;
-    let mut avatar = match &args.model {
+    let mut avatar = match &model {
         Some(path) => {
             Avatar::load(path, &device).with_context(|| format!("loading {}", path.display()))?
         }

@@ -17,8 +17,6 @@ use pma_convert::{
 };
 use pma_data::dataset::{Compression, Profile};
 
-use super::Refused;
-
 #[derive(clap::Args)]
 #[command(
     after_help = "Exit status: 0 on success; 2 when an input is refused (one line on stderr names the file, the key or byte offset, and what was expected vs found; no output is written); 1 when the output cannot be written."
@@ -218,59 +216,66 @@ fn layout(l: LayoutArg) -> Layout {
     }
 }
 
-/// A conversion refused because an input is bad (corrupt, truncated, hostile, wrong
-/// keys/shapes/values, missing) is [`Refused`] (exit status 2); a failure that is not the
-/// input's fault (the output cannot be written: permissions, a full disk) exits 1. The
-/// message is flattened to one line so scripts can read it; our errors name the file.
+/// Checks the paths (inputs exist and are regular files, the output is not an input and
+/// can be created) and the flags, then converts. Every error says itself what it is (see
+/// `pma_convert::ConvertError`'s `ExitKind`): refused input exits 2, a failure to write the
+/// output 1, an interruption 130; the message is one line naming the file.
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let inputs = args.what.inputs();
-    convert(args).map_err(|e| {
-        if let ConvertError::Interrupted(i) = e {
-            return i.into();
-        }
-        let line = one_line(&e.to_string());
-        if is_bad_input(&e, &inputs) {
-            Refused::new(line).into()
-        } else {
-            anyhow::Error::msg(line)
-        }
-    })
+    args.what.check()?;
+    Ok(convert(args)?)
 }
+
+/// The highest `--fps`/`--npz-fps` accepted: motion capture runs at 30-120 fps.
+const MAX_FPS: f64 = 1000.0;
 
 impl What {
-    /// Files the conversion reads; an I/O error on one of them is bad input.
-    fn inputs(&self) -> Vec<PathBuf> {
-        match self {
-            What::Checkpoint { input, .. } | What::Dataset { input, .. } => vec![input.clone()],
-            What::Capture { dir, smpl, .. } => vec![dir.clone(), smpl.clone()],
+    /// Paths and flags, before any work.
+    fn check(&self) -> anyhow::Result<()> {
+        use pma_data::fsio::PathCheck;
+        let paths = match self {
+            What::Checkpoint {
+                input,
+                output,
+                with_optimizer,
+            } => {
+                let side = pma_convert::train_state::sidecar_path(output);
+                PathCheck::new()
+                    .input("checkpoint", input)
+                    .output("--output", output)
+                    .output_opt("--with-optimizer", with_optimizer.then_some(side.as_path()))
+            }
+            What::Dataset { input, output, .. } => PathCheck::new()
+                .input("dataset", input)
+                .output("--output", output),
+            What::Capture {
+                dir, smpl, output, ..
+            } => PathCheck::new()
+                .input_dir("capture", dir)
+                .input("--smpl", smpl)
+                .output("--output", output),
             What::Motion {
-                input, rest_pose, ..
-            } => std::iter::once(input.clone())
-                .chain(rest_pose.clone())
-                .collect(),
-        }
+                input,
+                output,
+                rest_pose,
+                fps,
+                npz_fps,
+                ..
+            } => {
+                for (flag, v) in [("--fps", *fps), ("--npz-fps", Some(*npz_fps))] {
+                    if let Some(v) = v {
+                        if !(v.is_finite() && v > 0.0 && v <= MAX_FPS) {
+                            super::refuse!("{flag} {v}: expected a frame rate in (0, {MAX_FPS}]");
+                        }
+                    }
+                }
+                PathCheck::new()
+                    .input("motion", input)
+                    .input_opt("--rest-pose", rest_pose.as_deref())
+                    .output("--output", output)
+            }
+        };
+        super::check_paths(paths)
     }
-}
-
-fn is_bad_input(e: &ConvertError, inputs: &[PathBuf]) -> bool {
-    match e.io_path() {
-        // A capture's inputs are the files under its folder.
-        Some(p) => inputs.iter().any(|i| p.starts_with(i)),
-        None => true,
-    }
-}
-
-/// Joins a multi-line message (a checkpoint's list of problems) into one line.
-fn one_line(msg: &str) -> String {
-    let mut out = String::with_capacity(msg.len());
-    for line in msg.lines().map(str::trim).filter(|l| !l.is_empty()) {
-        let item = line.strip_prefix("- ").unwrap_or(line);
-        if !out.is_empty() {
-            out.push_str(if out.ends_with(':') { " " } else { "; " });
-        }
-        out.push_str(item);
-    }
-    out
 }
 
 fn convert(args: Args) -> Result<(), ConvertError> {

@@ -122,6 +122,12 @@ pub(crate) mod imp {
 
     pub fn run(args: Args) -> anyhow::Result<()> {
         let preset: Preset = args.preset.parse()?;
+        super::super::check_minutes("--minutes", Some(args.minutes))?;
+        super::super::check_paths(pma_data::fsio::PathCheck::new().output_dir(
+            "--out",
+            &args.out,
+            ["summary.json", PLOT_FILE],
+        ))?;
         // Opened first: a device this build cannot use is refused before any work.
         let device = super::super::device(&args.device)?;
         let out = args.out.clone();

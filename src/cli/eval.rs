@@ -21,7 +21,7 @@ use super::{read_dataset, write_json};
 
 #[derive(clap::Args, Debug, Clone)]
 pub struct Args {
-    /// Trained model (`RUN/model.safetensors`).
+    /// Trained model (`RUN/model.safetensors`, or the run directory: its newest complete model).
     #[arg(long)]
     pub model: PathBuf,
     /// Dataset: a pma-npz file, or a directory from `pma synth` holding `<split>.npz`.
@@ -71,23 +71,57 @@ pub struct Args {
     pub tf32: bool,
 }
 
-pub fn run(args: Args) -> anyhow::Result<()> {
+pub fn run(mut args: Args) -> anyhow::Result<()> {
+    if !(1..=pma_model::render::MAX_CHUNK_RAYS).contains(&args.chunk) {
+        super::refuse!(
+            "--chunk {} must be in 1..={}",
+            args.chunk,
+            pma_model::render::MAX_CHUNK_RAYS
+        );
+    }
+    if args.pngs > 10_000 {
+        super::refuse!("--pngs {}: at most 10000", args.pngs);
+    }
+    // A run directory: the PNGs go beside its published model.
+    let run_dir = args.model.is_dir().then(|| args.model.clone());
+    args.model = super::model_path(&args.model)?;
+    let (data_path, split) = resolve_split(&args.data, &args.split)?;
+    let out = args.out.clone().unwrap_or_else(|| {
+        run_dir
+            .as_deref()
+            .unwrap_or(args.model.parent().unwrap_or(Path::new(".")))
+            .join(format!("eval_{}", split.name))
+    });
+    let baseline_path = baseline_source(&args, &data_path);
+    super::check_paths(
+        pma_data::fsio::PathCheck::new()
+            .input("--model", &args.model)
+            .input("--data", &data_path)
+            .input_opt("--train-data", baseline_path.as_deref())
+            .output_dir("--out", &out, ["eval.json"])
+            .output_opt("--freq-png", args.freq_png.as_deref()),
+    )?;
     let device = super::device_tf32(&args.device, args.tf32)?;
     let mut avatar = Avatar::load(&args.model, &device)
         .with_context(|| format!("loading model {}", args.model.display()))?;
     avatar.set_culling(args.cull.clone())?;
-    let (data_path, split) = resolve_split(&args.data, &args.split)?;
     let data = read_dataset(&data_path, Profile::Eval)?;
     let images = split_images(&data, &data_path, &split)?;
     let images = spread(&images, args.max_images.unwrap_or(usize::MAX));
-    let out = args.out.clone().unwrap_or_else(|| {
-        args.model
-            .parent()
-            .unwrap_or(Path::new("."))
-            .join(format!("eval_{}", split.name))
-    });
+    // The side-by-side PNGs must not replace an input either.
+    let pngs: Vec<String> = spread(&images, args.pngs)
+        .iter()
+        .map(|n| format!("{}_{n:04}.png", split.name))
+        .collect();
+    super::check_paths(
+        pma_data::fsio::PathCheck::new()
+            .input("--model", &args.model)
+            .input("--data", &data_path)
+            .input_opt("--train-data", baseline_path.as_deref())
+            .output_dir("--out", &out, pngs),
+    )?;
     std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
-    let baseline = match baseline_source(&args, &data_path) {
+    let baseline = match baseline_path {
         Some(p) => Some(mean_foreground_colour(&read_dataset(&p, Profile::Eval)?)?),
         None => None,
     };

@@ -22,9 +22,12 @@ use pma_model::render::avatar::{Avatar, Mode, Outputs, Poses, Rays};
 
 #[derive(clap::Args)]
 pub struct Args {
-    /// Model checkpoint (.safetensors).
+    /// Model checkpoint (.safetensors), or a run directory (its newest complete model).
     #[arg(long)]
     model: PathBuf,
+    /// Load a model with NaN or infinite weights (refused otherwise), to see what it computes.
+    #[arg(long)]
+    allow_non_finite: bool,
     /// Ray batch npz: rays_o, rays_d [R,3], kp3d [R,24,3], skts [R,24,4,4], bones [R,24,3],
     /// cyls [R,5], cam_idxs [R], bgs [R,3], rest_pose [24,3]; optional N_unique.
     #[arg(long)]
@@ -119,7 +122,18 @@ impl Batch {
     }
 }
 
-pub fn run(args: Args) -> Result<()> {
+pub fn run(mut args: Args) -> Result<()> {
+    if args.time > 1000 {
+        refuse!("--time {}: at most 1000 repetitions", args.time);
+    }
+    args.model = super::model_path(&args.model)?;
+    super::check_paths(
+        pma_data::fsio::PathCheck::new()
+            .input("--model", &args.model)
+            .input("--batch", &args.batch)
+            .input_opt("--sigma-override", args.sigma_override.as_deref())
+            .output("--out", &args.out),
+    )?;
     let dev = super::device_tf32(&args.device, args.tf32)?;
     let file = args.batch.display().to_string();
     let b = Batch::read(&args.batch)?;
@@ -242,7 +256,10 @@ impl Batch {
 
 /// The model, checked against the batch's rest pose, with `--sigma-override` applied.
 fn load_model(args: &Args, rest: &[f32], file: &str, dev: &candle_core::Device) -> Result<Avatar> {
-    let ck = checkpoint::load(&args.model, dev)?;
+    let opts = checkpoint::LoadOptions {
+        allow_non_finite: args.allow_non_finite,
+    };
+    let ck = checkpoint::load_with(&args.model, dev, &opts)?;
     let model_rest: Vec<f32> = ck.meta.rest_pose.iter().flatten().copied().collect();
     let rest_err = model_rest
         .iter()
@@ -325,7 +342,7 @@ fn write_outputs(out: &Outputs, path: &std::path::Path) -> Result<()> {
     let file = AtomicFile::create(path)
         .with_context(|| format!("creating a temporary file for {}", path.display()))?;
     let mut w = NpzWriter::new(
-        BufWriter::new(file.file().try_clone()?),
+        BufWriter::new(file.owned_writer()?),
         false,
         path.display().to_string(),
     );

@@ -2,6 +2,10 @@
 //! camera ranges, and the result of validating it (see `docs/conventions.md`, "Validation") for a use
 //! profile.
 //! An invalid file prints its error and exits non-zero.
+//!
+//! A model checkpoint (`.safetensors`) gets its config and, per tensor, its shape, range
+//! and count of NaN/infinite values: the one place that loads a checkpoint with
+//! non-finite weights (every other command refuses it).
 
 use std::path::{Path, PathBuf};
 
@@ -13,7 +17,8 @@ use pma_data::dataset::{frames_path_for, Dataset, Profile, ReadOptions};
 
 #[derive(clap::Args, Debug, Clone)]
 pub struct Args {
-    /// The dataset (`.npz`, or a `.scene.npz` with its `.frames.npz`).
+    /// The dataset (`.npz`, or a `.scene.npz` with its `.frames.npz`), or a model
+    /// checkpoint (`.safetensors`).
     pub file: PathBuf,
     /// Profile to validate against: motion, render, eval, train, or auto (the most demanding
     /// one whose keys the file has).
@@ -31,6 +36,14 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
+    super::check_paths(pma_data::fsio::PathCheck::new().input("file", &args.file))?;
+    if args
+        .file
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("safetensors"))
+    {
+        return inspect_checkpoint(&args.file);
+    }
     let mut keys = Vec::new();
     list_members(&args.file, &mut keys)?;
     if let Some(frames) = frames_path_for(&args.file).filter(|f| f.is_file()) {
@@ -61,6 +74,69 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     };
     summary(&ds);
     println!("validation: ok ({profile} profile)");
+    Ok(())
+}
+
+/// A checkpoint's config and tensors, non-finite values included; refused (exit 2) after
+/// the listing when a tensor holds any.
+fn inspect_checkpoint(path: &Path) -> anyhow::Result<()> {
+    use pma_model::network::checkpoint::{load_with, LoadOptions};
+    let opts = LoadOptions {
+        allow_non_finite: true,
+    };
+    let ck = load_with(path, &candle_core::Device::Cpu, &opts)?;
+    let c = &ck.config;
+    println!(
+        "{}: pma checkpoint{}, trunk {}x{}, n_pm {}, gnn width {}, n_framecodes {}, samples {} + {}",
+        path.display(),
+        if ck.meta.config_inferred {
+            " (config inferred from the shapes)"
+        } else {
+            ""
+        },
+        c.trunk_depth,
+        c.trunk_width,
+        c.n_pm,
+        c.gnn_width,
+        c.n_framecodes,
+        c.n_samples,
+        c.n_importance
+    );
+    println!(
+        "  {:<44} {:<16} {:>12} {:>12} {:>10}",
+        "tensor", "shape", "min", "max", "non-finite"
+    );
+    let mut names: Vec<&String> = ck.tensors.keys().collect();
+    names.sort();
+    let mut bad = Vec::new();
+    for name in names {
+        let t = &ck.tensors[name];
+        let v = t.flatten_all()?.to_vec1::<f32>()?;
+        let finite = v.iter().copied().filter(|x| x.is_finite());
+        let (lo, hi) = range(finite).unwrap_or((f64::NAN, f64::NAN));
+        let n_bad = v.iter().filter(|x| !x.is_finite()).count();
+        if n_bad > 0 {
+            bad.push(name.clone());
+        }
+        println!(
+            "  {:<44} {:<16} {:>12.4e} {:>12.4e} {:>10}",
+            name,
+            format!("{:?}", t.dims()),
+            lo,
+            hi,
+            n_bad
+        );
+    }
+    if let Some(first) = bad.first() {
+        println!("validation: FAILED");
+        return Err(Refused::new(format!(
+            "{}: {} tensor(s) hold NaN or infinite values (the first: `{first}`); other commands refuse this model",
+            path.display(),
+            bad.len()
+        ))
+        .into());
+    }
+    println!("validation: ok");
     Ok(())
 }
 

@@ -31,7 +31,7 @@ use super::{progress, refuse, write_png};
 
 #[derive(clap::Args, Debug, Clone)]
 pub struct Args {
-    /// Trained model (`RUN/model.safetensors`).
+    /// Trained model (`RUN/model.safetensors`, or the run directory: its newest complete model).
     #[arg(long)]
     pub model: PathBuf,
     /// Pose source: a motion or dataset npz (default: the rest pose, upright).
@@ -81,8 +81,16 @@ pub struct Args {
 
 // The field closures return `pma_model`'s error, which carries candle's (large) one.
 #[allow(clippy::result_large_err)]
-pub fn run(args: Args) -> anyhow::Result<()> {
+pub fn run(mut args: Args) -> anyhow::Result<()> {
     check_args(&args)?;
+    args.model = super::model_path(&args.model)?;
+    super::check_paths(
+        pma_data::fsio::PathCheck::new()
+            .input("--model", &args.model)
+            .input_opt("--poses", args.poses.as_deref())
+            .output("--out", &args.out)
+            .output_opt("--preview", args.preview.as_deref()),
+    )?;
     let device = super::device(&args.device)?;
     let dirs = if args.reference_dirs {
         ViewDirs::Reference
@@ -147,8 +155,8 @@ fn check_args(args: &Args) -> anyhow::Result<()> {
     if !args.threshold.is_finite() {
         refuse!("--threshold must be finite");
     }
-    if args.chunk == 0 {
-        refuse!("--chunk must be >= 1");
+    if !(1..=1 << 24).contains(&args.chunk) {
+        refuse!("--chunk {} must be in 1..={}", args.chunk, 1 << 24);
     }
     if !(8..=4096).contains(&args.preview_res) {
         refuse!("--preview-res must be in 8..=4096");

@@ -32,6 +32,12 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
+    super::check_paths(
+        pma_data::fsio::PathCheck::new()
+            .input("image", &args.a)
+            .input("reference", &args.b)
+            .input_opt("--mask", args.mask.as_deref()),
+    )?;
     let region: PsnrRegion = args.psnr_region.parse().map_err(Refused::new)?;
     let (a, (w, h)) = read_rgb(&args.a)?;
     let (b, size_b) = read_rgb(&args.b)?;
@@ -86,7 +92,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 }
 
 fn open(path: &Path) -> anyhow::Result<image::DynamicImage> {
-    image::open(path)
+    pma_data::fsio::open_image(path)
         .map_err(|e| Refused::new(format!("cannot read image {}: {e}", path.display())).into())
 }
 

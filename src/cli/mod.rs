@@ -22,17 +22,14 @@ use std::path::Path;
 
 use anyhow::Context as _;
 use pma_data::dataset::{Dataset, Profile};
-use pma_data::motion::MotionError;
-use pma_data::synth::SynthError;
-use pma_data::DataError;
-use pma_model::error::ModelError;
-use pma_model::interrupt::Interrupted;
+use pma_data::{ErrorKind, ExitKind};
 
 /// Exit status of a command refused because of its input (a split the file does not hold,
-/// a corrupt file, an out-of-range flag), as for clap's usage errors: the user has to change
-/// the command or its input.
+/// a corrupt file, an out-of-range flag, an output that would replace an input), as for
+/// clap's usage errors: the user has to change the command or its input.
 pub const EXIT_REFUSED: u8 = 2;
-/// Exit status of a command stopped by Ctrl-C (128 + SIGINT, as a shell reports it).
+/// Exit status of a command stopped by Ctrl-C (128 + SIGINT, as a shell reports it);
+/// SIGTERM and SIGHUP give 143 and 129.
 pub const EXIT_INTERRUPTED: u8 = 130;
 /// Exit status of every other failure.
 pub const EXIT_FAILURE: u8 = 1;
@@ -59,6 +56,12 @@ impl std::error::Error for Refused {
     }
 }
 
+impl ExitKind for Refused {
+    fn kind(&self) -> ErrorKind {
+        ErrorKind::Refused
+    }
+}
+
 /// Return a [`Refused`] error with a formatted message (a flag out of range, a file that
 /// lacks what the command needs).
 macro_rules! refuse {
@@ -68,145 +71,62 @@ macro_rules! refuse {
 }
 pub(crate) use refuse;
 
-/// The exit status for `e`, the one rule of every command: [`EXIT_INTERRUPTED`] once Ctrl-C
-/// was pressed (whatever the error it caused), [`EXIT_REFUSED`] for input errors (see
-/// [`is_input_error`]), [`EXIT_FAILURE`] otherwise.
-pub fn exit_code(e: &anyhow::Error) -> u8 {
-    if pma_model::interrupt::requested() || e.chain().any(|c| c.is::<Interrupted>()) {
-        return EXIT_INTERRUPTED;
+/// What `e` is: [`ErrorKind::Interrupted`] once a stop was requested (whatever error it
+/// caused), otherwise the kind of the outermost library error in its chain (each says
+/// itself what it is, see [`pma_data::ExitKind`]; contexts added on the way up say
+/// nothing), [`ErrorKind::Failure`] when none does.
+pub fn error_kind(e: &anyhow::Error) -> ErrorKind {
+    if pma_model::interrupt::requested() {
+        return ErrorKind::Interrupted;
     }
-    // The outermost error that says what it is decides; contexts added on the way up are
-    // plain messages and say nothing.
-    for cause in e.chain() {
-        if cause.is::<Refused>() {
-            return EXIT_REFUSED;
-        }
-        if let Some(input) = is_input_error(cause) {
-            return if input { EXIT_REFUSED } else { EXIT_FAILURE };
-        }
-    }
-    EXIT_FAILURE
+    e.chain()
+        .find_map(library_kind)
+        .unwrap_or(ErrorKind::Failure)
 }
 
-/// Whether a library error is about the input (a file, a key, a flag: exit 2) rather than a
-/// failure of the work (exit 1); `None` for an error of a type not classified here. An I/O
-/// error is input when the file is missing or unreadable as data, and a failure otherwise
-/// (permissions, a full disk).
-pub fn is_input_error(e: &(dyn std::error::Error + 'static)) -> Option<bool> {
-    use pma_model::eval::EvalError;
-    if let Some(e) = e.downcast_ref::<std::io::Error>() {
-        return Some(io_input(e));
+/// The kind of `e` if it is one of the libraries' errors.
+fn library_kind(e: &(dyn std::error::Error + 'static)) -> Option<ErrorKind> {
+    macro_rules! kinds {
+        ($($t:ty),* $(,)?) => {
+            $(if let Some(x) = e.downcast_ref::<$t>() {
+                return Some(x.kind());
+            })*
+        };
     }
-    if let Some(e) = e.downcast_ref::<DataError>() {
-        return Some(data_input(e));
-    }
-    if let Some(e) = e.downcast_ref::<MotionError>() {
-        return Some(motion_input(e));
-    }
-    if let Some(e) = e.downcast_ref::<SynthError>() {
-        return Some(match e {
-            SynthError::Data(d) => data_input(d),
-            SynthError::Motion(m) => motion_input(m),
-            SynthError::Config { .. } => true,
-            SynthError::Io { source, .. } => io_input(source),
-            SynthError::Encode { .. } => false,
-            SynthError::Interrupted(_) => false,
-        });
-    }
-    if let Some(e) = e.downcast_ref::<ModelError>() {
-        return Some(model_input(e));
-    }
-    if let Some(e) = e.downcast_ref::<EvalError>() {
-        return Some(eval_input(e));
-    }
+    kinds!(
+        Refused,
+        pma_data::fsio::PathError,
+        pma_data::DataError,
+        pma_data::motion::MotionError,
+        pma_data::synth::SynthError,
+        pma_data::interrupt::Interrupted,
+        pma_model::error::ModelError,
+        pma_model::eval::EvalError,
+        pma_model::compute::device::DeviceError,
+        pma_model::compute::device::Tf32Error,
+        pma_convert::ConvertError,
+    );
     #[cfg(feature = "train")]
-    if let Some(e) = e.downcast_ref::<pma_model::train::TrainError>() {
-        return Some(train_input(e));
-    }
-    if e.is::<pma_model::compute::device::Tf32Error>() {
-        return Some(true);
-    }
-    if let Some(e) = e.downcast_ref::<pma_model::compute::device::DeviceError>() {
-        use pma_model::compute::device::DeviceError;
-        return Some(matches!(
-            e,
-            DeviceError::Unknown(_) | DeviceError::NotCompiled { .. }
-        ));
-    }
+    kinds!(pma_model::train::TrainError);
     None
 }
 
-fn io_input(e: &std::io::Error) -> bool {
-    use std::io::ErrorKind::*;
-    matches!(
-        e.kind(),
-        NotFound | InvalidData | InvalidInput | UnexpectedEof | IsADirectory | NotADirectory
-    )
-}
-
-fn data_input(e: &DataError) -> bool {
-    match e {
-        DataError::Io { source, .. } => io_input(source),
-        _ => true,
-    }
-}
-
-fn motion_input(e: &MotionError) -> bool {
-    match e {
-        MotionError::Io { source, .. } => io_input(source),
-        _ => true,
-    }
-}
-
-fn model_input(e: &ModelError) -> bool {
-    match e {
-        ModelError::Io { source, .. } => io_input(source),
-        // Writes go through fsio (its failures are `Io`): this is a file that cannot be parsed.
-        ModelError::Safetensors { .. }
-        | ModelError::Checkpoint { .. }
-        | ModelError::Config(_)
-        | ModelError::Shape { .. }
-        | ModelError::Input(_) => true,
-        ModelError::Data(d) => data_input(d),
-        ModelError::Candle(_) | ModelError::Interrupted(_) => false,
-    }
-}
-
-fn eval_input(e: &pma_model::eval::EvalError) -> bool {
-    use pma_model::eval::EvalError;
-    match e {
-        EvalError::Incomplete { .. } | EvalError::NothingScored { .. } => true,
-        EvalError::Read { source, .. } => data_input(source),
-        EvalError::Io { source, .. } => io_input(source),
-        EvalError::Png { .. } | EvalError::Candle(_) => false,
-        EvalError::Model(m) => model_input(m),
-        EvalError::Data(d) => data_input(d),
-        e => e.is_bad_input(),
-    }
-}
-
-#[cfg(feature = "train")]
-fn train_input(e: &pma_model::train::TrainError) -> bool {
-    use pma_model::train::TrainError;
-    match e {
-        TrainError::Config(_)
-        | TrainError::State(_)
-        | TrainError::StateFile { .. }
-        | TrainError::Resume { .. }
-        | TrainError::RunExists(_) => true,
-        TrainError::Io { source, .. } => io_input(source),
-        TrainError::Diverged { .. }
-        | TrainError::Stopped { .. }
-        | TrainError::Observer(_)
-        | TrainError::Candle(_) => false,
-        TrainError::Model(m) => model_input(m),
-        TrainError::Data(d) => data_input(d),
-        TrainError::Eval(e) => eval_input(e),
+/// The exit status for `e`, the one rule of every command: [`EXIT_REFUSED`] for refused
+/// input, 128 + the signal for an interruption ([`EXIT_INTERRUPTED`] for Ctrl-C),
+/// [`EXIT_FAILURE`] otherwise.
+pub fn exit_code(e: &anyhow::Error) -> u8 {
+    match error_kind(e) {
+        ErrorKind::Refused => EXIT_REFUSED,
+        ErrorKind::Failure => EXIT_FAILURE,
+        ErrorKind::Interrupted => match pma_model::interrupt::signal() {
+            s @ 1..=127 => 128 + s as u8,
+            _ => EXIT_INTERRUPTED,
+        },
     }
 }
 
 /// `e` and its causes on one line, each cause left out when the message already holds it
-/// (many errors print their source themselves).
+/// (many errors print their source themselves); any line break inside a message is joined.
 pub fn report(e: &anyhow::Error) -> String {
     let mut out = String::new();
     for cause in e.chain() {
@@ -219,22 +139,75 @@ pub fn report(e: &anyhow::Error) -> String {
         }
         out.push_str(&text);
     }
-    out
+    pma_data::error::one_line(&out)
 }
 
-/// The line for a command stopped by Ctrl-C: what the command says about where it stopped,
-/// if anything, and that no file was left half-written.
+/// How a stop request is named to the user.
+fn signal_name(signal: i32) -> &'static str {
+    match signal {
+        1 => "SIGHUP",
+        15 => "SIGTERM",
+        _ => "Ctrl-C",
+    }
+}
+
+/// The line for a command stopped by a signal: what the command says about where it
+/// stopped, if anything, and that no file was left half-written.
 pub fn interrupted_report(e: &anyhow::Error) -> String {
     let text = report(e);
     let said = text.trim_end_matches("interrupted").trim_end_matches(": ");
-    if said.is_empty() || !e.chain().any(|c| c.is::<Interrupted>()) {
-        "interrupted: stopped by Ctrl-C; files already complete are kept, none is half-written"
-            .to_string()
+    let by = signal_name(pma_model::interrupt::signal());
+    if said.is_empty()
+        || !e
+            .chain()
+            .any(|c| c.is::<pma_data::interrupt::Interrupted>())
+    {
+        format!(
+            "interrupted: stopped by {by}; files already complete are kept, none is half-written"
+        )
     } else if said.contains("interrupted") {
         said.to_string()
     } else {
         format!("interrupted: {said}")
     }
+}
+
+/// Check every path of a command before any work (see [`pma_data::fsio::PathCheck`]).
+pub fn check_paths(check: pma_data::fsio::PathCheck) -> anyhow::Result<()> {
+    Ok(check.check()?)
+}
+
+/// The model a `--model` flag names: a model file, or a run directory's newest complete
+/// model (`pma_model::network::run_dir::newest_model`).
+pub fn model_path(path: &Path) -> anyhow::Result<std::path::PathBuf> {
+    Ok(pma_model::network::run_dir::resolve_model(path)?)
+}
+
+/// The most CPU workers `--workers` accepts: 4 per core.
+pub fn max_workers() -> usize {
+    4 * std::thread::available_parallelism().map_or(1, |n| n.get())
+}
+
+/// Refuse `--workers` beyond [`max_workers`] (each worker is a thread with its own buffers).
+pub fn check_workers(workers: usize) -> anyhow::Result<()> {
+    let max = max_workers();
+    if workers > max {
+        refuse!(
+            "--workers {workers}: at most {max} (4 per core of this machine; 0 = one per core)"
+        );
+    }
+    Ok(())
+}
+
+/// Refuse a `--minutes` budget that is not finite and in (0, `MAX_MINUTES`].
+pub fn check_minutes(flag: &str, minutes: Option<f64>) -> anyhow::Result<()> {
+    const MAX: f64 = 1e6;
+    if let Some(m) = minutes {
+        if !(m.is_finite() && m > 0.0 && m <= MAX) {
+            refuse!("{flag} {m}: expected a finite number of minutes in (0, {MAX}]");
+        }
+    }
+    Ok(())
 }
 
 /// Open the compute device named by a `--device` flag: cpu, cuda, cuda:N, metal or metal:N.
@@ -272,10 +245,58 @@ pub fn write_png(img: &image::RgbImage, path: &Path) -> anyhow::Result<()> {
     Ok(pma_model::eval::write_png(img, path)?)
 }
 
-/// Route Ctrl-C to the process-wide interrupt flag: long work stops at its next check and
-/// the command exits with [`EXIT_INTERRUPTED`], leaving only complete files (a training run
-/// first saves its last complete step). A second Ctrl-C exits at once, as a plain SIGINT
-/// would.
+/// Route SIGINT (Ctrl-C), SIGTERM and SIGHUP to the process-wide interrupt flag, recording
+/// which signal came: long work stops at its next check and the command exits with 128 +
+/// the signal (130, 143, 129), leaving only complete files (a training run first saves its
+/// last complete step). A second signal exits at once, as a plain signal would; a run
+/// directory stays resumable (its last complete checkpoint is kept).
+///
+/// `signal-hook` rather than `ctrlc`: the handler must know which signal arrived for the
+/// exit status, and `ctrlc` (even with its `termination` feature) calls one handler for all
+/// of them without saying which. The signals are read on a thread of their own, so the
+/// reaction may print and exit safely.
+#[cfg(unix)]
+pub fn install_interrupt_handler() {
+    use signal_hook::consts::{SIGHUP, SIGINT, SIGTERM};
+    use std::io::Write as _;
+    let mut signals = match signal_hook::iterator::Signals::new([SIGINT, SIGTERM, SIGHUP]) {
+        Ok(s) => s,
+        Err(e) => {
+            let _ = writeln!(
+                std::io::stderr(),
+                "warning: cannot install the signal handler ({e}); Ctrl-C stops at once"
+            );
+            return;
+        }
+    };
+    let spawned = std::thread::Builder::new()
+        .name("signals".into())
+        .spawn(move || {
+            for (n, sig) in signals.forever().enumerate() {
+                // stderr may be gone (SIGHUP): messages are best effort.
+                let mut err = std::io::stderr();
+                if n > 0 {
+                    let _ = writeln!(err, "\n{}: exiting at once", signal_name(sig));
+                    std::process::exit(128 + sig);
+                }
+                let _ = writeln!(
+                    err,
+                    "\n{}: stopping (press Ctrl-C again to exit at once)",
+                    signal_name(sig)
+                );
+                pma_model::interrupt::request_by(sig);
+            }
+        });
+    if let Err(e) = spawned {
+        let _ = writeln!(
+            std::io::stderr(),
+            "warning: cannot start the signal thread ({e}); Ctrl-C stops at once"
+        );
+    }
+}
+
+/// Ctrl-C only where there are no Unix signals.
+#[cfg(not(unix))]
 pub fn install_interrupt_handler() {
     use std::sync::atomic::{AtomicUsize, Ordering};
     static PRESSES: AtomicUsize = AtomicUsize::new(0);

@@ -71,7 +71,7 @@ pub enum Background {
 
 #[derive(clap::Args, Debug, Clone)]
 pub struct Args {
-    /// Trained model (`RUN/model.safetensors`).
+    /// Trained model (`RUN/model.safetensors`, or the run directory: its newest complete model).
     #[arg(long)]
     pub model: PathBuf,
     /// Dataset: a pma-npz file, or a `pma synth` directory holding `<split>.npz`. Supplies poses
@@ -176,7 +176,7 @@ struct FrameReport {
 
 #[derive(Serialize)]
 struct Report {
-    model: PathBuf,
+    model: String,
     camera: CameraMode,
     width: usize,
     height: usize,
@@ -189,8 +189,9 @@ struct Report {
     gif: Option<PathBuf>,
 }
 
-pub fn run(args: Args) -> anyhow::Result<()> {
+pub fn run(mut args: Args) -> anyhow::Result<()> {
     check_args(&args)?;
+    args.model = super::model_path(&args.model)?;
     let res = args.res.as_deref().map(parse_resolution).transpose()?;
     let device = super::device_tf32(&args.device, args.tf32)?;
     let dirs = if args.reference_dirs {
@@ -213,13 +214,25 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     };
     let (items, head, root_scale) = pose_items(&args, &avatar, data.as_ref(), mode)?;
     let jobs = camera_jobs(&args, &items, data.as_ref(), head, mode, res)?;
+    let mut files: Vec<String> = (0..jobs.len()).map(frame_file).collect();
+    files.extend(["render.gif", "render.json", "strip.png"].map(String::from));
+    let data_check = match &args.data {
+        Some(d) if d.is_dir() => pma_data::fsio::PathCheck::new().input_dir("--data", d),
+        d => pma_data::fsio::PathCheck::new().input_opt("--data", d.as_deref()),
+    };
+    super::check_paths(
+        data_check
+            .input("--model", &args.model)
+            .input_opt("--poses", args.poses.as_deref())
+            .output_dir("--out", &args.out, files),
+    )?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
     let rendered = render_jobs(&args, &avatar, &jobs, head, &device)?;
 
     let (w, h) = (jobs[0].camera.width, jobs[0].camera.height);
     let report = Report {
-        model: args.model.clone(),
+        model: args.model.display().to_string(),
         camera: mode,
         width: w,
         height: h,
@@ -248,9 +261,24 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// The file of frame `k`.
+fn frame_file(k: usize) -> String {
+    format!("frame_{k:04}.png")
+}
+
+/// The most frames one render writes (`--views`, `--strip`): ten minutes at 60 fps.
+const MAX_FRAMES: usize = 36_000;
+
 fn check_args(args: &Args) -> anyhow::Result<()> {
-    if args.chunk == 0 {
-        refuse!("--chunk must be >= 1");
+    if !(1..=pma_model::render::MAX_CHUNK_RAYS).contains(&args.chunk) {
+        refuse!(
+            "--chunk {} must be in 1..={}",
+            args.chunk,
+            pma_model::render::MAX_CHUNK_RAYS
+        );
+    }
+    if args.views.is_some_and(|v| v > MAX_FRAMES) || args.strip.is_some_and(|v| v > MAX_FRAMES) {
+        refuse!("--views and --strip take at most {MAX_FRAMES} frames");
     }
     if !(args.fps.is_finite() && args.fps > 0.0 && args.fps <= 100.0) {
         refuse!("--fps must be in (0, 100], found {}", args.fps);
@@ -465,7 +493,7 @@ fn render_jobs(
             .with_context(|| format!("rendering frame {k} ({})", job.item.label))?;
         let seconds = t.elapsed().as_secs_f64();
         let rgb = to_rgb8(&img);
-        let file = format!("frame_{k:04}.png");
+        let file = frame_file(k);
         write_png(&rgb, &args.out.join(&file))?;
         if let Some(g) = gif.as_mut() {
             g.push(&rgb)?;

@@ -71,6 +71,17 @@ impl Args {
 
 pub fn run(args: Args) -> anyhow::Result<()> {
     let cfg = args.config();
+    super::check_paths(pma_data::fsio::PathCheck::new().output_dir(
+        "--out",
+        &args.out,
+        [
+            "train.npz",
+            "novel_view.npz",
+            "novel_pose.npz",
+            "scene.json",
+            "preview.png",
+        ],
+    ))?;
     let bar = super::progress::bar(args.quiet, 0, "rendering images");
     let start = Instant::now();
     let summary = generate(&cfg, &args.out, &mut |done, total| {

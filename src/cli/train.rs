@@ -86,7 +86,7 @@ mod imp {
     use anyhow::Context as _;
     use pma_model::train::{
         train_run, ObserverError, Preset, RunConfig, StepReport, TrainLog, TrainObserver,
-        TrainOutcome, TrainRequest, CONFIG_FILE,
+        TrainOutcome, TrainRequest, CONFIG_FILE, LOG_FILE,
     };
 
     use super::super::plot::plot_psnr_vs_time;
@@ -99,6 +99,18 @@ mod imp {
     pub const PLOT_FILE: &str = "psnr_vs_time.png";
 
     pub fn run(args: Args) -> anyhow::Result<()> {
+        super::super::check_minutes("--minutes", args.minutes)?;
+        let eval_data = args.eval_data.clone().or_else(|| {
+            let beside = args.data.parent()?.join("novel_view.npz");
+            (beside.is_file() && beside != args.data).then_some(beside)
+        });
+        super::super::check_paths(run_dir_paths(
+            &args.out,
+            pma_data::fsio::PathCheck::new()
+                .input("--data", &args.data)
+                .input_opt("--config", args.config.as_deref())
+                .input_opt("--eval-data", eval_data.as_deref()),
+        ))?;
         let mut run = match &args.config {
             Some(path) => Some(RunConfig::from_toml_file(path)?),
             None if args.resume => None,
@@ -122,10 +134,6 @@ mod imp {
                 ),
             }
         }
-        let eval_data = args.eval_data.clone().or_else(|| {
-            let beside = args.data.parent()?.join("novel_view.npz");
-            (beside.is_file() && beside != args.data).then_some(beside)
-        });
         let req = TrainRequest {
             data: args.data,
             out: args.out,
@@ -152,6 +160,19 @@ mod imp {
             outcome.model.display()
         );
         Ok(())
+    }
+
+    /// `check` with the run directory `out` as an output: the files a run writes at its top.
+    pub fn run_dir_paths(
+        out: &Path,
+        check: pma_data::fsio::PathCheck,
+    ) -> pma_data::fsio::PathCheck {
+        use pma_model::network::run_dir::{LOCK_FILE, MODEL_FILE};
+        check.output_dir(
+            "--out",
+            out,
+            [MODEL_FILE, CONFIG_FILE, LOG_FILE, LOCK_FILE, PLOT_FILE],
+        )
     }
 
     /// Run `req` with a progress bar (unless `quiet`) and the plot titled `title`. A run

@@ -11,6 +11,7 @@ mod demo;
 mod devices;
 mod eval;
 mod exit_codes;
+mod faults;
 mod forward;
 mod inspect;
 mod mesh;

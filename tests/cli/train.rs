@@ -9,6 +9,14 @@ use std::time::{Duration, Instant};
 use crate::run::{fails_with, ok, pma, tiny_scene};
 use candle_core::{Device, Tensor};
 
+/// The newest complete checkpoint directory of a run.
+pub fn newest(run: &Path) -> std::path::PathBuf {
+    pma_model::network::run_dir::newest_checkpoint(run)
+        .unwrap()
+        .unwrap_or_else(|| panic!("{} holds no complete checkpoint", run.display()))
+        .path
+}
+
 fn tensors(path: &Path) -> HashMap<String, Tensor> {
     candle_core::safetensors::load(path, &Device::Cpu).unwrap()
 }
@@ -54,12 +62,24 @@ fn resumed_run_equals_uninterrupted_run_bit_for_bit() {
     for f in [
         "config.toml",
         "model.safetensors",
-        "train_state.safetensors",
         "log.csv",
         "psnr_vs_time.png",
     ] {
         assert!(a.join(f).is_file(), "missing {f}");
     }
+    for f in [
+        "config.toml",
+        "model.safetensors",
+        "train_state.safetensors",
+        "log.csv",
+    ] {
+        assert!(newest(&a).join(f).is_file(), "missing checkpoint file {f}");
+    }
+    // The published model is the newest checkpoint's.
+    assert_eq!(
+        std::fs::read(a.join("model.safetensors")).unwrap(),
+        std::fs::read(newest(&a).join("model.safetensors")).unwrap()
+    );
     // The model is meant to be shipped and read by other accounts, like every other file.
     #[cfg(unix)]
     for run in [&a, &b] {
@@ -67,8 +87,8 @@ fn resumed_run_equals_uninterrupted_run_bit_for_bit() {
     }
     assert_same_tensors(&a.join("model.safetensors"), &b.join("model.safetensors"));
     assert_same_tensors(
-        &a.join("train_state.safetensors"),
-        &b.join("train_state.safetensors"),
+        &newest(&a).join("train_state.safetensors"),
+        &newest(&b).join("train_state.safetensors"),
     );
 
     // Same losses in both logs (the resumed log continues the first session's rows).
@@ -207,9 +227,9 @@ fn ctrl_c_writes_a_checkpoint_that_resumes() {
     assert_eq!(output.status.code(), Some(130), "{stderr}");
     assert!(stderr.contains("interrupted at iteration"), "{stderr}");
 
-    let state = tensors(&out.join("train_state.safetensors"));
+    let state = tensors(&newest(&out).join("train_state.safetensors"));
     assert!(!state.is_empty());
-    let bytes = std::fs::read(out.join("train_state.safetensors")).unwrap();
+    let bytes = std::fs::read(newest(&out).join("train_state.safetensors")).unwrap();
     let meta = safetensors_meta(&bytes);
     let done: u64 = meta["global_iter"].parse().unwrap();
     assert!(done >= 1, "no iteration finished before the interrupt");
@@ -296,7 +316,8 @@ fn ctrl_c_mid_step_on_the_default_network_resumes_bit_for_bit() {
         latency < Duration::from_secs(20),
         "exit took {latency:?} after SIGINT:\n{stderr}"
     );
-    let bytes = std::fs::read(out.join("train_state.safetensors")).unwrap();
+    let ckpt = newest(&out);
+    let bytes = std::fs::read(ckpt.join("train_state.safetensors")).unwrap();
     let done: u64 = safetensors_meta(&bytes)["global_iter"].parse().unwrap();
     assert!(
         stderr.contains(&format!("continues from iteration {done}")),
@@ -310,14 +331,16 @@ fn ctrl_c_mid_step_on_the_default_network_resumes_bit_for_bit() {
         .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
         .collect();
     names.sort();
+    let ckpt_name = ckpt.file_name().unwrap().to_string_lossy().into_owned();
     assert_eq!(
         names,
         [
+            ".lock",
+            &ckpt_name,
             "config.toml",
             "log.csv",
             "model.safetensors",
             "psnr_vs_time.png",
-            "train_state.safetensors"
         ],
     );
 
@@ -339,8 +362,8 @@ fn ctrl_c_mid_step_on_the_default_network_resumes_bit_for_bit() {
         &straight.join("model.safetensors"),
     );
     assert_same_tensors(
-        &out.join("train_state.safetensors"),
-        &straight.join("train_state.safetensors"),
+        &newest(&out).join("train_state.safetensors"),
+        &newest(&straight).join("train_state.safetensors"),
     );
 }
 

@@ -76,7 +76,8 @@ pub(crate) fn read_npy_bytes(bytes: &[u8], path: &Path, key: &str) -> Result<Npy
 
 /// Reads a `.npy` from disk.
 pub(crate) fn read_npy(path: &Path) -> Result<NpyContent> {
-    let bytes = std::fs::read(path).map_err(|e| ConvertError::io(path, e))?;
+    let bytes = pma_data::fsio::read_input(path, crate::MAX_INPUT_BYTES)
+        .map_err(|e| ConvertError::io(path, e))?;
     let name = path
         .file_name()
         .map_or_else(String::new, |n| n.to_string_lossy().into_owned());

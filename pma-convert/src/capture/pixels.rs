@@ -84,7 +84,9 @@ pub struct Plane {
 }
 
 fn read_rgb(path: &Path) -> Result<Plane> {
-    let img = image::open(path).map_err(|e| image_err(path, e))?.to_rgb8();
+    let img = pma_data::fsio::open_image(path)
+        .map_err(|e| image_err(path, e))?
+        .to_rgb8();
     let (w, h) = img.dimensions();
     Ok(Plane {
         w: w as usize,
@@ -96,7 +98,7 @@ fn read_rgb(path: &Path) -> Result<Plane> {
 
 /// A mask file as 0/1 (any non-zero channel is foreground).
 fn read_mask(path: &Path) -> Result<Plane> {
-    let img = image::open(path).map_err(|e| image_err(path, e))?;
+    let img = pma_data::fsio::open_image(path).map_err(|e| image_err(path, e))?;
     let (w, h) = (img.width() as usize, img.height() as usize);
     let px = match img {
         image::DynamicImage::ImageLuma8(g) => {
@@ -386,8 +388,8 @@ pub(super) fn write_capture(
     progress(done, total);
 
     // Pass 1: every processed image into a scratch file (rgb, mask, sampling mask).
-    let mut tmp = tempfile::tempfile_in(odir).map_err(|e| ConvertError::io(odir, e))?;
-    let terr = |e| ConvertError::io(odir, e);
+    let mut tmp = tempfile::tempfile_in(odir).map_err(|e| ConvertError::write(odir, e))?;
+    let terr = |e| ConvertError::write(odir, e);
     {
         let mut bw = BufWriter::new(&mut tmp);
         let mut size_in = None;
@@ -458,7 +460,7 @@ pub(super) fn write_capture(
     }
 
     // The archive: scene members from the data layer's writer, then pixels.
-    let oerr = |e| ConvertError::io(output, e);
+    let oerr = |e| ConvertError::write(output, e);
     write_archive(ds, output, opts.compression, |zip| {
         let mut buf = vec![0u8; 3 * hw];
         for (key, off, len, ch) in [

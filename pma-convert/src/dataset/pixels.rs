@@ -10,7 +10,7 @@ use std::{
 use npyz::{DType, TypeStr, WriterBuilder};
 use pma_data::{
     dataset::{Compression, Dataset, Profile, Warning, WriteOptions},
-    fsio::{parent_dir, AtomicFile},
+    fsio::{parent_dir, AtomicFile, Latch, Writer},
 };
 
 use super::{DatasetOptions, DatasetReport, Layout, Progress};
@@ -154,7 +154,7 @@ pub(super) fn write_h5_output(
                 let raw = h5.read_u8_rows(m.key, row, row + 1)?;
                 let px = prepare_row(raw, m, row, opts, h5.path(), rep)?;
                 zip.write_all(&px)
-                    .map_err(|e| ConvertError::io(output, e))?;
+                    .map_err(|e| ConvertError::write(output, e))?;
                 done += 1;
                 progress(done, total);
             }
@@ -167,7 +167,7 @@ pub(super) fn write_h5_output(
             while left > 0 {
                 let k = left.min(piece.len());
                 zip.write_all(&piece[..k])
-                    .map_err(|e| ConvertError::io(output, e))?;
+                    .map_err(|e| ConvertError::write(output, e))?;
                 left -= k;
             }
             done += 1;
@@ -177,36 +177,63 @@ pub(super) fn write_h5_output(
     })
 }
 
+/// The zip a converter streams pixels into (see [`write_archive`]).
+pub(crate) type ArchiveZip<'a> = zip::ZipWriter<Latch<BufWriter<Writer<&'a File>>>>;
+
 /// A converted archive, written atomically: the scene members the data layer writes for
-/// `ds`, copied verbatim, then the pixel members `pixels` streams into the zip.
+/// `ds`, copied verbatim, then the pixel members `pixels` streams into the zip. A failed
+/// write (a full disk) is [`ConvertError::Write`], and nothing is left behind.
 pub(crate) fn write_archive(
     ds: &Dataset,
     output: &Path,
     compression: Compression,
-    pixels: impl FnOnce(&mut zip::ZipWriter<BufWriter<&File>>) -> Result<()>,
+    pixels: impl FnOnce(&mut ArchiveZip<'_>) -> Result<()>,
 ) -> Result<()> {
     let dir = parent_dir(output);
-    let scene = tempfile::NamedTempFile::new_in(dir).map_err(|e| ConvertError::io(dir, e))?;
+    let scene = tempfile::Builder::new()
+        .prefix(".pma-")
+        .suffix(".tmp")
+        .tempfile_in(dir)
+        .map_err(|e| ConvertError::write(dir, e))?;
     ds.write(scene.path(), &WriteOptions { compression })?;
     let scene_zip = zip::ZipArchive::new(
-        File::open(scene.path()).map_err(|e| ConvertError::io(scene.path(), e))?,
+        File::open(scene.path()).map_err(|e| ConvertError::write(scene.path(), e))?,
     )
     .map_err(|cause| ConvertError::Zip {
         path: scene.path().to_path_buf(),
         cause,
     })?;
-    let out = AtomicFile::create(output).map_err(|e| ConvertError::io(dir, e))?;
-    let zerr = |cause| ConvertError::Zip {
-        path: output.to_path_buf(),
-        cause,
+    let out = AtomicFile::create(output).map_err(|e| ConvertError::write(dir, e))?;
+    let latch = Latch::new(BufWriter::new(out.writer()));
+    let watch = latch.watch();
+    let mut zip = zip::ZipWriter::new(latch);
+    // A failure of the sink is a write failure; anything else the zip says is its own.
+    let zerr = |cause| match watch.failure() {
+        Some(io) => ConvertError::write(output, io),
+        None => match cause {
+            zip::result::ZipError::Io(io) => ConvertError::write(output, io),
+            cause => ConvertError::Zip {
+                path: output.to_path_buf(),
+                cause,
+            },
+        },
     };
-    let mut zip = zip::ZipWriter::new(BufWriter::new(out.file()));
     zip.merge_archive(scene_zip).map_err(zerr)?;
-    pixels(&mut zip)?;
-    let mut buf = zip.finish().map_err(zerr)?;
-    buf.flush().map_err(|e| ConvertError::io(output, e))?;
+    if let Err(e) = pixels(&mut zip) {
+        // The pixel writers report the sink's error as they met it; the first one counts.
+        return Err(match watch.failure() {
+            Some(io) => ConvertError::write(output, io),
+            None => e,
+        });
+    }
+    let latch = zip.finish().map_err(zerr)?;
+    if let Some(e) = watch.failure() {
+        return Err(ConvertError::write(output, e));
+    }
+    let mut buf = latch.into_inner();
+    buf.flush().map_err(|e| ConvertError::write(output, e))?;
     drop(buf);
-    out.commit().map_err(|e| ConvertError::io(output, e))
+    out.commit().map_err(|e| ConvertError::write(output, e))
 }
 
 /// Checks one row of pixels (mask values, empty sampling masks) and converts
@@ -278,9 +305,12 @@ pub(crate) fn start_member<W: Write + Seek>(
         .unix_permissions(0o644)
         .large_file(payload + 4096 >= u32::MAX as u64);
     zip.start_file(format!("{key}.npy"), options)
-        .map_err(|source| ConvertError::Zip {
-            path: output.to_path_buf(),
-            cause: source,
+        .map_err(|source| match source {
+            zip::result::ZipError::Io(e) => ConvertError::write(output, e),
+            cause => ConvertError::Zip {
+                path: output.to_path_buf(),
+                cause,
+            },
         })?;
     let ts: TypeStr = "|u1".parse().expect("static dtype descriptor");
     let shape64: Vec<u64> = shape.iter().map(|&d| d as u64).collect();
@@ -289,6 +319,6 @@ pub(crate) fn start_member<W: Write + Seek>(
         .shape(&shape64)
         .writer(&mut *zip)
         .write_header_only()
-        .map_err(|e| ConvertError::io(output, e))?;
+        .map_err(|e| ConvertError::write(output, e))?;
     Ok(())
 }

@@ -36,7 +36,7 @@ pub struct TorchArchive {
 
 impl TorchArchive {
     pub fn open(path: &Path) -> Result<Self> {
-        let mut file = File::open(path).map_err(|e| ConvertError::io(path, e))?;
+        let mut file = pma_data::fsio::open_input(path).map_err(|e| ConvertError::io(path, e))?;
         let mut magic = [0u8; 2];
         let n = file
             .read(&mut magic)
@@ -47,7 +47,7 @@ impl TorchArchive {
                 "this is a legacy (pre-1.6, non-zip) torch checkpoint; re-save it with a current torch.save",
             ));
         }
-        let file = File::open(path).map_err(|e| ConvertError::io(path, e))?;
+        let file = pma_data::fsio::open_input(path).map_err(|e| ConvertError::io(path, e))?;
         let mut zip =
             zip::ZipArchive::new(BufReader::new(file)).map_err(|source| ConvertError::Zip {
                 path: path.to_path_buf(),

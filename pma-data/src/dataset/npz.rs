@@ -11,7 +11,8 @@ use std::path::Path;
 
 use npyz::{DType, Endianness, NpyFile, Order, TypeChar, TypeStr, WriterBuilder};
 
-use crate::error::{DataError, Result};
+use crate::error::{one_line, DataError, Result};
+use crate::fsio::Latch;
 
 /// Element type of a member.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -131,6 +132,9 @@ fn elem_of(dtype: &DType) -> (String, Option<ElemType>, bool) {
     }
 }
 
+/// Bytes read or written between two checks of the interrupt flag.
+const READ_PIECE: usize = 16 << 20;
+
 /// Reader over an npz archive.
 pub struct NpzReader {
     file: String,
@@ -140,11 +144,14 @@ pub struct NpzReader {
 
 impl NpzReader {
     pub fn open(path: &Path) -> Result<Self> {
-        let f = File::open(path).map_err(|e| DataError::io(path, e))?;
+        let f = crate::fsio::open_input(path).map_err(|e| DataError::io(path, e))?;
         let zip = zip::ZipArchive::new(BufReader::new(f)).map_err(|e| DataError::Format {
             file: path.display().to_string(),
             key: "(archive)".into(),
-            msg: format!("not a readable npz/zip archive: {e}"),
+            msg: format!(
+                "not a readable npz/zip archive: {}",
+                one_line(&e.to_string())
+            ),
         })?;
         let names = zip
             .file_names()
@@ -194,7 +201,7 @@ impl NpzReader {
         let open_err = |e: zip::result::ZipError| DataError::Format {
             file: file.clone(),
             key: key.into(),
-            msg: format!("cannot open member {name}: {e}"),
+            msg: format!("cannot open member {name}: {}", one_line(&e.to_string())),
         };
         // npyz multiplies the shape unchecked (a panic in debug builds, a
         // wrapped count in release), so the claim is checked first.
@@ -211,7 +218,7 @@ impl NpzReader {
         let npy = NpyFile::new(zf).map_err(|e| DataError::Format {
             file: file.clone(),
             key: key.into(),
-            msg: format!("bad NPY header: {e}"),
+            msg: format!("bad NPY header: {}", one_line(&e.to_string())),
         })?;
         let (descr, elem, big) = elem_of(&npy.dtype());
         let info = MemberInfo {
@@ -264,14 +271,27 @@ impl NpzReader {
                 key: key.into(),
                 msg: format!("cannot allocate {nbytes} bytes for shape {:?}", info.shape),
             })?;
-        let got = (&mut reader)
-            .take(nbytes as u64)
-            .read_to_end(&mut bytes)
-            .map_err(|e| DataError::Format {
-                file: file.clone(),
-                key: key.into(),
-                msg: format!("cannot read payload (corrupt or truncated member): {e}"),
-            })?;
+        // In pieces, so that Ctrl-C stops a multi-gigabyte member within one piece.
+        let mut got = 0usize;
+        loop {
+            crate::interrupt::check()?;
+            let want = (nbytes - got).min(READ_PIECE);
+            let k = (&mut reader)
+                .take(want as u64)
+                .read_to_end(&mut bytes)
+                .map_err(|e| DataError::Format {
+                    file: file.clone(),
+                    key: key.into(),
+                    msg: format!(
+                        "cannot read payload (corrupt or truncated member): {}",
+                        one_line(&e.to_string())
+                    ),
+                })?;
+            got += k;
+            if k < want || got == nbytes {
+                break;
+            }
+        }
         if got != nbytes {
             return Err(DataError::Format {
                 file,
@@ -287,7 +307,7 @@ impl NpzReader {
         io::copy(&mut reader, &mut io::sink()).map_err(|e| DataError::Format {
             file: file.clone(),
             key: key.into(),
-            msg: format!("corrupt member: {e}"),
+            msg: format!("corrupt member: {}", one_line(&e.to_string())),
         })?;
         let mut notes = Vec::new();
         if info.big_endian && elem.size() > 1 {
@@ -448,8 +468,12 @@ impl MemberData<'_> {
 
 /// Writer of deterministic npz archives: members in call order, fixed
 /// timestamps (1980-01-01) and permissions, so equal inputs give equal bytes.
+///
+/// A failed write (a full disk) is [`DataError::Write`] naming the file; the archive is
+/// then abandoned quietly (see [`crate::fsio::Latch`]).
 pub struct NpzWriter<W: Write + io::Seek> {
-    zip: zip::ZipWriter<W>,
+    zip: zip::ZipWriter<Latch<W>>,
+    failure: crate::fsio::LatchWatch,
     deflate: bool,
     file: String,
 }
@@ -457,10 +481,25 @@ pub struct NpzWriter<W: Write + io::Seek> {
 impl<W: Write + io::Seek> NpzWriter<W> {
     /// `file` names the destination in error messages.
     pub fn new(inner: W, deflate: bool, file: impl Into<String>) -> Self {
+        let latch = Latch::new(inner);
         NpzWriter {
-            zip: zip::ZipWriter::new(inner),
+            failure: latch.watch(),
+            zip: zip::ZipWriter::new(latch),
             deflate,
             file: file.into(),
+        }
+    }
+
+    /// The error for `e`, met writing `key`: an I/O failure of the sink is a write failure,
+    /// anything else a format problem.
+    fn error(&self, key: &str, e: &dyn std::fmt::Display) -> DataError {
+        match self.failure.failure() {
+            Some(io) => DataError::write(&self.file, io),
+            None => DataError::Format {
+                file: self.file.clone(),
+                key: key.to_string(),
+                msg: format!("cannot write member: {e}"),
+            },
         }
     }
 
@@ -488,47 +527,67 @@ impl<W: Write + io::Seek> NpzWriter<W> {
             .unix_permissions(0o644)
             // Members over 4 GiB need zip64 records.
             .large_file(payload + 4096 >= u32::MAX as u64);
-        let werr = |e: &dyn std::fmt::Display| DataError::Format {
-            file: self.file.clone(),
-            key: key.to_string(),
-            msg: format!("cannot write member: {e}"),
-        };
-        self.zip
-            .start_file(format!("{key}.npy"), opts)
-            .map_err(|e| werr(&e))?;
+        if let Err(e) = self.zip.start_file(format!("{key}.npy"), opts) {
+            return Err(self.error(key, &e));
+        }
         let ts: TypeStr = elem.descr().parse().expect("static dtype descriptor");
         let shape64: Vec<u64> = shape.iter().map(|&d| d as u64).collect();
-        npyz::WriteOptions::new_header_only()
+        let header = npyz::WriteOptions::new_header_only()
             .dtype(DType::Plain(ts))
             .shape(&shape64)
             .writer(&mut self.zip)
-            .write_header_only()
-            .map_err(|e| werr(&e))?;
-        write_payload(&mut self.zip, &data).map_err(|e| werr(&e))?;
+            .write_header_only();
+        if let Err(e) = header {
+            return Err(self.error(key, &e));
+        }
+        if let Err(e) = write_payload(&mut self.zip, &data) {
+            if crate::interrupt::requested() {
+                return Err(crate::interrupt::Interrupted.into());
+            }
+            return Err(self.error(key, &e));
+        }
         Ok(())
     }
 
     /// Finish the archive and return the inner writer.
     pub fn finish(self) -> Result<W> {
         let file = self.file.clone();
-        self.zip.finish().map_err(|e| DataError::Format {
-            file,
-            key: "(archive)".into(),
-            msg: format!("cannot finish zip: {e}"),
-        })
+        let failure = self.failure.clone();
+        match self.zip.finish() {
+            Ok(latch) => match failure.failure() {
+                Some(io) => Err(DataError::write(file, io)),
+                None => Ok(latch.into_inner()),
+            },
+            Err(e) => {
+                let io = failure.failure().unwrap_or_else(|| match e {
+                    zip::result::ZipError::Io(io) => io,
+                    other => io::Error::other(other.to_string()),
+                });
+                Err(DataError::write(file, io))
+            }
+        }
     }
 }
 
 fn write_payload<W: Write>(w: &mut W, data: &MemberData<'_>) -> io::Result<()> {
     // Chunked so that a multi-gigabyte f32 member never needs a second full copy.
     const CHUNK: usize = 1 << 16;
+    fn interrupted() -> io::Result<()> {
+        match crate::interrupt::requested() {
+            true => Err(io::Error::other("interrupted")),
+            false => Ok(()),
+        }
+    }
     fn chunks<T: Copy, const K: usize>(
         w: &mut impl Write,
         v: &[T],
         f: fn(T) -> [u8; K],
     ) -> io::Result<()> {
         let mut buf = Vec::with_capacity(CHUNK * K);
-        for c in v.chunks(CHUNK) {
+        for (i, c) in v.chunks(CHUNK).enumerate() {
+            if i % 64 == 0 {
+                interrupted()?;
+            }
             buf.clear();
             for &x in c {
                 buf.extend_from_slice(&f(x));
@@ -538,7 +597,13 @@ fn write_payload<W: Write>(w: &mut W, data: &MemberData<'_>) -> io::Result<()> {
         Ok(())
     }
     match data {
-        MemberData::U8(v) => w.write_all(v),
+        MemberData::U8(v) => {
+            for c in v.chunks(READ_PIECE) {
+                interrupted()?;
+                w.write_all(c)?;
+            }
+            Ok(())
+        }
         MemberData::I8(v) => chunks(w, v, |x: i8| x.to_le_bytes()),
         MemberData::F32(v) => chunks(w, v, |x: f32| x.to_le_bytes()),
         MemberData::F64(v) => chunks(w, v, |x: f64| x.to_le_bytes()),

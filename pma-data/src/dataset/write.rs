@@ -38,9 +38,9 @@ pub(crate) fn write_npz(
     opts: &WriteOptions,
     which: Members,
 ) -> Result<()> {
-    let tmp = AtomicFile::create(path).map_err(|e| DataError::io(parent_dir(path), e))?;
+    let tmp = AtomicFile::create(path).map_err(|e| DataError::write(parent_dir(path), e))?;
     {
-        let buf = BufWriter::new(tmp.file());
+        let buf = BufWriter::new(tmp.writer());
         let mut w = NpzWriter::new(
             buf,
             opts.compression == Compression::Deflated,
@@ -53,9 +53,9 @@ pub(crate) fn write_npz(
             frame_members(ds, &mut w)?;
         }
         let mut buf = w.finish()?;
-        buf.flush().map_err(|e| DataError::io(path, e))?;
+        buf.flush().map_err(|e| DataError::write(path, e))?;
     }
-    tmp.commit().map_err(|e| DataError::io(path, e))
+    tmp.commit().map_err(|e| DataError::write(path, e))
 }
 
 fn std_slice<'a, T, D: ndarray::Dimension>(

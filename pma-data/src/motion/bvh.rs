@@ -170,9 +170,12 @@ impl<'a> Tokens<'a> {
 impl Bvh {
     /// Reads and parses a BVH file.
     pub fn read(path: &Path) -> Result<Self, MotionError> {
-        let text = std::fs::read_to_string(path).map_err(|source| MotionError::Io {
-            path: path.to_path_buf(),
-            source,
+        // A BVH of 64 MiB holds hours of motion; larger is not a motion file.
+        let text = crate::fsio::read_input_to_string(path, 64 << 20).map_err(|source| {
+            MotionError::Io {
+                path: path.to_path_buf(),
+                source,
+            }
         })?;
         Self::parse(&text, &path.display().to_string())
     }

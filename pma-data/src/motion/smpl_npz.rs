@@ -17,7 +17,7 @@ use crate::skeleton::N_JOINTS;
 /// no frame rate (AIST++ annotations are 60 fps). The up axis is detected
 /// from the root orientations ([`super::detect_up`]).
 pub fn read_smpl_npz(path: &Path, fallback_fps: f64) -> Result<Motion, MotionError> {
-    let file = std::fs::File::open(path).map_err(|source| MotionError::Io {
+    let file = crate::fsio::open_input(path).map_err(|source| MotionError::Io {
         path: path.to_path_buf(),
         source,
     })?;

@@ -26,6 +26,24 @@ pub enum DeviceError {
     },
 }
 
+impl pma_data::ExitKind for DeviceError {
+    fn kind(&self) -> pma_data::ErrorKind {
+        match self {
+            DeviceError::Unknown(_) | DeviceError::NotCompiled { .. } => {
+                pma_data::ErrorKind::Refused
+            }
+            // A device that exists in the build but cannot be opened (no GPU, a driver error).
+            DeviceError::Open { .. } => pma_data::ErrorKind::Failure,
+        }
+    }
+}
+
+impl pma_data::ExitKind for Tf32Error {
+    fn kind(&self) -> pma_data::ErrorKind {
+        pma_data::ErrorKind::Refused
+    }
+}
+
 /// Parse `cpu`, `cuda`, `cuda:N`, `metal` or `metal:N` (case-insensitive) and open it.
 pub fn parse_device(spec: &str) -> Result<Device, DeviceError> {
     let s = spec.trim().to_ascii_lowercase();

@@ -69,7 +69,8 @@ pub enum EvalError {
     #[error("{source_name}: no image of split {split:?} could be scored")]
     NothingScored { source_name: String, split: String },
 
-    #[error("{}: {source}", path.display())]
+    /// Writing one of the evaluation's files failed.
+    #[error("writing {}: {source}", path.display())]
     Io {
         path: PathBuf,
         #[source]
@@ -101,6 +102,28 @@ pub enum EvalError {
 
     #[error(transparent)]
     Candle(Box<candle_core::Error>),
+}
+
+impl pma_data::ExitKind for EvalError {
+    fn kind(&self) -> pma_data::ErrorKind {
+        use pma_data::ErrorKind;
+        match self {
+            EvalError::UnknownSplit(_)
+            | EvalError::UnknownRegion(_)
+            | EvalError::NoData(_)
+            | EvalError::NoSplitFile { .. }
+            | EvalError::SplitNotInFile { .. }
+            | EvalError::Incomplete { .. }
+            | EvalError::NothingScored { .. } => ErrorKind::Refused,
+            // The evaluation's own files (PNGs) could not be written.
+            EvalError::Io { .. } | EvalError::Png { .. } | EvalError::Candle(_) => {
+                ErrorKind::Failure
+            }
+            EvalError::Read { source, .. } => source.kind(),
+            EvalError::Model(m) => m.kind(),
+            EvalError::Data(d) => d.kind(),
+        }
+    }
 }
 
 impl EvalError {

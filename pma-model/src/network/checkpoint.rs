@@ -17,7 +17,11 @@
 //! against every tensor like any other.
 //!
 //! Loading is strict. All problems (missing, unexpected, mis-shaped or non-f32 tensors, bad
-//! metadata) are collected and reported together in one [`ModelError::Checkpoint`].
+//! metadata, NaN or infinite weights) are collected and reported together in one
+//! [`ModelError::Checkpoint`] (its message is one line: the first problem and how many
+//! more). The config in the metadata is checked against the size limits of
+//! [`Config::validate`] before anything is sized from it, and the file is read up to its
+//! real size and at most [`MAX_CHECKPOINT_BYTES`].
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -33,6 +37,17 @@ use crate::network::config::Config;
 
 pub const FORMAT: &str = "pma-checkpoint";
 pub const FORMAT_VERSION: u32 = 1;
+
+/// The largest checkpoint file read (8 GiB): above what a model within the limits of
+/// [`Config::validate`] needs; a larger file is refused before it is read.
+pub const MAX_CHECKPOINT_BYTES: u64 = 8 << 30;
+
+/// How [`load_with`] treats a checkpoint.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct LoadOptions {
+    /// Accept NaN or infinite weights (to inspect a broken checkpoint); refused otherwise.
+    pub allow_non_finite: bool,
+}
 
 pub use super::layers::tensor_layout;
 pub use crate::network::params::{TensorKind, TensorSpec};
@@ -128,6 +143,16 @@ pub fn check_tensors<'a>(
 /// `tensors` must be exactly the tensors of [`tensor_layout`]`(cfg)`, f32. The `rest_pose`
 /// metadata is taken from the `rest_pose` tensor so the two cannot disagree.
 pub fn save(path: &Path, tensors: &HashMap<String, Tensor>, cfg: &Config) -> Result<()> {
+    let bytes = to_bytes(path, tensors, cfg)?;
+    pma_data::fsio::write_atomic(path, &bytes).map_err(|source| ModelError::Write {
+        path: path.to_path_buf(),
+        source,
+    })
+}
+
+/// The bytes [`save`] writes (`path` names the file in errors), for writers that commit
+/// several files together.
+pub fn to_bytes(path: &Path, tensors: &HashMap<String, Tensor>, cfg: &Config) -> Result<Vec<u8>> {
     cfg.validate()?;
     let problems = check_tensors(
         cfg,
@@ -160,11 +185,7 @@ pub fn save(path: &Path, tensors: &HashMap<String, Tensor>, cfg: &Config) -> Res
             path: path.to_path_buf(),
             source,
         })?;
-    let bytes = sorted_header(bytes);
-    pma_data::fsio::write_atomic(path, &bytes).map_err(|source| ModelError::Io {
-        path: path.to_path_buf(),
-        source,
-    })
+    Ok(sorted_header(bytes))
 }
 
 /// The same safetensors bytes with the JSON header's keys in sorted order. safetensors
@@ -199,10 +220,12 @@ pub fn sorted_header(mut bytes: Vec<u8>) -> Vec<u8> {
 
 /// Read and validate a checkpoint (see the module docs for what is checked).
 pub fn load(path: &Path, device: &Device) -> Result<Checkpoint> {
-    let bytes = std::fs::read(path).map_err(|source| ModelError::Io {
-        path: path.to_path_buf(),
-        source,
-    })?;
+    load_with(path, device, &LoadOptions::default())
+}
+
+/// [`load`] with options (e.g. to inspect a checkpoint with non-finite weights).
+pub fn load_with(path: &Path, device: &Device, opts: &LoadOptions) -> Result<Checkpoint> {
+    let bytes = read_checkpoint_file(path)?;
     let st_err = |source| ModelError::Safetensors {
         path: path.to_path_buf(),
         source,
@@ -235,6 +258,8 @@ pub fn load(path: &Path, device: &Device) -> Result<Checkpoint> {
             }
             _ => {
                 let mut cfg = Config::paper();
+                // A state_dict sizes nothing but the frame codes from its shapes; they are
+                // bounded like any config's before the layout is built.
                 match found
                     .iter()
                     .find(|(n, _, _)| *n == "framecodes.codes.weight")
@@ -249,7 +274,15 @@ pub fn load(path: &Path, device: &Device) -> Result<Checkpoint> {
             }
         };
 
+    if let Err(e) = config.validate() {
+        // Nothing is sized from a config outside the limits.
+        problems.push(e.to_string());
+        return Err(fail(problems));
+    }
     problems.extend(check_tensors(&config, found.iter().copied()));
+    if problems.is_empty() && !opts.allow_non_finite {
+        problems.extend(non_finite(&views));
+    }
     if !problems.is_empty() {
         if format_version.is_some() {
             problems.push(format!(
@@ -287,6 +320,44 @@ pub fn load(path: &Path, device: &Device) -> Result<Checkpoint> {
             config_inferred: format_version.is_none(),
         },
     })
+}
+
+/// A checkpoint file's bytes: a regular file of at most [`MAX_CHECKPOINT_BYTES`], read up
+/// to its real size.
+fn read_checkpoint_file(path: &Path) -> Result<Vec<u8>> {
+    pma_data::fsio::read_input(path, MAX_CHECKPOINT_BYTES).map_err(|source| ModelError::Io {
+        path: path.to_path_buf(),
+        source,
+    })
+}
+
+/// One problem per tensor that holds NaN or infinite values (f32 tensors; the layout check
+/// has already refused any other dtype).
+fn non_finite(views: &[(String, safetensors::tensor::TensorView<'_>)]) -> Vec<String> {
+    let mut problems = Vec::new();
+    let mut sorted: Vec<_> = views.iter().collect();
+    sorted.sort_by(|a, b| a.0.cmp(&b.0));
+    for (name, v) in sorted {
+        if v.dtype() != safetensors::Dtype::F32 {
+            continue;
+        }
+        let mut first = None;
+        let mut count = 0usize;
+        for (i, b) in v.data().chunks_exact(4).enumerate() {
+            let x = f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+            if !x.is_finite() {
+                count += 1;
+                first.get_or_insert((i, x));
+            }
+        }
+        if let Some((i, x)) = first {
+            problems.push(format!(
+                "tensor `{name}` holds {count} non-finite value(s), the first {x} at flat index {i} \
+                 (a diverged or corrupt model; `pma inspect` shows such a file)"
+            ));
+        }
+    }
+    problems
 }
 
 /// Config, skeleton and rest pose from a pma checkpoint's metadata.
@@ -378,10 +449,7 @@ fn dtype_of(d: safetensors::Dtype) -> DType {
 /// Read tensors from a plain safetensors file (no checks): e.g. a partial override such as
 /// `sigma_override.safetensors`.
 pub fn load_tensors(path: &Path, device: &Device) -> Result<HashMap<String, Tensor>> {
-    let bytes = std::fs::read(path).map_err(|source| ModelError::Io {
-        path: path.to_path_buf(),
-        source,
-    })?;
+    let bytes = read_checkpoint_file(path)?;
     candle_core::safetensors::load_buffer(&bytes, device).map_err(|e| ModelError::Checkpoint {
         path: PathBuf::from(path),
         problems: vec![e.to_string()],

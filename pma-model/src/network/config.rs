@@ -93,6 +93,15 @@ impl Culling {
     }
 }
 
+/// Limit of every layer count of a [`Config`] (the paper's deepest, the trunk, has 8).
+pub const MAX_DEPTH: usize = 32;
+/// Limit of every width of a [`Config`] (the paper's widest have 256).
+pub const MAX_WIDTH: usize = 2048;
+/// Limit of the frame-code count (the paper's run has 780; one per training image).
+pub const MAX_FRAMECODES: usize = 1_000_000;
+/// Limit of the coarse and the importance samples per ray (the paper's: 48 and 24).
+pub const MAX_SAMPLES: usize = 1024;
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct Config {
@@ -299,6 +308,34 @@ impl Config {
         }
     }
 
+    /// Every size of the config with its limit (see [`Config::validate`]).
+    pub fn size_fields(&self) -> [(&'static str, usize, usize); 18] {
+        [
+            ("trunk_depth", self.trunk_depth, MAX_DEPTH),
+            ("trunk_width", self.trunk_width, MAX_WIDTH),
+            ("view_width", self.view_width, MAX_WIDTH),
+            ("gnn_width", self.gnn_width, MAX_WIDTH),
+            ("gnn_graph_layers", self.gnn_graph_layers, MAX_DEPTH),
+            ("gnn_fc_layers", self.gnn_fc_layers, MAX_DEPTH),
+            ("point_enc_dim", self.point_enc_dim, MAX_WIDTH),
+            ("win_hidden", self.win_hidden, MAX_WIDTH),
+            (
+                "pose_extractor_hidden",
+                self.pose_extractor_hidden,
+                MAX_WIDTH,
+            ),
+            ("pose_extractor_depth", self.pose_extractor_depth, MAX_DEPTH),
+            ("freq_dim", self.freq_dim, MAX_WIDTH),
+            ("n_pm", self.n_pm, MAX_DEPTH),
+            ("framecode_ch", self.framecode_ch, MAX_WIDTH),
+            ("n_framecodes", self.n_framecodes, MAX_FRAMECODES),
+            ("n_samples", self.n_samples, MAX_SAMPLES),
+            ("n_importance", self.n_importance, MAX_SAMPLES),
+            ("n_joints", self.n_joints, 24),
+            ("window_beta", self.window_beta as usize, 64),
+        ]
+    }
+
     /// Width of what the NeRF trunk reads per point: the synthesis layers' concatenated
     /// outputs, or f^m for `only-gnn`.
     pub fn trunk_input_dim(&self) -> usize {
@@ -313,6 +350,23 @@ impl Config {
     /// Reject configurations the network cannot be built for.
     pub fn validate(&self) -> Result<(), crate::error::ModelError> {
         let mut bad = Vec::new();
+        // Sizes come from files (checkpoint metadata, TOML): each is bounded before anything
+        // is allocated from it. The limits cover the paper's config with room.
+        for (name, v, max) in self.size_fields() {
+            if v > max {
+                bad.push(format!("{name} = {v} is over the limit of {max}"));
+            }
+        }
+        if self.skips.len() > self.trunk_depth.min(MAX_DEPTH) {
+            bad.push(format!(
+                "skips lists {} layers, more than trunk_depth {}",
+                self.skips.len(),
+                self.trunk_depth
+            ));
+        }
+        if !bad.is_empty() {
+            return Err(crate::error::ModelError::Config(bad.join("; ")));
+        }
         if self.n_joints != 24 {
             bad.push(format!(
                 "n_joints must be 24 (SMPL skeleton), found {}",

@@ -11,6 +11,7 @@
 //! | --- | --- |
 //! | [`config`], [`presets`] | the architecture's sizes and switches; named sizes |
 //! | [`params`], [`checkpoint`] | tensor registration and initialisation; the file format |
+//! | [`run_dir`] | a training run's directory: its complete checkpoints, the newest model |
 //! | [`nn`] | linear and sine layers |
 //! | [`encoders`] | 6D joint rotations, per-joint point encoders, spherical harmonics |
 //! | [`gnn`] | the pose graph network over the 24 joints, box half-extents |
@@ -29,6 +30,7 @@ pub mod modulator;
 pub mod nn;
 pub mod params;
 pub mod presets;
+pub mod run_dir;
 pub mod trace;
 pub mod window;
 

@@ -14,6 +14,10 @@
 //! | [`image`] | whole images in bounded memory |
 //! | [`camera_path`] | orbit, bullet-time and framing cameras |
 
+/// The most rays one chunk of a render or a training step may have (a flag such as
+/// `--chunk` above it is refused; the paper's training step has 3,072 rays).
+pub const MAX_CHUNK_RAYS: usize = 1 << 20;
+
 pub mod avatar;
 pub mod batch;
 pub mod bones;

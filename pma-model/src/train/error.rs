@@ -7,6 +7,7 @@ pub type ObserverError = Box<dyn std::error::Error + Send + Sync>;
 
 #[derive(Debug, thiserror::Error)]
 pub enum TrainError {
+    /// Reading an input (dataset, config, checkpoint, log) failed.
     #[error("{path}: {source}")]
     Io {
         path: PathBuf,
@@ -14,16 +15,30 @@ pub enum TrainError {
         source: std::io::Error,
     },
 
+    /// Writing the run directory failed (a full disk, no permission); the last complete
+    /// checkpoint is intact.
+    #[error("writing {path}: {source}")]
+    Write {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+
+    /// Another process holds the run directory's lock.
+    #[error("{} is in use by another pma train ({}); one writer per run directory", dir.display(), holder(*pid))]
+    Locked { dir: PathBuf, pid: Option<u32> },
+
     /// Bad training settings (TOML file, preset, flags).
     #[error("invalid training config: {0}")]
     Config(String),
 
-    /// Optimizer state that does not fit the model (every problem listed).
-    #[error("train state: {} problem(s):\n  - {}", .0.len(), .0.join("\n  - "))]
+    /// Optimizer state that does not fit the model (every problem listed; the message is
+    /// the first and how many more).
+    #[error("train state: {}", crate::error::summarize(.0))]
     State(Vec<String>),
 
     /// A train-state file that cannot be used (every problem listed).
-    #[error("train state {path}: {} problem(s):\n  - {}", problems.len(), problems.join("\n  - "))]
+    #[error("train state {path}: {}", crate::error::summarize(problems))]
     StateFile {
         path: PathBuf,
         problems: Vec<String>,
@@ -69,6 +84,36 @@ pub enum TrainError {
     Eval(Box<crate::eval::EvalError>),
 }
 
+fn holder(pid: Option<u32>) -> String {
+    match pid {
+        Some(p) => format!("PID {p}"),
+        None => "PID unknown".to_string(),
+    }
+}
+
+impl pma_data::ExitKind for TrainError {
+    fn kind(&self) -> pma_data::ErrorKind {
+        use pma_data::ErrorKind;
+        match self {
+            TrainError::Io { source, .. } => pma_data::error::input_io_kind(source),
+            TrainError::Config(_)
+            | TrainError::State(_)
+            | TrainError::StateFile { .. }
+            | TrainError::Resume { .. }
+            | TrainError::RunExists(_)
+            | TrainError::Locked { .. } => ErrorKind::Refused,
+            TrainError::Write { .. }
+            | TrainError::Diverged { .. }
+            | TrainError::Observer(_)
+            | TrainError::Candle(_) => ErrorKind::Failure,
+            TrainError::Stopped { source, .. } => source.kind(),
+            TrainError::Model(m) => m.kind(),
+            TrainError::Data(d) => d.kind(),
+            TrainError::Eval(e) => e.kind(),
+        }
+    }
+}
+
 impl TrainError {
     /// Whether the work stopped because an interruption was requested.
     pub fn is_interrupted(&self) -> bool {
@@ -108,8 +153,16 @@ impl From<candle_core::Error> for TrainError {
 
 /// Write `bytes` to `path` atomically (see `pma_data::fsio`).
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), TrainError> {
-    pma_data::fsio::write_atomic(path, bytes).map_err(|source| TrainError::Io {
+    pma_data::fsio::write_atomic(path, bytes).map_err(|source| TrainError::Write {
         path: path.to_path_buf(),
         source,
     })
+}
+
+/// A [`TrainError::Write`] maker for `path`.
+pub(crate) fn write_err(path: &Path) -> impl FnOnce(std::io::Error) -> TrainError + '_ {
+    move |source| TrainError::Write {
+        path: path.to_path_buf(),
+        source,
+    }
 }

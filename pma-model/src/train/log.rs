@@ -39,7 +39,8 @@ pub struct TrainLog {
 impl TrainLog {
     /// Read a log written by [`Self::write`]; a missing file is an empty log.
     pub fn read(path: &Path) -> Result<Self, TrainError> {
-        let text = match std::fs::read_to_string(path) {
+        // 256 MiB is millions of rows.
+        let text = match pma_data::fsio::read_input_to_string(path, 256 << 20) {
             Ok(t) => t,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Self::default()),
             Err(source) => {

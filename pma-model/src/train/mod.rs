@@ -9,6 +9,10 @@
 //! * [`trainer`]: one training step (forward, loss, backward, clip, Adam, schedule), run in
 //!   chunks of rays with gradient accumulation when the batch is large, non-finite step
 //!   skipping, checkpoint and resume.
+//! * [`checkpoint`]: checkpoints written as transactions into a run directory, `--resume`'s
+//!   starting point, the one rule of what a resumed run may change
+//!   ([`RunConfig::check_resume`]).
+//! * [`lock`]: one writer per run directory.
 //! * [`run`]: a whole training run (run directory, loop, held-out evaluation schedule,
 //!   checkpoints, interruption), reporting to a [`TrainObserver`].
 //!
@@ -16,7 +20,9 @@
 
 pub mod adam;
 pub mod batch;
+pub mod checkpoint;
 mod error;
+pub mod lock;
 pub mod log;
 pub mod loss;
 pub mod presets;
@@ -30,7 +36,8 @@ pub use batch::{BatchSource, FixedBatch, TrainBatch};
 pub use log::{LogRow, TrainLog};
 pub use pma_data::metrics::psnr_from_mse;
 pub use run::{
-    train_run, Silent, StepReport, TrainObserver, TrainOutcome, TrainRequest, CONFIG_FILE, LOG_FILE,
+    train_run, Silent, StepReport, TrainObserver, TrainOutcome, TrainRequest, CONFIG_FILE,
+    LOG_FILE, MAX_MINUTES,
 };
 pub use source::DatasetSource;
 pub use state::{Progress, RngState, TrainState};

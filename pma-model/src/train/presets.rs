@@ -8,6 +8,12 @@ use serde::{Deserialize, Serialize};
 use super::error::TrainError;
 use crate::network::config::Config;
 
+/// Limit of the rays of a training step and of a render chunk (the paper's step: 3,072).
+pub const MAX_RAYS: usize = crate::render::MAX_CHUNK_RAYS;
+
+/// The largest run TOML read (1 MiB; a complete resolved config is ~2 KB).
+pub const MAX_CONFIG_BYTES: u64 = 1 << 20;
+
 /// Hyper-parameters of the training loop (docs/reference.md, "Training schedule and Adam").
 /// Field names follow the reference's yaml where one exists (given in the doc comments).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -137,6 +143,18 @@ impl TrainConfig {
     /// Reject settings the training loop cannot run with.
     pub fn validate(&self) -> Result<(), TrainError> {
         let mut bad = Vec::new();
+        // Counts that size buffers are bounded (the paper's step has 3,072 rays).
+        for (name, v, max) in [
+            ("rays_per_step", self.rays_per_step, MAX_RAYS),
+            ("images_per_step", self.images_per_step, MAX_RAYS),
+            ("chunk_rays", self.chunk_rays, MAX_RAYS),
+            ("render_chunk", self.render_chunk, MAX_RAYS),
+            ("eval_images", self.eval_images, 100_000),
+        ] {
+            if v > max {
+                bad.push(format!("{name} = {v} is over the limit of {max}"));
+            }
+        }
         if self.images_per_step == 0 || self.rays_per_step == 0 {
             bad.push("rays_per_step and images_per_step must be > 0".to_string());
         } else if self.rays_per_step % self.images_per_step != 0 {
@@ -292,7 +310,7 @@ impl RunConfig {
         let bad = |msg: String| TrainError::Config(msg);
         let mut root: toml::Table = text
             .parse()
-            .map_err(|e| bad(format!("not valid TOML: {e}")))?;
+            .map_err(|e: toml::de::Error| bad(toml_error(text, &e)))?;
         let preset = match root.remove("preset") {
             None => Preset::Paper,
             Some(toml::Value::String(s)) => s.parse()?,
@@ -317,10 +335,13 @@ impl RunConfig {
     }
 
     pub fn from_toml_file(path: &Path) -> Result<Self, TrainError> {
-        let text = std::fs::read_to_string(path).map_err(|source| TrainError::Io {
-            path: path.to_path_buf(),
-            source,
-        })?;
+        let text =
+            pma_data::fsio::read_input_to_string(path, MAX_CONFIG_BYTES).map_err(|source| {
+                TrainError::Io {
+                    path: path.to_path_buf(),
+                    source,
+                }
+            })?;
         Self::from_toml_str(&text).map_err(|e| match e {
             TrainError::Config(msg) => TrainError::Config(format!("{}: {msg}", path.display())),
             other => other,
@@ -332,11 +353,99 @@ impl RunConfig {
         self.train.validate()
     }
 
+    /// The one rule for what may change when a run is resumed, used wherever a run is
+    /// continued (`train::run` against the configuration given on the command line, the
+    /// trainer against the one its train state was saved with): `given` must equal `self`
+    /// (the run's configuration) except for
+    ///
+    /// * `train.iters`: the length of the run;
+    /// * `train.chunk_rays`: rays per forward/backward chunk, which bounds memory and leaves
+    ///   the step unchanged.
+    ///
+    /// `model.n_framecodes` is the training set's image count, not a setting: it must match
+    /// (the same data). Everything else (the model, the seed, rates, schedule, culling,
+    /// variant) is the run. The error names the first difference and how many more.
+    pub fn check_resume(&self, given: &RunConfig) -> Result<(), String> {
+        let norm = |r: &RunConfig| {
+            let mut r = r.clone();
+            r.train.iters = 0;
+            r.train.chunk_rays = 0;
+            serde_json::to_value(&r).unwrap_or(serde_json::Value::Null)
+        };
+        let mut diffs = Vec::new();
+        json_diffs("", &norm(self), &norm(given), &mut diffs);
+        let Some((key, ours, theirs)) = diffs.first() else {
+            return Ok(());
+        };
+        let what = if key == "model.n_framecodes" {
+            format!(
+                "the run was trained on {ours} images, the data has {theirs} (n_framecodes = the training set's image count)"
+            )
+        } else {
+            format!("{key} is {ours} in the run, {theirs} given")
+        };
+        let more = match diffs.len() {
+            1 => String::new(),
+            n => format!(" (and {} more difference(s))", n - 1),
+        };
+        Err(format!(
+            "{what}{more}; a resumed run keeps its configuration (only train.iters and train.chunk_rays may change)"
+        ))
+    }
+
     /// The full configuration as TOML; [`Self::from_toml_str`] reads it back unchanged.
     pub fn to_toml_string(&self) -> Result<String, TrainError> {
         toml::to_string(self)
             .map_err(|e| TrainError::Config(format!("cannot write the run config as TOML: {e}")))
     }
+}
+
+/// The leaves where `a` and `b` differ, as (dotted key, value in a, value in b).
+fn json_diffs(
+    prefix: &str,
+    a: &serde_json::Value,
+    b: &serde_json::Value,
+    out: &mut Vec<(String, String, String)>,
+) {
+    use serde_json::Value;
+    match (a, b) {
+        (Value::Object(x), Value::Object(y)) => {
+            let mut keys: Vec<&String> = x.keys().chain(y.keys()).collect();
+            keys.sort();
+            keys.dedup();
+            for k in keys {
+                let key = if prefix.is_empty() {
+                    k.clone()
+                } else {
+                    format!("{prefix}.{k}")
+                };
+                let null = Value::Null;
+                json_diffs(
+                    &key,
+                    x.get(k).unwrap_or(&null),
+                    y.get(k).unwrap_or(&null),
+                    out,
+                );
+            }
+        }
+        _ if a != b => out.push((prefix.to_string(), a.to_string(), b.to_string())),
+        _ => {}
+    }
+}
+
+/// A TOML parse error on one line: where (line and column) and what.
+fn toml_error(text: &str, e: &toml::de::Error) -> String {
+    let at = e.span().map(|s| {
+        let before = &text[..s.start.min(text.len())];
+        let line = before.matches('\n').count() + 1;
+        let col = before.len() - before.rfind('\n').map_or(0, |i| i + 1) + 1;
+        format!(" at line {line}, column {col}")
+    });
+    format!(
+        "not valid TOML{}: {}",
+        at.unwrap_or_default(),
+        pma_data::error::one_line(e.message())
+    )
 }
 
 fn take_table(root: &mut toml::Table, key: &str) -> Result<toml::Table, TrainError> {
@@ -357,7 +466,12 @@ fn merge<T: Serialize + serde::de::DeserializeOwned>(
     over: toml::Table,
 ) -> Result<T, TrainError> {
     let bad = |msg: String| TrainError::Config(msg);
-    let mut merged = toml::Table::try_from(base).map_err(|e| bad(format!("[{section}]: {e}")))?;
+    let mut merged = toml::Table::try_from(base).map_err(|e| {
+        bad(format!(
+            "[{section}]: {}",
+            pma_data::error::one_line(&e.to_string())
+        ))
+    })?;
     for (k, v) in over {
         match (merged.get_mut(&k), v) {
             (None, _) => return Err(bad(format!("unknown key `{section}.{k}`"))),
@@ -374,7 +488,12 @@ fn merge<T: Serialize + serde::de::DeserializeOwned>(
     }
     toml::Value::Table(merged)
         .try_into()
-        .map_err(|e| bad(format!("[{section}]: {e}")))
+        .map_err(|e: toml::de::Error| {
+            bad(format!(
+                "[{section}]: {}",
+                pma_data::error::one_line(&e.to_string())
+            ))
+        })
 }
 
 #[cfg(test)]
@@ -414,6 +533,43 @@ mod tests {
             let back = RunConfig::from_toml_str(&run.to_toml_string().unwrap()).unwrap();
             assert_eq!(back, run, "{p}");
         }
+    }
+
+    #[test]
+    fn resume_may_change_only_the_length_and_the_chunking() {
+        let run = RunConfig::from_preset(Preset::Tiny);
+        let mut same = run.clone();
+        same.train.iters *= 3;
+        same.train.chunk_rays = 16;
+        run.check_resume(&same).unwrap();
+        let mut other = run.clone();
+        other.train.lr *= 2.0;
+        other.model.trunk_width += 1;
+        let err = run.check_resume(&other).unwrap_err();
+        assert!(err.contains("model.trunk_width is"), "{err}");
+        assert!(err.contains("and 1 more difference"), "{err}");
+        let mut data = run.clone();
+        data.model.n_framecodes += 5;
+        let err = run.check_resume(&data).unwrap_err();
+        assert!(err.contains("images"), "{err}");
+    }
+
+    #[test]
+    fn sizes_from_a_toml_are_bounded_and_parse_errors_are_one_line() {
+        for text in [
+            "preset = \"tiny\"\n[model]\ntrunk_width = 1000000\n",
+            "preset = \"tiny\"\n[model]\nn_samples = 1000000000\n",
+            "preset = \"tiny\"\n[model]\ntrunk_depth = 1000000000\n",
+            "preset = \"tiny\"\n[train]\nrays_per_step = 100000000\n",
+        ] {
+            let err = RunConfig::from_toml_str(text).unwrap_err().to_string();
+            assert!(err.contains("over the limit"), "{text:?}: {err}");
+        }
+        let err = RunConfig::from_toml_str("[train\nlr = 1\n")
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("line 1"), "{err}");
+        assert_eq!(err.lines().count(), 1, "{err}");
     }
 
     #[test]

@@ -2,17 +2,16 @@
 //! time budget or an interruption, evaluate on held-out data on schedule, and keep the run
 //! directory current.
 //!
-//! The run directory holds everything a run writes:
-//!
-//! | file | content |
-//! | --- | --- |
-//! | `config.toml` | the resolved run configuration (preset + overrides) |
-//! | `model.safetensors` | the latest model (pma checkpoint) |
-//! | `train_state.safetensors` | optimizer moments, RNG and sampler state, iteration |
-//! | `log.csv` | one row per log interval (see [`super::log`]) |
+//! The run directory holds everything a run writes (layout: [`crate::network::run_dir`]):
+//! `config.toml` (the resolved run configuration), `log.csv` (one row per log interval, see
+//! [`super::log`]), the checkpoints `ckpt-<iteration>/` (model, train state, config and log
+//! up to that iteration, each written as one transaction by [`super::checkpoint`]) and
+//! `model.safetensors`, the newest complete checkpoint's model. One process writes a run
+//! directory at a time ([`super::lock`]); a resumed run starts from the newest complete
+//! checkpoint after removing what an interrupted one left behind.
 //!
 //! Checkpoints are written every `ckpt_every` iterations, at the end, and when the
-//! interrupt flag ([`crate::interrupt`]) is raised; every file is replaced atomically. The
+//! interrupt flag ([`crate::interrupt`]) is raised. The
 //! flag is polled inside a step (between chunks of rays) and inside held-out evaluations
 //! (between chunks of pixels), so an interruption takes effect within one chunk's time:
 //! a step cut short is undone (see [`Trainer::step`]) and the checkpoint is that of the
@@ -28,16 +27,18 @@ use std::time::{Duration, Instant};
 use candle_core::Device;
 use pma_data::dataset::{Dataset, Profile};
 
-use super::error::{write_atomic, ObserverError, TrainError};
+use super::checkpoint::{self, ResumePoint};
+use super::error::{write_atomic, write_err, ObserverError, TrainError};
+use super::lock::RunLock;
 use super::log::{LogRow, TrainLog};
-use super::trainer::{StepStats, Trainer, MODEL_FILE, STATE_FILE};
+use super::trainer::{StepStats, Trainer, MODEL_FILE};
 use crate::eval::{evaluate, held_out_images, read_dataset, spread, EvalOptions};
 use crate::train::presets::{Preset, RunConfig};
 
-/// The resolved run configuration inside a run directory.
-pub const CONFIG_FILE: &str = "config.toml";
-/// The training log inside a run directory.
-pub const LOG_FILE: &str = "log.csv";
+pub use crate::network::run_dir::{CONFIG_FILE, LOG_FILE};
+
+/// The longest time budget (`minutes`) a session accepts: about two years.
+pub const MAX_MINUTES: f64 = 1e6;
 
 /// What to train.
 #[derive(Debug, Clone)]
@@ -155,15 +156,36 @@ pub fn train_run(
     req: &TrainRequest,
     observer: &mut dyn TrainObserver,
 ) -> Result<TrainOutcome, TrainError> {
-    let run = resolve_run(req)?;
-    if !req.resume && !req.overwrite && req.out.join(STATE_FILE).exists() {
-        return Err(TrainError::RunExists(req.out.clone()));
+    if let Some(m) = req.minutes {
+        if !(m.is_finite() && m > 0.0 && m <= MAX_MINUTES) {
+            return Err(TrainError::Config(format!(
+                "minutes must be finite and in (0, {MAX_MINUTES}], found {m}"
+            )));
+        }
+    }
+    std::fs::create_dir_all(&req.out).map_err(write_err(&req.out))?;
+    // Held until the session ends: one writer per run directory.
+    let _lock = RunLock::acquire(&req.out)?;
+    let point = if req.resume {
+        let removed = checkpoint::clean_stale(&req.out)?;
+        if !removed.is_empty() {
+            observer.note(&format!(
+                "removed {} temporary file(s) of an interrupted checkpoint",
+                removed.len()
+            ));
+        }
+        Some(checkpoint::resume_point(&req.out)?)
+    } else {
+        None
+    };
+    let run = resolve_run(req, point.as_ref())?;
+    if !req.resume && checkpoint::holds_run(&req.out) {
+        if !req.overwrite {
+            return Err(TrainError::RunExists(req.out.clone()));
+        }
+        checkpoint::remove_all(&req.out)?;
     }
     let data = Arc::new(read_warned(&req.data, Profile::Train, observer)?);
-    std::fs::create_dir_all(&req.out).map_err(|source| TrainError::Io {
-        path: req.out.clone(),
-        source,
-    })?;
     let held_out = match &req.eval_data {
         Some(p) => {
             let data = read_warned(p, Profile::Eval, observer)?;
@@ -176,6 +198,9 @@ pub fn train_run(
         }
         None => None,
     };
+    if !req.resume {
+        checkpoint::clean_stale(&req.out)?;
+    }
     let trainer = if req.resume {
         Trainer::resume(&req.out, run.clone(), data, &req.device)?
     } else {
@@ -184,13 +209,17 @@ pub fn train_run(
         write_config(t.run_config(), &req.out.join(CONFIG_FILE))?;
         t
     };
-    let mut log = if req.resume {
-        TrainLog::read(&req.out.join(LOG_FILE))?
-    } else {
-        TrainLog::default()
+    let mut log = match point.as_ref() {
+        Some(ResumePoint { log: Some(p), .. }) => TrainLog::read(p)?,
+        Some(_) => TrainLog::read(&req.out.join(LOG_FILE))?,
+        None => TrainLog::default(),
     };
     log.truncate_after(trainer.iteration());
+    let resumed_at = (trainer.iteration(), log.rows.len());
     let mut session = Session::new(req, run, trainer, log, held_out, observer);
+    if req.resume {
+        session.saved = Some(resumed_at);
+    }
     session.run()
 }
 
@@ -206,38 +235,34 @@ fn read_warned(
     Ok(data)
 }
 
-/// The run's configuration: the request's, or on resume the run directory's (which the
-/// request may only lengthen).
-fn resolve_run(req: &TrainRequest) -> Result<RunConfig, TrainError> {
-    let saved = req.out.join(CONFIG_FILE);
-    let mut run = if req.resume {
-        let resume_error = |reason: String| TrainError::Resume {
-            dir: req.out.clone(),
-            reason,
-        };
-        let from_dir = RunConfig::from_toml_file(&saved)
-            .map_err(|e| resume_error(format!("it needs the run's {CONFIG_FILE}: {e}")))?;
-        if let Some(given) = &req.run {
-            let mut a = given.clone();
-            let mut b = from_dir.clone();
-            // Only the length of the run may change on resume (the frame-code count
-            // comes from the data).
-            a.train.iters = 0;
-            b.train.iters = 0;
-            a.train.chunk_rays = b.train.chunk_rays;
-            a.model.n_framecodes = b.model.n_framecodes;
-            if a != b {
-                return Err(resume_error(format!(
-                    "the configuration given differs from the run's {} (beyond `iters`); a resumed run keeps its configuration",
-                    saved.display()
-                )));
+/// The run's configuration: the request's, or on resume the checkpoint's (which the request
+/// may change only as [`RunConfig::check_resume`] allows).
+fn resolve_run(req: &TrainRequest, point: Option<&ResumePoint>) -> Result<RunConfig, TrainError> {
+    let mut run = match point {
+        Some(point) => {
+            let resume_error = |reason: String| TrainError::Resume {
+                dir: req.out.clone(),
+                reason,
+            };
+            let saved = RunConfig::from_toml_file(&point.config).map_err(|e| {
+                resume_error(format!(
+                    "it needs the run's {CONFIG_FILE}: {}",
+                    pma_data::error::one_line(&e.to_string())
+                ))
+            })?;
+            if let Some(given) = &req.run {
+                let mut given = given.clone();
+                // The frame-code count comes from the data (the trainer checks it), not
+                // from a preset or TOML.
+                given.model.n_framecodes = saved.model.n_framecodes;
+                saved.check_resume(&given).map_err(resume_error)?;
             }
+            saved
         }
-        from_dir
-    } else {
-        req.run
+        None => req
+            .run
             .clone()
-            .unwrap_or_else(|| RunConfig::from_preset(Preset::Paper))
+            .unwrap_or_else(|| RunConfig::from_preset(Preset::Paper)),
     };
     if let Some(n) = req.iters {
         run.train.iters = n;
@@ -249,7 +274,7 @@ fn resolve_run(req: &TrainRequest) -> Result<RunConfig, TrainError> {
     Ok(run)
 }
 
-fn write_config(run: &RunConfig, path: &Path) -> Result<(), TrainError> {
+pub(crate) fn write_config(run: &RunConfig, path: &Path) -> Result<(), TrainError> {
     let text = format!(
         "# Resolved run configuration, written by `pma train`; `--resume` reads it back.\n{}",
         run.to_toml_string()?
@@ -272,6 +297,9 @@ struct Session<'a> {
     eval_s: f64,
     interval: Interval,
     ema: Option<(f64, f64)>,
+    /// (iteration, log rows) of the checkpoint on disk, if this session knows it: a
+    /// checkpoint of the same state is not written twice.
+    saved: Option<(u64, usize)>,
 }
 
 impl<'a> Session<'a> {
@@ -290,7 +318,7 @@ impl<'a> Session<'a> {
             clock: Instant::now(),
             budget: req
                 .minutes
-                .map(|m| Duration::from_secs_f64((m * 60.0).max(0.0))),
+                .map(|m| Duration::from_secs_f64((m * 60.0).clamp(0.0, MAX_MINUTES * 60.0))),
             run,
             trainer,
             log,
@@ -299,6 +327,7 @@ impl<'a> Session<'a> {
             eval_s: 0.0,
             interval: Interval::default(),
             ema: None,
+            saved: None,
         }
     }
 
@@ -459,7 +488,8 @@ impl<'a> Session<'a> {
         }
         if it % ckpt_every == 0 {
             self.trainer.set_wall_s(self.wall());
-            self.trainer.save_checkpoint(&self.out)?;
+            checkpoint::save(&self.out, &self.trainer, Some(&self.log))?;
+            self.saved = Some((it, self.log.rows.len()));
             self.observer
                 .checkpoint(&self.out, &self.log)
                 .map_err(TrainError::Observer)?;
@@ -491,8 +521,10 @@ impl<'a> Session<'a> {
             self.log.push(self.row(it, means, e));
         }
         self.trainer.set_wall_s(self.wall());
-        self.trainer.save_checkpoint(&self.out)?;
         self.log.write(&self.out.join(LOG_FILE))?;
+        if self.saved != Some((it, self.log.rows.len())) {
+            checkpoint::save(&self.out, &self.trainer, Some(&self.log))?;
+        }
         self.observer
             .checkpoint(&self.out, &self.log)
             .map_err(TrainError::Observer)?;

@@ -109,6 +109,11 @@ struct GroupMeta {
 impl TrainState {
     /// Write atomically (temporary file beside `path`, then rename).
     pub fn save(&self, path: &Path) -> Result<(), TrainError> {
+        write_atomic(path, &self.to_bytes(path)?)
+    }
+
+    /// The bytes [`Self::save`] writes (`path` names the file in errors).
+    pub fn to_bytes(&self, path: &Path) -> Result<Vec<u8>, TrainError> {
         let mut meta = HashMap::new();
         meta.insert("format".to_string(), FORMAT.to_string());
         meta.insert("format_version".to_string(), FORMAT_VERSION.to_string());
@@ -158,19 +163,20 @@ impl TrainState {
             ));
         }
         tensors.sort_by(|a, b| a.0.cmp(&b.0));
-        let bytes =
-            safetensors::serialize(tensors.iter().map(|(n, t)| (n.as_str(), t)), Some(meta))
-                .map_err(|e| TrainError::StateFile {
-                    path: path.to_path_buf(),
-                    problems: vec![e.to_string()],
-                })?;
-        write_atomic(path, &bytes)
+        safetensors::serialize(tensors.iter().map(|(n, t)| (n.as_str(), t)), Some(meta)).map_err(
+            |e| TrainError::StateFile {
+                path: path.to_path_buf(),
+                problems: vec![e.to_string()],
+            },
+        )
     }
 
     /// Read and check a train-state file: metadata present and well-formed, every group
     /// member has both moments and a step, and no tensor is left over.
     pub fn load(path: &Path, device: &Device) -> Result<Self, TrainError> {
-        let bytes = std::fs::read(path).map_err(|source| TrainError::Io {
+        // Moments are twice the model's parameters.
+        let limit = 2 * crate::network::checkpoint::MAX_CHECKPOINT_BYTES;
+        let bytes = pma_data::fsio::read_input(path, limit).map_err(|source| TrainError::Io {
             path: path.to_path_buf(),
             source,
         })?;
@@ -493,15 +499,20 @@ mod tests {
             },
         );
         s.save(&path).unwrap();
-        let err = TrainState::load(&path, &Device::Cpu)
-            .unwrap_err()
-            .to_string();
+        let e = TrainState::load(&path, &Device::Cpu).unwrap_err();
+        // The message is one line (the first problem and how many more); the error lists all.
+        let err = e.to_string();
+        assert_eq!(err.lines().count(), 1, "{err}");
+        assert!(err.contains(path.to_str().unwrap()), "{err}");
+        let TrainError::StateFile { problems, .. } = e else {
+            panic!("expected StateFile, got {err}");
+        };
+        let err = problems.join("\n");
         assert!(err.contains("`ghost`: tensor exp_avg is missing"), "{err}");
         assert!(
             err.contains("tensor `exp_avg.stray` belongs to no parameter group"),
             "{err}"
         );
-        assert!(err.contains(path.to_str().unwrap()), "{err}");
 
         // A model checkpoint is not a train state.
         let other = dir.path().join("model.safetensors");

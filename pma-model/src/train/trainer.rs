@@ -20,7 +20,7 @@ use rand_chacha::ChaCha8Rng;
 use super::adam::{clip_grad_norm, global_norm, Adam};
 use super::batch::{BatchSource, TrainBatch};
 use super::source::DatasetSource;
-use super::state::{fingerprint, Progress, RngState, TrainState};
+use super::state::{Progress, RngState, TrainState};
 use super::TrainError;
 use crate::network::config::Config;
 use crate::render::avatar::{Avatar, Mode, Outputs, PoseFeatures, Rays};
@@ -29,10 +29,7 @@ use crate::train::presets::{RunConfig, TrainConfig};
 use pma_data::dataset::Dataset;
 use pma_data::metrics::psnr_from_mse;
 
-/// Model file of a run directory (a pma checkpoint).
-pub const MODEL_FILE: &str = "model.safetensors";
-/// Train-state file of a run directory.
-pub const STATE_FILE: &str = "train_state.safetensors";
+pub use crate::network::run_dir::{MODEL_FILE, STATE_FILE};
 
 /// Loss terms of one step (the paper's loss, [`crate::train::loss`]), as plain numbers for logging.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -727,17 +724,12 @@ impl Trainer {
         training_loss(&out, &batch.target, &self.run.train)
     }
 
-    /// Write `dir/model.safetensors` and then `dir/train_state.safetensors`, each atomically;
-    /// the state carries a fingerprint of the model file so a crash between the two writes
-    /// is detected on resume.
-    pub fn save_checkpoint(&self, dir: &Path) -> Result<(), TrainError> {
-        let model_path = dir.join(MODEL_FILE);
-        self.avatar.save(&model_path)?;
-        let bytes = std::fs::read(&model_path).map_err(|source| TrainError::Io {
-            path: model_path.clone(),
-            source,
-        })?;
-        let state = TrainState {
+    /// What a checkpoint holds besides the model (see [`super::checkpoint`], which writes
+    /// and reads run directories): optimizer moments, iteration, random streams, sampler
+    /// position, counters and the run configuration. `model_fingerprint` ties it to the
+    /// model file written with it.
+    pub(crate) fn train_state(&self, model_fingerprint: String) -> Result<TrainState, TrainError> {
+        Ok(TrainState {
             global_iter: self.opt.iter,
             groups: self.opt.adam.groups().to_vec(),
             params: self
@@ -753,90 +745,36 @@ impl Trainer {
                 serde_json::to_value(&self.run)
                     .map_err(|e| TrainError::Config(format!("run config: {e}")))?,
             ),
-            model_fingerprint: Some(fingerprint(&bytes)),
-        };
-        state.save(&dir.join(STATE_FILE))
+            model_fingerprint: Some(model_fingerprint),
+        })
     }
 
-    /// Continue the run saved in `dir` with batches from `source` (built exactly as for the
-    /// original run; its position is restored from the state). `run` must equal the saved
-    /// run's configuration except for `train.iters`.
-    pub fn resume_with_source(
-        dir: &Path,
-        run: RunConfig,
-        source: Box<dyn BatchSource>,
-        device: &Device,
-    ) -> Result<Self, TrainError> {
-        let fail = |reason: String| TrainError::Resume {
-            dir: dir.to_path_buf(),
-            reason,
-        };
-        let state_path = dir.join(STATE_FILE);
-        let model_path = dir.join(MODEL_FILE);
-        for p in [&state_path, &model_path] {
-            if !p.is_file() {
-                return Err(fail(format!("{} is missing", p.display())));
-            }
-        }
-        let state = TrainState::load(&state_path, device)?;
-        if let Some(saved) = &state.run_config {
-            let saved: RunConfig = serde_json::from_value(saved.clone())
-                .map_err(|e| fail(format!("the saved run config is unreadable: {e}")))?;
-            let (mut a, mut b) = (saved, run.clone());
-            a.train.iters = 0;
-            b.train.iters = 0;
-            // Chunking changes memory use, not the step.
-            a.train.chunk_rays = 0;
-            b.train.chunk_rays = 0;
-            if a != b {
-                return Err(fail(
-                    "the run configuration differs from the one the checkpoint was trained with"
-                        .into(),
-                ));
-            }
-        }
-        let bytes = std::fs::read(&model_path).map_err(|source| TrainError::Io {
-            path: model_path.clone(),
-            source,
-        })?;
-        if let Some(fp) = &state.model_fingerprint {
-            if *fp != fingerprint(&bytes) {
-                return Err(fail(format!(
-                    "{} does not belong to {} (interrupted while checkpointing?)",
-                    model_path.display(),
-                    state_path.display()
-                )));
-            }
-        }
-        let avatar = Avatar::load(&model_path, device)?;
-        let mut trainer = Self::with_source(run, avatar, source)?;
+    /// Continue from `state` (read from the checkpoint whose model this trainer's avatar
+    /// was loaded from): optimizer moments and steps, iteration, rates, counters, the noise
+    /// generator and the batch source's position.
+    pub(crate) fn restore(&mut self, state: TrainState) -> Result<(), TrainError> {
         let lrs: Vec<f64> = state.groups.iter().map(|g| g.lr).collect();
         let saved_names: Vec<&String> = state.groups.iter().flat_map(|g| &g.params).collect();
-        if saved_names.len() != trainer.names.len()
-            || saved_names.iter().zip(&trainer.names).any(|(a, b)| *a != b)
+        if saved_names.len() != self.names.len()
+            || saved_names.iter().zip(&self.names).any(|(a, b)| *a != b)
         {
-            return Err(fail(
+            return Err(TrainError::State(vec![
                 "the optimizer's parameter groups differ from the model's".into(),
-            ));
+            ]));
         }
-        trainer.opt.adam.load_states(state.params, &lrs)?;
-        trainer.opt.iter = state.global_iter;
+        self.opt.adam.load_states(state.params, &lrs)?;
+        self.opt.iter = state.global_iter;
         // Rates follow from the iteration; recomputing avoids trusting JSON float parsing.
-        let c = &trainer.run.train;
-        trainer.opt.adam.apply_schedule(
-            state.global_iter,
-            c.lr_decay,
-            c.lr_decay_steps,
-            c.lr_floor,
-        );
-        trainer.opt.progress = state.progress.unwrap_or_default();
+        let c = &self.run.train;
+        self.opt
+            .adam
+            .apply_schedule(state.global_iter, c.lr_decay, c.lr_decay_steps, c.lr_floor);
+        self.opt.progress = state.progress.unwrap_or_default();
         if let Some(r) = &state.rng {
-            trainer.noise_rng = r.restore()?;
+            self.noise_rng = r.restore()?;
         }
-        trainer
-            .source
-            .restore(state.sampler.as_ref().unwrap_or(&serde_json::Value::Null))?;
-        Ok(trainer)
+        self.source
+            .restore(state.sampler.as_ref().unwrap_or(&serde_json::Value::Null))
     }
 }
 

@@ -5,7 +5,8 @@
 
 use crate::train_support::*;
 use candle_core::Device;
-use pma_model::train::{TrainError, Trainer, MODEL_FILE, STATE_FILE};
+use pma_model::network::run_dir::newest_checkpoint;
+use pma_model::train::{TrainError, Trainer, MODEL_FILE};
 
 #[test]
 fn resume_equals_uninterrupted_run() {
@@ -76,25 +77,26 @@ fn resume_rejects_a_changed_config_and_a_mismatched_model() {
         .err()
         .unwrap();
     assert!(matches!(err, TrainError::Resume { .. }), "{err}");
-    assert!(err.to_string().contains("configuration differs"), "{err}");
+    assert!(err.to_string().contains("train.lr is"), "{err}");
 
-    // A model file from another iteration than the state (crash between the two writes).
+    // A model file from another iteration than the state in the same checkpoint.
     let mut later = tiny_trainer(&data);
     later.step().unwrap();
     later.step().unwrap();
     let elsewhere = tmp.path().join("later");
     std::fs::create_dir_all(&elsewhere).unwrap();
     later.save_checkpoint(&elsewhere).unwrap();
-    std::fs::copy(elsewhere.join(MODEL_FILE), ckpt.join(MODEL_FILE)).unwrap();
+    let newest = newest_checkpoint(&ckpt).unwrap().unwrap();
+    std::fs::copy(elsewhere.join(MODEL_FILE), newest.model()).unwrap();
     let err = Trainer::resume(&ckpt, tiny_run(), data.clone(), &Device::Cpu)
         .err()
         .unwrap();
     assert!(err.to_string().contains("does not belong to"), "{err}");
 
     // Nothing to resume.
-    std::fs::remove_file(ckpt.join(STATE_FILE)).unwrap();
+    std::fs::remove_dir_all(&newest.path).unwrap();
     let err = Trainer::resume(&ckpt, tiny_run(), data, &Device::Cpu)
         .err()
         .unwrap();
-    assert!(err.to_string().contains("is missing"), "{err}");
+    assert!(err.to_string().contains("no complete checkpoint"), "{err}");
 }

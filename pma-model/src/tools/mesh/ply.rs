@@ -20,7 +20,12 @@ fn to_u8(c: f32) -> u8 {
 /// Write `mesh` as a binary little-endian PLY (vertices `x y z nx ny nz [red green blue]`,
 /// faces `vertex_indices`), atomically (temporary file + rename).
 pub fn write_ply(mesh: &Mesh, path: &Path) -> Result<()> {
-    pma_data::fsio::write_atomic_with(path, |w| write_ply_to(mesh, w)).map_err(io_err(path))
+    pma_data::fsio::write_atomic_with(path, |w| write_ply_to(mesh, w)).map_err(|source| {
+        ModelError::Write {
+            path: path.to_path_buf(),
+            source,
+        }
+    })
 }
 
 fn write_ply_to(mesh: &Mesh, w: &mut impl Write) -> std::io::Result<()> {
@@ -62,7 +67,7 @@ fn write_ply_to(mesh: &Mesh, w: &mut impl Write) -> std::io::Result<()> {
 /// properties are allowed; `red green blue` become colours) and triangle faces.
 pub fn read_ply(path: &Path) -> Result<Mesh> {
     let bad = |msg: String| ModelError::Input(format!("{}: {msg}", path.display()));
-    let file = std::fs::File::open(path).map_err(io_err(path))?;
+    let file = pma_data::fsio::open_input(path).map_err(io_err(path))?;
     let mut r = BufReader::new(file);
     let mut line = String::new();
     let mut header = Vec::new();

@@ -1,0 +1,303 @@
+//! Checkpoints of a run directory, written as transactions and read back for `--resume`.
+//!
+//! The layout and the reader's side are [`crate::network::run_dir`]'s. Writing a checkpoint
+//! of iteration N ([`save`]):
+//!
+//! 1. `ckpt-N.tmp/` receives `model.safetensors`, `train_state.safetensors` (tied to the
+//!    model by its fingerprint), `config.toml` and `log.csv`; each file is synced, then the
+//!    directory;
+//! 2. the directory is renamed to `ckpt-N/` and the run directory synced: this rename is the
+//!    commit, and until it the previous complete checkpoint is the newest;
+//! 3. `RUN/model.safetensors` is replaced by a hard link to the new model (a copy where the
+//!    filesystem has no hard links), renamed into place;
+//! 4. checkpoints older than the previous one are removed, with a train state left at the
+//!    top of the run by an older layout.
+//!
+//! A crash or a failed write (a full disk) at any point leaves the previous complete
+//! checkpoint in place; [`clean_stale`] removes what a crash left behind (`*.tmp`
+//! directories and the atomic writer's `.pma-*.tmp` files), and `--resume` starts from
+//! [`resume_point`], the newest complete checkpoint.
+
+use std::path::{Path, PathBuf};
+
+use candle_core::Device;
+
+use super::batch::BatchSource;
+use super::error::{write_err, TrainError};
+use super::log::TrainLog;
+use super::presets::RunConfig;
+use super::state::{fingerprint, TrainState};
+use super::trainer::Trainer;
+use crate::network::checkpoint::MAX_CHECKPOINT_BYTES;
+use crate::network::run_dir::{
+    self, CheckpointDir, CKPT_PREFIX, CONFIG_FILE, LOG_FILE, MODEL_FILE, STATE_FILE, TMP_SUFFIX,
+};
+use crate::render::Avatar;
+
+/// How many complete checkpoints a run keeps (the newest and the one before it).
+pub const KEEP: usize = 2;
+
+/// Where a resumed run starts: the newest complete checkpoint, or a model and train state
+/// at the top of the run directory (a run from before checkpoint directories, or a
+/// converted reference checkpoint put there by hand).
+#[derive(Debug, Clone)]
+pub struct ResumePoint {
+    pub model: PathBuf,
+    pub state: PathBuf,
+    /// The run configuration saved with it.
+    pub config: PathBuf,
+    /// The log up to its iteration (`None`: the run's `log.csv`, cut at the iteration).
+    pub log: Option<PathBuf>,
+}
+
+/// The newest complete checkpoint of `run` (see [`ResumePoint`]).
+pub fn resume_point(run: &Path) -> Result<ResumePoint, TrainError> {
+    let newest = run_dir::newest_checkpoint(run).map_err(|source| TrainError::Io {
+        path: run.to_path_buf(),
+        source,
+    })?;
+    if let Some(c) = newest {
+        let config = if c.config().is_file() {
+            c.config()
+        } else {
+            run.join(CONFIG_FILE)
+        };
+        return Ok(ResumePoint {
+            model: c.model(),
+            state: c.state(),
+            config,
+            log: c.log().is_file().then(|| c.log()),
+        });
+    }
+    let (model, state) = (run.join(MODEL_FILE), run.join(STATE_FILE));
+    if model.is_file() && state.is_file() {
+        return Ok(ResumePoint {
+            model,
+            state,
+            config: run.join(CONFIG_FILE),
+            log: None,
+        });
+    }
+    Err(TrainError::Resume {
+        dir: run.to_path_buf(),
+        reason: format!(
+            "no complete checkpoint ({CKPT_PREFIX}* with {MODEL_FILE} and {STATE_FILE}, or both files in the directory)"
+        ),
+    })
+}
+
+/// Whether `run` holds a run (a complete checkpoint, or a train state of an older layout).
+pub fn holds_run(run: &Path) -> bool {
+    run_dir::newest_checkpoint(run).is_ok_and(|c| c.is_some()) || run.join(STATE_FILE).is_file()
+}
+
+/// Remove what an interrupted checkpoint or write left in `run`: `*.tmp` checkpoint
+/// directories and the atomic writer's temporary files. Call it only while holding the
+/// run's lock ([`super::lock::RunLock`]): another writer's temporaries would go too.
+pub fn clean_stale(run: &Path) -> Result<Vec<PathBuf>, TrainError> {
+    let mut removed = Vec::new();
+    let entries = match std::fs::read_dir(run) {
+        Ok(e) => e,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(removed),
+        Err(source) => return Err(write_err(run)(source)),
+    };
+    for entry in entries {
+        let entry = entry.map_err(write_err(run))?;
+        let name = entry.file_name();
+        let Some(name) = name.to_str() else { continue };
+        let path = entry.path();
+        let stale_dir = name.starts_with(CKPT_PREFIX) && name.ends_with(TMP_SUFFIX);
+        let stale_file = name.starts_with(".pma-") && name.ends_with(TMP_SUFFIX);
+        if stale_dir && path.is_dir() {
+            std::fs::remove_dir_all(&path).map_err(write_err(&path))?;
+            removed.push(path);
+        } else if stale_file && path.is_file() {
+            std::fs::remove_file(&path).map_err(write_err(&path))?;
+            removed.push(path);
+        }
+    }
+    if !removed.is_empty() {
+        pma_data::fsio::sync_dir(run).map_err(write_err(run))?;
+    }
+    Ok(removed)
+}
+
+/// Write a checkpoint of `trainer` (and `log`, the rows up to its iteration) into `run` as
+/// one transaction (see the module docs); returns the new checkpoint.
+pub fn save(
+    run: &Path,
+    trainer: &Trainer,
+    log: Option<&TrainLog>,
+) -> Result<CheckpointDir, TrainError> {
+    let iteration = trainer.iteration();
+    let existing = run_dir::checkpoints(run).map_err(|source| TrainError::Io {
+        path: run.to_path_buf(),
+        source,
+    })?;
+    let seq = existing
+        .iter()
+        .filter(|c| c.iteration == iteration)
+        .map(|c| c.seq + 1)
+        .max()
+        .unwrap_or(0);
+    let name = CheckpointDir::name(iteration, seq);
+    let tmp = run.join(format!("{name}{TMP_SUFFIX}"));
+    let done = CheckpointDir {
+        path: run.join(&name),
+        iteration,
+        seq,
+    };
+    if tmp.exists() {
+        std::fs::remove_dir_all(&tmp).map_err(write_err(&tmp))?;
+    }
+    std::fs::create_dir(&tmp).map_err(write_err(&tmp))?;
+    if let Err(e) = fill(&tmp, trainer, log) {
+        let _ = std::fs::remove_dir_all(&tmp);
+        return Err(e);
+    }
+    let commit = pma_data::fsio::sync_dir(&tmp)
+        .and_then(|()| std::fs::rename(&tmp, &done.path))
+        .and_then(|()| pma_data::fsio::sync_dir(run));
+    if let Err(e) = commit {
+        let _ = std::fs::remove_dir_all(&tmp);
+        return Err(write_err(&done.path)(e));
+    }
+    publish_model(run, &done)?;
+    prune(run, &done)?;
+    Ok(done)
+}
+
+/// The checkpoint's files, each written atomically into the temporary directory.
+fn fill(dir: &Path, trainer: &Trainer, log: Option<&TrainLog>) -> Result<(), TrainError> {
+    let model = dir.join(MODEL_FILE);
+    trainer.avatar().save(&model)?;
+    let bytes = read_back(&model)?;
+    trainer
+        .train_state(fingerprint(&bytes))?
+        .save(&dir.join(STATE_FILE))?;
+    super::run::write_config(trainer.run_config(), &dir.join(CONFIG_FILE))?;
+    if let Some(log) = log {
+        log.write(&dir.join(LOG_FILE))?;
+    }
+    Ok(())
+}
+
+fn read_back(path: &Path) -> Result<Vec<u8>, TrainError> {
+    pma_data::fsio::read_input(path, MAX_CHECKPOINT_BYTES).map_err(|source| TrainError::Io {
+        path: path.to_path_buf(),
+        source,
+    })
+}
+
+/// Replace `RUN/model.safetensors` with the checkpoint's model: a hard link (a copy where
+/// the filesystem has none) under a temporary name, renamed into place.
+fn publish_model(run: &Path, ckpt: &CheckpointDir) -> Result<(), TrainError> {
+    let target = run.join(MODEL_FILE);
+    let tmp = run.join(format!(".pma-publish-{}{TMP_SUFFIX}", std::process::id()));
+    let _ = std::fs::remove_file(&tmp);
+    let linked = std::fs::hard_link(ckpt.model(), &tmp);
+    let result = match linked {
+        Ok(()) => std::fs::rename(&tmp, &target).and_then(|()| pma_data::fsio::sync_dir(run)),
+        Err(_) => {
+            let bytes = read_back(&ckpt.model())?;
+            pma_data::fsio::write_atomic(&target, &bytes)
+        }
+    };
+    if result.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    result.map_err(write_err(&target))
+}
+
+/// Remove the complete checkpoints older than the newest [`KEEP`], and a top-level train
+/// state of an older layout (it belongs to a model no longer published).
+fn prune(run: &Path, newest: &CheckpointDir) -> Result<(), TrainError> {
+    let all = run_dir::checkpoints(run).map_err(|source| TrainError::Io {
+        path: run.to_path_buf(),
+        source,
+    })?;
+    let keep_from = all.len().saturating_sub(KEEP);
+    for c in &all[..keep_from] {
+        if c.path != newest.path {
+            std::fs::remove_dir_all(&c.path).map_err(write_err(&c.path))?;
+        }
+    }
+    let flat_state = run.join(STATE_FILE);
+    if flat_state.is_file() {
+        std::fs::remove_file(&flat_state).map_err(write_err(&flat_state))?;
+    }
+    pma_data::fsio::sync_dir(run).map_err(write_err(run))
+}
+
+/// Remove every checkpoint of `run` (a fresh run replacing an old one).
+pub fn remove_all(run: &Path) -> Result<(), TrainError> {
+    for c in run_dir::checkpoints(run).map_err(|source| TrainError::Io {
+        path: run.to_path_buf(),
+        source,
+    })? {
+        std::fs::remove_dir_all(&c.path).map_err(write_err(&c.path))?;
+    }
+    for f in [STATE_FILE, MODEL_FILE] {
+        let p = run.join(f);
+        if p.is_file() {
+            std::fs::remove_file(&p).map_err(write_err(&p))?;
+        }
+    }
+    Ok(())
+}
+
+impl Trainer {
+    /// Write a checkpoint of this trainer into the run directory `dir` (see [`save`]);
+    /// the run's log is not part of it.
+    pub fn save_checkpoint(&self, dir: &Path) -> Result<(), TrainError> {
+        save(dir, self, None).map(|_| ())
+    }
+
+    /// Continue the run saved in `dir` (its newest complete checkpoint, [`resume_point`])
+    /// with batches from `source` (built exactly as for the original run; its position is
+    /// restored from the state). `run` may differ from the saved configuration only as
+    /// [`RunConfig::check_resume`] allows.
+    pub fn resume_with_source(
+        dir: &Path,
+        run: RunConfig,
+        source: Box<dyn BatchSource>,
+        device: &Device,
+    ) -> Result<Self, TrainError> {
+        let point = resume_point(dir)?;
+        Self::resume_from(dir, &point, run, source, device)
+    }
+
+    /// [`Self::resume_with_source`] from a given [`ResumePoint`] of the run in `dir`.
+    pub fn resume_from(
+        dir: &Path,
+        point: &ResumePoint,
+        run: RunConfig,
+        source: Box<dyn BatchSource>,
+        device: &Device,
+    ) -> Result<Self, TrainError> {
+        let fail = |reason: String| TrainError::Resume {
+            dir: dir.to_path_buf(),
+            reason,
+        };
+        let state = TrainState::load(&point.state, device)?;
+        if let Some(saved) = &state.run_config {
+            let saved: RunConfig = serde_json::from_value(saved.clone())
+                .map_err(|e| fail(format!("the saved run config is unreadable: {e}")))?;
+            saved.check_resume(&run).map_err(fail)?;
+        }
+        let bytes = read_back(&point.model)?;
+        if let Some(fp) = &state.model_fingerprint {
+            if *fp != fingerprint(&bytes) {
+                return Err(fail(format!(
+                    "{} does not belong to {} (a model from another checkpoint)",
+                    point.model.display(),
+                    point.state.display()
+                )));
+            }
+        }
+        let avatar = Avatar::load(&point.model, device)?;
+        let mut trainer = Self::with_source(run, avatar, source)?;
+        trainer.restore(state)?;
+        Ok(trainer)
+    }
+}
