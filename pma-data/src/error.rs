@@ -27,6 +27,12 @@ pub trait ExitKind {
     fn kind(&self) -> ErrorKind;
 }
 
+impl ExitKind for crate::interrupt::Interrupted {
+    fn kind(&self) -> ErrorKind {
+        ErrorKind::Interrupted
+    }
+}
+
 /// The kind of an I/O error met while reading an input: a path that does not lead to a
 /// readable file (missing, a directory, no permission, a symlink loop, a name too long, not
 /// a regular file) or content that is not what it claims (truncated, invalid) is refused

@@ -61,12 +61,6 @@ pub fn check() -> Result<(), Interrupted> {
 #[error("interrupted")]
 pub struct Interrupted;
 
-impl crate::error::ExitKind for Interrupted {
-    fn kind(&self) -> crate::error::ErrorKind {
-        crate::error::ErrorKind::Interrupted
-    }
-}
-
 /// Whether `e` or one of its sources is [`Interrupted`].
 pub fn caused(e: &(dyn std::error::Error + 'static)) -> bool {
     let mut cur = Some(e);

@@ -23,7 +23,7 @@ use std::path::{Path, PathBuf};
 use candle_core::Device;
 
 use super::batch::BatchSource;
-use super::error::{write_err, TrainError};
+use super::error::{write_atomic, write_err, TrainError};
 use super::log::TrainLog;
 use super::presets::RunConfig;
 use super::state::{fingerprint, TrainState};
@@ -175,7 +175,7 @@ fn fill(dir: &Path, trainer: &Trainer, log: Option<&TrainLog>) -> Result<(), Tra
     trainer
         .train_state(fingerprint(&bytes))?
         .save(&dir.join(STATE_FILE))?;
-    super::run::write_config(trainer.run_config(), &dir.join(CONFIG_FILE))?;
+    write_config(trainer.run_config(), &dir.join(CONFIG_FILE))?;
     if let Some(log) = log {
         log.write(&dir.join(LOG_FILE))?;
     }
@@ -227,6 +227,15 @@ fn prune(run: &Path, newest: &CheckpointDir) -> Result<(), TrainError> {
         std::fs::remove_file(&flat_state).map_err(write_err(&flat_state))?;
     }
     pma_data::fsio::sync_dir(run).map_err(write_err(run))
+}
+
+/// The resolved run configuration as `config.toml`.
+pub(crate) fn write_config(run: &RunConfig, path: &Path) -> Result<(), TrainError> {
+    let text = format!(
+        "# Resolved run configuration, written by `pma train`; `--resume` reads it back.\n{}",
+        run.to_toml_string()?
+    );
+    write_atomic(path, text.as_bytes())
 }
 
 /// Remove every checkpoint of `run` (a fresh run replacing an old one).

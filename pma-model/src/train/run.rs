@@ -28,7 +28,7 @@ use candle_core::Device;
 use pma_data::dataset::{Dataset, Profile};
 
 use super::checkpoint::{self, ResumePoint};
-use super::error::{write_atomic, write_err, ObserverError, TrainError};
+use super::error::{write_err, ObserverError, TrainError};
 use super::lock::RunLock;
 use super::log::{LogRow, TrainLog};
 use super::trainer::{StepStats, Trainer, MODEL_FILE};
@@ -206,7 +206,7 @@ pub fn train_run(
     } else {
         let t = Trainer::new(run.clone(), data, &req.device)?;
         // Written after construction: the trainer sets the frame-code count from the data.
-        write_config(t.run_config(), &req.out.join(CONFIG_FILE))?;
+        checkpoint::write_config(t.run_config(), &req.out.join(CONFIG_FILE))?;
         t
     };
     let mut log = match point.as_ref() {
@@ -272,14 +272,6 @@ fn resolve_run(req: &TrainRequest, point: Option<&ResumePoint>) -> Result<RunCon
     }
     run.validate()?;
     Ok(run)
-}
-
-pub(crate) fn write_config(run: &RunConfig, path: &Path) -> Result<(), TrainError> {
-    let text = format!(
-        "# Resolved run configuration, written by `pma train`; `--resume` reads it back.\n{}",
-        run.to_toml_string()?
-    );
-    write_atomic(path, text.as_bytes())
 }
 
 /// One invocation's state while the loop runs.
