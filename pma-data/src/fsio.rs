@@ -312,15 +312,40 @@ impl<W: Seek> Seek for Latch<W> {
     }
 }
 
-/// A refused path: a missing or non-regular input, an output that cannot be created where
-/// asked, or an output that would replace an input. The message names the flag and path.
+/// A path a command cannot use: a missing or non-regular input, an output that would replace
+/// an input, an output path that is not UTF-8 (refused, [`ErrorKind::Refused`]); or an
+/// output that cannot be created where asked: its directory is missing, a directory or a
+/// device is in its place ([`ErrorKind::Failure`], like any output that cannot be written).
+/// The message names the flag and the path.
+///
+/// [`ErrorKind::Refused`]: crate::error::ErrorKind::Refused
+/// [`ErrorKind::Failure`]: crate::error::ErrorKind::Failure
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-#[error("{0}")]
-pub struct PathError(pub String);
+#[error("{message}")]
+pub struct PathError {
+    pub message: String,
+    pub kind: crate::error::ErrorKind,
+}
+
+impl PathError {
+    fn refused(message: String) -> Self {
+        Self {
+            message,
+            kind: crate::error::ErrorKind::Refused,
+        }
+    }
+
+    fn unwritable(message: String) -> Self {
+        Self {
+            message,
+            kind: crate::error::ErrorKind::Failure,
+        }
+    }
+}
 
 impl crate::error::ExitKind for PathError {
     fn kind(&self) -> crate::error::ErrorKind {
-        crate::error::ErrorKind::Refused
+        self.kind
     }
 }
 
@@ -529,9 +554,14 @@ impl PathCheck {
         self
     }
 
+    /// Inputs first, then outputs that would replace an input, then outputs that cannot be
+    /// created where asked: the first problem found, in that order.
     pub fn check(&self) -> Result<(), PathError> {
         fn refuse<T>(flag: &str, p: &Path, what: String) -> Result<T, PathError> {
-            Err(PathError(format!("{flag} {}: {what}", p.display())))
+            Err(PathError::refused(format!(
+                "{flag} {}: {what}",
+                p.display()
+            )))
         }
         let mut inputs = Vec::new();
         for (flag, p, dir) in &self.inputs {
@@ -562,27 +592,42 @@ impl PathCheck {
                 id: identity(&meta),
             });
         }
+        // Outputs whose place is unusable cannot replace anything: kept for last.
+        let mut unusable: Option<PathError> = None;
         let mut outputs: Vec<Resolved> = Vec::new();
+        let mut add = |r: Result<Resolved, PathError>| -> Result<(), PathError> {
+            match r {
+                Ok(o) => outputs.push(o),
+                Err(e) if e.kind == crate::error::ErrorKind::Refused => return Err(e),
+                Err(e) => {
+                    unusable.get_or_insert(e);
+                }
+            }
+            Ok(())
+        };
         for (flag, p) in &self.outputs {
-            outputs.push(resolve_output(flag, p)?);
+            add(resolve_output(flag, p))?;
         }
         for (flag, dir, files) in &self.out_dirs {
             if dir.to_str().is_none() {
                 return refuse(flag, dir, "the path is not valid UTF-8".into());
             }
+            let place = |what: String| {
+                Err(PathError::unwritable(format!(
+                    "{flag} {}: {what}",
+                    dir.display()
+                )))
+            };
             match std::fs::metadata(dir) {
                 Ok(m) if m.is_dir() => {
                     for f in files {
-                        outputs.push(resolve_output(flag, &dir.join(f))?);
+                        add(resolve_output(flag, &dir.join(f)))?;
                     }
                 }
-                Ok(m) => {
-                    return refuse(
-                        flag,
-                        dir,
-                        format!("{}, expected a directory", file_type_name(&m.file_type())),
-                    )
-                }
+                Ok(m) => add(place(format!(
+                    "{}, expected a directory",
+                    file_type_name(&m.file_type())
+                )))?,
                 Err(e) if e.kind() == io::ErrorKind::NotFound => {
                     // Created later: its nearest existing ancestor must be a directory.
                     let mut up = dir.parent();
@@ -590,43 +635,48 @@ impl PathCheck {
                         match std::fs::metadata(a) {
                             Ok(m) if m.is_dir() => break,
                             Ok(_) => {
-                                return refuse(
-                                    flag,
-                                    dir,
-                                    format!("{} is not a directory", a.display()),
-                                )
+                                add(place(format!("{} is not a directory", a.display())))?;
+                                break;
                             }
                             Err(e) if e.kind() == io::ErrorKind::NotFound => up = a.parent(),
-                            Err(e) => return refuse(flag, dir, e.to_string()),
+                            Err(e) => {
+                                add(place(e.to_string()))?;
+                                break;
+                            }
                         }
                     }
                 }
-                Err(e) => return refuse(flag, dir, e.to_string()),
+                Err(e) => add(place(e.to_string()))?,
             }
         }
         for (k, o) in outputs.iter().enumerate() {
             if let Some(i) = inputs.iter().find(|i| i.same(o)) {
-                return Err(PathError(format!(
+                return Err(PathError::refused(format!(
                     "{} would overwrite the input {}; choose another output",
                     o.describe(),
                     i.describe()
                 )));
             }
             if let Some(o2) = outputs[..k].iter().find(|o2| o2.same(o)) {
-                return Err(PathError(format!(
+                return Err(PathError::refused(format!(
                     "{} and {} are the same file; choose different outputs",
                     o2.describe(),
                     o.describe()
                 )));
             }
         }
-        Ok(())
+        match unusable {
+            Some(e) => Err(e),
+            None => Ok(()),
+        }
     }
 }
 
-/// An output file: its directory must exist; an existing file there must be a regular one.
+/// An output file: its path must be UTF-8 (refused otherwise), its directory must exist
+/// and an existing file there must be a regular one (unusable otherwise).
 fn resolve_output(flag: &str, p: &Path) -> Result<Resolved, PathError> {
-    let refuse = |what: String| PathError(format!("{flag} {}: {what}", p.display()));
+    let refuse = |what: String| PathError::refused(format!("{flag} {}: {what}", p.display()));
+    let unusable = |what: String| PathError::unwritable(format!("{flag} {}: {what}", p.display()));
     if p.to_str().is_none() {
         return Err(refuse("the path is not valid UTF-8".into()));
     }
@@ -637,35 +687,35 @@ fn resolve_output(flag: &str, p: &Path) -> Result<Resolved, PathError> {
     let dir_canon = match std::fs::canonicalize(dir) {
         Ok(d) => d,
         Err(e) if e.kind() == io::ErrorKind::NotFound => {
-            return Err(refuse(format!(
+            return Err(unusable(format!(
                 "directory {} does not exist",
                 dir.display()
             )))
         }
-        Err(e) => return Err(refuse(format!("directory {}: {e}", dir.display()))),
+        Err(e) => return Err(unusable(format!("directory {}: {e}", dir.display()))),
     };
     if !dir_canon.is_dir() {
-        return Err(refuse(format!("{} is not a directory", dir.display())));
+        return Err(unusable(format!("{} is not a directory", dir.display())));
     }
     let (canonical, id) = match std::fs::metadata(p) {
         Ok(m) => {
             let ft = m.file_type();
             if ft.is_dir() {
-                return Err(refuse("is a directory, expected a file".into()));
+                return Err(unusable("is a directory, expected a file".into()));
             }
             if !ft.is_file() {
-                return Err(refuse(format!(
+                return Err(unusable(format!(
                     "{}; pma only replaces regular files",
                     file_type_name(&ft)
                 )));
             }
             (
-                std::fs::canonicalize(p).map_err(|e| refuse(e.to_string()))?,
+                std::fs::canonicalize(p).map_err(|e| unusable(e.to_string()))?,
                 identity(&m),
             )
         }
         Err(e) if e.kind() == io::ErrorKind::NotFound => (dir_canon.join(name), None),
-        Err(e) => return Err(refuse(e.to_string())),
+        Err(e) => return Err(unusable(e.to_string())),
     };
     Ok(Resolved {
         flag: flag.into(),
@@ -779,7 +829,10 @@ mod tests {
         let e = read_input(&p, 9).unwrap_err();
         assert_eq!(e.kind(), io::ErrorKind::InvalidData);
         let e = PathCheck::new().input("--data", &fifo).check().unwrap_err();
-        assert!(e.0.contains("--data") && e.0.contains("a FIFO"), "{e}");
+        assert!(
+            e.message.contains("--data") && e.message.contains("a FIFO"),
+            "{e}"
+        );
     }
 
     #[test]
@@ -794,7 +847,11 @@ mod tests {
             .output("--out", &other)
             .check()
             .unwrap_err();
-        assert!(e.0.contains("would overwrite the input --model"), "{e}");
+        assert!(
+            e.message.contains("would overwrite the input --model"),
+            "{e}"
+        );
+        assert_eq!(e.kind, crate::error::ErrorKind::Refused);
         let link = dir.path().join("link.safetensors");
         std::fs::hard_link(&model, &link).unwrap();
         #[cfg(unix)]
@@ -809,23 +866,25 @@ mod tests {
             .output_dir("--out", dir.path(), ["model.safetensors"])
             .check()
             .unwrap_err();
-        assert!(e.0.contains("would overwrite"), "{e}");
+        assert!(e.message.contains("would overwrite"), "{e}");
         // Outputs that cannot be created where asked.
         let e = PathCheck::new()
             .output("--out", &dir.path().join("missing/a.ply"))
             .check()
             .unwrap_err();
-        assert!(e.0.contains("does not exist"), "{e}");
+        assert!(e.message.contains("does not exist"), "{e}");
+        // An output that cannot go where asked is a failure to write, not refused input.
+        assert_eq!(e.kind, crate::error::ErrorKind::Failure);
         let e = PathCheck::new()
             .output("--out", dir.path())
             .check()
             .unwrap_err();
-        assert!(e.0.contains("is a directory"), "{e}");
+        assert!(e.message.contains("is a directory"), "{e}");
         let e = PathCheck::new()
             .output_dir("--out", &model, ["x.png"])
             .check()
             .unwrap_err();
-        assert!(e.0.contains("expected a directory"), "{e}");
+        assert!(e.message.contains("expected a directory"), "{e}");
         // Distinct files pass.
         PathCheck::new()
             .input("--model", &model)
@@ -842,7 +901,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let bad = dir.path().join(std::ffi::OsStr::from_bytes(b"m\xff.ply"));
         let e = PathCheck::new().output("--out", &bad).check().unwrap_err();
-        assert!(e.0.contains("not valid UTF-8"), "{e}");
+        assert!(e.message.contains("not valid UTF-8"), "{e}");
     }
 
     #[test]

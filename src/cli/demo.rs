@@ -4,7 +4,7 @@
 //!
 //! ```text
 //! DIR/scene/{train,novel_view,novel_pose}.npz, scene.json, preview.png
-//! DIR/run/{config.toml, model.safetensors, train_state.safetensors, log.csv, psnr_vs_time.png}
+//! DIR/run/{ckpt-<iteration>/, config.toml, model.safetensors, log.csv, psnr_vs_time.png}
 //! DIR/renders/<split>_<image>.png       ground truth | render | error heat map
 //! DIR/eval_<split>.json                 per-image scores
 //! DIR/psnr_vs_time.png                  copy of the run's plot
@@ -123,13 +123,13 @@ pub(crate) mod imp {
     pub fn run(args: Args) -> anyhow::Result<()> {
         let preset: Preset = args.preset.parse()?;
         super::super::check_minutes("--minutes", Some(args.minutes))?;
+        // Opened first: a device this build cannot use is refused before any work.
+        let device = super::super::device(&args.device)?;
         super::super::check_paths(pma_data::fsio::PathCheck::new().output_dir(
             "--out",
             &args.out,
             ["summary.json", PLOT_FILE],
         ))?;
-        // Opened first: a device this build cannot use is refused before any work.
-        let device = super::super::device(&args.device)?;
         let out = args.out.clone();
         std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
         let scene = make_scene(args.res, args.frames, args.quiet, &out.join("scene"))?;

@@ -82,9 +82,12 @@ pub fn run(mut args: Args) -> anyhow::Result<()> {
     if args.pngs > 10_000 {
         super::refuse!("--pngs {}: at most 10000", args.pngs);
     }
+    // Opened first: a device this build cannot use is refused before any work.
+    let device = super::device_tf32(&args.device, args.tf32)?;
     // A run directory: the PNGs go beside its published model.
     let run_dir = args.model.is_dir().then(|| args.model.clone());
     args.model = super::model_path(&args.model)?;
+    super::check_paths(pma_data::fsio::PathCheck::new().input("--model", &args.model))?;
     let (data_path, split) = resolve_split(&args.data, &args.split)?;
     let out = args.out.clone().unwrap_or_else(|| {
         run_dir
@@ -101,7 +104,6 @@ pub fn run(mut args: Args) -> anyhow::Result<()> {
             .output_dir("--out", &out, ["eval.json"])
             .output_opt("--freq-png", args.freq_png.as_deref()),
     )?;
-    let device = super::device_tf32(&args.device, args.tf32)?;
     let mut avatar = Avatar::load(&args.model, &device)
         .with_context(|| format!("loading model {}", args.model.display()))?;
     avatar.set_culling(args.cull.clone())?;

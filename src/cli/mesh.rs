@@ -83,6 +83,7 @@ pub struct Args {
 #[allow(clippy::result_large_err)]
 pub fn run(mut args: Args) -> anyhow::Result<()> {
     check_args(&args)?;
+    let device = super::device(&args.device)?;
     args.model = super::model_path(&args.model)?;
     super::check_paths(
         pma_data::fsio::PathCheck::new()
@@ -91,7 +92,6 @@ pub fn run(mut args: Args) -> anyhow::Result<()> {
             .output("--out", &args.out)
             .output_opt("--preview", args.preview.as_deref()),
     )?;
-    let device = super::device(&args.device)?;
     let dirs = if args.reference_dirs {
         ViewDirs::Reference
     } else {

@@ -100,17 +100,6 @@ mod imp {
 
     pub fn run(args: Args) -> anyhow::Result<()> {
         super::super::check_minutes("--minutes", args.minutes)?;
-        let eval_data = args.eval_data.clone().or_else(|| {
-            let beside = args.data.parent()?.join("novel_view.npz");
-            (beside.is_file() && beside != args.data).then_some(beside)
-        });
-        super::super::check_paths(run_dir_paths(
-            &args.out,
-            pma_data::fsio::PathCheck::new()
-                .input("--data", &args.data)
-                .input_opt("--config", args.config.as_deref())
-                .input_opt("--eval-data", eval_data.as_deref()),
-        ))?;
         let mut run = match &args.config {
             Some(path) => Some(RunConfig::from_toml_file(path)?),
             None if args.resume => None,
@@ -134,6 +123,22 @@ mod imp {
                 ),
             }
         }
+        let eval_data = args.eval_data.clone().or_else(|| {
+            let beside = args.data.parent()?.join("novel_view.npz");
+            (beside.is_file() && beside != args.data).then_some(beside)
+        });
+        if args.resume {
+            // The run's own refusal ("nothing to resume") before anything about the data.
+            pma_model::train::checkpoint::resume_point(&args.out)?;
+        }
+        super::super::check_paths(run_dir_paths(
+            &args.out,
+            args.resume,
+            pma_data::fsio::PathCheck::new()
+                .input("--data", &args.data)
+                .input_opt("--config", args.config.as_deref())
+                .input_opt("--eval-data", eval_data.as_deref()),
+        ))?;
         let req = TrainRequest {
             data: args.data,
             out: args.out,
@@ -162,17 +167,19 @@ mod imp {
         Ok(())
     }
 
-    /// `check` with the run directory `out` as an output: the files a run writes at its top.
-    pub fn run_dir_paths(
+    /// `check` with the run directory `out` as an output: the files a run writes at its top
+    /// (a resumed run keeps its `config.toml`).
+    fn run_dir_paths(
         out: &Path,
+        resume: bool,
         check: pma_data::fsio::PathCheck,
     ) -> pma_data::fsio::PathCheck {
         use pma_model::network::run_dir::{LOCK_FILE, MODEL_FILE};
-        check.output_dir(
-            "--out",
-            out,
-            [MODEL_FILE, CONFIG_FILE, LOG_FILE, LOCK_FILE, PLOT_FILE],
-        )
+        let mut files = vec![MODEL_FILE, LOG_FILE, LOCK_FILE, PLOT_FILE];
+        if !resume {
+            files.push(CONFIG_FILE);
+        }
+        check.output_dir("--out", out, files)
     }
 
     /// Run `req` with a progress bar (unless `quiet`) and the plot titled `title`. A run

@@ -34,6 +34,8 @@ fn refused_input_exits_2_in_every_command() {
     let nan_bones = dir.join("nan_bones.npz");
     rewrite_npz(&train, &nan_bones, "bones", |v| v[4] = f32::NAN);
     let out = dir.join("out");
+    // Outputs have somewhere to go: what is refused here is the input.
+    std::fs::create_dir_all(&out).unwrap();
     let cfg = dir.join("bad.toml");
     std::fs::write(&cfg, "preset = \"tiny\"\n[train]\nrays_per_stp = 4\n").unwrap();
 

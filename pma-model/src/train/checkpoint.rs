@@ -81,7 +81,7 @@ pub fn resume_point(run: &Path) -> Result<ResumePoint, TrainError> {
     Err(TrainError::Resume {
         dir: run.to_path_buf(),
         reason: format!(
-            "no complete checkpoint ({CKPT_PREFIX}* with {MODEL_FILE} and {STATE_FILE}, or both files in the directory)"
+            "no complete checkpoint to continue (a {CKPT_PREFIX}*/ directory, or {MODEL_FILE}, {STATE_FILE} and {CONFIG_FILE} in it)"
         ),
     })
 }
@@ -91,8 +91,8 @@ pub fn holds_run(run: &Path) -> bool {
     run_dir::newest_checkpoint(run).is_ok_and(|c| c.is_some()) || run.join(STATE_FILE).is_file()
 }
 
-/// Remove what an interrupted checkpoint or write left in `run`: `*.tmp` checkpoint
-/// directories and the atomic writer's temporary files. Call it only while holding the
+/// Remove what an interrupted checkpoint or write left in `run`: `ckpt-*.tmp` directories
+/// and the atomic writer's temporary files (`.pma-*.tmp`, and `.tmp*` of older versions). Call it only while holding the
 /// run's lock ([`super::lock::RunLock`]): another writer's temporaries would go too.
 pub fn clean_stale(run: &Path) -> Result<Vec<PathBuf>, TrainError> {
     let mut removed = Vec::new();
@@ -107,7 +107,9 @@ pub fn clean_stale(run: &Path) -> Result<Vec<PathBuf>, TrainError> {
         let Some(name) = name.to_str() else { continue };
         let path = entry.path();
         let stale_dir = name.starts_with(CKPT_PREFIX) && name.ends_with(TMP_SUFFIX);
-        let stale_file = name.starts_with(".pma-") && name.ends_with(TMP_SUFFIX);
+        // `.tmpXXXXXX`: the temporary files of pma versions before `.pma-*.tmp`.
+        let stale_file =
+            (name.starts_with(".pma-") && name.ends_with(TMP_SUFFIX)) || name.starts_with(".tmp");
         if stale_dir && path.is_dir() {
             std::fs::remove_dir_all(&path).map_err(write_err(&path))?;
             removed.push(path);

@@ -100,3 +100,51 @@ fn resume_rejects_a_changed_config_and_a_mismatched_model() {
         .unwrap();
     assert!(err.to_string().contains("no complete checkpoint"), "{err}");
 }
+
+/// A run directory as checkpoints accumulate: each is its own directory, the two newest are
+/// kept, a second checkpoint of one iteration gets a sequence number, the published model
+/// is the newest one's, and what an interrupted checkpoint leaves is cleaned up and never
+/// taken for a checkpoint.
+#[test]
+fn checkpoints_are_directories_and_the_newest_complete_one_wins() {
+    use pma_model::network::run_dir::{checkpoints, newest_model, CheckpointDir};
+    use pma_model::train::checkpoint::{clean_stale, resume_point, KEEP};
+
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tiny_scene(&tmp.path().join("scene"));
+    let run = tmp.path().join("run");
+    std::fs::create_dir_all(&run).unwrap();
+    let mut t = tiny_trainer(&data);
+    for _ in 0..3 {
+        t.step().unwrap();
+        t.save_checkpoint(&run).unwrap();
+    }
+    t.save_checkpoint(&run).unwrap();
+    let names: Vec<(u64, u32)> = checkpoints(&run)
+        .unwrap()
+        .iter()
+        .map(|c| (c.iteration, c.seq))
+        .collect();
+    assert_eq!(names, [(3, 0), (3, 1)]);
+    assert_eq!(KEEP, 2);
+    let newest = checkpoints(&run).unwrap().pop().unwrap();
+    assert_eq!(newest_model(&run).unwrap(), newest.model());
+    assert_eq!(
+        std::fs::read(run.join(MODEL_FILE)).unwrap(),
+        std::fs::read(newest.model()).unwrap()
+    );
+
+    // A crash in the middle of the next checkpoint: a newer, incomplete directory.
+    let partial = run.join(format!("{}.tmp", CheckpointDir::name(4, 0)));
+    std::fs::create_dir_all(&partial).unwrap();
+    std::fs::copy(newest.model(), partial.join(MODEL_FILE)).unwrap();
+    std::fs::copy(newest.state(), partial.join("train_state.safetensors")).unwrap();
+    std::fs::write(run.join(".pma-abc.tmp"), b"half").unwrap();
+    assert_eq!(newest_model(&run).unwrap(), newest.model());
+    assert_eq!(resume_point(&run).unwrap().model, newest.model());
+    let removed = clean_stale(&run).unwrap();
+    assert_eq!(removed.len(), 2, "{removed:?}");
+    assert!(!partial.exists());
+    let resumed = Trainer::resume(&run, tiny_run(), data, &Device::Cpu).unwrap();
+    assert_eq!(resumed.iteration(), 3);
+}
