@@ -542,6 +542,27 @@ fn outputs_never_overwrite_inputs() {
     ] {
         refused(pma_env(&args, &[]), &["would overwrite the input"]);
     }
+    // A fresh run would write its resolved config over the TOML it was given.
+    let fresh = dir.join("fresh");
+    std::fs::create_dir_all(&fresh).unwrap();
+    let user_cfg = fresh.join("config.toml");
+    std::fs::write(&user_cfg, "preset = \"tiny\"\n").unwrap();
+    refused(
+        pma_env(
+            &[
+                "train",
+                "--data",
+                s(&data),
+                "--out",
+                s(&fresh),
+                "--config",
+                s(&user_cfg),
+            ],
+            &[],
+        ),
+        &["would overwrite the input --config"],
+    );
+    assert_eq!(std::fs::read(&user_cfg).unwrap(), b"preset = \"tiny\"\n");
     assert_eq!(std::fs::read(&model).unwrap(), before, "the model changed");
     assert_eq!(
         std::fs::read(&th).unwrap(),
@@ -1134,4 +1155,45 @@ fn non_finite_weights_are_refused_and_shown_by_inspect() {
     );
     exits(&out, 2, &["nan.safetensors", "sigma_linear.bias"]);
     ok(pma_within(&["inspect", s(&model)], 60));
+}
+
+/// Tools take a run directory for `--model`: its newest complete model
+/// (`pma_model::network::run_dir::newest_model`), with `eval`'s files beside it.
+#[test]
+fn a_run_directory_stands_for_its_newest_model() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    let data = tiny_scene(&dir.join("scene"), 2);
+    let model = tiny_model(dir, &data);
+    let run_dir = model.parent().unwrap();
+    ok(pma_within(
+        &[
+            "eval",
+            "--model",
+            s(run_dir),
+            "--data",
+            s(&dir.join("scene")),
+            "--max-images",
+            "1",
+            "--pngs",
+            "0",
+        ],
+        300,
+    ));
+    assert!(run_dir.join("eval_novel_view").join("eval.json").is_file());
+    let empty = dir.join("empty");
+    std::fs::create_dir_all(&empty).unwrap();
+    refused(
+        pma_within(
+            &[
+                "eval",
+                "--model",
+                s(&empty),
+                "--data",
+                s(&dir.join("scene")),
+            ],
+            60,
+        ),
+        &["holds no complete model"],
+    );
 }
