@@ -675,7 +675,7 @@ fn to_rgb8(img: &RenderedImage) -> RgbImage {
 /// A GIF written frame by frame into a temporary file beside its destination, renamed into
 /// place when complete: memory stays bounded and readers never see a partial animation.
 struct GifStream {
-    encoder: GifEncoder<std::io::BufWriter<std::fs::File>>,
+    encoder: GifEncoder<std::io::BufWriter<pma_data::fsio::Writer<std::fs::File>>>,
     file: AtomicFile,
     delay: Delay,
 }
@@ -684,7 +684,7 @@ impl GifStream {
     fn create(path: &Path, fps: f64) -> anyhow::Result<Self> {
         let err = || format!("writing {}", path.display());
         let file = AtomicFile::create(path).with_context(err)?;
-        let handle = file.file().try_clone().with_context(err)?;
+        let handle = file.owned_writer().with_context(err)?;
         let mut encoder = GifEncoder::new_with_speed(std::io::BufWriter::new(handle), 10);
         encoder.set_repeat(Repeat::Infinite).with_context(err)?;
         Ok(Self {
