@@ -19,6 +19,8 @@ const V = (window.pmaView = {
   lastStats: null,
   lastFullStats: null,
   timing: { firstPreviewMs: null, firstFullMs: null },
+  // The first frames drawn: stage, size, server ms, page time (ms since navigation).
+  history: [],
   run: null,
   errors: [],
 });
@@ -146,6 +148,9 @@ function draw(frame, stage) {
   g.drawImage(frame.bitmap, 0, 0, c.width, c.height);
   V.lastStats = frame.stats;
   const now = performance.now();
+  if (V.history.length < 100) {
+    V.history.push({ stage, width: frame.stats.width, height: frame.stats.height, ms: frame.stats.ms, at: now });
+  }
   if (stage === 'preview') {
     V.previews++;
     if (V.timing.firstPreviewMs === null) V.timing.firstPreviewMs = now;

@@ -229,6 +229,13 @@ impl Renderer {
             return Err(ViewError::Input("--chunk must be >= 1".into()));
         }
         let file = source.model_file();
+        if let (Some(dir), false) = (source.run_dir(), file.exists()) {
+            return Err(ViewError::Input(format!(
+                "{}: the run has no checkpoint yet ({} appears with its first one)",
+                dir.display(),
+                file.display()
+            )));
+        }
         let stamp = stamp(&file);
         let avatar = load_avatar(&file, &device, dirs)?;
         Ok(Renderer {

@@ -46,6 +46,7 @@ pub struct Args {
 
 pub fn run(args: Args) -> anyhow::Result<()> {
     let root_scale: RootScale = args.root_scale.parse()?;
+    let host = args.host;
     let opts = ViewOptions {
         source: args.model_or_run_dir,
         data: args.data,
@@ -63,6 +64,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let server = Server::start(opts).map_err(cli_error)?;
     for w in server.warnings() {
         eprintln!("warning: {w}");
+    }
+    if !host.is_loopback() {
+        eprintln!(
+            "note: listening on {}: anyone who can reach this machine can use the viewer",
+            host
+        );
     }
     println!("pma view: open {} (Ctrl-C stops)", server.url());
     server.run().map_err(cli_error)

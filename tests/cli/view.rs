@@ -634,6 +634,11 @@ fn refuses_bad_input_before_serving() {
     let model = tiny_model(tmp.path());
     let out = pma(&["view", s(&model), "--data", s(&tmp.path().join("none.npz"))]);
     assert_eq!(out.status.code(), Some(2), "{out:?}");
+    let empty_run = tmp.path().join("run");
+    std::fs::create_dir(&empty_run).unwrap();
+    let out = pma(&["view", s(&empty_run)]);
+    assert_eq!(out.status.code(), Some(2), "{out:?}");
+    fails_with(out, "the run has no checkpoint yet");
     let out = pma(&["view", s(&model), "--chunk", "0"]);
     assert_eq!(out.status.code(), Some(2), "{out:?}");
     // A port already taken is a failure to serve (exit 1), named in the message.
@@ -642,4 +647,64 @@ fn refuses_bad_input_before_serving() {
     let out = pma(&["view", s(&model), "--port", &port]);
     assert_eq!(out.status.code(), Some(1), "{out:?}");
     fails_with(out, "cannot listen on 127.0.0.1:");
+}
+
+/// Not a test: screenshots and timings of a running `pma view` for the docs (see
+/// docs/img/SOURCE.md). `PMA_VIEW_URL` is the page, `PMA_VIEW_SHOT` the PNG to write;
+/// `PMA_VIEW_SIZE` (e.g. `384x384`) picks a render size, `PMA_VIEW_DRAG=1` turns the camera
+/// before the picture. Prints when the first preview and the first full frame were drawn.
+#[test]
+#[ignore]
+fn screenshot_for_docs() {
+    let url = std::env::var("PMA_VIEW_URL").expect("PMA_VIEW_URL");
+    let shot = std::env::var("PMA_VIEW_SHOT").expect("PMA_VIEW_SHOT");
+    let chrome = cdp::chromium().expect("Chromium");
+    let mut b = Browser::launch(&chrome);
+    b.open(&url, 1280, 980).unwrap();
+    b.wait_for("window.pmaView && pmaView.fullFrames >= 1", LONG)
+        .unwrap();
+    let first = b
+        .eval("JSON.stringify({timing: pmaView.timing, frames: pmaView.history})")
+        .unwrap();
+    eprintln!("first frames: {}", first.as_str().unwrap());
+    if let Ok(size) = std::env::var("PMA_VIEW_SIZE") {
+        let n = b.eval("pmaView.fullFrames").unwrap();
+        b.eval(&format!(
+            "(() => {{ const s = document.getElementById('size'); s.value = '{size}'; \
+             s.dispatchEvent(new Event('change')); }})()"
+        ))
+        .unwrap();
+        b.wait_for(
+            &format!("pmaView.fullFrames > {n} && pmaView.lastStats === pmaView.lastFullStats"),
+            LONG,
+        )
+        .unwrap();
+        let h = b.eval("JSON.stringify(pmaView.history.slice(-2))").unwrap();
+        eprintln!("after size {size}: {}", h.as_str().unwrap());
+    }
+    if std::env::var("PMA_VIEW_DRAG").as_deref() == Ok("1") {
+        let n = b.eval("pmaView.fullFrames").unwrap();
+        let r = b
+            .eval("(() => { const r = document.getElementById('render').getBoundingClientRect(); return [r.x, r.y, r.width, r.height]; })()")
+            .unwrap();
+        let r: Vec<f64> = r
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_f64().unwrap())
+            .collect();
+        let mid = (r[0] + r[2] / 2.0, r[1] + r[3] / 2.0);
+        b.drag(mid, (mid.0 + 90.0, mid.1 + 15.0), 8).unwrap();
+        b.wait_for(
+            &format!("pmaView.fullFrames > {n} && pmaView.lastStats === pmaView.lastFullStats"),
+            LONG,
+        )
+        .unwrap();
+        let h = b.eval("JSON.stringify(pmaView.history.slice(-3))").unwrap();
+        eprintln!("after the drag: {}", h.as_str().unwrap());
+    }
+    // Let the run panel's curves and the ground-truth image arrive.
+    std::thread::sleep(Duration::from_millis(2500));
+    std::fs::write(&shot, b.screenshot().unwrap()).unwrap();
+    eprintln!("wrote {shot}");
 }
