@@ -23,6 +23,8 @@ const V = (window.pmaView = {
   history: [],
   run: null,
   errors: [],
+  // True once the full frame of the current view is on the page and nothing is in flight.
+  settled: () => current === null && fullSeq === seq,
 });
 
 const S = {
@@ -39,6 +41,7 @@ const S = {
 };
 
 let seq = 0; // bumped by every view change
+let fullSeq = -1; // the view whose full frame is shown
 let current = null; // the request in flight: {stage, ctrl}
 let lastFullMs = null;
 let lastCheckpoint = null;
@@ -187,7 +190,10 @@ async function runStage(stage) {
   if (current !== me) return; // aborted for a newer view, which is already on its way
   current = null;
   // A preview of a view that just changed still shows where the drag is going.
-  if (frame && (stage === 'preview' || mine === seq)) draw(frame, stage);
+  if (frame && (stage === 'preview' || mine === seq)) {
+    draw(frame, stage);
+    if (stage === 'full') fullSeq = mine;
+  }
   if (mine !== seq) runStage(previewFactor() > 1 ? 'preview' : 'full');
   else if (stage === 'preview' && !S.playing) runStage('full');
 }
@@ -323,8 +329,10 @@ function fillSizes() {
     sel.append(o);
   }
   sel.addEventListener('change', () => {
-    [S.w, S.h] = sel.value.split('x').map(Number);
-    lastFullMs = null;
+    const [w, h] = sel.value.split('x').map(Number);
+    // Time grows with the pixels: the next preview is sized from the last frame's time.
+    if (lastFullMs !== null) lastFullMs *= (w * h) / (S.w * S.h);
+    [S.w, S.h] = [w, h];
     request();
   });
   [S.w, S.h] = base;

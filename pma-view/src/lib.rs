@@ -24,9 +24,11 @@
 //! memory and has no read timeout; `axum` would add a router and `tower` that six routes do
 //! not need. Rendering runs on a thread of its own, outside the runtime.
 //!
-//! Build cost, measured on the 2-core development machine (shared with other jobs) as a
-//! clean debug build of a scratch crate with the workspace's profile (dependencies at
-//! opt-level 3): hyper + hyper-util + tokio 27 s, against 9 s for tiny_http.
+//! Build cost on the 2-core development machine while other jobs loaded it: a clean dev
+//! build of hyper, hyper-util, http-body-util and tokio with the workspace's profile
+//! (dependencies at opt-level 3) took 43 s (`CARGO_TARGET_DIR=/tmp/t cargo build --locked -p
+//! hyper -p hyper-util -p tokio -p http-body-util`, load average 11); in a scratch crate with
+//! the same profile, hyper + tokio took 27 s and tiny_http 9 s (load average 2.5).
 
 pub mod query;
 pub mod renderer;

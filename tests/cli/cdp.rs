@@ -240,6 +240,16 @@ impl Browser {
         let r = self.call("Page.captureScreenshot", json!({ "format": "png" }))?;
         base64(r["data"].as_str().ok_or("no screenshot data")?)
     }
+
+    /// A PNG of the top `height` CSS pixels of the page, `width` wide.
+    pub fn screenshot_top(&mut self, width: f64, height: f64) -> Result<Vec<u8>, String> {
+        let clip = json!({ "x": 0, "y": 0, "width": width, "height": height, "scale": 1 });
+        let r = self.call(
+            "Page.captureScreenshot",
+            json!({ "format": "png", "clip": clip }),
+        )?;
+        base64(r["data"].as_str().ok_or("no screenshot data")?)
+    }
 }
 
 impl Drop for Browser {

@@ -163,11 +163,21 @@ struct Answer {
 }
 
 fn exchange(port: u16, raw: &[u8]) -> Answer {
+    read_answer(send(port, raw))
+}
+
+/// Open a connection and send `raw` on it.
+fn send(port: u16, raw: &[u8]) -> TcpStream {
     let mut sock = TcpStream::connect(("127.0.0.1", port)).unwrap();
     sock.set_read_timeout(Some(LONG)).unwrap();
     // A server may answer and close before reading everything (oversized heads): a failed
     // write is part of what is being tested, not a test failure.
     let _ = sock.write_all(raw);
+    sock
+}
+
+/// Read the answer on `sock` until the server closes it.
+fn read_answer(mut sock: TcpStream) -> Answer {
     let mut buf = Vec::new();
     let _ = sock.read_to_end(&mut buf);
     let split = buf
@@ -264,7 +274,7 @@ fn browser_scrubs_poses_turns_the_camera_and_follows_a_run() {
     b.open(&view.url, 1280, 900).unwrap();
 
     // A dataset view: dataset camera 0, pose 0, with its ground truth and scores.
-    b.wait_for("window.pmaView && pmaView.fullFrames >= 1", LONG)
+    b.wait_for("window.pmaView && pmaView.settled()", LONG)
         .unwrap();
     let st = stats(&mut b);
     assert_eq!(st["pose"], 0, "{st}");
@@ -295,7 +305,8 @@ fn browser_scrubs_poses_turns_the_camera_and_follows_a_run() {
     b.eval("document.getElementById('pose').focus()").unwrap();
     b.key("ArrowRight", "ArrowRight", 39).unwrap();
     b.wait_for(
-        "pmaView.lastFullStats.pose === 1 && document.getElementById('pose-label').textContent.includes('1 /')",
+        "pmaView.settled() && pmaView.lastFullStats.pose === 1 \
+         && document.getElementById('pose-label').textContent.includes('1 /')",
         LONG,
     )
     .unwrap();
@@ -318,8 +329,8 @@ fn browser_scrubs_poses_turns_the_camera_and_follows_a_run() {
     b.drag(mid, (mid.0 + 150.0, mid.1 + 20.0), 6).unwrap();
     b.wait_for(
         &format!(
-            "document.getElementById('camera').value === '-1' && pmaView.fullFrames > {frames} \
-             && pmaView.lastFullStats.image === null && pmaView.lastStats === pmaView.lastFullStats"
+            "pmaView.settled() && document.getElementById('camera').value === '-1' \
+             && pmaView.fullFrames > {frames} && pmaView.lastFullStats.image === null"
         ),
         LONG,
     )
@@ -346,8 +357,11 @@ fn browser_scrubs_poses_turns_the_camera_and_follows_a_run() {
     );
     b.eval("document.getElementById('switch-cull_samples').click()")
         .unwrap();
-    b.wait_for("pmaView.lastFullStats.cull_samples === false", LONG)
-        .unwrap();
+    b.wait_for(
+        "pmaView.settled() && pmaView.lastFullStats.cull_samples === false",
+        LONG,
+    )
+    .unwrap();
     let rays_only = stats(&mut b);
     let unculled = canvas(&mut b);
     assert_eq!(
@@ -362,8 +376,11 @@ fn browser_scrubs_poses_turns_the_camera_and_follows_a_run() {
     );
     b.eval("document.getElementById('switch-cull_rays').click()")
         .unwrap();
-    b.wait_for("pmaView.lastFullStats.cull_rays === false", LONG)
-        .unwrap();
+    b.wait_for(
+        "pmaView.settled() && pmaView.lastFullStats.cull_rays === false",
+        LONG,
+    )
+    .unwrap();
     let off = stats(&mut b);
     assert!(
         off["samples"].as_u64() > rays_only["samples"].as_u64(),
@@ -383,8 +400,11 @@ fn browser_scrubs_poses_turns_the_camera_and_follows_a_run() {
     // A new checkpoint (as `pma train` writes one) is picked up and rendered.
     assert_eq!(off["model_version"], 1);
     set_density_bias(&model, -5.0);
-    b.wait_for("pmaView.lastFullStats.model_version === 2", LONG)
-        .unwrap();
+    b.wait_for(
+        "pmaView.settled() && pmaView.lastFullStats.model_version === 2",
+        LONG,
+    )
+    .unwrap();
     let newer = canvas(&mut b);
     assert!(
         differing(&unculled, &newer) >= 5,
@@ -584,22 +604,14 @@ fn a_newer_request_stops_the_frame_in_flight() {
     // when the next request comes.
     let big = format!("/api/render?{cam}&w=1024&h=1024&cull_rays=0&cull_samples=0");
     let port = view.port;
-    let slow = std::thread::spawn({
-        let big = big.clone();
-        move || {
-            exchange(
-                port,
-                format!(
-                    "GET {big} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nConnection: close\r\n\r\n"
-                )
-                .as_bytes(),
-            )
-        }
-    });
+    let get_big =
+        format!("GET {big} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nConnection: close\r\n\r\n");
+    // Sent before the next request is, and given time to reach the render thread.
+    let slow = send(port, get_big.as_bytes());
     std::thread::sleep(Duration::from_millis(300));
     let small = view.get(&format!("/api/render?{cam}&w=16&h=16"));
     assert_eq!(small.status, Some(200), "{}", small.head);
-    let old = slow.join().unwrap();
+    let old = read_answer(slow);
     assert_eq!(old.status, Some(409), "{}", old.head);
     let body: Value = serde_json::from_slice(&old.body).unwrap();
     assert!(
@@ -608,19 +620,13 @@ fn a_newer_request_stops_the_frame_in_flight() {
     );
 
     // Ctrl-C in the middle of such a frame stops the server too.
-    let again = std::thread::spawn(move || {
-        exchange(
-            port,
-            format!("GET {big} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nConnection: close\r\n\r\n")
-                .as_bytes(),
-        )
-    });
+    let again = send(port, get_big.as_bytes());
     std::thread::sleep(Duration::from_millis(300));
     let (status, took) = view.interrupt();
     assert_eq!(status.code(), Some(130));
     eprintln!("pma view stopped {took:?} after SIGINT during a frame");
     // That frame's connection ends without a frame.
-    let cut = again.join().unwrap();
+    let cut = read_answer(again);
     assert!(matches!(cut.status, None | Some(503)), "{}", cut.head);
 }
 
@@ -661,7 +667,7 @@ fn screenshot_for_docs() {
     let chrome = cdp::chromium().expect("Chromium");
     let mut b = Browser::launch(&chrome);
     b.open(&url, 1280, 980).unwrap();
-    b.wait_for("window.pmaView && pmaView.fullFrames >= 1", LONG)
+    b.wait_for("window.pmaView && pmaView.settled()", LONG)
         .unwrap();
     let first = b
         .eval("JSON.stringify({timing: pmaView.timing, frames: pmaView.history})")
@@ -675,7 +681,7 @@ fn screenshot_for_docs() {
         ))
         .unwrap();
         b.wait_for(
-            &format!("pmaView.fullFrames > {n} && pmaView.lastStats === pmaView.lastFullStats"),
+            &format!("pmaView.fullFrames > {n} && pmaView.settled()"),
             LONG,
         )
         .unwrap();
@@ -696,7 +702,7 @@ fn screenshot_for_docs() {
         let mid = (r[0] + r[2] / 2.0, r[1] + r[3] / 2.0);
         b.drag(mid, (mid.0 + 90.0, mid.1 + 15.0), 8).unwrap();
         b.wait_for(
-            &format!("pmaView.fullFrames > {n} && pmaView.lastStats === pmaView.lastFullStats"),
+            &format!("pmaView.fullFrames > {n} && pmaView.settled()"),
             LONG,
         )
         .unwrap();
@@ -705,6 +711,11 @@ fn screenshot_for_docs() {
     }
     // Let the run panel's curves and the ground-truth image arrive.
     std::thread::sleep(Duration::from_millis(2500));
-    std::fs::write(&shot, b.screenshot().unwrap()).unwrap();
+    let bottom = b
+        .eval("Math.ceil(document.querySelector('main').getBoundingClientRect().bottom)")
+        .unwrap()
+        .as_f64()
+        .unwrap();
+    std::fs::write(&shot, b.screenshot_top(1280.0, bottom.min(980.0)).unwrap()).unwrap();
     eprintln!("wrote {shot}");
 }
