@@ -20,9 +20,10 @@
 //! a client can make the server hold: the request head (`max_buf_size`, answered 431), the
 //! number of headers and the time to send them (a slow client cannot pin a connection). The
 //! accept loop wakes every 100 ms, so Ctrl-C stops the server within a fraction of a
-//! second. `tiny_http` would build faster, but it reads a request head of any length into
-//! memory and has no read timeout; `axum` would add a router and `tower` that six routes do
-//! not need. Rendering runs on a thread of its own, outside the runtime.
+//! second. `tiny_http` (0.12, the newest release) would build faster, but it reads request
+//! header lines of any length into memory and sets no read timeout; `axum` would add a
+//! router and `tower` that a handful of fixed routes do not need. Rendering runs on a
+//! thread of its own, outside the runtime.
 //!
 //! Build cost on the 2-core development machine while other jobs loaded it: a clean dev
 //! build of hyper, hyper-util, http-body-util and tokio with the workspace's profile
