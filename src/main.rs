@@ -63,6 +63,8 @@ enum Command {
     Bench(cli::bench::Args),
     /// Drive an avatar through extreme poses, frequencies, scales, densities and ray geometry.
     CheckStability(cli::check_stability::Args),
+    /// Look at an avatar or a training run in the browser, posed and turned by hand.
+    View(cli::view::Args),
 }
 
 /// Errors go to stderr as one `error: ...` line with their causes, as clap reports usage
@@ -109,5 +111,6 @@ fn run(command: Command) -> anyhow::Result<()> {
         Command::Mesh(a) => cli::mesh::run(a),
         Command::Bench(a) => cli::bench::run(a),
         Command::CheckStability(a) => cli::check_stability::run(a),
+        Command::View(a) => cli::view::run(a),
     }
 }

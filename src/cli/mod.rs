@@ -17,6 +17,7 @@ pub mod progress;
 pub mod render;
 pub mod synth;
 pub mod train;
+pub mod view;
 
 use std::path::Path;
 

@@ -1,6 +1,7 @@
 //! End-to-end tests of the `pma` binary, linked as one test binary: each binary links candle, and one per file
 //! filled a CI disk. Files stay one module per concern; filter with `cargo test --test cli train::`.
 
+mod cdp;
 mod run;
 
 mod ablate;
@@ -19,3 +20,4 @@ mod metrics;
 mod render;
 mod synth;
 mod train;
+mod view;

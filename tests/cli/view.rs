@@ -1,0 +1,722 @@
+//! `pma view` end to end: a real browser (headless Chromium over the DevTools protocol, see
+//! `cdp.rs`) drives the page on a training run; raw sockets send malformed and oversized
+//! requests; Ctrl-C stops the server with exit status 130.
+//!
+//! The browser test needs Debian's `chromium` (`.ci/run` installs it). Under `CI=true` a
+//! missing browser fails the test; elsewhere the test is skipped with a message.
+
+use std::io::{BufRead as _, BufReader, Read as _, Write as _};
+use std::net::TcpStream;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, ExitStatus, Stdio};
+use std::sync::{mpsc, Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use candle_core::{Device, Tensor};
+use pma_model::render::avatar::Avatar;
+use pma_model::Config;
+use serde_json::Value;
+
+use crate::cdp::{self, Browser};
+use crate::run::{fails_with, ok, pma, tiny_scene};
+
+/// Generous bound on anything the page waits for in a debug build on a loaded machine (a
+/// hang guard, not a timing check).
+const LONG: Duration = Duration::from_secs(180);
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+/// Chromium, or `None` (with a loud message) when it is missing outside CI.
+fn chromium_or_skip(test: &str) -> Option<PathBuf> {
+    if let Some(p) = cdp::chromium() {
+        return Some(p);
+    }
+    let msg = "Chromium not found (/usr/bin/chromium or PMA_CHROMIUM): install Debian's \
+               `chromium` package (.ci/run does)";
+    if std::env::var("CI").as_deref() == Ok("true") {
+        panic!("{test}: {msg}");
+    }
+    eprintln!("\n*** SKIPPED {test}: {msg} ***\n");
+    None
+}
+
+/// A `pma view` process serving on a free port.
+struct Viewer {
+    child: Child,
+    port: u16,
+    url: String,
+    stderr: Arc<Mutex<String>>,
+}
+
+impl Viewer {
+    fn start(args: &[&str]) -> Viewer {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_pma"))
+            .arg("view")
+            .args(args)
+            .args(["--port", "0"])
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("starting pma view");
+        let stderr = Arc::new(Mutex::new(String::new()));
+        let mut err = child.stderr.take().unwrap();
+        let sink = stderr.clone();
+        std::thread::spawn(move || {
+            let mut text = String::new();
+            let _ = err.read_to_string(&mut text);
+            sink.lock().unwrap().push_str(&text);
+        });
+        let out = child.stdout.take().unwrap();
+        let (tx, rx) = mpsc::channel();
+        std::thread::spawn(move || {
+            for line in BufReader::new(out).lines().map_while(Result::ok) {
+                let _ = tx.send(line);
+            }
+        });
+        let line = rx.recv_timeout(LONG).unwrap_or_else(|_| {
+            let _ = child.kill();
+            let _ = child.wait();
+            std::thread::sleep(Duration::from_millis(200));
+            panic!(
+                "pma view printed no URL; stderr:\n{}",
+                stderr.lock().unwrap()
+            )
+        });
+        let url = line
+            .split_whitespace()
+            .find(|w| w.starts_with("http://"))
+            .unwrap_or_else(|| panic!("no URL in {line:?}"))
+            .to_string();
+        let port = url
+            .trim_end_matches('/')
+            .rsplit(':')
+            .next()
+            .and_then(|p| p.parse().ok())
+            .unwrap_or_else(|| panic!("no port in {url}"));
+        assert!(url.starts_with("http://127.0.0.1:"), "{url}: not loopback");
+        Viewer {
+            child,
+            port,
+            url,
+            stderr,
+        }
+    }
+
+    /// Send `raw` on a fresh connection and read the answer until the server closes it.
+    fn exchange(&self, raw: &[u8]) -> Answer {
+        exchange(self.port, raw)
+    }
+
+    /// A well-formed GET of `target`.
+    fn get(&self, target: &str) -> Answer {
+        self.exchange(
+            format!(
+                "GET {target} HTTP/1.1\r\nHost: 127.0.0.1:{}\r\nConnection: close\r\n\r\n",
+                self.port
+            )
+            .as_bytes(),
+        )
+    }
+
+    /// SIGINT, as Ctrl-C sends; the exit status and how long the process took to end.
+    fn interrupt(mut self) -> (ExitStatus, Duration) {
+        let t = Instant::now();
+        // SAFETY: kill(2) on our own child's pid.
+        let rc = unsafe { libc::kill(self.child.id() as i32, libc::SIGINT) };
+        assert_eq!(rc, 0);
+        loop {
+            if let Some(st) = self.child.try_wait().unwrap() {
+                let took = t.elapsed();
+                // The stderr reader ends with the process.
+                std::thread::sleep(Duration::from_millis(100));
+                let err = self.stderr.lock().unwrap().clone();
+                assert!(!err.contains("panicked"), "{err}");
+                assert!(err.contains("interrupted"), "stderr after Ctrl-C:\n{err}");
+                return (st, took);
+            }
+            assert!(
+                t.elapsed() < Duration::from_secs(30),
+                "pma view did not stop after SIGINT"
+            );
+            std::thread::sleep(Duration::from_millis(10));
+        }
+    }
+}
+
+impl Drop for Viewer {
+    fn drop(&mut self) {
+        if let Ok(None) = self.child.try_wait() {
+            let _ = self.child.kill();
+            let _ = self.child.wait();
+        }
+    }
+}
+
+struct Answer {
+    /// `None` when the server closed the connection without an HTTP answer.
+    status: Option<u16>,
+    head: String,
+    body: Vec<u8>,
+}
+
+fn exchange(port: u16, raw: &[u8]) -> Answer {
+    read_answer(send(port, raw))
+}
+
+/// Open a connection and send `raw` on it.
+fn send(port: u16, raw: &[u8]) -> TcpStream {
+    let mut sock = TcpStream::connect(("127.0.0.1", port)).unwrap();
+    sock.set_read_timeout(Some(LONG)).unwrap();
+    // A server may answer and close before reading everything (oversized heads): a failed
+    // write is part of what is being tested, not a test failure.
+    let _ = sock.write_all(raw);
+    sock
+}
+
+/// Read the answer on `sock` until the server closes it.
+fn read_answer(mut sock: TcpStream) -> Answer {
+    let mut buf = Vec::new();
+    let _ = sock.read_to_end(&mut buf);
+    let split = buf
+        .windows(4)
+        .position(|w| w == b"\r\n\r\n")
+        .unwrap_or(buf.len());
+    let head = String::from_utf8_lossy(&buf[..split]).into_owned();
+    let status = head
+        .strip_prefix("HTTP/1.1 ")
+        .or_else(|| head.strip_prefix("HTTP/1.0 "))
+        .and_then(|r| r.get(..3))
+        .and_then(|c| c.parse().ok());
+    Answer {
+        status,
+        head,
+        body: buf.get(split + 4..).unwrap_or_default().to_vec(),
+    }
+}
+
+/// Raise the density head's bias of the model at `path` to `bias` (replaced atomically, as
+/// training does): a barely trained tiny model is still empty space and renders black.
+fn set_density_bias(path: &Path, bias: f32) {
+    let avatar = Avatar::load(path, &Device::Cpu).unwrap();
+    let mut tensors = avatar.tensors();
+    let b = tensors.get("sigma_linear.bias").expect("sigma_linear.bias");
+    let lifted = Tensor::full(bias, b.shape(), &Device::Cpu).unwrap();
+    tensors.insert("sigma_linear.bias".into(), lifted);
+    Avatar::from_tensors(avatar.config().clone(), tensors, &Device::Cpu)
+        .unwrap()
+        .save(path)
+        .unwrap();
+}
+
+/// The render canvas's pixels (RGBA).
+fn canvas(b: &mut Browser) -> image::RgbaImage {
+    let url = b
+        .eval("document.getElementById('render').toDataURL('image/png')")
+        .unwrap();
+    let url = url.as_str().unwrap();
+    let data = url.strip_prefix("data:image/png;base64,").unwrap();
+    image::load_from_memory(&cdp::base64(data).unwrap())
+        .unwrap()
+        .to_rgba8()
+}
+
+/// Pixels whose colour differs by more than 2 levels in some channel.
+fn differing(a: &image::RgbaImage, b: &image::RgbaImage) -> usize {
+    assert_eq!(a.dimensions(), b.dimensions());
+    a.pixels()
+        .zip(b.pixels())
+        .filter(|(p, q)| (0..3).any(|c| p.0[c].abs_diff(q.0[c]) > 2))
+        .count()
+}
+
+fn lit(a: &image::RgbaImage) -> usize {
+    a.pixels()
+        .filter(|p| p.0[..3].iter().any(|&v| v > 10))
+        .count()
+}
+
+fn stats(b: &mut Browser) -> Value {
+    b.eval("pmaView.lastFullStats").unwrap()
+}
+
+#[test]
+fn browser_scrubs_poses_turns_the_camera_and_follows_a_run() {
+    let Some(chrome) = chromium_or_skip("browser_scrubs_poses_turns_the_camera_and_follows_a_run")
+    else {
+        return;
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = tmp.path().join("scene");
+    let data = tiny_scene(&scene, 1);
+    let cfg = tmp.path().join("run.toml");
+    std::fs::write(&cfg, "preset = \"tiny\"\n[train]\neval_every = 5\n").unwrap();
+    let run = tmp.path().join("run");
+    ok(pma(&[
+        "train",
+        "--data",
+        s(&data),
+        "--out",
+        s(&run),
+        "--config",
+        s(&cfg),
+        "--iters",
+        "10",
+        "--quiet",
+    ]));
+    // The checkpoint the viewer shows (the run's newest complete one), changed in place.
+    let model = pma_model::network::run_dir::newest_model(&run).unwrap();
+    set_density_bias(&model, 5.0);
+
+    let view = Viewer::start(&[s(&run), "--data", s(&data)]);
+    let mut b = Browser::launch(&chrome);
+    b.open(&view.url, 1280, 900).unwrap();
+
+    // A dataset view: dataset camera 0, pose 0, with its ground truth and scores.
+    b.wait_for("window.pmaView && pmaView.settled()", LONG)
+        .unwrap();
+    let st = stats(&mut b);
+    assert_eq!(st["pose"], 0, "{st}");
+    assert_eq!(
+        (st["width"].as_u64(), st["height"].as_u64()),
+        (Some(24), Some(24))
+    );
+    assert!(st["image"].is_u64(), "a dataset view has an image: {st}");
+    for k in ["psnr", "ssim"] {
+        let v = st["scores"][k].as_f64();
+        assert!(v.is_some_and(f64::is_finite), "{k}: {st}");
+    }
+    assert!(st["rays"].as_u64().unwrap() > 0 && st["samples"].as_u64().unwrap() > 0);
+    b.wait_for(
+        "(() => { const g = document.getElementById('gt'); return !document.getElementById('gt-fig').hidden \
+         && g.complete && g.naturalWidth === 24; })()",
+        LONG,
+    )
+    .unwrap();
+    let pose0 = canvas(&mut b);
+    assert!(
+        lit(&pose0) > 20,
+        "the render is black: {} lit pixels",
+        lit(&pose0)
+    );
+
+    // The next pose, from the keyboard on the slider.
+    b.eval("document.getElementById('pose').focus()").unwrap();
+    b.key("ArrowRight", "ArrowRight", 39).unwrap();
+    b.wait_for(
+        "pmaView.settled() && pmaView.lastFullStats.pose === 1 \
+         && document.getElementById('pose-label').textContent.includes('1 /')",
+        LONG,
+    )
+    .unwrap();
+    let pose1 = canvas(&mut b);
+    let d = differing(&pose0, &pose1);
+    assert!(d >= 5, "poses 0 and 1 render alike ({d} pixels differ)");
+
+    // Orbit by dragging on the render: a free camera, so no ground truth.
+    let frames = b.eval("pmaView.fullFrames").unwrap().as_u64().unwrap();
+    let r = b
+        .eval("(() => { const r = document.getElementById('render').getBoundingClientRect(); return [r.x, r.y, r.width, r.height]; })()")
+        .unwrap();
+    let r: Vec<f64> = r
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_f64().unwrap())
+        .collect();
+    let mid = (r[0] + r[2] / 2.0, r[1] + r[3] / 2.0);
+    b.drag(mid, (mid.0 + 150.0, mid.1 + 20.0), 6).unwrap();
+    b.wait_for(
+        &format!(
+            "pmaView.settled() && document.getElementById('camera').value === '-1' \
+             && pmaView.fullFrames > {frames} && pmaView.lastFullStats.image === null"
+        ),
+        LONG,
+    )
+    .unwrap();
+    assert_eq!(
+        b.eval("document.getElementById('gt-fig').hidden").unwrap(),
+        true
+    );
+    let turned = canvas(&mut b);
+    let d = differing(&pose1, &turned);
+    assert!(
+        d >= 5,
+        "the camera turned but the image did not change ({d} pixels)"
+    );
+    assert!(lit(&turned) > 20, "the turned view is black");
+
+    // Sample culling off: exact, so the same picture (near the body hardly any sample has a
+    // window of exactly 0, so the counts may be equal). Then ray culling off: every traced
+    // ray runs the network.
+    let both = stats(&mut b);
+    assert_eq!(
+        (&both["cull_rays"], &both["cull_samples"]),
+        (&Value::Bool(true), &Value::Bool(true))
+    );
+    b.eval("document.getElementById('switch-cull_samples').click()")
+        .unwrap();
+    b.wait_for(
+        "pmaView.settled() && pmaView.lastFullStats.cull_samples === false",
+        LONG,
+    )
+    .unwrap();
+    let rays_only = stats(&mut b);
+    let unculled = canvas(&mut b);
+    assert_eq!(
+        differing(&turned, &unculled),
+        0,
+        "exact sample culling changed the image"
+    );
+    assert_eq!(both["rays"], rays_only["rays"]);
+    assert!(
+        rays_only["samples"].as_u64() >= both["samples"].as_u64(),
+        "sample culling ran more samples than none: {both} vs {rays_only}"
+    );
+    b.eval("document.getElementById('switch-cull_rays').click()")
+        .unwrap();
+    b.wait_for(
+        "pmaView.settled() && pmaView.lastFullStats.cull_rays === false",
+        LONG,
+    )
+    .unwrap();
+    let off = stats(&mut b);
+    assert!(
+        off["samples"].as_u64() > rays_only["samples"].as_u64(),
+        "ray culling ran as many samples as none: {rays_only} vs {off}"
+    );
+    let unculled = canvas(&mut b);
+
+    // The run's curves: 3 log rows (iterations 0, 5, 10), each with a held-out PSNR.
+    b.wait_for(
+        "pmaView.run && pmaView.run.loss.length >= 2 && pmaView.run.eval_psnr.length >= 2 \
+         && !document.getElementById('run').hidden",
+        LONG,
+    )
+    .unwrap();
+    assert_eq!(b.eval("pmaView.run.last_iter").unwrap(), 10);
+
+    // A new checkpoint (as `pma train` writes one) is picked up and rendered.
+    assert_eq!(off["model_version"], 1);
+    set_density_bias(&model, -5.0);
+    b.wait_for(
+        "pmaView.settled() && pmaView.lastFullStats.model_version === 2",
+        LONG,
+    )
+    .unwrap();
+    let newer = canvas(&mut b);
+    assert!(
+        differing(&unculled, &newer) >= 5,
+        "the new checkpoint renders alike"
+    );
+
+    let errors = b.eval("pmaView.errors").unwrap();
+    assert_eq!(errors, serde_json::json!([]), "page errors");
+    let shot = image::load_from_memory(&b.screenshot().unwrap()).unwrap();
+    assert_eq!((shot.width(), shot.height()), (1280, 900));
+    drop(b);
+
+    let (status, took) = view.interrupt();
+    assert_eq!(status.code(), Some(130), "exit after Ctrl-C");
+    eprintln!("pma view stopped {took:?} after SIGINT");
+}
+
+#[test]
+fn malformed_and_oversized_requests_get_4xx_and_the_server_keeps_serving() {
+    let tmp = tempfile::tempdir().unwrap();
+    let model = tiny_model(tmp.path());
+    let view = Viewer::start(&[s(&model)]);
+    let p = view.port;
+    let host = format!("Host: 127.0.0.1:{p}\r\nConnection: close\r\n");
+
+    // A client that opened a connection and sends nothing more holds no one up.
+    let mut idle = TcpStream::connect(("127.0.0.1", p)).unwrap();
+    idle.write_all(b"GET / HTTP/1.1\r\n").unwrap();
+
+    let big_header = format!(
+        "GET / HTTP/1.1\r\n{host}X-Big: {}\r\n\r\n",
+        "a".repeat(100_000)
+    );
+    let long_url = format!(
+        "GET /api/render?{} HTTP/1.1\r\n{host}\r\n",
+        "a".repeat(40_000)
+    );
+    let many_headers = format!(
+        "GET / HTTP/1.1\r\n{host}{}\r\n",
+        (0..200)
+            .map(|i| format!("X-{i}: v\r\n"))
+            .collect::<String>()
+    );
+    let cases: Vec<(String, Vec<u8>, u16)> = vec![
+        (
+            "garbage".into(),
+            b"\x00\x01 not http at all\r\n\r\n".to_vec(),
+            400,
+        ),
+        ("header of 100 kB".into(), big_header.into_bytes(), 431),
+        ("URL of 40 kB".into(), long_url.into_bytes(), 431),
+        ("200 headers".into(), many_headers.into_bytes(), 431),
+        (
+            "POST with a body".into(),
+            format!("POST /api/render HTTP/1.1\r\n{host}Content-Length: 5\r\n\r\nhello")
+                .into_bytes(),
+            405,
+        ),
+        (
+            "GET with a body".into(),
+            format!("GET /api/info HTTP/1.1\r\n{host}Content-Length: 5\r\n\r\nhello").into_bytes(),
+            413,
+        ),
+        (
+            "HEAD".into(),
+            format!("HEAD / HTTP/1.1\r\n{host}\r\n").into_bytes(),
+            405,
+        ),
+        (
+            "foreign Host".into(),
+            b"GET /api/info HTTP/1.1\r\nHost: attacker.example\r\nConnection: close\r\n\r\n"
+                .to_vec(),
+            403,
+        ),
+        (
+            "no Host".into(),
+            b"GET /api/info HTTP/1.0\r\n\r\n".to_vec(),
+            403,
+        ),
+    ];
+    for (what, raw, want) in cases {
+        let a = view.exchange(&raw);
+        assert_eq!(a.status, Some(want), "{what}: {}", a.head);
+    }
+    for (target, want) in [
+        ("/../Cargo.toml", 404),
+        ("/%2e%2e/%2e%2e/etc/passwd", 404),
+        ("/assets/view.js", 404),
+        ("/api/render?pose=-1", 400),
+        ("/api/render?pose=1", 400),
+        ("/api/render?pose=abc", 400),
+        ("/api/render?pose=99999999999999999999999", 400),
+        ("/api/render?cam=0", 400),
+        (
+            "/api/render?eye=0,0,1&target=0,0,0&fov=30&w=100000&h=8",
+            400,
+        ),
+        ("/api/render?eye=nan,0,1&target=0,0,0&fov=30", 400),
+        ("/api/render?eye=0,0,0&target=0,0,0&fov=30", 400),
+        ("/api/render?eye=0,-5,0&target=0,0,0&fov=30", 400),
+        (
+            "/api/render?eye=0,0,1&target=0,0,0&fov=30&file=/etc/passwd",
+            400,
+        ),
+        ("/api/render?eye=0,0,1&target=0,0,0&fov=30&w=%zz", 400),
+        ("/api/gt?image=0", 400),
+        ("/api/gt?image=abc", 400),
+        ("/api/run?x=1", 400),
+    ] {
+        let a = view.get(target);
+        assert_eq!(a.status, Some(want), "{target}: {}", a.head);
+        let body: Value = serde_json::from_slice(&a.body)
+            .unwrap_or_else(|e| panic!("{target}: body is not JSON ({e})"));
+        assert!(
+            body["error"].as_str().is_some_and(|e| !e.is_empty()),
+            "{target}: {body}"
+        );
+    }
+
+    // Still serving: the page, its info, and a frame.
+    let page = view.get("/");
+    assert_eq!(page.status, Some(200));
+    assert!(String::from_utf8_lossy(&page.body).contains("<script src=\"/view.js\">"));
+    let info = view.get("/api/info");
+    assert_eq!(info.status, Some(200), "{}", info.head);
+    let info: Value = serde_json::from_slice(&info.body).unwrap();
+    assert_eq!(info["poses"], 1);
+    assert_eq!(info["pose_kind"], "rest");
+    let start = &info["start"];
+    let v3 = |v: &Value| {
+        v.as_array()
+            .unwrap()
+            .iter()
+            .map(|x| x.as_f64().unwrap().to_string())
+            .collect::<Vec<_>>()
+            .join(",")
+    };
+    let frame = view.get(&format!(
+        "/api/render?eye={}&target={}&fov=30&w=20&h=12",
+        v3(&start["eye"]),
+        v3(&start["target"])
+    ));
+    assert_eq!(frame.status, Some(200), "{}", frame.head);
+    let img = image::load_from_memory(&frame.body).unwrap();
+    assert_eq!((img.width(), img.height()), (20, 12));
+    let stats_line = frame
+        .head
+        .lines()
+        .find_map(|l| l.strip_prefix("x-pma-stats: "))
+        .expect("x-pma-stats header");
+    let st: Value = serde_json::from_str(stats_line).unwrap();
+    assert_eq!(
+        (st["width"].as_u64(), st["height"].as_u64()),
+        (Some(20), Some(12))
+    );
+    drop(idle);
+
+    let (status, took) = view.interrupt();
+    assert_eq!(status.code(), Some(130));
+    eprintln!("pma view stopped {took:?} after SIGINT");
+}
+
+fn tiny_model(dir: &Path) -> PathBuf {
+    let model = dir.join("tiny.safetensors");
+    Avatar::new(
+        Config::tiny(),
+        &pma_data::synth::rest_pose(),
+        1,
+        &Device::Cpu,
+    )
+    .unwrap()
+    .save(&model)
+    .unwrap();
+    model
+}
+
+#[test]
+fn a_newer_request_stops_the_frame_in_flight() {
+    let tmp = tempfile::tempdir().unwrap();
+    let model = tiny_model(tmp.path());
+    let view = Viewer::start(&[s(&model), "--chunk", "256"]);
+    let info: Value = serde_json::from_slice(&view.get("/api/info").body).unwrap();
+    let v3 = |v: &Value| {
+        v.as_array()
+            .unwrap()
+            .iter()
+            .map(|x| x.as_f64().unwrap().to_string())
+            .collect::<Vec<_>>()
+            .join(",")
+    };
+    let cam = format!(
+        "eye={}&target={}&fov=30",
+        v3(&info["start"]["eye"]),
+        v3(&info["start"]["target"])
+    );
+    // Hundreds of thousands of rays without culling: minutes on a CPU, so still rendering
+    // when the next request comes.
+    let big = format!("/api/render?{cam}&w=1024&h=1024&cull_rays=0&cull_samples=0");
+    let port = view.port;
+    let get_big =
+        format!("GET {big} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nConnection: close\r\n\r\n");
+    // Sent before the next request is, and given time to reach the render thread.
+    let slow = send(port, get_big.as_bytes());
+    std::thread::sleep(Duration::from_millis(300));
+    let small = view.get(&format!("/api/render?{cam}&w=16&h=16"));
+    assert_eq!(small.status, Some(200), "{}", small.head);
+    let old = read_answer(slow);
+    assert_eq!(old.status, Some(409), "{}", old.head);
+    let body: Value = serde_json::from_slice(&old.body).unwrap();
+    assert!(
+        body["error"].as_str().unwrap().contains("superseded"),
+        "{body}"
+    );
+
+    // Ctrl-C in the middle of such a frame stops the server too.
+    let again = send(port, get_big.as_bytes());
+    std::thread::sleep(Duration::from_millis(300));
+    let (status, took) = view.interrupt();
+    assert_eq!(status.code(), Some(130));
+    eprintln!("pma view stopped {took:?} after SIGINT during a frame");
+    // That frame's connection ends without a frame.
+    let cut = read_answer(again);
+    assert!(matches!(cut.status, None | Some(503)), "{}", cut.head);
+}
+
+#[test]
+fn refuses_bad_input_before_serving() {
+    let tmp = tempfile::tempdir().unwrap();
+    fails_with(
+        pma(&["view", s(&tmp.path().join("missing.safetensors"))]),
+        "no such model file or run directory",
+    );
+    let model = tiny_model(tmp.path());
+    let out = pma(&["view", s(&model), "--data", s(&tmp.path().join("none.npz"))]);
+    assert_eq!(out.status.code(), Some(2), "{out:?}");
+    let empty_run = tmp.path().join("run");
+    std::fs::create_dir(&empty_run).unwrap();
+    let out = pma(&["view", s(&empty_run)]);
+    assert_eq!(out.status.code(), Some(2), "{out:?}");
+    fails_with(out, "the run has no checkpoint yet");
+    let out = pma(&["view", s(&model), "--chunk", "0"]);
+    assert_eq!(out.status.code(), Some(2), "{out:?}");
+    // A port already taken is a failure to serve (exit 1), named in the message.
+    let taken = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let port = taken.local_addr().unwrap().port().to_string();
+    let out = pma(&["view", s(&model), "--port", &port]);
+    assert_eq!(out.status.code(), Some(1), "{out:?}");
+    fails_with(out, "cannot listen on 127.0.0.1:");
+}
+
+/// Not a test: screenshots and timings of a running `pma view` for the docs (see
+/// docs/img/SOURCE.md). `PMA_VIEW_URL` is the page, `PMA_VIEW_SHOT` the PNG to write;
+/// `PMA_VIEW_SIZE` (e.g. `384x384`) picks a render size, `PMA_VIEW_DRAG=1` turns the camera
+/// before the picture. Prints when the first preview and the first full frame were drawn.
+#[test]
+#[ignore]
+fn screenshot_for_docs() {
+    let url = std::env::var("PMA_VIEW_URL").expect("PMA_VIEW_URL");
+    let shot = std::env::var("PMA_VIEW_SHOT").expect("PMA_VIEW_SHOT");
+    let chrome = cdp::chromium().expect("Chromium");
+    let mut b = Browser::launch(&chrome);
+    b.open(&url, 1280, 980).unwrap();
+    b.wait_for("window.pmaView && pmaView.settled()", LONG)
+        .unwrap();
+    let first = b
+        .eval("JSON.stringify({timing: pmaView.timing, frames: pmaView.history})")
+        .unwrap();
+    eprintln!("first frames: {}", first.as_str().unwrap());
+    if let Ok(size) = std::env::var("PMA_VIEW_SIZE") {
+        let n = b.eval("pmaView.fullFrames").unwrap();
+        b.eval(&format!(
+            "(() => {{ const s = document.getElementById('size'); s.value = '{size}'; \
+             s.dispatchEvent(new Event('change')); }})()"
+        ))
+        .unwrap();
+        b.wait_for(
+            &format!("pmaView.fullFrames > {n} && pmaView.settled()"),
+            LONG,
+        )
+        .unwrap();
+        let h = b.eval("JSON.stringify(pmaView.history.slice(-2))").unwrap();
+        eprintln!("after size {size}: {}", h.as_str().unwrap());
+    }
+    if std::env::var("PMA_VIEW_DRAG").as_deref() == Ok("1") {
+        let n = b.eval("pmaView.fullFrames").unwrap();
+        let r = b
+            .eval("(() => { const r = document.getElementById('render').getBoundingClientRect(); return [r.x, r.y, r.width, r.height]; })()")
+            .unwrap();
+        let r: Vec<f64> = r
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_f64().unwrap())
+            .collect();
+        let mid = (r[0] + r[2] / 2.0, r[1] + r[3] / 2.0);
+        b.drag(mid, (mid.0 + 90.0, mid.1 + 15.0), 8).unwrap();
+        b.wait_for(
+            &format!("pmaView.fullFrames > {n} && pmaView.settled()"),
+            LONG,
+        )
+        .unwrap();
+        let h = b.eval("JSON.stringify(pmaView.history.slice(-3))").unwrap();
+        eprintln!("after the drag: {}", h.as_str().unwrap());
+    }
+    // Let the run panel's curves and the ground-truth image arrive.
+    std::thread::sleep(Duration::from_millis(2500));
+    let bottom = b
+        .eval("Math.ceil(document.querySelector('main').getBoundingClientRect().bottom)")
+        .unwrap()
+        .as_f64()
+        .unwrap();
+    std::fs::write(&shot, b.screenshot_top(1280.0, bottom.min(980.0)).unwrap()).unwrap();
+    eprintln!("wrote {shot}");
+}
