@@ -160,13 +160,218 @@ pub struct Report {
 
 impl Report {
     /// Every op of the run, for [`estimate`].
-    pub fn costs(&self) -> impl Iterator<Item = &Cost> {
+    pub fn costs(&self) -> impl Iterator<Item = &Cost> + Clone {
         self.stages.iter().flat_map(|s| &s.costs)
     }
 
     /// The run's estimated time on `gpu` ([`estimate`]).
     pub fn estimate(&self, gpu: &Gpu, tf32: bool) -> Estimate {
         estimate(self.costs(), &self.total, gpu, tf32)
+    }
+}
+
+/// `v[0] + k·(v[1] − v[0])` when the three values are equally spaced (exactly affine in a
+/// size that grows by the same step from one to the next); `None` otherwise.
+fn affine(v: [u64; 3], k: u64) -> Option<u64> {
+    let [a, b, c] = v.map(i128::from);
+    if c - b != b - a {
+        return None;
+    }
+    u64::try_from(a + (b - a) * i128::from(k)).ok()
+}
+
+impl Counts {
+    /// Every field by [`affine`]; `None` if one is not affine.
+    fn affine(c: [&Counts; 3], k: u64) -> Option<Counts> {
+        let f = |g: fn(&Counts) -> u64| affine(c.map(g), k);
+        Some(Counts {
+            ops: f(|c| c.ops)?,
+            launches: f(|c| c.launches)?,
+            syncs: f(|c| c.syncs)?,
+            sync_bytes: f(|c| c.sync_bytes)?,
+            uploads: f(|c| c.uploads)?,
+            upload_bytes: f(|c| c.upload_bytes)?,
+            param_uploads: f(|c| c.param_uploads)?,
+            bytes_read: f(|c| c.bytes_read)?,
+            bytes_written: f(|c| c.bytes_written)?,
+            flops: f(|c| c.flops)?,
+        })
+    }
+}
+
+impl Report {
+    /// The run of size `n + k·d`, from three runs of sizes n, n + d, n + 2d (say rays per
+    /// step) that made the same ops in the same order and whose every count, per op, per
+    /// stage and per op name, is exactly affine in the size (checked: equal steps between
+    /// the three). Refused when anything differs, so a count is never extrapolated from a
+    /// shape it does not have.
+    pub fn extrapolate(runs: [&Report; 3], k: u64) -> Result<Report> {
+        let bad = |what: String| {
+            ModelError::Input(format!(
+                "cannot extrapolate the account: {what} is not the same or not affine in the size"
+            ))
+        };
+        let [a, b, c] = runs;
+        if a.route != b.route || b.route != c.route {
+            return Err(bad("the route".into()));
+        }
+        let total = Counts::affine([&a.total, &b.total, &c.total], k)
+            .ok_or_else(|| bad("the total".into()))?;
+        if a.stages.len() != b.stages.len() || b.stages.len() != c.stages.len() {
+            return Err(bad("the list of stages".into()));
+        }
+        let mut stages = Vec::with_capacity(a.stages.len());
+        for ((sa, sb), sc) in a.stages.iter().zip(&b.stages).zip(&c.stages) {
+            if sa.name != sb.name
+                || sb.name != sc.name
+                || sa.times != sb.times
+                || sb.times != sc.times
+            {
+                return Err(bad(format!("stage `{}`", sa.name)));
+            }
+            if sa.costs.len() != sb.costs.len() || sb.costs.len() != sc.costs.len() {
+                return Err(bad(format!("the ops of stage `{}`", sa.name)));
+            }
+            let costs = sa
+                .costs
+                .iter()
+                .zip(&sb.costs)
+                .zip(&sc.costs)
+                .map(|((x, y), z)| {
+                    Some(Cost {
+                        launches: u32::try_from(affine(
+                            [x, y, z].map(|c| u64::from(c.launches)),
+                            k,
+                        )?)
+                        .ok()?,
+                        bytes: affine([x, y, z].map(|c| c.bytes), k)?,
+                        flops: affine([x, y, z].map(|c| c.flops), k)?,
+                    })
+                })
+                .collect::<Option<Vec<_>>>()
+                .ok_or_else(|| bad(format!("an op of stage `{}`", sa.name)))?;
+            stages.push(Stage {
+                name: sa.name.clone(),
+                times: sa.times,
+                counts: Counts::affine([&sa.counts, &sb.counts, &sc.counts], k)
+                    .ok_or_else(|| bad(format!("stage `{}`", sa.name)))?,
+                costs,
+            });
+        }
+        if !a.ops.keys().eq(b.ops.keys()) || !b.ops.keys().eq(c.ops.keys()) {
+            return Err(bad("the set of op names".into()));
+        }
+        let mut ops = BTreeMap::new();
+        for (name, ca) in &a.ops {
+            let counts = Counts::affine([ca, &b.ops[name], &c.ops[name]], k)
+                .ok_or_else(|| bad(format!("op `{name}`")))?;
+            ops.insert(name.clone(), counts);
+        }
+        Ok(Report {
+            route: a.route,
+            total,
+            stages,
+            ops,
+        })
+    }
+}
+
+/// What [`Report::summary`] writes: counts and estimates per stage, per op and in total.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Summary {
+    pub route: Route,
+    pub total: Counts,
+    pub stages: Vec<StageSummary>,
+    pub ops: BTreeMap<String, Counts>,
+    /// Estimated times on every GPU of [`GPUS`].
+    pub est: Vec<GpuEstimate>,
+}
+
+/// One stage of a [`Summary`].
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct StageSummary {
+    pub name: String,
+    pub times: u64,
+    pub counts: Counts,
+    pub est: Vec<GpuEstimate>,
+}
+
+/// A run's estimated time on one GPU, with FP32 matmuls and with TF32 tensor-core matmuls.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct GpuEstimate {
+    pub gpu: &'static str,
+    pub est_fp32_matmul: Estimate,
+    pub est_tf32_matmul: Estimate,
+}
+
+/// [`estimate`] on every GPU of [`GPUS`].
+pub fn estimates<'a>(
+    costs: impl Iterator<Item = &'a Cost> + Clone,
+    counts: &Counts,
+) -> Vec<GpuEstimate> {
+    GPUS.iter()
+        .map(|g| GpuEstimate {
+            gpu: g.name,
+            est_fp32_matmul: estimate(costs.clone(), counts, g, false),
+            est_tf32_matmul: estimate(costs.clone(), counts, g, true),
+        })
+        .collect()
+}
+
+impl Report {
+    /// Counts and estimates per stage, per op and in total.
+    pub fn summary(&self) -> Summary {
+        Summary {
+            route: self.route,
+            total: self.total,
+            stages: self
+                .stages
+                .iter()
+                .map(|s| StageSummary {
+                    name: s.name.clone(),
+                    times: s.times,
+                    counts: s.counts,
+                    est: estimates(s.costs.iter(), &s.counts),
+                })
+                .collect(),
+            ops: self.ops.clone(),
+            est: estimates(self.costs(), &self.total),
+        }
+    }
+}
+
+/// Counts of a run recorded by another program in this module's layout (the official code's
+/// harness, `bench/official/count_official.py`): `counts` and the per-op `costs`, plus what
+/// it says about itself.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Recorded {
+    pub what: String,
+    pub rays: usize,
+    pub counts: Counts,
+    #[serde(default)]
+    pub syncs_by_kind: BTreeMap<String, u64>,
+    #[serde(skip_serializing)]
+    pub costs: Vec<Cost>,
+}
+
+impl Recorded {
+    /// Read a recorded run (JSON); errors name the file.
+    pub fn read(path: &std::path::Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path).map_err(|source| ModelError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        serde_json::from_str(&text).map_err(|e| {
+            ModelError::Input(format!(
+                "{}: not a recorded account (expected `what`, `rays`, `counts` and `costs`                  as count_official.py writes them): {e}",
+                path.display()
+            ))
+        })
+    }
+
+    /// Estimated times on every GPU of [`GPUS`].
+    pub fn estimates(&self) -> Vec<GpuEstimate> {
+        estimates(self.costs.iter(), &self.counts)
     }
 }
 
@@ -626,6 +831,41 @@ mod tests {
         // The row gather: a memset and a kernel, as on CUDA.
         assert_eq!(cuda.ops["pma-gather-rows"].launches, 2);
         assert_eq!(cuda.total.launches, 4);
+    }
+
+    #[test]
+    fn extrapolates_only_what_is_affine() {
+        let dev = Device::Cpu;
+        let run = |n: usize| {
+            measure(&dev, Route::Cuda, || {
+                let x = Tensor::ones((n, 8), DType::F32, &dev)?;
+                let w = Tensor::ones((8, 4), DType::F32, &dev)?;
+                mark("a");
+                let y = x.matmul(&w)?.sum_all()?;
+                Ok(y.to_scalar::<f32>()?)
+            })
+            .unwrap()
+            .1
+        };
+        let (r1, r2, r3) = (run(10), run(20), run(30));
+        // 10 + 4·10 = 50 rows, counted directly and by extrapolation.
+        let e = Report::extrapolate([&r1, &r2, &r3], 4).unwrap();
+        let direct = run(50);
+        assert_eq!(e.total, direct.total);
+        assert_eq!(e.ops, direct.ops);
+        assert_eq!(e.stages, direct.stages);
+        // Sizes 10, 20, 40 are not equally spaced: the bytes are not affine in the step.
+        let r4 = run(40);
+        assert!(Report::extrapolate([&r1, &r2, &r4], 4).is_err());
+        assert!(Report::extrapolate([&r1, &r2, &run_other(&dev)], 4).is_err());
+    }
+
+    fn run_other(dev: &Device) -> Report {
+        measure(dev, Route::Cuda, || {
+            Ok(Tensor::ones(3, DType::F32, dev)?.exp()?)
+        })
+        .unwrap()
+        .1
     }
 
     #[test]
