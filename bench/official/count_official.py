@@ -2,12 +2,16 @@
 for on a GPU, running it on the CPU: the counterpart of `pma bench --account` (see
 docs/gpu.md, "Step accounting", and account.sh).
 
-    python bench/official/count_official.py --official DIR [--rays 1024] --json OUT
+    python bench/official/count_official.py --official DIR [--rays 1024]
+        [--extrapolate-to 3072] --json OUT
 
 The model is the golden checkpoint (run_official.py builds it, pytorch3d replaced by
 p3d_standin/); the batch is run_official.py's, N_unique 16 as in the paper config. One
 uncounted step first (Adam's moments exist from then on, as in every later step), then
-one step under a TorchDispatchMode that sees every aten op below autograd:
+one step under a TorchDispatchMode that sees every aten op below autograd (with
+--extrapolate-to, steps of 1, 2 and 3 copies of one --rays batch, extrapolated to that
+many rays when every op's bytes and FLOPs are exactly affine in the rays: a 3,072-ray step
+needs some 20 GiB on the CPU):
 
 * ops: every aten op that is not a view (views are metadata), one kernel launch each on a
   GPU (an estimate: a `_foreach_*` op launches one kernel per group of tensors, `nonzero`
@@ -53,6 +57,9 @@ def parse():
     p.add_argument("--golden", default=os.path.join(ro.REPO, "fixtures", "golden"))
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", required=True, help="write the counts here")
+    p.add_argument("--extrapolate-to", type=int, default=0,
+                   help="count steps of --rays, 2x and 3x as many rays and extrapolate to this "
+                        "many (refused unless every op's bytes and FLOPs are exactly affine)")
     return p.parse_args()
 
 
@@ -135,7 +142,8 @@ def make_counter(host_tensors):
             self.bytes_read += read
             self.bytes_written += written
             self.flops += flops
-            self.costs.append({"launches": launches, "bytes": read + written, "flops": flops})
+            self.costs.append(
+                {"op": name, "launches": launches, "bytes": read + written, "flops": flops})
             return out
 
     return Count()
@@ -168,6 +176,64 @@ def wrap_host_copies(counter):
     return lambda: [setattr(torch.Tensor, k, v) for k, v in orig.items()]
 
 
+def count_step(trainer, batch, global_iter):
+    """One `train_batch` of `batch` under a fresh counter; the counter and the seconds."""
+    import torch
+
+    steps = [s["step"] for s in trainer.optimizer.state.values() if torch.is_tensor(s.get("step"))]
+    counter = make_counter(steps)
+    unwrap = wrap_host_copies(counter)
+    t0 = time.perf_counter()
+    try:
+        with counter:
+            trainer.train_batch(dict(batch), global_iter=global_iter)
+    finally:
+        unwrap()
+    return counter, time.perf_counter() - t0
+
+
+def counts_of(c):
+    return {
+        "ops": sum(c.ops.values()),
+        "launches": sum(x["launches"] for x in c.costs),
+        "syncs": sum(c.syncs.values()),
+        "sync_bytes": c.sync_bytes,
+        "uploads": 0,
+        "upload_bytes": 0,
+        "param_uploads": 0,
+        "bytes_read": c.bytes_read,
+        "bytes_written": c.bytes_written,
+        "flops": c.flops,
+    }
+
+
+def affine(v, k):
+    """v[0] + k·(v[1] − v[0]) when v is equally spaced, else None."""
+    a, b, c = v
+    return a + (b - a) * k if c - b == b - a else None
+
+
+def extrapolate(counters, k):
+    """Counts and per-op costs of the step of n + k·n rays from steps of n, 2n, 3n: every
+    op the same in the three and every number exactly affine, else an error."""
+    names = [list(c.ops.items()) for c in counters]
+    if not (names[0] == names[1] == names[2]) or len({len(c.costs) for c in counters}) != 1:
+        raise SystemExit("count_official.py: the ops differ between the sizes: not extrapolated")
+    costs = []
+    for i, triple in enumerate(zip(*(c.costs for c in counters))):
+        cost = {key: affine([t[key] for t in triple], k) for key in ("launches", "bytes", "flops")}
+        if None in cost.values():
+            raise SystemExit(f"count_official.py: op {i} ({triple[0]['op']}) is not affine in "
+                             f"the rays ({[t['bytes'] for t in triple]} bytes): not extrapolated")
+        costs.append({"op": triple[0]["op"], **cost})
+    all_counts = [counts_of(c) for c in counters]
+    counts = {key: affine([x[key] for x in all_counts], k) for key in all_counts[0]}
+    bad = [key for key, v in counts.items() if v is None]
+    if bad:
+        raise SystemExit(f"count_official.py: {bad} not affine in the rays: not extrapolated")
+    return counts, costs
+
+
 def main():
     args = parse()
     ro.import_official(args.official)
@@ -177,7 +243,6 @@ def main():
     torch.manual_seed(args.seed)
     torch.set_num_threads(args.threads)
     inp = ro.golden_inputs(args.golden)
-    batch = ro.make_batch(inp, args.rays, args.seed)
     cfg, ckpt, model = ro.build_model(args.golden, "cpu")
     model.train()
     to_device = official_trainer.to_device
@@ -186,56 +251,65 @@ def main():
                                        full_config=cfg, model=model, ckpt=ckpt)
     for g in trainer.optimizer.param_groups:
         g["foreach"] = True  # Adam's default for CUDA tensors
-    tb = ro.to_torch(batch, "cpu")
+    sizes = [args.rays] if not args.extrapolate_to else [args.rays, 2 * args.rays, 3 * args.rays]
+    if args.extrapolate_to and (args.extrapolate_to < args.rays or args.extrapolate_to % args.rays):
+        raise SystemExit(f"count_official.py: --extrapolate-to {args.extrapolate_to} is not a "
+                         f"multiple of --rays {args.rays}")
+    # k copies of one batch for k·N rays: what depends on the data (rays that miss the body,
+    # `nonzero` sizes) then grows by the same step too.
+    import numpy as np
+
+    base = ro.make_batch(inp, args.rays, args.seed)
+    batches = [ro.to_torch({k: np.concatenate([v] * (n // args.rays)) if k != "rest_pose" else v
+                            for k, v in base.items()}, "cpu") for n in sizes]
     t0 = time.perf_counter()
-    trainer.train_batch(dict(tb), global_iter=1)
+    trainer.train_batch(dict(batches[0]), global_iter=1)
     warm_s = time.perf_counter() - t0
-    steps = [s["step"] for s in trainer.optimizer.state.values() if torch.is_tensor(s.get("step"))]
-    counter = make_counter(steps)
-    unwrap = wrap_host_copies(counter)
-    t0 = time.perf_counter()
-    try:
-        with counter:
-            trainer.train_batch(dict(tb), global_iter=2)
-    finally:
-        unwrap()
-    step_s = time.perf_counter() - t0
-    n_ops = sum(counter.ops.values())
-    launches = sum(c["launches"] for c in counter.costs)
+    counters, times = [], []
+    for i, b in enumerate(batches):
+        c, secs = count_step(trainer, b, global_iter=2 + i)
+        counters.append(c)
+        times.append(secs)
+    first = counters[0]
+    if args.extrapolate_to:
+        counts, costs = extrapolate(counters, args.extrapolate_to // args.rays - 1)
+        rays = args.extrapolate_to
+    else:
+        counts, costs, rays = counts_of(first), first.costs, args.rays
     res = {
-        "what": "official Trainer.train_batch (paper config, golden checkpoint), counted on the CPU",
-        "rays": args.rays,
+        "what": "official Trainer.train_batch (paper config, golden checkpoint), counted on the CPU"
+        + (f", extrapolated from {sizes} rays (1, 2, 3 copies of one {args.rays}-ray batch)"
+           if args.extrapolate_to else ""),
+        "rays": rays,
+        "extrapolated_from": sizes if args.extrapolate_to else None,
         "torch": torch.__version__,
         "adam_foreach": True,
-        "counts": {
-            "ops": n_ops,
-            "launches": launches,
-            "syncs": sum(counter.syncs.values()),
-            "sync_bytes": counter.sync_bytes,
-            "uploads": 0,
-            "upload_bytes": 0,
-            "param_uploads": 0,
-            "bytes_read": counter.bytes_read,
-            "bytes_written": counter.bytes_written,
-            "flops": counter.flops,
-        },
-        "syncs_by_kind": dict(counter.syncs),
-        "views": counter.views,
-        "host_ops_left_out": dict(counter.host_ops),
-        "ops_by_name": dict(counter.ops.most_common()),
-        "bytes_by_name": dict(counter.op_bytes.most_common()),
+        "counts": counts,
+        "measured": [{"rays": n, "counts": counts_of(c), "step_s": t}
+                     for n, c, t in zip(sizes, counters, times)],
+        "syncs_by_kind": dict(first.syncs),
+        "views": first.views,
+        "host_ops_left_out": dict(first.host_ops),
+        "ops_by_name": dict(first.ops.most_common()),
+        "bytes_by_name": dict(first.op_bytes.most_common()),
         "warmup_step_s": warm_s,
-        "counted_step_s": step_s,
         "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-        "costs": counter.costs,
+        "costs": costs,
     }
     with open(args.json, "w") as f:
         json.dump(res, f, indent=1)
-    c = res["counts"]
-    print(f"official train_batch, {args.rays} rays: {n_ops} aten ops ({launches} launching), "
-          f"{c['syncs']} syncs {dict(counter.syncs)}, outputs {c['bytes_written'] / 1e9:.2f} GB, "
-          f"inputs {c['bytes_read'] / 1e9:.2f} GB, matmul {c['flops'] / 1e12:.3f} TFLOP; "
-          f"counted step {step_s:.1f} s, peak RSS {res['peak_rss_mib']:.0f} MiB")
+    for m in res["measured"]:
+        c = m["counts"]
+        print(f"official train_batch, {m['rays']} rays: {c['ops']} aten ops ({c['launches']} "
+              f"launching), {c['syncs']} syncs {dict(first.syncs)}, outputs "
+              f"{c['bytes_written'] / 1e9:.2f} GB, inputs {c['bytes_read'] / 1e9:.2f} GB, "
+              f"matmul {c['flops'] / 1e12:.3f} TFLOP; counted step {m['step_s']:.1f} s")
+    if args.extrapolate_to:
+        c = counts
+        print(f"extrapolated to {rays} rays (every op exactly affine across {sizes}): "
+              f"{c['ops']} ops, {c['syncs']} syncs, outputs {c['bytes_written'] / 1e9:.2f} GB, "
+              f"inputs {c['bytes_read'] / 1e9:.2f} GB, matmul {c['flops'] / 1e12:.3f} TFLOP")
+    print(f"peak RSS {res['peak_rss_mib']:.0f} MiB")
 
 
 if __name__ == "__main__":

@@ -347,6 +347,9 @@ impl Report {
 pub struct Recorded {
     pub what: String,
     pub rays: usize,
+    /// Set when the counts were extrapolated from steps of these rays.
+    #[serde(default)]
+    pub extrapolated_from: Option<Vec<usize>>,
     pub counts: Counts,
     #[serde(default)]
     pub syncs_by_kind: BTreeMap<String, u64>,

@@ -293,17 +293,23 @@ fn print_tables(f: &AccountFile) {
         );
     }
 
-    println!("\nper training step");
+    println!("\nper training step (times are estimates)");
     let off = f.official.as_ref();
     let col = |v: Option<String>| v.unwrap_or_else(|| "-".into());
     println!(
-        "{:<44} {:>16} {:>16}",
+        "{:<46} {:>22} {:>22}",
         "",
-        format!("pma ({})", f.account_as),
+        format!("pma ({}, {} rays)", f.account_as, f.rays),
         col(off.map(|o| format!("official ({} rays)", o.recorded.rays)))
     );
+    if let Some(from) = off.and_then(|o| o.recorded.extrapolated_from.as_ref()) {
+        println!(
+            "(the official column is EXTRAPOLATED from steps of {from:?} rays: every op the \
+             same, its bytes and FLOPs exactly affine in the rays)"
+        );
+    }
     let line = |name: &str, pma: String, official: Option<String>| {
-        println!("{:<44} {:>16} {:>16}", name, pma, col(official));
+        println!("{:<46} {:>22} {:>22}", name, pma, col(official));
     };
     let oc = off.map(|o| o.recorded.counts);
     line(
