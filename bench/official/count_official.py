@@ -87,7 +87,17 @@ def matmul_flops(name, args):
     return 0
 
 
-def make_counter(host_tensors):
+def call_site(official):
+    """`file:line` of the innermost frame in the official code (where a sync is asked for)."""
+    import traceback
+
+    for f in reversed(traceback.extract_stack()):
+        if f.filename.startswith(official):
+            return f"{os.path.relpath(f.filename, official)}:{f.lineno}"
+    return "?"
+
+
+def make_counter(host_tensors, official):
     import torch
     from torch.utils._python_dispatch import TorchDispatchMode
     from torch.utils._pytree import tree_flatten
@@ -102,6 +112,7 @@ def make_counter(host_tensors):
             self.ops = collections.Counter()
             self.op_bytes = collections.Counter()
             self.syncs = collections.Counter()
+            self.sync_sites = collections.Counter()
             self.sync_bytes = 0
             self.views = 0
             self.host_ops = collections.Counter()
@@ -127,6 +138,7 @@ def make_counter(host_tensors):
             name = func.overloadpacket.__name__
             if name in SYNC_OPS:
                 self.syncs[name] += 1
+                self.sync_sites[call_site(official)] += 1
                 self.sync_bytes += sum(t.numel() * t.element_size() for t in outs)
                 if name == "_local_scalar_dense":
                     return out
@@ -149,7 +161,7 @@ def make_counter(host_tensors):
     return Count()
 
 
-def wrap_host_copies(counter):
+def wrap_host_copies(counter, official):
     """Count `.cpu()`, `.tolist()` and `.numpy()` of tensors as the syncs they are on a GPU."""
     import torch
 
@@ -164,6 +176,7 @@ def wrap_host_copies(counter):
             if kind == "numpy" and id(self) in moved:
                 return out  # `.cpu().numpy()`: counted at `.cpu()`
             counter.syncs[kind] += 1
+            counter.sync_sites[call_site(official)] += 1
             counter.sync_bytes += self.numel() * self.element_size()
             if kind == "cpu":
                 moved.add(id(out))
@@ -176,13 +189,14 @@ def wrap_host_copies(counter):
     return lambda: [setattr(torch.Tensor, k, v) for k, v in orig.items()]
 
 
-def count_step(trainer, batch, global_iter):
+def count_step(trainer, official, batch, global_iter):
     """One `train_batch` of `batch` under a fresh counter; the counter and the seconds."""
     import torch
 
     steps = [s["step"] for s in trainer.optimizer.state.values() if torch.is_tensor(s.get("step"))]
-    counter = make_counter(steps)
-    unwrap = wrap_host_copies(counter)
+    official = os.path.abspath(official) + os.sep
+    counter = make_counter(steps, official)
+    unwrap = wrap_host_copies(counter, official)
     t0 = time.perf_counter()
     try:
         with counter:
@@ -267,7 +281,7 @@ def main():
     warm_s = time.perf_counter() - t0
     counters, times = [], []
     for i, b in enumerate(batches):
-        c, secs = count_step(trainer, b, global_iter=2 + i)
+        c, secs = count_step(trainer, args.official, b, global_iter=2 + i)
         counters.append(c)
         times.append(secs)
     first = counters[0]
@@ -288,6 +302,7 @@ def main():
         "measured": [{"rays": n, "counts": counts_of(c), "step_s": t}
                      for n, c, t in zip(sizes, counters, times)],
         "syncs_by_kind": dict(first.syncs),
+        "syncs_by_site": dict(first.sync_sites.most_common()),
         "views": first.views,
         "host_ops_left_out": dict(first.host_ops),
         "ops_by_name": dict(first.ops.most_common()),
