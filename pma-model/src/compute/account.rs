@@ -541,11 +541,11 @@ impl Account {
 }
 
 /// Run `f` as an accounted run on `device` with `route`.
-pub fn measure<T>(
+pub fn measure<T, E: From<ModelError>>(
     device: &Device,
     route: Route,
-    f: impl FnOnce() -> std::result::Result<T, ModelError>,
-) -> Result<(T, Report)> {
+    f: impl FnOnce() -> std::result::Result<T, E>,
+) -> std::result::Result<(T, Report), E> {
     let account = Account::start(device, route)?;
     let out = f()?;
     Ok((out, account.finish()))
@@ -683,6 +683,15 @@ pub fn estimate<'a>(
 mod tests {
     use super::*;
     use candle_core::{DType, Tensor, D};
+
+    /// [`super::measure`] with the crate's error type.
+    fn measure<T>(
+        dev: &Device,
+        route: Route,
+        f: impl FnOnce() -> Result<T>,
+    ) -> Result<(T, Report)> {
+        super::measure(dev, route, f)
+    }
 
     /// A known small graph: every count is worked out by hand from candle's CUDA backend.
     #[test]

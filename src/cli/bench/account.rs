@@ -131,8 +131,9 @@ pub fn run(args: &Args, dev: &Device) -> anyhow::Result<()> {
     bar.set_message("one inference pass");
     let batch = source.next_batch()?;
     let avatar = trainer.avatar();
-    let (_, inference) =
-        account::measure(dev, route, || avatar.render_rays(&batch.rays, &batch.poses))?;
+    let (_, inference) = account::measure(dev, route, || -> anyhow::Result<_> {
+        Ok(avatar.render_rays(&batch.rays, &batch.poses)?)
+    })?;
     bar.finish_and_clear();
 
     let s = step.summary();
