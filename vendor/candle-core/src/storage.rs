@@ -376,6 +376,9 @@ impl Storage {
                 self.same_device(s, c.name())?;
             }
         }
+        if !account::on() {
+            return self.inplace_op_(dst_l, srcs, c);
+        }
         let dtype = self.dtype();
         let inputs: Vec<(&Layout, DType)> = srcs.iter().map(|(_, l)| (*l, dtype)).collect();
         let cpu = self.on_cpu();
