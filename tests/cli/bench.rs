@@ -181,3 +181,111 @@ fn forward_bench_reports_a_failing_forward() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("skts"), "{err}");
 }
+
+#[test]
+fn account_writes_the_step_counts() {
+    use super::run::{ok, pma};
+    let dir = tempfile::tempdir().unwrap();
+    let off = dir.path().join("official.json");
+    // A recorded run in count_official.py's layout (two ops).
+    std::fs::write(
+        &off,
+        r#"{"what": "test", "rays": 32, "counts": {"ops": 2, "launches": 2, "syncs": 1,
+            "sync_bytes": 4, "uploads": 0, "upload_bytes": 0, "param_uploads": 0,
+            "bytes_read": 100, "bytes_written": 50, "flops": 10},
+            "costs": [{"op": "mm", "launches": 1, "bytes": 100, "flops": 10},
+                      {"op": "add", "launches": 1, "bytes": 50, "flops": 0}]}"#,
+    )
+    .unwrap();
+    let out = dir.path().to_str().unwrap();
+    let stdout = ok(pma(&[
+        "bench",
+        "--account",
+        "--quiet",
+        "--preset",
+        "tiny",
+        "--rays",
+        "32",
+        "--official-json",
+        off.to_str().unwrap(),
+        "--out",
+        out,
+    ]))
+    .stdout;
+    let text = String::from_utf8_lossy(&stdout);
+    assert!(text.contains("official (32 rays)"), "{text}");
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("account.json")).unwrap()).unwrap();
+    // The tiny step in one pass: 11 read-backs (as tests/model/account.rs counts them).
+    assert_eq!(json["syncs_per_step"], 11);
+    assert_eq!(json["account_as"], "cuda");
+    for key in [
+        "ops_per_step",
+        "uploads_per_step",
+        "bytes_per_step",
+        "flops_per_step",
+    ] {
+        assert!(json[key].as_u64().is_some_and(|v| v > 0), "{key}");
+    }
+    let stages: Vec<&str> = json["step"]["stages"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| s["name"].as_str().unwrap())
+        .collect();
+    for s in [
+        "batch",
+        "pose features",
+        "cast",
+        "coarse network",
+        "backward",
+        "grad norm + Adam",
+    ] {
+        assert!(stages.contains(&s), "{s} missing from {stages:?}");
+    }
+    assert!(json["inference"]["total"]["ops"].as_u64().unwrap() > 0);
+    let est = &json["official"]["est"][0]["est_fp32_matmul"]["est_s"];
+    assert!(est.as_f64().is_some_and(|v| v > 0.0), "{est}");
+    assert_eq!(json["step"]["est"].as_array().unwrap().len(), 3);
+}
+
+#[test]
+fn account_refuses_bad_flags() {
+    use super::run::{fails_with, pma};
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().to_str().unwrap();
+    let base = [
+        "bench",
+        "--account",
+        "--quiet",
+        "--preset",
+        "tiny",
+        "--out",
+        out,
+    ];
+    let with = |extra: &[&str]| {
+        let mut a = base.to_vec();
+        a.extend_from_slice(extra);
+        pma(&a)
+    };
+    let o = with(&["--account-as", "gpu"]);
+    assert_eq!(o.status.code(), Some(2));
+    fails_with(o, "--account-as");
+    let o = with(&["--rays", "31"]);
+    assert_eq!(o.status.code(), Some(2));
+    fails_with(o, "--rays 31");
+    let o = with(&["--official-json", "/nonexistent/official.json"]);
+    assert_eq!(o.status.code(), Some(2));
+    fails_with(o, "official.json");
+    // A chunked step is not extrapolated.
+    let o = with(&[
+        "--rays",
+        "32",
+        "--chunk-rays",
+        "8",
+        "--extrapolate-from",
+        "8",
+    ]);
+    assert_eq!(o.status.code(), Some(2));
+    fails_with(o, "one-pass");
+}
