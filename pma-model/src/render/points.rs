@@ -51,7 +51,7 @@ impl PointEval {
         mode: &Mode,
         poses: &Poses,
         pose: &PoseFeatures,
-        bounds: &RayBounds,
+        bounds: Option<&RayBounds>,
         traced: bool,
     ) -> Result<Self> {
         let culling = &net.config().culling;
@@ -256,9 +256,18 @@ impl CullCtx {
         c: &Culling,
         poses: &Poses,
         pose: &PoseFeatures,
-        bounds: &RayBounds,
+        bounds: Option<&RayBounds>,
     ) -> Result<Self> {
         let cfg = net.config();
+        let ray_alive = match (c.rays, bounds) {
+            (false, _) => None,
+            (true, Some(b)) => Some(b.ray_hits_body.clone()),
+            (true, None) => {
+                return Err(ModelError::Input(
+                    "ray culling needs the host ray bounds (cast on the host)".into(),
+                ))
+            }
+        };
         let test = match c.sample_threshold {
             Some(t) => Some(WindowTest::new(
                 net.bone_align(),
@@ -272,7 +281,7 @@ impl CullCtx {
         };
         Ok(Self {
             test,
-            ray_alive: c.rays.then(|| bounds.ray_hits_body.clone()),
+            ray_alive,
             fill: c.sample_fill,
             consts: ConstRows::default(),
             evaluated: 0,

@@ -520,9 +520,10 @@ fn forward_sampling_and_render_stages() {
         let cyls = fx.input(case, "cyls").index_select(&rows, 0).unwrap();
         let scales = fx.get(case, "out/coarse/axis_scale");
         let coarse = rc.cast(&o, &d, &cyls, &skts, &scales).expect("cast");
-        fx.check(case, "out/raycast/near", &coarse.bounds.near);
-        fx.check(case, "out/raycast/far", &coarse.bounds.far);
-        let hits: Vec<i64> = coarse.bounds.box_hit.iter().map(|&h| h as i64).collect();
+        let bounds = coarse.bounds.as_ref().unwrap();
+        fx.check(case, "out/raycast/near", &bounds.near);
+        fx.check(case, "out/raycast/far", &bounds.far);
+        let hits: Vec<i64> = bounds.box_hit.iter().map(|&h| h as i64).collect();
         fx.check_exact(case, "out/raycast/box_hit", &hits);
         fx.check_t(case, "out/raycast/z_vals_coarse", &coarse.z);
 
@@ -963,9 +964,10 @@ fn full_forward_and_training_gradients() {
             .forward(&rays, &poses, &mut opts, Some(&mut trace))
             .unwrap();
 
-        fx.check(case, "out/raycast/near", &out.bounds.near);
-        fx.check(case, "out/raycast/far", &out.bounds.far);
-        let hits: Vec<i64> = out.bounds.box_hit.iter().map(|&h| h as i64).collect();
+        let bounds = out.bounds.as_ref().unwrap();
+        fx.check(case, "out/raycast/near", &bounds.near);
+        fx.check(case, "out/raycast/far", &bounds.far);
+        let hits: Vec<i64> = bounds.box_hit.iter().map(|&h| h as i64).collect();
         fx.check_exact(case, "out/raycast/box_hit", &hits);
         fx.check_t(case, "out/raycast/z_vals_coarse", &out.z_coarse);
         fx.check_t(case, "out/raycast/z_vals_merged", &out.z_vals);

@@ -5,8 +5,9 @@
 //! The reference runs all of this under no-grad, so it works on host `f32` slices (row-major,
 //! shapes in the doc comments) and follows the reference's float32 operation order, which keeps
 //! the results within a few ulp of it. The tensor-facing entry points [`RayCaster::cast`] and
-//! [`RayCaster::resample`] wrap the host code for the network; [`merge_raw`] reorders the
-//! network outputs (differentiably, it is a gather).
+//! [`RayCaster::resample`] wrap the host code for the network; [`device`] has the same steps
+//! as tensor ops for GPUs, where a copy to the host would stall the step; [`merge_raw`]
+//! reorders the network outputs (differentiably, it is a gather).
 
 use candle_core::Tensor;
 
@@ -17,6 +18,7 @@ use crate::error::{ModelError, Result};
 use crate::network::config::Config;
 use crate::render::bones::BoneFrames;
 
+pub mod device;
 pub mod torch_sort;
 
 /// Tolerance of the box-face test: a plane hit is valid while every coordinate lies within
@@ -41,11 +43,31 @@ pub struct RayBounds {
     pub miss_fill: (f32, f32),
 }
 
+impl RayBounds {
+    /// The bounds of the rays `rows` (in that order); the miss fill stays the batch's.
+    pub fn select(&self, rows: &[usize]) -> Self {
+        Self {
+            near: rows.iter().map(|&r| self.near[r]).collect(),
+            far: rows.iter().map(|&r| self.far[r]).collect(),
+            box_hit: rows
+                .iter()
+                .flat_map(|&r| {
+                    self.box_hit[r * N_JOINTS..(r + 1) * N_JOINTS]
+                        .iter()
+                        .copied()
+                })
+                .collect(),
+            ray_hits_body: rows.iter().map(|&r| self.ray_hits_body[r]).collect(),
+            miss_fill: self.miss_fill,
+        }
+    }
+}
+
 /// Coarse samples of a ray batch, ready for the network.
 #[derive(Debug, Clone)]
 pub struct CoarseSamples {
-    /// Host near/far and box hits.
-    pub bounds: RayBounds,
+    /// Host near/far and box hits; `None` when cast on the device ([`device`]).
+    pub bounds: Option<RayBounds>,
     /// z: [R,Sc] ray parameters, ascending (distance along the ray = z·|d|).
     pub z: Tensor,
     /// pts: [R,Sc,3] world points o + z·d.
@@ -330,7 +352,7 @@ impl RayCaster {
         let pts = sample_points(&o, &d, &z, self.n_samples)?;
         let (dev, dt) = (rays_o.device(), rays_o.dtype());
         Ok(CoarseSamples {
-            bounds,
+            bounds: Some(bounds),
             z: Tensor::from_vec(z, (n_rays, self.n_samples), dev)?.to_dtype(dt)?,
             pts: Tensor::from_vec(pts, (n_rays, self.n_samples, 3), dev)?.to_dtype(dt)?,
         })
