@@ -348,13 +348,6 @@ impl Avatar {
         self.net.set_culling(culling)
     }
 
-    /// Pin the (near, far) that rays missing the bounding cylinder get in later passes
-    /// ([`RayCaster::with_miss_fill`]; `None` unpins): chunked training casts every chunk
-    /// with its whole batch's values.
-    pub fn pin_miss_fill(&mut self, fill: Option<(f32, f32)>) {
-        self.caster = self.caster.with_miss_fill(fill);
-    }
-
     /// Points evaluated by the network (far-away constants included) since construction.
     pub fn points_evaluated(&self) -> u64 {
         self.points_evaluated.load(Ordering::Relaxed)

@@ -7,8 +7,8 @@
 //! * `log`: `log.csv`.
 //! * [`source`]: training batches from a dataset (see `docs/conventions.md`, "Ray sampler").
 //! * [`trainer`]: one training step (forward, loss, backward, clip, Adam, schedule), run in
-//!   chunks of rays with gradient accumulation when the batch is large, non-finite step
-//!   skipping, checkpoint and resume.
+//!   chunks of rays with gradient accumulation when the batch is large, non-finite steps
+//!   skipped on the device, numbers read back every few steps, checkpoint and resume.
 //! * [`run`]: a whole training run (run directory, loop, held-out evaluation schedule,
 //!   checkpoints, interruption), reporting to a [`TrainObserver`].
 //!
@@ -25,7 +25,7 @@ pub mod source;
 pub mod state;
 pub mod trainer;
 
-pub use adam::{clip_grad_norm, decayed_lr, global_norm, Adam, ParamGroup, ParamState};
+pub use adam::{decayed_lr, Adam, ParamGroup, ParamState};
 pub use batch::{BatchSource, FixedBatch, TrainBatch};
 pub use log::{LogRow, TrainLog};
 pub use pma_data::metrics::psnr_from_mse;

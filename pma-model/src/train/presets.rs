@@ -57,9 +57,17 @@ pub struct TrainConfig {
     /// Abort after this many consecutive non-finite steps (each is skipped, not applied).
     pub max_consecutive_skips: u64,
     /// Rays per forward/backward chunk of a training step (gradients are accumulated over
-    /// the chunks, so the step is the same as unchunked); `0` = automatic, chunks of at
-    /// most [`crate::train::AUTO_CHUNK_POINT_JOINTS`] point-joint pairs, which bounds memory.
+    /// the chunks, so the step is the same as unchunked up to float summation order); `0` =
+    /// automatic, sized from the device ([`crate::train::chunk_rays`]): its free memory on a
+    /// GPU, [`crate::train::AUTO_CHUNK_POINT_JOINTS`] point-joint pairs on the CPU.
     pub chunk_rays: usize,
+    /// Steps between read-backs of the loss, gradient norm and skip decisions (one
+    /// device-to-host copy for all of them; the log and the progress display get the numbers
+    /// then, and skipped steps are counted then). `0` = automatic: every step on the CPU,
+    /// where a read-back costs nothing, every
+    /// [`crate::train::AUTO_READ_EVERY_DEVICE`] steps on other devices. Never changes the
+    /// training itself.
+    pub read_every: u64,
 }
 
 impl Default for TrainConfig {
@@ -95,6 +103,16 @@ impl TrainConfig {
             render_chunk: 5120,
             max_consecutive_skips: 100,
             chunk_rays: 0,
+            read_every: 0,
+        }
+    }
+
+    /// The loss weights (fine, coarse, box volume).
+    pub fn loss_weights(&self) -> crate::train::loss::LossWeights {
+        crate::train::loss::LossWeights {
+            fine: self.loss_fine,
+            coarse: self.loss_coarse,
+            scale: self.loss_scale,
         }
     }
 

@@ -204,17 +204,25 @@ fn automatic_chunks_bound_the_paper_step_and_leave_small_nets_whole() {
     let paper = TrainConfig::paper();
     assert_eq!(paper.chunk_rays, 0);
     assert_eq!(
-        chunk_rays(&paper, &pma_model::network::config::Config::paper()),
+        chunk_rays(
+            &paper,
+            &pma_model::network::config::Config::paper(),
+            &Device::Cpu
+        ),
         128
     );
     let small = RunConfig::from_preset(pma_model::train::Preset::CpuSmall);
-    assert!(chunk_rays(&small.train, &small.model) >= small.train.rays_per_step);
+    assert!(chunk_rays(&small.train, &small.model, &Device::Cpu) >= small.train.rays_per_step);
     let fixed = TrainConfig {
         chunk_rays: 100,
         ..TrainConfig::paper()
     };
     assert_eq!(
-        chunk_rays(&fixed, &pma_model::network::config::Config::paper()),
+        chunk_rays(
+            &fixed,
+            &pma_model::network::config::Config::paper(),
+            &Device::Cpu
+        ),
         100
     );
 }

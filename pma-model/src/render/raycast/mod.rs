@@ -102,8 +102,6 @@ pub struct RayCaster {
     robust_bounds: bool,
     /// A_j: [24,4,4] row-major (`raycast.transforms`).
     transforms: Vec<f32>,
-    /// Cylinder-miss bounds pinned by [`Self::with_miss_fill`].
-    miss_fill: Option<(f32, f32)>,
 }
 
 impl RayCaster {
@@ -145,18 +143,7 @@ impl RayCaster {
             per_ray_fallback: cfg.quirks.per_ray_cylinder_fallback,
             robust_bounds: cfg.quirks.robust_ray_bounds,
             transforms: transforms.to_vec(),
-            miss_fill: None,
         })
-    }
-
-    /// This caster with the (near, far) of cylinder misses pinned to `fill` (`None`: computed
-    /// from each batch as usual). Chunked training pins the whole batch's
-    /// [`RayBounds::miss_fill`] so every chunk is cast as part of that batch.
-    pub fn with_miss_fill(&self, fill: Option<(f32, f32)>) -> Self {
-        Self {
-            miss_fill: fill,
-            ..self.clone()
-        }
     }
 
     /// transforms: [24,4,4] tensor (any device and float dtype).
@@ -230,10 +217,7 @@ impl RayCaster {
                 }
             }
         }
-        // A pinned fill (chunked training) casts a chunk exactly like its whole batch.
-        let miss_fill = self.miss_fill.unwrap_or_else(|| {
-            cylinder_miss_fill(&near, &far, self.near, self.far, self.per_ray_fallback)
-        });
+        let miss_fill = cylinder_miss_fill(&near, &far, self.near, self.far, self.per_ray_fallback);
         fill_cylinder_misses(&mut near, &mut far, miss_fill.0, miss_fill.1, true);
 
         let mut box_hit = vec![false; n_rays * N_JOINTS];
