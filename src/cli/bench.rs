@@ -13,6 +13,9 @@
 //! FLOPs and the peak they are set against are [`pma_model::compute::flops`]'s: matmul FLOPs per
 //! network point (3× for a training step: forward, input and weight gradients) over
 //! cores × GHz × FLOP/cycle from /proc/cpuinfo.
+//!
+//! `--account` replaces all of this by step accounting (`bench/account.rs`): counts of one
+//! training step and one inference pass as a GPU would run them, with estimated GPU times.
 
 // Without training support only the report types and flags are compiled, unused.
 #![cfg_attr(not(feature = "train"), allow(dead_code))]
@@ -74,6 +77,30 @@ pub struct Args {
     /// Only the `forward` row: no scene, no training, no option rows.
     #[arg(long, requires = "forward_batch")]
     pub forward_only: bool,
+    /// Step accounting instead of timings: count what one training step and one inference
+    /// pass would launch, upload and wait for on a GPU (on any device; the step runs for
+    /// real), print it with estimated GPU times and write `account.json`.
+    #[arg(long, conflicts_with = "forward_only")]
+    pub account: bool,
+    /// Rays of the accounted training step (and of the inference pass).
+    #[arg(long, default_value_t = 3072, requires = "account")]
+    pub rays: usize,
+    /// The route an accounted CPU run takes: `cuda` (the kernels, one worker and the
+    /// chunking a CUDA device would get) or `cpu` (pma's CPU route).
+    #[arg(long, default_value = "cuda", requires = "account")]
+    pub account_as: String,
+    /// Rays per chunk of the accounted step (0 = automatic, as in training).
+    #[arg(long, default_value_t = 0, requires = "account")]
+    pub chunk_rays: usize,
+    /// Account a one-pass step (`--chunk-rays` >= `--rays`) too large for this machine's
+    /// memory by extrapolation from one-pass steps of N, 2N and 3N rays (refused unless
+    /// every count is exactly affine in the rays across the three).
+    #[arg(long, requires = "account")]
+    pub extrapolate_from: Option<usize>,
+    /// The official code's counts (`bench/official/count_official.py --json`), printed and
+    /// estimated beside pma's.
+    #[arg(long, requires = "account")]
+    pub official_json: Option<PathBuf>,
 }
 
 #[cfg(not(feature = "train"))]
@@ -267,6 +294,9 @@ pub fn print_forward(f: &ForwardResult) {
 }
 
 #[cfg(feature = "train")]
+mod account;
+
+#[cfg(feature = "train")]
 mod imp {
     use std::sync::Arc;
     use std::time::Instant;
@@ -406,6 +436,9 @@ mod imp {
             .with_context(|| format!("creating {}", args.out.display()))?;
         if args.forward_only {
             return forward_only(&args);
+        }
+        if args.account {
+            return super::account::run(&args, &dev);
         }
         let rss_reset = reset_peak_rss();
         let scene = prepare_scene(&args)?;

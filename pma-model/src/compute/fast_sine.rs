@@ -37,9 +37,10 @@ pub fn sin(x: &Tensor) -> Result<Tensor> {
 
 /// `sin(x)` with the flavour chosen by the caller rather than the global switch.
 /// In parity mode (`fast` false) f32 CPU tensors take [`crate::compute::libm_sine`], libm's own bits
-/// at vector speed; other devices and dtypes take candle's `sin`.
+/// at vector speed; other devices and dtypes take candle's `sin`, as does a CPU run accounted
+/// as CUDA ([`crate::compute::account`]).
 pub(crate) fn sin_flavour(x: &Tensor, fast: bool) -> Result<Tensor> {
-    if x.device().is_cpu() && x.dtype() == DType::F32 {
+    if x.device().is_cpu() && x.dtype() == DType::F32 && !crate::compute::account::emulates_cuda() {
         let x = x.contiguous()?;
         let cos = crate::compute::ops::Kept::new(x.track_op());
         Ok(x.apply_op1(Sine { fast, cos })?)

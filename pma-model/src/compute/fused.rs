@@ -19,7 +19,8 @@
 //! What a backward needs from its forward (the arg-max, cos of the sine's argument) is kept
 //! once and used once; a second backward over the same graph computes it again.
 //!
-//! They run on CPU in f32; other devices and dtypes take the plain path.
+//! They run on CPU in f32; other devices and dtypes take the plain path, as does a CPU run
+//! accounted as CUDA ([`crate::compute::account`]).
 //! [`set_enabled`]`(false)` forces the plain path everywhere, for A/B measurements.
 
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -42,8 +43,11 @@ pub fn enabled() -> bool {
     ENABLED.load(Ordering::Relaxed)
 }
 
+/// The fused kernels are CPU-only: tensors elsewhere, and runs accounted as CUDA, take the
+/// plain ops.
 fn applies(ts: &[&Tensor]) -> bool {
     enabled()
+        && !crate::compute::account::emulates_cuda()
         && ts
             .iter()
             .all(|t| t.device().is_cpu() && t.dtype() == DType::F32)

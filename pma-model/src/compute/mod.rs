@@ -15,7 +15,9 @@
 //! | [`device`] | `--device` strings to candle devices, CUDA memory-pool settings |
 //! | [`profile`] | per-stage step timing (`PMA_PROFILE=1`) |
 //! | [`flops`] | matmul FLOPs per point and the CPU's estimated fp32 peak |
+//! | [`account`] | what a step launches and waits for on a GPU, counted on any device; a cost model |
 
+pub mod account;
 pub mod device;
 pub mod fast_sine;
 pub mod flops;

@@ -78,9 +78,10 @@ pub fn workers() -> usize {
 }
 
 /// Workers for tensors on `device`: GPUs parallelise inside each kernel, so work for them
-/// stays on one thread (and one chunk's memory at a time).
+/// stays on one thread (and one chunk's memory at a time), as it does on the CPU in a run
+/// accounted as CUDA ([`crate::compute::account::emulates_cuda`]).
 pub fn workers_on(device: &candle_core::Device) -> usize {
-    if device.is_cpu() {
+    if device.is_cpu() && !crate::compute::account::emulates_cuda() {
         workers()
     } else {
         1
@@ -113,12 +114,17 @@ where
     if workers <= 1 || n <= 1 {
         return (0..n).map(f).collect();
     }
+    // The workers count for the caller's accounted run, if any.
+    let run = crate::compute::account::Handoff::capture();
     pool()
         .install(|| {
             (0..n)
                 .into_par_iter()
                 .with_max_len(1)
-                .map(&f)
+                .map(|i| {
+                    let _joined = run.join();
+                    f(i)
+                })
                 .collect::<Vec<Result<T, E>>>()
         })
         .into_iter()

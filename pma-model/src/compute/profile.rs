@@ -42,8 +42,10 @@ pub fn start(device: &Device) {
 }
 
 /// End stage `name`: wait for the device, then add the time since the previous mark (or
-/// [`start`]) to the stage. A mark without a start only starts the timeline.
+/// [`start`]) to the stage. A mark without a start only starts the timeline. In an accounted
+/// run ([`crate::compute::account`]) it also closes the stage's counts.
 pub fn mark(name: &'static str, device: &Device) {
+    crate::compute::account::mark(name);
     if !enabled() {
         return;
     }

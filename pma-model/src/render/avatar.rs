@@ -89,6 +89,7 @@ impl Avatar {
         // 1. Per-pose work.
         let mut pose_trace = trace.as_ref().map(|_| Trace::default());
         let pose = self.pose_features(poses, pose_trace.as_mut())?;
+        crate::compute::profile::mark("pose features", self.device());
         let out = self.forward_inner(rays, poses, &pose, mode, trace.as_deref_mut())?;
         if let (Some(t), Some(pt)) = (trace, pose_trace) {
             for stage in ["coarse", "fine"] {

@@ -1,6 +1,7 @@
 //! Training (feature `train`): the reference's optimisation (see `docs/reference.md`,
 //! "Training schedule and Adam") and the files a run writes.
 //!
+//! * [`account`]: one training step under step accounting (launches, syncs, uploads, bytes).
 //! * [`adam`]: Adam with parameter groups, the lr schedule, global-norm clipping.
 //! * [`batch`]: what a step consumes ([`TrainBatch`]) and where it comes from ([`BatchSource`]).
 //! * [`state`]: the train-state file (optimizer moments, RNG, sampler, iteration).
@@ -14,6 +15,7 @@
 //!
 //! The inference path of the crate does not depend on anything here.
 
+pub mod account;
 pub mod adam;
 pub mod batch;
 mod error;

@@ -7,6 +7,7 @@ mod common;
 #[path = "../train_support/mod.rs"]
 mod train_support;
 
+mod account;
 mod camera_path;
 mod checkpoint;
 mod culling;

@@ -359,6 +359,9 @@ impl Device {
         shape: &Shape,
         dtype: DType,
     ) -> Result<Storage> {
+        crate::account::op(self.is_cpu(), || {
+            crate::account::fresh("rand-uniform", shape, dtype)
+        });
         match self {
             Device::Cpu => {
                 let storage = CpuDevice.rand_uniform(shape, dtype, lo, up)?;
@@ -397,6 +400,9 @@ impl Device {
         shape: &Shape,
         dtype: DType,
     ) -> Result<Storage> {
+        crate::account::op(self.is_cpu(), || {
+            crate::account::fresh("rand-normal", shape, dtype)
+        });
         match self {
             Device::Cpu => {
                 let storage = CpuDevice.rand_normal(shape, dtype, mean, std)?;
@@ -429,6 +435,9 @@ impl Device {
     }
 
     pub(crate) fn zeros(&self, shape: &Shape, dtype: DType) -> Result<Storage> {
+        crate::account::op(self.is_cpu(), || {
+            crate::account::fresh("zeros", shape, dtype)
+        });
         match self {
             Device::Cpu => {
                 let storage = CpuDevice.zeros_impl(shape, dtype)?;
@@ -463,6 +472,7 @@ impl Device {
     }
 
     pub(crate) fn storage_from_slice<D: WithDType>(&self, data: &[D]) -> Result<Storage> {
+        crate::account::upload(self.is_cpu(), || std::mem::size_of_val(data));
         match self {
             Device::Cpu => Ok(Storage::Cpu(data.to_cpu_storage())),
             Device::Cuda(device) => {
@@ -477,6 +487,10 @@ impl Device {
     }
 
     pub(crate) fn storage<A: NdArray>(&self, array: A) -> Result<Storage> {
+        crate::account::upload(self.is_cpu(), || {
+            let dtype = crate::backend::BackendStorage::dtype(&array.to_cpu_storage());
+            array.shape().map_or(0, |s| s.elem_count()) * dtype.size_in_bytes()
+        });
         match self {
             Device::Cpu => Ok(Storage::Cpu(array.to_cpu_storage())),
             Device::Cuda(device) => {
@@ -493,6 +507,7 @@ impl Device {
     }
 
     pub(crate) fn storage_owned<S: WithDType>(&self, data: Vec<S>) -> Result<Storage> {
+        crate::account::upload(self.is_cpu(), || std::mem::size_of_val(data.as_slice()));
         match self {
             Device::Cpu => Ok(Storage::Cpu(S::to_cpu_storage_owned(data))),
             Device::Cuda(device) => {

@@ -49,6 +49,7 @@
 
 #[cfg(feature = "accelerate")]
 mod accelerate;
+pub mod account;
 pub mod backend;
 pub mod backprop;
 pub mod conv;

@@ -1,3 +1,4 @@
+use crate::account;
 use crate::backend::BackendStorage;
 use crate::custom_op::{all_distinct, InplaceOpN, Src};
 use crate::op::{self, CmpOp, ReduceOp};
@@ -20,6 +21,7 @@ pub type StorageMutRef<'a> = RwLockWriteGuard<'a, Storage>;
 
 impl Storage {
     pub fn try_clone(&self, layout: &Layout) -> Result<Self> {
+        account::op(self.on_cpu(), || account::clone(layout, self.dtype()));
         match self {
             Self::Cpu(storage) => Ok(Self::Cpu(storage.clone())),
             Self::Cuda(storage) => {
@@ -39,6 +41,10 @@ impl Storage {
             Self::Cuda(storage) => Device::Cuda(storage.device().clone()),
             Self::Metal(storage) => Device::Metal(storage.device().clone()),
         }
+    }
+
+    fn on_cpu(&self) -> bool {
+        matches!(self, Self::Cpu(_))
     }
 
     pub fn dtype(&self) -> DType {
@@ -80,6 +86,7 @@ impl Storage {
     }
 
     pub(crate) fn const_set(&mut self, v: Scalar, l: &Layout) -> Result<()> {
+        account::op(self.on_cpu(), || account::fill(l, self.dtype()));
         match self {
             Storage::Cpu(storage) => storage.const_set(v, l),
             Storage::Cuda(storage) => storage.const_set(v, l),
@@ -88,6 +95,9 @@ impl Storage {
     }
 
     pub(crate) fn affine(&self, layout: &Layout, mul: f64, add: f64) -> Result<Self> {
+        account::op(self.on_cpu(), || {
+            account::map("affine", layout, self.dtype(), self.dtype())
+        });
         match self {
             Storage::Cpu(storage) => {
                 let storage = storage.affine(layout, mul, add)?;
@@ -105,6 +115,9 @@ impl Storage {
     }
 
     pub(crate) fn powf(&self, layout: &Layout, alpha: f64) -> Result<Self> {
+        account::op(self.on_cpu(), || {
+            account::map("powf", layout, self.dtype(), self.dtype())
+        });
         match self {
             Storage::Cpu(storage) => {
                 let storage = storage.powf(layout, alpha)?;
@@ -122,6 +135,9 @@ impl Storage {
     }
 
     pub(crate) fn elu(&self, layout: &Layout, alpha: f64) -> Result<Self> {
+        account::op(self.on_cpu(), || {
+            account::map("elu", layout, self.dtype(), self.dtype())
+        });
         match self {
             Storage::Cpu(storage) => {
                 let storage = storage.elu(layout, alpha)?;
@@ -147,6 +163,17 @@ impl Storage {
     ) -> Result<Self> {
         self.same_device(rhs, "cmp")?;
         self.same_dtype(rhs, "cmp")?;
+        account::op(self.on_cpu(), || {
+            let name = match op {
+                CmpOp::Eq => "cmp-eq",
+                CmpOp::Ne => "cmp-ne",
+                CmpOp::Le => "cmp-le",
+                CmpOp::Ge => "cmp-ge",
+                CmpOp::Lt => "cmp-lt",
+                CmpOp::Gt => "cmp-gt",
+            };
+            account::map2(name, lhs_layout, rhs_layout, self.dtype(), DType::U8)
+        });
         match (self, rhs) {
             (Storage::Cpu(lhs), Storage::Cpu(rhs)) => {
                 let storage = lhs.cmp(op, rhs, lhs_layout, rhs_layout)?;
@@ -174,6 +201,16 @@ impl Storage {
     }
 
     pub(crate) fn reduce_op(&self, op: ReduceOp, layout: &Layout, s: &[usize]) -> Result<Self> {
+        account::op(self.on_cpu(), || {
+            let name = match op {
+                ReduceOp::Sum => "reduce-sum",
+                ReduceOp::Min => "reduce-min",
+                ReduceOp::Max => "reduce-max",
+                ReduceOp::ArgMin => "reduce-argmin",
+                ReduceOp::ArgMax => "reduce-argmax",
+            };
+            account::reduce(name, layout, s, self.dtype())
+        });
         match self {
             Storage::Cpu(storage) => {
                 let storage = storage.reduce_op(op, layout, s)?;
@@ -191,6 +228,9 @@ impl Storage {
     }
 
     pub(crate) fn to_dtype(&self, layout: &Layout, dtype: DType) -> Result<Self> {
+        account::op(self.on_cpu(), || {
+            account::map("to-dtype", layout, self.dtype(), dtype)
+        });
         match self {
             Storage::Cpu(storage) => {
                 let storage = storage.to_dtype(layout, dtype)?;
@@ -208,6 +248,15 @@ impl Storage {
     }
 
     pub(crate) fn apply_op1(&self, l: &Layout, c: &dyn CustomOp1) -> Result<(Self, Shape)> {
+        let inputs = [(l, self.dtype())];
+        account::custom(self.on_cpu(), c.name(), &inputs, || {
+            let (s, shape) = self.apply_op1_(l, c)?;
+            let dtype = s.dtype();
+            Ok((s, shape, dtype))
+        })
+    }
+
+    fn apply_op1_(&self, l: &Layout, c: &dyn CustomOp1) -> Result<(Self, Shape)> {
         match self {
             Self::Cpu(storage) => {
                 let (storage, shape) = c.cpu_fwd(storage, l)?;
@@ -232,6 +281,21 @@ impl Storage {
         c: &dyn CustomOp2,
     ) -> Result<(Self, Shape)> {
         self.same_device(t2, c.name())?;
+        let inputs = [(l1, self.dtype()), (l2, t2.dtype())];
+        account::custom(self.on_cpu(), c.name(), &inputs, || {
+            let (s, shape) = self.apply_op2_(l1, t2, l2, c)?;
+            let dtype = s.dtype();
+            Ok((s, shape, dtype))
+        })
+    }
+
+    fn apply_op2_(
+        &self,
+        l1: &Layout,
+        t2: &Self,
+        l2: &Layout,
+        c: &dyn CustomOp2,
+    ) -> Result<(Self, Shape)> {
         match (self, t2) {
             (Self::Cpu(s1), Self::Cpu(s2)) => {
                 let (s, shape) = c.cpu_fwd(s1, l1, s2, l2)?;
@@ -260,6 +324,24 @@ impl Storage {
     ) -> Result<(Self, Shape)> {
         self.same_device(t2, c.name())?;
         self.same_device(t3, c.name())?;
+        let inputs = [(l1, self.dtype()), (l2, t2.dtype()), (l3, t3.dtype())];
+        account::custom(self.on_cpu(), c.name(), &inputs, || {
+            let (s, shape) = self.apply_op3_(l1, t2, l2, t3, l3, c)?;
+            let dtype = s.dtype();
+            Ok((s, shape, dtype))
+        })
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn apply_op3_(
+        &self,
+        l1: &Layout,
+        t2: &Self,
+        l2: &Layout,
+        t3: &Self,
+        l3: &Layout,
+        c: &dyn CustomOp3,
+    ) -> Result<(Self, Shape)> {
         match (self, t2, t3) {
             (Self::Cpu(s1), Self::Cpu(s2), Self::Cpu(s3)) => {
                 let (s, shape) = c.cpu_fwd(s1, l1, s2, l2, s3, l3)?;
@@ -294,6 +376,22 @@ impl Storage {
                 self.same_device(s, c.name())?;
             }
         }
+        let dtype = self.dtype();
+        let inputs: Vec<(&Layout, DType)> = srcs.iter().map(|(_, l)| (*l, dtype)).collect();
+        let cpu = self.on_cpu();
+        account::custom(cpu, c.name(), &inputs, || {
+            self.inplace_op_(dst_l, srcs, c)?;
+            Ok(((), dst_l.shape().clone(), dtype))
+        })
+        .map(|_| ())
+    }
+
+    fn inplace_op_<const N: usize, C: InplaceOpN<N>>(
+        &mut self,
+        dst_l: &Layout,
+        srcs: [(Src<'_, Storage>, &Layout); N],
+        c: &C,
+    ) -> Result<()> {
         macro_rules! inplace_dispatch {
             ($dst:expr, $variant:ident, $fwd:ident, $fwd_aliased:ident) => {{
                 // Extract underlying storage variant on same device
@@ -324,6 +422,9 @@ impl Storage {
     }
 
     pub(crate) fn unary_impl<B: op::UnaryOpT>(&self, layout: &Layout) -> Result<Self> {
+        account::op(self.on_cpu(), || {
+            account::map(B::NAME, layout, self.dtype(), self.dtype())
+        });
         match self {
             Storage::Cpu(storage) => {
                 let storage = storage.unary_impl::<B>(layout)?;
@@ -348,6 +449,9 @@ impl Storage {
     ) -> Result<Self> {
         self.same_device(rhs, B::NAME)?;
         self.same_dtype(rhs, B::NAME)?;
+        account::op(self.on_cpu(), || {
+            account::map2(B::NAME, lhs_layout, rhs_layout, self.dtype(), self.dtype())
+        });
         match (self, rhs) {
             (Storage::Cpu(lhs), Storage::Cpu(rhs)) => {
                 let storage = lhs.binary_impl::<B>(rhs, lhs_layout, rhs_layout)?;
@@ -383,6 +487,9 @@ impl Storage {
     ) -> Result<Self> {
         self.same_device(kernel, "conv1d")?;
         self.same_dtype(kernel, "conv1d")?;
+        account::op(self.on_cpu(), || {
+            account::other("conv1d", &[(l, self.dtype()), (kernel_l, self.dtype())])
+        });
         match (self, &kernel) {
             (Storage::Cpu(inp), Storage::Cpu(kernel)) => {
                 let s = inp.conv1d(l, kernel, kernel_l, params)?;
@@ -414,6 +521,12 @@ impl Storage {
     ) -> Result<Self> {
         self.same_device(kernel, "conv-transpose1d")?;
         self.same_dtype(kernel, "conv-transpose1d")?;
+        account::op(self.on_cpu(), || {
+            account::other(
+                "conv-transpose1d",
+                &[(l, self.dtype()), (kernel_l, self.dtype())],
+            )
+        });
         match (self, &kernel) {
             (Storage::Cpu(inp), Storage::Cpu(kernel)) => {
                 let s = inp.conv_transpose1d(l, kernel, kernel_l, params)?;
@@ -445,6 +558,9 @@ impl Storage {
     ) -> Result<Self> {
         self.same_device(kernel, "conv2d")?;
         self.same_dtype(kernel, "conv2d")?;
+        account::op(self.on_cpu(), || {
+            account::other("conv2d", &[(l, self.dtype()), (kernel_l, self.dtype())])
+        });
         match (self, &kernel) {
             (Storage::Cpu(inp), Storage::Cpu(kernel)) => {
                 let s = inp.conv2d(l, kernel, kernel_l, params)?;
@@ -476,6 +592,12 @@ impl Storage {
     ) -> Result<Self> {
         self.same_device(kernel, "conv_transpose2d")?;
         self.same_dtype(kernel, "conv_transpose2d")?;
+        account::op(self.on_cpu(), || {
+            account::other(
+                "conv_transpose2d",
+                &[(l, self.dtype()), (kernel_l, self.dtype())],
+            )
+        });
         match (self, &kernel) {
             (Storage::Cpu(inp), Storage::Cpu(kernel)) => {
                 let s = inp.conv_transpose2d(l, kernel, kernel_l, params)?;
@@ -504,6 +626,9 @@ impl Storage {
         kernel_size: (usize, usize),
         stride: (usize, usize),
     ) -> Result<Self> {
+        account::op(self.on_cpu(), || {
+            account::other("avg-pool2d", &[(layout, self.dtype())])
+        });
         match self {
             Storage::Cpu(storage) => {
                 let storage = storage.avg_pool2d(layout, kernel_size, stride)?;
@@ -526,6 +651,9 @@ impl Storage {
         kernel_size: (usize, usize),
         stride: (usize, usize),
     ) -> Result<Self> {
+        account::op(self.on_cpu(), || {
+            account::other("max-pool2d", &[(layout, self.dtype())])
+        });
         match self {
             Storage::Cpu(storage) => {
                 let storage = storage.max_pool2d(layout, kernel_size, stride)?;
@@ -543,6 +671,9 @@ impl Storage {
     }
 
     pub(crate) fn upsample_nearest1d(&self, layout: &Layout, sz: usize) -> Result<Self> {
+        account::op(self.on_cpu(), || {
+            account::other("upsample-nearest1d", &[(layout, self.dtype())])
+        });
         match self {
             Storage::Cpu(storage) => {
                 let storage = storage.upsample_nearest1d(layout, sz)?;
@@ -560,6 +691,9 @@ impl Storage {
     }
 
     pub(crate) fn upsample_nearest2d(&self, layout: &Layout, h: usize, w: usize) -> Result<Self> {
+        account::op(self.on_cpu(), || {
+            account::other("upsample-nearest2d", &[(layout, self.dtype())])
+        });
         match self {
             Storage::Cpu(storage) => {
                 let storage = storage.upsample_nearest2d(layout, h, w)?;
@@ -585,6 +719,9 @@ impl Storage {
         scale_h: Option<f64>,
         scale_w: Option<f64>,
     ) -> Result<Self> {
+        account::op(self.on_cpu(), || {
+            account::other("upsample-bilinear2d", &[(layout, self.dtype())])
+        });
         match self {
             Storage::Cpu(storage) => {
                 let storage =
@@ -615,6 +752,9 @@ impl Storage {
         self.same_device(t, "where")?;
         self.same_device(f, "where")?;
         t.same_dtype(f, "where")?;
+        account::op(self.on_cpu(), || {
+            account::where_cond(layout, self.dtype(), layout_t, layout_f, t.dtype())
+        });
         match (self, t, f) {
             (Storage::Cpu(cond), Storage::Cpu(t), Storage::Cpu(f)) => {
                 let storage = cond.where_cond(layout, t, layout_t, f, layout_f)?;
@@ -645,6 +785,9 @@ impl Storage {
         d: usize,
     ) -> Result<Self> {
         self.same_device(indexes, "index-add")?;
+        account::op(self.on_cpu(), || {
+            account::gather(indexes_l, indexes.dtype(), self.dtype())
+        });
         match (self, indexes) {
             (Self::Cpu(s), Self::Cpu(indexes)) => {
                 let storage = s.gather(l, indexes, indexes_l, d)?;
@@ -673,6 +816,15 @@ impl Storage {
     ) -> Result<()> {
         self.same_device(indexes, "scatter-set")?;
         self.same_device(source, "scatter-set")?;
+        account::op(self.on_cpu(), || {
+            account::scatter(
+                "scatter",
+                indexes_l,
+                indexes.dtype(),
+                source_l,
+                self.dtype(),
+            )
+        });
         match (self, indexes, source) {
             (Self::Cpu(s), Self::Cpu(indexes), Self::Cpu(source)) => {
                 s.scatter_set(l, indexes, indexes_l, source, source_l, d)?;
@@ -699,6 +851,15 @@ impl Storage {
     ) -> Result<()> {
         self.same_device(indexes, "scatter-add")?;
         self.same_device(source, "scatter-add")?;
+        account::op(self.on_cpu(), || {
+            account::scatter(
+                "scatter-add",
+                indexes_l,
+                indexes.dtype(),
+                source_l,
+                self.dtype(),
+            )
+        });
         match (self, indexes, source) {
             (Self::Cpu(s), Self::Cpu(indexes), Self::Cpu(source)) => {
                 s.scatter_add_set(l, indexes, indexes_l, source, source_l, d)?;
@@ -725,6 +886,9 @@ impl Storage {
     ) -> Result<Self> {
         self.same_device(indexes, "index-add")?;
         self.same_device(source, "index-add")?;
+        account::op(self.on_cpu(), || {
+            account::index_add(l, indexes_l, indexes.dtype(), source_l, self.dtype())
+        });
         match (self, indexes, source) {
             (Self::Cpu(s), Self::Cpu(indexes), Self::Cpu(source)) => {
                 let storage = s.index_add(l, indexes, indexes_l, source, source_l, d)?;
@@ -750,6 +914,9 @@ impl Storage {
         d: usize,
     ) -> Result<Self> {
         self.same_device(rhs, "index-select")?;
+        account::op(self.on_cpu(), || {
+            account::index_select(lhs_l, rhs_l, rhs.dtype(), d, self.dtype())
+        });
         match (self, rhs) {
             (Self::Cpu(lhs), Self::Cpu(rhs)) => {
                 let storage = lhs.index_select(rhs, lhs_l, rhs_l, d)?;
@@ -781,6 +948,9 @@ impl Storage {
     ) -> Result<Self> {
         self.same_device(rhs, "matmul")?;
         self.same_dtype(rhs, "matmul")?;
+        account::op(self.on_cpu(), || {
+            account::matmul(bmnk, lhs_layout, rhs_layout, self.dtype())
+        });
         match (self, rhs) {
             (Self::Cpu(lhs), Self::Cpu(rhs)) => {
                 let storage = lhs.matmul(rhs, bmnk, lhs_layout, rhs_layout)?;
@@ -810,6 +980,7 @@ impl Storage {
         dst_offset: usize,
         src_l: &Layout,
     ) -> Result<()> {
+        account::op(self.on_cpu(), || account::copy(src_l, self.dtype()));
         match (self, dst) {
             (Self::Cpu(src), Self::Cpu(dst)) => src.copy_strided_src(dst, dst_offset, src_l),
             (Self::Cuda(src), Self::Cuda(dst)) => Ok(src.copy_strided_src(dst, dst_offset, src_l)?),
@@ -836,6 +1007,7 @@ impl Storage {
         src_o: usize,
         dst_o: usize,
     ) -> Result<()> {
+        account::op(self.on_cpu(), || account::copy2d(d1, d2, self.dtype()));
         match (self, dst) {
             (Self::Cpu(src), Self::Cpu(dst)) => src.copy2d(dst, d1, d2, src_s, dst_s, src_o, dst_o),
             (Self::Cuda(src), Self::Cuda(dst)) => {

@@ -116,10 +116,11 @@ macro_rules! binary_op_scalar {
         pub fn $fn_name<T: TensorOrScalar>(&self, rhs: T) -> Result<Self> {
             let rhs = match rhs.to_tensor_scalar()? {
                 crate::scalar::TensorScalar::Tensor(rhs) => rhs,
-                crate::scalar::TensorScalar::Scalar(rhs) => rhs
-                    .to_dtype(self.dtype())?
-                    .to_device(self.device())?
-                    .broadcast_as(self.shape())?,
+                crate::scalar::TensorScalar::Scalar(rhs) => {
+                    { crate::account::host_only(|| rhs.to_dtype(self.dtype()))? }
+                        .to_device(self.device())?
+                        .broadcast_as(self.shape())?
+                }
             };
             let shape = self.same_shape_binary_op(&rhs, stringify!($fn_name))?;
             if self.elem_count() == 0 {
@@ -674,6 +675,9 @@ impl Tensor {
             let data = S::cpu_storage_as_slice(cpu_storage)?;
             Ok::<_, Error>(data[self.layout().start_offset()])
         };
+        crate::account::read(self.device().is_cpu(), || {
+            crate::account::tensor_bytes(self.layout(), self.dtype())
+        });
         match &*self.storage() {
             Storage::Cpu(cpu_storage) => from_cpu_storage(cpu_storage),
             Storage::Cuda(storage) => from_cpu_storage(&storage.to_cpu_storage()?),
@@ -1129,10 +1133,11 @@ impl Tensor {
     pub fn cmp<T: TensorOrScalar>(&self, rhs: T, op: CmpOp) -> Result<Self> {
         let rhs = match rhs.to_tensor_scalar()? {
             crate::scalar::TensorScalar::Tensor(rhs) => rhs,
-            crate::scalar::TensorScalar::Scalar(rhs) => rhs
-                .to_dtype(self.dtype())?
-                .to_device(self.device())?
-                .broadcast_as(self.shape())?,
+            crate::scalar::TensorScalar::Scalar(rhs) => {
+                { crate::account::host_only(|| rhs.to_dtype(self.dtype()))? }
+                    .to_device(self.device())?
+                    .broadcast_as(self.shape())?
+            }
         };
         let shape = self.same_shape_binary_op(&rhs, "cmp")?;
         let storage = self
@@ -1972,6 +1977,9 @@ impl Tensor {
             };
             Ok::<Vec<_>, Error>(data)
         };
+        crate::account::read(self.device().is_cpu(), || {
+            crate::account::tensor_bytes(self.layout(), self.dtype())
+        });
         match &*self.storage() {
             Storage::Cpu(storage) => from_cpu_storage(storage),
             Storage::Cuda(storage) => from_cpu_storage(&storage.to_cpu_storage()?),
@@ -2003,6 +2011,9 @@ impl Tensor {
             }
             Ok(rows)
         };
+        crate::account::read(self.device().is_cpu(), || {
+            crate::account::tensor_bytes(self.layout(), self.dtype())
+        });
         match &*self.storage() {
             Storage::Cpu(storage) => from_cpu_storage(storage),
             Storage::Cuda(storage) => from_cpu_storage(&storage.to_cpu_storage()?),
@@ -2044,6 +2055,9 @@ impl Tensor {
             }
             Ok(top_rows)
         };
+        crate::account::read(self.device().is_cpu(), || {
+            crate::account::tensor_bytes(self.layout(), self.dtype())
+        });
         match &*self.storage() {
             Storage::Cpu(storage) => from_cpu_storage(storage),
             Storage::Cuda(storage) => from_cpu_storage(&storage.to_cpu_storage()?),
@@ -2397,6 +2411,12 @@ impl Tensor {
         if self.device().same_device(device) {
             Ok(self.clone())
         } else {
+            let bytes = || crate::account::tensor_bytes(self.layout(), self.dtype());
+            if device.is_cpu() {
+                crate::account::read(false, bytes);
+            } else if self.device().is_cpu() {
+                crate::account::upload(false, bytes);
+            }
             let storage = match (&*self.storage(), device) {
                 (Storage::Cpu(storage), Device::Cuda(cuda)) => {
                     Storage::Cuda(cuda.storage_from_cpu_storage(storage)?)

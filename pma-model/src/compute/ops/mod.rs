@@ -127,6 +127,12 @@ fn u32_slice<'a>(s: &'a CpuStorage, l: &Layout, what: &str) -> candle_core::Resu
     }
 }
 
+/// For step accounting: on a CUDA device each row op is a memset of its zeroed output and
+/// one kernel (`cuda::launch`); the CPU forward reports the same.
+fn report_cuda_launches() {
+    candle_core::account::report_launches(2, 0);
+}
+
 /// (B, M, C) of a gradient/output against ids [B,M].
 fn dims_bmc(l_vals: &Layout, l_ids: &Layout, what: &str) -> candle_core::Result<[usize; 4]> {
     let (b, n, c) = l_vals.shape().dims3()?;
@@ -153,6 +159,7 @@ impl CustomOp2 for GatherRows {
         l2: &Layout,
     ) -> candle_core::Result<(CpuStorage, Shape)> {
         let [b, n, m, c] = dims_bmc(l1, l2, "gather rows")?;
+        report_cuda_launches();
         let x = f32_slice(s1, l1, "gather rows: x")?;
         let ids = u32_slice(s2, l2, "gather rows: ids")?;
         let mut out = Vec::with_capacity(b * m * c);
@@ -221,6 +228,7 @@ impl CustomOp2 for ScatterAddRows {
         l2: &Layout,
     ) -> candle_core::Result<(CpuStorage, Shape)> {
         let [b, m, _, c] = dims_bmc(l1, l2, "scatter-add rows")?;
+        report_cuda_launches();
         let n = self.n;
         let g = f32_slice(s1, l1, "scatter-add rows: grad")?;
         let ids = u32_slice(s2, l2, "scatter-add rows: ids")?;
@@ -294,6 +302,7 @@ mod cuda {
         [b, n, m, c]: [usize; 4],
         out_len: usize,
     ) -> candle_core::Result<CudaStorage> {
+        super::report_cuda_launches();
         let dev = s1.device().clone();
         let threads = b * m * c;
         let to_u32 = |v: usize, what: &str| {

@@ -1,0 +1,901 @@
+//! Step accounting: what a training step or an inference pass would launch on a GPU and
+//! wait for, counted on any device, the CPU included (docs/gpu.md, "Step accounting").
+//!
+//! The counting happens in the vendored candle-core (`candle_core::account`), at its storage
+//! dispatch point: every storage operation with the kernel launches, dims/strides uploads and
+//! bytes that candle's CUDA backend would use for it, matmul FLOPs, each device → host read
+//! (a sync on a GPU) and each explicit upload. This module turns those events into
+//! [`Counts`] per stage (the stage names of [`crate::compute::profile`]'s marks) and per op
+//! name, and into an estimated step time on a named GPU ([`Gpu`], [`estimate`]).
+//!
+//! While an [`Account`] is open on a CPU run with [`Route::Cuda`], pma takes the route a
+//! CUDA device would take: no fused CPU kernels, candle's own sine where CUDA uses it, one
+//! worker (so training chunks as on a GPU). The route belongs to the accounted run (the
+//! thread that opened it and the workers it hands work to), not to the process: other
+//! threads keep theirs. Outside an accounted run the check costs one relaxed atomic load.
+
+use std::cell::RefCell;
+use std::collections::{BTreeMap, HashMap};
+use std::sync::{Arc, Mutex};
+use std::thread::ThreadId;
+
+use candle_core::account::{self as hook, Event, Sink};
+use candle_core::Device;
+use serde::{Deserialize, Serialize};
+
+use crate::error::{ModelError, Result};
+
+/// The backend whose route an accounted run takes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Route {
+    /// As on a CUDA device (the only route of a CUDA run).
+    Cuda,
+    /// pma's CPU route: fused kernels, libm sine, data-parallel workers.
+    Cpu,
+}
+
+impl std::str::FromStr for Route {
+    type Err = ModelError;
+    fn from_str(s: &str) -> Result<Self> {
+        match s.trim().to_ascii_lowercase().as_str() {
+            "cuda" => Ok(Self::Cuda),
+            "cpu" => Ok(Self::Cpu),
+            _ => Err(ModelError::Input(format!(
+                "account route `{s}`: expected `cuda` or `cpu`"
+            ))),
+        }
+    }
+}
+
+impl std::fmt::Display for Route {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::Cuda => "cuda",
+            Self::Cpu => "cpu",
+        })
+    }
+}
+
+/// Counts of one stage, one op name or a whole run.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Counts {
+    /// candle storage operations (custom ops included).
+    pub ops: u64,
+    /// Kernel launches, memcpys and memsets they make on a CUDA device.
+    pub launches: u64,
+    /// Device → host reads: each one a sync on a GPU.
+    pub syncs: u64,
+    pub sync_bytes: u64,
+    /// Explicit host → device uploads of tensor data.
+    pub uploads: u64,
+    pub upload_bytes: u64,
+    /// Implicit uploads of dims and strides (strided layouts, reductions, index_select, where).
+    pub param_uploads: u64,
+    /// Bytes the ops read and wrote (device memory traffic).
+    pub bytes_read: u64,
+    pub bytes_written: u64,
+    /// Matmul FLOPs.
+    pub flops: u64,
+}
+
+impl Counts {
+    /// Add one event.
+    pub fn add(&mut self, e: &Event) {
+        match *e {
+            Event::Op(op) => {
+                self.ops += 1;
+                self.launches += u64::from(op.launches);
+                self.param_uploads += u64::from(op.param_uploads);
+                self.bytes_read += op.bytes_read;
+                self.bytes_written += op.bytes_written;
+                self.flops += op.flops;
+            }
+            Event::Read { bytes } => {
+                self.syncs += 1;
+                self.sync_bytes += bytes;
+            }
+            Event::Upload { bytes } => {
+                self.uploads += 1;
+                self.upload_bytes += bytes;
+            }
+        }
+    }
+
+    /// Add another set of counts.
+    pub fn merge(&mut self, o: &Counts) {
+        self.ops += o.ops;
+        self.launches += o.launches;
+        self.syncs += o.syncs;
+        self.sync_bytes += o.sync_bytes;
+        self.uploads += o.uploads;
+        self.upload_bytes += o.upload_bytes;
+        self.param_uploads += o.param_uploads;
+        self.bytes_read += o.bytes_read;
+        self.bytes_written += o.bytes_written;
+        self.flops += o.flops;
+    }
+
+    /// Device memory traffic of the ops: bytes read plus bytes written.
+    pub fn bytes(&self) -> u64 {
+        self.bytes_read + self.bytes_written
+    }
+
+    /// Host → device copies of every kind (explicit and dims/strides).
+    pub fn all_uploads(&self) -> u64 {
+        self.uploads + self.param_uploads
+    }
+}
+
+/// One op as the cost model sees it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Cost {
+    pub launches: u32,
+    pub bytes: u64,
+    pub flops: u64,
+}
+
+/// The counts between two stage marks (summed over every time the stage ran).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct Stage {
+    pub name: String,
+    /// How many times the stage was closed (once per chunk for the per-chunk stages).
+    pub times: u64,
+    pub counts: Counts,
+    /// Each op of the stage, for [`estimate`].
+    #[serde(skip)]
+    pub costs: Vec<Cost>,
+}
+
+/// Everything an accounted run counted.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Report {
+    pub route: Route,
+    pub total: Counts,
+    /// In the order the stages first closed; work after the last mark is the stage `other`.
+    pub stages: Vec<Stage>,
+    /// Per op name.
+    pub ops: BTreeMap<String, Counts>,
+}
+
+impl Report {
+    /// Every op of the run, for [`estimate`].
+    pub fn costs(&self) -> impl Iterator<Item = &Cost> + Clone {
+        self.stages.iter().flat_map(|s| &s.costs)
+    }
+
+    /// The run's estimated time on `gpu` ([`estimate`]).
+    pub fn estimate(&self, gpu: &Gpu, tf32: bool) -> Estimate {
+        estimate(self.costs(), &self.total, gpu, tf32)
+    }
+}
+
+/// `v[0] + k·(v[1] − v[0])` when the three values are equally spaced (exactly affine in a
+/// size that grows by the same step from one to the next); `None` otherwise.
+fn affine(v: [u64; 3], k: u64) -> Option<u64> {
+    let [a, b, c] = v.map(i128::from);
+    if c - b != b - a {
+        return None;
+    }
+    u64::try_from(a + (b - a) * i128::from(k)).ok()
+}
+
+impl Counts {
+    /// Every field by [`affine`]; `None` if one is not affine.
+    fn affine(c: [&Counts; 3], k: u64) -> Option<Counts> {
+        let f = |g: fn(&Counts) -> u64| affine(c.map(g), k);
+        Some(Counts {
+            ops: f(|c| c.ops)?,
+            launches: f(|c| c.launches)?,
+            syncs: f(|c| c.syncs)?,
+            sync_bytes: f(|c| c.sync_bytes)?,
+            uploads: f(|c| c.uploads)?,
+            upload_bytes: f(|c| c.upload_bytes)?,
+            param_uploads: f(|c| c.param_uploads)?,
+            bytes_read: f(|c| c.bytes_read)?,
+            bytes_written: f(|c| c.bytes_written)?,
+            flops: f(|c| c.flops)?,
+        })
+    }
+}
+
+impl Report {
+    /// The run of size `n + k·d`, from three runs of sizes n, n + d, n + 2d (say rays per
+    /// step) that made the same ops in the same order and whose every count, per op, per
+    /// stage and per op name, is exactly affine in the size (checked: equal steps between
+    /// the three). Refused when anything differs, so a count is never extrapolated from a
+    /// shape it does not have.
+    pub fn extrapolate(runs: [&Report; 3], k: u64) -> Result<Report> {
+        let bad = |what: String| {
+            ModelError::Input(format!(
+                "cannot extrapolate the account: {what} is not the same or not affine in the size"
+            ))
+        };
+        let [a, b, c] = runs;
+        if a.route != b.route || b.route != c.route {
+            return Err(bad("the route".into()));
+        }
+        let total = Counts::affine([&a.total, &b.total, &c.total], k)
+            .ok_or_else(|| bad("the total".into()))?;
+        if a.stages.len() != b.stages.len() || b.stages.len() != c.stages.len() {
+            return Err(bad("the list of stages".into()));
+        }
+        let mut stages = Vec::with_capacity(a.stages.len());
+        for ((sa, sb), sc) in a.stages.iter().zip(&b.stages).zip(&c.stages) {
+            if sa.name != sb.name
+                || sb.name != sc.name
+                || sa.times != sb.times
+                || sb.times != sc.times
+            {
+                return Err(bad(format!("stage `{}`", sa.name)));
+            }
+            if sa.costs.len() != sb.costs.len() || sb.costs.len() != sc.costs.len() {
+                return Err(bad(format!("the ops of stage `{}`", sa.name)));
+            }
+            let costs = sa
+                .costs
+                .iter()
+                .zip(&sb.costs)
+                .zip(&sc.costs)
+                .map(|((x, y), z)| {
+                    Some(Cost {
+                        launches: u32::try_from(affine(
+                            [x, y, z].map(|c| u64::from(c.launches)),
+                            k,
+                        )?)
+                        .ok()?,
+                        bytes: affine([x, y, z].map(|c| c.bytes), k)?,
+                        flops: affine([x, y, z].map(|c| c.flops), k)?,
+                    })
+                })
+                .collect::<Option<Vec<_>>>()
+                .ok_or_else(|| bad(format!("an op of stage `{}`", sa.name)))?;
+            stages.push(Stage {
+                name: sa.name.clone(),
+                times: sa.times,
+                counts: Counts::affine([&sa.counts, &sb.counts, &sc.counts], k)
+                    .ok_or_else(|| bad(format!("stage `{}`", sa.name)))?,
+                costs,
+            });
+        }
+        if !a.ops.keys().eq(b.ops.keys()) || !b.ops.keys().eq(c.ops.keys()) {
+            return Err(bad("the set of op names".into()));
+        }
+        let mut ops = BTreeMap::new();
+        for (name, ca) in &a.ops {
+            let counts = Counts::affine([ca, &b.ops[name], &c.ops[name]], k)
+                .ok_or_else(|| bad(format!("op `{name}`")))?;
+            ops.insert(name.clone(), counts);
+        }
+        Ok(Report {
+            route: a.route,
+            total,
+            stages,
+            ops,
+        })
+    }
+}
+
+/// What [`Report::summary`] writes: counts and estimates per stage, per op and in total.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Summary {
+    pub route: Route,
+    pub total: Counts,
+    pub stages: Vec<StageSummary>,
+    pub ops: BTreeMap<String, Counts>,
+    /// Estimated times on every GPU of [`GPUS`].
+    pub est: Vec<GpuEstimate>,
+}
+
+/// One stage of a [`Summary`].
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct StageSummary {
+    pub name: String,
+    pub times: u64,
+    pub counts: Counts,
+    pub est: Vec<GpuEstimate>,
+}
+
+/// A run's estimated time on one GPU, with FP32 matmuls and with TF32 tensor-core matmuls.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct GpuEstimate {
+    pub gpu: &'static str,
+    pub est_fp32_matmul: Estimate,
+    pub est_tf32_matmul: Estimate,
+}
+
+/// [`estimate`] on every GPU of [`GPUS`].
+pub fn estimates<'a>(
+    costs: impl Iterator<Item = &'a Cost> + Clone,
+    counts: &Counts,
+) -> Vec<GpuEstimate> {
+    GPUS.iter()
+        .map(|g| GpuEstimate {
+            gpu: g.name,
+            est_fp32_matmul: estimate(costs.clone(), counts, g, false),
+            est_tf32_matmul: estimate(costs.clone(), counts, g, true),
+        })
+        .collect()
+}
+
+impl Report {
+    /// Counts and estimates per stage, per op and in total.
+    pub fn summary(&self) -> Summary {
+        Summary {
+            route: self.route,
+            total: self.total,
+            stages: self
+                .stages
+                .iter()
+                .map(|s| StageSummary {
+                    name: s.name.clone(),
+                    times: s.times,
+                    counts: s.counts,
+                    est: estimates(s.costs.iter(), &s.counts),
+                })
+                .collect(),
+            ops: self.ops.clone(),
+            est: estimates(self.costs(), &self.total),
+        }
+    }
+}
+
+/// Counts of a run recorded by another program in this module's layout (the official code's
+/// harness, `bench/official/count_official.py`): `counts` and the per-op `costs`, plus what
+/// it says about itself.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Recorded {
+    pub what: String,
+    pub rays: usize,
+    pub counts: Counts,
+    #[serde(default)]
+    pub syncs_by_kind: BTreeMap<String, u64>,
+    #[serde(skip_serializing)]
+    pub costs: Vec<Cost>,
+}
+
+impl Recorded {
+    /// Read a recorded run (JSON); errors name the file.
+    pub fn read(path: &std::path::Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path).map_err(|source| ModelError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        serde_json::from_str(&text).map_err(|e| {
+            ModelError::Input(format!(
+                "{}: not a recorded account (expected `what`, `rays`, `counts` and `costs`                  as count_official.py writes them): {e}",
+                path.display()
+            ))
+        })
+    }
+
+    /// Estimated times on every GPU of [`GPUS`].
+    pub fn estimates(&self) -> Vec<GpuEstimate> {
+        estimates(self.costs.iter(), &self.counts)
+    }
+}
+
+/// The events of the threads of one accounted run.
+#[derive(Default)]
+struct Tally {
+    inner: Mutex<TallyInner>,
+}
+
+#[derive(Default)]
+struct TallyInner {
+    total: Counts,
+    ops: HashMap<&'static str, Counts>,
+    /// Per thread, what happened since its last mark.
+    pending: HashMap<ThreadId, (Counts, Vec<Cost>)>,
+    stages: Vec<Stage>,
+}
+
+impl TallyInner {
+    fn close(&mut self, thread: ThreadId, name: &str) {
+        let (counts, costs) = self.pending.remove(&thread).unwrap_or_default();
+        let stage = match self.stages.iter_mut().position(|s| s.name == name) {
+            Some(i) => &mut self.stages[i],
+            None => {
+                self.stages.push(Stage {
+                    name: name.to_string(),
+                    ..Default::default()
+                });
+                self.stages.last_mut().expect("just pushed")
+            }
+        };
+        stage.times += 1;
+        stage.counts.merge(&counts);
+        stage.costs.extend(costs);
+    }
+}
+
+impl hook::Observer for Tally {
+    fn event(&self, e: &Event) {
+        let thread = std::thread::current().id();
+        let mut t = self.inner.lock().unwrap_or_else(|e| e.into_inner());
+        t.total.add(e);
+        let pending = t.pending.entry(thread).or_default();
+        pending.0.add(e);
+        if let Event::Op(op) = e {
+            pending.1.push(Cost {
+                launches: op.launches,
+                bytes: op.bytes_read + op.bytes_written,
+                flops: op.flops,
+            });
+            t.ops.entry(op.name).or_default().add(e);
+        }
+    }
+}
+
+thread_local! {
+    /// The accounted run this thread works for, and its route.
+    static CURRENT: RefCell<Option<(Arc<Tally>, Route)>> = const { RefCell::new(None) };
+}
+
+/// Whether this thread works for an accounted run that takes the CUDA route on the CPU: the
+/// kernel choices that differ between the CPU and CUDA ask this.
+#[inline]
+pub fn emulates_cuda() -> bool {
+    hook::on() && CURRENT.with_borrow(|c| matches!(c, Some((_, Route::Cuda))))
+}
+
+/// Close stage `name` of this thread's accounted run (called by
+/// [`crate::compute::profile::mark`]).
+pub(crate) fn mark(name: &str) {
+    if !hook::on() {
+        return;
+    }
+    CURRENT.with_borrow(|c| {
+        if let Some((tally, _)) = c {
+            let thread = std::thread::current().id();
+            tally
+                .inner
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .close(thread, name);
+        }
+    });
+}
+
+/// A thread's membership of an accounted run ([`Handoff::join`]); dropping it restores the
+/// thread's previous run.
+pub struct Joined {
+    prev: Option<(Arc<Tally>, Route)>,
+    _candle: hook::Entered,
+}
+
+impl Drop for Joined {
+    fn drop(&mut self) {
+        let prev = self.prev.take();
+        CURRENT.with_borrow_mut(|c| *c = prev);
+    }
+}
+
+fn join(sink: Sink, tally: Arc<Tally>, route: Route) -> Joined {
+    let candle = hook::enter(Some(sink));
+    let prev = CURRENT.with_borrow_mut(|c| c.replace((tally, route)));
+    Joined {
+        prev,
+        _candle: candle,
+    }
+}
+
+/// An accounted run on this thread (and the workers it hands work to through
+/// [`crate::compute::parallel::map_ordered`]), from [`Account::start`] to [`Account::finish`].
+pub struct Account {
+    tally: Arc<Tally>,
+    route: Route,
+    joined: Option<Joined>,
+    /// The run belongs to the thread that opened it.
+    _not_send: std::marker::PhantomData<*const ()>,
+}
+
+impl Account {
+    /// Count everything this thread does on `device` from now on. On the CPU every tensor
+    /// counts as device memory; `route` picks the kernels ([`Route::Cpu`] is refused for
+    /// other devices, which have one route).
+    pub fn start(device: &Device, route: Route) -> Result<Self> {
+        if route == Route::Cpu && !device.is_cpu() {
+            return Err(ModelError::Input(format!(
+                "account route `cpu` on {device:?}: a GPU run takes the `cuda` route"
+            )));
+        }
+        let tally = Arc::new(Tally::default());
+        let sink = Sink::new(tally.clone(), device.is_cpu());
+        let joined = join(sink, tally.clone(), route);
+        Ok(Self {
+            tally,
+            route,
+            joined: Some(joined),
+            _not_send: std::marker::PhantomData,
+        })
+    }
+
+    /// Close stage `name` (what [`crate::compute::profile::mark`] does for its stages).
+    pub fn mark(&self, name: &str) {
+        mark(name)
+    }
+
+    /// Stop counting. Work after the last mark of each thread is the stage `other`.
+    pub fn finish(mut self) -> Report {
+        self.joined = None;
+        let mut t = self.tally.inner.lock().unwrap_or_else(|e| e.into_inner());
+        let threads: Vec<ThreadId> = t.pending.keys().copied().collect();
+        for thread in threads {
+            t.close(thread, "other");
+        }
+        let mut ops: BTreeMap<String, Counts> = BTreeMap::new();
+        for (name, c) in &t.ops {
+            ops.entry(name.to_string()).or_default().merge(c);
+        }
+        Report {
+            route: self.route,
+            total: t.total,
+            stages: std::mem::take(&mut t.stages),
+            ops,
+        }
+    }
+}
+
+/// Run `f` as an accounted run on `device` with `route`.
+pub fn measure<T>(
+    device: &Device,
+    route: Route,
+    f: impl FnOnce() -> std::result::Result<T, ModelError>,
+) -> Result<(T, Report)> {
+    let account = Account::start(device, route)?;
+    let out = f()?;
+    Ok((out, account.finish()))
+}
+
+/// This thread's accounted run, captured to be joined on worker threads.
+pub struct Handoff(Option<(Sink, Arc<Tally>, Route)>);
+
+impl Handoff {
+    /// The calling thread's run (nothing outside an accounted run).
+    pub fn capture() -> Self {
+        if !hook::on() {
+            return Self(None);
+        }
+        let sink = hook::current();
+        let cur = CURRENT.with_borrow(|c| c.clone());
+        Self(sink.zip(cur).map(|(s, (t, r))| (s, t, r)))
+    }
+
+    /// Join the captured run on this thread until the guard drops.
+    pub fn join(&self) -> Option<Joined> {
+        self.0
+            .as_ref()
+            .map(|(s, t, r)| join(s.clone(), t.clone(), *r))
+    }
+}
+
+/// Datasheet figures of a GPU and the host link, for [`estimate`].
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Gpu {
+    pub name: &'static str,
+    /// Memory bandwidth, bytes/s.
+    pub mem_bandwidth: f64,
+    /// FP32 peak without tensor cores, FLOP/s.
+    pub fp32_flops: f64,
+    /// TF32 tensor-core peak (dense), FLOP/s.
+    pub tf32_flops: f64,
+    /// Host link, one direction, bytes/s.
+    pub host_link: f64,
+    pub source: &'static str,
+}
+
+/// Host time of one kernel launch (or memcpy/memset call) on the stream: an assumed figure
+/// of the usual order for CUDA launches from a host API (a few µs), not a measurement.
+pub const LAUNCH_S: f64 = 5e-6;
+/// Latency of one device → host read: the stream drains, a small copy, the host wakes. An
+/// assumed figure, not a measurement.
+pub const SYNC_S: f64 = 20e-6;
+
+/// The GPUs [`estimate`] knows.
+pub const GPUS: [Gpu; 3] = [
+    Gpu {
+        name: "H200",
+        mem_bandwidth: 4.8e12,
+        fp32_flops: 67e12,
+        tf32_flops: 494.5e12,
+        host_link: 64e9,
+        source: "NVIDIA H200 Tensor Core GPU datasheet (SXM): 4.8 TB/s HBM3e, FP32 67 TFLOPS, \
+                 TF32 Tensor Core 989 TFLOPS with sparsity (494.5 dense), PCIe Gen5 128 GB/s \
+                 (64 GB/s each way)",
+    },
+    Gpu {
+        name: "H100-SXM",
+        mem_bandwidth: 3.35e12,
+        fp32_flops: 67e12,
+        tf32_flops: 494.5e12,
+        host_link: 64e9,
+        source: "NVIDIA H100 Tensor Core GPU datasheet (SXM): 3.35 TB/s HBM3, FP32 67 TFLOPS, \
+                 TF32 Tensor Core 989 TFLOPS with sparsity (494.5 dense), PCIe Gen5 128 GB/s \
+                 (64 GB/s each way)",
+    },
+    Gpu {
+        name: "RTX-3090",
+        mem_bandwidth: 936e9,
+        fp32_flops: 35.6e12,
+        tf32_flops: 35.6e12,
+        host_link: 32e9,
+        source: "NVIDIA Ampere GA102 GPU architecture whitepaper (GeForce RTX 3090): 936 GB/s \
+                 GDDR6X, peak FP32 35.6 TFLOPS, peak TF32 Tensor 35.6 TFLOPS dense (71 with \
+                 sparsity), PCIe Gen4 x16 (32 GB/s each way)",
+    },
+];
+
+/// [`GPUS`] by name (case-insensitive).
+pub fn gpu(name: &str) -> Option<&'static Gpu> {
+    GPUS.iter().find(|g| g.name.eq_ignore_ascii_case(name))
+}
+
+/// An estimated time (seconds) and its parts. Every field is an estimate.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct Estimate {
+    pub est_s: f64,
+    /// Σ over ops of max(bytes / bandwidth, FLOPs / peak).
+    pub est_roofline_s: f64,
+    /// Launches and uploads × [`LAUNCH_S`].
+    pub est_launch_s: f64,
+    /// Syncs × [`SYNC_S`].
+    pub est_sync_s: f64,
+    /// Uploaded and read-back bytes over the host link.
+    pub est_transfer_s: f64,
+}
+
+/// Roofline plus launch cost: per op max(bytes / bandwidth, FLOPs / peak) + launches ×
+/// [`LAUNCH_S`]; per upload (explicit or of dims/strides) another [`LAUNCH_S`]; per sync
+/// [`SYNC_S`]; transferred bytes over the host link. Matmuls run at the FP32 peak, or the
+/// TF32 tensor-core peak with `tf32`. Additive: it ignores that launches overlap running
+/// kernels, so where kernels are long it overstates, and it assumes every kernel reaches
+/// the roofline, so where they are short and serial it understates.
+pub fn estimate<'a>(
+    costs: impl IntoIterator<Item = &'a Cost>,
+    counts: &Counts,
+    gpu: &Gpu,
+    tf32: bool,
+) -> Estimate {
+    let peak = if tf32 { gpu.tf32_flops } else { gpu.fp32_flops };
+    let (mut roof, mut launches) = (0.0, counts.all_uploads() as f64);
+    for c in costs {
+        roof += (c.bytes as f64 / gpu.mem_bandwidth).max(c.flops as f64 / peak);
+        launches += f64::from(c.launches);
+    }
+    let e = Estimate {
+        est_roofline_s: roof,
+        est_launch_s: launches * LAUNCH_S,
+        est_sync_s: counts.syncs as f64 * SYNC_S,
+        est_transfer_s: (counts.upload_bytes + counts.sync_bytes) as f64 / gpu.host_link,
+        est_s: 0.0,
+    };
+    Estimate {
+        est_s: e.est_roofline_s + e.est_launch_s + e.est_sync_s + e.est_transfer_s,
+        ..e
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use candle_core::{DType, Tensor, D};
+
+    /// A known small graph: every count is worked out by hand from candle's CUDA backend.
+    #[test]
+    fn counts_a_known_graph_exactly() {
+        let dev = Device::Cpu;
+        let a = Tensor::arange(0f32, 6.0, &dev)
+            .unwrap()
+            .reshape((2, 3))
+            .unwrap();
+        let b = Tensor::ones((3, 4), DType::F32, &dev).unwrap();
+        let (out, r) = measure(&dev, Route::Cuda, || {
+            // matmul [2,3]x[3,4]: 2·2·4·3 = 48 FLOPs, reads 24 + 48 B, writes 32 B.
+            let c = a.matmul(&b)?;
+            // sin: one kernel, contiguous, 32 B in and out.
+            let s = c.sin()?;
+            // broadcast add of a [4] row: the row is read once (16 B), one dims upload.
+            let row = Tensor::new(&[1f32, 2.0, 3.0, 4.0], &dev)?;
+            mark("first");
+            let t = s.broadcast_add(&row)?;
+            // sum over the last dim: a reduction, always one dims upload; 8 B out.
+            let total = t.sum(D::Minus1)?;
+            // one read-back of [2] f32.
+            Ok(total.to_vec1::<f32>()?)
+        })
+        .unwrap();
+        assert_eq!(out.len(), 2);
+        let t = r.total;
+        assert_eq!(t.ops, 4, "{:?}", r.ops);
+        assert_eq!(t.launches, 4);
+        assert_eq!(t.flops, 48);
+        assert_eq!(t.syncs, 1);
+        assert_eq!(t.sync_bytes, 8);
+        assert_eq!((t.uploads, t.upload_bytes), (1, 16));
+        assert_eq!(t.param_uploads, 2);
+        // matmul 72 + 32, sin 32 + 32, add 32 + 16 + 32, sum 32 + 8.
+        assert_eq!(t.bytes_read, 72 + 32 + 48 + 32);
+        assert_eq!(t.bytes_written, 32 + 32 + 32 + 8);
+        assert_eq!(r.ops["matmul"].flops, 48);
+        assert_eq!(r.ops["reduce-sum"].param_uploads, 1);
+        assert_eq!(r.ops["add"].param_uploads, 1);
+        assert_eq!(r.ops["sin"].ops, 1);
+        let names: Vec<&str> = r.stages.iter().map(|s| s.name.as_str()).collect();
+        assert_eq!(names, ["first", "other"]);
+        assert_eq!(r.stages[0].counts.ops, 2);
+        assert_eq!(r.stages[0].counts.uploads, 1);
+        assert_eq!(r.stages[1].counts.syncs, 1);
+        assert_eq!(r.costs().count(), 4);
+    }
+
+    #[test]
+    fn off_counts_nothing_and_other_threads_are_not_counted() {
+        let dev = Device::Cpu;
+        let x = Tensor::ones(8, DType::F32, &dev).unwrap();
+        // Nothing is open: the hooks see no sink.
+        let _ = (x.exp().unwrap() + 1.0).unwrap().to_vec1::<f32>().unwrap();
+        assert!(!emulates_cuda());
+        let account = Account::start(&dev, Route::Cuda).unwrap();
+        assert!(emulates_cuda());
+        // Another thread's work is not this run's.
+        std::thread::scope(|s| {
+            s.spawn(|| {
+                assert!(!emulates_cuda());
+                x.sqr().unwrap().to_vec1::<f32>().unwrap()
+            });
+        });
+        let r = account.finish();
+        assert_eq!(r.total, Counts::default());
+        assert!(!emulates_cuda());
+        // A GPU has one route.
+        if let Ok(cuda) = Device::new_cuda(0) {
+            assert!(Account::start(&cuda, Route::Cpu).is_err());
+        }
+    }
+
+    #[test]
+    fn handoff_joins_workers_and_closes_their_stages() {
+        let dev = Device::Cpu;
+        let x = Tensor::ones(4, DType::F32, &dev).unwrap();
+        let account = Account::start(&dev, Route::Cpu).unwrap();
+        let h = Handoff::capture();
+        std::thread::scope(|s| {
+            s.spawn(|| {
+                let _g = h.join();
+                let _ = x.exp().unwrap();
+                mark("worker");
+                let _ = x.neg().unwrap();
+            });
+        });
+        let r = account.finish();
+        assert_eq!(r.total.ops, 2);
+        let names: Vec<&str> = r.stages.iter().map(|s| s.name.as_str()).collect();
+        assert_eq!(names, ["worker", "other"]);
+    }
+
+    #[test]
+    fn strided_inputs_upload_dims_and_copies_are_memcpys() {
+        let dev = Device::Cpu;
+        let x = Tensor::ones((3, 5), DType::F32, &dev).unwrap();
+        let (_, r) = measure(&dev, Route::Cuda, || {
+            let t = x.t()?; // a view: no op
+            let _ = t.exp()?; // strided: one upload
+            let _ = t.contiguous()?; // strided copy kernel + upload
+            let _ = x.contiguous()?; // already contiguous: nothing
+            let _ = x.copy()?; // a device copy
+            let _ = Tensor::cat(&[&x, &x], 1)?; // two copy2d kernels
+            Ok(())
+        })
+        .unwrap();
+        assert_eq!(r.total.ops, 5, "{:?}", r.ops);
+        assert_eq!(r.total.param_uploads, 2);
+        assert_eq!(r.ops["copy-strided"].ops, 1);
+        assert_eq!(r.ops["clone"].ops, 1);
+        assert_eq!(r.ops["copy2d"].ops, 2);
+    }
+
+    #[test]
+    fn scalar_operands_upload_once_as_on_a_gpu() {
+        let dev = Device::Cpu;
+        let x = Tensor::ones(4, DType::F32, &dev).unwrap();
+        let (_, r) = measure(&dev, Route::Cuda, || Ok(x.maximum(0.5)?)).unwrap();
+        // On CUDA: the scalar is made and cast on the host, uploaded, then one kernel.
+        assert_eq!((r.total.ops, r.total.uploads), (1, 1), "{:?}", r.ops);
+        assert_eq!(r.ops["maximum"].ops, 1);
+    }
+
+    #[test]
+    fn the_cuda_route_takes_candles_kernels_and_row_ops_report_two_launches() {
+        let dev = Device::Cpu;
+        let x = Tensor::ones((4, 3), DType::F32, &dev).unwrap();
+        let b = Tensor::ones(3, DType::F32, &dev).unwrap();
+        let ids = Tensor::new(&[2u32, 0], &dev).unwrap();
+        let run = |route| {
+            measure(&dev, route, || {
+                crate::compute::fast_sine::sin(&x)?;
+                crate::compute::fused::add_bias(&x, &b)?;
+                crate::compute::ops::select_rows(&x, &ids)?;
+                Ok(crate::compute::parallel::workers_on(&dev))
+            })
+            .unwrap()
+        };
+        let (_, cpu) = run(Route::Cpu);
+        let names: Vec<&str> = cpu.ops.keys().map(String::as_str).collect();
+        assert_eq!(names, ["pma-bias-add", "pma-gather-rows", "pma-sin"]);
+        // One worker as on a GPU, whatever the process's worker count.
+        let (workers, cuda) = run(Route::Cuda);
+        assert_eq!(workers, 1);
+        let names: Vec<&str> = cuda.ops.keys().map(String::as_str).collect();
+        assert_eq!(names, ["add", "pma-gather-rows", "sin"]);
+        // The row gather: a memset and a kernel, as on CUDA.
+        assert_eq!(cuda.ops["pma-gather-rows"].launches, 2);
+        assert_eq!(cuda.total.launches, 4);
+    }
+
+    #[test]
+    fn extrapolates_only_what_is_affine() {
+        let dev = Device::Cpu;
+        let run = |n: usize| {
+            measure(&dev, Route::Cuda, || {
+                let x = Tensor::ones((n, 8), DType::F32, &dev)?;
+                let w = Tensor::ones((8, 4), DType::F32, &dev)?;
+                mark("a");
+                let y = x.matmul(&w)?.sum_all()?;
+                Ok(y.to_scalar::<f32>()?)
+            })
+            .unwrap()
+            .1
+        };
+        let (r1, r2, r3) = (run(10), run(20), run(30));
+        // 10 + 4·10 = 50 rows, counted directly and by extrapolation.
+        let e = Report::extrapolate([&r1, &r2, &r3], 4).unwrap();
+        let direct = run(50);
+        assert_eq!(e.total, direct.total);
+        assert_eq!(e.ops, direct.ops);
+        assert_eq!(e.stages, direct.stages);
+        // Sizes 10, 20, 40 are not equally spaced: the bytes are not affine in the step.
+        let r4 = run(40);
+        assert!(Report::extrapolate([&r1, &r2, &r4], 4).is_err());
+        assert!(Report::extrapolate([&r1, &r2, &run_other(&dev)], 4).is_err());
+    }
+
+    fn run_other(dev: &Device) -> Report {
+        measure(dev, Route::Cuda, || {
+            Ok(Tensor::ones(3, DType::F32, dev)?.exp()?)
+        })
+        .unwrap()
+        .1
+    }
+
+    #[test]
+    fn estimate_is_roofline_plus_launches_and_syncs() {
+        let gpu = gpu("h100-sxm").unwrap();
+        let costs = [
+            // memory-bound: 3.35 GB at 3.35 TB/s = 1 ms
+            Cost {
+                launches: 1,
+                bytes: 3_350_000_000,
+                flops: 0,
+            },
+            // compute-bound: 67 GFLOP at 67 TFLOP/s = 1 ms (TF32: 67/494.5 ms)
+            Cost {
+                launches: 2,
+                bytes: 8,
+                flops: 67_000_000_000,
+            },
+        ];
+        let counts = Counts {
+            syncs: 2,
+            param_uploads: 1,
+            ..Default::default()
+        };
+        let e = estimate(&costs, &counts, gpu, false);
+        assert!((e.est_roofline_s - 2e-3).abs() < 1e-12);
+        assert!((e.est_launch_s - 4.0 * LAUNCH_S).abs() < 1e-15);
+        assert!((e.est_sync_s - 2.0 * SYNC_S).abs() < 1e-15);
+        let t = estimate(&costs, &counts, gpu, true);
+        assert!((t.est_roofline_s - (1e-3 + 67e9 / 494.5e12)).abs() < 1e-12);
+        assert!((e.est_s - (2e-3 + 4.0 * LAUNCH_S + 2.0 * SYNC_S)).abs() < 1e-12);
+    }
+}

@@ -1,0 +1,129 @@
+//! Step accounting of a `tiny` training step on the CPU, counted as on CUDA
+//! (`pma_model::compute::account`): the device → host reads (syncs) of one step exactly,
+//! and its op count from above, so a new read-back or a per-pose loop inside the step fails
+//! here. The bounds are today's step; tighten them when the step sheds work.
+
+#![cfg(feature = "train")]
+
+use pma_model::compute::account::Route;
+use pma_model::train::account::{account_one_pass_extrapolated, account_step, StepAccount};
+use pma_model::train::{DatasetSource, Trainer};
+
+use crate::train_support::{tiny_run, tiny_scene};
+
+/// A fresh tiny trainer (64 rays of 2 images per step) in chunks of `chunk_rays`, and its
+/// batch source.
+fn tiny(chunk_rays: usize) -> (tempfile::TempDir, Trainer, DatasetSource) {
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let mut run = tiny_run();
+    run.train.chunk_rays = chunk_rays;
+    let t = &run.train;
+    let dev = candle_core::Device::Cpu;
+    let source = DatasetSource::new(
+        data.clone(),
+        t.rays_per_step,
+        t.images_per_step,
+        t.perturb_bg,
+        t.seed,
+        &dev,
+    )
+    .unwrap();
+    let trainer = Trainer::new(run, data, &dev).unwrap();
+    (dir, trainer, source)
+}
+
+fn account(chunk_rays: usize) -> StepAccount {
+    let (_dir, mut trainer, mut source) = tiny(chunk_rays);
+    account_step(&mut trainer, &mut source, Route::Cuda).unwrap()
+}
+
+fn syncs(a: &StepAccount, stage: &str) -> u64 {
+    a.report
+        .stages
+        .iter()
+        .find(|s| s.name == stage)
+        .map_or(0, |s| s.counts.syncs)
+}
+
+fn table(a: &StepAccount) -> String {
+    a.report
+        .stages
+        .iter()
+        .map(|s| {
+            format!(
+                "\n  {:<30} x{:<3} ops {:>6} syncs {:>3}",
+                s.name, s.times, s.counts.ops, s.counts.syncs
+            )
+        })
+        .collect()
+}
+
+/// The network, the renderer and the backward pass never read back; today's read-backs
+/// are the caster's inputs (5), the importance sampler's (4) and the loss numbers (1) per
+/// chunk, the whole batch's near/far inputs (5) once when chunked, and the gradient norm.
+fn check(a: &StepAccount, chunks: u64, syncs_total: u64, max_ops: u64) {
+    let t = table(a);
+    assert_eq!(a.chunks, chunks, "{t}");
+    for stage in [
+        "pose features",
+        "coarse network",
+        "coarse render",
+        "fine network",
+        "merge + fine render",
+        "backward",
+    ] {
+        assert_eq!(syncs(a, stage), 0, "{stage} reads back:{t}");
+    }
+    assert_eq!(syncs(a, "cast"), 5 * chunks, "{t}");
+    assert_eq!(syncs(a, "resample"), 4 * chunks, "{t}");
+    assert_eq!(syncs(a, "loss"), chunks, "{t}");
+    assert_eq!(syncs(a, "grad norm + Adam"), 1, "{t}");
+    assert_eq!(a.report.total.syncs, syncs_total, "{t}");
+    assert!(
+        a.report.total.ops <= max_ops,
+        "{} ops in a tiny step (bound {max_ops}):{t}",
+        a.report.total.ops
+    );
+}
+
+#[test]
+fn one_pass_step_syncs_and_ops() {
+    let (_dir, mut trainer, mut source) = tiny(0);
+    let a = account_step(&mut trainer, &mut source, Route::Cuda).unwrap();
+    check(&a, 1, 11, 2_600);
+    assert!(a.report.total.flops > 0 && a.report.total.param_uploads > 0);
+    // The first step is every step: the next one launches and moves exactly as much.
+    let b = account_step(&mut trainer, &mut source, Route::Cuda).unwrap();
+    assert_eq!(a.report.total, b.report.total);
+    assert_eq!(a.report.ops, b.report.ops);
+}
+
+#[test]
+fn one_pass_step_extrapolates_exactly() {
+    // 16, 32 and 48 rays extrapolated to 64, against the 64-ray step itself.
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let e = account_one_pass_extrapolated(
+        &tiny_run(),
+        data,
+        &candle_core::Device::Cpu,
+        Route::Cuda,
+        16,
+    )
+    .unwrap();
+    assert_eq!(e.from, [16, 32, 48]);
+    assert!(e.counts_constant);
+    let direct = account(0);
+    assert_eq!(e.report.total, direct.report.total);
+    assert_eq!(e.report.ops, direct.report.ops);
+    assert_eq!(e.report.stages, direct.report.stages);
+}
+
+#[test]
+fn chunked_step_syncs_and_ops() {
+    // 4 chunks of 16 rays (8 per image).
+    let a = account(16);
+    check(&a, 4, 5 + 4 * 10 + 1, 7_600);
+    assert_eq!(syncs(&a, "chunk select + batch near/far"), 5);
+}

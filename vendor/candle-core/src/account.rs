@@ -1,0 +1,472 @@
+//! Step accounting (a pma change, see PATCH.md): what a run would launch on a CUDA device and
+//! wait for, counted at the storage dispatch point so it can be measured on any device.
+//!
+//! A thread that has entered a [`Sink`] sends one [`Event`] to the sink's [`Observer`] per
+//! storage operation (with the launches, dims/strides uploads and bytes that candle's CUDA
+//! backend would use for it), per device → host read (`to_vec*`, `to_scalar`,
+//! `to_device(Cpu)`) and per explicit host → device upload (tensors made from host data,
+//! `to_device` onto a device). When no thread has a sink, each hook is one relaxed atomic
+//! load.
+//!
+//! On a real device, operations on CPU storage are host work and are not counted. A sink
+//! made with `host_as_device` counts CPU storage as if it were the device instead: every
+//! operation, every copy out of a tensor into host memory (`to_vec*`, `to_scalar`) and every
+//! tensor made from host data. That is how a run on the CPU shows what it would cost on a GPU.
+
+use std::cell::{Cell, RefCell};
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Arc;
+
+use crate::{DType, Layout, Shape};
+
+/// Threads that currently have a sink entered (any session).
+static ENTERED: AtomicUsize = AtomicUsize::new(0);
+
+thread_local! {
+    static SINK: RefCell<Option<Sink>> = const { RefCell::new(None) };
+    /// Launches and parameter uploads a custom op reported for itself while it ran.
+    static REPORTED: Cell<Option<(u32, u32)>> = const { Cell::new(None) };
+    /// Inside [`host_only`]: CPU storage is host memory even for a `host_as_device` sink.
+    static HOST_ONLY: Cell<bool> = const { Cell::new(false) };
+}
+
+/// One storage operation, as candle's CUDA backend would run it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Op {
+    /// The operation (`"matmul"`, `"add"`, `"reduce-sum"`, a custom op's name, ...).
+    pub name: &'static str,
+    /// Kernel launches, memcpys and memsets on the stream.
+    pub launches: u32,
+    /// Implicit host → device uploads of dims and strides (strided layouts, reductions,
+    /// `index_select`, `where_cond`).
+    pub param_uploads: u32,
+    /// Bytes of the inputs (elements behind a broadcast stride are counted once).
+    pub bytes_read: u64,
+    /// Bytes of the output.
+    pub bytes_written: u64,
+    /// Floating-point operations of a matmul (2·b·m·n·k); 0 for everything else.
+    pub flops: u64,
+}
+
+/// What an [`Observer`] is told.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Event {
+    Op(Op),
+    /// A device → host copy: on a GPU the host waits for the stream (a sync).
+    Read {
+        bytes: u64,
+    },
+    /// An explicit host → device copy of tensor data.
+    Upload {
+        bytes: u64,
+    },
+}
+
+/// Receives the events of the threads that entered its [`Sink`], on those threads.
+pub trait Observer: Send + Sync {
+    fn event(&self, event: &Event);
+}
+
+/// Where a thread's events go.
+#[derive(Clone)]
+pub struct Sink {
+    observer: Arc<dyn Observer>,
+    host_as_device: bool,
+}
+
+impl Sink {
+    /// `host_as_device`: count CPU storage as the device (see the module docs).
+    pub fn new(observer: Arc<dyn Observer>, host_as_device: bool) -> Self {
+        Self {
+            observer,
+            host_as_device,
+        }
+    }
+
+    pub fn host_as_device(&self) -> bool {
+        self.host_as_device
+    }
+}
+
+impl std::fmt::Debug for Sink {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Sink")
+            .field("host_as_device", &self.host_as_device)
+            .finish_non_exhaustive()
+    }
+}
+
+/// This thread's sink while it lives (see [`enter`]).
+#[must_use = "the sink is left when the guard drops"]
+pub struct Entered {
+    prev: Option<Sink>,
+    counted: bool,
+}
+
+impl Drop for Entered {
+    fn drop(&mut self) {
+        let prev = self.prev.take();
+        SINK.with_borrow_mut(|s| *s = prev);
+        if self.counted {
+            ENTERED.fetch_sub(1, Ordering::Relaxed);
+        }
+    }
+}
+
+/// Send this thread's events to `sink` (none: stop counting) until the guard drops, which
+/// restores the previous sink.
+pub fn enter(sink: Option<Sink>) -> Entered {
+    let counted = sink.is_some();
+    if counted {
+        ENTERED.fetch_add(1, Ordering::Relaxed);
+    }
+    let prev = SINK.with_borrow_mut(|s| std::mem::replace(s, sink));
+    Entered { prev, counted }
+}
+
+/// This thread's sink, to enter it on a worker thread.
+pub fn current() -> Option<Sink> {
+    if !on() {
+        return None;
+    }
+    SINK.with_borrow(|s| s.clone())
+}
+
+/// Whether any thread counts (the only cost of a hook when none does).
+#[inline(always)]
+pub fn on() -> bool {
+    ENTERED.load(Ordering::Relaxed) != 0
+}
+
+/// Called by a custom op while it runs: it makes `launches` launches and `param_uploads`
+/// small uploads on a CUDA device (counted instead of the default: one launch, and one
+/// upload when the first input is strided). On the CPU a custom op may report what its CUDA
+/// forward would do.
+pub fn report_launches(launches: u32, param_uploads: u32) {
+    if on() {
+        REPORTED.with(|r| r.set(Some((launches, param_uploads))));
+    }
+}
+
+/// Run `f`, host work on every device (a scalar operand's cast before its upload): its CPU
+/// storage operations are not counted even by a `host_as_device` sink.
+pub(crate) fn host_only<T>(f: impl FnOnce() -> T) -> T {
+    if !on() {
+        return f();
+    }
+    let prev = HOST_ONLY.with(|h| h.replace(true));
+    let out = f();
+    HOST_ONLY.with(|h| h.set(prev));
+    out
+}
+
+fn emit(cpu: bool, event: impl FnOnce() -> Event) {
+    SINK.with_borrow(|s| {
+        if let Some(s) = s {
+            if !cpu || (s.host_as_device && !HOST_ONLY.with(Cell::get)) {
+                s.observer.event(&event());
+            }
+        }
+    })
+}
+
+/// Count an operation on storage of the CPU (`cpu`) or of a device.
+#[inline]
+pub(crate) fn op(cpu: bool, op: impl FnOnce() -> Op) {
+    if on() {
+        emit(cpu, || Event::Op(op()));
+    }
+}
+
+/// Count a device → host read of `bytes`.
+#[inline]
+pub(crate) fn read(cpu: bool, bytes: impl FnOnce() -> usize) {
+    if on() {
+        emit(cpu, || Event::Read {
+            bytes: bytes() as u64,
+        });
+    }
+}
+
+/// Count an explicit upload of `bytes` onto the CPU (`cpu`) or a device.
+#[inline]
+pub(crate) fn upload(cpu: bool, bytes: impl FnOnce() -> usize) {
+    if on() {
+        emit(cpu, || Event::Upload {
+            bytes: bytes() as u64,
+        });
+    }
+}
+
+/// Run a custom op and count it with the launches it reported (see [`report_launches`]).
+pub(crate) fn custom<T>(
+    cpu: bool,
+    name: &'static str,
+    inputs: &[(&Layout, DType)],
+    run: impl FnOnce() -> crate::Result<(T, Shape, DType)>,
+) -> crate::Result<(T, Shape)> {
+    if !on() {
+        return run().map(|(t, s, _)| (t, s));
+    }
+    REPORTED.with(|r| r.set(None));
+    let (t, shape, dtype) = run()?;
+    // Unreported: one kernel, with its dims/strides upload for a strided first input (the
+    // rule of candle-nn's element-wise custom ops).
+    let default = (1, inputs.first().map_or(0, |(l, _)| strided(l)));
+    let (launches, param_uploads) = REPORTED.with(|r| r.take()).unwrap_or(default);
+    op(cpu, || Op {
+        name,
+        launches,
+        param_uploads,
+        bytes_read: inputs.iter().map(|(l, d)| bytes(l, *d)).sum(),
+        bytes_written: (shape.elem_count() * dtype.size_in_bytes()) as u64,
+        flops: 0,
+    });
+    Ok((t, shape))
+}
+
+/// The elements a layout reads, each once: dims behind a zero stride (broadcast) count once.
+pub(crate) fn footprint(l: &Layout) -> usize {
+    l.dims()
+        .iter()
+        .zip(l.stride())
+        .filter(|(_, &s)| s != 0)
+        .map(|(&d, _)| d)
+        .product::<usize>()
+        * usize::from(l.shape().elem_count() != 0)
+}
+
+fn bytes(l: &Layout, dtype: DType) -> u64 {
+    (footprint(l) * dtype.size_in_bytes()) as u64
+}
+
+fn strided(l: &Layout) -> u32 {
+    u32::from(!l.is_contiguous())
+}
+
+/// A one-input element-wise kernel (unary, affine, powf, elu, casts): dims and strides are
+/// uploaded for a strided input.
+pub(crate) fn map(name: &'static str, l: &Layout, input: DType, output: DType) -> Op {
+    Op {
+        name,
+        launches: 1,
+        param_uploads: strided(l),
+        bytes_read: bytes(l, input),
+        bytes_written: (l.shape().elem_count() * output.size_in_bytes()) as u64,
+        flops: 0,
+    }
+}
+
+/// A two-input element-wise kernel (binary ops, comparisons): one upload when either input
+/// is strided.
+pub(crate) fn map2(
+    name: &'static str,
+    lhs: &Layout,
+    rhs: &Layout,
+    input: DType,
+    output: DType,
+) -> Op {
+    Op {
+        name,
+        launches: 1,
+        param_uploads: u32::from(!lhs.is_contiguous() || !rhs.is_contiguous()),
+        bytes_read: bytes(lhs, input) + bytes(rhs, input),
+        bytes_written: (lhs.shape().elem_count() * output.size_in_bytes()) as u64,
+        flops: 0,
+    }
+}
+
+/// `const_set`: a fill kernel, dims and strides uploaded when strided.
+pub(crate) fn fill(l: &Layout, dtype: DType) -> Op {
+    Op {
+        name: "const-set",
+        launches: 1,
+        param_uploads: strided(l),
+        bytes_read: 0,
+        bytes_written: (l.shape().elem_count() * dtype.size_in_bytes()) as u64,
+        flops: 0,
+    }
+}
+
+/// A reduction over `dims`: the fast reduce kernels always upload dims and strides.
+pub(crate) fn reduce(name: &'static str, l: &Layout, dims: &[usize], dtype: DType) -> Op {
+    let reduced: usize = dims.iter().map(|&d| l.dims()[d]).product();
+    let out = l.shape().elem_count() / reduced.max(1);
+    let out_size = if name.starts_with("reduce-arg") {
+        DType::U32.size_in_bytes()
+    } else {
+        dtype.size_in_bytes()
+    };
+    Op {
+        name,
+        launches: 1,
+        param_uploads: 1,
+        bytes_read: bytes(l, dtype),
+        bytes_written: (out * out_size) as u64,
+        flops: 0,
+    }
+}
+
+/// `where_cond`: always uploads dims and the three stride sets.
+pub(crate) fn where_cond(cond: &Layout, c: DType, t: &Layout, f: &Layout, dtype: DType) -> Op {
+    Op {
+        name: "where",
+        launches: 1,
+        param_uploads: 1,
+        bytes_read: bytes(cond, c) + bytes(t, dtype) + bytes(f, dtype),
+        bytes_written: (cond.shape().elem_count() * dtype.size_in_bytes()) as u64,
+        flops: 0,
+    }
+}
+
+/// `gather` along a dim: one thread per output element, no upload.
+pub(crate) fn gather(ids: &Layout, id: DType, dtype: DType) -> Op {
+    let out = ids.shape().elem_count();
+    Op {
+        name: "gather",
+        launches: 1,
+        param_uploads: 0,
+        bytes_read: bytes(ids, id) + (out * dtype.size_in_bytes()) as u64,
+        bytes_written: (out * dtype.size_in_bytes()) as u64,
+        flops: 0,
+    }
+}
+
+/// `index_select` of `src` rows by `ids` along `dim`: uploads the ids' dims and strides.
+pub(crate) fn index_select(src: &Layout, ids: &Layout, id: DType, dim: usize, dtype: DType) -> Op {
+    let d = src.dims();
+    let rest: usize = d[..dim].iter().product::<usize>() * d[dim + 1..].iter().product::<usize>();
+    let out = ids.shape().elem_count() * rest;
+    Op {
+        name: "index-select",
+        launches: 1,
+        param_uploads: 1,
+        bytes_read: bytes(ids, id) + (out * dtype.size_in_bytes()) as u64,
+        bytes_written: (out * dtype.size_in_bytes()) as u64,
+        flops: 0,
+    }
+}
+
+/// `index_add` into a copy of `dst`: the copy (a memcpy, or a strided copy with its upload)
+/// then the adding kernel.
+pub(crate) fn index_add(dst: &Layout, ids: &Layout, id: DType, src: &Layout, dtype: DType) -> Op {
+    let s = dtype.size_in_bytes() as u64;
+    let n_dst = dst.shape().elem_count() as u64;
+    let n_src = src.shape().elem_count() as u64;
+    Op {
+        name: "index-add",
+        launches: 2,
+        param_uploads: strided(dst),
+        bytes_read: n_dst * s + bytes(ids, id) + bytes(src, dtype) + n_src * s,
+        bytes_written: n_dst * s + n_src * s,
+        flops: 0,
+    }
+}
+
+/// `scatter`/`scatter_add` in place: one launch, no upload.
+pub(crate) fn scatter(
+    name: &'static str,
+    ids: &Layout,
+    id: DType,
+    src: &Layout,
+    dtype: DType,
+) -> Op {
+    let n = src.shape().elem_count() as u64;
+    let s = dtype.size_in_bytes() as u64;
+    Op {
+        name,
+        launches: 1,
+        param_uploads: 0,
+        bytes_read: bytes(ids, id) + bytes(src, dtype) + n * s,
+        bytes_written: n * s,
+        flops: 0,
+    }
+}
+
+/// A batched matmul (one cuBLAS call): 2·b·m·n·k FLOPs.
+pub(crate) fn matmul(
+    (b, m, n, k): (usize, usize, usize, usize),
+    lhs: &Layout,
+    rhs: &Layout,
+    dtype: DType,
+) -> Op {
+    Op {
+        name: "matmul",
+        launches: 1,
+        param_uploads: 0,
+        bytes_read: bytes(lhs, dtype) + bytes(rhs, dtype),
+        bytes_written: (b * m * n * dtype.size_in_bytes()) as u64,
+        flops: 2 * (b * m * n * k) as u64,
+    }
+}
+
+/// `copy_strided_src`: a device memcpy for a contiguous source, else a strided copy kernel
+/// with its upload. Nothing for an empty source.
+pub(crate) fn copy(src: &Layout, dtype: DType) -> Op {
+    let n = (src.shape().elem_count() * dtype.size_in_bytes()) as u64;
+    let contiguous = src.is_contiguous();
+    Op {
+        name: if contiguous { "copy" } else { "copy-strided" },
+        launches: u32::from(n != 0),
+        param_uploads: u32::from(n != 0 && !contiguous),
+        bytes_read: n,
+        bytes_written: n,
+        flops: 0,
+    }
+}
+
+/// `copy2d` (cat and slice assignment): one kernel unless empty.
+pub(crate) fn copy2d(d1: usize, d2: usize, dtype: DType) -> Op {
+    let n = (d1 * d2 * dtype.size_in_bytes()) as u64;
+    Op {
+        name: "copy2d",
+        launches: u32::from(n != 0),
+        param_uploads: 0,
+        bytes_read: n,
+        bytes_written: n,
+        flops: 0,
+    }
+}
+
+/// A fresh buffer filled on the device: zeros (a memset), or random values.
+pub(crate) fn fresh(name: &'static str, shape: &Shape, dtype: DType) -> Op {
+    Op {
+        name,
+        launches: 1,
+        param_uploads: 0,
+        bytes_read: 0,
+        bytes_written: (shape.elem_count() * dtype.size_in_bytes()) as u64,
+        flops: 0,
+    }
+}
+
+/// A copy of a whole layout's storage (`Tensor::copy`).
+pub(crate) fn clone(l: &Layout, dtype: DType) -> Op {
+    let n = (l.shape().elem_count() * dtype.size_in_bytes()) as u64;
+    Op {
+        name: "clone",
+        launches: 1,
+        param_uploads: 0,
+        bytes_read: n,
+        bytes_written: n,
+        flops: 0,
+    }
+}
+
+/// Convolutions, pooling, upsampling: one kernel with its dims/strides upload; input bytes
+/// only (pma uses none of them).
+pub(crate) fn other(name: &'static str, inputs: &[(&Layout, DType)]) -> Op {
+    Op {
+        name,
+        launches: 1,
+        param_uploads: 1,
+        bytes_read: inputs.iter().map(|(l, d)| bytes(l, *d)).sum(),
+        bytes_written: 0,
+        flops: 0,
+    }
+}
+
+/// Bytes of a layout's elements (reads and uploads of whole tensors).
+pub(crate) fn tensor_bytes(l: &Layout, dtype: DType) -> usize {
+    l.shape().elem_count() * dtype.size_in_bytes()
+}
