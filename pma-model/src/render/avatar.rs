@@ -175,7 +175,7 @@ impl Avatar {
 
     /// Whether ray casting and importance sampling run on the host for rays like `t`.
     fn casts_on_host(&self, t: &Tensor) -> bool {
-        t.device().is_cpu() || !self.config().culling.is_off()
+        crate::compute::account::cpu_route(t.device()) || !self.config().culling.is_off()
     }
 
     /// Steps 3–5: the coarse pass and render, importance sampling, the fine pass and render.

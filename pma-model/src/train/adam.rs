@@ -182,7 +182,7 @@ impl Adam {
             .collect();
         let n = slot_of.len();
         let zeros = Tensor::zeros(n, DType::F32, &device)?;
-        Ok(Self {
+        let mut adam = Self {
             groups,
             steps: Tensor::zeros(slots.len(), DType::F64, &device)?,
             slot_of: Tensor::from_vec(slot_of, n, &device)?,
@@ -192,7 +192,10 @@ impl Adam {
             device,
             max_step: 0,
             tables: None,
-        })
+        };
+        // Built now, so steps upload nothing but their rates (until the tables grow).
+        adam.ensure_tables(1)?;
+        Ok(adam)
     }
 
     /// The reference's two groups ("freq" 1e-4, "other" 5e-4) over `vars`.
@@ -333,6 +336,7 @@ impl Adam {
             self.exp_avg_sq = Tensor::cat(&v, 0)?;
         }
         self.max_step = steps.iter().fold(0f64, |a, &b| a.max(b)) as u64;
+        self.ensure_tables(self.max_step as usize + 1)?;
         let n = steps.len();
         self.steps = Tensor::from_vec(steps, n, &self.device)?;
         for (g, &lr) in self.groups.iter_mut().zip(groups_lr) {
@@ -408,7 +412,7 @@ impl Adam {
         let [b1, b2] = self.groups[0].betas;
         let eps = self.groups[0].eps;
         self.max_step += 1;
-        self.ensure_tables(self.max_step as usize + 1, b1, b2)?;
+        self.ensure_tables(self.max_step as usize + 1)?;
         let tables = self.tables.as_ref().expect("tables just built");
         // Step number of this update per slot: the count so far plus one where it applies.
         let has_f: Vec<f64> = has.iter().map(|&h| h as u8 as f64).collect();
@@ -474,7 +478,11 @@ impl Adam {
     }
 
     /// Bias-correction tables covering step counts 0..len (grown by doubling).
-    fn ensure_tables(&mut self, len: usize, b1: f64, b2: f64) -> Result<(), TrainError> {
+    fn ensure_tables(&mut self, len: usize) -> Result<(), TrainError> {
+        let Some(group) = self.groups.first() else {
+            return Ok(());
+        };
+        let [b1, b2] = group.betas;
         if self.tables.as_ref().is_some_and(|t| t.len >= len) {
             return Ok(());
         }

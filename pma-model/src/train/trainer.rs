@@ -513,7 +513,7 @@ impl Trainer {
     /// Steps between read-backs ([`TrainConfig::read_every`], `0` resolved for the device).
     pub fn read_every(&self) -> u64 {
         match self.run.train.read_every {
-            0 if self.avatar.device().is_cpu() => 1,
+            0 if crate::compute::account::cpu_route(self.avatar.device()) => 1,
             0 => AUTO_READ_EVERY_DEVICE,
             k => k,
         }
@@ -573,7 +573,7 @@ impl Trainer {
         let result = self
             .source
             .next_batch()
-            .and_then(|batch| self.advance(&batch, hook));
+            .and_then(|batch| self.advance_hooked(&batch, hook));
         match result {
             Err(e) if e.is_interrupted() => {
                 self.noise_rng = noise;
@@ -590,13 +590,23 @@ impl Trainer {
         batch: &TrainBatch,
         hook: Option<GradHook>,
     ) -> Result<StepStats, TrainError> {
-        self.advance(batch, hook)?;
+        self.advance_hooked(batch, hook)?;
         self.last_read()
+    }
+
+    /// One iteration on `batch` without a read-back (its numbers wait for
+    /// [`Self::read_back`]).
+    pub fn advance(&mut self, batch: &TrainBatch) -> Result<(), TrainError> {
+        self.advance_hooked(batch, None)
     }
 
     /// One iteration on `batch`: forward (training mode, density noise), loss, backward,
     /// `hook`, clip, Adam, schedule, without reading anything back.
-    fn advance(&mut self, batch: &TrainBatch, hook: Option<GradHook>) -> Result<(), TrainError> {
+    fn advance_hooked(
+        &mut self,
+        batch: &TrainBatch,
+        hook: Option<GradHook>,
+    ) -> Result<(), TrainError> {
         let device = self.avatar.device().clone();
         crate::compute::profile::start(&device);
         let chunk = self.chunk_size(batch.rays.origins.dim(0)?);
