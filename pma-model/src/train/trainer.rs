@@ -144,9 +144,9 @@ pub struct Optimization {
     pending: Vec<Pending>,
 }
 
-/// 1 (u8) where `x` is finite: `x − x` is 0 for finite values, NaN for ±inf and NaN.
+/// 1 (u8) where `x` is finite: `0·x` is 0 for finite values, NaN for ±inf and NaN.
 fn finite(x: &Tensor) -> candle_core::Result<Tensor> {
-    (x - x)?.eq(&x.zeros_like()?)
+    x.affine(0.0, 0.0)?.eq(&x.zeros_like()?)
 }
 
 impl Optimization {

@@ -142,8 +142,10 @@ pub fn run(args: &Args, dev: &Device) -> anyhow::Result<()> {
     bar.set_message("one inference pass");
     let batch = source.next_batch()?;
     let avatar = trainer.avatar();
-    let (_, inference) =
-        account::measure(dev, route, || avatar.render_rays(&batch.rays, &batch.poses))?;
+    // The closure returns the model's own (large) error type, which `measure` passes on.
+    #[allow(clippy::result_large_err)]
+    let render = || avatar.render_rays(&batch.rays, &batch.poses);
+    let (_, inference) = account::measure(dev, route, render)?;
     bar.finish_and_clear();
 
     let s = step.summary();

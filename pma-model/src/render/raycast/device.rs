@@ -163,7 +163,8 @@ impl RayCaster {
         .min(D::Minus1)?
         .ne(&Tensor::zeros((p, k, N_JOINTS, 6), DType::F32, dev)?)?;
         let (box_near, box_far, box_hit) = if self.robust_bounds {
-            let finite = (&t - &t)?.eq(&t.zeros_like()?)?;
+            // 0·t is 0 for finite t, NaN for ±inf and NaN.
+            let finite = t.affine(0.0, 0.0)?.eq(&t.zeros_like()?)?;
             let valid = (&inside * &finite)?;
             let t_min = or_const(&valid, &t, f32::INFINITY)?.min(D::Minus1)?;
             let t_max = or_const(&valid, &t, f32::NEG_INFINITY)?.max(D::Minus1)?;
