@@ -37,6 +37,10 @@ struct AccountFile {
     ops_per_step: u64,
     launches_per_step: u64,
     syncs_per_step: u64,
+    /// Syncs of the read-back of a step's numbers, once every `read_every` steps for all of
+    /// them (counted apart from the step).
+    read_back_syncs: u64,
+    read_every: u64,
     /// Explicit uploads plus dims/strides uploads.
     uploads_per_step: u64,
     explicit_uploads_per_step: u64,
@@ -111,10 +115,17 @@ pub fn run(args: &Args, dev: &Device) -> anyhow::Result<()> {
         "one {} training step of {} rays (it runs for real)",
         args.preset, args.rays
     ));
-    let (step, chunks, wall_s, extrapolated_from) = match args.extrapolate_from {
+    let read_every = match route {
+        Route::Cpu => trainer.read_every(),
+        Route::Cuda => match trainer.run_config().train.read_every {
+            0 => pma_model::train::AUTO_READ_EVERY_DEVICE,
+            k => k,
+        },
+    };
+    let (step, chunks, wall_s, extrapolated_from, read_back) = match args.extrapolate_from {
         None => {
             let a = account_step(&mut trainer, &mut source, route)?;
-            (a.report, a.chunks, a.wall_s, None)
+            (a.report, a.chunks, a.wall_s, None, a.read_back)
         }
         Some(n) => {
             let e = account_one_pass_extrapolated(trainer.run_config(), data, dev, route, n)?;
@@ -124,7 +135,7 @@ pub fn run(args: &Args, dev: &Device) -> anyhow::Result<()> {
                     e.from
                 );
             }
-            (e.report, 1, e.wall_s, Some(e.from))
+            (e.report, 1, e.wall_s, Some(e.from), e.read_back)
         }
     };
     bar.inc(1);
@@ -150,6 +161,8 @@ pub fn run(args: &Args, dev: &Device) -> anyhow::Result<()> {
         ops_per_step: total.ops,
         launches_per_step: total.launches,
         syncs_per_step: total.syncs,
+        read_back_syncs: read_back.syncs,
+        read_every,
         uploads_per_step: total.all_uploads(),
         explicit_uploads_per_step: total.uploads,
         param_uploads_per_step: total.param_uploads,
@@ -322,6 +335,11 @@ fn print_tables(f: &AccountFile) {
         "syncs (device -> host reads)",
         f.syncs_per_step.to_string(),
         oc.map(|c| c.syncs.to_string()),
+    );
+    line(
+        &format!("read-back of the numbers (every {} steps)", f.read_every),
+        format!("{} sync(s)", f.read_back_syncs),
+        None,
     );
     line(
         "uploads (explicit + dims/strides)",
