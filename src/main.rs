@@ -76,7 +76,7 @@ fn main() -> ExitCode {
     let result = cli::check_workers(cli.workers).and_then(|()| {
         // Before any candle op: candle sizes its thread pool once.
         pma_model::compute::parallel::configure_cpu(cli.workers);
-        pma_model::compute::fast_sine::set_enabled(cli.fast_sine);
+        cli::set_fast_sine(cli.fast_sine);
         run(cli.command)
     });
     match result {

@@ -183,6 +183,7 @@ mod imp {
             eval_data: Some(dir.join("novel_view.npz")),
             chunk_rays: None,
             device: candle_core::Device::Cpu,
+            numerics: super::super::numerics(),
         };
         let title = format!("pma ablate `{v}`: held-out PSNR vs wall-clock time");
         let outcome = train(&req, args.quiet, &title)?;
@@ -194,7 +195,8 @@ mod imp {
             .iter()
             .filter_map(|r| r.eval_psnr.map(|p| (r.wall_s, p)))
             .collect();
-        let avatar = Avatar::load(&outcome.model, &candle_core::Device::Cpu)?;
+        let avatar = Avatar::load(&outcome.model, &candle_core::Device::Cpu)?
+            .with_numerics(super::super::numerics());
         let parameters = avatar
             .trainable()
             .iter()

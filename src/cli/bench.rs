@@ -315,8 +315,9 @@ mod imp {
     use pma_model::train::{Preset, RunConfig, Trainer};
 
     use super::super::plot::plot_error_vs_time;
-    use super::super::{progress, read_dataset, refuse, write_json};
+    use super::super::{numerics, progress, read_dataset, refuse, write_json};
     use super::*;
+    use pma_model::compute::numerics::Numerics;
 
     /// (name, culling, fast sine): parity, each culling option, then the vectorised sine
     /// alone and with the last (most aggressive) culling option.
@@ -616,7 +617,9 @@ mod imp {
     ) -> anyhow::Result<(Avatar, String)> {
         if let Some(p) = &args.model {
             return Ok((
-                Avatar::load(p, dev).with_context(|| format!("loading {}", p.display()))?,
+                Avatar::load(p, dev)
+                    .with_context(|| format!("loading {}", p.display()))?
+                    .with_numerics(numerics()),
                 p.display().to_string(),
             ));
         }
@@ -625,8 +628,10 @@ mod imp {
             args.train_seconds as u64,
             "training the bench model (s)",
         );
+        let mut run = RunConfig::from_preset(preset);
+        run.numerics = numerics();
         let (trainer, _, _) = train_for(
-            RunConfig::from_preset(preset),
+            run,
             scene.train.clone(),
             args.train_seconds,
             u64::MAX,
@@ -643,7 +648,7 @@ mod imp {
             args.train_seconds
         );
         Ok((
-            Avatar::load(&path, dev)?,
+            Avatar::load(&path, dev)?.with_numerics(numerics()),
             format!("{} (trained in-process)", path.display()),
         ))
     }
@@ -702,8 +707,16 @@ mod imp {
         let render = |a: &Avatar| -> anyhow::Result<RenderedImage> {
             Ok(a.render_image(&view.poses, &view.kp3d, &view.cam, None, &view.opts)?)
         };
+        // Each option's numerics on a new avatar over the same tensors.
         let set = |a: &mut Avatar, (_, culling, fast_sine): &(String, Culling, bool)| {
-            pma_model::compute::fast_sine::set_enabled(*fast_sine);
+            let k = Numerics {
+                fast_sine: *fast_sine,
+                ..numerics()
+            };
+            if a.numerics() != k {
+                *a = Avatar::from_tensors(a.config().clone(), a.tensors(), a.device())?
+                    .with_numerics(k);
+            }
             a.set_culling(culling.clone()).map_err(anyhow::Error::from)
         };
         let b = progress::bar(
@@ -776,8 +789,7 @@ mod imp {
             res.gflops = points * flops_per_point / sec / 1e9;
         }
         b.finish_and_clear();
-        pma_model::compute::fast_sine::set_enabled(false);
-        avatar.set_culling(Culling::default())?;
+        set(avatar, &(String::new(), Culling::default(), false))?;
         Ok(results)
     }
 
@@ -796,8 +808,11 @@ mod imp {
         let b = progress::bar(args.quiet, opts.len() as u64, "training per option");
         for (res, (name, culling, fast_sine)) in results.iter_mut().zip(opts) {
             b.set_message(format!("train {name}"));
-            pma_model::compute::fast_sine::set_enabled(*fast_sine);
             let mut run = RunConfig::from_preset(preset);
+            run.numerics = Numerics {
+                fast_sine: *fast_sine,
+                ..numerics()
+            };
             run.model = cfg.clone();
             run.model.culling = culling.clone();
             let samples_per_step =
@@ -827,7 +842,8 @@ mod imp {
                     trainer.avatar().config().clone(),
                     trainer.avatar().tensors(),
                     &dev,
-                )?;
+                )?
+                .with_numerics(trainer.run_config().numerics);
                 a.set_culling(culling.clone())?;
                 let (p, l) = heldout_psnr(&a, &scene.held, &scene.eval_set)?;
                 res.budget_heldout_psnr = Some(p);
@@ -837,7 +853,6 @@ mod imp {
             b.inc(1);
         }
         b.finish_and_clear();
-        pma_model::compute::fast_sine::set_enabled(false);
         Ok(())
     }
 

@@ -225,6 +225,7 @@ pub(crate) mod imp {
             eval_data: Some(scene.join("novel_view.npz")),
             chunk_rays: None,
             device: device.clone(),
+            numerics: super::super::numerics(),
         };
         let outcome = train(
             &req,
@@ -250,7 +251,7 @@ pub(crate) mod imp {
         device: &candle_core::Device,
     ) -> anyhow::Result<BTreeMap<String, SplitSummary>> {
         let renders = out.join("renders");
-        let avatar = Avatar::load(model, device)?;
+        let avatar = Avatar::load(model, device)?.with_numerics(super::super::numerics());
         let baseline =
             mean_foreground_colour(&read_dataset(&scene.join("train.npz"), Profile::Eval)?)?;
         std::fs::create_dir_all(&renders)

@@ -105,7 +105,8 @@ pub fn run(mut args: Args) -> anyhow::Result<()> {
             .output_opt("--freq-png", args.freq_png.as_deref()),
     )?;
     let mut avatar = Avatar::load(&args.model, &device)
-        .with_context(|| format!("loading model {}", args.model.display()))?;
+        .with_context(|| format!("loading model {}", args.model.display()))?
+        .with_numerics(super::numerics());
     avatar.set_culling(args.cull.clone())?;
     let data = read_dataset(&data_path, Profile::Eval)?;
     let images = split_images(&data, &data_path, &split)?;

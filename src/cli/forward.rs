@@ -287,7 +287,7 @@ fn load_model(args: &Args, rest: &[f32], file: &str, dev: &candle_core::Device) 
             }
         }
     }
-    Ok(Avatar::from_tensors(ck.config, tensors, dev)?)
+    Ok(Avatar::from_tensors(ck.config, tensors, dev)?.with_numerics(super::numerics()))
 }
 
 /// `--time`: more forwards, and their median wall time.

@@ -200,7 +200,8 @@ pub fn run(mut args: Args) -> anyhow::Result<()> {
         ViewDirs::Normalized
     };
     let mut avatar = load_avatar(&args.model, &device, dirs)
-        .with_context(|| format!("loading model {}", args.model.display()))?;
+        .with_context(|| format!("loading model {}", args.model.display()))?
+        .with_numerics(super::numerics());
     avatar.set_culling(args.cull.clone())?;
 
     let data = match &args.data {

@@ -150,6 +150,7 @@ mod imp {
             eval_data,
             chunk_rays: args.chunk_rays,
             device: super::super::device_tf32(&args.device, args.tf32)?,
+            numerics: super::super::numerics(),
         };
         let outcome = train(
             &req,

@@ -19,43 +19,35 @@
 //! What a backward needs from its forward (the arg-max, cos of the sine's argument) is kept
 //! once and used once; a second backward over the same graph computes it again.
 //!
-//! They run on CPU in f32; other devices and dtypes take the plain path, as does a CPU run
-//! accounted as CUDA ([`crate::compute::account`]).
-//! [`set_enabled`]`(false)` forces the plain path everywhere, for A/B measurements.
+//! They run on CPU in f32 when the network's [`Numerics::fused`] is on; other devices and
+//! dtypes take the plain path, as does a CPU run accounted as CUDA
+//! ([`crate::compute::account`]).
 
-use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 
 use candle_core::{CpuStorage, CustomOp2, CustomOp3, DType, Layout, Shape, Storage, Tensor};
 
+use crate::compute::numerics::Numerics;
 use crate::compute::ops::f32_slice;
 use crate::error::Result;
 
-static ENABLED: AtomicBool = AtomicBool::new(true);
-
-/// Turns the fused CPU kernels on (the default) or off (plain candle ops everywhere).
-pub fn set_enabled(on: bool) {
-    ENABLED.store(on, Ordering::Relaxed);
-}
-
-/// Whether the fused kernels are in use.
-pub fn enabled() -> bool {
-    ENABLED.load(Ordering::Relaxed)
-}
-
 /// The fused kernels are CPU-only: tensors elsewhere, and runs accounted as CUDA, take the
 /// plain ops.
-fn applies(ts: &[&Tensor]) -> bool {
-    enabled()
-        && !crate::compute::account::emulates_cuda()
+fn applies(k: Numerics, ts: &[&Tensor]) -> bool {
+    k.fused && cpu_f32(ts)
+}
+
+/// Whether `ts` are f32 tensors on the CPU's route.
+fn cpu_f32(ts: &[&Tensor]) -> bool {
+    !crate::compute::account::emulates_cuda()
         && ts
             .iter()
             .all(|t| t.device().is_cpu() && t.dtype() == DType::F32)
 }
 
 /// `y + b` broadcast over rows: y: [rows,out], b: [out] -> [rows,out].
-pub fn add_bias(y: &Tensor, b: &Tensor) -> Result<Tensor> {
-    if !applies(&[y, b]) || y.rank() != 2 || b.rank() != 1 {
+pub fn add_bias(y: &Tensor, b: &Tensor, k: Numerics) -> Result<Tensor> {
+    if !applies(k, &[y, b]) || y.rank() != 2 || b.rank() != 1 {
         return Ok(y.broadcast_add(b)?);
     }
     Ok(y.contiguous()?.apply_op2(&b.contiguous()?, BiasAdd)?)
@@ -64,7 +56,7 @@ pub fn add_bias(y: &Tensor, b: &Tensor) -> Result<Tensor> {
 /// `max_j (q[n,j,:] + g[p(n),j,:]) · w_p[n,j]`: q: [N,J,H], g: [P,J,H], w_p: [N,J] -> [N,H],
 /// the N points grouped by pose in P equal blocks (point n belongs to pose `n / (N/P)`).
 /// No gradient flows to `w_p` (the reference detaches the spatial window).
-pub fn window_pool(q: &Tensor, g: &Tensor, w_p: &Tensor) -> Result<Tensor> {
+pub fn window_pool(q: &Tensor, g: &Tensor, w_p: &Tensor, k: Numerics) -> Result<Tensor> {
     let (n, j, h) = q.dims3()?;
     let p = g.dim(0)?;
     if g.dims() != [p, j, h] || p == 0 || n % p != 0 {
@@ -83,7 +75,7 @@ pub fn window_pool(q: &Tensor, g: &Tensor, w_p: &Tensor) -> Result<Tensor> {
             .broadcast_mul(&w_p.unsqueeze(candle_core::D::Minus1)?)?
             .max(1)?)
     };
-    if !applies(&[q, g, w_p]) {
+    if !applies(k, &[q, g, w_p]) {
         return plain();
     }
     let (q, g) = (q.contiguous()?, g.contiguous()?);
@@ -128,14 +120,8 @@ struct HeadGrad {
 
 impl FilmHead {
     /// `o`: [N,2·K·f] for K = `n_layers`; γ = `mul`·Θ + `add`.
-    pub fn new(o: &Tensor, n_layers: usize, (mul, add): (f64, f64)) -> Self {
-        Self::with(
-            o,
-            n_layers,
-            (mul, add),
-            crate::compute::fast_sine::enabled(),
-            applies(&[o]),
-        )
+    pub fn new(o: &Tensor, n_layers: usize, (mul, add): (f64, f64), k: Numerics) -> Self {
+        Self::with(o, n_layers, (mul, add), k.fast_sine, applies(k, &[o]))
     }
 
     /// [`Self::new`] with the sine flavour and the kernel choice made by the caller.
@@ -180,11 +166,11 @@ impl FilmHead {
             && k < n_layers
             && o.dim(1)? == 2 * n_layers * f
             && o.dim(0)? == pre.dim(0)?;
-        if !(self.fused && fits && applies(&[pre])) {
+        if !(self.fused && fits && cpu_f32(&[pre])) {
             let theta = o.narrow(1, k * f, f)?;
             let phi = o.narrow(1, (n_layers + k) * f, f)?;
             let arg = (pre * theta.affine(mul, add)?)?.add(&phi)?;
-            return crate::compute::fast_sine::sin_flavour(&arg, self.fast);
+            return crate::compute::fast_sine::sin(&arg, self.fast);
         }
         let (pre, o) = (pre.contiguous()?, o.contiguous()?);
         let op = FilmSine {
@@ -601,8 +587,8 @@ mod tests {
             let b = Var::from_tensor(&rand(&[out], 5)).unwrap();
             let (m, z) = if fused {
                 (
-                    window_pool(q.as_tensor(), g.as_tensor(), &w).unwrap(),
-                    add_bias(y.as_tensor(), b.as_tensor()).unwrap(),
+                    window_pool(q.as_tensor(), g.as_tensor(), &w, Numerics::PARITY).unwrap(),
+                    add_bias(y.as_tensor(), b.as_tensor(), Numerics::PARITY).unwrap(),
                 )
             } else {
                 let part = q
@@ -649,7 +635,7 @@ mod tests {
         assert_eq!(max_abs(&a.4, &b.4), 0.0, "grad y");
         assert_eq!(max_abs(&a.5, &b.5), 0.0, "grad bias");
         // The kernels actually ran (they are off when disabled or for other dtypes).
-        assert!(applies(&[&a.0]));
+        assert!(applies(Numerics::PARITY, &[&a.0]));
     }
 
     /// The fused FiLM-sine layer gives the plain ops' values and gradients bit for bit, with
@@ -723,7 +709,11 @@ mod tests {
             // What the network's linear layer computes: x Wᵀ, then the bias.
             let linear = |k: usize, h: &Tensor| {
                 let (w, b) = &vars[k];
-                add_bias(&h.matmul(&w.as_tensor().t()?)?, b.as_tensor())
+                add_bias(
+                    &h.matmul(&w.as_tensor().t()?)?,
+                    b.as_tensor(),
+                    Numerics::PARITY,
+                )
             };
             let head = FilmHead::with(o.as_tensor(), kk, (15.0, 30.0), false, fused);
             let outs = head.stack(x.as_tensor(), linear).unwrap();
@@ -780,13 +770,17 @@ mod tests {
         let mut wv = vec![0.5f32; 12];
         wv[5] = f32::NAN;
         let w = Tensor::from_vec(wv, (3, 4), &Device::Cpu).unwrap();
-        let m = window_pool(&q, &g, &w).unwrap().to_vec2::<f32>().unwrap();
+        let m = window_pool(&q, &g, &w, Numerics::PARITY)
+            .unwrap()
+            .to_vec2::<f32>()
+            .unwrap();
         assert!(m[1].iter().all(|v| v.is_nan()), "row 1 has a NaN window");
         assert!(m[0].iter().chain(&m[2]).all(|v| v.is_finite()));
         let m64 = window_pool(
             &q.to_dtype(DType::F64).unwrap(),
             &g.to_dtype(DType::F64).unwrap(),
             &w.to_dtype(DType::F64).unwrap(),
+            Numerics::PARITY,
         )
         .unwrap();
         assert_eq!(m64.dtype(), DType::F64);

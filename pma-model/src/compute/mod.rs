@@ -6,6 +6,7 @@
 //!
 //! | module | what |
 //! | --- | --- |
+//! | [`numerics`] | a network's numeric choices: fused kernels, fast sine, row ops, TF32 |
 //! | [`fused`] | fused CPU kernels: the window max-pool, the FiLM-sine stack, bias adds |
 //! | [`libm_sine`] | glibc's sinf/cosf recipe, lane-wise (bit-identical, vectorised) |
 //! | [`fast_sine`] | the sine op; the optional polynomial sine (`--fast-sine`, not parity) |
@@ -24,6 +25,7 @@ pub mod flops;
 pub mod fused;
 pub mod host;
 pub mod libm_sine;
+pub mod numerics;
 pub mod ops;
 pub mod parallel;
 pub mod profile;

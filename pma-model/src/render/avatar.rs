@@ -66,6 +66,19 @@ impl Avatar {
         })
     }
 
+    /// The same avatar computing with `numerics` (kernels, sine, TF32) in every later pass.
+    pub fn with_numerics(self, numerics: crate::compute::numerics::Numerics) -> Self {
+        Self {
+            net: self.net.with_numerics(numerics),
+            ..self
+        }
+    }
+
+    /// How the avatar computes.
+    pub fn numerics(&self) -> crate::compute::numerics::Numerics {
+        self.net.numerics()
+    }
+
     /// The same avatar with every tensor converted to `dtype` (f16/bf16 inference, f64
     /// checks). Inputs are converted at the forward entry points, and the ray caster keeps
     /// working in f32.
@@ -218,7 +231,7 @@ impl Avatar {
         let raw_fine = points.run(&self.net, pose, &fine.pts, &view, mode, "fine", tr)?;
         prof("fine network", self.device());
         // 5. Merge with the coarse outputs (reused, noise included) and render again.
-        let raw = merge_raw(&raw_coarse, &raw_fine, &fine.perm)?;
+        let raw = merge_raw(&raw_coarse, &raw_fine, &fine.perm, self.net.numerics())?;
         let render_fine = raw2outputs(&raw, &fine.z_all, &rays.dirs, rays.bgs.as_ref())?;
         prof("merge + fine render", self.device());
         self.points_evaluated

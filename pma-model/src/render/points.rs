@@ -17,6 +17,7 @@
 use candle_core::{DType, Tensor};
 
 use crate::compute::host::host_f32;
+use crate::compute::ops::select_rows;
 use crate::error::{ModelError, Result};
 use crate::network::config::{Culling, SampleFill};
 use crate::network::trace::Trace;
@@ -214,6 +215,8 @@ pub(crate) struct CullCtx {
     consts: ConstRows,
     /// Points this route sent through the network (far-away constants included).
     evaluated: usize,
+    /// The network's numerics (its row gathers).
+    numerics: crate::compute::numerics::Numerics,
 }
 
 /// Network outputs at the far-away point, one row per ray that needed one.
@@ -285,6 +288,7 @@ impl CullCtx {
             fill: c.sample_fill,
             consts: ConstRows::default(),
             evaluated: 0,
+            numerics: net.numerics(),
         })
     }
 
@@ -439,8 +443,8 @@ impl CullCtx {
             Tensor::cat(&[pts_flat, far], 0)?
         };
         Ok(Plan {
-            pts: crate::compute::ops::select_rows(&source, &Tensor::from_vec(src, rows, dev)?)?,
-            view: crate::compute::ops::select_rows(view, &Tensor::from_vec(rays_of, rows, dev)?)?,
+            pts: select_rows(&source, &Tensor::from_vec(src, rows, dev)?, self.numerics)?,
+            view: select_rows(view, &Tensor::from_vec(rays_of, rows, dev)?, self.numerics)?,
             jobs,
         })
     }
@@ -551,8 +555,8 @@ impl CullCtx {
         let n = fates.len();
         let idx = Tensor::from_vec(idx, n, dev)?;
         // Row gathers whose backward (training with culling) is parallel on CUDA.
-        let rgb = crate::compute::ops::select_rows(&Tensor::cat(&rgb_rows, 0)?, &idx)?;
-        let sigma_raw = crate::compute::ops::select_rows(&Tensor::cat(&sigma_rows, 0)?, &idx)?;
+        let rgb = select_rows(&Tensor::cat(&rgb_rows, 0)?, &idx, self.numerics)?;
+        let sigma_raw = select_rows(&Tensor::cat(&sigma_rows, 0)?, &idx, self.numerics)?;
         Ok((rgb, sigma_raw, any_zero))
     }
 
@@ -705,6 +709,7 @@ mod tests {
             fill: SampleFill::Network,
             consts: ConstRows::default(),
             evaluated: 0,
+            numerics: Default::default(),
         };
         let bits = |x: &[f32]| x.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
         let reference = per_call_rows(

@@ -438,7 +438,8 @@ impl Trainer {
             ))
         })?;
         let source = Self::dataset_source(&run, data, device)?;
-        let avatar = Avatar::new(run.model.clone(), &rest, run.train.seed, device)?;
+        let avatar = Avatar::new(run.model.clone(), &rest, run.train.seed, device)?
+            .with_numerics(run.numerics);
         Self::with_source(run, avatar, source)
     }
 
