@@ -75,12 +75,27 @@ pub fn window_pool(q: &Tensor, g: &Tensor, w_p: &Tensor, k: Numerics) -> Result<
             .broadcast_mul(&w_p.unsqueeze(candle_core::D::Minus1)?)?
             .max(1)?)
     };
-    if !applies(k, &[q, g, w_p]) {
+    if !(applies(k, &[q, g, w_p]) || applies_cuda(k, &[q, g, w_p])) {
         return plain();
     }
     let (q, g) = (q.contiguous()?, g.contiguous()?);
-    let arg = crate::compute::ops::Kept::new(q.track_op() || g.track_op());
-    Ok(q.apply_op3(&g, &w_p.detach().contiguous()?, WindowPool { arg })?)
+    let tracked = q.track_op() || g.track_op();
+    let op = WindowPool {
+        arg: crate::compute::ops::Kept::new(tracked),
+        #[cfg(feature = "cuda")]
+        arg_dev: crate::compute::ops::Kept::new(tracked),
+    };
+    Ok(q.apply_op3(&g, &w_p.detach().contiguous()?, op)?)
+}
+
+/// Whether `ts` are f32 tensors on CUDA and the network asks for fused kernels: the
+/// kernels of [`crate::compute::cuda`] (which exist in a `cuda` build only).
+fn applies_cuda(k: Numerics, ts: &[&Tensor]) -> bool {
+    k.fused
+        && cfg!(feature = "cuda")
+        && ts
+            .iter()
+            .all(|t| t.device().is_cuda() && t.dtype() == DType::F32)
 }
 
 /// The pose extractor's head `o` = [Θ_0..Θ_{K-1}, Φ_0..Φ_{K-1}] (each block `f` wide), as
@@ -404,6 +419,9 @@ impl CustomOp2 for BiasAdd {
 /// of every output for the backward, which then need not pool again.
 struct WindowPool {
     arg: crate::compute::ops::Kept<Vec<u32>>,
+    /// The arg-max of a CUDA forward, on the device.
+    #[cfg(feature = "cuda")]
+    arg_dev: crate::compute::ops::Kept<crate::compute::cuda::ArgMax>,
 }
 
 /// One point's pooled row: `best[k] = max_j (q[j,k] + g[j,k]) · w[j]` and the first joint
@@ -477,6 +495,28 @@ impl CustomOp3 for WindowPool {
         Ok((CpuStorage::F32(dst), Shape::from((n, h))))
     }
 
+    #[cfg(feature = "cuda")]
+    fn cuda_fwd(
+        &self,
+        s1: &candle_core::CudaStorage,
+        l1: &Layout,
+        s2: &candle_core::CudaStorage,
+        l2: &Layout,
+        s3: &candle_core::CudaStorage,
+        l3: &Layout,
+    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
+        let (n, j, h) = l1.shape().dims3()?;
+        let (p, j2, h2) = l2.shape().dims3()?;
+        if j2 != j || h2 != h || p == 0 || n % p != 0 || l3.shape().dims2()? != (n, j) {
+            candle_core::bail!("window pool: shapes do not agree with q [{n},{j},{h}]")
+        }
+        candle_core::account::report_launches(1, 0);
+        let (out, arg) =
+            crate::compute::cuda::window_pool(s1, l1, s2, l2, s3, l3, [n, j, h, n / p])?;
+        self.arg_dev.put(arg);
+        Ok((out, Shape::from((n, h))))
+    }
+
     fn bwd(
         &self,
         q: &Tensor,
@@ -485,6 +525,10 @@ impl CustomOp3 for WindowPool {
         _res: &Tensor,
         grad: &Tensor,
     ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+        #[cfg(feature = "cuda")]
+        if q.device().is_cuda() {
+            return self.cuda_bwd(q, g, w_p, grad);
+        }
         let (n, j, h) = q.dims3()?;
         let poses = g.dim(0)?;
         let per_pose = n / poses;
@@ -526,6 +570,114 @@ impl CustomOp3 for WindowPool {
         let gq = Tensor::from_vec(gq, (n, j, h), q_c.device())?;
         let gg = Tensor::from_vec(gg, (poses, j, h), g_c.device())?;
         Ok((Some(gq), Some(gg), None))
+    }
+}
+
+#[cfg(feature = "cuda")]
+impl WindowPool {
+    /// The CUDA backward: the forward's arg-max (or the forward's kernel again, for a second
+    /// backward), then one kernel per gradient.
+    fn cuda_bwd(
+        &self,
+        q: &Tensor,
+        g: &Tensor,
+        w_p: &Tensor,
+        grad: &Tensor,
+    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+        let (n, j, h) = q.dims3()?;
+        let p = g.dim(0)?;
+        let w = w_p.contiguous()?;
+        let arg = match self.arg_dev.take() {
+            Some(a) => a,
+            None => {
+                let (q, g) = (q.contiguous()?, g.contiguous()?);
+                let guards = [&q, &g, &w].map(|t| t.storage_and_layout());
+                let cuda = |i: usize| match &*guards[i].0 {
+                    Storage::Cuda(c) => Ok(c),
+                    _ => Err(candle_core::Error::Msg(
+                        "window pool: expected CUDA tensors".into(),
+                    )),
+                };
+                let (_, arg) = crate::compute::cuda::window_pool(
+                    cuda(0)?,
+                    guards[0].1,
+                    cuda(1)?,
+                    guards[1].1,
+                    cuda(2)?,
+                    guards[2].1,
+                    [n, j, h, n / p],
+                )?;
+                arg
+            }
+        };
+        let grad = grad.contiguous()?;
+        let gq = grad.apply_op2_no_bwd(
+            &w,
+            &PoolGrad {
+                arg: arg.clone(),
+                dims: [n, p, j, h],
+                of_g: false,
+            },
+        )?;
+        let gg = grad.apply_op2_no_bwd(
+            &w,
+            &PoolGrad {
+                arg,
+                dims: [n, p, j, h],
+                of_g: true,
+            },
+        )?;
+        Ok((Some(gq), Some(gg), None))
+    }
+}
+
+/// One gradient of the CUDA window pool (of q, or of g when `of_g`), from the upstream
+/// gradient and the spatial window: a kernel of `window_pool.cu`.
+#[cfg(feature = "cuda")]
+struct PoolGrad {
+    arg: crate::compute::cuda::ArgMax,
+    /// N, P, J, H.
+    dims: [usize; 4],
+    of_g: bool,
+}
+
+#[cfg(feature = "cuda")]
+impl CustomOp2 for PoolGrad {
+    fn name(&self) -> &'static str {
+        "pma-window-pool-grad"
+    }
+
+    fn cpu_fwd(
+        &self,
+        _: &CpuStorage,
+        _: &Layout,
+        _: &CpuStorage,
+        _: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        candle_core::bail!("window pool gradient: the CUDA kernel got CPU tensors")
+    }
+
+    fn cuda_fwd(
+        &self,
+        s1: &candle_core::CudaStorage,
+        l1: &Layout,
+        s2: &candle_core::CudaStorage,
+        l2: &Layout,
+    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
+        let [n, p, j, h] = self.dims;
+        if l1.shape().dims2()? != (n, h) || l2.shape().dims2()? != (n, j) {
+            candle_core::bail!("window pool gradient: shapes do not agree with [{n},{j},{h}]")
+        }
+        candle_core::account::report_launches(1, 0);
+        if self.of_g {
+            let out =
+                crate::compute::cuda::window_pool_grad_g(s1, l1, s2, l2, &self.arg, self.dims)?;
+            Ok((out, Shape::from((p, j, h))))
+        } else {
+            let out =
+                crate::compute::cuda::window_pool_grad_q(s1, l1, s2, l2, &self.arg, [n, j, h])?;
+            Ok((out, Shape::from((n, j, h))))
+        }
     }
 }
 

@@ -12,7 +12,8 @@
 //! (rows in index order, each accumulated from zero), so forward values and gradients are
 //! bit-identical to the plain ops (`tests` below). On CUDA, rows that share an index (all
 //! rays of an image share its frame code) are summed in no fixed order: the gradient can
-//! differ from run to run by float rounding. Other dtypes and devices take the plain ops.
+//! differ from run to run by float rounding, unless [`Numerics::deterministic`] asks for
+//! the ordered kernel. Other dtypes and devices take the plain ops.
 //!
 //! The kernels (`kernels/rows.cu`) are compiled at run time with NVRTC, once per process;
 //! `scripts/check-cuda-kernels.sh` compiles them with nvcc ahead of time.
@@ -290,6 +291,7 @@ mod cuda {
 
     /// Run `kernel` (one of rows.cu's, same argument list) with values s1 and ids s2 into a
     /// zeroed f32 buffer of `out_len` elements, over `threads` elements (grid-stride).
+    #[allow(clippy::too_many_arguments)]
     pub(super) fn launch(
         kernel: &str,
         s1: &CudaStorage,

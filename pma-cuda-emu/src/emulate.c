@@ -1,0 +1,56 @@
+/* pma-model's CUDA kernels as host C: the qualifiers are defined away, the grid variables
+ * are globals, and each pma_emu_* entry point runs its kernel once per (block, thread) of
+ * the grid it is given, sequentially (the kernels use no shared memory, no barriers and no
+ * atomics, so this is every interleaving's result). */
+#include <stdbool.h>
+
+typedef struct {
+    unsigned int x, y, z;
+} pma_dim3;
+
+static pma_dim3 blockIdx, threadIdx, blockDim, gridDim;
+
+#define PMA_KERNEL static
+static inline float __fmul_rn(float a, float b) { return a * b; }
+static inline float __fadd_rn(float a, float b) { return a + b; }
+
+#include "window_pool.cu"
+
+#define PMA_GRID(blocks, threads, call)                                 \
+    do {                                                                \
+        gridDim.x = (blocks);                                           \
+        blockDim.x = (threads);                                         \
+        gridDim.y = gridDim.z = blockDim.y = blockDim.z = 1;            \
+        for (unsigned int b_ = 0; b_ < (blocks); ++b_) {                \
+            for (unsigned int t_ = 0; t_ < (threads); ++t_) {           \
+                blockIdx.x = b_;                                        \
+                threadIdx.x = t_;                                       \
+                call;                                                   \
+            }                                                           \
+        }                                                               \
+    } while (0)
+
+void pma_emu_window_pool_f32(const float *q, const float *g, const float *w, float *out,
+                             unsigned int *arg, unsigned int n, unsigned int j,
+                             unsigned int h, unsigned int per_pose, unsigned int blocks,
+                             unsigned int threads)
+{
+    PMA_GRID(blocks, threads, pma_window_pool_f32(q, g, w, out, arg, n, j, h, per_pose));
+}
+
+void pma_emu_window_pool_grad_q_f32(const float *grad, const float *w,
+                                    const unsigned int *arg, float *grad_q, unsigned int n,
+                                    unsigned int j, unsigned int h, unsigned int blocks,
+                                    unsigned int threads)
+{
+    PMA_GRID(blocks, threads, pma_window_pool_grad_q_f32(grad, w, arg, grad_q, n, j, h));
+}
+
+void pma_emu_window_pool_grad_g_f32(const float *grad, const float *w,
+                                    const unsigned int *arg, float *grad_g, unsigned int p,
+                                    unsigned int j, unsigned int h, unsigned int per_pose,
+                                    unsigned int blocks, unsigned int threads)
+{
+    PMA_GRID(blocks, threads,
+             pma_window_pool_grad_g_f32(grad, w, arg, grad_g, p, j, h, per_pose));
+}

@@ -1,0 +1,167 @@
+//! pma-model's CUDA kernels (`pma-model/src/compute/cuda/kernels/*.cu`) compiled for the
+//! host and run over an emulated grid: every (block, thread) pair of a [`Grid`] runs the
+//! kernel body once, in sequence. The kernels are grid-stride loops without shared memory,
+//! barriers or atomics, so the result is what any launch of that grid computes on a GPU,
+//! up to the device's own rounding of library functions (none in the kernels here).
+//!
+//! A test-only crate: the tests in `tests/` run each kernel against pma-model's CPU op on
+//! random shapes. pma itself launches the same sources through NVRTC (`cuda` feature).
+
+use std::os::raw::c_uint;
+
+/// A launch shape: `blocks` blocks of `threads` threads (x only).
+#[derive(Debug, Clone, Copy)]
+pub struct Grid {
+    pub blocks: u32,
+    pub threads: u32,
+}
+
+impl Grid {
+    /// The launch pma uses for `elements` outputs: `threads` per block, enough blocks
+    /// for one element per thread up to `max_blocks` (the grid-stride loop does the rest).
+    pub fn covering(elements: usize, threads: u32, max_blocks: u32) -> Self {
+        let blocks = elements
+            .div_ceil(threads as usize)
+            .clamp(1, max_blocks as usize) as u32;
+        Self { blocks, threads }
+    }
+}
+
+extern "C" {
+    fn pma_emu_window_pool_f32(
+        q: *const f32,
+        g: *const f32,
+        w: *const f32,
+        out: *mut f32,
+        arg: *mut c_uint,
+        n: c_uint,
+        j: c_uint,
+        h: c_uint,
+        per_pose: c_uint,
+        blocks: c_uint,
+        threads: c_uint,
+    );
+    fn pma_emu_window_pool_grad_q_f32(
+        grad: *const f32,
+        w: *const f32,
+        arg: *const c_uint,
+        grad_q: *mut f32,
+        n: c_uint,
+        j: c_uint,
+        h: c_uint,
+        blocks: c_uint,
+        threads: c_uint,
+    );
+    fn pma_emu_window_pool_grad_g_f32(
+        grad: *const f32,
+        w: *const f32,
+        arg: *const c_uint,
+        grad_g: *mut f32,
+        p: c_uint,
+        j: c_uint,
+        h: c_uint,
+        per_pose: c_uint,
+        blocks: c_uint,
+        threads: c_uint,
+    );
+}
+
+/// Sizes of one window pool: N points in P poses of `n / p` points, J joints, H features.
+#[derive(Debug, Clone, Copy)]
+pub struct PoolDims {
+    pub n: usize,
+    pub p: usize,
+    pub j: usize,
+    pub h: usize,
+}
+
+impl PoolDims {
+    fn check(&self) -> [c_uint; 5] {
+        let Self { n, p, j, h } = *self;
+        assert!(
+            p > 0 && j > 0 && n % p == 0,
+            "window pool: bad dims {self:?}"
+        );
+        [n, p, j, h, n / p].map(|v| c_uint::try_from(v).expect("dims fit the kernel's u32"))
+    }
+}
+
+/// `window_pool.cu`'s forward: (max [N,H], arg-max joint [N,H]).
+pub fn window_pool(
+    q: &[f32],
+    g: &[f32],
+    w: &[f32],
+    d: PoolDims,
+    grid: Grid,
+) -> (Vec<f32>, Vec<u32>) {
+    let [n, p, j, h, per_pose] = d.check();
+    assert_eq!(q.len(), d.n * d.j * d.h, "q");
+    assert_eq!(g.len(), d.p * d.j * d.h, "g");
+    assert_eq!(w.len(), d.n * d.j, "w");
+    let _ = p;
+    let mut out = vec![f32::NAN; d.n * d.h];
+    let mut arg = vec![u32::MAX; d.n * d.h];
+    // SAFETY: every buffer has the length the kernel indexes for these dims (checked above).
+    unsafe {
+        pma_emu_window_pool_f32(
+            q.as_ptr(),
+            g.as_ptr(),
+            w.as_ptr(),
+            out.as_mut_ptr(),
+            arg.as_mut_ptr(),
+            n,
+            j,
+            h,
+            per_pose,
+            grid.blocks,
+            grid.threads,
+        )
+    };
+    (out, arg)
+}
+
+/// `window_pool.cu`'s backward: (grad q [N,J,H], grad g [P,J,H]) from the upstream
+/// gradient [N,H] and the forward's arg-max.
+pub fn window_pool_grad(
+    grad: &[f32],
+    w: &[f32],
+    arg: &[u32],
+    d: PoolDims,
+    grid_q: Grid,
+    grid_g: Grid,
+) -> (Vec<f32>, Vec<f32>) {
+    let [n, p, j, h, per_pose] = d.check();
+    assert_eq!(grad.len(), d.n * d.h, "grad");
+    assert_eq!(arg.len(), d.n * d.h, "arg");
+    assert_eq!(w.len(), d.n * d.j, "w");
+    // Poisoned, so that an element no thread writes shows.
+    let mut gq = vec![f32::NAN; d.n * d.j * d.h];
+    let mut gg = vec![f32::NAN; d.p * d.j * d.h];
+    // SAFETY: every buffer has the length the kernels index for these dims (checked above).
+    unsafe {
+        pma_emu_window_pool_grad_q_f32(
+            grad.as_ptr(),
+            w.as_ptr(),
+            arg.as_ptr(),
+            gq.as_mut_ptr(),
+            n,
+            j,
+            h,
+            grid_q.blocks,
+            grid_q.threads,
+        );
+        pma_emu_window_pool_grad_g_f32(
+            grad.as_ptr(),
+            w.as_ptr(),
+            arg.as_ptr(),
+            gg.as_mut_ptr(),
+            p,
+            j,
+            h,
+            per_pose,
+            grid_g.blocks,
+            grid_g.threads,
+        );
+    }
+    (gq, gg)
+}
