@@ -45,7 +45,7 @@ fn loads_reference_export_and_infers_config() {
         .sum();
     assert_eq!(
         n_params, 3_111_524,
-        "spec §8.1 / golden README parameter count"
+        "golden README parameter count"
     );
 }
 
