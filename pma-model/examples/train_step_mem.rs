@@ -30,7 +30,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     run.train.images_per_step = images;
     run.train.chunk_rays = chunk;
     let mut trainer = Trainer::new(run, data, &Device::Cpu)?;
-    let eff = chunk_rays(&trainer.run_config().train, &trainer.run_config().model);
+    let eff = chunk_rays(
+        &trainer.run_config().train,
+        &trainer.run_config().model,
+        &Device::Cpu,
+    );
     println!(
         "paper config, {rays} rays from {images} images per step, chunks of {} rays, {} threads; peak RSS before training {:.0} MiB",
         eff.min(rays),
@@ -39,7 +43,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     );
     for _ in 0..steps {
         let t = Instant::now();
-        let s = trainer.step()?;
+        let s = trainer.step_read()?;
         println!(
             "step {}: {:.2} s, loss {:.4}, peak RSS so far {:.0} MiB",
             s.iter,

@@ -204,7 +204,7 @@ impl TrainObserver for Terminal<'_> {
     }
 
     fn step(&mut self, r: &StepReport) {
-        self.bar.set_position(r.stats.iter);
+        self.bar.set_position(r.iter);
         let (loss, psnr) = r.ema.unwrap_or((f64::NAN, f64::NAN));
         self.bar.set_message(format!(
             "{:.2} it/s  loss {loss:.4}  train PSNR {psnr:.2} dB  ETA {}",

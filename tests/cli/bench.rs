@@ -216,8 +216,10 @@ fn account_writes_the_step_counts() {
     assert!(text.contains("official (32 rays)"), "{text}");
     let json: serde_json::Value =
         serde_json::from_slice(&std::fs::read(dir.path().join("account.json")).unwrap()).unwrap();
-    // The tiny step in one pass: 11 read-backs (as tests/model/account.rs counts them).
-    assert_eq!(json["syncs_per_step"], 11);
+    // The tiny step in one pass reads nothing back inside it; its numbers come back in one
+    // read (as tests/model/account.rs counts them).
+    assert_eq!(json["syncs_per_step"], 0);
+    assert_eq!(json["read_back_syncs"], 1);
     assert_eq!(json["account_as"], "cuda");
     for key in [
         "ops_per_step",

@@ -88,7 +88,7 @@ fn training_resumes_from_a_converted_reference_checkpoint() {
     let before: Vec<(Vec<f32>, Vec<f32>)> = names
         .iter()
         .map(|n| {
-            let s = trainer.optimizer().state(n).unwrap();
+            let s = trainer.optimizer().state(n).unwrap().unwrap();
             assert_eq!(s.step, 1234, "{n}");
             (flat(&s.exp_avg), flat(&s.exp_avg_sq))
         })
@@ -96,12 +96,12 @@ fn training_resumes_from_a_converted_reference_checkpoint() {
     // Loaded moments are the converted ones, not zeros.
     assert!(before[0].1.iter().any(|&v| v != 0.0));
 
-    let stats = trainer.step().unwrap();
+    let stats = trainer.step_read().unwrap();
     assert_eq!(stats.skipped, None, "the resumed step was skipped");
     assert_eq!(trainer.iteration(), 1235);
     let [b1, b2] = trainer.optimizer().groups()[0].betas;
     for (n, (m0, v0)) in names.iter().zip(&before) {
-        let s = trainer.optimizer().state(n).unwrap();
+        let s = trainer.optimizer().state(n).unwrap().unwrap();
         assert_eq!(s.step, 1235, "{n}");
         let (m1, v1) = (flat(&s.exp_avg), flat(&s.exp_avg_sq));
         // g is recovered from float32 moments by a subtraction that can cancel,

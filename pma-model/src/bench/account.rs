@@ -55,6 +55,10 @@ pub struct AccountReport {
     pub ops_per_step: u64,
     pub launches_per_step: u64,
     pub syncs_per_step: u64,
+    /// Syncs of the read-back of a step's numbers, once every `read_every` steps for all of
+    /// them (counted apart from the step).
+    pub read_back_syncs: u64,
+    pub read_every: u64,
     /// Explicit uploads plus dims/strides uploads.
     pub uploads_per_step: u64,
     pub explicit_uploads_per_step: u64,
@@ -115,10 +119,17 @@ pub fn account(
             req.preset
         ),
     );
-    let (step, chunks, wall_s, extrapolated_from) = match req.extrapolate_from {
+    let read_every = match req.route {
+        Route::Cpu => trainer.read_every(),
+        Route::Cuda => match trainer.run_config().train.read_every {
+            0 => crate::train::AUTO_READ_EVERY_DEVICE,
+            k => k,
+        },
+    };
+    let (step, chunks, wall_s, extrapolated_from, read_back) = match req.extrapolate_from {
         None => {
             let a = account_step(&mut trainer, &mut source, req.route)?;
-            (a.report, a.chunks, a.wall_s, None)
+            (a.report, a.chunks, a.wall_s, None, a.read_back)
         }
         Some(n) => {
             let e = account_one_pass_extrapolated(trainer.run_config(), data, dev, req.route, n)?;
@@ -129,7 +140,7 @@ pub fn account(
                     e.from
                 ));
             }
-            (e.report, 1, e.wall_s, Some(e.from))
+            (e.report, 1, e.wall_s, Some(e.from), e.read_back)
         }
     };
     obs.progress(1, "one inference pass");
@@ -154,6 +165,8 @@ pub fn account(
         ops_per_step: total.ops,
         launches_per_step: total.launches,
         syncs_per_step: total.syncs,
+        read_back_syncs: read_back.syncs,
+        read_every,
         uploads_per_step: total.all_uploads(),
         explicit_uploads_per_step: total.uploads,
         param_uploads_per_step: total.param_uploads,

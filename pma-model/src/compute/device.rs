@@ -1,4 +1,4 @@
-//! Choosing the compute device from a command-line string.
+//! Choosing the compute device from a command-line string, and what the device offers.
 //!
 //! Lives in the model crate (not the CLI) so that the inference-only binary, which has no
 //! CLI framework, parses `--device` the same way as `pma`.
@@ -122,6 +122,26 @@ fn keep_pool_memory(dev: &Device) -> candle_core::Result<()> {
 #[cfg(not(feature = "cuda"))]
 fn keep_pool_memory(_dev: &Device) -> candle_core::Result<()> {
     Ok(())
+}
+
+/// Free memory of `device` in bytes (`cuMemGetInfo`), or `None` for the CPU and other
+/// devices (and when the driver cannot tell). Memory the stream-ordered pool keeps for reuse
+/// counts as used, so ask before the first step allocates.
+#[cfg(feature = "cuda")]
+pub fn free_memory(device: &Device) -> Option<usize> {
+    use candle_core::cuda_backend::cudarc::driver::result;
+    let Device::Cuda(cuda) = device else {
+        return None;
+    };
+    // The query reads the calling thread's current context.
+    cuda.cuda_stream().context().bind_to_thread().ok()?;
+    result::mem_get_info().ok().map(|(free, _total)| free)
+}
+
+/// Free memory of `device` in bytes; `None` without the CUDA backend.
+#[cfg(not(feature = "cuda"))]
+pub fn free_memory(_device: &Device) -> Option<usize> {
+    None
 }
 
 /// Why `--tf32` was refused.

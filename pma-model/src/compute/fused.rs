@@ -61,16 +61,29 @@ pub fn add_bias(y: &Tensor, b: &Tensor) -> Result<Tensor> {
     Ok(y.contiguous()?.apply_op2(&b.contiguous()?, BiasAdd)?)
 }
 
-/// `max_j (q[n,j,:] + g[j,:]) · w_p[n,j]`: q: [N,J,H], g: [J,H], w_p: [N,J] -> [N,H].
+/// `max_j (q[n,j,:] + g[p(n),j,:]) · w_p[n,j]`: q: [N,J,H], g: [P,J,H], w_p: [N,J] -> [N,H],
+/// the N points grouped by pose in P equal blocks (point n belongs to pose `n / (N/P)`).
 /// No gradient flows to `w_p` (the reference detaches the spatial window).
 pub fn window_pool(q: &Tensor, g: &Tensor, w_p: &Tensor) -> Result<Tensor> {
+    let (n, j, h) = q.dims3()?;
+    let p = g.dim(0)?;
+    if g.dims() != [p, j, h] || p == 0 || n % p != 0 {
+        return Err(crate::error::ModelError::shape(
+            "window pool: g",
+            format!("[P,{j},{h}] with P dividing {n}"),
+            g.dims(),
+        ));
+    }
     let plain = || -> Result<Tensor> {
-        let part = q.broadcast_add(&g.unsqueeze(0)?)?;
+        let part = q
+            .reshape((p, n / p, j, h))?
+            .broadcast_add(&g.unsqueeze(1)?)?
+            .reshape((n, j, h))?;
         Ok(part
             .broadcast_mul(&w_p.unsqueeze(candle_core::D::Minus1)?)?
             .max(1)?)
     };
-    if !applies(&[q, g, w_p]) || q.rank() != 3 {
+    if !applies(&[q, g, w_p]) {
         return plain();
     }
     let (q, g) = (q.contiguous()?, g.contiguous()?);
@@ -446,9 +459,11 @@ impl CustomOp3 for WindowPool {
         let q = f32_slice(s1, l1, "window pool: q")?;
         let g = f32_slice(s2, l2, "window pool: g")?;
         let w = f32_slice(s3, l3, "window pool: w_p")?;
-        if g.len() != j * h || w.len() != n * j || j == 0 {
+        let poses = g.len() / (j * h).max(1);
+        if poses == 0 || g.len() != poses * j * h || n % poses != 0 || w.len() != n * j {
             candle_core::bail!("window pool: shapes do not agree with q [{n},{j},{h}]")
         }
+        let per_pose = n / poses;
         if j > u32::MAX as usize {
             candle_core::bail!("window pool: {j} joints")
         }
@@ -461,9 +476,10 @@ impl CustomOp3 for WindowPool {
             } else {
                 &mut arg[..]
             };
+            let gp = i / per_pose;
             pool_row(
                 &q[i * j * h..(i + 1) * j * h],
-                g,
+                &g[gp * j * h..(gp + 1) * j * h],
                 &w[i * j..(i + 1) * j],
                 m,
                 a,
@@ -484,6 +500,8 @@ impl CustomOp3 for WindowPool {
         grad: &Tensor,
     ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
         let (n, j, h) = q.dims3()?;
+        let poses = g.dim(0)?;
+        let per_pose = n / poses;
         let (q_c, g_c, w_c, d_c) = (
             q.contiguous()?,
             g.contiguous()?,
@@ -494,17 +512,19 @@ impl CustomOp3 for WindowPool {
         let [q, g, w, dm] = [0, 1, 2, 3].map(|i| cpu_slice(&guards[i].0, guards[i].1));
         let (q, g, w, dm) = (q?, g?, w?, dm?);
         let mut gq = vec![0f32; n * j * h];
-        let mut gg = vec![0f32; j * h];
+        let mut gg = vec![0f32; poses * j * h];
         // The forward's arg-max (used once; a second backward pools again).
         let kept = self.arg.take().filter(|a| a.len() == n * h);
         let mut arg = vec![0u32; h];
         let mut best = vec![0f32; h];
         for i in 0..n {
             let wn = &w[i * j..(i + 1) * j];
+            let gp = (i / per_pose) * j * h;
             let arg_i = match &kept {
                 Some(a) => &a[i * h..(i + 1) * h],
                 None => {
-                    pool_row(&q[i * j * h..(i + 1) * j * h], g, wn, &mut best, &mut arg);
+                    let g_i = &g[gp..gp + j * h];
+                    pool_row(&q[i * j * h..(i + 1) * j * h], g_i, wn, &mut best, &mut arg);
                     &arg[..]
                 }
             };
@@ -513,12 +533,12 @@ impl CustomOp3 for WindowPool {
                 let jj = arg_i[k] as usize;
                 let d = dmn[k] * wn[jj];
                 gq[i * j * h + jj * h + k] = d;
-                gg[jj * h + k] += d;
+                gg[gp + jj * h + k] += d;
             }
         }
         drop(guards);
         let gq = Tensor::from_vec(gq, (n, j, h), q_c.device())?;
-        let gg = Tensor::from_vec(gg, (j, h), g_c.device())?;
+        let gg = Tensor::from_vec(gg, (poses, j, h), g_c.device())?;
         Ok((Some(gq), Some(gg), None))
     }
 }
@@ -559,13 +579,20 @@ mod tests {
     }
 
     /// Forward values and gradients of both kernels equal the plain candle ops exactly,
-    /// including rows whose spatial window is 0 for every joint (all-tie rows).
+    /// including rows whose spatial window is 0 for every joint (all-tie rows), with one
+    /// pose and with three (each block of points pooled with its own pose's g).
     #[test]
     fn fused_kernels_match_plain_ops_bit_for_bit() {
-        let (n, j, h, out) = (37, 24, 16, 9);
+        for poses in [1, 3] {
+            fused_matches_plain(poses);
+        }
+    }
+
+    fn fused_matches_plain(poses: usize) {
+        let (n, j, h, out) = (39, 24, 16, 9);
         let run = |fused: bool| {
             let q = Var::from_tensor(&rand(&[n, j, h], 1)).unwrap();
-            let g = Var::from_tensor(&rand(&[j, h], 2)).unwrap();
+            let g = Var::from_tensor(&rand(&[poses, j, h], 2)).unwrap();
             // Half the rows far from every bone (w_p = 0), the rest in (0, 1).
             let mut w = rand(&[n, j], 3).abs().unwrap();
             let zero = Tensor::zeros((n / 2, j), DType::F32, &Device::Cpu).unwrap();
@@ -580,7 +607,11 @@ mod tests {
             } else {
                 let part = q
                     .as_tensor()
-                    .broadcast_add(&g.as_tensor().unsqueeze(0).unwrap());
+                    .reshape((poses, n / poses, j, h))
+                    .unwrap()
+                    .broadcast_add(&g.as_tensor().unsqueeze(1).unwrap())
+                    .unwrap()
+                    .reshape((n, j, h));
                 let att = part
                     .unwrap()
                     .broadcast_mul(&w.unsqueeze(2).unwrap())
@@ -745,7 +776,7 @@ mod tests {
     #[test]
     fn window_pool_propagates_nan_and_falls_back_for_f64() {
         let q = rand(&[3, 4, 5], 7);
-        let g = rand(&[4, 5], 8);
+        let g = rand(&[1, 4, 5], 8);
         let mut wv = vec![0.5f32; 12];
         wv[5] = f32::NAN;
         let w = Tensor::from_vec(wv, (3, 4), &Device::Cpu).unwrap();

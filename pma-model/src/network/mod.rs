@@ -244,19 +244,52 @@ impl Network {
         view: &Tensor,
         trace: Option<(&mut Trace, &str)>,
     ) -> Result<(Tensor, Tensor)> {
+        self.eval_poses(pose, p..p + 1, pts, view, trace)
+    }
+
+    /// The network on the points of the poses `poses` in one call: pts: [m·n,3] grouped by
+    /// pose in equal blocks (rows `[i·n, (i+1)·n)` belong to pose `poses.start + i`), view:
+    /// [m·n,V]. The per-pose pieces (world → joint transform, the GNN features g) apply to
+    /// their block as batched products and broadcasts; everything else is per point. For one
+    /// pose this is [`Self::eval_points`], op for op.
+    pub fn eval_poses(
+        &self,
+        pose: &PoseFeatures,
+        poses: std::ops::Range<usize>,
+        pts: &Tensor,
+        view: &Tensor,
+        trace: Option<(&mut Trace, &str)>,
+    ) -> Result<(Tensor, Tensor)> {
         let n = pts.dim(0)?;
+        let m = poses.len();
         let j = N_JOINTS;
         let net = &self.layers;
-        // World → joint frames of every joint at once (one [n,3]x[3,72] product), then into
-        // the bone-aligned frames. Two steps, in the reference's order: folding A_j into
-        // skt_j first changes the rounding enough to cost ~1e-4 after the ω=16 encoder.
-        let skt = pose.skts.get(p)?;
-        let rot = skt.narrow(1, 0, 3)?.narrow(2, 0, 3)?.reshape((3 * j, 3))?;
-        let trans = skt.narrow(1, 0, 3)?.narrow(2, 3, 1)?.reshape((j, 3))?;
+        if m == 0 || n % m != 0 || poses.end > pose.g.dim(0)? {
+            return Err(ModelError::Input(format!(
+                "network: {n} points cannot be split into equal blocks of poses {poses:?} \
+                 (the batch has {} poses)",
+                pose.g.dim(0)?
+            )));
+        }
+        let per_pose = n / m;
+        // World → joint frames of every joint at once (one [n,3]x[3,72] product per pose),
+        // then into the bone-aligned frames. Two steps, in the reference's order: folding A_j
+        // into skt_j first changes the rounding enough to cost ~1e-4 after the ω=16 encoder.
+        let skt = pose.skts.narrow(0, poses.start, m)?;
+        let rot = skt
+            .narrow(2, 0, 3)?
+            .narrow(3, 0, 3)?
+            .reshape((m, 3 * j, 3))?;
+        let trans = skt
+            .narrow(2, 0, 3)?
+            .narrow(3, 3, 1)?
+            .reshape((m, 1, j, 3))?;
         let x_jt = pts
-            .matmul(&rot.t()?)?
-            .reshape((n, j, 3))?
-            .broadcast_add(&trans)?;
+            .reshape((m, per_pose, 3))?
+            .matmul(&rot.transpose(1, 2)?)?
+            .reshape((m, per_pose, j, 3))?
+            .broadcast_add(&trans)?
+            .reshape((n, j, 3))?;
         // `contiguous`: CUDA's batched gemm needs packed rows (the CPU gemm takes any
         // strides), and the transposed [j,n,3] view has a row stride of 3j.
         let x_hat = x_jt
@@ -272,8 +305,9 @@ impl Network {
             true => spatial_window(&x_bar, self.cfg.window_alpha, self.cfg.window_beta)?,
             false => Tensor::ones((n, j), x_bar.dtype(), x_bar.device())?,
         };
-        // Feature window w^f and w = w^p·w^f (Eqs. 5–6), then f^m = Σ_j w_j g_j.
-        let g = pose.g.get(p)?;
+        // Feature window w^f and w = w^p·w^f (Eqs. 5–6), then f^m = Σ_j w_j g_j, with each
+        // pose's g ([m,24,H]) applied to its block of points.
+        let g = pose.g.narrow(0, poses.start, m)?;
         let (win, e) = match (&net.win_fun, &net.pts_enc_pose) {
             (Some(win_fun), Some(enc)) if v.feature_window() => {
                 let e = enc.forward(&x_bar)?;

@@ -85,12 +85,13 @@ impl WinFun {
         self.layer_pose.forward(g_feat)
     }
 
-    /// One pose group: g: [J,H] (that pose's projection), e: [N,J,Ce] pose-branch point
-    /// encodings, w_p: [N,J] spatial window.
+    /// The points of P poses: g: [P,J,H] (each pose's projection), e: [N,J,Ce] pose-branch
+    /// point encodings, w_p: [N,J] spatial window, with the N points grouped by pose in P
+    /// equal blocks.
     pub fn forward(&self, g: &Tensor, e: &Tensor, w_p: &Tensor) -> Result<Window> {
-        // layer_point's bias is added to the per-pose g ([J,H]) rather than to every point:
+        // layer_point's bias is added to the per-pose g ([P,J,H]) rather than to every point:
         // one pass over the [N,J,H] part features fewer, forward and backward (the bias
-        // gradient is then a sum over J rows, not over N·J).
+        // gradient is then a sum over P·J rows, not over N·J).
         let f = self.feature.as_ref().ok_or_else(|| {
             crate::error::ModelError::Config("this variant has no feature window".into())
         })?;
@@ -115,7 +116,15 @@ impl WinFun {
 }
 
 /// Aggregated pose feature `f^m = Σ_j w_j g_j` (a plain sum, not normalised):
-/// w: [N,J], g: [J,H] -> [N,H].
+/// w: [N,J], g: [P,J,H] -> [N,H], the N points grouped by pose in P equal blocks (one
+/// batched product).
 pub fn aggregate(w: &Tensor, g: &Tensor) -> Result<Tensor> {
-    Ok(w.matmul(g)?)
+    let (n, j) = w.dims2()?;
+    let (p, _, h) = g.dims3()?;
+    if p == 0 || n % p != 0 {
+        return Err(crate::error::ModelError::Input(format!(
+            "f^m: {n} points cannot be split into {p} equal per-pose blocks"
+        )));
+    }
+    Ok(w.reshape((p, n / p, j))?.matmul(g)?.reshape((n, h))?)
 }

@@ -23,7 +23,7 @@ pub use crate::render::batch::{Mode, NoiseFn, Outputs, Poses, Rays};
 use crate::render::bones::BoneFrames;
 use crate::render::points::PointEval;
 pub use crate::render::points::INFERENCE_POINT_CHUNK;
-use crate::render::raycast::{merge_raw, RayCaster};
+use crate::render::raycast::{merge_raw, CoarseSamples, RayCaster};
 use crate::render::volume::raw2outputs;
 
 /// A network and the ray caster of its bone boxes.
@@ -68,7 +68,7 @@ impl Avatar {
 
     /// The same avatar with every tensor converted to `dtype` (f16/bf16 inference, f64
     /// checks). Inputs are converted at the forward entry points, and the ray caster keeps
-    /// working in f32 on the host.
+    /// working in f32.
     pub fn with_dtype(&self, dtype: DType) -> Result<Self> {
         Self::from_network(self.net.with_dtype(dtype)?)
     }
@@ -114,14 +114,49 @@ impl Avatar {
         crate::render::batch::check_batch(rays, poses)?;
         let cast = crate::render::batch::cast_batch(rays, poses, self.dtype())?;
         let (rays, poses) = cast.as_ref().map_or((rays, poses), |(r, p)| (r, p));
-        if pose.g.dim(0)? != poses.bones.len() {
-            return Err(ModelError::shape(
-                "pose features",
-                [poses.bones.len()],
-                [pose.g.dim(0)?],
-            ));
-        }
         self.forward_inner(rays, poses, pose, mode, None)
+    }
+
+    /// Step 2, ray casting (no gradient) with the current, detached box sizes: on the host
+    /// when the rays are on the CPU or culling needs the host bounds, as tensor ops on the
+    /// rays' device otherwise ([`crate::render::raycast::device`]).
+    pub fn cast(&self, rays: &Rays, poses: &Poses, pose: &PoseFeatures) -> Result<CoarseSamples> {
+        check_pose_count(poses, pose)?;
+        let args = (
+            &rays.origins,
+            &rays.dirs,
+            &poses.cyls,
+            &poses.skts,
+            &pose.scales.detach(),
+        );
+        if self.casts_on_host(&rays.origins) {
+            self.caster.cast(args.0, args.1, args.2, args.3, args.4)
+        } else {
+            self.caster
+                .cast_tensors(args.0, args.1, args.2, args.3, args.4)
+        }
+    }
+
+    /// Steps 3–5 of the forward pass on samples cast by [`Self::cast`] (of these rays, or of
+    /// a batch these rays are rows of: casting depends on the whole batch only through the
+    /// fallback bounds of rays that miss the bounding cylinder).
+    pub fn forward_cast(
+        &self,
+        rays: &Rays,
+        poses: &Poses,
+        pose: &PoseFeatures,
+        coarse: CoarseSamples,
+        mode: &mut Mode,
+    ) -> Result<Outputs> {
+        crate::render::batch::check_batch(rays, poses)?;
+        check_pose_count(poses, pose)?;
+        if rays.dirs.dtype() != self.dtype() || poses.skts.dtype() != self.dtype() {
+            return Err(ModelError::Input(format!(
+                "forward_cast: rays and poses must be {:?} like the network",
+                self.dtype()
+            )));
+        }
+        self.render(rays, poses, pose, coarse, mode, None)
     }
 
     /// Steps 2–5 of the forward pass.
@@ -131,25 +166,36 @@ impl Avatar {
         poses: &Poses,
         pose: &PoseFeatures,
         mode: &mut Mode,
+        trace: Option<&mut Trace>,
+    ) -> Result<Outputs> {
+        let coarse = self.cast(rays, poses, pose)?;
+        crate::compute::profile::mark("cast", self.device());
+        self.render(rays, poses, pose, coarse, mode, trace)
+    }
+
+    /// Whether ray casting and importance sampling run on the host for rays like `t`.
+    fn casts_on_host(&self, t: &Tensor) -> bool {
+        crate::compute::account::cpu_route(t.device()) || !self.config().culling.is_off()
+    }
+
+    /// Steps 3–5: the coarse pass and render, importance sampling, the fine pass and render.
+    fn render(
+        &self,
+        rays: &Rays,
+        poses: &Poses,
+        pose: &PoseFeatures,
+        coarse: CoarseSamples,
+        mode: &mut Mode,
         mut trace: Option<&mut Trace>,
     ) -> Result<Outputs> {
-        // 2. Ray casting (no gradient) with the current, detached box sizes.
-        let coarse = self.caster.cast(
-            &rays.origins,
-            &rays.dirs,
-            &poses.cyls,
-            &poses.skts,
-            &pose.scales.detach(),
-        )?;
         let prof = crate::compute::profile::mark;
-        prof("cast", self.device());
         let (view, d_root) = self.ray_view_features(rays, poses, mode.is_training())?;
         let mut points = PointEval::new(
             &self.net,
             mode,
             poses,
             pose,
-            &coarse.bounds,
+            coarse.bounds.as_ref(),
             trace.is_some(),
         )?;
         // 3. Coarse pass and render.
@@ -160,9 +206,13 @@ impl Avatar {
         prof("coarse render", self.device());
         // 4. Importance samples from the coarse weights, then the fine pass on those only.
         let weights = render_coarse.weights.detach();
-        let fine = self
-            .caster
-            .resample(&rays.origins, &rays.dirs, &coarse.z, &weights)?;
+        let fine = if self.casts_on_host(&rays.origins) {
+            self.caster
+                .resample(&rays.origins, &rays.dirs, &coarse.z, &weights)?
+        } else {
+            self.caster
+                .resample_tensors(&rays.origins, &rays.dirs, &coarse.z, &weights)?
+        };
         prof("resample", self.device());
         let tr = trace.as_deref_mut();
         let raw_fine = points.run(&self.net, pose, &fine.pts, &view, mode, "fine", tr)?;
@@ -299,13 +349,6 @@ impl Avatar {
         self.net.set_culling(culling)
     }
 
-    /// Pin the (near, far) that rays missing the bounding cylinder get in later passes
-    /// ([`RayCaster::with_miss_fill`]; `None` unpins): chunked training casts every chunk
-    /// with its whole batch's values.
-    pub fn pin_miss_fill(&mut self, fill: Option<(f32, f32)>) {
-        self.caster = self.caster.with_miss_fill(fill);
-    }
-
     /// Points evaluated by the network (far-away constants included) since construction.
     pub fn points_evaluated(&self) -> u64 {
         self.points_evaluated.load(Ordering::Relaxed)
@@ -325,6 +368,18 @@ impl Avatar {
     pub fn save(&self, path: impl AsRef<Path>) -> Result<()> {
         self.net.save(path)
     }
+}
+
+/// `pose` must hold the features of every pose of `poses`.
+fn check_pose_count(poses: &Poses, pose: &PoseFeatures) -> Result<()> {
+    if pose.g.dim(0)? != poses.bones.len() {
+        return Err(ModelError::shape(
+            "pose features",
+            [poses.bones.len()],
+            [pose.g.dim(0)?],
+        ));
+    }
+    Ok(())
 }
 
 impl std::fmt::Debug for Avatar {

@@ -78,8 +78,9 @@ pub struct Outputs {
     pub raw: Tensor,
     /// vol_scale: [24,3] effective box half-extents (differentiable).
     pub vol_scale: Tensor,
-    /// Host-side ray bounds (near/far, box hits).
-    pub bounds: RayBounds,
+    /// Host-side ray bounds (near/far, box hits); `None` when the rays were cast on the
+    /// device ([`crate::render::raycast::device`]).
+    pub bounds: Option<RayBounds>,
 }
 
 /// Shapes of a batch: R rays in P equal per-pose blocks.

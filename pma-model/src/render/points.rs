@@ -1,10 +1,10 @@
 //! How the samples of a forward pass go through the network.
 //!
-//! [`Network::eval_points`] is the network on the points of one pose. A forward pass hands
+//! [`Network::eval_poses`] is the network on the points of some poses. A forward pass hands
 //! all samples of a stage (coarse, then fine) to one [`PointEval`], which decides how they
 //! reach it:
 //!
-//! * **dense**: one call per pose with the graph kept (training, the parity hook);
+//! * **dense**: one call for all poses with the graph kept (training, the parity hook);
 //! * **chunked**: bounded chunks on the CPU workers, outputs detached (inference);
 //! * **culled**: only the samples culling keeps ([`crate::render::cull`]); the rest are filled
 //!   from the network's far-away constant or with zeros. Gradients reach the evaluated
@@ -51,7 +51,7 @@ impl PointEval {
         mode: &Mode,
         poses: &Poses,
         pose: &PoseFeatures,
-        bounds: &RayBounds,
+        bounds: Option<&RayBounds>,
         traced: bool,
     ) -> Result<Self> {
         let culling = &net.config().culling;
@@ -146,7 +146,8 @@ fn pose_block(pts: &Tensor, view: &Tensor, p: usize, k: usize) -> Result<(Tensor
     Ok((pts_p, view_p))
 }
 
-/// One network call per pose, graph kept; per-pose traces joined in ray order.
+/// One network call for all poses of the pass, graph kept: the samples are grouped by pose
+/// in equal blocks, which is what [`Network::eval_poses`] takes. The trace is in ray order.
 fn dense(
     net: &Network,
     pose: &PoseFeatures,
@@ -155,24 +156,16 @@ fn dense(
     stage: &str,
     trace: Option<&mut Trace>,
 ) -> Result<(Tensor, Tensor)> {
-    let r = pts.dim(0)?;
-    let n_poses = pose.g.dim(0)?;
-    let k = r / n_poses;
-    let (mut rgbs, mut sigmas, mut traces) = (Vec::new(), Vec::new(), Vec::new());
-    for p in 0..n_poses {
-        crate::interrupt::check()?;
-        let (pts_p, view_p) = pose_block(pts, view, p, k)?;
-        let mut tp = Trace::default();
-        let traced = trace.is_some().then_some((&mut tp, stage));
-        let (rgb, sigma_raw) = net.eval_points(pose, p, &pts_p, &view_p, traced)?;
-        traces.push(tp);
-        rgbs.push(rgb);
-        sigmas.push(sigma_raw);
-    }
-    if let Some(t) = trace {
-        t.concat_poses(&traces)?;
-    }
-    Ok((Tensor::cat(&rgbs, 0)?, Tensor::cat(&sigmas, 0)?))
+    crate::interrupt::check()?;
+    let (r, s, _) = pts.dims3()?;
+    let vdim = view.dim(1)?;
+    let pts_all = pts.reshape((r * s, 3))?;
+    let view_all = view
+        .unsqueeze(1)?
+        .broadcast_as((r, s, vdim))?
+        .reshape((r * s, vdim))?;
+    let traced = trace.map(|t| (t, stage));
+    net.eval_poses(pose, 0..pose.g.dim(0)?, &pts_all, &view_all, traced)
 }
 
 /// Every (pose, chunk) pair is one job for the workers; outputs stay in ray order.
@@ -263,9 +256,18 @@ impl CullCtx {
         c: &Culling,
         poses: &Poses,
         pose: &PoseFeatures,
-        bounds: &RayBounds,
+        bounds: Option<&RayBounds>,
     ) -> Result<Self> {
         let cfg = net.config();
+        let ray_alive = match (c.rays, bounds) {
+            (false, _) => None,
+            (true, Some(b)) => Some(b.ray_hits_body.clone()),
+            (true, None) => {
+                return Err(ModelError::Input(
+                    "ray culling needs the host ray bounds (cast on the host)".into(),
+                ))
+            }
+        };
         let test = match c.sample_threshold {
             Some(t) => Some(WindowTest::new(
                 net.bone_align(),
@@ -279,7 +281,7 @@ impl CullCtx {
         };
         Ok(Self {
             test,
-            ray_alive: c.rays.then(|| bounds.ray_hits_body.clone()),
+            ray_alive,
             fill: c.sample_fill,
             consts: ConstRows::default(),
             evaluated: 0,

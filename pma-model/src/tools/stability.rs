@@ -267,14 +267,18 @@ pub fn forward_backward(
     ])?;
     let mut violations = weight_violations(&fine.weights, &fine.acc)?
         + weight_violations(&out.coarse.weights, &out.coarse.acc)?;
-    violations += bound_violations(
-        avatar,
-        origins,
-        dirs,
-        &out.bounds,
-        &host32(&poses.skts)?,
-        &host32(&out.vol_scale)?,
-    );
+    let (skts, scales) = (host32(&poses.skts)?, host32(&out.vol_scale)?);
+    // Rays cast on a GPU have no host bounds: cast them again on the host.
+    let bounds = match &out.bounds {
+        Some(b) => b.clone(),
+        None => {
+            let cyls = host32(&poses.cyls)?;
+            avatar
+                .ray_caster()
+                .near_far(origins, dirs, &cyls, &skts, &scales)?
+        }
+    };
+    violations += bound_violations(avatar, origins, dirs, &bounds, &skts, &scales);
     Ok(ProbeRow {
         case: case.to_string(),
         max_abs,

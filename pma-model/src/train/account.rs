@@ -4,7 +4,7 @@
 use std::time::Instant;
 
 use super::{BatchSource, StepStats, TrainError, Trainer};
-use crate::compute::account::{Account, Report, Route};
+use crate::compute::account::{Account, Counts, Report, Route};
 
 /// One accounted training step.
 #[derive(Debug, Clone)]
@@ -15,6 +15,9 @@ pub struct StepAccount {
     pub rays: usize,
     /// Chunks the step ran in: the times its `loss` stage closed.
     pub chunks: u64,
+    /// The read-back of the step's numbers after it, counted apart: a run reads back once
+    /// every [`Trainer::read_every`] steps, for all of them.
+    pub read_back: Counts,
     pub stats: StepStats,
     /// Wall time of the accounted step on this machine (the step runs for real; not a GPU
     /// figure).
@@ -34,8 +37,13 @@ pub fn account_step(
     let account = Account::start(&device, route)?;
     let batch = source.next_batch()?;
     account.mark("batch");
-    let stats = trainer.step_on(&batch, None)?;
+    trainer.advance(&batch)?;
     let report = account.finish();
+    let reading = Account::start(&device, route)?;
+    let stats = trainer.read_back()?.pop().ok_or_else(|| {
+        TrainError::Config("the accounted step has no numbers to read back".into())
+    })?;
+    let read_back = reading.finish().total;
     let chunks = report
         .stages
         .iter()
@@ -45,6 +53,7 @@ pub fn account_step(
         report,
         rays: batch.rays.origins.dim(0)?,
         chunks,
+        read_back,
         stats,
         wall_s: start.elapsed().as_secs_f64(),
     })
@@ -62,6 +71,8 @@ pub struct Extrapolated {
     /// Whether every op, launch, sync and upload count was the same in the three (only
     /// bytes and FLOPs grew with the rays).
     pub counts_constant: bool,
+    /// The read-back after the last of the three ([`StepAccount::read_back`]).
+    pub read_back: Counts,
     /// Wall time of the three accounted steps on this machine.
     pub wall_s: f64,
 }
@@ -86,7 +97,7 @@ pub fn account_one_pass_extrapolated(
     }
     // The step of `rays` must itself run in one pass: rays per chunk at least `rays`, and
     // one worker (more workers split a CPU step into chunks for them).
-    let chunk = super::chunk_rays(&run.train, &run.model);
+    let chunk = super::chunk_rays(&run.train, &run.model, device);
     let workers = match route {
         Route::Cuda => 1,
         Route::Cpu => crate::compute::parallel::workers_on(device),
@@ -100,6 +111,7 @@ pub fn account_one_pass_extrapolated(
     let start = Instant::now();
     let from = [from, 2 * from, 3 * from];
     let mut reports = Vec::with_capacity(3);
+    let mut read_back = Counts::default();
     for n in from {
         let mut r = run.clone();
         r.train.rays_per_step = n;
@@ -122,6 +134,7 @@ pub fn account_one_pass_extrapolated(
             )));
         }
         reports.push(a.report);
+        read_back = a.read_back;
     }
     let [a, b, c] = [&reports[0], &reports[1], &reports[2]];
     let report = Report::extrapolate([a, b, c], (rays / from[0] - 1) as u64)?;
@@ -138,6 +151,7 @@ pub fn account_one_pass_extrapolated(
         rays,
         from,
         counts_constant,
+        read_back,
         wall_s: start.elapsed().as_secs_f64(),
     })
 }

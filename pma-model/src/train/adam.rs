@@ -12,8 +12,17 @@
 //! v <- v b2 + g² (1 - b2)
 //! p <- p - lr / (1 - b1^t) * m / (sqrt(v) / sqrt(1 - b2^t) + eps)
 //! ```
+//!
+//! All parameters go through one update: the gradients are concatenated into one flat
+//! buffer, the moments are kept flat in state order, the update runs once over the whole
+//! buffer and each parameter then gets its slice back (one copy each). The per-parameter
+//! scalars (the rate of its group, the bias corrections of its step count) are expanded to
+//! the elements by one gather. Step counts live on the device, so an update can be masked
+//! there ([`Adam::step_masked`]: a skipped step decided on the device, with no read-back);
+//! the bias corrections are read from tables computed on the host with the same f64
+//! arithmetic as a per-parameter update, so the flat update gives its bits.
 
-use candle_core::{DType, Tensor, Var};
+use candle_core::{DType, Device, Tensor, Var};
 
 use super::TrainError;
 
@@ -69,7 +78,16 @@ struct Slot {
     name: String,
     var: Var,
     group: usize,
-    state: ParamState,
+    /// Where the parameter's elements start in the flat buffers.
+    offset: usize,
+    len: usize,
+}
+
+/// `1 − b1^t` and `sqrt(1 − b2^t)` for t = 0..len, in f64 on the device (index t).
+struct BiasTables {
+    len: usize,
+    bias1: Tensor,
+    bias2_sqrt: Tensor,
 }
 
 /// Adam over named candle `Var`s, split into groups with their own learning rates.
@@ -77,11 +95,24 @@ pub struct Adam {
     groups: Vec<ParamGroup>,
     /// Group-major (all of group 0, then group 1, ...), i.e. the reference's state ids.
     slots: Vec<Slot>,
+    device: Device,
+    /// Flat moments, [N] f32 in slot order.
+    exp_avg: Tensor,
+    exp_avg_sq: Tensor,
+    /// Updates applied per slot: [slots] f64 (exact integers).
+    steps: Tensor,
+    /// The slot of every flat element: [N] u32.
+    slot_of: Tensor,
+    /// A bound on every slot's step count, known without reading `steps`: the largest count
+    /// loaded plus the updates issued since (masked or not). Sizes the bias tables.
+    max_step: u64,
+    tables: Option<BiasTables>,
 }
 
 impl Adam {
     /// `vars` in model order; `group_of(name)` picks the index into `groups` (whose `params`
-    /// lists are filled here, so pass them empty).
+    /// lists are filled here, so pass them empty). The groups may differ in their rates only:
+    /// one flat update serves them all, so betas and eps are shared.
     pub fn new(
         vars: &[(String, Var)],
         mut groups: Vec<ParamGroup>,
@@ -90,7 +121,22 @@ impl Adam {
         for g in &mut groups {
             g.params.clear();
         }
-        let mut per_group: Vec<Vec<Slot>> = groups.iter().map(|_| Vec::new()).collect();
+        if let Some(first) = groups.first() {
+            if let Some(g) = groups
+                .iter()
+                .find(|g| g.betas != first.betas || g.eps != first.eps)
+            {
+                return Err(TrainError::Config(format!(
+                    "parameter group `{}` has betas {:?} and eps {}, group `{}` {:?} and {}: \
+                     the groups may differ in their learning rates only",
+                    g.name, g.betas, g.eps, first.name, first.betas, first.eps
+                )));
+            }
+        }
+        let device = vars
+            .first()
+            .map_or(Device::Cpu, |(_, v)| v.device().clone());
+        let mut per_group: Vec<Vec<(String, Var)>> = groups.iter().map(|_| Vec::new()).collect();
         for (name, var) in vars {
             let gi = group_of(name);
             let Some(bucket) = per_group.get_mut(gi) else {
@@ -105,23 +151,51 @@ impl Adam {
                     var.dtype()
                 )));
             }
+            if !var.device().same_device(&device) {
+                return Err(TrainError::Config(format!(
+                    "parameter `{name}` is on another device than `{}`",
+                    vars[0].0
+                )));
+            }
             groups[gi].params.push(name.clone());
-            let zeros = var.as_tensor().zeros_like()?;
-            bucket.push(Slot {
-                name: name.clone(),
-                var: var.clone(),
-                group: gi,
-                state: ParamState {
-                    step: 0,
-                    exp_avg: zeros.clone(),
-                    exp_avg_sq: zeros,
-                },
-            });
+            bucket.push((name.clone(), var.clone()));
         }
-        Ok(Self {
+        let mut slots = Vec::new();
+        let mut offset = 0;
+        for (gi, bucket) in per_group.into_iter().enumerate() {
+            for (name, var) in bucket {
+                let len = var.elem_count();
+                slots.push(Slot {
+                    name,
+                    var,
+                    group: gi,
+                    offset,
+                    len,
+                });
+                offset += len;
+            }
+        }
+        let slot_of: Vec<u32> = slots
+            .iter()
+            .enumerate()
+            .flat_map(|(i, s)| std::iter::repeat_n(i as u32, s.len))
+            .collect();
+        let n = slot_of.len();
+        let zeros = Tensor::zeros(n, DType::F32, &device)?;
+        let mut adam = Self {
             groups,
-            slots: per_group.into_iter().flatten().collect(),
-        })
+            steps: Tensor::zeros(slots.len(), DType::F64, &device)?,
+            slot_of: Tensor::from_vec(slot_of, n, &device)?,
+            slots,
+            exp_avg: zeros.clone(),
+            exp_avg_sq: zeros,
+            device,
+            max_step: 0,
+            tables: None,
+        };
+        // Built now, so steps upload nothing but their rates (until the tables grow).
+        adam.ensure_tables(1)?;
+        Ok(adam)
     }
 
     /// The reference's two groups ("freq" 1e-4, "other" 5e-4) over `vars`.
@@ -156,13 +230,34 @@ impl Adam {
         self.slots.iter().map(|s| s.name.as_str())
     }
 
-    pub fn state(&self, name: &str) -> Option<&ParamState> {
-        self.slots.iter().find(|s| s.name == name).map(|s| &s.state)
+    /// The state of parameter `name` (reads the step counts from the device).
+    pub fn state(&self, name: &str) -> Result<Option<ParamState>, TrainError> {
+        Ok(self
+            .states()?
+            .into_iter()
+            .find(|(n, _)| *n == name)
+            .map(|(_, s)| s))
     }
 
-    /// Iterate `(name, state)` in state order.
-    pub fn states(&self) -> impl Iterator<Item = (&str, &ParamState)> {
-        self.slots.iter().map(|s| (s.name.as_str(), &s.state))
+    /// `(name, state)` in state order; the moments are views of the flat buffers. Reads the
+    /// step counts from the device (one copy).
+    pub fn states(&self) -> Result<Vec<(&str, ParamState)>, TrainError> {
+        let steps = self.steps.to_device(&Device::Cpu)?.to_vec1::<f64>()?;
+        self.slots
+            .iter()
+            .zip(steps)
+            .map(|(s, step)| {
+                let view = |t: &Tensor| t.narrow(0, s.offset, s.len)?.reshape(s.var.shape());
+                Ok((
+                    s.name.as_str(),
+                    ParamState {
+                        step: step as u64,
+                        exp_avg: view(&self.exp_avg)?,
+                        exp_avg_sq: view(&self.exp_avg_sq)?,
+                    },
+                ))
+            })
+            .collect()
     }
 
     pub fn set_lr(&mut self, group: usize, lr: f64) {
@@ -229,24 +324,30 @@ impl Adam {
         if !problems.is_empty() {
             return Err(TrainError::State(problems));
         }
-        for slot in &mut self.slots {
+        let (mut m, mut v, mut steps) = (Vec::new(), Vec::new(), Vec::new());
+        for slot in &self.slots {
             let st = states.remove(&slot.name).expect("presence checked above");
-            let device = slot.var.device();
-            slot.state = ParamState {
-                step: st.step,
-                exp_avg: st.exp_avg.to_device(device)?,
-                exp_avg_sq: st.exp_avg_sq.to_device(device)?,
-            };
+            m.push(st.exp_avg.flatten_all()?.to_device(&self.device)?);
+            v.push(st.exp_avg_sq.flatten_all()?.to_device(&self.device)?);
+            steps.push(st.step as f64);
         }
+        if !self.slots.is_empty() {
+            self.exp_avg = Tensor::cat(&m, 0)?;
+            self.exp_avg_sq = Tensor::cat(&v, 0)?;
+        }
+        self.max_step = steps.iter().fold(0f64, |a, &b| a.max(b)) as u64;
+        self.ensure_tables(self.max_step as usize + 1)?;
+        let n = steps.len();
+        self.steps = Tensor::from_vec(steps, n, &self.device)?;
         for (g, &lr) in self.groups.iter_mut().zip(groups_lr) {
             g.lr = lr;
         }
         Ok(())
     }
 
-    /// One Adam update. `grads` is aligned with [`Self::param_names`]; a `None` gradient leaves
-    /// that parameter and its state untouched (torch skips parameters whose `.grad` is `None`).
-    pub fn step(&mut self, grads: &[Option<Tensor>]) -> Result<(), TrainError> {
+    /// The gradients as one flat f32 buffer in state order (zeros for a `None` gradient),
+    /// and which slots have one. `grads` is aligned with [`Self::param_names`].
+    pub fn flatten(&self, grads: &[Option<Tensor>]) -> Result<(Tensor, Vec<bool>), TrainError> {
         if grads.len() != self.slots.len() {
             return Err(TrainError::Config(format!(
                 "{} gradients given for {} parameters",
@@ -254,69 +355,148 @@ impl Adam {
                 self.slots.len()
             )));
         }
-        for (slot, grad) in self.slots.iter_mut().zip(grads) {
-            let Some(g) = grad else { continue };
-            let group = &self.groups[slot.group];
-            let [b1, b2] = group.betas;
-            let st = &mut slot.state;
-            let t = st.step + 1;
-            let g = g.detach();
-            // lerp form of torch's exp_avg.lerp_(g, 1 - b1) (weight < 0.5 branch).
-            let m = (&st.exp_avg + ((&g - &st.exp_avg)? * (1.0 - b1))?)?;
-            let v = ((&st.exp_avg_sq * b2)? + (g.sqr()? * (1.0 - b2))?)?;
-            let bias1 = 1.0 - b1.powi(t as i32);
-            let bias2_sqrt = (1.0 - b2.powi(t as i32)).sqrt();
-            let step_size = group.lr / bias1;
-            let denom = ((v.sqrt()? / bias2_sqrt)? + group.eps)?;
-            let update = ((&m * step_size)? / denom)?;
-            let p = (slot.var.as_tensor().detach() - update)?;
-            slot.var.set(&p)?;
-            *st = ParamState {
-                step: t,
-                exp_avg: m,
-                exp_avg_sq: v,
-            };
+        let mut parts = Vec::with_capacity(grads.len());
+        for (slot, g) in self.slots.iter().zip(grads) {
+            parts.push(match g {
+                Some(g) => {
+                    if g.elem_count() != slot.len {
+                        return Err(TrainError::Config(format!(
+                            "gradient of `{}`: {:?}, the parameter is {:?}",
+                            slot.name,
+                            g.dims(),
+                            slot.var.dims()
+                        )));
+                    }
+                    g.detach().to_dtype(DType::F32)?.flatten_all()?
+                }
+                None => Tensor::zeros(slot.len, DType::F32, &self.device)?,
+            });
         }
+        let has = grads.iter().map(Option::is_some).collect();
+        let flat = match parts.len() {
+            0 => Tensor::zeros(0, DType::F32, &self.device)?,
+            _ => Tensor::cat(&parts, 0)?,
+        };
+        Ok((flat, has))
+    }
+
+    /// One Adam update. `grads` is aligned with [`Self::param_names`]; a `None` gradient leaves
+    /// that parameter and its state untouched (torch skips parameters whose `.grad` is `None`).
+    pub fn step(&mut self, grads: &[Option<Tensor>]) -> Result<(), TrainError> {
+        let (flat, has) = self.flatten(grads)?;
+        self.step_masked(&flat, &has, None)
+    }
+
+    /// One Adam update on flat gradients `g` ([`Self::flatten`]'s) of the slots in `has`;
+    /// with `apply` (a u8 scalar on the device) only where it is non-zero: otherwise
+    /// nothing changes, moments and step counts included. Nothing is read back.
+    pub fn step_masked(
+        &mut self,
+        g: &Tensor,
+        has: &[bool],
+        apply: Option<&Tensor>,
+    ) -> Result<(), TrainError> {
+        let n_slots = self.slots.len();
+        if n_slots == 0 || !has.iter().any(|&h| h) {
+            return Ok(());
+        }
+        if has.len() != n_slots || g.dims() != self.exp_avg.dims() {
+            return Err(TrainError::Config(format!(
+                "flat gradient {:?} for {} parameters ({} elements)",
+                g.dims(),
+                n_slots,
+                self.exp_avg.elem_count()
+            )));
+        }
+        let dev = self.device.clone();
+        let [b1, b2] = self.groups[0].betas;
+        let eps = self.groups[0].eps;
+        self.max_step += 1;
+        self.ensure_tables(self.max_step as usize + 1)?;
+        let tables = self.tables.as_ref().expect("tables just built");
+        // Step number of this update per slot: the count so far plus one where it applies.
+        let has_f: Vec<f64> = has.iter().map(|&h| h as u8 as f64).collect();
+        let mut inc = Tensor::from_vec(has_f, n_slots, &dev)?;
+        if let Some(a) = apply {
+            inc = inc.broadcast_mul(&a.to_dtype(DType::F64)?)?;
+        }
+        let t = (&self.steps + &inc)?;
+        let t_idx = t.to_dtype(DType::U32)?;
+        let bias1 = tables.bias1.index_select(&t_idx, 0)?;
+        let bias2_sqrt = tables.bias2_sqrt.index_select(&t_idx, 0)?;
+        let lr: Vec<f64> = self.slots.iter().map(|s| self.groups[s.group].lr).collect();
+        let step_size = Tensor::from_vec(lr, n_slots, &dev)?.div(&bias1)?;
+        // Per element: the f32 factors a per-parameter update would multiply by.
+        let per_elem = |v: Tensor| -> candle_core::Result<Tensor> {
+            v.to_dtype(DType::F32)?.index_select(&self.slot_of, 0)
+        };
+        let step_size = per_elem(step_size)?;
+        let inv_bias2 = per_elem(bias2_sqrt.recip()?)?;
+        let g = g.detach();
+        let m = (&self.exp_avg + ((&g - &self.exp_avg)? * (1.0 - b1))?)?;
+        let v = ((&self.exp_avg_sq * b2)? + (g.sqr()? * (1.0 - b2))?)?;
+        let denom = (v.sqrt()?.mul(&inv_bias2)? + eps)?;
+        let update = (m.mul(&step_size)? / denom)?;
+        let params: Vec<Tensor> = self
+            .slots
+            .iter()
+            .map(|s| s.var.as_tensor().detach().flatten_all())
+            .collect::<candle_core::Result<_>>()?;
+        let p_old = Tensor::cat(&params, 0)?;
+        let mut p = (&p_old - update)?;
+        let (mut m, mut v) = (m, v);
+        // Where the update does not apply, everything keeps its old value.
+        let all = has.iter().all(|&h| h);
+        let mask = match (apply, all) {
+            (None, true) => None,
+            (Some(a), true) => Some(a.broadcast_as(p.shape())?),
+            (a, false) => {
+                let has_u8: Vec<u8> = has.iter().map(|&h| h as u8).collect();
+                let slot_has = Tensor::from_vec(has_u8, n_slots, &dev)?;
+                let mut mask = slot_has.index_select(&self.slot_of, 0)?;
+                if let Some(a) = a {
+                    mask = mask.broadcast_mul(&a.to_dtype(DType::U8)?)?;
+                }
+                Some(mask)
+            }
+        };
+        if let Some(mask) = &mask {
+            p = mask.where_cond(&p, &p_old)?;
+            m = mask.where_cond(&m, &self.exp_avg)?;
+            v = mask.where_cond(&v, &self.exp_avg_sq)?;
+        }
+        for slot in &self.slots {
+            slot.var.set(
+                &p.narrow(0, slot.offset, slot.len)?
+                    .reshape(slot.var.shape())?,
+            )?;
+        }
+        self.exp_avg = m;
+        self.exp_avg_sq = v;
+        self.steps = t;
         Ok(())
     }
-}
 
-/// Global L2 norm of all gradients together, accumulated in f64. Non-finite if any
-/// gradient element is non-finite.
-pub fn global_norm(grads: &[Option<Tensor>]) -> Result<f64, TrainError> {
-    let sums = grads
-        .iter()
-        .flatten()
-        .map(|g| g.to_dtype(DType::F64)?.sqr()?.sum_all())
-        .collect::<candle_core::Result<Vec<_>>>()?;
-    if sums.is_empty() {
-        return Ok(0.0);
+    /// Bias-correction tables covering step counts 0..len (grown by doubling).
+    fn ensure_tables(&mut self, len: usize) -> Result<(), TrainError> {
+        let Some(group) = self.groups.first() else {
+            return Ok(());
+        };
+        let [b1, b2] = group.betas;
+        if self.tables.as_ref().is_some_and(|t| t.len >= len) {
+            return Ok(());
+        }
+        let len = len.max(1024).next_power_of_two();
+        // The same f64 expressions as a per-parameter update: 1 − b1^t, sqrt(1 − b2^t).
+        let bias1: Vec<f64> = (0..len).map(|t| 1.0 - b1.powi(t as i32)).collect();
+        let bias2: Vec<f64> = (0..len).map(|t| (1.0 - b2.powi(t as i32)).sqrt()).collect();
+        self.tables = Some(BiasTables {
+            len,
+            bias1: Tensor::from_vec(bias1, len, &self.device)?,
+            bias2_sqrt: Tensor::from_vec(bias2, len, &self.device)?,
+        });
+        Ok(())
     }
-    // One read-back for all tensors (one device sync on a GPU, not one per tensor), then
-    // the same sum in the same order as reading them one by one.
-    let host = Tensor::stack(&sums, 0)?
-        .to_device(&candle_core::Device::Cpu)?
-        .to_vec1::<f64>()?;
-    let sum = host.iter().fold(0.0f64, |a, v| a + v);
-    Ok(sum.sqrt())
-}
-
-/// Scale gradients so their global norm is at most `max_norm` (torch `clip_grad_norm_`:
-/// coefficient `max_norm / (norm + 1e-6)`, applied only when it is below 1).
-/// Returns the coefficient used (1 when nothing was scaled).
-pub fn clip_grad_norm(
-    grads: &mut [Option<Tensor>],
-    max_norm: f64,
-    total_norm: f64,
-) -> Result<f64, TrainError> {
-    let coef = max_norm / (total_norm + 1e-6);
-    if coef >= 1.0 {
-        return Ok(1.0);
-    }
-    for g in grads.iter_mut().flatten() {
-        *g = (&*g * coef)?;
-    }
-    Ok(coef)
 }
 
 #[cfg(test)]
@@ -381,7 +561,7 @@ mod tests {
                 "{got:?} vs {want:?}"
             );
         }
-        assert_eq!(adam.state("w").unwrap().step, 3);
+        assert_eq!(adam.state("w").unwrap().unwrap().step, 3);
     }
 
     #[test]
@@ -431,7 +611,7 @@ mod tests {
         .unwrap();
         adam.step(&[None]).unwrap();
         assert_eq!(x.to_vec1::<f32>().unwrap(), vec![1.0, 2.0]);
-        assert_eq!(adam.state("pts_linears.0.bias").unwrap().step, 0);
+        assert_eq!(adam.state("pts_linears.0.bias").unwrap().unwrap().step, 0);
         assert!(adam.step(&[]).is_err());
     }
 
@@ -443,21 +623,119 @@ mod tests {
         assert_eq!(decayed_lr(1e-4, 10_000_000, 0.1, 500_000.0, 1e-5), 1e-5);
     }
 
+    /// One flat update equals an update per parameter (the reference formula per tensor),
+    /// bit for bit, with two groups, a parameter without a gradient on one step, and a masked
+    /// step that changes nothing.
     #[test]
-    fn clipping_scales_to_max_norm_and_reports_coefficient() {
-        let t = |v: &[f32]| Some(Tensor::new(v, &Device::Cpu).unwrap());
-        let mut grads = vec![t(&[3.0, 0.0]), None, t(&[4.0])];
-        let n = global_norm(&grads).unwrap();
-        assert!((n - 5.0).abs() < 1e-12);
-        let coef = clip_grad_norm(&mut grads, 1.0, n).unwrap();
-        assert!((coef - 1.0 / (5.0 + 1e-6)).abs() < 1e-12);
-        assert!((global_norm(&grads).unwrap() - 1.0).abs() < 1e-6);
-        // Below the threshold nothing changes.
-        let before = grads[0].as_ref().unwrap().to_vec1::<f32>().unwrap();
-        assert_eq!(clip_grad_norm(&mut grads, 10.0, 1.0).unwrap(), 1.0);
-        assert_eq!(grads[0].as_ref().unwrap().to_vec1::<f32>().unwrap(), before);
-        // A NaN anywhere makes the norm non-finite.
-        let bad = vec![t(&[1.0]), t(&[f32::NAN])];
-        assert!(!global_norm(&bad).unwrap().is_finite());
+    fn flat_update_equals_per_parameter_updates_and_masks() {
+        let shapes: [&[usize]; 3] = [&[2, 3], &[4], &[1, 5]];
+        let names = ["graph_net.w", "pts_linears.0.weight", "pts_linears.0.bias"];
+        let init = |k: usize, n: usize| -> Vec<f32> {
+            (0..n)
+                .map(|i| ((i * 7 + k * 3) % 11) as f32 * 0.1 - 0.5)
+                .collect()
+        };
+        let vars: Vec<(String, Var)> = names
+            .iter()
+            .zip(shapes)
+            .enumerate()
+            .map(|(k, (n, s))| {
+                let len = s.iter().product();
+                let t = Tensor::from_vec(init(k, len), s, &Device::Cpu).unwrap();
+                (n.to_string(), Var::from_tensor(&t).unwrap())
+            })
+            .collect();
+        let mut adam = Adam::reference(&vars, 1e-4, 5e-4, [0.9, 0.999], 1e-8).unwrap();
+        // The per-parameter reference: the formula of the module docs on each tensor, with
+        // the scalars as host f64 (what a per-tensor update multiplies by).
+        let mut reference: Vec<(Tensor, Tensor, Tensor, u64)> = vars
+            .iter()
+            .map(|(_, v)| {
+                let t = v.as_tensor().copy().unwrap();
+                (
+                    t.clone(),
+                    t.zeros_like().unwrap(),
+                    t.zeros_like().unwrap(),
+                    0,
+                )
+            })
+            .collect();
+        let lr_of = |name: &str| {
+            if reference_group(name) == 0 {
+                1e-4
+            } else {
+                5e-4
+            }
+        };
+        for step in 0..4 {
+            // Optimizer order is group-major: graph_net first, then the others.
+            let grads: Vec<Option<Tensor>> = adam
+                .param_names()
+                .map(|n| {
+                    let k = names.iter().position(|m| *m == n).unwrap();
+                    if step == 2 && k == 1 {
+                        return None;
+                    }
+                    let len = shapes[k].iter().product();
+                    let g: Vec<f32> = init(k + step + 1, len).iter().map(|v| v * 3.0).collect();
+                    Some(Tensor::from_vec(g, shapes[k], &Device::Cpu).unwrap())
+                })
+                .collect();
+            let order: Vec<usize> = adam
+                .param_names()
+                .map(|n| names.iter().position(|m| *m == n).unwrap())
+                .collect();
+            if step == 3 {
+                // Masked off: nothing may change.
+                let before: Vec<Vec<f32>> = vars
+                    .iter()
+                    .map(|(_, v)| v.flatten_all().unwrap().to_vec1().unwrap())
+                    .collect();
+                let (flat, has) = adam.flatten(&grads).unwrap();
+                let off = Tensor::new(0u8, &Device::Cpu).unwrap();
+                adam.step_masked(&flat, &has, Some(&off)).unwrap();
+                for ((_, v), b) in vars.iter().zip(&before) {
+                    assert_eq!(&v.flatten_all().unwrap().to_vec1::<f32>().unwrap(), b);
+                }
+                let steps: Vec<u64> = adam.states().unwrap().iter().map(|s| s.1.step).collect();
+                assert_eq!(
+                    steps,
+                    vec![3, 2, 3],
+                    "the parameter without a gradient on step 2 missed one"
+                );
+                break;
+            }
+            adam.step(&grads).unwrap();
+            for (g, &k) in grads.iter().zip(&order) {
+                let Some(g) = g else { continue };
+                let (p, m, v, t) = &mut reference[k];
+                *t += 1;
+                let ti = *t as i32;
+                let m1 = (&*m + ((g - &*m).unwrap() * (1.0 - 0.9)).unwrap()).unwrap();
+                let v1 =
+                    ((&*v * 0.999).unwrap() + (g.sqr().unwrap() * (1.0 - 0.999)).unwrap()).unwrap();
+                let step_size = lr_of(names[k]) / (1.0 - 0.9f64.powi(ti));
+                let bias2 = (1.0 - 0.999f64.powi(ti)).sqrt();
+                let denom = ((v1.sqrt().unwrap() / bias2).unwrap() + 1e-8).unwrap();
+                let upd = ((&m1 * step_size).unwrap() / denom).unwrap();
+                *p = (&*p - upd).unwrap();
+                (*m, *v) = (m1, v1);
+            }
+            for (k, (name, var)) in vars.iter().enumerate() {
+                let bits = |t: &Tensor| -> Vec<u32> {
+                    let v: Vec<f32> = t.flatten_all().unwrap().to_vec1().unwrap();
+                    v.iter().map(|x| x.to_bits()).collect()
+                };
+                assert_eq!(
+                    bits(var.as_tensor()),
+                    bits(&reference[k].0),
+                    "{name} at step {step}"
+                );
+                let st = adam.state(name).unwrap().unwrap();
+                assert_eq!(bits(&st.exp_avg), bits(&reference[k].1), "{name} m");
+                assert_eq!(bits(&st.exp_avg_sq), bits(&reference[k].2), "{name} v");
+                assert_eq!(st.step, reference[k].3, "{name} step");
+            }
+        }
     }
 }

@@ -34,7 +34,7 @@ pub struct Loss {
     pub scale: Tensor,
 }
 
-/// Mean absolute error: pred, target: [R,3] -> scalar.
+/// Mean absolute error: pred, target: [R,3] -> scalar (`sum · (1/n)`, like candle's mean).
 pub fn l1(pred: &Tensor, target: &Tensor) -> Result<Tensor> {
     Ok((pred - target)?.abs()?.mean_all()?)
 }
@@ -47,10 +47,34 @@ pub fn box_volume(s: &Tensor) -> Result<Tensor> {
 
 /// The full objective on a forward pass's outputs; target: [R,3].
 pub fn training_loss(out: &Outputs, target: &Tensor, w: &LossWeights) -> Result<Loss> {
-    let fine = l1(&out.fine.rgb, target)?;
-    let coarse = l1(&out.coarse.rgb, target)?;
-    let scale = box_volume(&out.vol_scale)?;
-    let total = ((&fine * w.fine)? + (&coarse * w.coarse)?)?.add(&(&scale * w.scale)?)?;
+    loss_share(out, target, w, target.dim(0)?, true)
+}
+
+/// The share of the objective of the rays in `out` (target: [R',3]) when they are part of a
+/// batch of `batch_rays` rays: the L1 terms are their sums times `1/(3·batch_rays)` (the same
+/// two multiplications as a mean over the whole batch), the box-volume term is included when
+/// `with_scale` (once per batch) and 0 otherwise. The shares of a batch's chunks add up to
+/// [`training_loss`] of the batch.
+pub fn loss_share(
+    out: &Outputs,
+    target: &Tensor,
+    w: &LossWeights,
+    batch_rays: usize,
+    with_scale: bool,
+) -> Result<Loss> {
+    let inv_n = 1.0 / (3 * batch_rays) as f64;
+    let share =
+        |pred: &Tensor| -> Result<Tensor> { Ok(((pred - target)?.abs()?.sum_all()? * inv_n)?) };
+    let fine = share(&out.fine.rgb)?;
+    let coarse = share(&out.coarse.rgb)?;
+    let l1 = ((&fine * w.fine)? + (&coarse * w.coarse)?)?;
+    let (scale, total) = if with_scale {
+        let scale = box_volume(&out.vol_scale)?;
+        let total = l1.add(&(&scale * w.scale)?)?;
+        (scale, total)
+    } else {
+        (fine.zeros_like()?, l1)
+    };
     Ok(Loss {
         total,
         fine,

@@ -8,8 +8,8 @@
 //! * `log`: `log.csv`.
 //! * [`source`]: training batches from a dataset (see `docs/conventions.md`, "Ray sampler").
 //! * [`trainer`]: one training step (forward, loss, backward, clip, Adam, schedule), run in
-//!   chunks of rays with gradient accumulation when the batch is large, non-finite step
-//!   skipping, checkpoint and resume.
+//!   chunks of rays with gradient accumulation when the batch is large, non-finite steps
+//!   skipped on the device, numbers read back every few steps.
 //! * [`checkpoint`]: checkpoints written as transactions into a run directory, `--resume`'s
 //!   starting point, the one rule of what a resumed run may change
 //!   ([`RunConfig::check_resume`]).
@@ -33,7 +33,7 @@ pub mod source;
 pub mod state;
 pub mod trainer;
 
-pub use adam::{clip_grad_norm, decayed_lr, global_norm, Adam, ParamGroup, ParamState};
+pub use adam::{decayed_lr, Adam, ParamGroup, ParamState};
 pub use batch::{BatchSource, FixedBatch, TrainBatch};
 pub use log::{LogRow, TrainLog};
 pub use pma_data::metrics::psnr_from_mse;

@@ -63,9 +63,17 @@ pub struct TrainConfig {
     /// Abort after this many consecutive non-finite steps (each is skipped, not applied).
     pub max_consecutive_skips: u64,
     /// Rays per forward/backward chunk of a training step (gradients are accumulated over
-    /// the chunks, so the step is the same as unchunked); `0` = automatic, chunks of at
-    /// most [`crate::train::AUTO_CHUNK_POINT_JOINTS`] point-joint pairs, which bounds memory.
+    /// the chunks, so the step is the same as unchunked up to float summation order); `0` =
+    /// automatic, sized from the device ([`crate::train::chunk_rays`]): its free memory on a
+    /// GPU, [`crate::train::AUTO_CHUNK_POINT_JOINTS`] point-joint pairs on the CPU.
     pub chunk_rays: usize,
+    /// Steps between read-backs of the loss, gradient norm and skip decisions (one
+    /// device-to-host copy for all of them; the log and the progress display get the numbers
+    /// then, and skipped steps are counted then). `0` = automatic: every step on the CPU,
+    /// where a read-back costs nothing, every
+    /// [`crate::train::AUTO_READ_EVERY_DEVICE`] steps on other devices. Never changes the
+    /// training itself.
+    pub read_every: u64,
 }
 
 impl Default for TrainConfig {
@@ -101,6 +109,16 @@ impl TrainConfig {
             render_chunk: 5120,
             max_consecutive_skips: 100,
             chunk_rays: 0,
+            read_every: 0,
+        }
+    }
+
+    /// The loss weights (fine, coarse, box volume).
+    pub fn loss_weights(&self) -> crate::train::loss::LossWeights {
+        crate::train::loss::LossWeights {
+            fine: self.loss_fine,
+            coarse: self.loss_coarse,
+            scale: self.loss_scale,
         }
     }
 
@@ -370,6 +388,7 @@ impl RunConfig {
             let mut r = r.clone();
             r.train.iters = 0;
             r.train.chunk_rays = 0;
+            r.train.read_every = 0;
             serde_json::to_value(&r).unwrap_or(serde_json::Value::Null)
         };
         let mut diffs = Vec::new();
@@ -389,7 +408,7 @@ impl RunConfig {
             n => format!(" (and {} more difference(s))", n - 1),
         };
         Err(format!(
-            "{what}{more}; a resumed run keeps its configuration (only train.iters and train.chunk_rays may change)"
+            "{what}{more}; a resumed run keeps its configuration (only train.iters, train.chunk_rays and train.read_every may change)"
         ))
     }
 

@@ -83,7 +83,11 @@ pub struct TrainOutcome {
 /// Progress after one step.
 #[derive(Debug, Clone)]
 pub struct StepReport<'a> {
-    pub stats: &'a StepStats,
+    /// The iteration just completed.
+    pub iter: u64,
+    /// The steps whose numbers reached the host with this one (oldest first; empty between
+    /// read-backs, see [`crate::train::TrainConfig::read_every`]).
+    pub stats: &'a [StepStats],
     /// The run's iteration target.
     pub target: u64,
     /// Iterations per second of this session, held-out evaluations excluded.
@@ -91,7 +95,7 @@ pub struct StepReport<'a> {
     /// Seconds to the target or to the end of the time budget, whichever comes first.
     pub eta_s: f64,
     /// Exponential moving averages of the loss and the training PSNR (`None` before the
-    /// first finite step).
+    /// first finite step has been read back).
     pub ema: Option<(f64, f64)>,
 }
 
@@ -348,7 +352,7 @@ impl<'a> Session<'a> {
             if self.budget.is_some_and(|b| self.clock.elapsed() >= b) {
                 break;
             }
-            let stats = match self.trainer.step() {
+            let mut stats = match self.trainer.step() {
                 Ok(s) => s,
                 Err(e) if e.is_interrupted() => {
                     interrupted = true;
@@ -360,13 +364,26 @@ impl<'a> Session<'a> {
                 }
                 Err(e) => return Err(e),
             };
+            let it = self.trainer.iteration();
             self.trainer.set_wall_s(self.wall());
-            crate::compute::profile::print_step(stats.iter);
-            self.record_step(&stats, target);
-            match self.after_step(stats.iter) {
+            crate::compute::profile::print_step(it);
+            // A log row, an evaluation or a checkpoint needs every step's numbers.
+            if self.due(it) {
+                match self.trainer.read_back() {
+                    Ok(more) => stats.extend(more),
+                    Err(e @ TrainError::Diverged { .. }) => {
+                        failure = Some(e);
+                        break;
+                    }
+                    Err(e) => return Err(e),
+                }
+            }
+            self.record_numbers(&stats);
+            self.report(it, &stats, target);
+            match self.after_step(it) {
                 Ok(logged) => {
                     if logged {
-                        last_logged = stats.iter;
+                        last_logged = it;
                     }
                 }
                 // The step is complete; only its held-out score is missing.
@@ -376,6 +393,12 @@ impl<'a> Session<'a> {
                 }
                 Err(e) => return Err(e),
             }
+        }
+        // Completed steps whose numbers are still on the device.
+        match self.trainer.read_back() {
+            Ok(rest) => self.record_numbers(&rest),
+            Err(e @ TrainError::Diverged { .. }) => failure = failure.or(Some(e)),
+            Err(e) => return Err(e),
         }
         self.finish(last_logged, failure, interrupted)
     }
@@ -423,14 +446,25 @@ impl<'a> Session<'a> {
         }
     }
 
-    /// Account for a finished step and report it.
-    fn record_step(&mut self, stats: &StepStats, target: u64) {
-        if let Some(reason) = &stats.skipped {
-            self.observer.note(&format!(
-                "iteration {}: {reason}; step skipped (weights unchanged)",
-                stats.iter
-            ));
-        } else {
+    /// Whether step `it` ends with a log row, an evaluation or a checkpoint.
+    fn due(&self, it: u64) -> bool {
+        let cfg = &self.run.train;
+        it % cfg.log_every == 0
+            || it % cfg.ckpt_every == 0
+            || (cfg.eval_every > 0 && it % cfg.eval_every == 0)
+    }
+
+    /// Account for the steps whose numbers arrived: skipped steps are noted, the others
+    /// enter the interval means and the moving averages.
+    fn record_numbers(&mut self, arrived: &[StepStats]) {
+        for stats in arrived {
+            if let Some(reason) = &stats.skipped {
+                self.observer.note(&format!(
+                    "iteration {}: {reason}; step skipped (weights unchanged)",
+                    stats.iter
+                ));
+                continue;
+            }
             self.interval.add(stats);
             self.ema = Some(match self.ema {
                 None => (stats.loss.total, stats.loss.psnr),
@@ -440,15 +474,20 @@ impl<'a> Session<'a> {
                 ),
             });
         }
+    }
+
+    /// Report the progress after step `it`.
+    fn report(&mut self, it: u64, arrived: &[StepStats], target: u64) {
         let elapsed = self.clock.elapsed().as_secs_f64();
-        let done = (stats.iter - self.start_iter) as f64;
+        let done = (it - self.start_iter) as f64;
         let it_per_s = done / (elapsed - self.eval_s).max(1e-9);
-        let mut eta_s = (target - stats.iter) as f64 / it_per_s.max(1e-9);
+        let mut eta_s = (target - it) as f64 / it_per_s.max(1e-9);
         if let Some(b) = self.budget {
             eta_s = eta_s.min((b.as_secs_f64() - elapsed).max(0.0));
         }
         self.observer.step(&StepReport {
-            stats,
+            iter: it,
+            stats: arrived,
             target,
             it_per_s,
             eta_s,

@@ -6,6 +6,12 @@
 //! [`Trainer`] adds the avatar, a [`BatchSource`] (the pma-data ray sampler in real runs) and
 //! the density-noise generator.
 //!
+//! Nothing is read back to the host inside a step: the loss, the gradient norm, the skip
+//! decision (a non-finite loss or norm) and the clip factor stay on the device, the update is
+//! masked there, and the numbers of the steps since the last read-back reach the host together
+//! in one copy ([`Trainer::read_back`], every [`TrainConfig::read_every`] steps). Skipped
+//! steps are counted, and a streak of them stops the run, when their numbers arrive.
+//!
 //! Everything random in training comes from seeded ChaCha generators whose positions are
 //! saved in the train state, and candle's CPU kernels are deterministic, so a run resumed
 //! from a checkpoint continues bit for bit like one that never stopped.
@@ -13,18 +19,18 @@
 use std::path::Path;
 use std::sync::Arc;
 
-use candle_core::{Device, Tensor, Var};
+use candle_core::{DType, Device, Tensor, Var};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
-use super::adam::{clip_grad_norm, global_norm, Adam};
+use super::adam::Adam;
 use super::batch::{BatchSource, TrainBatch};
 use super::source::DatasetSource;
 use super::state::{Progress, RngState, TrainState};
 use super::TrainError;
 use crate::network::config::Config;
-use crate::render::avatar::{Avatar, Mode, Outputs, PoseFeatures, Rays};
-use crate::train::loss::LossWeights;
+use crate::render::avatar::{Avatar, Mode, Rays};
+use crate::render::raycast::CoarseSamples;
 use crate::train::presets::{RunConfig, TrainConfig};
 use pma_data::dataset::Dataset;
 use pma_data::metrics::psnr_from_mse;
@@ -62,10 +68,10 @@ impl std::fmt::Display for SkipReason {
     }
 }
 
-/// What one iteration did.
+/// What one iteration did (known on the host once its numbers are read back).
 #[derive(Debug, Clone, PartialEq)]
 pub struct StepStats {
-    /// The iteration just completed (1-based, = completed iterations afterwards).
+    /// The iteration (1-based, = completed iterations after it).
     pub iter: u64,
     pub loss: LossParts,
     /// Global gradient norm before clipping (NaN when the loss was already non-finite).
@@ -78,13 +84,66 @@ pub struct StepStats {
     pub skipped: Option<SkipReason>,
 }
 
+/// The loss terms of a step on the device, f64 scalars: the differentiated total, the L1
+/// terms, the box-volume term and the mean squared error of the fine render.
+#[derive(Debug, Clone)]
+pub struct StepLoss {
+    pub total: Tensor,
+    pub fine: Tensor,
+    pub coarse: Tensor,
+    pub scale: Tensor,
+    pub mse: Tensor,
+}
+
+impl StepLoss {
+    /// Zeros on `device`, to add chunks to.
+    fn zeros(device: &Device) -> candle_core::Result<Self> {
+        let z = Tensor::zeros((), DType::F64, device)?;
+        Ok(Self {
+            total: z.clone(),
+            fine: z.clone(),
+            coarse: z.clone(),
+            scale: z.clone(),
+            mse: z,
+        })
+    }
+
+    /// The five numbers as one [5] f64 tensor.
+    fn stacked(&self) -> candle_core::Result<Tensor> {
+        Tensor::stack(
+            &[
+                &self.total,
+                &self.fine,
+                &self.coarse,
+                &self.scale,
+                &self.mse,
+            ],
+            0,
+        )
+    }
+}
+
+/// A step whose numbers are still on the device: [total, fine, coarse, scale, mse, norm].
+struct Pending {
+    iter: u64,
+    lrs: Vec<f64>,
+    numbers: Tensor,
+}
+
 /// Clip, skip, Adam and schedule: everything of a step after the gradients exist.
 pub struct Optimization {
     pub adam: Adam,
     pub cfg: TrainConfig,
     /// Completed iterations.
     pub iter: u64,
+    /// Skip counters as of the last read-back.
     pub progress: Progress,
+    pending: Vec<Pending>,
+}
+
+/// 1 (u8) where `x` is finite: `0·x` is 0 for finite values, NaN for ±inf and NaN.
+fn finite(x: &Tensor) -> candle_core::Result<Tensor> {
+    x.affine(0.0, 0.0)?.eq(&x.zeros_like()?)
 }
 
 impl Optimization {
@@ -94,6 +153,7 @@ impl Optimization {
             cfg,
             iter: 0,
             progress: Progress::default(),
+            pending: Vec::new(),
         }
     }
 
@@ -102,258 +162,199 @@ impl Optimization {
         self.adam.groups().iter().map(|g| g.lr).collect()
     }
 
-    /// Finish iteration `iter + 1`. `grads` is aligned with `adam.param_names()` (`None` = no
-    /// gradient). A non-finite loss or gradient norm skips the update: nothing reaches the
-    /// weights or the moments, the skip is counted, and after `max_consecutive_skips` in a row
-    /// the run stops with [`TrainError::Diverged`].
-    pub fn apply(
-        &mut self,
-        loss: LossParts,
-        mut grads: Vec<Option<Tensor>>,
-    ) -> Result<StepStats, TrainError> {
+    /// Steps whose numbers have not been read back yet.
+    pub fn pending(&self) -> usize {
+        self.pending.len()
+    }
+
+    /// Finish iteration `iter + 1` on the device. `grads` is aligned with
+    /// `adam.param_names()` (`None` = no gradient). A non-finite loss or gradient norm skips
+    /// the update: the update is masked, so nothing reaches the weights or the moments.
+    /// Nothing is read back; the step's numbers wait for [`Self::read_back`].
+    pub fn apply(&mut self, loss: &StepLoss, grads: Vec<Option<Tensor>>) -> Result<(), TrainError> {
         let lrs = self.lrs();
         let iter = self.iter + 1;
-        let mut stats = StepStats {
-            iter,
-            loss,
-            grad_norm: f64::NAN,
-            clip_coef: 1.0,
-            lrs,
-            skipped: None,
+        let (g, has) = self.adam.flatten(&grads)?;
+        let norm = g.to_dtype(DType::F64)?.sqr()?.sum_all()?.sqrt()?;
+        let ok = (finite(&loss.total)? * finite(&norm)?)?;
+        let g = if self.cfg.grad_clip > 0.0 {
+            // torch's clip_grad_norm_: max_norm / (norm + 1e-6), applied below 1.
+            let max = Tensor::full(self.cfg.grad_clip, (), norm.device())?;
+            let coef = max.div(&norm.affine(1.0, 1e-6)?)?;
+            let one = coef.ones_like()?;
+            let coef = coef.lt(&one)?.where_cond(&coef, &one)?;
+            g.broadcast_mul(&coef.to_dtype(DType::F32)?)?
+        } else {
+            g
         };
-        if !loss.total.is_finite() {
-            stats.skipped = Some(SkipReason::NonFiniteLoss);
-        } else {
-            stats.grad_norm = global_norm(&grads)?;
-            if !stats.grad_norm.is_finite() {
-                stats.skipped = Some(SkipReason::NonFiniteGradNorm);
-            }
-        }
-        if stats.skipped.is_none() {
-            if self.cfg.grad_clip > 0.0 {
-                stats.clip_coef = clip_grad_norm(&mut grads, self.cfg.grad_clip, stats.grad_norm)?;
-            }
-            self.adam.step(&grads)?;
-            self.progress.consecutive_skipped = 0;
-        } else {
-            self.progress.skipped += 1;
-            self.progress.consecutive_skipped += 1;
-        }
+        self.adam.step_masked(&g, &has, Some(&ok))?;
+        let numbers = Tensor::cat(&[&loss.stacked()?, &norm.unsqueeze(0)?], 0)?;
+        self.pending.push(Pending { iter, lrs, numbers });
         self.iter = iter;
         // The schedule follows the iteration count, skipped or not (the reference sets the
         // rates from global_iter after every step).
         let c = &self.cfg;
         self.adam
             .apply_schedule(iter, c.lr_decay, c.lr_decay_steps, c.lr_floor);
-        if self.progress.consecutive_skipped >= self.cfg.max_consecutive_skips {
-            return Err(TrainError::Diverged {
-                count: self.progress.consecutive_skipped,
-                iter,
-            });
+        Ok(())
+    }
+
+    /// The numbers of every step since the last read-back (one device-to-host copy), in
+    /// iteration order. Skipped steps are counted here; after `max_consecutive_skips` in a
+    /// row the run stops with [`TrainError::Diverged`].
+    pub fn read_back(&mut self) -> Result<Vec<StepStats>, TrainError> {
+        if self.pending.is_empty() {
+            return Ok(Vec::new());
         }
-        Ok(stats)
+        let numbers: Vec<&Tensor> = self.pending.iter().map(|p| &p.numbers).collect();
+        let host = Tensor::stack(&numbers, 0)?
+            .to_device(&Device::Cpu)?
+            .to_vec2::<f64>()?;
+        let mut out = Vec::with_capacity(host.len());
+        for (p, v) in std::mem::take(&mut self.pending).into_iter().zip(host) {
+            let [total, fine, coarse, scale, mse, norm] = v[..] else {
+                unreachable!("six numbers per step")
+            };
+            let skipped = if !total.is_finite() {
+                Some(SkipReason::NonFiniteLoss)
+            } else if !norm.is_finite() {
+                Some(SkipReason::NonFiniteGradNorm)
+            } else {
+                None
+            };
+            let coef = self.cfg.grad_clip / (norm + 1e-6);
+            let clip_coef = match skipped {
+                None if self.cfg.grad_clip > 0.0 && coef < 1.0 => coef,
+                _ => 1.0,
+            };
+            if skipped.is_some() {
+                self.progress.skipped += 1;
+                self.progress.consecutive_skipped += 1;
+            } else {
+                self.progress.consecutive_skipped = 0;
+            }
+            out.push(StepStats {
+                iter: p.iter,
+                loss: LossParts {
+                    total,
+                    fine,
+                    coarse,
+                    scale,
+                    psnr: psnr_from_mse(mse),
+                },
+                grad_norm: if total.is_finite() { norm } else { f64::NAN },
+                clip_coef,
+                lrs: p.lrs,
+                skipped,
+            });
+            if self.progress.consecutive_skipped >= self.cfg.max_consecutive_skips {
+                return Err(TrainError::Diverged {
+                    count: self.progress.consecutive_skipped,
+                    iter: p.iter,
+                });
+            }
+        }
+        Ok(out)
     }
 }
 
-/// The differentiated loss ([`crate::train::loss`]) and its parts as numbers.
-pub fn training_loss(
-    out: &Outputs,
-    target: &Tensor,
-    cfg: &TrainConfig,
-) -> Result<(Tensor, LossParts), TrainError> {
-    let weights = LossWeights {
-        fine: cfg.loss_fine,
-        coarse: cfg.loss_coarse,
-        scale: cfg.loss_scale,
-    };
-    let loss = crate::train::loss::training_loss(out, target, &weights)?;
-    let mse = (&out.fine.rgb.detach() - target)?.sqr()?.mean_all()?;
-    // One read-back for the five numbers (one device sync on a GPU).
-    let parts = [&loss.total, &loss.fine, &loss.coarse, &loss.scale, &mse]
-        .map(|t| t.to_dtype(candle_core::DType::F32));
-    let v = Tensor::stack(
-        &parts.into_iter().collect::<candle_core::Result<Vec<_>>>()?,
-        0,
-    )?
-    .to_device(&Device::Cpu)?
-    .to_vec1::<f32>()?;
-    let parts = LossParts {
-        total: v[0] as f64,
-        fine: v[1] as f64,
-        coarse: v[2] as f64,
-        scale: v[3] as f64,
-        psnr: psnr_from_mse(v[4] as f64),
-    };
-    Ok((loss.total, parts))
-}
-
-/// Automatic chunking of a training step (`chunk_rays = 0`): at most this many
+/// Automatic chunking of a training step (`chunk_rays = 0`) on the CPU: at most this many
 /// point × joint × feature elements per chunk (samples per ray × joints × the widest per-joint
 /// feature). Forward and backward keep some 50 tensors of that size alive: a 512-ray chunk
 /// of the paper config peaked near 8 GiB, so the budget is 128 rays of it (about 2 GiB).
 pub const AUTO_CHUNK_POINT_JOINTS: usize = 128 * 72 * 24 * 128;
 
-/// Rays per chunk of a training step (see [`TrainConfig::chunk_rays`]).
-pub fn chunk_rays(train: &TrainConfig, model: &Config) -> usize {
+/// Bytes of device memory a training step holds per point × joint × feature element (an
+/// estimate from the 8 GiB peak of a 512-ray chunk of the paper config, rounded up).
+pub const TRAIN_BYTES_PER_ELEMENT: usize = 80;
+
+/// Share of the free device memory automatic chunks are sized to; the rest is headroom for
+/// the allocator, cuBLAS's workspace and what the estimate misses.
+pub const DEVICE_MEMORY_SHARE: f64 = 0.8;
+
+/// Rays per chunk of a training step (see [`TrainConfig::chunk_rays`]). Automatic chunks are
+/// sized from the device: [`DEVICE_MEMORY_SHARE`] of its free memory at
+/// [`TRAIN_BYTES_PER_ELEMENT`] on a GPU, [`AUTO_CHUNK_POINT_JOINTS`] on the CPU.
+pub fn chunk_rays(train: &TrainConfig, model: &Config, device: &Device) -> usize {
     if train.chunk_rays > 0 {
         return train.chunk_rays;
     }
     let width = model.win_hidden.max(model.point_enc_dim).max(1);
     let per_ray = (model.n_samples + model.n_importance) * model.n_joints * width;
-    (AUTO_CHUNK_POINT_JOINTS / per_ray.max(1)).max(1)
-}
-
-/// The density noise of one step, drawn a whole block (all rays of the batch) at a time in
-/// the order the unchunked forward draws it; each chunk reads its own rays' rows. Chunks may
-/// run on different workers: every chunk makes its calls in the same order (coarse, fine),
-/// so block `c` is always drawn before block `c + 1`, whichever chunk asks first.
-struct NoiseTape<'a> {
-    rng: &'a mut ChaCha8Rng,
-    /// One block per noise call of a forward pass (coarse, fine): [R·S] each.
-    blocks: Vec<Vec<f32>>,
-}
-
-impl NoiseTape<'_> {
-    /// Call number `call` of a chunk: `n` noise values for the samples of rays `rows`
-    /// (S = n / rows per ray) of a batch of `r` rays.
-    fn rows(
-        &mut self,
-        call: usize,
-        n: usize,
-        rows: &[usize],
-        r: usize,
-        device: &Device,
-    ) -> crate::error::Result<Tensor> {
-        use rand_distr::Distribution;
-        if rows.is_empty() || n % rows.len() != 0 {
-            return Err(crate::error::ModelError::Input(format!(
-                "density noise: {n} samples requested for {} rays (not a whole number per ray)",
-                rows.len()
-            )));
-        }
-        let s = n / rows.len();
-        if self.blocks.len() == call {
-            let rng = &mut *self.rng;
-            self.blocks.push(
-                (0..r * s)
-                    .map(|_| rand_distr::StandardNormal.sample(rng))
-                    .collect(),
-            );
-        }
-        let block = self.blocks.get(call).ok_or_else(|| {
-            crate::error::ModelError::Input(format!(
-                "density noise call {call} before call {}",
-                self.blocks.len()
-            ))
-        })?;
-        if block.len() != r * s {
-            return Err(crate::error::ModelError::Input(format!(
-                "density noise call {call}: {s} samples per ray, but the first chunk drew {} per ray",
-                block.len() / r
-            )));
-        }
-        let mut v = Vec::with_capacity(n);
-        for &row in rows {
-            v.extend_from_slice(&block[row * s..(row + 1) * s]);
-        }
-        Ok(Tensor::from_vec(v, n, device)?)
-    }
-}
-
-/// What one chunk of a training step contributes.
-struct ChunkOut {
-    fine: f64,
-    coarse: f64,
-    sq: f64,
-    /// The box-volume term (first chunk only).
-    scale: Option<f64>,
-    finite: bool,
-    /// Gradients aligned with the trainer's parameters (empty when not finite).
-    grads: Vec<Option<Tensor>>,
-}
-
-/// The rows `rows` of `batch` (rays and targets), on `device`.
-fn select_rays(
-    batch: &TrainBatch,
-    rows: &[usize],
-    device: &Device,
-) -> Result<(Rays, Tensor), TrainError> {
-    let idx = Tensor::from_vec(
-        rows.iter().map(|&i| i as u32).collect::<Vec<_>>(),
-        rows.len(),
-        device,
-    )?;
-    let rays = Rays {
-        origins: batch.rays.origins.index_select(&idx, 0)?,
-        dirs: batch.rays.dirs.index_select(&idx, 0)?,
-        bgs: match &batch.rays.bgs {
-            Some(b) => Some(b.index_select(&idx, 0)?),
-            None => None,
-        },
-        framecodes: rows.iter().map(|&i| batch.rays.framecodes[i]).collect(),
+    let budget = match crate::compute::device::free_memory(device) {
+        Some(free) => (free as f64 * DEVICE_MEMORY_SHARE) as usize / TRAIN_BYTES_PER_ELEMENT,
+        None => AUTO_CHUNK_POINT_JOINTS,
     };
-    Ok((rays, batch.target.index_select(&idx, 0)?))
+    (budget / per_ray.max(1)).max(1)
 }
 
-/// Loss parts and gradients summed over a step's chunks, in chunk order.
-struct ChunkSums {
-    grads: Vec<Option<Tensor>>,
-    fine: f64,
-    coarse: f64,
-    sq: f64,
-    scale: f64,
-    finite: bool,
+/// The density noise of one step: a standard normal for every coarse and every fine sample
+/// of the batch, [R,Sc] and [R,Sf], drawn in the order a forward pass over the whole batch
+/// asks for them (coarse, then fine). A chunk takes its rays' rows, so chunking never
+/// changes the noise a sample gets.
+struct StepNoise {
+    coarse: Tensor,
+    fine: Tensor,
 }
 
-impl ChunkSums {
-    fn new(n_params: usize) -> Self {
-        Self {
-            grads: vec![None; n_params],
-            fine: 0.0,
-            coarse: 0.0,
-            sq: 0.0,
-            scale: 0.0,
-            finite: true,
-        }
-    }
-
-    fn add(&mut self, out: ChunkOut) -> Result<(), TrainError> {
-        self.fine += out.fine;
-        self.coarse += out.coarse;
-        self.sq += out.sq;
-        if let Some(v) = out.scale {
-            self.scale = v;
-        }
-        self.finite &= out.finite;
-        if !self.finite {
-            return Ok(());
-        }
-        for (g, d) in self.grads.iter_mut().zip(out.grads) {
-            if let Some(d) = d {
-                *g = Some(match g.take() {
-                    Some(sum) => (sum + d)?,
-                    None => d,
-                });
-            }
-        }
-        Ok(())
-    }
-
-    /// The step's loss parts, and its gradients (none when a chunk was not finite).
-    fn finish(mut self, cfg: &TrainConfig) -> (LossParts, Vec<Option<Tensor>>) {
-        let total =
-            self.fine * cfg.loss_fine + self.coarse * cfg.loss_coarse + self.scale * cfg.loss_scale;
-        let parts = LossParts {
-            total: if self.finite { total } else { f64::NAN },
-            fine: self.fine,
-            coarse: self.coarse,
-            scale: self.scale,
-            psnr: psnr_from_mse(self.sq),
+impl StepNoise {
+    fn draw(
+        rng: &mut ChaCha8Rng,
+        rays: usize,
+        (sc, sf): (usize, usize),
+        device: &Device,
+    ) -> Result<Self, TrainError> {
+        use rand_distr::Distribution;
+        let mut block = |s: usize| -> candle_core::Result<Tensor> {
+            let v: Vec<f32> = (0..rays * s)
+                .map(|_| rand_distr::StandardNormal.sample(&mut *rng))
+                .collect();
+            Tensor::from_vec(v, (rays, s), device)
         };
-        if !self.finite {
-            self.grads = vec![None; self.grads.len()];
+        let coarse = block(sc)?;
+        Ok(Self {
+            coarse,
+            fine: block(sf)?,
+        })
+    }
+}
+
+/// The rays `rows` of a batch: their rows of every per-ray tensor (`None` = all rays).
+struct Rows<'a> {
+    ids: Option<(Vec<usize>, Tensor)>,
+    batch: &'a TrainBatch,
+}
+
+impl Rows<'_> {
+    fn take(&self, t: &Tensor) -> candle_core::Result<Tensor> {
+        match &self.ids {
+            None => Ok(t.clone()),
+            Some((_, idx)) => t.index_select(idx, 0),
         }
-        (parts, self.grads)
+    }
+
+    fn rays(&self) -> candle_core::Result<Rays> {
+        let r = &self.batch.rays;
+        Ok(Rays {
+            origins: self.take(&r.origins)?,
+            dirs: self.take(&r.dirs)?,
+            bgs: r.bgs.as_ref().map(|b| self.take(b)).transpose()?,
+            framecodes: match &self.ids {
+                None => r.framecodes.clone(),
+                Some((rows, _)) => rows.iter().map(|&i| r.framecodes[i]).collect(),
+            },
+        })
+    }
+
+    fn samples(&self, c: &CoarseSamples) -> candle_core::Result<CoarseSamples> {
+        Ok(CoarseSamples {
+            bounds: match (&c.bounds, &self.ids) {
+                (Some(b), Some((rows, _))) => Some(b.select(rows)),
+                (b, _) => b.clone(),
+            },
+            z: self.take(&c.z)?,
+            pts: self.take(&c.pts)?,
+        })
     }
 }
 
@@ -371,11 +372,19 @@ pub struct Trainer {
     opt: Optimization,
     source: Box<dyn BatchSource>,
     noise_rng: ChaCha8Rng,
+    /// Rays per chunk, fixed at the first step (free device memory changes once the
+    /// allocator holds a step's tensors, and the chunking sets the summation order).
+    chunk: Option<usize>,
 }
 
 /// The density-noise stream is seeded from the run seed on its own ChaCha stream, so it
 /// never overlaps the sampler's or the initialisation's draws.
 const NOISE_STREAM: u64 = 0x6e_6f69_7365;
+
+/// Read-back interval of `read_every = 0` on devices other than the CPU (an estimate: a
+/// read-back drains the device's queue once, tens of microseconds, against steps of tens of
+/// milliseconds or more; on the CPU nothing is queued and every step is read).
+pub const AUTO_READ_EVERY_DEVICE: u64 = 10;
 
 impl Trainer {
     /// Train `avatar` on batches from `source`. `run.model` must be the avatar's config.
@@ -408,6 +417,7 @@ impl Trainer {
             opt,
             source,
             noise_rng,
+            chunk: None,
         })
     }
 
@@ -473,6 +483,7 @@ impl Trainer {
         self.opt.iter
     }
 
+    /// Skip counters as of the last read-back.
     pub fn progress(&self) -> &Progress {
         &self.opt.progress
     }
@@ -496,28 +507,70 @@ impl Trainer {
         &self.names
     }
 
-    /// One iteration on the next batch of the source.
+    /// Steps between read-backs ([`TrainConfig::read_every`], `0` resolved for the device).
+    pub fn read_every(&self) -> u64 {
+        match self.run.train.read_every {
+            0 if crate::compute::account::cpu_route(self.avatar.device()) => 1,
+            0 => AUTO_READ_EVERY_DEVICE,
+            k => k,
+        }
+    }
+
+    /// Steps done whose numbers have not been read back.
+    pub fn pending(&self) -> usize {
+        self.opt.pending()
+    }
+
+    /// One iteration on the next batch of the source. Every [`Self::read_every`] iterations
+    /// the numbers of the steps since the last read-back come back (oldest first); otherwise
+    /// the result is empty. Errors of those steps (a streak of skipped steps:
+    /// [`TrainError::Diverged`]) surface here too.
     ///
     /// A step cut short by an interruption (see [`crate::interrupt`]) is undone: it stops
     /// before the optimizer, so only the batch source and the noise generator have moved, and
     /// both are put back. The trainer is then exactly as after the last complete step, and a
     /// checkpoint of it resumes bit for bit.
-    pub fn step(&mut self) -> Result<StepStats, TrainError> {
-        self.step_undoable(None)
+    pub fn step(&mut self) -> Result<Vec<StepStats>, TrainError> {
+        self.step_undoable(None)?;
+        if self.opt.iter % self.read_every() == 0 {
+            self.read_back()
+        } else {
+            Ok(Vec::new())
+        }
     }
 
-    /// [`Self::step`] with a gradient hook (e.g. to inject a fault in tests).
+    /// One iteration, then a read-back: this step's numbers (tests, tools that inspect every
+    /// step; on a GPU each call waits for the device).
+    pub fn step_read(&mut self) -> Result<StepStats, TrainError> {
+        self.step_undoable(None)?;
+        self.last_read()
+    }
+
+    /// [`Self::step_read`] with a gradient hook (e.g. to inject a fault in tests).
     pub fn step_hooked(&mut self, hook: GradHook) -> Result<StepStats, TrainError> {
-        self.step_undoable(Some(hook))
+        self.step_undoable(Some(hook))?;
+        self.last_read()
     }
 
-    fn step_undoable(&mut self, hook: Option<GradHook>) -> Result<StepStats, TrainError> {
+    /// The numbers of every step done since the last read-back, oldest first (one copy).
+    pub fn read_back(&mut self) -> Result<Vec<StepStats>, TrainError> {
+        self.opt.read_back()
+    }
+
+    /// Read back and return the last step's numbers.
+    fn last_read(&mut self) -> Result<StepStats, TrainError> {
+        self.read_back()?
+            .pop()
+            .ok_or_else(|| TrainError::Config("no step to read back".into()))
+    }
+
+    fn step_undoable(&mut self, hook: Option<GradHook>) -> Result<(), TrainError> {
         let noise = self.noise_rng.clone();
         let source = self.source.state();
         let result = self
             .source
             .next_batch()
-            .and_then(|batch| self.step_on(&batch, hook));
+            .and_then(|batch| self.advance_hooked(&batch, hook));
         match result {
             Err(e) if e.is_interrupted() => {
                 self.noise_rng = noise;
@@ -528,90 +581,72 @@ impl Trainer {
         }
     }
 
-    /// One iteration on `batch`: forward (training mode, density noise), loss, backward,
-    /// `hook`, clip, Adam, schedule. A non-finite loss skips the backward pass too.
-    ///
-    /// A batch of more than [`chunk_rays`] rays runs in chunks (see [`Self::chunked_grads`]);
-    /// clipping and Adam then see the accumulated gradient, as if it had been one pass.
+    /// One iteration on `batch`, then a read-back: this step's numbers.
     pub fn step_on(
         &mut self,
         batch: &TrainBatch,
         hook: Option<GradHook>,
     ) -> Result<StepStats, TrainError> {
-        let rays = batch.rays.origins.dim(0)?;
-        crate::compute::profile::start(self.avatar.device());
-        let mut chunk = chunk_rays(&self.run.train, self.avatar.config());
-        let workers = crate::compute::parallel::workers_on(self.avatar.device());
-        if workers > 1 {
-            // Enough chunks to keep every worker busy (chunks stay at least one ray per pose).
-            chunk = chunk.min(rays.div_ceil(workers));
-        }
-        let (parts, mut grads) = if rays > chunk {
-            self.chunked_grads(batch, chunk)?
-        } else {
-            let (loss, parts) = self.loss_on(batch)?;
-            crate::compute::profile::mark("loss", self.avatar.device());
-            let grads = if parts.total.is_finite() {
-                let store = loss.backward()?;
-                crate::compute::profile::mark("backward", self.avatar.device());
-                self.params
-                    .iter()
-                    .map(|v| store.get(v.as_tensor()).cloned())
-                    .collect()
-            } else {
-                vec![None; self.params.len()]
-            };
-            (parts, grads)
-        };
+        self.advance_hooked(batch, hook)?;
+        self.last_read()
+    }
+
+    /// One iteration on `batch` without a read-back (its numbers wait for
+    /// [`Self::read_back`]).
+    pub fn advance(&mut self, batch: &TrainBatch) -> Result<(), TrainError> {
+        self.advance_hooked(batch, None)
+    }
+
+    /// One iteration on `batch`: forward (training mode, density noise), loss, backward,
+    /// `hook`, clip, Adam, schedule, without reading anything back.
+    fn advance_hooked(
+        &mut self,
+        batch: &TrainBatch,
+        hook: Option<GradHook>,
+    ) -> Result<(), TrainError> {
+        let device = self.avatar.device().clone();
+        crate::compute::profile::start(&device);
+        let chunk = self.chunk_size(batch.rays.origins.dim(0)?);
+        let (loss, mut grads) = self.gradients(batch, chunk)?;
         if let Some(h) = hook {
             h(&mut grads);
         }
-        let stats = self.opt.apply(parts, grads);
-        crate::compute::profile::mark("grad norm + Adam", self.avatar.device());
-        stats
+        self.opt.apply(&loss, grads)?;
+        crate::compute::profile::mark("grad norm + Adam", &device);
+        Ok(())
     }
 
-    /// Loss parts and gradients of one step on `batch`, computed `chunk` rays at a time
-    /// (at least one ray per pose), so memory is bounded by the chunk, not the batch.
+    /// Rays per chunk for a batch of `rays`: [`chunk_rays`], fixed at the first step, and on
+    /// the CPU at most a worker's share, so every worker has a chunk.
+    fn chunk_size(&mut self, rays: usize) -> usize {
+        let device = self.avatar.device().clone();
+        let chunk = *self
+            .chunk
+            .get_or_insert_with(|| chunk_rays(&self.run.train, self.avatar.config(), &device));
+        let workers = crate::compute::parallel::workers_on(&device);
+        if workers > 1 {
+            chunk.min(rays.div_ceil(workers))
+        } else {
+            chunk
+        }
+    }
+
+    /// The loss and the gradients of one step on `batch`, computed `chunk` rays at a time
+    /// (at least one ray per pose); one chunk is the whole batch in one pass.
     ///
-    /// Every chunk takes the same slice of each pose's block of rays, so it is itself a valid
-    /// batch of all P poses and the per-pose work (GNN, `layer_pose`, box scales) is done once
-    /// and shared: each chunk's backward pass adds its share to the GNN's gradient. The L1
-    /// terms are sums scaled by `1/(3R)` of the whole batch (the same two multiplications
-    /// as the mean), so the chunk losses add up to the unchunked loss; the box-volume term
-    /// goes with the first chunk. The density noise of the whole step is drawn once, in the
-    /// unchunked order, and each chunk takes its rays' rows; rays that miss the bounding
-    /// cylinder get the whole batch's fallback bounds. What differs from one pass is only
-    /// the order of float summation.
-    pub fn chunked_grads(
+    /// The per-pose work (GNN, `layer_pose`, box scales), the ray casting and the density
+    /// noise are done once for the batch. Every chunk takes the same slice of each pose's
+    /// block of rays, so it is itself a batch of all P poses: it takes its rows of the
+    /// samples and the noise, renders, and differentiates its share of the loss (the L1 terms
+    /// are sums scaled by `1/(3R)` of the whole batch, the same two multiplications as the
+    /// mean; the box-volume term goes with the first chunk). Shares and gradients are summed
+    /// in chunk order on the device. What chunking changes is only the order of float
+    /// summation.
+    fn gradients(
         &mut self,
         batch: &TrainBatch,
         chunk: usize,
-    ) -> Result<(LossParts, Vec<Option<Tensor>>), TrainError> {
-        let host = |t: &Tensor| -> Result<Vec<f32>, TrainError> {
-            Ok(t.flatten_all()?.to_device(&Device::Cpu)?.to_vec1::<f32>()?)
-        };
-        let pose = self.avatar.pose_features(&batch.poses, None)?;
-        crate::compute::profile::mark("pose features", self.avatar.device());
-        let bounds = self.avatar.ray_caster().near_far(
-            &host(&batch.rays.origins)?,
-            &host(&batch.rays.dirs)?,
-            &host(&batch.poses.cyls)?,
-            &host(&batch.poses.skts)?,
-            &host(&pose.scales.detach())?,
-        )?;
-        self.avatar.pin_miss_fill(Some(bounds.miss_fill));
-        let result = self.chunk_loop(batch, &pose, chunk);
-        self.avatar.pin_miss_fill(None);
-        result
-    }
-
-    fn chunk_loop(
-        &mut self,
-        batch: &TrainBatch,
-        pose: &PoseFeatures,
-        chunk: usize,
-    ) -> Result<(LossParts, Vec<Option<Tensor>>), TrainError> {
+    ) -> Result<(StepLoss, Vec<Option<Tensor>>), TrainError> {
         let r = batch.rays.origins.dim(0)?;
         let n_poses = batch.poses.bones.len();
         if n_poses == 0 || r % n_poses != 0 {
@@ -622,75 +657,83 @@ impl Trainer {
         let k = r / n_poses;
         let per_pose = (chunk / n_poses).clamp(1, k);
         let device = self.avatar.device().clone();
-        let cfg = self.run.train.clone();
-        let inv_n = 1.0 / (3 * r) as f64;
-        let (avatar, params) = (&self.avatar, &self.params);
-        let tape = std::sync::Mutex::new(NoiseTape {
-            rng: &mut self.noise_rng,
-            blocks: Vec::new(),
-        });
-        let run_chunk = |start: usize| -> Result<ChunkOut, TrainError> {
-            let len = per_pose.min(k - start);
-            let rows: Vec<usize> = (0..n_poses)
-                .flat_map(|p| p * k + start..p * k + start + len)
-                .collect();
-            let (rays, target) = select_rays(batch, &rows, &device)?;
-            crate::compute::profile::mark("chunk select + batch near/far", &device);
-            let mut call = 0;
-            let mut noise = |n: usize| {
-                let mut t = tape.lock().unwrap_or_else(|e| e.into_inner());
-                call += 1;
-                t.rows(call - 1, n, &rows, r, &device)
-            };
-            let mut opts = Mode::Train(Some(&mut noise));
-            let out = avatar.forward_with_pose(&rays, &batch.poses, pose, &mut opts)?;
-            // sum · (1/n) · w: the multiplications the unchunked mean and weight make.
-            let l1 = |pred: &Tensor, w: f64| -> Result<Tensor, TrainError> {
-                Ok((((pred - &target)?.abs()?.sum_all()? * inv_n)? * w)?)
-            };
-            let mut loss =
-                (l1(&out.fine.rgb, cfg.loss_fine)? + l1(&out.coarse.rgb, cfg.loss_coarse)?)?;
-            let f64_of = |t: &Tensor| t.to_dtype(candle_core::DType::F64);
-            let mut numbers = vec![
-                f64_of(&(&out.fine.rgb.detach() - &target)?.abs()?.sum_all()?)?,
-                f64_of(&(&out.coarse.rgb.detach() - &target)?.abs()?.sum_all()?)?,
-                f64_of(&(&out.fine.rgb.detach() - &target)?.sqr()?.sum_all()?)?,
-            ];
-            if start == 0 {
-                let volume = crate::train::loss::box_volume(&out.vol_scale)?;
-                numbers.push(f64_of(&volume)?);
-                loss = (loss + (volume * cfg.loss_scale)?)?;
-            }
-            numbers.push(f64_of(&loss)?);
-            // One read-back for the chunk's numbers (one device sync on a GPU).
-            let v = Tensor::stack(&numbers, 0)?
-                .to_device(&Device::Cpu)?
-                .to_vec1::<f64>()?;
-            let (fine, coarse, sq) = (v[0] * inv_n, v[1] * inv_n, v[2] * inv_n);
-            let scale = (start == 0).then(|| v[3]);
-            // A non-finite chunk is not differentiated; the step is then skipped.
-            let finite = v[v.len() - 1].is_finite();
-            crate::compute::profile::mark("loss", &device);
-            let grads = if finite {
-                let store = loss.backward()?;
-                crate::compute::profile::mark("backward", &device);
-                params
-                    .iter()
-                    .map(|v| store.get(v.as_tensor()).map(|d| d.detach()))
-                    .collect()
-            } else {
-                Vec::new()
-            };
-            Ok(ChunkOut {
-                fine,
-                coarse,
-                sq,
-                scale,
-                finite,
-                grads,
-            })
+        let avatar = &self.avatar;
+        let pose = avatar.pose_features(&batch.poses, None)?;
+        crate::compute::profile::mark("pose features", &device);
+        let coarse = avatar.cast(&batch.rays, &batch.poses, &pose)?;
+        crate::compute::profile::mark("cast", &device);
+        let cfg = avatar.config();
+        let noise = match cfg.density_noise_std > 0.0 {
+            true => Some(StepNoise::draw(
+                &mut self.noise_rng,
+                r,
+                (cfg.n_samples, cfg.n_importance),
+                &device,
+            )?),
+            false => None,
         };
-        let mut sums = ChunkSums::new(self.params.len());
+        let weights = self.run.train.loss_weights();
+        let params = &self.params;
+        let run_chunk = |start: usize| -> Result<(StepLoss, Vec<Option<Tensor>>), TrainError> {
+            let len = per_pose.min(k - start);
+            let ids = (len < k)
+                .then(|| -> candle_core::Result<_> {
+                    let rows: Vec<usize> = (0..n_poses)
+                        .flat_map(|p| p * k + start..p * k + start + len)
+                        .collect();
+                    let idx: Vec<u32> = rows.iter().map(|&i| i as u32).collect();
+                    let n = idx.len();
+                    Ok((rows, Tensor::from_vec(idx, n, &device)?))
+                })
+                .transpose()?;
+            let rows = Rows { ids, batch };
+            let rays = rows.rays()?;
+            let target = rows.take(&batch.target)?;
+            let samples = rows.samples(&coarse)?;
+            crate::compute::profile::mark("chunk rows", &device);
+            let mut blocks = match &noise {
+                Some(n) => vec![rows.take(&n.coarse)?, rows.take(&n.fine)?],
+                None => Vec::new(),
+            }
+            .into_iter();
+            let mut noise_fn = |n: usize| -> crate::error::Result<Tensor> {
+                let block = blocks.next().ok_or_else(|| {
+                    crate::error::ModelError::Input("density noise: a third call in a pass".into())
+                })?;
+                if block.elem_count() != n {
+                    return Err(crate::error::ModelError::Input(format!(
+                        "density noise: {n} samples requested, the step drew {}",
+                        block.elem_count()
+                    )));
+                }
+                Ok(block.flatten_all()?)
+            };
+            let mut mode = match noise {
+                Some(_) => Mode::Train(Some(&mut noise_fn)),
+                None => Mode::Train(None),
+            };
+            let out = avatar.forward_cast(&rays, &batch.poses, &pose, samples, &mut mode)?;
+            let share = crate::train::loss::loss_share(&out, &target, &weights, r, start == 0)?;
+            let f64_of = |t: &Tensor| t.detach().to_dtype(DType::F64);
+            let mse = (&out.fine.rgb.detach() - &target)?.sqr()?.sum_all()?;
+            let numbers = StepLoss {
+                total: f64_of(&share.total)?,
+                fine: f64_of(&share.fine)?,
+                coarse: f64_of(&share.coarse)?,
+                scale: f64_of(&share.scale)?,
+                mse: (f64_of(&mse)? / (3 * r) as f64)?,
+            };
+            crate::compute::profile::mark("loss", &device);
+            let store = share.total.backward()?;
+            crate::compute::profile::mark("backward", &device);
+            let grads = params
+                .iter()
+                .map(|v| store.get(v.as_tensor()).map(|d| d.detach()))
+                .collect();
+            Ok((numbers, grads))
+        };
+        let mut loss = StepLoss::zeros(&device)?;
+        let mut grads: Vec<Option<Tensor>> = vec![None; params.len()];
         let starts: Vec<usize> = (0..k).step_by(per_pose).collect();
         // One wave of chunks per round of workers; sums are taken in chunk order, so the
         // result is the sequential loop's, bit for bit, whatever the worker count.
@@ -699,29 +742,25 @@ impl Trainer {
             crate::interrupt::check()?;
             let outs =
                 crate::compute::parallel::map_ordered(workers, wave.len(), |i| run_chunk(wave[i]))?;
-            for out in outs {
-                sums.add(out)?;
+            for (part, chunk_grads) in outs {
+                loss = StepLoss {
+                    total: (loss.total + part.total)?,
+                    fine: (loss.fine + part.fine)?,
+                    coarse: (loss.coarse + part.coarse)?,
+                    scale: (loss.scale + part.scale)?,
+                    mse: (loss.mse + part.mse)?,
+                };
+                for (g, d) in grads.iter_mut().zip(chunk_grads) {
+                    if let Some(d) = d {
+                        *g = Some(match g.take() {
+                            Some(sum) => (sum + d)?,
+                            None => d,
+                        });
+                    }
+                }
             }
         }
-        Ok(sums.finish(&cfg))
-    }
-
-    /// Forward pass and loss on `batch` in training mode (consumes density noise).
-    pub fn loss_on(&mut self, batch: &TrainBatch) -> Result<(Tensor, LossParts), TrainError> {
-        let device = self.avatar.device().clone();
-        let rng = &mut self.noise_rng;
-        let mut noise = |n: usize| -> crate::error::Result<Tensor> {
-            use rand_distr::Distribution;
-            let v: Vec<f32> = (0..n)
-                .map(|_| rand_distr::StandardNormal.sample(&mut *rng))
-                .collect();
-            Ok(Tensor::from_vec(v, n, &device)?)
-        };
-        let mut opts = Mode::Train(Some(&mut noise));
-        let out = self
-            .avatar
-            .forward(&batch.rays, &batch.poses, &mut opts, None)?;
-        training_loss(&out, &batch.target, &self.run.train)
+        Ok((loss, grads))
     }
 
     /// What a checkpoint holds besides the model (see [`super::checkpoint`], which writes
@@ -729,14 +768,21 @@ impl Trainer {
     /// position, counters and the run configuration. `model_fingerprint` ties it to the
     /// model file written with it.
     pub(crate) fn train_state(&self, model_fingerprint: String) -> Result<TrainState, TrainError> {
+        if self.opt.pending() > 0 {
+            return Err(TrainError::Config(format!(
+                "checkpoint: {} step(s) not read back yet (call read_back first)",
+                self.opt.pending()
+            )));
+        }
         Ok(TrainState {
             global_iter: self.opt.iter,
             groups: self.opt.adam.groups().to_vec(),
             params: self
                 .opt
                 .adam
-                .states()
-                .map(|(n, s)| (n.to_string(), s.clone()))
+                .states()?
+                .into_iter()
+                .map(|(n, s)| (n.to_string(), s))
                 .collect(),
             rng: Some(RngState::capture(&self.noise_rng)),
             sampler: Some(self.source.state()),
@@ -800,31 +846,50 @@ mod tests {
         (x, Optimization::new(adam, cfg))
     }
 
-    fn loss(total: f64) -> LossParts {
-        LossParts {
-            total,
-            fine: total,
-            coarse: 0.0,
-            scale: 0.0,
-            psnr: 10.0,
+    fn loss(total: f64) -> StepLoss {
+        let t = |v: f64| Tensor::new(v, &Device::Cpu).unwrap();
+        StepLoss {
+            total: t(total),
+            fine: t(total),
+            coarse: t(0.0),
+            scale: t(0.0),
+            mse: t(0.1),
         }
+    }
+
+    /// One step, read back at once.
+    fn apply(
+        opt: &mut Optimization,
+        l: StepLoss,
+        g: Vec<Option<Tensor>>,
+    ) -> Result<StepStats, TrainError> {
+        opt.apply(&l, g)?;
+        Ok(opt.read_back()?.pop().unwrap())
     }
 
     #[test]
     fn non_finite_steps_are_skipped_counted_and_never_applied() {
         let (x, mut opt) = setup();
         let g = |v: [f32; 2]| vec![Some(Tensor::new(&v, &Device::Cpu).unwrap())];
-        let s = opt.apply(loss(0.5), g([1.0, 1.0])).unwrap();
+        let step = |opt: &Optimization| {
+            opt.adam
+                .state("pts_linears.0.weight")
+                .unwrap()
+                .unwrap()
+                .step
+        };
+        let s = apply(&mut opt, loss(0.5), g([1.0, 1.0])).unwrap();
         assert_eq!(s.skipped, None);
         let after_good = x.to_vec1::<f32>().unwrap();
         assert_ne!(after_good, vec![1.0, -2.0]);
 
-        let s = opt.apply(loss(0.5), g([f32::NAN, 1.0])).unwrap();
+        let s = apply(&mut opt, loss(0.5), g([f32::NAN, 1.0])).unwrap();
         assert_eq!(s.skipped, Some(SkipReason::NonFiniteGradNorm));
-        let s = opt.apply(loss(f64::INFINITY), g([1.0, 1.0])).unwrap();
+        let s = apply(&mut opt, loss(f64::INFINITY), g([1.0, 1.0])).unwrap();
         assert_eq!(s.skipped, Some(SkipReason::NonFiniteLoss));
+        assert!(s.grad_norm.is_nan());
         assert_eq!(x.to_vec1::<f32>().unwrap(), after_good);
-        assert_eq!(opt.adam.state("pts_linears.0.weight").unwrap().step, 1);
+        assert_eq!(step(&opt), 1);
         assert_eq!(
             (
                 opt.iter,
@@ -835,26 +900,90 @@ mod tests {
         );
 
         // A good step resets the streak; three bad ones in a row stop the run.
-        opt.apply(loss(0.5), g([1.0, 1.0])).unwrap();
+        apply(&mut opt, loss(0.5), g([1.0, 1.0])).unwrap();
         assert_eq!(opt.progress.consecutive_skipped, 0);
-        opt.apply(loss(f64::NAN), g([1.0, 1.0])).unwrap();
-        opt.apply(loss(f64::NAN), g([1.0, 1.0])).unwrap();
-        let err = opt.apply(loss(f64::NAN), g([1.0, 1.0])).unwrap_err();
+        apply(&mut opt, loss(f64::NAN), g([1.0, 1.0])).unwrap();
+        apply(&mut opt, loss(f64::NAN), g([1.0, 1.0])).unwrap();
+        let err = apply(&mut opt, loss(f64::NAN), g([1.0, 1.0])).unwrap_err();
         assert!(
             matches!(err, TrainError::Diverged { count: 3, iter: 7 }),
             "{err}"
         );
-        assert_eq!(opt.adam.state("pts_linears.0.weight").unwrap().step, 2);
+        assert_eq!(step(&opt), 2);
+    }
+
+    /// Steps read back together count their skips and stop the run like steps read one
+    /// by one; the weights do not depend on when the numbers are read.
+    #[test]
+    fn deferred_read_back_gives_the_same_steps_and_counts() {
+        let g = |v: [f32; 2]| vec![Some(Tensor::new(&v, &Device::Cpu).unwrap())];
+        let plan = [
+            (0.5, [1.0, 1.0]),
+            (0.5, [f32::INFINITY, 1.0]),
+            (0.5, [0.5, -3.0]),
+            (f64::NAN, [1.0, 1.0]),
+            (0.5, [2.0, 1.0]),
+        ];
+        let (x1, mut one_by_one) = setup();
+        let mut singles = Vec::new();
+        for (l, v) in plan {
+            singles.push(apply(&mut one_by_one, loss(l), g(v)).unwrap());
+        }
+        let (x2, mut deferred) = setup();
+        for (l, v) in plan {
+            deferred.apply(&loss(l), g(v)).unwrap();
+        }
+        assert_eq!(deferred.pending(), 5);
+        assert_eq!(
+            deferred.progress.skipped, 0,
+            "nothing is known before the read-back"
+        );
+        let together = deferred.read_back().unwrap();
+        assert_eq!(deferred.pending(), 0);
+        assert_eq!(together.len(), singles.len());
+        for (a, b) in together.iter().zip(&singles) {
+            assert_eq!((a.iter, a.skipped), (b.iter, b.skipped));
+            assert_eq!(a.grad_norm.to_bits(), b.grad_norm.to_bits());
+        }
+        assert_eq!(deferred.progress, one_by_one.progress);
+        assert_eq!(deferred.progress.skipped, 2);
+        assert_eq!(x1.to_vec1::<f32>().unwrap(), x2.to_vec1::<f32>().unwrap());
+
+        // A streak that ends the run is reported when its numbers arrive.
+        let (_x, mut opt) = setup();
+        for _ in 0..4 {
+            opt.apply(&loss(f64::NAN), g([1.0, 1.0])).unwrap();
+        }
+        let err = opt.read_back().unwrap_err();
+        assert!(
+            matches!(err, TrainError::Diverged { count: 3, iter: 3 }),
+            "{err}"
+        );
     }
 
     #[test]
     fn clipping_applies_above_the_threshold_and_schedule_advances() {
-        let (_x, mut opt) = setup();
+        let (x, mut opt) = setup();
         let g = vec![Some(Tensor::new(&[30f32, 40.0], &Device::Cpu).unwrap())];
-        let s = opt.apply(loss(1.0), g).unwrap();
+        let s = apply(&mut opt, loss(1.0), g).unwrap();
         assert!((s.grad_norm - 50.0).abs() < 1e-9);
         assert!((s.clip_coef - 1.0 / (50.0 + 1e-6)).abs() < 1e-12);
         assert_eq!(s.lrs, vec![1e-4, 5e-4]);
         assert!((opt.lrs()[1] - 0.0004999976974202089).abs() < 1e-15);
+        // The clipped gradient reached Adam: its first moment is 0.1 · g · coef.
+        let st = opt.adam.state("pts_linears.0.weight").unwrap().unwrap();
+        let m = st.exp_avg.to_vec1::<f32>().unwrap();
+        let coef = 1.0 / (50.0 + 1e-6);
+        assert!((m[0] as f64 - 0.1 * 30.0 * coef).abs() < 1e-6, "{m:?}");
+        assert!((m[1] as f64 - 0.1 * 40.0 * coef).abs() < 1e-6, "{m:?}");
+        assert_ne!(x.to_vec1::<f32>().unwrap(), vec![1.0, -2.0]);
+        // Below the threshold nothing is scaled.
+        let (_x, mut opt) = setup();
+        let g = vec![Some(Tensor::new(&[0.3f32, 0.4], &Device::Cpu).unwrap())];
+        let s = apply(&mut opt, loss(1.0), g).unwrap();
+        assert_eq!(s.clip_coef, 1.0);
+        let st = opt.adam.state("pts_linears.0.weight").unwrap().unwrap();
+        let m = st.exp_avg.to_vec1::<f32>().unwrap();
+        assert_eq!(m, vec![0.3f32 * 0.1, 0.4f32 * 0.1]);
     }
 }

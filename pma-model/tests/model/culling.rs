@@ -159,7 +159,7 @@ fn culled_rays_are_background_and_hitting_rays_are_unchanged() {
     let parity = case.forward(None);
     case.avatar.set_culling(culling(true, None)).unwrap();
     let culled = case.forward(None);
-    let hits = &parity.bounds.ray_hits_body;
+    let hits = &parity.bounds.as_ref().unwrap().ray_hits_body;
     let n_miss = hits.iter().filter(|h| !**h).count();
     assert!(
         n_miss > 0 && n_miss < hits.len(),

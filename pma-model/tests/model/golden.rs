@@ -17,8 +17,9 @@ fn check_case(dir: &str, sigma_override: bool) {
     let mut report = Report::default();
 
     // Ray casting.
-    let near: Vec<f32> = out.bounds.near.clone();
-    let far: Vec<f32> = out.bounds.far.clone();
+    let bounds = out.bounds.as_ref().expect("cast on the host");
+    let near: Vec<f32> = bounds.near.clone();
+    let far: Vec<f32> = bounds.far.clone();
     report.cmp("raycast/near", &near, &g.f32("raycast/near"));
     report.cmp("raycast/far", &far, &g.f32("raycast/far"));
     report.cmp(

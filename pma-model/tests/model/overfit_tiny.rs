@@ -58,7 +58,7 @@ fn training_psnr_rises_on_a_tiny_scene() {
     let before = probe_psnr(&t, &probe);
     let mut skipped = 0;
     for _ in 0..ITERS {
-        skipped += t.step().unwrap().skipped.is_some() as usize;
+        skipped += t.step_read().unwrap().skipped.is_some() as usize;
     }
     let after = probe_psnr(&t, &probe);
     eprintln!("probe PSNR {before:.2} dB -> {after:.2} dB after {ITERS} iterations");

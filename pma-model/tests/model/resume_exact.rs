@@ -17,7 +17,7 @@ fn resume_equals_uninterrupted_run() {
     let mut full = tiny_trainer(&data);
     let mut full_losses = Vec::new();
     for _ in 0..n + m {
-        full_losses.push(full.step().unwrap().loss.total.to_bits());
+        full_losses.push(full.step_read().unwrap().loss.total.to_bits());
     }
 
     let ckpt = tmp.path().join("run");
@@ -35,7 +35,7 @@ fn resume_equals_uninterrupted_run() {
     assert_eq!(resumed.progress().wall_s, 12.5);
     let mut resumed_losses = Vec::new();
     for _ in 0..m {
-        resumed_losses.push(resumed.step().unwrap().loss.total.to_bits());
+        resumed_losses.push(resumed.step_read().unwrap().loss.total.to_bits());
     }
 
     assert_eq!(
@@ -147,4 +147,37 @@ fn checkpoints_are_directories_and_the_newest_complete_one_wins() {
     assert!(!partial.exists());
     let resumed = Trainer::resume(&run, tiny_run(), data, &Device::Cpu).unwrap();
     assert_eq!(resumed.iteration(), 3);
+}
+
+/// The numbers of a step reach the host every `read_every` steps; when they do changes
+/// nothing in the run: the same weights, moments and numbers, bit for bit. A checkpoint
+/// waits for the numbers (its skip counters come from them).
+#[test]
+fn read_back_interval_does_not_change_the_run() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tiny_scene(&tmp.path().join("scene"));
+    let mut every = tiny_trainer(&data);
+    assert_eq!(every.read_every(), 1, "the CPU reads every step by default");
+    let mut run = tiny_run();
+    run.train.read_every = 3;
+    let mut third = Trainer::new(run, data.clone(), &Device::Cpu).unwrap();
+    assert_eq!(third.read_every(), 3);
+    let (mut a, mut b) = (Vec::new(), Vec::new());
+    for i in 1..=5 {
+        a.extend(every.step().unwrap());
+        let arrived = third.step().unwrap();
+        assert_eq!(arrived.len(), if i % 3 == 0 { 3 } else { 0 }, "step {i}");
+        b.extend(arrived);
+    }
+    assert_eq!(third.pending(), 2);
+    let dir = tmp.path().join("run");
+    std::fs::create_dir_all(&dir).unwrap();
+    let err = third.save_checkpoint(&dir).unwrap_err().to_string();
+    assert!(err.contains("read_back"), "{err}");
+    b.extend(third.read_back().unwrap());
+    assert_eq!(third.pending(), 0);
+    assert_eq!(a, b, "numbers of the steps");
+    assert!(param_bits(&every) == param_bits(&third), "weights");
+    assert!(adam_bits(&every) == adam_bits(&third), "optimizer state");
+    third.save_checkpoint(&dir).unwrap();
 }

@@ -216,7 +216,7 @@ fn point_encoders_window_and_aggregation() {
             assert!(e < 1e-4, "{case} {n}: {e:e}");
         }
     }
-    let g = Var::from_tensor(&rand_t(&mut s.rng, &[24, cfg.win_hidden], -1.0, 1.0)).unwrap();
+    let g = Var::from_tensor(&rand_t(&mut s.rng, &[1, 24, cfg.win_hidden], -1.0, 1.0)).unwrap();
     let e = Var::from_tensor(&rand_t(&mut s.rng, &[6, 24, cfg.point_enc_dim], -1.0, 1.0)).unwrap();
     let w_p = rand_t(&mut s.rng, &[6, 24], 0.0, 1.0);
     let out_w = rand_t(&mut s.rng, &[6, cfg.win_hidden], -1.0, 1.0);

@@ -99,7 +99,7 @@ fn stress(data: &Arc<Dataset>, run: RunConfig, steps: usize) -> (u64, Vec<f64>) 
     let mut t = stressed_trainer(data, run);
     let mut norms = Vec::new();
     for _ in 0..steps {
-        let s = t.step().unwrap();
+        let s = t.step_read().unwrap();
         norms.push(s.grad_norm);
     }
     for (name, v) in t.avatar().trainable() {

@@ -63,6 +63,8 @@ pub fn bits(t: &Tensor) -> Vec<u32> {
 pub fn adam_bits(t: &Trainer) -> Vec<(String, u64, Vec<u32>, Vec<u32>)> {
     t.optimizer()
         .states()
+        .unwrap()
+        .into_iter()
         .map(|(n, s)| (n.to_string(), s.step, bits(&s.exp_avg), bits(&s.exp_avg_sq)))
         .collect()
 }

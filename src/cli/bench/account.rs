@@ -174,6 +174,11 @@ fn print_tables(f: &AccountReport) {
         oc.map(|c| c.syncs.to_string()),
     );
     line(
+        &format!("read-back of the numbers (every {} steps)", f.read_every),
+        format!("{} sync(s)", f.read_back_syncs),
+        None,
+    );
+    line(
         "uploads (explicit + dims/strides)",
         format!(
             "{} + {}",

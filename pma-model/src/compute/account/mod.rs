@@ -423,6 +423,13 @@ pub fn emulates_cuda() -> bool {
     hook::on() && CURRENT.with_borrow(|c| matches!(c, Some((_, Route::Cuda))))
 }
 
+/// Whether work on `device` takes the CPU's route: on the CPU, outside a run accounted as
+/// CUDA. The choices between host-side code and device tensor ops ask this.
+#[inline]
+pub fn cpu_route(device: &Device) -> bool {
+    device.is_cpu() && !emulates_cuda()
+}
+
 /// Close stage `name` of this thread's accounted run (called by
 /// [`crate::compute::profile::mark`]).
 pub(crate) fn mark(name: &str) {

@@ -5,8 +5,9 @@
 //! The reference runs all of this under no-grad, so it works on host `f32` slices (row-major,
 //! shapes in the doc comments) and follows the reference's float32 operation order, which keeps
 //! the results within a few ulp of it. The tensor-facing entry points [`RayCaster::cast`] and
-//! [`RayCaster::resample`] wrap the host code for the network; [`merge_raw`] reorders the
-//! network outputs (differentiably, it is a gather).
+//! [`RayCaster::resample`] wrap the host code for the network; [`device`] has the same steps
+//! as tensor ops for GPUs, where a copy to the host would stall the step; [`merge_raw`]
+//! reorders the network outputs (differentiably, it is a gather).
 
 use candle_core::Tensor;
 
@@ -17,6 +18,7 @@ use crate::error::{ModelError, Result};
 use crate::network::config::Config;
 use crate::render::bones::BoneFrames;
 
+pub mod device;
 pub mod torch_sort;
 
 /// Tolerance of the box-face test: a plane hit is valid while every coordinate lies within
@@ -41,11 +43,31 @@ pub struct RayBounds {
     pub miss_fill: (f32, f32),
 }
 
+impl RayBounds {
+    /// The bounds of the rays `rows` (in that order); the miss fill stays the batch's.
+    pub fn select(&self, rows: &[usize]) -> Self {
+        Self {
+            near: rows.iter().map(|&r| self.near[r]).collect(),
+            far: rows.iter().map(|&r| self.far[r]).collect(),
+            box_hit: rows
+                .iter()
+                .flat_map(|&r| {
+                    self.box_hit[r * N_JOINTS..(r + 1) * N_JOINTS]
+                        .iter()
+                        .copied()
+                })
+                .collect(),
+            ray_hits_body: rows.iter().map(|&r| self.ray_hits_body[r]).collect(),
+            miss_fill: self.miss_fill,
+        }
+    }
+}
+
 /// Coarse samples of a ray batch, ready for the network.
 #[derive(Debug, Clone)]
 pub struct CoarseSamples {
-    /// Host near/far and box hits.
-    pub bounds: RayBounds,
+    /// Host near/far and box hits; `None` when cast on the device ([`device`]).
+    pub bounds: Option<RayBounds>,
     /// z: [R,Sc] ray parameters, ascending (distance along the ray = z·|d|).
     pub z: Tensor,
     /// pts: [R,Sc,3] world points o + z·d.
@@ -80,8 +102,6 @@ pub struct RayCaster {
     robust_bounds: bool,
     /// A_j: [24,4,4] row-major (`raycast.transforms`).
     transforms: Vec<f32>,
-    /// Cylinder-miss bounds pinned by [`Self::with_miss_fill`].
-    miss_fill: Option<(f32, f32)>,
 }
 
 impl RayCaster {
@@ -123,18 +143,7 @@ impl RayCaster {
             per_ray_fallback: cfg.quirks.per_ray_cylinder_fallback,
             robust_bounds: cfg.quirks.robust_ray_bounds,
             transforms: transforms.to_vec(),
-            miss_fill: None,
         })
-    }
-
-    /// This caster with the (near, far) of cylinder misses pinned to `fill` (`None`: computed
-    /// from each batch as usual). Chunked training pins the whole batch's
-    /// [`RayBounds::miss_fill`] so every chunk is cast as part of that batch.
-    pub fn with_miss_fill(&self, fill: Option<(f32, f32)>) -> Self {
-        Self {
-            miss_fill: fill,
-            ..self.clone()
-        }
     }
 
     /// transforms: [24,4,4] tensor (any device and float dtype).
@@ -208,10 +217,7 @@ impl RayCaster {
                 }
             }
         }
-        // A pinned fill (chunked training) casts a chunk exactly like its whole batch.
-        let miss_fill = self.miss_fill.unwrap_or_else(|| {
-            cylinder_miss_fill(&near, &far, self.near, self.far, self.per_ray_fallback)
-        });
+        let miss_fill = cylinder_miss_fill(&near, &far, self.near, self.far, self.per_ray_fallback);
         fill_cylinder_misses(&mut near, &mut far, miss_fill.0, miss_fill.1, true);
 
         let mut box_hit = vec![false; n_rays * N_JOINTS];
@@ -330,7 +336,7 @@ impl RayCaster {
         let pts = sample_points(&o, &d, &z, self.n_samples)?;
         let (dev, dt) = (rays_o.device(), rays_o.dtype());
         Ok(CoarseSamples {
-            bounds,
+            bounds: Some(bounds),
             z: Tensor::from_vec(z, (n_rays, self.n_samples), dev)?.to_dtype(dt)?,
             pts: Tensor::from_vec(pts, (n_rays, self.n_samples, 3), dev)?.to_dtype(dt)?,
         })
