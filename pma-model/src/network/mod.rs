@@ -190,6 +190,11 @@ impl Network {
         self
     }
 
+    /// Compute with `numerics` from the next pass on.
+    pub fn set_numerics(&mut self, numerics: Numerics) {
+        self.numerics = numerics;
+    }
+
     /// The same network with every tensor converted to `dtype` (f16/bf16 inference, f64
     /// checks).
     pub fn with_dtype(&self, dtype: DType) -> Result<Self> {

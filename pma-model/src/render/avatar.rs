@@ -74,6 +74,11 @@ impl Avatar {
         }
     }
 
+    /// Compute with `numerics` from the next pass on.
+    pub fn set_numerics(&mut self, numerics: crate::compute::numerics::Numerics) {
+        self.net.set_numerics(numerics);
+    }
+
     /// How the avatar computes.
     pub fn numerics(&self) -> crate::compute::numerics::Numerics {
         self.net.numerics()
