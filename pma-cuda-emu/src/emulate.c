@@ -2,6 +2,7 @@
  * are globals, and each pma_emu_* entry point runs its kernel once per (block, thread) of
  * the grid it is given, sequentially (the kernels use no shared memory, no barriers and no
  * atomics, so this is every interleaving's result). */
+#include <math.h>
 #include <stdbool.h>
 
 typedef struct {
@@ -14,6 +15,7 @@ static pma_dim3 blockIdx, threadIdx, blockDim, gridDim;
 static inline float __fmul_rn(float a, float b) { return a * b; }
 static inline float __fadd_rn(float a, float b) { return a + b; }
 
+#include "film_sine.cu"
 #include "window_pool.cu"
 
 #define PMA_GRID(blocks, threads, call)                                 \
@@ -53,4 +55,24 @@ void pma_emu_window_pool_grad_g_f32(const float *grad, const float *w,
 {
     PMA_GRID(blocks, threads,
              pma_window_pool_grad_g_f32(grad, w, arg, grad_g, p, j, h, per_pose));
+}
+
+void pma_emu_film_sine_f32(const float *pre, const float *o, float *out, float *cos_out,
+                           unsigned int n, unsigned int f, unsigned int k,
+                           unsigned int n_layers, float mul, float add, int keep_cos,
+                           unsigned int blocks, unsigned int threads)
+{
+    PMA_GRID(blocks, threads,
+             pma_film_sine_f32(pre, o, out, cos_out, n, f, k, n_layers, mul, add, keep_cos));
+}
+
+void pma_emu_film_sine_grad_f32(const float *grad, const float *pre, const float *o,
+                                const float *cos_in, float *g_pre, float *g_o, unsigned int n,
+                                unsigned int f, unsigned int k, unsigned int n_layers,
+                                float mul, float add, int have_cos, unsigned int blocks,
+                                unsigned int threads)
+{
+    PMA_GRID(blocks, threads,
+             pma_film_sine_grad_f32(grad, pre, o, cos_in, g_pre, g_o, n, f, k, n_layers, mul,
+                                    add, have_cos));
 }

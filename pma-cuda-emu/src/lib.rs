@@ -2,12 +2,13 @@
 //! host and run over an emulated grid: every (block, thread) pair of a [`Grid`] runs the
 //! kernel body once, in sequence. The kernels are grid-stride loops without shared memory,
 //! barriers or atomics, so the result is what any launch of that grid computes on a GPU,
-//! up to the device's own rounding of library functions (none in the kernels here).
+//! up to the device's own library functions: `sinf`/`cosf` here are the C library's, on a
+//! GPU CUDA's (within 2 ulp).
 //!
 //! A test-only crate: the tests in `tests/` run each kernel against pma-model's CPU op on
 //! random shapes. pma itself launches the same sources through NVRTC (`cuda` feature).
 
-use std::os::raw::c_uint;
+use std::os::raw::{c_int, c_uint};
 
 /// A launch shape: `blocks` blocks of `threads` threads (x only).
 #[derive(Debug, Clone, Copy)]
@@ -28,6 +29,38 @@ impl Grid {
 }
 
 extern "C" {
+    fn pma_emu_film_sine_f32(
+        pre: *const f32,
+        o: *const f32,
+        out: *mut f32,
+        cos_out: *mut f32,
+        n: c_uint,
+        f: c_uint,
+        k: c_uint,
+        n_layers: c_uint,
+        mul: f32,
+        add: f32,
+        keep_cos: c_int,
+        blocks: c_uint,
+        threads: c_uint,
+    );
+    fn pma_emu_film_sine_grad_f32(
+        grad: *const f32,
+        pre: *const f32,
+        o: *const f32,
+        cos_in: *const f32,
+        g_pre: *mut f32,
+        g_o: *mut f32,
+        n: c_uint,
+        f: c_uint,
+        k: c_uint,
+        n_layers: c_uint,
+        mul: f32,
+        add: f32,
+        have_cos: c_int,
+        blocks: c_uint,
+        threads: c_uint,
+    );
     fn pma_emu_window_pool_f32(
         q: *const f32,
         g: *const f32,
@@ -164,4 +197,103 @@ pub fn window_pool_grad(
         );
     }
     (gq, gg)
+}
+
+/// One FiLM-sine layer: N rows of F features, layer `k` of `n_layers`, γ = `mul`·Θ + `add`.
+#[derive(Debug, Clone, Copy)]
+pub struct FilmDims {
+    pub n: usize,
+    pub f: usize,
+    pub k: usize,
+    pub n_layers: usize,
+    pub mul: f32,
+    pub add: f32,
+}
+
+impl FilmDims {
+    fn check(&self, pre: usize, o: usize) -> [c_uint; 4] {
+        let Self {
+            n, f, k, n_layers, ..
+        } = *self;
+        assert!(k < n_layers, "film sine: layer {k} of {n_layers}");
+        assert_eq!(pre, n * f, "pre");
+        assert_eq!(o, n * 2 * n_layers * f, "o");
+        [n, f, k, n_layers].map(|v| c_uint::try_from(v).expect("dims fit the kernel's u32"))
+    }
+}
+
+/// `film_sine.cu`'s forward: (sin of the argument [N,F], its cosine when `keep_cos`).
+pub fn film_sine(
+    pre: &[f32],
+    o: &[f32],
+    d: FilmDims,
+    keep_cos: bool,
+    grid: Grid,
+) -> (Vec<f32>, Option<Vec<f32>>) {
+    let [n, f, k, layers] = d.check(pre.len(), o.len());
+    let mut out = vec![f32::NAN; pre.len()];
+    let mut cos = vec![f32::NAN; if keep_cos { pre.len() } else { 1 }];
+    // SAFETY: the buffers have the lengths the kernel indexes for these dims (checked).
+    unsafe {
+        pma_emu_film_sine_f32(
+            pre.as_ptr(),
+            o.as_ptr(),
+            out.as_mut_ptr(),
+            cos.as_mut_ptr(),
+            n,
+            f,
+            k,
+            layers,
+            d.mul,
+            d.add,
+            c_int::from(keep_cos),
+            grid.blocks,
+            grid.threads,
+        )
+    };
+    (out, keep_cos.then_some(cos))
+}
+
+/// `film_sine.cu`'s backward: g_pre [N,F], and layer k's blocks written into `g_o`
+/// [N, 2·K·F] (its other entries left as they are). `cos`: the forward's, or `None` to
+/// compute it again.
+pub fn film_sine_grad(
+    grad: &[f32],
+    pre: &[f32],
+    o: &[f32],
+    cos: Option<&[f32]>,
+    g_o: &mut [f32],
+    d: FilmDims,
+    grid: Grid,
+) -> Vec<f32> {
+    let [n, f, k, layers] = d.check(pre.len(), o.len());
+    assert_eq!(grad.len(), pre.len(), "grad");
+    assert_eq!(g_o.len(), o.len(), "g_o");
+    if let Some(c) = cos {
+        assert_eq!(c.len(), pre.len(), "cos");
+    }
+    let dummy = [0f32];
+    let mut g_pre = vec![f32::NAN; pre.len()];
+    // SAFETY: the buffers have the lengths the kernel indexes for these dims (checked);
+    // `cos_in` is read only when `have_cos`.
+    unsafe {
+        pma_emu_film_sine_grad_f32(
+            grad.as_ptr(),
+            pre.as_ptr(),
+            o.as_ptr(),
+            cos.unwrap_or(&dummy).as_ptr(),
+            g_pre.as_mut_ptr(),
+            g_o.as_mut_ptr(),
+            n,
+            f,
+            k,
+            layers,
+            d.mul,
+            d.add,
+            c_int::from(cos.is_some()),
+            grid.blocks,
+            grid.threads,
+        )
+    };
+    g_pre
 }

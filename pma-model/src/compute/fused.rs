@@ -27,6 +27,9 @@ use std::sync::{Arc, Mutex};
 
 use candle_core::{CpuStorage, CustomOp2, CustomOp3, DType, Layout, Shape, Storage, Tensor};
 
+#[cfg(feature = "cuda")]
+use candle_core::cuda_backend::cudarc::driver::CudaSlice;
+
 use crate::compute::numerics::Numerics;
 use crate::compute::ops::f32_slice;
 use crate::error::Result;
@@ -91,8 +94,12 @@ pub fn window_pool(q: &Tensor, g: &Tensor, w_p: &Tensor, k: Numerics) -> Result<
 /// Whether `ts` are f32 tensors on CUDA and the network asks for fused kernels: the
 /// kernels of [`crate::compute::cuda`] (which exist in a `cuda` build only).
 fn applies_cuda(k: Numerics, ts: &[&Tensor]) -> bool {
-    k.fused
-        && cfg!(feature = "cuda")
+    k.fused && cuda_f32(ts)
+}
+
+/// Whether `ts` are f32 tensors on CUDA in a `cuda` build.
+fn cuda_f32(ts: &[&Tensor]) -> bool {
+    cfg!(feature = "cuda")
         && ts
             .iter()
             .all(|t| t.device().is_cuda() && t.dtype() == DType::F32)
@@ -131,12 +138,16 @@ struct HeadGrad {
     /// Layer 0 has handed the buffer over: a later backward pass over the same graph makes
     /// every layer return its own gradient.
     taken: bool,
+    /// The buffer of a CUDA backward, on the device.
+    #[cfg(feature = "cuda")]
+    dev_buf: Option<CudaSlice<f32>>,
 }
 
 impl FilmHead {
     /// `o`: [N,2·K·f] for K = `n_layers`; γ = `mul`·Θ + `add`.
     pub fn new(o: &Tensor, n_layers: usize, (mul, add): (f64, f64), k: Numerics) -> Self {
-        Self::with(o, n_layers, (mul, add), k.fast_sine, applies(k, &[o]))
+        let fused = applies(k, &[o]) || applies_cuda(k, &[o]);
+        Self::with(o, n_layers, (mul, add), k.fast_sine, fused)
     }
 
     /// [`Self::new`] with the sine flavour and the kernel choice made by the caller.
@@ -181,7 +192,7 @@ impl FilmHead {
             && k < n_layers
             && o.dim(1)? == 2 * n_layers * f
             && o.dim(0)? == pre.dim(0)?;
-        if !(self.fused && fits && cpu_f32(&[pre])) {
+        if !(self.fused && fits && (cpu_f32(&[pre]) || cuda_f32(&[pre]))) {
             let theta = o.narrow(1, k * f, f)?;
             let phi = o.narrow(1, (n_layers + k) * f, f)?;
             let arg = (pre * theta.affine(mul, add)?)?.add(&phi)?;
@@ -195,6 +206,8 @@ impl FilmHead {
             add: add as f32,
             fast: self.fast,
             cos: crate::compute::ops::Kept::new(pre.track_op() || o.track_op()),
+            #[cfg(feature = "cuda")]
+            cos_dev: crate::compute::ops::Kept::new(pre.track_op() || o.track_op()),
             shared: chained.then(|| self.grad.clone()),
         };
         Ok(pre.apply_op2(&o, op)?)
@@ -210,6 +223,9 @@ struct FilmSine {
     fast: bool,
     /// cos of the argument, kept by the forward for the backward.
     cos: crate::compute::ops::Kept<Vec<f32>>,
+    /// The same on the device, from a CUDA forward.
+    #[cfg(feature = "cuda")]
+    cos_dev: crate::compute::ops::Kept<CudaSlice<f32>>,
     /// The head gradient shared along a [`FilmHead::stack`].
     shared: Option<Arc<Mutex<HeadGrad>>>,
 }
@@ -286,6 +302,24 @@ impl CustomOp2 for FilmSine {
         Ok((CpuStorage::F32(sin), l1.shape().clone()))
     }
 
+    #[cfg(feature = "cuda")]
+    fn cuda_fwd(
+        &self,
+        s1: &candle_core::CudaStorage,
+        l1: &Layout,
+        s2: &candle_core::CudaStorage,
+        l2: &Layout,
+    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
+        let (n, f) = self.check(l1, l2)?;
+        candle_core::account::report_launches(1, 0);
+        let keep = self.cos_dev.wanted();
+        let (out, cos) = crate::compute::cuda::film_sine(s1, l1, s2, l2, self.film(n, f), keep)?;
+        if let Some(c) = cos {
+            self.cos_dev.put(c);
+        }
+        Ok((out, l1.shape().clone()))
+    }
+
     fn bwd(
         &self,
         pre: &Tensor,
@@ -293,6 +327,10 @@ impl CustomOp2 for FilmSine {
         _res: &Tensor,
         grad: &Tensor,
     ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>)> {
+        #[cfg(feature = "cuda")]
+        if pre.device().is_cuda() {
+            return self.cuda_bwd(pre, o, grad);
+        }
         let (n, f) = pre.dims2()?;
         let w = 2 * self.n_layers * f;
         let (pre_c, o_c, d_c) = (pre.contiguous()?, o.contiguous()?, grad.contiguous()?);
@@ -349,6 +387,155 @@ impl CustomOp2 for FilmSine {
         }
         let g_o = Tensor::from_vec(g_o, (n, w), o.device())?;
         Ok((Some(g_pre), Some(g_o)))
+    }
+}
+
+#[cfg(feature = "cuda")]
+impl FilmSine {
+    fn film(&self, n: usize, f: usize) -> crate::compute::cuda::Film {
+        crate::compute::cuda::Film {
+            n,
+            f,
+            k: self.k,
+            n_layers: self.n_layers,
+            mul: self.mul,
+            add: self.add,
+        }
+    }
+
+    /// The CUDA backward: one kernel writes the input's gradient and this layer's blocks of
+    /// the head gradient, shared along a stack as on the CPU (layer 0, run last, returns it).
+    fn cuda_bwd(
+        &self,
+        pre: &Tensor,
+        o: &Tensor,
+        grad: &Tensor,
+    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>)> {
+        let (n, f) = pre.dims2()?;
+        let w = 2 * self.n_layers * f;
+        let (pre_c, o_c, d_c) = (pre.contiguous()?, o.contiguous()?, grad.contiguous()?);
+        let mut shared = self
+            .shared
+            .as_ref()
+            .map(|s| s.lock().unwrap_or_else(|e| e.into_inner()));
+        let defer = shared.as_ref().is_some_and(|s| !s.taken);
+        let head = match shared.as_mut() {
+            Some(s) if defer => s.dev_buf.take(),
+            _ => None,
+        };
+        let op = FilmGrad {
+            film: self.film(n, f),
+            cos: self.cos_dev.take().filter(|c| c.len() >= n * f),
+            head: Mutex::new(head),
+        };
+        let g_pre = d_c.apply_op3_no_bwd(&pre_c, &o_c, &op)?;
+        let head = op.head.into_inner().unwrap_or_else(|e| e.into_inner());
+        if let Some(s) = shared.as_mut().filter(|_| defer) {
+            if self.k > 0 {
+                s.dev_buf = head;
+                return Ok((Some(g_pre), None));
+            }
+            s.taken = true;
+        }
+        let head =
+            head.ok_or_else(|| candle_core::Error::Msg("film sine: no head gradient".into()))?;
+        let g_o = d_c.apply_op1_no_bwd(&HeadOut {
+            buf: Mutex::new(Some(head)),
+            shape: Shape::from((n, w)),
+        })?;
+        Ok((Some(g_pre), Some(g_o)))
+    }
+}
+
+/// A FiLM-sine layer's CUDA backward on (grad, pre, o): the gradient of pre; the layer's
+/// head-gradient blocks go into `head` (allocated zeroed when it is `None`).
+#[cfg(feature = "cuda")]
+struct FilmGrad {
+    film: crate::compute::cuda::Film,
+    cos: Option<CudaSlice<f32>>,
+    head: Mutex<Option<CudaSlice<f32>>>,
+}
+
+#[cfg(feature = "cuda")]
+impl CustomOp3 for FilmGrad {
+    fn name(&self) -> &'static str {
+        "pma-film-sine-grad"
+    }
+
+    fn cpu_fwd(
+        &self,
+        _: &CpuStorage,
+        _: &Layout,
+        _: &CpuStorage,
+        _: &Layout,
+        _: &CpuStorage,
+        _: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        candle_core::bail!("film sine gradient: the CUDA kernel got CPU tensors")
+    }
+
+    fn cuda_fwd(
+        &self,
+        s1: &candle_core::CudaStorage,
+        l1: &Layout,
+        s2: &candle_core::CudaStorage,
+        l2: &Layout,
+        s3: &candle_core::CudaStorage,
+        l3: &Layout,
+    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
+        let d = self.film;
+        if l1.shape().dims2()? != (d.n, d.f) || l3.shape().dims2()? != (d.n, 2 * d.n_layers * d.f) {
+            candle_core::bail!(
+                "film sine gradient: shapes do not agree with [{}, {}]",
+                d.n,
+                d.f
+            )
+        }
+        let mut head = self.head.lock().unwrap_or_else(|e| e.into_inner());
+        // The kernel, and the head gradient's memset when this layer starts it.
+        candle_core::account::report_launches(if head.is_none() { 2 } else { 1 }, 0);
+        let g_pre = crate::compute::cuda::film_sine_grad(
+            s1,
+            l1,
+            s2,
+            l2,
+            s3,
+            l3,
+            self.cos.as_ref(),
+            &mut head,
+            d,
+        )?;
+        Ok((g_pre, l1.shape().clone()))
+    }
+}
+
+/// Hands a finished CUDA head gradient to candle as a tensor (no launch).
+#[cfg(feature = "cuda")]
+struct HeadOut {
+    buf: Mutex<Option<CudaSlice<f32>>>,
+    shape: Shape,
+}
+
+#[cfg(feature = "cuda")]
+impl candle_core::CustomOp1 for HeadOut {
+    fn name(&self) -> &'static str {
+        "pma-film-head-grad"
+    }
+
+    fn cpu_fwd(&self, _: &CpuStorage, _: &Layout) -> candle_core::Result<(CpuStorage, Shape)> {
+        candle_core::bail!("film sine head gradient: a CUDA buffer for a CPU tensor")
+    }
+
+    fn cuda_fwd(
+        &self,
+        s: &candle_core::CudaStorage,
+        _: &Layout,
+    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
+        candle_core::account::report_launches(0, 0);
+        let buf = self.buf.lock().unwrap_or_else(|e| e.into_inner()).take();
+        let buf = buf
+            .ok_or_else(|| candle_core::Error::Msg("film sine: head gradient used twice".into()))?;
+        Ok((crate::compute::cuda::storage_of(buf, s), self.shape.clone()))
     }
 }
 

@@ -14,6 +14,9 @@
 /// CUDA source of the window max-pool and its gradients.
 pub const WINDOW_POOL_CU: &str = include_str!("kernels/window_pool.cu");
 
+/// CUDA source of one FiLM-sine layer and its gradient.
+pub const FILM_SINE_CU: &str = include_str!("kernels/film_sine.cu");
+
 /// Threads per block of every launch here.
 #[cfg(feature = "cuda")]
 const THREADS: u32 = 256;
@@ -32,18 +35,29 @@ mod launch {
     use candle_core::cuda_backend::{CudaDevice, WrapErr};
     use candle_core::{CudaStorage, Layout, Result};
 
-    /// PTX of `kernels/window_pool.cu`, compiled once per process.
-    fn window_pool_ptx() -> Result<&'static str> {
-        static PTX: OnceLock<std::result::Result<String, String>> = OnceLock::new();
-        PTX.get_or_init(|| {
-            candle_core::cuda_backend::cudarc::nvrtc::compile_ptx(super::WINDOW_POOL_CU)
+    /// PTX of `src`, compiled once per process into `cell` (`file` names it in errors).
+    fn ptx(
+        cell: &'static OnceLock<std::result::Result<String, String>>,
+        src: &str,
+        file: &str,
+    ) -> Result<&'static str> {
+        cell.get_or_init(|| {
+            candle_core::cuda_backend::cudarc::nvrtc::compile_ptx(src)
                 .map(|p| p.to_src())
-                .map_err(|e| {
-                    format!("compiling pma-model/src/compute/cuda/kernels/window_pool.cu: {e}")
-                })
+                .map_err(|e| format!("compiling pma-model/src/compute/cuda/kernels/{file}: {e}"))
         })
         .as_deref()
         .map_err(|e| candle_core::Error::Msg(e.clone()))
+    }
+
+    fn window_pool_ptx() -> Result<&'static str> {
+        static PTX: OnceLock<std::result::Result<String, String>> = OnceLock::new();
+        ptx(&PTX, super::WINDOW_POOL_CU, "window_pool.cu")
+    }
+
+    fn film_sine_ptx() -> Result<&'static str> {
+        static PTX: OnceLock<std::result::Result<String, String>> = OnceLock::new();
+        ptx(&PTX, super::FILM_SINE_CU, "film_sine.cu")
     }
 
     fn u32_of(v: usize, what: &str) -> Result<u32> {
@@ -196,5 +210,136 @@ mod launch {
             unsafe { b.launch(config(p * j * h)?) }.w()?;
         }
         Ok(CudaStorage::wrap_cuda_slice(gg, dev))
+    }
+
+    /// Sizes of one FiLM-sine layer: N rows, F features, layer k of K; γ = mul·Θ + add.
+    #[derive(Debug, Clone, Copy)]
+    pub(crate) struct Film {
+        pub n: usize,
+        pub f: usize,
+        pub k: usize,
+        pub n_layers: usize,
+        pub mul: f32,
+        pub add: f32,
+    }
+
+    impl Film {
+        fn dims(&self) -> Result<[u32; 4]> {
+            Ok([
+                u32_of(self.n, "N")?,
+                u32_of(self.f, "F")?,
+                u32_of(self.k, "layer")?,
+                u32_of(self.n_layers, "layers")?,
+            ])
+        }
+    }
+
+    /// One FiLM-sine layer: pre [N,F], o [N,2KF] (contiguous f32) -> (sin [N,F], cos [N,F]
+    /// when `keep_cos`). One launch.
+    pub(crate) fn film_sine(
+        pre: &CudaStorage,
+        lp: &Layout,
+        o: &CudaStorage,
+        lo: &Layout,
+        d: Film,
+        keep_cos: bool,
+    ) -> Result<(CudaStorage, Option<CudaSlice<f32>>)> {
+        let dev = pre.device().clone();
+        let len = d.n * d.f;
+        let out = output::<f32>(&dev, len)?;
+        let cos = output::<f32>(&dev, if keep_cos { len } else { 1 })?;
+        if len > 0 {
+            let func = dev.get_or_load_custom_func(
+                "pma_film_sine_f32",
+                "pma_film_sine",
+                film_sine_ptx()?,
+            )?;
+            let (pv, ov) = (f32s(pre, lp)?, f32s(o, lo)?);
+            let keep = i32::from(keep_cos);
+            let mut b = func.builder();
+            b.arg(&pv);
+            b.arg(&ov);
+            b.arg(&out);
+            b.arg(&cos);
+            let dims = d.dims()?;
+            for x in &dims {
+                b.arg(x);
+            }
+            b.arg(&d.mul);
+            b.arg(&d.add);
+            b.arg(&keep);
+            // SAFETY: the arguments match `pma_film_sine_f32`'s list; the caller checked
+            // that pre is [N,F] and o [N,2KF]; `cos` is written only when `keep`.
+            unsafe { b.launch(config(len)?) }.w()?;
+        }
+        Ok((
+            CudaStorage::wrap_cuda_slice(out, dev),
+            keep_cos.then_some(cos),
+        ))
+    }
+
+    /// The layer's gradient of pre [N,F]; layer k's blocks of the head gradient are written
+    /// into `g_o` [N,2KF] (zeroed first when `None`, which it then holds). One launch
+    /// (two with the zeroing).
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn film_sine_grad(
+        grad: &CudaStorage,
+        lg: &Layout,
+        pre: &CudaStorage,
+        lp: &Layout,
+        o: &CudaStorage,
+        lo: &Layout,
+        cos: Option<&CudaSlice<f32>>,
+        g_o: &mut Option<CudaSlice<f32>>,
+        d: Film,
+    ) -> Result<CudaStorage> {
+        let dev = grad.device().clone();
+        let len = d.n * d.f;
+        let w = 2 * d.n_layers * d.f;
+        if g_o.is_none() {
+            *g_o = Some(dev.alloc_zeros::<f32>((d.n * w).max(1))?);
+        }
+        let head = g_o.as_mut().expect("allocated above");
+        let g_pre = output::<f32>(&dev, len)?;
+        if len > 0 {
+            let func = dev.get_or_load_custom_func(
+                "pma_film_sine_grad_f32",
+                "pma_film_sine",
+                film_sine_ptx()?,
+            )?;
+            let (gv, pv, ov) = (f32s(grad, lg)?, f32s(pre, lp)?, f32s(o, lo)?);
+            let dummy;
+            let cos_in = match cos {
+                Some(c) => c,
+                None => {
+                    dummy = dev.alloc_zeros::<f32>(1)?;
+                    &dummy
+                }
+            };
+            let have = i32::from(cos.is_some());
+            let mut b = func.builder();
+            b.arg(&gv);
+            b.arg(&pv);
+            b.arg(&ov);
+            b.arg(cos_in);
+            b.arg(&g_pre);
+            b.arg(head);
+            let dims = d.dims()?;
+            for x in &dims {
+                b.arg(x);
+            }
+            b.arg(&d.mul);
+            b.arg(&d.add);
+            b.arg(&have);
+            // SAFETY: the arguments match `pma_film_sine_grad_f32`'s list; grad and pre are
+            // [N,F], o and the head gradient [N,2KF]; `cos_in` is read only when `have`.
+            unsafe { b.launch(config(len)?) }.w()?;
+        }
+        Ok(CudaStorage::wrap_cuda_slice(g_pre, dev))
+    }
+
+    /// A finished head gradient as a storage.
+    pub(crate) fn storage_of(g: CudaSlice<f32>, like: &CudaStorage) -> CudaStorage {
+        CudaStorage::wrap_cuda_slice(g, like.device().clone())
     }
 }
