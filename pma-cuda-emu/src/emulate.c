@@ -14,7 +14,11 @@ static pma_dim3 blockIdx, threadIdx, blockDim, gridDim;
 #define PMA_KERNEL static
 static inline float __fmul_rn(float a, float b) { return a * b; }
 static inline float __fadd_rn(float a, float b) { return a + b; }
+static inline float __fsub_rn(float a, float b) { return a - b; }
+static inline float __fdiv_rn(float a, float b) { return a / b; }
+static inline float __fsqrt_rn(float a) { return sqrtf(a); }
 
+#include "adam.cu"
 #include "film_sine.cu"
 #include "window_pool.cu"
 
@@ -75,4 +79,17 @@ void pma_emu_film_sine_grad_f32(const float *grad, const float *pre, const float
     PMA_GRID(blocks, threads,
              pma_film_sine_grad_f32(grad, pre, o, cos_in, g_pre, g_o, n, f, k, n_layers, mul,
                                     add, have_cos));
+}
+
+void pma_emu_adam_f32(const float *g, const float *p_old, const float *m_old,
+                      const float *v_old, float *p, float *m, float *v,
+                      const unsigned int *slot_of, const float *step_size,
+                      const float *inv_bias2, const unsigned char *has,
+                      const unsigned char *ok, const float *coef, int clip, unsigned int n,
+                      float one_minus_b1, float b2, float one_minus_b2, float eps,
+                      unsigned int blocks, unsigned int threads)
+{
+    PMA_GRID(blocks, threads,
+             pma_adam_f32(g, p_old, m_old, v_old, p, m, v, slot_of, step_size, inv_bias2, has,
+                          ok, coef, clip, n, one_minus_b1, b2, one_minus_b2, eps));
 }

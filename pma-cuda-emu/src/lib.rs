@@ -29,6 +29,29 @@ impl Grid {
 }
 
 extern "C" {
+    fn pma_emu_adam_f32(
+        g: *const f32,
+        p_old: *const f32,
+        m_old: *const f32,
+        v_old: *const f32,
+        p: *mut f32,
+        m: *mut f32,
+        v: *mut f32,
+        slot_of: *const c_uint,
+        step_size: *const f32,
+        inv_bias2: *const f32,
+        has: *const u8,
+        ok: *const u8,
+        coef: *const f32,
+        clip: c_int,
+        n: c_uint,
+        one_minus_b1: f32,
+        b2: f32,
+        one_minus_b2: f32,
+        eps: f32,
+        blocks: c_uint,
+        threads: c_uint,
+    );
     fn pma_emu_film_sine_f32(
         pre: *const f32,
         o: *const f32,
@@ -296,4 +319,78 @@ pub fn film_sine_grad(
         )
     };
     g_pre
+}
+
+/// What one flat Adam update reads besides the element buffers: per slot (parameter) its
+/// step size `lr / (1 − b1^t)` and `1 / sqrt(1 − b2^t)` (f32) and whether it has a
+/// gradient; the device flag that the step applies at all; the clip factor if any.
+#[derive(Debug, Clone)]
+pub struct AdamStep {
+    pub slot_of: Vec<u32>,
+    pub step_size: Vec<f32>,
+    pub inv_bias2: Vec<f32>,
+    pub has: Vec<bool>,
+    pub ok: bool,
+    pub coef: Option<f32>,
+    pub betas: [f64; 2],
+    pub eps: f64,
+}
+
+/// `adam.cu`'s update of the flat gradient `g`: (parameters, first moments, second moments)
+/// from the old ones.
+pub fn adam(
+    g: &[f32],
+    p_old: &[f32],
+    m_old: &[f32],
+    v_old: &[f32],
+    s: &AdamStep,
+    grid: Grid,
+) -> [Vec<f32>; 3] {
+    let n = g.len();
+    for (what, len) in [("p", p_old.len()), ("m", m_old.len()), ("v", v_old.len())] {
+        assert_eq!(len, n, "{what}");
+    }
+    assert_eq!(s.slot_of.len(), n, "slot_of");
+    let slots = s.step_size.len();
+    assert!(
+        s.inv_bias2.len() == slots && s.has.len() == slots,
+        "per-slot lengths"
+    );
+    assert!(
+        s.slot_of.iter().all(|&i| (i as usize) < slots),
+        "slot index"
+    );
+    let has: Vec<u8> = s.has.iter().map(|&h| h as u8).collect();
+    let ok = [s.ok as u8];
+    let coef = [s.coef.unwrap_or(1.0)];
+    let [b1, b2] = s.betas;
+    let mut out = [vec![f32::NAN; n], vec![f32::NAN; n], vec![f32::NAN; n]];
+    let [p, m, v] = &mut out;
+    // SAFETY: every buffer has the length the kernel indexes (checked above).
+    unsafe {
+        pma_emu_adam_f32(
+            g.as_ptr(),
+            p_old.as_ptr(),
+            m_old.as_ptr(),
+            v_old.as_ptr(),
+            p.as_mut_ptr(),
+            m.as_mut_ptr(),
+            v.as_mut_ptr(),
+            s.slot_of.as_ptr(),
+            s.step_size.as_ptr(),
+            s.inv_bias2.as_ptr(),
+            has.as_ptr(),
+            ok.as_ptr(),
+            coef.as_ptr(),
+            c_int::from(s.coef.is_some()),
+            c_uint::try_from(n).expect("n fits the kernel's u32"),
+            (1.0 - b1) as f32,
+            b2 as f32,
+            (1.0 - b2) as f32,
+            s.eps as f32,
+            grid.blocks,
+            grid.threads,
+        )
+    };
+    out
 }
