@@ -17,6 +17,9 @@ pub const WINDOW_POOL_CU: &str = include_str!("kernels/window_pool.cu");
 /// CUDA source of one FiLM-sine layer and its gradient.
 pub const FILM_SINE_CU: &str = include_str!("kernels/film_sine.cu");
 
+/// CUDA source of the flat Adam update.
+pub const ADAM_CU: &str = include_str!("kernels/adam.cu");
+
 /// Threads per block of every launch here.
 #[cfg(feature = "cuda")]
 const THREADS: u32 = 256;
@@ -33,7 +36,7 @@ mod launch {
         CudaSlice, DeviceRepr, LaunchConfig, PushKernelArg,
     };
     use candle_core::cuda_backend::{CudaDevice, WrapErr};
-    use candle_core::{CudaStorage, Layout, Result};
+    use candle_core::{CpuStorage, CudaStorage, CustomOp1, Layout, Result, Shape, Storage, Tensor};
 
     /// PTX of `src`, compiled once per process into `cell` (`file` names it in errors).
     fn ptx(
@@ -53,6 +56,11 @@ mod launch {
     fn window_pool_ptx() -> Result<&'static str> {
         static PTX: OnceLock<std::result::Result<String, String>> = OnceLock::new();
         ptx(&PTX, super::WINDOW_POOL_CU, "window_pool.cu")
+    }
+
+    fn adam_ptx() -> Result<&'static str> {
+        static PTX: OnceLock<std::result::Result<String, String>> = OnceLock::new();
+        ptx(&PTX, super::ADAM_CU, "adam.cu")
     }
 
     fn film_sine_ptx() -> Result<&'static str> {
@@ -341,5 +349,187 @@ mod launch {
     /// A finished head gradient as a storage.
     pub(crate) fn storage_of(g: CudaSlice<f32>, like: &CudaStorage) -> CudaStorage {
         CudaStorage::wrap_cuda_slice(g, like.device().clone())
+    }
+
+    /// Adam's scalar hyper-parameters as the update multiplies by them (f32).
+    #[derive(Debug, Clone, Copy)]
+    pub(crate) struct AdamScalars {
+        pub one_minus_b1: f32,
+        pub b2: f32,
+        pub one_minus_b2: f32,
+        pub eps: f32,
+    }
+
+    /// The flat Adam update in one launch (`kernels/adam.cu`): from the flat gradient `g`,
+    /// parameters, moments [N] (f32), the slot of every element [N] (u32), per slot the
+    /// step size and `1/sqrt(1 − b2^t)` (f32) and whether it has a gradient (u8), the
+    /// device flag `ok` (u8 scalar) and the clip factor (f32 scalar, if any), the new
+    /// (parameters, first moments, second moments). Every tensor contiguous on CUDA.
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn adam(
+        g: &Tensor,
+        p_old: &Tensor,
+        m_old: &Tensor,
+        v_old: &Tensor,
+        slot_of: &Tensor,
+        step_size: &Tensor,
+        inv_bias2: &Tensor,
+        has: &Tensor,
+        ok: &Tensor,
+        coef: Option<&Tensor>,
+        scalars: AdamScalars,
+    ) -> Result<(Tensor, Tensor, Tensor)> {
+        let mut others = vec![
+            p_old.clone(),
+            m_old.clone(),
+            v_old.clone(),
+            slot_of.clone(),
+            step_size.clone(),
+            inv_bias2.clone(),
+            has.clone(),
+            ok.clone(),
+        ];
+        others.extend(coef.cloned());
+        let op = AdamOp {
+            others,
+            scalars,
+            moments: std::sync::Mutex::new(None),
+        };
+        let p = g.apply_op1_no_bwd(&op)?;
+        let (m, v) = op
+            .moments
+            .into_inner()
+            .unwrap_or_else(|e| e.into_inner())
+            .ok_or_else(|| candle_core::Error::Msg("adam: the kernel did not run".into()))?;
+        let n = g.elem_count();
+        let m = g.apply_op1_no_bwd(&Wrap::new(m, n))?;
+        let v = g.apply_op1_no_bwd(&Wrap::new(v, n))?;
+        Ok((p, m, v))
+    }
+
+    /// The update as a custom op on the gradient, the other inputs held (custom ops take
+    /// at most three); its output is the parameters, the moments are left in `moments`.
+    struct AdamOp {
+        others: Vec<Tensor>,
+        scalars: AdamScalars,
+        moments: std::sync::Mutex<Option<(CudaSlice<f32>, CudaSlice<f32>)>>,
+    }
+
+    impl CustomOp1 for AdamOp {
+        fn name(&self) -> &'static str {
+            "pma-adam"
+        }
+
+        fn cpu_fwd(&self, _: &CpuStorage, _: &Layout) -> Result<(CpuStorage, Shape)> {
+            candle_core::bail!("adam: the CUDA kernel got a CPU tensor")
+        }
+
+        fn cuda_fwd(&self, g: &CudaStorage, lg: &Layout) -> Result<(CudaStorage, Shape)> {
+            candle_core::account::report_launches(1, 0);
+            let n = lg.shape().elem_count();
+            let guards: Vec<_> = self.others.iter().map(|t| t.storage_and_layout()).collect();
+            let mut cuda = Vec::with_capacity(guards.len());
+            for (guard, l) in &guards {
+                match &**guard {
+                    Storage::Cuda(c) => cuda.push((c, *l)),
+                    _ => candle_core::bail!("adam: expected CUDA tensors"),
+                }
+            }
+            for (i, (_, l)) in cuda.iter().enumerate().take(4) {
+                if l.shape().elem_count() != n {
+                    candle_core::bail!("adam: flat input {i} does not have {n} elements")
+                }
+            }
+            let dev = g.device().clone();
+            let (p, m, v) = (
+                output::<f32>(&dev, n)?,
+                output::<f32>(&dev, n)?,
+                output::<f32>(&dev, n)?,
+            );
+            if n > 0 {
+                let func = dev.get_or_load_custom_func("pma_adam_f32", "pma_adam", adam_ptx()?)?;
+                let f = |i: usize| f32s(cuda[i].0, cuda[i].1);
+                let (gv, po, mo, vo) = (f32s(g, lg)?, f(0)?, f(1)?, f(2)?);
+                let slot_of = cuda[3]
+                    .0
+                    .as_cuda_slice::<u32>()?
+                    .slice(cuda[3].1.start_offset()..);
+                let (step, inv) = (f(4)?, f(5)?);
+                let has = cuda[6]
+                    .0
+                    .as_cuda_slice::<u8>()?
+                    .slice(cuda[6].1.start_offset()..);
+                let ok = cuda[7]
+                    .0
+                    .as_cuda_slice::<u8>()?
+                    .slice(cuda[7].1.start_offset()..);
+                let clip = i32::from(cuda.len() > 8);
+                // Without a clip factor the kernel never reads `coef`: any f32 buffer will do.
+                let coef = if cuda.len() > 8 { f(8)? } else { f(4)? };
+                let n32 = u32_of(n, "N")?;
+                let s = self.scalars;
+                let mut b = func.builder();
+                for x in [&gv, &po, &mo, &vo] {
+                    b.arg(x);
+                }
+                b.arg(&p);
+                b.arg(&m);
+                b.arg(&v);
+                b.arg(&slot_of);
+                b.arg(&step);
+                b.arg(&inv);
+                b.arg(&has);
+                b.arg(&ok);
+                b.arg(&coef);
+                b.arg(&clip);
+                b.arg(&n32);
+                b.arg(&s.one_minus_b1);
+                b.arg(&s.b2);
+                b.arg(&s.one_minus_b2);
+                b.arg(&s.eps);
+                // SAFETY: the arguments match `pma_adam_f32`'s list; the flat buffers have n
+                // elements (checked), slot_of indexes the per-slot buffers (built so by
+                // the optimizer), `ok` and `coef` are scalars.
+                unsafe { b.launch(config(n)?) }.w()?;
+            }
+            *self.moments.lock().unwrap_or_else(|e| e.into_inner()) = Some((m, v));
+            Ok((CudaStorage::wrap_cuda_slice(p, dev), lg.shape().clone()))
+        }
+    }
+
+    /// Hands a finished f32 device buffer of `n` elements to candle as a tensor (no launch).
+    struct Wrap {
+        buf: std::sync::Mutex<Option<CudaSlice<f32>>>,
+        n: usize,
+    }
+
+    impl Wrap {
+        fn new(buf: CudaSlice<f32>, n: usize) -> Self {
+            Self {
+                buf: std::sync::Mutex::new(Some(buf)),
+                n,
+            }
+        }
+    }
+
+    impl CustomOp1 for Wrap {
+        fn name(&self) -> &'static str {
+            "pma-wrap"
+        }
+
+        fn cpu_fwd(&self, _: &CpuStorage, _: &Layout) -> Result<(CpuStorage, Shape)> {
+            candle_core::bail!("wrap: a CUDA buffer for a CPU tensor")
+        }
+
+        fn cuda_fwd(&self, s: &CudaStorage, _: &Layout) -> Result<(CudaStorage, Shape)> {
+            candle_core::account::report_launches(0, 0);
+            let buf = self.buf.lock().unwrap_or_else(|e| e.into_inner()).take();
+            let buf =
+                buf.ok_or_else(|| candle_core::Error::Msg("wrap: buffer used twice".into()))?;
+            Ok((
+                CudaStorage::wrap_cuda_slice(buf, s.device().clone()),
+                Shape::from(self.n),
+            ))
+        }
     }
 }
