@@ -78,17 +78,47 @@ pub fn window_pool(q: &Tensor, g: &Tensor, w_p: &Tensor, k: Numerics) -> Result<
             .broadcast_mul(&w_p.unsqueeze(candle_core::D::Minus1)?)?
             .max(1)?)
     };
-    if !(applies(k, &[q, g, w_p]) || applies_cuda(k, &[q, g, w_p])) {
+    let modeled = models_cuda(k, &[q, g, w_p]);
+    if !(applies(k, &[q, g, w_p]) || applies_cuda(k, &[q, g, w_p]) || modeled) {
         return plain();
     }
     let (q, g) = (q.contiguous()?, g.contiguous()?);
     let tracked = q.track_op() || g.track_op();
     let op = WindowPool {
         arg: crate::compute::ops::Kept::new(tracked),
+        modeled,
+        held: Mutex::new(None),
         #[cfg(feature = "cuda")]
         arg_dev: crate::compute::ops::Kept::new(tracked),
     };
-    Ok(q.apply_op3(&g, &w_p.detach().contiguous()?, op)?)
+    let out = q.apply_op3(&g, &w_p.detach().contiguous()?, op)?;
+    if modeled {
+        // The CUDA kernel also writes the arg-max (u32 [N,H]); the custom op's count has
+        // its one launch and the max.
+        candle_core::account::record(
+            true,
+            candle_core::account::Op {
+                name: "pma-window-pool",
+                launches: 0,
+                param_uploads: 0,
+                bytes_read: 0,
+                bytes_written: (out.elem_count() * 4) as u64,
+                flops: 0,
+            },
+        );
+    }
+    Ok(out)
+}
+
+/// Whether a CPU run accounted as CUDA ([`crate::compute::account`]) should count the
+/// CUDA kernel of [`crate::compute::cuda`] rather than candle's plain ops: the fused ops
+/// then run on the CPU and count what their kernel launches, reads and writes.
+fn models_cuda(k: Numerics, ts: &[&Tensor]) -> bool {
+    k.fused
+        && crate::compute::account::emulates_cuda()
+        && ts
+            .iter()
+            .all(|t| t.device().is_cpu() && t.dtype() == DType::F32)
 }
 
 /// Whether `ts` are f32 tensors on CUDA and the network asks for fused kernels: the
@@ -606,6 +636,10 @@ impl CustomOp2 for BiasAdd {
 /// of every output for the backward, which then need not pool again.
 struct WindowPool {
     arg: crate::compute::ops::Kept<Vec<u32>>,
+    /// On a CPU run accounted as CUDA: count the CUDA kernels (see [`models_cuda`]).
+    modeled: bool,
+    /// The kept arg-max's bytes, live on the modeled device until the backward takes it.
+    held: Mutex<Option<candle_core::account::Held>>,
     /// The arg-max of a CUDA forward, on the device.
     #[cfg(feature = "cuda")]
     arg_dev: crate::compute::ops::Kept<crate::compute::cuda::ArgMax>,
@@ -677,6 +711,10 @@ impl CustomOp3 for WindowPool {
             );
         }
         if self.arg.wanted() {
+            if self.modeled {
+                let held = candle_core::account::hold(true, arg.len() * 4);
+                *self.held.lock().unwrap_or_else(|e| e.into_inner()) = Some(held);
+            }
             self.arg.put(arg);
         }
         Ok((CpuStorage::F32(dst), Shape::from((n, h))))
@@ -715,6 +753,9 @@ impl CustomOp3 for WindowPool {
         #[cfg(feature = "cuda")]
         if q.device().is_cuda() {
             return self.cuda_bwd(q, g, w_p, grad);
+        }
+        if self.modeled {
+            return self.modeled_bwd(q, g, w_p, grad);
         }
         let (n, j, h) = q.dims3()?;
         let poses = g.dim(0)?;
@@ -757,6 +798,121 @@ impl CustomOp3 for WindowPool {
         let gq = Tensor::from_vec(gq, (n, j, h), q_c.device())?;
         let gg = Tensor::from_vec(gg, (poses, j, h), g_c.device())?;
         Ok((Some(gq), Some(gg), None))
+    }
+}
+
+impl WindowPool {
+    /// The backward of a CPU run accounted as CUDA, as the CUDA backward runs: the kept
+    /// arg-max (or the forward's kernel again), then one op per gradient, each counted as
+    /// its kernel (reading the upstream gradient, the window and the arg-max).
+    fn modeled_bwd(
+        &self,
+        q: &Tensor,
+        g: &Tensor,
+        w_p: &Tensor,
+        grad: &Tensor,
+    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+        let (n, j, h) = q.dims3()?;
+        let p = g.dim(0)?;
+        let w = w_p.contiguous()?;
+        let arg = match self.arg.take().filter(|a| a.len() == n * h) {
+            Some(a) => a,
+            None => {
+                // The forward's kernel once more (its outputs: the max and the arg-max).
+                let (qc, gc) = (q.contiguous()?, g.contiguous()?);
+                let guards = [&qc, &gc, &w].map(|t| t.storage_and_layout());
+                let [qs, gs, ws] = [0, 1, 2].map(|i| cpu_slice(&guards[i].0, guards[i].1));
+                let (qs, gs, ws) = (qs?, gs?, ws?);
+                let mut arg = vec![0u32; n * h];
+                let mut best = vec![0f32; h];
+                let per_pose = n / p;
+                for i in 0..n {
+                    let gp = (i / per_pose) * j * h;
+                    pool_row(
+                        &qs[i * j * h..(i + 1) * j * h],
+                        &gs[gp..gp + j * h],
+                        &ws[i * j..(i + 1) * j],
+                        &mut best,
+                        &mut arg[i * h..(i + 1) * h],
+                    );
+                }
+                candle_core::account::record(
+                    true,
+                    candle_core::account::Op {
+                        name: "pma-window-pool",
+                        launches: 1,
+                        param_uploads: 0,
+                        bytes_read: ((qs.len() + gs.len() + ws.len()) * 4) as u64,
+                        bytes_written: (n * h * 8) as u64,
+                        flops: 0,
+                    },
+                );
+                arg
+            }
+        };
+        // The arg-max is the kernels' input now: live (as a tensor) until they are done.
+        let arg = candle_core::account::uncounted(|| Tensor::from_vec(arg, (n, h), q.device()))?;
+        let held = candle_core::account::hold(true, n * h * 4);
+        self.held.lock().unwrap_or_else(|e| e.into_inner()).take();
+        let grad = grad.contiguous()?;
+        let gq = grad.apply_op3_no_bwd(&w, &arg, &PoolGradCpu { p, of_g: false })?;
+        let gg = grad.apply_op3_no_bwd(&w, &arg, &PoolGradCpu { p, of_g: true })?;
+        drop(held);
+        Ok((Some(gq), Some(gg), None))
+    }
+}
+
+/// One gradient of the window pool on the CPU from (upstream gradient [N,H], window [N,J],
+/// arg-max [N,H] u32), as a custom op so that a CPU run accounted as CUDA counts it as the
+/// kernel `window_pool.cu` runs for it: grad q [N,J,H] or (`of_g`) grad g [P,J,H], the same
+/// values as the CPU backward.
+struct PoolGradCpu {
+    p: usize,
+    of_g: bool,
+}
+
+impl CustomOp3 for PoolGradCpu {
+    fn name(&self) -> &'static str {
+        "pma-window-pool-grad"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+        s3: &CpuStorage,
+        l3: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let (n, h) = l1.shape().dims2()?;
+        let (n2, j) = l2.shape().dims2()?;
+        let dm = f32_slice(s1, l1, "window pool gradient: grad")?;
+        let w = f32_slice(s2, l2, "window pool gradient: w_p")?;
+        let CpuStorage::U32(arg) = s3 else {
+            candle_core::bail!("window pool gradient: the arg-max is not u32")
+        };
+        let p = self.p;
+        if n2 != n || l3.shape().dims2()? != (n, h) || p == 0 || n % p != 0 {
+            candle_core::bail!("window pool gradient: shapes do not agree with [{n},{j},{h}]")
+        }
+        let per_pose = n / p;
+        // The CPU backward's loop, keeping one of its two outputs.
+        let mut out = vec![0f32; if self.of_g { p * j * h } else { n * j * h }];
+        for i in 0..n {
+            let gp = (i / per_pose) * j * h;
+            for k in 0..h {
+                let jj = arg[i * h + k] as usize;
+                let d = dm[i * h + k] * w[i * j + jj];
+                if self.of_g {
+                    out[gp + jj * h + k] += d;
+                } else {
+                    out[i * j * h + jj * h + k] = d;
+                }
+            }
+        }
+        let shape = if self.of_g { (p, j, h) } else { (n, j, h) };
+        Ok((CpuStorage::F32(out), Shape::from(shape)))
     }
 }
 
@@ -888,6 +1044,43 @@ mod tests {
             })
             .collect();
         Tensor::from_vec(v, shape, &Device::Cpu).unwrap()
+    }
+
+    /// Counted as CUDA (the fused pool then counts as its kernels), the window pool still
+    /// computes the CPU's values and gradients, bit for bit, including a second backward
+    /// that finds the arg-max used.
+    #[test]
+    fn window_pool_counted_as_cuda_keeps_the_cpu_bits() {
+        use crate::compute::account::{Account, Route};
+        let (n, j, h, p) = (12, 5, 7, 3);
+        let q = Var::from_tensor(&rand(&[n, j, h], 1)).unwrap();
+        let g = Var::from_tensor(&rand(&[p, j, h], 2)).unwrap();
+        let w = rand(&[n, j], 3).abs().unwrap();
+        let up = rand(&[n, h], 4);
+        let run = || {
+            let y = window_pool(q.as_tensor(), g.as_tensor(), &w, Numerics::PARITY).unwrap();
+            let loss = (&y * &up).unwrap().sum_all().unwrap();
+            let bits = |t: &Tensor| -> Vec<u32> {
+                let v: Vec<f32> = t.flatten_all().unwrap().to_vec1().unwrap();
+                v.iter().map(|x| x.to_bits()).collect()
+            };
+            let mut out = vec![bits(&y)];
+            for _ in 0..2 {
+                let gr = loss.backward().unwrap();
+                out.push(bits(gr.get(&q).unwrap()));
+                out.push(bits(gr.get(&g).unwrap()));
+            }
+            out
+        };
+        let cpu = run();
+        let account = Account::start(&Device::Cpu, Route::Cuda).unwrap();
+        let counted = run();
+        let report = account.finish();
+        assert_eq!(cpu, counted);
+        let launches = |op: &str| report.ops.get(op).map_or(0, |c| c.launches);
+        // Forward once, the arg-max again for the second backward, two gradients each time.
+        assert_eq!(launches("pma-window-pool"), 2, "{:?}", report.ops.keys());
+        assert_eq!(launches("pma-window-pool-grad"), 4);
     }
 
     fn max_abs(a: &Tensor, b: &Tensor) -> f32 {
