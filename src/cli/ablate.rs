@@ -240,6 +240,7 @@ mod imp {
             png_dir: None,
             pngs: 0,
             baseline_colour: None,
+            pass: Default::default(),
         };
         let bar = progress::bar(args.quiet, 0, "      images");
         let report = evaluate(avatar, &data, name, &images, &opts, &mut |d, t| {

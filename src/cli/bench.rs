@@ -14,6 +14,9 @@
 //! network point (3× for a training step: forward, input and weight gradients) over
 //! cores × GHz × FLOP/cycle from /proc/cpuinfo.
 //!
+//! `--occupancy` adds the occupancy-grid rows (the grid alone and with the last culling
+//! option); `--scene-seed` synthesises another scene (colours, glyphs, camera ring).
+//!
 //! `--account` replaces all of this by step accounting (`bench/account.rs`): counts of one
 //! training step and one inference pass as a GPU would run them, with estimated GPU times.
 
@@ -51,6 +54,22 @@ pub struct Args {
     /// Sample thresholds to compare (each with ray culling on).
     #[arg(long, value_delimiter = ',', default_value = "0,1e-6,1e-4,1e-2")]
     pub thresholds: Vec<f64>,
+    /// Add the occupancy-grid rows: the grid alone and with the last threshold's culling.
+    /// Rendering uses the model's grid (built from the scene's training poses when it has
+    /// none); training builds and refreshes one during each run.
+    #[arg(long)]
+    pub occupancy: bool,
+    /// Training poses the rendered model's grid is built over when it has none (each costs
+    /// one network point per cell: 24 joints × ~28,000 cells).
+    #[arg(long, default_value_t = 4)]
+    pub occupancy_poses: usize,
+    /// Training rows with the grid: steps without it before it is built and used.
+    #[arg(long, default_value_t = 200)]
+    pub occupancy_warmup: u64,
+    /// Seed of the synthetic bench scene (colours, glyphs, camera ring): another seed is a
+    /// scene the options were not tuned on.
+    #[arg(long, default_value_t = 0)]
+    pub scene_seed: u64,
     /// Smallest run that exercises everything (tests): tiny preset, 32×32, one repeat,
     /// 2 s budgets, a 32-pixel scene.
     #[arg(long)]
@@ -130,7 +149,11 @@ pub fn reset_peak_rss() -> bool {
 #[derive(Debug, Clone, Default, serde::Serialize, serde::Deserialize)]
 pub struct OptionResult {
     pub name: String,
-    pub culling: pma_model::network::config::Culling,
+    pub culling: pma_model::render::Culling,
+    /// The occupancy grid was used (rendering: the bench model's grid; training: a grid
+    /// built and refreshed during the run).
+    #[serde(default)]
+    pub occupancy: bool,
     /// The vectorised sine (`--fast-sine`) was on for this option.
     #[serde(default)]
     pub fast_sine: bool,
@@ -309,44 +332,59 @@ mod imp {
     use pma_data::skeleton::Joints;
     use pma_data::synth::{generate, SynthConfig};
     use pma_model::eval::{dataset_pose, ground_truth, render_dataset_image};
-    use pma_model::network::config::{Culling, SampleFill};
+    use pma_model::network::occupancy::OccupancyConfig;
     use pma_model::render::avatar::{Avatar, Poses};
     use pma_model::render::image::{ImageOptions, RenderedImage};
+    use pma_model::render::{Culling, PassOptions, SampleFill};
     use pma_model::train::{Preset, RunConfig, Trainer};
 
     use super::super::plot::plot_error_vs_time;
     use super::super::{progress, read_dataset, refuse, write_json};
     use super::*;
 
-    /// (name, culling, fast sine): parity, each culling option, then the vectorised sine
-    /// alone and with the last (most aggressive) culling option.
-    fn options(thresholds: &[f64]) -> Vec<(String, Culling, bool)> {
+    /// (name, pass options, fast sine): parity, each culling option, then the vectorised
+    /// sine alone and with the last (most aggressive) culling option; with `occupancy` the
+    /// grid alone and with that culling option.
+    fn options(thresholds: &[f64], occupancy: bool) -> Vec<(String, PassOptions, bool)> {
+        let culled = |c: Culling| PassOptions::culled(c);
         let mut v = vec![
-            ("parity".to_string(), Culling::default(), false),
+            ("parity".to_string(), PassOptions::parity(), false),
             (
                 "rays".to_string(),
-                Culling {
+                culled(Culling {
                     rays: true,
                     ..Default::default()
-                },
+                }),
                 false,
             ),
         ];
         for &t in thresholds {
             v.push((
                 format!("rays+samples@{t:e}"),
-                Culling {
+                culled(Culling {
                     rays: true,
                     sample_threshold: Some(t),
                     sample_fill: SampleFill::Network,
-                },
+                }),
                 false,
             ));
         }
-        let (last_name, last_culling, _) = v.last().cloned().expect("parity is always there");
-        v.push(("fast-sine".to_string(), Culling::default(), true));
+        let (last_name, last_pass, _) = v.last().cloned().expect("parity is always there");
+        v.push(("fast-sine".to_string(), PassOptions::parity(), true));
         if last_name != "rays" {
-            v.push((format!("{last_name}+fast-sine"), last_culling, true));
+            v.push((format!("{last_name}+fast-sine"), last_pass.clone(), true));
+        }
+        if occupancy {
+            let grid = |culling: Culling| PassOptions {
+                culling,
+                occupancy: true,
+            };
+            v.push(("occupancy".to_string(), grid(Culling::default()), false));
+            v.push((
+                format!("{last_name}+occupancy"),
+                grid(last_pass.culling),
+                false,
+            ));
         }
         v
     }
@@ -372,7 +410,6 @@ mod imp {
         let samples_per_step =
             (run.train.rays_per_step * (run.model.n_samples + run.model.n_importance)) as f64;
         let mut trainer = Trainer::new(run, data, dev)?;
-        let points_before = trainer.avatar().points_evaluated();
         let start = Instant::now();
         let mut times = Vec::new();
         while (times.len() < 2 || start.elapsed().as_secs_f64() < seconds)
@@ -383,7 +420,7 @@ mod imp {
             times.push(t.elapsed().as_secs_f64() * 1e3);
             bar.set_position((start.elapsed().as_secs_f64().min(seconds)) as u64);
         }
-        let points = (trainer.avatar().points_evaluated() - points_before) as f64;
+        let points = trainer.pass_totals().points_evaluated as f64;
         let fraction = points / (samples_per_step * times.len().max(1) as f64);
         Ok((trainer, times, fraction))
     }
@@ -394,13 +431,14 @@ mod imp {
         avatar: &Avatar,
         data: &Dataset,
         images: &[usize],
+        pass: &PassOptions,
     ) -> anyhow::Result<(f64, Option<f64>)> {
         let lpips = pma_model::eval::lpips::Lpips::shared()?;
         let (h, w) = (data.height(), data.width());
         let big_enough = h.min(w) >= pma_model::eval::lpips::MIN_SIDE;
         let (mut scores, mut lp) = (Vec::new(), Vec::new());
         for &n in images {
-            let img = render_dataset_image(avatar, data, n, 4096)?;
+            let img = render_dataset_image(avatar, data, n, 4096, pass)?;
             let (gt, _) = ground_truth(data, n)?;
             scores.push(psnr(&img.rgb, &gt)?);
             if big_enough {
@@ -445,7 +483,11 @@ mod imp {
         // Loaded before the per-option peak-RSS resets, so no option's phase pays for it.
         pma_model::eval::lpips::Lpips::shared()?;
         let preset: Preset = args.preset.parse()?;
-        let (mut avatar, model_desc) = bench_model(&args, preset, &scene, &dev)?;
+        let (avatar, model_desc) = bench_model(&args, preset, &scene, &dev)?;
+        let avatar = match args.occupancy && avatar.occupancy().is_none() {
+            true => grid_for(&args, avatar, &scene)?,
+            false => avatar,
+        };
         let cfg = avatar.config().clone();
         let fpp = pma_model::compute::flops::per_point(&cfg);
         let (peak, peak_how) = pma_model::compute::flops::fp32_peak();
@@ -453,9 +495,8 @@ mod imp {
         let inactive =
             inactive_joint_fraction(&avatar, &view.poses, &view.cam, &view.kp3d, &view.opts)?;
 
-        let opts = options(&args.thresholds);
-        let mut results =
-            measure_inference(&args, &mut avatar, &scene, &view, &opts, fpp, rss_reset)?;
+        let opts = options(&args.thresholds, args.occupancy);
+        let mut results = measure_inference(&args, &avatar, &scene, &view, &opts, fpp, rss_reset)?;
         measure_training(&args, preset, &cfg, &scene, &opts, &mut results, rss_reset)?;
         let (parity_rays, parity_step) = (results[0].rays_per_s, results[0].ms_per_step);
         for r in &mut results {
@@ -509,6 +550,36 @@ mod imp {
             args.out.join("error_vs_time.png").display()
         );
         Ok(())
+    }
+
+    /// `avatar` with an occupancy grid built from the scene's training poses (for the
+    /// rendering rows of `--occupancy`).
+    fn grid_for(args: &Args, avatar: Avatar, scene: &Scene) -> anyhow::Result<Avatar> {
+        use pma_model::tools::occupancy::{build, BuildOptions};
+        let b = progress::bar(args.quiet, 0, "building the occupancy grid (poses)");
+        let t = Instant::now();
+        let (avatar, s) = build(
+            avatar,
+            &scene.train,
+            &BuildOptions {
+                poses: args.occupancy_poses.max(1),
+                ..Default::default()
+            },
+            &mut |d, n| {
+                b.set_length(n as u64);
+                b.set_position(d as u64);
+            },
+        )?;
+        b.finish_and_clear();
+        println!(
+            "built the occupancy grid of the rendered model in {:.1} s ({} poses, {} network \
+             points, {:.1} % of cells occupied)",
+            t.elapsed().as_secs_f64(),
+            s.poses,
+            s.points,
+            100.0 * s.occupied_fraction
+        );
+        Ok(avatar)
     }
 
     /// Where the rendered model lives: `--model`, or the one trained in-process.
@@ -583,14 +654,20 @@ mod imp {
 
     /// The synthetic scene (small: it only serves training and the held-out PSNR).
     fn prepare_scene(args: &Args) -> anyhow::Result<Scene> {
-        let mut synth = SynthConfig::default();
+        let mut synth = SynthConfig {
+            seed: args.scene_seed,
+            ..Default::default()
+        };
         if args.quick {
             synth.res = 32;
             synth.frames = 8;
             synth.novel_pose_walk = 2;
             synth.novel_pose_dance = 2;
         }
-        let scene = args.out.join("scene");
+        let scene = match args.scene_seed {
+            0 => args.out.join("scene"),
+            n => args.out.join(format!("scene-seed{n}")),
+        };
         if !scene.join("novel_view.npz").is_file() {
             println!("synthesising the scene into {}", scene.display());
             generate(&synth, &scene, &mut |_, _| {}).context("synthesising the bench scene")?;
@@ -668,6 +745,7 @@ mod imp {
             chunk: 4096,
             head: held.head()?,
             device: dev.clone(),
+            pass: PassOptions::parity(),
         };
         let box_rays = {
             let b = pma_model::render::image::body_box(&cam, &kp3d, opts.head);
@@ -686,10 +764,10 @@ mod imp {
     /// Inference per option: render time, points, peak RSS, and the PSNR columns.
     fn measure_inference(
         args: &Args,
-        avatar: &mut Avatar,
+        avatar: &Avatar,
         scene: &Scene,
         view: &View,
-        opts: &[(String, Culling, bool)],
+        opts: &[(String, PassOptions, bool)],
         flops_per_point: f64,
         rss_reset: bool,
     ) -> anyhow::Result<Vec<OptionResult>> {
@@ -699,12 +777,15 @@ mod imp {
         };
         let mut results: Vec<OptionResult> = Vec::new();
         let mut parity: Option<(RenderedImage, f64)> = None;
-        let render = |a: &Avatar| -> anyhow::Result<RenderedImage> {
-            Ok(a.render_image(&view.poses, &view.kp3d, &view.cam, None, &view.opts)?)
+        let render = |a: &Avatar, pass: &PassOptions| -> anyhow::Result<RenderedImage> {
+            let opts = ImageOptions {
+                pass: pass.clone(),
+                ..view.opts.clone()
+            };
+            Ok(a.render_image(&view.poses, &view.kp3d, &view.cam, None, &opts)?)
         };
-        let set = |a: &mut Avatar, (_, culling, fast_sine): &(String, Culling, bool)| {
+        let set = |(_, _, fast_sine): &(String, PassOptions, bool)| {
             pma_model::compute::fast_sine::set_enabled(*fast_sine);
-            a.set_culling(culling.clone()).map_err(anyhow::Error::from)
         };
         let b = progress::bar(
             args.quiet,
@@ -713,14 +794,14 @@ mod imp {
         );
         // First each option's untimed render (the warm-up), its quality and memory.
         for opt in opts {
-            let (name, culling, fast_sine) = opt;
+            let (name, pass, fast_sine) = opt;
             b.set_message(format!("render {name}"));
-            set(avatar, opt)?;
+            set(opt);
             if rss_reset {
                 reset_peak_rss();
             }
-            let img = render(avatar)?;
-            let (held_psnr, held_lpips) = heldout_psnr(avatar, &scene.held, &scene.eval_set)?;
+            let img = render(avatar, pass)?;
+            let (held_psnr, held_lpips) = heldout_psnr(avatar, &scene.held, &scene.eval_set, pass)?;
             let peak_rss = peak_rss_mib().unwrap_or(f64::NAN);
             let (vs_parity, max_diff) = match &parity {
                 None => (f64::INFINITY, 0.0),
@@ -739,7 +820,8 @@ mod imp {
             }
             results.push(OptionResult {
                 name: name.clone(),
-                culling: culling.clone(),
+                culling: pass.culling.clone(),
+                occupancy: pass.occupancy,
                 fast_sine: *fast_sine,
                 peak_rss_mib: peak_rss,
                 psnr_vs_parity_render: vs_parity,
@@ -757,12 +839,11 @@ mod imp {
         for _ in 0..args.repeats {
             for ((opt, t_opt), res) in opts.iter().zip(times.iter_mut()).zip(results.iter_mut()) {
                 b.set_message(format!("time {}", opt.0));
-                set(avatar, opt)?;
-                let before = avatar.points_evaluated();
+                set(opt);
                 let t = Instant::now();
-                let _ = render(avatar)?;
+                let img = render(avatar, &opt.1)?;
                 t_opt.push(t.elapsed().as_secs_f64());
-                res.network_points_per_image = avatar.points_evaluated() - before;
+                res.network_points_per_image = img.stats.points_evaluated;
                 b.inc(1);
             }
         }
@@ -777,7 +858,6 @@ mod imp {
         }
         b.finish_and_clear();
         pma_model::compute::fast_sine::set_enabled(false);
-        avatar.set_culling(Culling::default())?;
         Ok(results)
     }
 
@@ -787,19 +867,23 @@ mod imp {
         preset: Preset,
         cfg: &pma_model::Config,
         scene: &Scene,
-        opts: &[(String, Culling, bool)],
+        opts: &[(String, PassOptions, bool)],
         results: &mut [OptionResult],
         rss_reset: bool,
     ) -> anyhow::Result<()> {
         let dev = super::super::device(&args.device)?;
         let budget = args.budget_seconds.max(0.0);
         let b = progress::bar(args.quiet, opts.len() as u64, "training per option");
-        for (res, (name, culling, fast_sine)) in results.iter_mut().zip(opts) {
+        for (res, (name, pass, fast_sine)) in results.iter_mut().zip(opts) {
             b.set_message(format!("train {name}"));
             pma_model::compute::fast_sine::set_enabled(*fast_sine);
             let mut run = RunConfig::from_preset(preset);
             run.model = cfg.clone();
-            run.model.culling = culling.clone();
+            run.train.culling = pass.culling.clone();
+            run.train.occupancy = pass.occupancy.then(|| OccupancyConfig {
+                warmup_steps: args.occupancy_warmup,
+                ..Default::default()
+            });
             let samples_per_step =
                 (run.train.rays_per_step * (cfg.n_samples + cfg.n_importance)) as f64;
             if rss_reset {
@@ -823,13 +907,7 @@ mod imp {
                 / (res.ms_per_step * 1e6);
             res.peak_rss_mib = res.peak_rss_mib.max(peak_rss_mib().unwrap_or(f64::NAN));
             if budget > 0.0 {
-                let mut a = Avatar::from_tensors(
-                    trainer.avatar().config().clone(),
-                    trainer.avatar().tensors(),
-                    &dev,
-                )?;
-                a.set_culling(culling.clone())?;
-                let (p, l) = heldout_psnr(&a, &scene.held, &scene.eval_set)?;
+                let (p, l) = heldout_psnr(trainer.avatar(), &scene.held, &scene.eval_set, pass)?;
                 res.budget_heldout_psnr = Some(p);
                 res.budget_heldout_lpips = l;
                 res.budget_iterations = Some(trainer.iteration());

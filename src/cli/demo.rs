@@ -262,6 +262,7 @@ pub(crate) mod imp {
             png_dir: Some(renders.clone()),
             pngs: args.pngs,
             baseline_colour: Some(baseline),
+            pass: Default::default(),
         };
         let limit = match args.max_eval_images {
             0 => usize::MAX,

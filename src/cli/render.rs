@@ -42,12 +42,12 @@ use pma_data::dataset::{Dataset, Profile, ReadOptions};
 use pma_data::fsio::AtomicFile;
 use pma_data::skeleton::Joints;
 use pma_model::eval::{dataset_pose, resolve_split, split_images, spread, Split};
-use pma_model::network::config::Culling;
 use pma_model::render::avatar::{Avatar, Poses, Rays};
 use pma_model::render::camera_path::{
     bullet_time, facing, framing_camera, load_avatar, parse_resolution, Orbit, ViewDirs,
 };
 use pma_model::render::image::{body_box, render_image, ChunkRender, ImageOptions, RenderedImage};
+use pma_model::render::PassOptions;
 use pma_model::tools::retarget::{retarget, MotionClip, RootScale};
 use serde::Serialize;
 
@@ -134,7 +134,7 @@ pub struct Args {
     #[arg(long)]
     pub quiet: bool,
     #[command(flatten)]
-    pub cull: Culling,
+    pub pass: PassOptions,
     /// Compute device: cpu, cuda, cuda:N, metal (cuda/metal need a binary built with that
     /// feature).
     #[arg(long, default_value = "cpu")]
@@ -199,9 +199,8 @@ pub fn run(mut args: Args) -> anyhow::Result<()> {
     } else {
         ViewDirs::Normalized
     };
-    let mut avatar = load_avatar(&args.model, &device, dirs)
+    let avatar = load_avatar(&args.model, &device, dirs)
         .with_context(|| format!("loading model {}", args.model.display()))?;
-    avatar.set_culling(args.cull.clone())?;
 
     let data = match &args.data {
         Some(d) => Some(SplitData::read(d, &args.split, args.poses.is_some())?),
@@ -473,6 +472,7 @@ fn render_jobs(
         chunk: args.chunk,
         head,
         device: device.clone(),
+        pass: args.pass.clone(),
     };
     let gif_path = args.out.join("render.gif");
     let mut gif = if args.no_gif {
@@ -646,12 +646,13 @@ fn render_job(
                 bgs: Some(bg.clone()),
                 framecodes: vec![-1; o.dim(0)?],
             };
-            let out = avatar.render_rays(&rays, poses)?;
+            let out = avatar.render_rays(&rays, poses, &opts.pass)?;
             bar.inc(o.dim(0)? as u64);
             Ok(ChunkRender {
                 rgb: out.fine.rgb,
                 acc: out.fine.acc,
                 disp: out.fine.disp,
+                stats: out.stats,
             })
         };
     Ok(render_image(

@@ -143,7 +143,7 @@ pub fn run(args: &Args, dev: &Device) -> anyhow::Result<()> {
     let batch = source.next_batch()?;
     let avatar = trainer.avatar();
     let (_, inference) = account::measure(dev, route, || -> anyhow::Result<_> {
-        Ok(avatar.render_rays(&batch.rays, &batch.poses)?)
+        Ok(avatar.render_rays(&batch.rays, &batch.poses, &Default::default())?)
     })?;
     bar.finish_and_clear();
 
