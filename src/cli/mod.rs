@@ -11,6 +11,7 @@ pub mod forward;
 pub mod inspect;
 pub mod mesh;
 pub mod metrics;
+pub mod occupancy;
 #[cfg(feature = "train")]
 pub mod plot;
 pub mod progress;
