@@ -45,15 +45,18 @@ enum Command {
     /// Convert reference checkpoints, A-NeRF/DANBO datasets and motion into pma formats.
     Convert(cli::convert::Args),
     /// Train an avatar on a pma-npz dataset.
+    #[cfg(feature = "train")]
     Train(cli::train::Args),
     /// Evaluate a trained avatar (PSNR/SSIM/LPIPS per image and mean, side-by-side PNGs).
     Eval(cli::eval::Args),
     /// PSNR, SSIM and LPIPS of two images (optionally under a mask), as `pma eval` scores.
     Metrics(cli::metrics::Args),
     /// The main job on the embedded default: synthesise the scene, train, evaluate, render.
+    #[cfg(feature = "train")]
     Demo(cli::demo::Args),
     /// The paper's ablations: train each model variant on the same budget, score novel views
     /// and poses, and tabulate error against run time.
+    #[cfg(feature = "train")]
     Ablate(cli::ablate::Args),
     /// Render a trained avatar: dataset views, an orbit, bullet time, or retargeted motion (PNG + GIF).
     Render(cli::render::Args),
@@ -62,6 +65,7 @@ enum Command {
     /// Occupancy grids: build one for a trained model (`build`).
     Occupancy(cli::occupancy::Args),
     /// Parity mode against each culling option: speed, memory and error side by side.
+    #[cfg(feature = "train")]
     Bench(cli::bench::Args),
     /// Drive an avatar through extreme poses, frequencies, scales, densities and ray geometry.
     CheckStability(cli::check_stability::Args),
@@ -104,14 +108,18 @@ fn run(command: Command) -> anyhow::Result<()> {
         Command::Inspect(a) => cli::inspect::run(a),
         Command::Forward(a) => cli::forward::run(a),
         Command::Convert(a) => cli::convert::run(a),
+        #[cfg(feature = "train")]
         Command::Train(a) => cli::train::run(a),
         Command::Eval(a) => cli::eval::run(a),
         Command::Metrics(a) => cli::metrics::run(a),
+        #[cfg(feature = "train")]
         Command::Demo(a) => cli::demo::run(a),
+        #[cfg(feature = "train")]
         Command::Ablate(a) => cli::ablate::run(a),
         Command::Render(a) => cli::render::run(a),
         Command::Mesh(a) => cli::mesh::run(a),
         Command::Occupancy(a) => cli::occupancy::run(a),
+        #[cfg(feature = "train")]
         Command::Bench(a) => cli::bench::run(a),
         Command::CheckStability(a) => cli::check_stability::run(a),
         Command::View(a) => cli::view::run(a),

@@ -17,7 +17,9 @@
 //!
 //! **Fault injection.** With `PMA_FSIO_FAIL_AFTER=N` in the environment, the writes of this
 //! process through this module fail once N bytes have been written, as on a full disk (the
-//! fault-injection tests use it where they cannot mount a small filesystem).
+//! fault-injection tests use it where they cannot mount a small filesystem). With
+//! `PMA_FSIO_DELAY_US=N` each write first sleeps N µs, as on a slow disk, so that a test can
+//! interrupt a write in progress on any machine rather than racing a fast one.
 
 use std::fs::File;
 use std::io::{self, BufWriter, Seek, SeekFrom, Write};
@@ -186,7 +188,22 @@ fn injected_full() -> io::Error {
     )
 }
 
+fn write_delay() -> Option<std::time::Duration> {
+    use std::sync::OnceLock;
+    static DELAY: OnceLock<Option<std::time::Duration>> = OnceLock::new();
+    *DELAY.get_or_init(|| {
+        std::env::var("PMA_FSIO_DELAY_US")
+            .ok()
+            .and_then(|v| v.trim().parse::<u64>().ok())
+            .filter(|&us| us > 0)
+            .map(|us| std::time::Duration::from_micros(us.min(1_000_000)))
+    })
+}
+
 fn fault_charge(n: usize) -> io::Result<()> {
+    if let Some(d) = write_delay() {
+        std::thread::sleep(d);
+    }
     let budget = fault_budget();
     if budget == u64::MAX {
         return Ok(());

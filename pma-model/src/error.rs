@@ -56,6 +56,14 @@ pub enum ModelError {
     #[error("invalid input: {0}")]
     Input(String),
 
+    /// A motion file could not be read (see `tools::retarget::read_motion`).
+    #[error("reading motion {}: {source}", path.display())]
+    Motion {
+        path: PathBuf,
+        #[source]
+        source: Box<pma_data::DataError>,
+    },
+
     #[error(transparent)]
     Candle(#[from] candle_core::Error),
 
@@ -98,6 +106,7 @@ impl pma_data::ExitKind for ModelError {
             | ModelError::Shape { .. }
             | ModelError::Input(_) => ErrorKind::Refused,
             ModelError::Data(d) => d.kind(),
+            ModelError::Motion { source, .. } => source.kind(),
             ModelError::Interrupted(_) => ErrorKind::Interrupted,
         }
     }

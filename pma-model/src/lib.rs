@@ -3,6 +3,7 @@
 //! The folders are the layers of the model, each depending only on those below it:
 //!
 //! ```text
+//! bench/                       what `pma bench` measures              (feature `train`)
 //! train/  eval/  tools/        training, scoring, meshes and probes   (use a whole Avatar)
 //!        render/               rays → samples → network → pixels      (the Avatar)
 //!        network/              the network on points                  (everything with weights)
@@ -15,8 +16,9 @@
 //! | [`network`] | config, parameters, checkpoints; GNN, windows, modulated sine layers, NeRF heads |
 //! | [`render`] | bone boxes, ray casting, culling, sample routes, volume rendering, [`Avatar`], images, camera paths |
 //! | [`eval`] | the evaluation protocol: PSNR/SSIM/LPIPS, frequency spectra, splits |
-//! | [`tools`] | meshes, stability probes, retargeting |
+//! | [`tools`] | meshes, stability probes, retargeting, render planning (poses, cameras, frames, GIF) |
 //! | [`train`] (feature `train`) | presets, loss, Adam, one step, the training run |
+//! | [`bench`] (feature `train`) | speed, memory and quality of each speed option against parity; step accounting |
 //! | [`error`] | the crate's error type |
 //!
 //! The skeleton (SMPL joints, forward kinematics, bone alignment) lives in `pma_data`.
@@ -30,6 +32,8 @@ pub mod network;
 pub mod render;
 pub mod tools;
 
+#[cfg(feature = "train")]
+pub mod bench;
 #[cfg(feature = "train")]
 pub mod train;
 

@@ -16,12 +16,12 @@ use std::path::Path;
 
 use pma_data::camera::Camera;
 use pma_data::cylinder::{cylinder_from_joints, CylinderParams, HeadDir};
-use pma_data::dataset::{Dataset, Profile, ReadOptions};
+use pma_data::dataset::{Dataset, Profile};
 use pma_data::skeleton::Joints;
 use pma_model::eval::{dataset_pose, ground_truth, read_dataset, resolve_split};
 use pma_model::render::avatar::{Avatar, Poses};
 use pma_model::render::camera_path::{facing, framing_camera, FRAMING_FOV_DEG};
-use pma_model::tools::retarget::{retarget, MotionClip, RetargetedFrame, RootScale};
+use pma_model::tools::retarget::{read_motion, retarget, RetargetedFrame, RootScale};
 use serde::Serialize;
 
 use crate::ViewError;
@@ -95,17 +95,12 @@ impl Scene {
         };
         let (set, head) = match (motion, &data) {
             (Some(path), _) => {
-                let mut opts = ReadOptions::new(Profile::Motion);
-                opts.rest_pose = Some(*avatar.rest_pose());
-                let ds = Dataset::read(path, &opts).map_err(|e| {
-                    ViewError::Input(format!("reading motion {}: {e}", path.display()))
-                })?;
+                let (clip, ds) = read_motion(avatar, path)?;
                 warnings.extend(
                     ds.warnings
                         .iter()
                         .map(|w| format!("{}: {w}", path.display())),
                 );
-                let clip = MotionClip::from_dataset(&ds)?;
                 let out = retarget(&clip, avatar.rest_pose(), scale)?;
                 (PoseSet::Motion(out.frames), HeadDir::NegY)
             }

@@ -9,9 +9,21 @@
 //! DIR/error_vs_time.png              held-out PSNR against wall time, one curve per variant
 //! ```
 
-use std::path::PathBuf;
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
 
+use anyhow::Context as _;
+use pma_model::eval::EvalOptions;
 use pma_model::network::config::Variant;
+use pma_model::render::avatar::Avatar;
+use pma_model::train::{Preset, RunConfig, TrainLog, TrainRequest, LOG_FILE};
+
+use super::demo::make_scene;
+use super::eval::score_split;
+use super::plot::plot_curves;
+use super::train::train;
+use super::{write_json, Refused};
 
 #[derive(clap::Args, Debug, Clone)]
 pub struct Args {
@@ -50,16 +62,6 @@ pub struct Args {
     pub quiet: bool,
 }
 
-#[cfg(not(feature = "train"))]
-pub fn run(_args: Args) -> anyhow::Result<()> {
-    anyhow::bail!("this build of pma has no training support; rebuild with `--features train` (on by default)")
-}
-
-#[cfg(feature = "train")]
-pub fn run(args: Args) -> anyhow::Result<()> {
-    imp::run(args)
-}
-
 /// One row of the table.
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct VariantRow {
@@ -84,212 +86,171 @@ pub struct SplitScore {
     pub images: usize,
 }
 
-#[cfg(feature = "train")]
-mod imp {
-    use std::collections::BTreeMap;
-    use std::fmt::Write as _;
-    use std::path::{Path, PathBuf};
+const SPLITS: [&str; 2] = ["novel_view", "novel_pose"];
 
-    use anyhow::Context as _;
-    use pma_data::dataset::Profile;
-    use pma_model::eval::{evaluate, split_images, spread, EvalOptions, PsnrRegion, Split};
-    use pma_model::render::avatar::Avatar;
-    use pma_model::train::{Preset, RunConfig, TrainLog, TrainRequest, LOG_FILE};
-
-    use super::super::demo::imp::make_scene;
-    use super::super::plot::plot_curves;
-    use super::super::train::train;
-    use super::super::{progress, read_dataset, write_json, Refused};
-    use super::*;
-
-    const SPLITS: [&str; 2] = ["novel_view", "novel_pose"];
-
-    pub fn run(args: Args) -> anyhow::Result<()> {
-        let preset: Preset = args.preset.parse().map_err(Refused::new)?;
-        if args.variants.is_empty() {
-            return Err(Refused::new("--variants: name at least one variant").into());
-        }
-        super::super::check_minutes("--minutes", Some(args.minutes))?;
-        super::super::check_paths(
-            pma_data::fsio::PathCheck::new()
-                .input_opt("--data", args.data.as_deref())
-                .output_dir("--out", &args.out, ["ablation.json", "ablation.md"]),
-        )?;
-        std::fs::create_dir_all(&args.out)
-            .with_context(|| format!("creating {}", args.out.display()))?;
-        let train_data = match &args.data {
-            Some(p) => p.clone(),
-            None => make_scene(None, None, args.quiet, &args.out.join("scene"))?.join("train.npz"),
-        };
-        let dir = train_data.parent().unwrap_or(Path::new(".")).to_path_buf();
-        for s in SPLITS {
-            let p = dir.join(format!("{s}.npz"));
-            if !p.is_file() {
-                return Err(Refused::new(format!(
-                    "{}: the {s} split is missing beside the training data",
-                    p.display()
-                ))
-                .into());
-            }
-        }
-        let mut rows = Vec::new();
-        for (i, &v) in args.variants.iter().enumerate() {
-            println!("[{}/{}] variant `{v}`", i + 1, args.variants.len());
-            rows.push(run_variant(&args, preset, v, &train_data, &dir)?);
-        }
-        let json = args.out.join("ablation.json");
-        write_json(&rows, &json)?;
-        let md = table(&rows, &args, preset);
-        pma_data::fsio::write_atomic(&args.out.join("ablation.md"), md.as_bytes())
-            .context("writing ablation.md")?;
-        let curves: Vec<(String, Vec<(f64, f64)>)> = rows
-            .iter()
-            .map(|r| (r.variant.clone(), r.curve.clone()))
-            .collect();
-        plot_curves(
-            &curves,
-            "pma ablate: held-out (novel view) PSNR vs wall-clock time",
-            &args.out.join("error_vs_time.png"),
-        )?;
-        println!("{md}");
-        println!(
-            "wrote {} and ablation.md, error_vs_time.png",
-            json.display()
-        );
-        Ok(())
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let preset: Preset = args.preset.parse().map_err(Refused::new)?;
+    if args.variants.is_empty() {
+        return Err(Refused::new("--variants: name at least one variant").into());
     }
-
-    /// Train one variant for the budget, then score both held-out splits.
-    fn run_variant(
-        args: &Args,
-        preset: Preset,
-        v: Variant,
-        train_data: &Path,
-        dir: &Path,
-    ) -> anyhow::Result<VariantRow> {
-        let mut run = RunConfig::from_preset(preset);
-        run.model.variant = v;
-        run.train.seed = args.seed;
-        run.train.iters = args.iters.unwrap_or(u64::MAX / 2);
-        let run_dir = args.out.join("runs").join(v.name());
-        let req = TrainRequest {
-            data: train_data.to_path_buf(),
-            out: run_dir.clone(),
-            run: Some(run.clone()),
-            resume: false,
-            overwrite: true,
-            iters: None,
-            minutes: Some(args.minutes),
-            eval_data: Some(dir.join("novel_view.npz")),
-            chunk_rays: None,
-            device: candle_core::Device::Cpu,
-        };
-        let title = format!("pma ablate `{v}`: held-out PSNR vs wall-clock time");
-        let outcome = train(&req, args.quiet, &title)?;
-        let train_s = (outcome.session_s - outcome.eval_s).max(1e-9);
-        let ms_per_step = 1e3 * train_s / outcome.session_iterations.max(1) as f64;
-        let log = TrainLog::read(&run_dir.join(LOG_FILE))?;
-        let curve = log
-            .rows
-            .iter()
-            .filter_map(|r| r.eval_psnr.map(|p| (r.wall_s, p)))
-            .collect();
-        let avatar = Avatar::load(&outcome.model, &candle_core::Device::Cpu)?;
-        let parameters = avatar
-            .trainable()
-            .iter()
-            .map(|(_, var)| var.as_tensor().elem_count())
-            .sum();
-        let mut splits = BTreeMap::new();
-        for name in SPLITS {
-            splits.insert(name.to_string(), score(args, &run, &avatar, dir, name)?);
+    super::check_minutes("--minutes", Some(args.minutes))?;
+    super::check_paths(
+        pma_data::fsio::PathCheck::new()
+            .input_opt("--data", args.data.as_deref())
+            .output_dir("--out", &args.out, ["ablation.json", "ablation.md"]),
+    )?;
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("creating {}", args.out.display()))?;
+    let train_data = match &args.data {
+        Some(p) => p.clone(),
+        None => make_scene(None, None, args.quiet, &args.out.join("scene"))?.join("train.npz"),
+    };
+    let dir = train_data.parent().unwrap_or(Path::new(".")).to_path_buf();
+    for s in SPLITS {
+        let p = dir.join(format!("{s}.npz"));
+        if !p.is_file() {
+            return Err(Refused::new(format!(
+                "{}: the {s} split is missing beside the training data",
+                p.display()
+            ))
+            .into());
         }
-        Ok(VariantRow {
-            variant: v.name().to_string(),
-            parameters,
-            iterations: outcome.iterations,
-            ms_per_step,
-            wall_s: outcome.wall_s,
-            splits,
-            curve,
-            model: outcome.model,
-        })
     }
-
-    fn score(
-        args: &Args,
-        run: &RunConfig,
-        avatar: &Avatar,
-        dir: &Path,
-        name: &str,
-    ) -> anyhow::Result<SplitScore> {
-        let path: PathBuf = dir.join(format!("{name}.npz"));
-        let data = read_dataset(&path, Profile::Eval)?;
-        let limit = match args.max_eval_images {
-            0 => usize::MAX,
-            n => n,
-        };
-        let images = spread(
-            &split_images(&data, &path, &Split::whole_file(name)?)?,
-            limit,
-        );
-        let opts = EvalOptions {
-            region: PsnrRegion::Mask,
-            ssim_data_range: 2.0,
-            chunk: run.train.render_chunk,
-            png_dir: None,
-            pngs: 0,
-            baseline_colour: None,
-            pass: Default::default(),
-        };
-        let bar = progress::bar(args.quiet, 0, "      images");
-        let report = evaluate(avatar, &data, name, &images, &opts, &mut |d, t| {
-            bar.set_length(t as u64);
-            bar.set_position(d as u64);
-        })?;
-        bar.finish_and_clear();
-        println!(
-            "      {name}: PSNR {:.2} dB, SSIM {:.4}, LPIPS {:.4} over {} images",
-            report.psnr, report.ssim, report.lpips, report.images
-        );
-        Ok(SplitScore {
-            psnr: report.psnr,
-            ssim: report.ssim,
-            lpips: report.lpips,
-            images: report.images,
-        })
+    let mut rows = Vec::new();
+    for (i, &v) in args.variants.iter().enumerate() {
+        println!("[{}/{}] variant `{v}`", i + 1, args.variants.len());
+        rows.push(run_variant(&args, preset, v, &train_data, &dir)?);
     }
+    let json = args.out.join("ablation.json");
+    write_json(&rows, &json)?;
+    let md = table(&rows, &args, preset);
+    pma_data::fsio::write_atomic(&args.out.join("ablation.md"), md.as_bytes())
+        .context("writing ablation.md")?;
+    let curves: Vec<(String, Vec<(f64, f64)>)> = rows
+        .iter()
+        .map(|r| (r.variant.clone(), r.curve.clone()))
+        .collect();
+    plot_curves(
+        &curves,
+        "pma ablate: held-out (novel view) PSNR vs wall-clock time",
+        &args.out.join("error_vs_time.png"),
+    )?;
+    println!("{md}");
+    println!(
+        "wrote {} and ablation.md, error_vs_time.png",
+        json.display()
+    );
+    Ok(())
+}
 
-    /// The Markdown table: the paper's columns plus the cost of each variant.
-    fn table(rows: &[VariantRow], args: &Args, preset: Preset) -> String {
-        let mut s = String::new();
+/// Train one variant for the budget, then score both held-out splits.
+fn run_variant(
+    args: &Args,
+    preset: Preset,
+    v: Variant,
+    train_data: &Path,
+    dir: &Path,
+) -> anyhow::Result<VariantRow> {
+    let mut run = RunConfig::from_preset(preset);
+    run.model.variant = v;
+    run.train.seed = args.seed;
+    run.train.iters = args.iters.unwrap_or(u64::MAX / 2);
+    let run_dir = args.out.join("runs").join(v.name());
+    let req = TrainRequest {
+        data: train_data.to_path_buf(),
+        out: run_dir.clone(),
+        run: Some(run.clone()),
+        resume: false,
+        overwrite: true,
+        iters: None,
+        minutes: Some(args.minutes),
+        eval_data: Some(dir.join("novel_view.npz")),
+        chunk_rays: None,
+        device: candle_core::Device::Cpu,
+    };
+    let title = format!("pma ablate `{v}`: held-out PSNR vs wall-clock time");
+    let outcome = train(&req, args.quiet, &title)?;
+    let train_s = (outcome.session_s - outcome.eval_s).max(1e-9);
+    let ms_per_step = 1e3 * train_s / outcome.session_iterations.max(1) as f64;
+    let log = TrainLog::read(&run_dir.join(LOG_FILE))?;
+    let curve = log
+        .rows
+        .iter()
+        .filter_map(|r| r.eval_psnr.map(|p| (r.wall_s, p)))
+        .collect();
+    let avatar = Avatar::load(&outcome.model, &candle_core::Device::Cpu)?;
+    let parameters = avatar
+        .trainable()
+        .iter()
+        .map(|(_, var)| var.as_tensor().elem_count())
+        .sum();
+    let mut splits = BTreeMap::new();
+    for name in SPLITS {
+        splits.insert(name.to_string(), score(args, &run, &avatar, dir, name)?);
+    }
+    Ok(VariantRow {
+        variant: v.name().to_string(),
+        parameters,
+        iterations: outcome.iterations,
+        ms_per_step,
+        wall_s: outcome.wall_s,
+        splits,
+        curve,
+        model: outcome.model,
+    })
+}
+
+fn score(
+    args: &Args,
+    run: &RunConfig,
+    avatar: &Avatar,
+    dir: &Path,
+    name: &str,
+) -> anyhow::Result<SplitScore> {
+    let path = dir.join(format!("{name}.npz"));
+    let opts = EvalOptions::quick(run.train.render_chunk);
+    let report = score_split(avatar, &path, name, args.max_eval_images, &opts, args.quiet)?;
+    println!(
+        "      {name}: PSNR {:.2} dB, SSIM {:.4}, LPIPS {:.4} over {} images",
+        report.psnr, report.ssim, report.lpips, report.images
+    );
+    Ok(SplitScore {
+        psnr: report.psnr,
+        ssim: report.ssim,
+        lpips: report.lpips,
+        images: report.images,
+    })
+}
+
+/// The Markdown table: the paper's columns plus the cost of each variant.
+fn table(rows: &[VariantRow], args: &Args, preset: Preset) -> String {
+    let mut s = String::new();
+    let _ = writeln!(
+        s,
+        "# pma ablate: preset `{preset}`, {} min per variant, seed {}\n",
+        args.minutes, args.seed
+    );
+    let _ = writeln!(
+        s,
+        "| variant | parameters | ms/step | iterations | novel view PSNR | SSIM | LPIPS | novel pose PSNR | SSIM | LPIPS |"
+    );
+    let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|");
+    for r in rows {
+        let (nv, np) = (&r.splits["novel_view"], &r.splits["novel_pose"]);
         let _ = writeln!(
             s,
-            "# pma ablate: preset `{preset}`, {} min per variant, seed {}\n",
-            args.minutes, args.seed
+            "| {} | {} | {:.1} | {} | {:.2} | {:.4} | {:.4} | {:.2} | {:.4} | {:.4} |",
+            r.variant,
+            r.parameters,
+            r.ms_per_step,
+            r.iterations,
+            nv.psnr,
+            nv.ssim,
+            nv.lpips,
+            np.psnr,
+            np.ssim,
+            np.lpips
         );
-        let _ = writeln!(
-            s,
-            "| variant | parameters | ms/step | iterations | novel view PSNR | SSIM | LPIPS | novel pose PSNR | SSIM | LPIPS |"
-        );
-        let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|");
-        for r in rows {
-            let (nv, np) = (&r.splits["novel_view"], &r.splits["novel_pose"]);
-            let _ = writeln!(
-                s,
-                "| {} | {} | {:.1} | {} | {:.2} | {:.4} | {:.4} | {:.2} | {:.4} | {:.4} |",
-                r.variant,
-                r.parameters,
-                r.ms_per_step,
-                r.iterations,
-                nv.psnr,
-                nv.ssim,
-                nv.lpips,
-                np.psnr,
-                np.ssim,
-                np.lpips
-            );
-        }
-        s
     }
+    s
 }

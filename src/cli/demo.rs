@@ -11,7 +11,19 @@
 //! DIR/summary.json
 //! ```
 
-use std::path::PathBuf;
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use anyhow::Context as _;
+use pma_data::dataset::Profile;
+use pma_data::synth::{generate, SynthConfig};
+use pma_model::eval::{mean_foreground_colour, EvalOptions};
+use pma_model::render::avatar::Avatar;
+use pma_model::train::{Preset, RunConfig, TrainOutcome, TrainRequest, LOG_FILE};
+
+use super::eval::{lpips_cell, score_split};
+use super::train::{train, PLOT_FILE};
+use super::{progress, read_dataset, write_json};
 
 #[derive(clap::Args, Debug, Clone)]
 pub struct Args {
@@ -52,18 +64,7 @@ pub struct Args {
     pub device: String,
 }
 
-#[cfg(not(feature = "train"))]
-pub fn run(_args: Args) -> anyhow::Result<()> {
-    anyhow::bail!("this build of pma has no training support; rebuild with `--features train` (on by default)")
-}
-
-#[cfg(feature = "train")]
-pub fn run(args: Args) -> anyhow::Result<()> {
-    imp::run(args)
-}
-
 /// The part of `summary.json` other tools read.
-#[cfg(feature = "train")]
 #[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 pub struct SplitSummary {
     pub psnr: f64,
@@ -76,7 +77,6 @@ pub struct SplitSummary {
     pub data: PathBuf,
 }
 
-#[cfg(feature = "train")]
 #[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 pub struct Summary {
     pub iterations: u64,
@@ -98,226 +98,193 @@ pub struct Summary {
     pub renders: PathBuf,
 }
 
-#[cfg(feature = "train")]
-pub(crate) mod imp {
-    use std::collections::BTreeMap;
-    use std::path::{Path, PathBuf};
+/// The held-out splits the demo scores.
+const SPLITS: [&str; 2] = ["novel_view", "novel_pose"];
 
-    use anyhow::Context as _;
-    use pma_data::dataset::Profile;
-    use pma_data::synth::{generate, SynthConfig};
-    use pma_model::eval::{
-        evaluate, mean_foreground_colour, split_images, spread, EvalOptions, PsnrRegion, Split,
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let preset: Preset = args.preset.parse()?;
+    super::check_minutes("--minutes", Some(args.minutes))?;
+    // Opened first: a device this build cannot use is refused before any work.
+    let device = super::device(&args.device)?;
+    super::check_paths(pma_data::fsio::PathCheck::new().output_dir(
+        "--out",
+        &args.out,
+        ["summary.json", PLOT_FILE],
+    ))?;
+    let out = args.out.clone();
+    std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+    let scene = make_scene(args.res, args.frames, args.quiet, &out.join("scene"))?;
+    let (outcome, it_per_s) = train_scene(&args, preset, &scene, &out.join("run"), &device)?;
+    println!("[3/4] evaluating");
+    let renders = out.join("renders");
+    let splits = evaluate_splits(&args, preset, &scene, &outcome.model, &out, &device)?;
+
+    let plot = out.join(PLOT_FILE);
+    let run_plot = out.join("run").join(PLOT_FILE);
+    let bytes =
+        std::fs::read(&run_plot).with_context(|| format!("reading {}", run_plot.display()))?;
+    pma_data::fsio::write_atomic(&plot, &bytes)
+        .with_context(|| format!("copying the plot to {}", plot.display()))?;
+    let summary = Summary {
+        iterations: outcome.iterations,
+        wall_s: outcome.wall_s,
+        it_per_s,
+        model: outcome.model.clone(),
+        data: scene.join(format!("{}.npz", SPLITS[0])),
+        train_data: scene.join("train.npz"),
+        preset: preset.name().to_string(),
+        skipped_steps: outcome.skipped,
+        splits,
+        plot,
+        log: out.join("run").join(LOG_FILE),
+        renders,
     };
-    use pma_model::render::avatar::Avatar;
-    use pma_model::train::{Preset, RunConfig, TrainOutcome, TrainRequest, LOG_FILE};
+    let path = out.join("summary.json");
+    write_json(&summary, &path)?;
+    println!("[4/4] wrote {}", path.display());
+    println!("{}", serde_json::to_string_pretty(&summary)?);
+    Ok(())
+}
 
-    use super::super::eval::warn_empty_masks;
-    use super::super::train::{train, PLOT_FILE};
-    use super::super::{progress, read_dataset, write_json};
-    use super::*;
-
-    /// The held-out splits the demo scores.
-    const SPLITS: [&str; 2] = ["novel_view", "novel_pose"];
-
-    pub fn run(args: Args) -> anyhow::Result<()> {
-        let preset: Preset = args.preset.parse()?;
-        super::super::check_minutes("--minutes", Some(args.minutes))?;
-        // Opened first: a device this build cannot use is refused before any work.
-        let device = super::super::device(&args.device)?;
-        super::super::check_paths(pma_data::fsio::PathCheck::new().output_dir(
-            "--out",
-            &args.out,
-            ["summary.json", PLOT_FILE],
-        ))?;
-        let out = args.out.clone();
-        std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
-        let scene = make_scene(args.res, args.frames, args.quiet, &out.join("scene"))?;
-        let (outcome, it_per_s) = train_scene(&args, preset, &scene, &out.join("run"), &device)?;
-        println!("[3/4] evaluating");
-        let renders = out.join("renders");
-        let splits = evaluate_splits(&args, preset, &scene, &outcome.model, &out, &device)?;
-
-        let plot = out.join(PLOT_FILE);
-        let run_plot = out.join("run").join(PLOT_FILE);
-        let bytes =
-            std::fs::read(&run_plot).with_context(|| format!("reading {}", run_plot.display()))?;
-        pma_data::fsio::write_atomic(&plot, &bytes)
-            .with_context(|| format!("copying the plot to {}", plot.display()))?;
-        let summary = Summary {
-            iterations: outcome.iterations,
-            wall_s: outcome.wall_s,
-            it_per_s,
-            model: outcome.model.clone(),
-            data: scene.join(format!("{}.npz", SPLITS[0])),
-            train_data: scene.join("train.npz"),
-            preset: preset.name().to_string(),
-            skipped_steps: outcome.skipped,
-            splits,
-            plot,
-            log: out.join("run").join(LOG_FILE),
-            renders,
-        };
-        let path = out.join("summary.json");
-        write_json(&summary, &path)?;
-        println!("[4/4] wrote {}", path.display());
-        println!("{}", serde_json::to_string_pretty(&summary)?);
-        Ok(())
+/// Step 1: the scene (reused when an identical one is already there).
+pub fn make_scene(
+    res: Option<usize>,
+    frames: Option<usize>,
+    quiet: bool,
+    scene: &Path,
+) -> anyhow::Result<PathBuf> {
+    let mut synth = SynthConfig::default();
+    if let Some(r) = res {
+        synth.res = r;
     }
-
-    /// Step 1: the scene (reused when an identical one is already there).
-    pub(crate) fn make_scene(
-        res: Option<usize>,
-        frames: Option<usize>,
-        quiet: bool,
-        scene: &Path,
-    ) -> anyhow::Result<PathBuf> {
-        let mut synth = SynthConfig::default();
-        if let Some(r) = res {
-            synth.res = r;
-        }
-        if let Some(f) = frames {
-            synth.frames = f;
-        }
-        if scene_matches(scene, &synth) {
-            println!("[1/4] reusing the synthetic scene in {}", scene.display());
-            return Ok(scene.to_path_buf());
-        }
-        println!("[1/4] synthesising the scene into {}", scene.display());
-        let bar = progress::bar(quiet, 0, "      images");
-        let summary = generate(&synth, scene, &mut |done, total| {
-            bar.set_length(total as u64);
-            bar.set_position(done as u64);
-        })
-        .context("synthesising the demo scene")?;
-        bar.finish_and_clear();
-        for s in &summary.splits {
-            println!(
-                "      {}: {} images, {} poses",
-                s.path.display(),
-                s.images,
-                s.poses
-            );
-        }
-        Ok(scene.to_path_buf())
+    if let Some(f) = frames {
+        synth.frames = f;
     }
-
-    /// Step 2: training for the budget; returns the outcome and the training it/s.
-    fn train_scene(
-        args: &Args,
-        preset: Preset,
-        scene: &Path,
-        run_dir: &Path,
-        device: &candle_core::Device,
-    ) -> anyhow::Result<(TrainOutcome, f64)> {
-        println!("[2/4] training preset `{preset}` for {} min", args.minutes);
-        let mut run = RunConfig::from_preset(preset);
-        run.train.seed = args.seed;
-        run.train.iters = args.iters.unwrap_or(u64::MAX / 2);
-        let req = TrainRequest {
-            data: scene.join("train.npz"),
-            out: run_dir.to_path_buf(),
-            run: Some(run),
-            resume: false,
-            overwrite: true,
-            iters: None,
-            minutes: Some(args.minutes),
-            eval_data: Some(scene.join("novel_view.npz")),
-            chunk_rays: None,
-            device: device.clone(),
-        };
-        let outcome = train(
-            &req,
-            args.quiet,
-            "pma demo: held-out (novel view) PSNR vs wall-clock time",
-        )?;
-        let train_s = (outcome.session_s - outcome.eval_s).max(1e-9);
-        let it_per_s = outcome.session_iterations as f64 / train_s;
+    if scene_matches(scene, &synth) {
+        println!("[1/4] reusing the synthetic scene in {}", scene.display());
+        return Ok(scene.to_path_buf());
+    }
+    println!("[1/4] synthesising the scene into {}", scene.display());
+    let bar = progress::bar(quiet, 0, "      images");
+    let summary = generate(&synth, scene, &mut |done, total| {
+        bar.set_length(total as u64);
+        bar.set_position(done as u64);
+    })
+    .context("synthesising the demo scene")?;
+    bar.finish_and_clear();
+    for s in &summary.splits {
         println!(
-            "      {} iterations in {:.0} s ({it_per_s:.2} it/s), {} skipped",
-            outcome.iterations, outcome.wall_s, outcome.skipped
+            "      {}: {} images, {} poses",
+            s.path.display(),
+            s.images,
+            s.poses
         );
-        Ok((outcome, it_per_s))
     }
+    Ok(scene.to_path_buf())
+}
 
-    /// Step 3: both held-out splits, each from its own file of the scene.
-    fn evaluate_splits(
-        args: &Args,
-        preset: Preset,
-        scene: &Path,
-        model: &Path,
-        out: &Path,
-        device: &candle_core::Device,
-    ) -> anyhow::Result<BTreeMap<String, SplitSummary>> {
-        let renders = out.join("renders");
-        let avatar = Avatar::load(model, device)?;
-        let baseline =
-            mean_foreground_colour(&read_dataset(&scene.join("train.npz"), Profile::Eval)?)?;
-        std::fs::create_dir_all(&renders)
-            .with_context(|| format!("creating {}", renders.display()))?;
-        let opts = EvalOptions {
-            region: PsnrRegion::Mask,
-            ssim_data_range: 2.0,
-            chunk: RunConfig::from_preset(preset).train.render_chunk,
-            png_dir: Some(renders.clone()),
-            pngs: args.pngs,
-            baseline_colour: Some(baseline),
-            pass: Default::default(),
-        };
-        let limit = match args.max_eval_images {
-            0 => usize::MAX,
-            n => n,
-        };
-        let mut splits = BTreeMap::new();
-        for name in SPLITS {
-            let path = scene.join(format!("{name}.npz"));
-            let data = read_dataset(&path, Profile::Eval)?;
-            let images = spread(
-                &split_images(&data, &path, &Split::whole_file(name)?)?,
-                limit,
-            );
-            let bar = progress::bar(args.quiet, 0, "      images");
-            let report = evaluate(&avatar, &data, name, &images, &opts, &mut |d, t| {
-                bar.set_length(t as u64);
-                bar.set_position(d as u64);
-            })?;
-            bar.finish_and_clear();
-            warn_empty_masks(&report, &data.source);
-            write_json(&report, &out.join(format!("eval_{name}.json")))?;
-            let baseline_psnr = report.baseline_psnr.unwrap_or(f64::NAN);
-            println!(
-                "      {name}: PSNR {:.2} dB, SSIM {:.4}, LPIPS {} over {} images (baseline PSNR {baseline_psnr:.2} dB)",
-                report.psnr,
-                report.ssim,
-                super::super::eval::lpips_cell(report.lpips),
-                report.images
-            );
-            splits.insert(
-                name.to_string(),
-                SplitSummary {
-                    psnr: report.psnr,
-                    ssim: report.ssim,
-                    lpips: (!report.lpips.is_nan()).then_some(report.lpips),
-                    baseline_psnr,
-                    images: report.images,
-                    data: path,
-                },
-            );
-        }
-        Ok(splits)
-    }
+/// Step 2: training for the budget; returns the outcome and the training it/s.
+fn train_scene(
+    args: &Args,
+    preset: Preset,
+    scene: &Path,
+    run_dir: &Path,
+    device: &candle_core::Device,
+) -> anyhow::Result<(TrainOutcome, f64)> {
+    println!("[2/4] training preset `{preset}` for {} min", args.minutes);
+    let mut run = RunConfig::from_preset(preset);
+    run.train.seed = args.seed;
+    run.train.iters = args.iters.unwrap_or(u64::MAX / 2);
+    let req = TrainRequest {
+        data: scene.join("train.npz"),
+        out: run_dir.to_path_buf(),
+        run: Some(run),
+        resume: false,
+        overwrite: true,
+        iters: None,
+        minutes: Some(args.minutes),
+        eval_data: Some(scene.join("novel_view.npz")),
+        chunk_rays: None,
+        device: device.clone(),
+    };
+    let outcome = train(
+        &req,
+        args.quiet,
+        "pma demo: held-out (novel view) PSNR vs wall-clock time",
+    )?;
+    let train_s = (outcome.session_s - outcome.eval_s).max(1e-9);
+    let it_per_s = outcome.session_iterations as f64 / train_s;
+    println!(
+        "      {} iterations in {:.0} s ({it_per_s:.2} it/s), {} skipped",
+        outcome.iterations, outcome.wall_s, outcome.skipped
+    );
+    Ok((outcome, it_per_s))
+}
 
-    /// The scene directory holds all three splits made with exactly `cfg`.
-    fn scene_matches(dir: &Path, cfg: &SynthConfig) -> bool {
-        let files_there = ["train.npz", "novel_view.npz", "novel_pose.npz"]
-            .iter()
-            .all(|f| dir.join(f).is_file());
-        let Ok(text) = std::fs::read_to_string(dir.join("scene.json")) else {
-            return false;
-        };
-        let Ok(json) = serde_json::from_str::<serde_json::Value>(&text) else {
-            return false;
-        };
-        files_there && serde_json::to_value(cfg).ok().as_ref() == json.get("config")
+/// Step 3: both held-out splits, each from its own file of the scene.
+fn evaluate_splits(
+    args: &Args,
+    preset: Preset,
+    scene: &Path,
+    model: &Path,
+    out: &Path,
+    device: &candle_core::Device,
+) -> anyhow::Result<BTreeMap<String, SplitSummary>> {
+    let renders = out.join("renders");
+    let avatar = Avatar::load(model, device)?;
+    let baseline = mean_foreground_colour(&read_dataset(&scene.join("train.npz"), Profile::Eval)?)?;
+    std::fs::create_dir_all(&renders).with_context(|| format!("creating {}", renders.display()))?;
+    let opts = EvalOptions {
+        png_dir: Some(renders.clone()),
+        pngs: args.pngs,
+        baseline_colour: Some(baseline),
+        ..EvalOptions::quick(RunConfig::from_preset(preset).train.render_chunk)
+    };
+    let mut splits = BTreeMap::new();
+    for name in SPLITS {
+        let path = scene.join(format!("{name}.npz"));
+        let report = score_split(
+            &avatar,
+            &path,
+            name,
+            args.max_eval_images,
+            &opts,
+            args.quiet,
+        )?;
+        write_json(&report, &out.join(format!("eval_{name}.json")))?;
+        let baseline_psnr = report.baseline_psnr.unwrap_or(f64::NAN);
+        println!(
+            "      {name}: PSNR {:.2} dB, SSIM {:.4}, LPIPS {} over {} images (baseline PSNR {baseline_psnr:.2} dB)",
+            report.psnr,
+            report.ssim,
+            lpips_cell(report.lpips),
+            report.images
+        );
+        splits.insert(
+            name.to_string(),
+            SplitSummary {
+                psnr: report.psnr,
+                ssim: report.ssim,
+                lpips: (!report.lpips.is_nan()).then_some(report.lpips),
+                baseline_psnr,
+                images: report.images,
+                data: path,
+            },
+        );
     }
+    Ok(splits)
+}
+
+/// The scene directory holds all three splits made with exactly `cfg`.
+fn scene_matches(dir: &Path, cfg: &SynthConfig) -> bool {
+    let files_there = ["train.npz", "novel_view.npz", "novel_pose.npz"]
+        .iter()
+        .all(|f| dir.join(f).is_file());
+    let Ok(text) = std::fs::read_to_string(dir.join("scene.json")) else {
+        return false;
+    };
+    let Ok(json) = serde_json::from_str::<serde_json::Value>(&text) else {
+        return false;
+    };
+    files_there && serde_json::to_value(cfg).ok().as_ref() == json.get("config")
 }

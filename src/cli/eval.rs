@@ -165,6 +165,31 @@ fn baseline_source(args: &Args, data_path: &Path) -> Option<PathBuf> {
     beside.is_file().then_some(beside)
 }
 
+/// Score the whole-file split `split` of `path` (`pma_model::eval::score_split_file`) with
+/// a progress bar, showing the file's warnings and the images left out for an empty mask.
+#[cfg(feature = "train")]
+pub fn score_split(
+    avatar: &Avatar,
+    path: &Path,
+    split: &str,
+    max_images: usize,
+    opts: &EvalOptions,
+    quiet: bool,
+) -> anyhow::Result<EvalReport> {
+    let bar = super::progress::bar(quiet, 0, "      images");
+    let scored =
+        pma_model::eval::score_split_file(avatar, path, split, max_images, opts, &mut |d, t| {
+            bar.set_length(t as u64);
+            bar.set_position(d as u64);
+        })?;
+    bar.finish_and_clear();
+    for w in &scored.warnings {
+        eprintln!("warning: {}: {w}", path.display());
+    }
+    warn_empty_masks(&scored.report, &scored.source);
+    Ok(scored.report)
+}
+
 /// The images `evaluate` left out for an empty mask.
 pub fn warn_empty_masks(report: &EvalReport, source: &str) {
     for n in &report.empty_masks {

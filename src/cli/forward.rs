@@ -1,24 +1,20 @@
 //! `pma forward`: run the model on a ray batch stored as npz (the parity hook for outside
-//! tools). The batch holds the golden `input/*` arrays without the prefix: per-ray copies of
-//! the pose data, as the reference's data loader delivers them.
+//! tools; the file format is `pma_model::render::batch_file`'s).
 //!
 //! No gradient is needed here, so by default the batch runs on the inference path
 //! (`Mode::Infer`: detached, chunked, on the data-parallel workers), which writes the same
 //! bytes as the graph-keeping path (`--grad`, `Mode::Train`/`Mode::Eval`) that this command
 //! ran before; `tests/cli/forward.rs` compares the two output files byte for byte.
 
-use std::collections::HashMap;
-use std::io::{BufWriter, Write as _};
 use std::path::PathBuf;
 
-use anyhow::{Context, Result};
+use anyhow::Result;
+use pma_model::render::avatar::{Avatar, Mode};
+use pma_model::render::batch_file::{
+    load_model, write_outputs, BatchInput, ModelOptions, RayBatchFile,
+};
 
-use super::{refuse, Refused};
-use candle_core::Tensor;
-use pma_data::dataset::npz::{MemberData, NpyData, NpzReader, NpzWriter};
-use pma_data::fsio::AtomicFile;
-use pma_model::network::checkpoint;
-use pma_model::render::avatar::{Avatar, Mode, Outputs, Poses, Rays};
+use super::refuse;
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -61,67 +57,6 @@ pub struct Args {
     time: usize,
 }
 
-struct Batch {
-    file: String,
-    arrays: HashMap<String, (Vec<usize>, NpyData)>,
-}
-
-impl Batch {
-    fn get(&self, key: &str, shape: &[Option<usize>]) -> Result<(&[usize], &NpyData)> {
-        let (s, d) = self
-            .arrays
-            .get(key)
-            .ok_or_else(|| Refused::new(format!("{}: missing key `{key}`", self.file)))?;
-        let ok =
-            s.len() == shape.len() && s.iter().zip(shape).all(|(a, b)| b.is_none_or(|b| *a == b));
-        if !ok {
-            let want: Vec<String> = shape
-                .iter()
-                .map(|d| d.map_or("*".into(), |v| v.to_string()))
-                .collect();
-            refuse!(
-                "{}: key `{key}`: expected shape [{}], found {s:?}",
-                self.file,
-                want.join(",")
-            );
-        }
-        Ok((s, d))
-    }
-
-    fn f32(&self, key: &str, shape: &[Option<usize>]) -> Result<Vec<f32>> {
-        let (_, d) = self.get(key, shape)?;
-        let v = match d {
-            NpyData::F32(v) => v.clone(),
-            NpyData::F64(v) => v.iter().map(|x| *x as f32).collect(),
-            other => refuse!(
-                "{}: key `{key}`: expected float32, found {:?}",
-                self.file,
-                other.elem()
-            ),
-        };
-        if let Some(i) = v.iter().position(|x| !x.is_finite()) {
-            refuse!(
-                "{}: key `{key}`: non-finite value at flat index {i}",
-                self.file
-            );
-        }
-        Ok(v)
-    }
-
-    fn i64(&self, key: &str, shape: &[Option<usize>]) -> Result<Vec<i64>> {
-        let (_, d) = self.get(key, shape)?;
-        Ok(match d {
-            NpyData::I64(v) => v.clone(),
-            NpyData::I32(v) => v.iter().map(|x| *x as i64).collect(),
-            other => refuse!(
-                "{}: key `{key}`: expected an integer array, found {:?}",
-                self.file,
-                other.elem()
-            ),
-        })
-    }
-}
-
 pub fn run(mut args: Args) -> Result<()> {
     if args.time > 1000 {
         refuse!("--time {}: at most 1000 repetitions", args.time);
@@ -135,10 +70,14 @@ pub fn run(mut args: Args) -> Result<()> {
             .output("--out", &args.out),
     )?;
     let dev = super::device_tf32(&args.device, args.tf32)?;
-    let file = args.batch.display().to_string();
-    let b = Batch::read(&args.batch)?;
-    let input = b.model_input(&dev)?;
-    let avatar = load_model(&args, &input.rest, &file, &dev)?;
+    let batch = RayBatchFile::read(&args.batch)?;
+    let file = batch.file().to_string();
+    let input = batch.input(&dev)?;
+    let model_opts = ModelOptions {
+        allow_non_finite: args.allow_non_finite,
+        overrides: args.sigma_override.clone(),
+    };
+    let avatar = load_model(&args.model, &batch, &input.rest, &model_opts, &dev)?;
     let mut opts = match (args.grad, args.train_mode) {
         (true, true) => Mode::Train(None),
         (true, false) => Mode::Eval,
@@ -177,125 +116,11 @@ fn check_training_codes(codes: &[i64], file: &str) -> Result<()> {
     Ok(())
 }
 
-/// What the batch file holds, as model input.
-struct Input {
-    rays: Rays,
-    poses: Poses,
-    /// The rest pose the batch was made for.
-    rest: Vec<f32>,
-}
-
-impl Batch {
-    fn read(path: &std::path::Path) -> Result<Self> {
-        let mut reader = NpzReader::open(path)?;
-        let mut arrays = HashMap::new();
-        for key in reader.keys() {
-            let a = reader.read(&key)?;
-            arrays.insert(key, (a.shape, a.data));
-        }
-        Ok(Self {
-            file: path.display().to_string(),
-            arrays,
-        })
-    }
-
-    fn model_input(&self, dev: &candle_core::Device) -> Result<Input> {
-        let file = &self.file;
-        let rays_o = self.f32("rays_o", &[None, Some(3)])?;
-        let r = rays_o.len() / 3;
-        let n = Some(r);
-        let rays_d = self.f32("rays_d", &[n, Some(3)])?;
-        let bones = self.f32("bones", &[n, Some(24), Some(3)])?;
-        let skts = self.f32("skts", &[n, Some(24), Some(4), Some(4)])?;
-        let cyls = self.f32("cyls", &[n, Some(5)])?;
-        let bgs = self.f32("bgs", &[n, Some(3)])?;
-        let cam_idxs = self.i64("cam_idxs", &[n])?;
-        let rest = self.f32("rest_pose", &[Some(24), Some(3)])?;
-        let n_unique = match self.arrays.get("N_unique") {
-            Some(_) => self
-                .i64("N_unique", &[Some(1)])
-                .or_else(|_| self.i64("N_unique", &[]))?[0] as usize,
-            None => 1,
-        };
-        if r == 0 || n_unique == 0 || r % n_unique != 0 {
-            refuse!(
-                "{file}: {r} rays cannot be split into N_unique = {n_unique} equal per-pose blocks"
-            );
-        }
-        let stride = r / n_unique;
-        // Unique poses by striding, as the reference does.
-        let pick = |v: &[f32], per: usize| -> Vec<f32> {
-            (0..n_unique)
-                .flat_map(|p| v[p * stride * per..(p * stride + 1) * per].to_vec())
-                .collect()
-        };
-        let mut pose_bones = Vec::new();
-        for p in 0..n_unique {
-            let mut j = [[0f32; 3]; 24];
-            for (k, row) in j.iter_mut().enumerate() {
-                let at = (p * stride * 24 + k) * 3;
-                row.copy_from_slice(&bones[at..at + 3]);
-            }
-            pose_bones.push(j);
-        }
-        Ok(Input {
-            poses: Poses {
-                bones: pose_bones,
-                skts: Tensor::from_vec(pick(&skts, 24 * 16), (n_unique, 24, 4, 4), dev)?,
-                cyls: Tensor::from_vec(pick(&cyls, 5), (n_unique, 5), dev)?,
-            },
-            rays: Rays {
-                origins: Tensor::from_vec(rays_o, (r, 3), dev)?,
-                dirs: Tensor::from_vec(rays_d, (r, 3), dev)?,
-                bgs: Some(Tensor::from_vec(bgs, (r, 3), dev)?),
-                framecodes: cam_idxs,
-            },
-            rest,
-        })
-    }
-}
-
-/// The model, checked against the batch's rest pose, with `--sigma-override` applied.
-fn load_model(args: &Args, rest: &[f32], file: &str, dev: &candle_core::Device) -> Result<Avatar> {
-    let opts = checkpoint::LoadOptions {
-        allow_non_finite: args.allow_non_finite,
-    };
-    let ck = checkpoint::load_with(&args.model, dev, &opts)?;
-    let model_rest: Vec<f32> = ck.meta.rest_pose.iter().flatten().copied().collect();
-    let rest_err = model_rest
-        .iter()
-        .zip(rest)
-        .fold(0f32, |m, (a, b)| m.max((a - b).abs()));
-    if rest_err > 1e-5 {
-        refuse!("{file}: key `rest_pose` differs from the model's rest pose by {rest_err:.2e} (the batch was made for another subject)");
-    }
-    let mut tensors = ck.tensors;
-    if let Some(path) = &args.sigma_override {
-        for (k, v) in candle_core::safetensors::load(path, dev)
-            .map_err(|e| Refused::new(format!("reading {}: {e}", path.display())))?
-        {
-            match tensors.get(&k) {
-                Some(old) if old.dims() == v.dims() => {
-                    tensors.insert(k, v);
-                }
-                Some(old) => refuse!(
-                    "{}: tensor `{k}`: expected shape {:?}, found {:?}",
-                    path.display(),
-                    old.dims(),
-                    v.dims()
-                ),
-                None => refuse!("{}: tensor `{k}` is not a model tensor", path.display()),
-            }
-        }
-    }
-    Ok(Avatar::from_tensors(ck.config, tensors, dev)?)
-}
-
 /// `--time`: more forwards, and their median wall time.
 fn time_forward(
     args: &Args,
     avatar: &Avatar,
-    input: &Input,
+    input: &BatchInput,
     opts: &mut Mode,
     dev: &candle_core::Device,
 ) -> Result<()> {
@@ -321,40 +146,4 @@ fn time_forward(
         input.rays.framecodes.len()
     );
     Ok(())
-}
-
-/// The outputs under the reference's names, as one npz written atomically.
-fn write_outputs(out: &Outputs, path: &std::path::Path) -> Result<()> {
-    let outputs: Vec<(&str, &Tensor)> = vec![
-        ("rgb_map", &out.fine.rgb),
-        ("acc_map", &out.fine.acc),
-        ("disp_map", &out.fine.disp),
-        ("weights", &out.fine.weights),
-        ("alpha", &out.fine.alpha),
-        ("rgb0", &out.coarse.rgb),
-        ("acc0", &out.coarse.acc),
-        ("disp0", &out.coarse.disp),
-        ("alpha0", &out.coarse.alpha),
-        ("z_vals", &out.z_vals),
-        ("z_vals_coarse", &out.z_coarse),
-        ("raw", &out.raw_coarse),
-        ("raw_merged", &out.raw),
-        ("vol_scale", &out.vol_scale),
-    ];
-    let file = AtomicFile::create(path)
-        .with_context(|| format!("creating a temporary file for {}", path.display()))?;
-    let mut w = NpzWriter::new(
-        BufWriter::new(file.owned_writer()?),
-        false,
-        path.display().to_string(),
-    );
-    for (name, t) in outputs {
-        let data = t.flatten_all()?.to_vec1::<f32>()?;
-        w.add(name, t.dims(), MemberData::F32(&data))?;
-    }
-    w.finish()?
-        .flush()
-        .with_context(|| format!("writing {}", path.display()))?;
-    file.commit()
-        .with_context(|| format!("writing {}", path.display()))
 }

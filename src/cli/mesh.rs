@@ -26,8 +26,7 @@ use pma_model::tools::mesh::{
 };
 use pma_model::tools::retarget::{retarget, MotionClip, RootScale};
 
-use super::render::read_motion;
-use super::{progress, refuse, write_png};
+use super::{progress, read_motion, refuse, write_png};
 
 #[derive(clap::Args, Debug, Clone)]
 pub struct Args {
@@ -180,7 +179,7 @@ fn mesh_pose(args: &Args, avatar: &Avatar) -> anyhow::Result<(Joints, [f32; 3])>
         b[0] = [std::f32::consts::PI, 0.0, 0.0];
         return Ok((b, [0.0; 3]));
     };
-    let (clip, _) = read_motion(avatar, p)?;
+    let clip = read_motion(avatar, p)?;
     if args.frame >= clip.len() {
         refuse!(
             "--frame {} is past the {} pose(s) of {}",

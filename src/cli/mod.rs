@@ -1,10 +1,14 @@
 //! One module per subcommand: clap `Args` plus `run`. The pipelines live in the libraries;
-//! these modules parse, call and print.
+//! these modules parse, call and print. The commands that train (`train`, `demo`, `ablate`,
+//! `bench`) exist only in a build with the `train` feature (on by default).
 
+#[cfg(feature = "train")]
 pub mod ablate;
+#[cfg(feature = "train")]
 pub mod bench;
 pub mod check_stability;
 pub mod convert;
+#[cfg(feature = "train")]
 pub mod demo;
 pub mod eval;
 pub mod forward;
@@ -12,11 +16,11 @@ pub mod inspect;
 pub mod mesh;
 pub mod metrics;
 pub mod occupancy;
-#[cfg(feature = "train")]
 pub mod plot;
 pub mod progress;
 pub mod render;
 pub mod synth;
+#[cfg(feature = "train")]
 pub mod train;
 pub mod view;
 
@@ -104,12 +108,14 @@ fn library_kind(e: &(dyn std::error::Error + 'static)) -> Option<ErrorKind> {
         pma_data::interrupt::Interrupted,
         pma_model::error::ModelError,
         pma_model::eval::EvalError,
+        pma_model::render::batch_file::BatchFileError,
+        pma_model::tools::video::VideoError,
         pma_model::compute::device::DeviceError,
         pma_model::compute::device::Tf32Error,
         pma_convert::ConvertError,
     );
     #[cfg(feature = "train")]
-    kinds!(pma_model::train::TrainError);
+    kinds!(pma_model::train::TrainError, pma_model::bench::BenchError);
     None
 }
 
@@ -201,6 +207,7 @@ pub fn check_workers(workers: usize) -> anyhow::Result<()> {
     Ok(())
 }
 
+#[cfg(feature = "train")]
 /// Refuse a `--minutes` budget that is not finite and in (0, `MAX_MINUTES`].
 pub fn check_minutes(flag: &str, minutes: Option<f64>) -> anyhow::Result<()> {
     const MAX: f64 = 1e6;
@@ -232,6 +239,25 @@ pub fn read_dataset(path: &Path, profile: Profile) -> anyhow::Result<Dataset> {
         eprintln!("warning: {}: {w}", path.display());
     }
     Ok(data)
+}
+
+/// A motion (or any pma-npz) file's pose rows for `avatar`
+/// (`pma_model::tools::retarget::read_motion`), printing the file's warnings.
+pub fn read_motion(
+    avatar: &pma_model::Avatar,
+    path: &Path,
+) -> anyhow::Result<pma_model::tools::retarget::MotionClip> {
+    let (clip, ds) = pma_model::tools::retarget::read_motion(avatar, path)?;
+    for w in &ds.warnings {
+        eprintln!("warning: {}: {w}", path.display());
+    }
+    if clip.rest.is_none() {
+        eprintln!(
+            "note: {} has no rest_pose of its own: its root trajectory is kept as is",
+            path.display()
+        );
+    }
+    Ok(clip)
 }
 
 /// Serialise `value` as pretty JSON and replace `path` atomically.

@@ -16,6 +16,7 @@ fn register_font() {
     });
 }
 
+#[cfg(feature = "train")]
 /// Plot held-out PSNR (and, lighter, training PSNR) against wall-clock time and write it
 /// atomically as a PNG.
 pub fn plot_psnr_vs_time(
@@ -109,6 +110,7 @@ pub fn plot_psnr_vs_time(
     super::write_png(&img, path)
 }
 
+#[cfg(feature = "train")]
 /// Error against time: one labelled point per option, x = seconds per image, y = held-out
 /// PSNR loss against parity (dB).
 pub fn plot_error_vs_time(
@@ -160,6 +162,7 @@ pub fn plot_error_vs_time(
     super::write_png(&img, path)
 }
 
+#[cfg(feature = "train")]
 /// Several held-out PSNR curves against wall-clock time, one per labelled series.
 pub fn plot_curves(
     series: &[(String, Vec<(f64, f64)>)],

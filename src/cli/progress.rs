@@ -34,3 +34,47 @@ fn styled(quiet: bool, len: u64, prefix: &str, template: &str) -> ProgressBar {
         .with_style(style)
         .with_prefix(prefix.to_string())
 }
+
+/// A bench's phases as progress bars (none with `--quiet`), its notes on stdout and
+/// warnings on stderr.
+#[cfg(feature = "train")]
+pub struct Phases {
+    quiet: bool,
+    bar: indicatif::ProgressBar,
+}
+
+#[cfg(feature = "train")]
+impl Phases {
+    pub fn new(quiet: bool) -> Self {
+        Self {
+            quiet,
+            bar: indicatif::ProgressBar::hidden(),
+        }
+    }
+}
+
+#[cfg(feature = "train")]
+impl pma_model::bench::BenchObserver for Phases {
+    fn phase(&mut self, name: &str, total: u64) {
+        self.bar = bar(self.quiet, total, name);
+        self.bar
+            .enable_steady_tick(std::time::Duration::from_millis(500));
+    }
+
+    fn progress(&mut self, done: u64, message: &str) {
+        self.bar.set_position(done);
+        self.bar.set_message(message.to_string());
+    }
+
+    fn phase_end(&mut self) {
+        self.bar.finish_and_clear();
+    }
+
+    fn note(&mut self, line: &str) {
+        self.bar.suspend(|| println!("{line}"));
+    }
+
+    fn warning(&mut self, line: &str) {
+        self.bar.suspend(|| eprintln!("warning: {line}"));
+    }
+}

@@ -4,7 +4,18 @@
 //! checkpoint. Ctrl-C (the handler is `main`'s) stops the run with a checkpoint of its last
 //! complete step and exit status 130.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use anyhow::Context as _;
+use pma_model::interrupt::Interrupted;
+use pma_model::train::{
+    train_run, ObserverError, Preset, RunConfig, StepReport, TrainLog, TrainObserver, TrainOutcome,
+    TrainRequest, CONFIG_FILE, LOG_FILE,
+};
+
+use super::plot::plot_psnr_vs_time;
+use super::{progress, refuse};
 
 /// Arguments of `pma train`.
 #[derive(clap::Args, Debug, Clone)]
@@ -71,196 +82,165 @@ pub struct Args {
     pub tf32: bool,
 }
 
-#[cfg(not(feature = "train"))]
-pub fn run(_args: Args) -> anyhow::Result<()> {
-    anyhow::bail!("this build of pma has no training support; rebuild with `--features train` (on by default)")
-}
+/// The plot a run directory gets at every checkpoint.
+pub const PLOT_FILE: &str = "psnr_vs_time.png";
 
-#[cfg(feature = "train")]
 pub fn run(args: Args) -> anyhow::Result<()> {
-    imp::run(args)
+    super::check_minutes("--minutes", args.minutes)?;
+    let mut run = match &args.config {
+        Some(path) => Some(RunConfig::from_toml_file(path)?),
+        None if args.resume => None,
+        None => Some(RunConfig::from_preset(args.preset.parse::<Preset>()?)),
+    };
+    if let (Some(seed), Some(run)) = (args.seed, run.as_mut()) {
+        run.train.seed = seed;
+    } else if args.seed.is_some() {
+        refuse!("--seed cannot change a resumed run (its seed is in {CONFIG_FILE})");
+    }
+    if let (Some(variant), Some(run)) = (args.variant, run.as_mut()) {
+        run.model.variant = variant;
+    } else if args.variant.is_some() {
+        refuse!("--variant cannot change a resumed run (its variant is in {CONFIG_FILE})");
+    }
+    if !args.cull.is_off() {
+        match run.as_mut() {
+            Some(run) => run.train.culling = args.cull.clone(),
+            None => refuse!(
+                "--cull-rays/--cull-samples cannot change a resumed run (its culling is in {CONFIG_FILE})"
+            ),
+        }
+    }
+    if args.occupancy {
+        match run.as_mut() {
+            Some(run) => {
+                run.train.occupancy.get_or_insert_with(Default::default);
+            }
+            None => refuse!(
+                "--occupancy cannot change a resumed run (its occupancy grid settings are in {CONFIG_FILE})"
+            ),
+        }
+    }
+    let eval_data = args.eval_data.clone().or_else(|| {
+        let beside = args.data.parent()?.join("novel_view.npz");
+        (beside.is_file() && beside != args.data).then_some(beside)
+    });
+    if args.resume {
+        // The run's own refusal ("nothing to resume") before anything about the data.
+        pma_model::train::checkpoint::resume_point(&args.out)?;
+    }
+    super::check_paths(run_dir_paths(
+        &args.out,
+        args.resume,
+        pma_data::fsio::PathCheck::new()
+            .input("--data", &args.data)
+            .input_opt("--config", args.config.as_deref())
+            .input_opt("--eval-data", eval_data.as_deref()),
+    ))?;
+    let req = TrainRequest {
+        data: args.data,
+        out: args.out,
+        run,
+        resume: args.resume,
+        overwrite: false,
+        iters: args.iters,
+        minutes: args.minutes,
+        eval_data,
+        chunk_rays: args.chunk_rays,
+        device: super::device_tf32(&args.device, args.tf32)?,
+    };
+    let outcome = train(
+        &req,
+        args.quiet,
+        "pma train: held-out PSNR vs wall-clock time",
+    )?;
+    println!(
+        "done at iteration {} ({} this session, {:.1} it/s, {} skipped); model: {}",
+        outcome.iterations,
+        outcome.session_iterations,
+        outcome.session_iterations as f64 / (outcome.session_s - outcome.eval_s).max(1e-9),
+        outcome.skipped,
+        outcome.model.display()
+    );
+    Ok(())
 }
 
-#[cfg(feature = "train")]
-pub use imp::{train, PLOT_FILE};
+/// `check` with the run directory `out` as an output: the files a run writes at its top
+/// (a resumed run keeps its `config.toml`).
+fn run_dir_paths(
+    out: &Path,
+    resume: bool,
+    check: pma_data::fsio::PathCheck,
+) -> pma_data::fsio::PathCheck {
+    use pma_model::network::run_dir::{LOCK_FILE, MODEL_FILE};
+    let mut files = vec![MODEL_FILE, LOG_FILE, LOCK_FILE, PLOT_FILE];
+    if !resume {
+        files.push(CONFIG_FILE);
+    }
+    check.output_dir("--out", out, files)
+}
 
-#[cfg(feature = "train")]
-mod imp {
-    use std::path::Path;
-    use std::time::Duration;
-
-    use anyhow::Context as _;
-    use pma_model::train::{
-        train_run, ObserverError, Preset, RunConfig, StepReport, TrainLog, TrainObserver,
-        TrainOutcome, TrainRequest, CONFIG_FILE, LOG_FILE,
+/// Run `req` with a progress bar (unless `quiet`) and the plot titled `title`. A run
+/// stopped by Ctrl-C is an [`Interrupted`] error (exit status 130) that says where
+/// `--resume` continues.
+pub fn train(req: &TrainRequest, quiet: bool, title: &str) -> anyhow::Result<TrainOutcome> {
+    let mut view = Terminal {
+        quiet,
+        title,
+        bar: indicatif::ProgressBar::hidden(),
     };
+    let result = train_run(req, &mut view);
+    view.bar.finish_and_clear();
+    let outcome = result?;
+    if outcome.interrupted {
+        return Err(anyhow::Error::new(Interrupted).context(format!(
+            "interrupted at iteration {n}; the checkpoint in {dir} is complete, and \
+             `pma train --resume --out {dir}` continues from iteration {n}",
+            n = outcome.iterations,
+            dir = req.out.display()
+        )));
+    }
+    Ok(outcome)
+}
 
-    use super::super::plot::plot_psnr_vs_time;
-    use pma_model::interrupt::Interrupted;
+/// The training run as the terminal shows it.
+struct Terminal<'a> {
+    quiet: bool,
+    title: &'a str,
+    bar: indicatif::ProgressBar,
+}
 
-    use super::super::{progress, refuse};
-    use super::*;
-
-    /// The plot a run directory gets at every checkpoint.
-    pub const PLOT_FILE: &str = "psnr_vs_time.png";
-
-    pub fn run(args: Args) -> anyhow::Result<()> {
-        super::super::check_minutes("--minutes", args.minutes)?;
-        let mut run = match &args.config {
-            Some(path) => Some(RunConfig::from_toml_file(path)?),
-            None if args.resume => None,
-            None => Some(RunConfig::from_preset(args.preset.parse::<Preset>()?)),
-        };
-        if let (Some(seed), Some(run)) = (args.seed, run.as_mut()) {
-            run.train.seed = seed;
-        } else if args.seed.is_some() {
-            refuse!("--seed cannot change a resumed run (its seed is in {CONFIG_FILE})");
-        }
-        if let (Some(variant), Some(run)) = (args.variant, run.as_mut()) {
-            run.model.variant = variant;
-        } else if args.variant.is_some() {
-            refuse!("--variant cannot change a resumed run (its variant is in {CONFIG_FILE})");
-        }
-        if !args.cull.is_off() {
-            match run.as_mut() {
-                Some(run) => run.train.culling = args.cull.clone(),
-                None => refuse!(
-                    "--cull-rays/--cull-samples cannot change a resumed run (its culling is in {CONFIG_FILE})"
-                ),
-            }
-        }
-        if args.occupancy {
-            match run.as_mut() {
-                Some(run) => {
-                    run.train.occupancy.get_or_insert_with(Default::default);
-                }
-                None => refuse!(
-                    "--occupancy cannot change a resumed run (its occupancy grid settings are in {CONFIG_FILE})"
-                ),
-            }
-        }
-        let eval_data = args.eval_data.clone().or_else(|| {
-            let beside = args.data.parent()?.join("novel_view.npz");
-            (beside.is_file() && beside != args.data).then_some(beside)
-        });
-        if args.resume {
-            // The run's own refusal ("nothing to resume") before anything about the data.
-            pma_model::train::checkpoint::resume_point(&args.out)?;
-        }
-        super::super::check_paths(run_dir_paths(
-            &args.out,
-            args.resume,
-            pma_data::fsio::PathCheck::new()
-                .input("--data", &args.data)
-                .input_opt("--config", args.config.as_deref())
-                .input_opt("--eval-data", eval_data.as_deref()),
-        ))?;
-        let req = TrainRequest {
-            data: args.data,
-            out: args.out,
-            run,
-            resume: args.resume,
-            overwrite: false,
-            iters: args.iters,
-            minutes: args.minutes,
-            eval_data,
-            chunk_rays: args.chunk_rays,
-            device: super::super::device_tf32(&args.device, args.tf32)?,
-        };
-        let outcome = train(
-            &req,
-            args.quiet,
-            "pma train: held-out PSNR vs wall-clock time",
-        )?;
-        println!(
-            "done at iteration {} ({} this session, {:.1} it/s, {} skipped); model: {}",
-            outcome.iterations,
-            outcome.session_iterations,
-            outcome.session_iterations as f64 / (outcome.session_s - outcome.eval_s).max(1e-9),
-            outcome.skipped,
-            outcome.model.display()
-        );
-        Ok(())
+impl TrainObserver for Terminal<'_> {
+    fn warning(&mut self, line: &str) {
+        self.bar.suspend(|| eprintln!("warning: {line}"));
     }
 
-    /// `check` with the run directory `out` as an output: the files a run writes at its top
-    /// (a resumed run keeps its `config.toml`).
-    fn run_dir_paths(
-        out: &Path,
-        resume: bool,
-        check: pma_data::fsio::PathCheck,
-    ) -> pma_data::fsio::PathCheck {
-        use pma_model::network::run_dir::{LOCK_FILE, MODEL_FILE};
-        let mut files = vec![MODEL_FILE, LOG_FILE, LOCK_FILE, PLOT_FILE];
-        if !resume {
-            files.push(CONFIG_FILE);
-        }
-        check.output_dir("--out", out, files)
+    fn start(&mut self, iter: u64, target: u64) {
+        self.bar = progress::bar_without_eta(self.quiet, target, "train");
+        self.bar.set_position(iter);
     }
 
-    /// Run `req` with a progress bar (unless `quiet`) and the plot titled `title`. A run
-    /// stopped by Ctrl-C is an [`Interrupted`] error (exit status 130) that says where
-    /// `--resume` continues.
-    pub fn train(req: &TrainRequest, quiet: bool, title: &str) -> anyhow::Result<TrainOutcome> {
-        let mut view = Terminal {
-            quiet,
-            title,
-            bar: indicatif::ProgressBar::hidden(),
-        };
-        let result = train_run(req, &mut view);
-        view.bar.finish_and_clear();
-        let outcome = result?;
-        if outcome.interrupted {
-            return Err(anyhow::Error::new(Interrupted).context(format!(
-                "interrupted at iteration {n}; the checkpoint in {dir} is complete, and \
-                 `pma train --resume --out {dir}` continues from iteration {n}",
-                n = outcome.iterations,
-                dir = req.out.display()
-            )));
-        }
-        Ok(outcome)
+    fn step(&mut self, r: &StepReport) {
+        self.bar.set_position(r.iter);
+        let (loss, psnr) = r.ema.unwrap_or((f64::NAN, f64::NAN));
+        self.bar.set_message(format!(
+            "{:.2} it/s  loss {loss:.4}  train PSNR {psnr:.2} dB  ETA {}",
+            r.it_per_s,
+            indicatif::HumanDuration(Duration::from_secs_f64(r.eta_s.min(1e9)))
+        ));
     }
 
-    /// The training run as the terminal shows it.
-    struct Terminal<'a> {
-        quiet: bool,
-        title: &'a str,
-        bar: indicatif::ProgressBar,
+    fn note(&mut self, line: &str) {
+        self.bar.println(line);
     }
 
-    impl TrainObserver for Terminal<'_> {
-        fn warning(&mut self, line: &str) {
-            self.bar.suspend(|| eprintln!("warning: {line}"));
-        }
-
-        fn start(&mut self, iter: u64, target: u64) {
-            self.bar = progress::bar_without_eta(self.quiet, target, "train");
-            self.bar.set_position(iter);
-        }
-
-        fn step(&mut self, r: &StepReport) {
-            self.bar.set_position(r.iter);
-            let (loss, psnr) = r.ema.unwrap_or((f64::NAN, f64::NAN));
-            self.bar.set_message(format!(
-                "{:.2} it/s  loss {loss:.4}  train PSNR {psnr:.2} dB  ETA {}",
-                r.it_per_s,
-                indicatif::HumanDuration(Duration::from_secs_f64(r.eta_s.min(1e9)))
-            ));
-        }
-
-        fn note(&mut self, line: &str) {
-            self.bar.println(line);
-        }
-
-        fn checkpoint(&mut self, dir: &Path, log: &TrainLog) -> Result<(), ObserverError> {
-            plot_psnr_vs_time(
-                &log.eval_curve(),
-                &log.train_curve(),
-                self.title,
-                &dir.join(PLOT_FILE),
-            )
-            .context("writing the PSNR plot")
-            .map_err(Into::into)
-        }
+    fn checkpoint(&mut self, dir: &Path, log: &TrainLog) -> Result<(), ObserverError> {
+        plot_psnr_vs_time(
+            &log.eval_curve(),
+            &log.train_curve(),
+            self.title,
+            &dir.join(PLOT_FILE),
+        )
+        .context("writing the PSNR plot")
+        .map_err(Into::into)
     }
 }

@@ -881,12 +881,22 @@ fn convert_dataset_stops_on_ctrl_c_and_leaves_nothing() {
     let out = out_dir.join("converted.npz");
     let child = Command::new(env!("CARGO_BIN_EXE_pma"))
         .args(["convert", "dataset", s(&big), "-o", s(&out), "--compress"])
+        // A slow disk, so that the signal lands mid-write however fast the machine is.
+        .env("PMA_FSIO_DELAY_US", "2000")
         .stdin(Stdio::null())
         .stdout(Stdio::null())
         .stderr(Stdio::piped())
         .spawn()
         .unwrap();
-    std::thread::sleep(Duration::from_millis(300));
+    // Signal once the temporary output exists: the handler is installed and writing began.
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while std::fs::read_dir(&out_dir).unwrap().next().is_none() {
+        assert!(
+            Instant::now() < deadline,
+            "convert dataset never began writing"
+        );
+        std::thread::sleep(Duration::from_millis(10));
+    }
     let sent = Instant::now();
     kill(child.id(), "-INT");
     let o = child.wait_with_output().unwrap();

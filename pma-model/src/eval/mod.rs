@@ -36,7 +36,9 @@ pub mod spectrum;
 mod split;
 
 pub use png::{heat, side_by_side, write_png};
-pub use split::{held_out_images, resolve_split, split_images, spread, Split};
+pub use split::{
+    held_out_images, read_split, resolve_split, split_images, spread, Split, SplitData,
+};
 
 #[derive(Debug, thiserror::Error)]
 pub enum EvalError {
@@ -397,6 +399,44 @@ pub fn evaluate(
         pngs,
         freq: freq.finish(),
         empty_masks,
+    })
+}
+
+/// A split scored by [`score_split_file`], with what reading its file said.
+#[derive(Debug, Clone)]
+pub struct ScoredSplit {
+    pub report: EvalReport,
+    /// The file as messages name it ([`Dataset::source`]).
+    pub source: String,
+    /// The dataset's warnings, for the caller to show.
+    pub warnings: Vec<pma_data::dataset::Warning>,
+}
+
+/// Read `path`, all of whose images are the split `split` (the layout `pma synth` writes,
+/// see [`Split::whole_file`]), and score at most `max_images` of them evenly spread over it
+/// (0 = all) with [`evaluate`].
+pub fn score_split_file(
+    avatar: &Avatar,
+    path: &Path,
+    split: &str,
+    max_images: usize,
+    opts: &EvalOptions,
+    progress: &mut dyn FnMut(usize, usize),
+) -> Result<ScoredSplit> {
+    let data = read_dataset(path, Profile::Eval)?;
+    let limit = match max_images {
+        0 => usize::MAX,
+        n => n,
+    };
+    let images = spread(
+        &split_images(&data, path, &Split::whole_file(split)?)?,
+        limit,
+    );
+    let report = evaluate(avatar, &data, split, &images, opts, progress)?;
+    Ok(ScoredSplit {
+        report,
+        source: data.source,
+        warnings: data.warnings,
     })
 }
 

@@ -62,6 +62,36 @@ pub fn resolve_split(data: &Path, split: &str) -> Result<(PathBuf, Split)> {
     Ok((data.to_path_buf(), split))
 }
 
+/// A split read by [`read_split`].
+#[derive(Debug, Clone)]
+pub struct SplitData {
+    /// The file read (see [`resolve_split`]).
+    pub file: PathBuf,
+    /// Its `warnings` are for the caller to show.
+    pub data: Dataset,
+    /// The split's images in `data`.
+    pub images: Vec<usize>,
+}
+
+/// The images of `split` in `path` (a file, or a directory holding `<split>.npz`), read for
+/// `profile`. With `camera_only` (the images lend only their cameras), a file that does not
+/// hold the split lends all its images instead of being refused.
+pub fn read_split(
+    path: &Path,
+    split: &str,
+    profile: pma_data::dataset::Profile,
+    camera_only: bool,
+) -> Result<SplitData> {
+    let (file, split) = resolve_split(path, split)?;
+    let data = super::read_dataset(&file, profile)?;
+    let images = match split_images(&data, &file, &split) {
+        Ok(images) => images,
+        Err(_) if camera_only => split_images(&data, &file, &Split::whole_file(&split.name)?)?,
+        Err(e) => return Err(e),
+    };
+    Ok(SplitData { file, data, images })
+}
+
 /// Image indices of `split` in `data`, read from `path`.
 pub fn split_images(data: &Dataset, path: &Path, split: &Split) -> Result<Vec<usize>> {
     let n = data.n_images();

@@ -5,6 +5,7 @@
 //! | module | what |
 //! | --- | --- |
 //! | [`batch`] | what a pass takes and returns: rays, poses, mode, outputs |
+//! | [`batch_file`] | the ray-batch npz of `pma forward` and its outputs npz |
 //! | [`bones`] | world → bone-aligned box frames of a batch of poses |
 //! | [`raycast`] | near/far from the bounding cylinder and the boxes; 48 + 24 samples |
 //! | [`options`] | what one pass may leave out ([`PassOptions`]), and what it did |
@@ -22,6 +23,7 @@ pub const MAX_CHUNK_RAYS: usize = 1 << 20;
 
 pub mod avatar;
 pub mod batch;
+pub mod batch_file;
 pub mod bones;
 pub mod camera_path;
 pub mod cull;

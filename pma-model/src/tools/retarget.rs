@@ -21,9 +21,11 @@
 //! When the motion file holds no rest pose of its own, its source skeleton is unknown and the
 //! trajectory is kept (scale 1) unless a factor is given.
 
+use std::path::Path;
+
 use candle_core::Tensor;
 use pma_data::cylinder::HeadDir;
-use pma_data::dataset::Dataset;
+use pma_data::dataset::{Dataset, Profile, ReadOptions};
 use pma_data::motion::Motion;
 use pma_data::skeleton::{forward_kinematics, Joints, Transforms, N_JOINTS};
 
@@ -121,6 +123,21 @@ impl MotionClip {
         }
         Ok(())
     }
+}
+
+/// A motion (or any pma-npz) file's pose rows for `avatar`, with the file read as a
+/// dataset. Kinematics the file leaves out use the avatar's rest pose (see
+/// `docs/conventions.md`, "pma-npz v1"); the dataset's `warnings` are for the caller to
+/// show. A clip without a `rest` of its own keeps its root trajectory as it is.
+pub fn read_motion(avatar: &Avatar, path: &Path) -> Result<(MotionClip, Dataset)> {
+    let mut opts = ReadOptions::new(Profile::Motion);
+    opts.rest_pose = Some(*avatar.rest_pose());
+    let ds = Dataset::read(path, &opts).map_err(|e| ModelError::Motion {
+        path: path.to_path_buf(),
+        source: Box::new(e),
+    })?;
+    let clip = MotionClip::from_dataset(&ds)?;
+    Ok((clip, ds))
 }
 
 /// One retargeted frame, in the training convention (head −y).

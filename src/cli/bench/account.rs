@@ -1,75 +1,19 @@
 //! `pma bench --account`: what one training step and one inference pass would launch,
-//! upload and wait for on a GPU ([`pma_model::compute::account`]), with estimated GPU times,
-//! beside the official code's counts when given. Prints the tables and writes
+//! upload and wait for on a GPU (`pma_model::bench::account` counts), with estimated GPU
+//! times, beside the official code's counts when given. Prints the tables and writes
 //! `account.json`.
 
 use std::collections::BTreeMap;
-use std::sync::Arc;
 
-use anyhow::Context as _;
 use candle_core::Device;
-use pma_model::compute::account::{
-    self, Counts, GpuEstimate, Recorded, Route, Summary, GPUS, LAUNCH_S, SYNC_S,
-};
-use pma_model::train::account::{account_one_pass_extrapolated, account_step};
-use pma_model::train::{BatchSource, DatasetSource, Preset, RunConfig, Trainer};
+use pma_model::bench::{AccountReport, AccountRequest};
+use pma_model::compute::account::{Counts, GpuEstimate, Recorded, Route, Summary, GPUS};
+use pma_model::compute::account::{LAUNCH_S, SYNC_S};
+use pma_model::train::{Preset, RunConfig};
 
-use super::super::{progress, read_dataset, refuse, write_json};
+use super::super::progress::Phases;
+use super::super::{refuse, write_json};
 use super::Args;
-
-/// `account.json`.
-#[derive(Debug, serde::Serialize)]
-struct AccountFile {
-    preset: String,
-    device: String,
-    account_as: Route,
-    rays: usize,
-    /// `--chunk-rays` (0 = automatic).
-    chunk_rays: usize,
-    /// Chunks the step ran in.
-    chunks: u64,
-    /// Wall time of the accounted step(s) on this machine (they run for real), not a GPU
-    /// figure.
-    step_wall_s: f64,
-    /// Set when the step was extrapolated from one-pass steps of these rays
-    /// (`--extrapolate-from`).
-    step_extrapolated_from: Option<[usize; 3]>,
-    ops_per_step: u64,
-    launches_per_step: u64,
-    syncs_per_step: u64,
-    /// Syncs of the read-back of a step's numbers, once every `read_every` steps for all of
-    /// them (counted apart from the step).
-    read_back_syncs: u64,
-    read_every: u64,
-    /// Explicit uploads plus dims/strides uploads.
-    uploads_per_step: u64,
-    explicit_uploads_per_step: u64,
-    param_uploads_per_step: u64,
-    /// Bytes the step's ops read and write.
-    bytes_per_step: u64,
-    /// Matmul FLOPs.
-    flops_per_step: u64,
-    step: Summary,
-    /// `render_rays` of `rays` rays (the batch already made).
-    inference: Summary,
-    official: Option<Official>,
-    cost_model: CostModel,
-}
-
-#[derive(Debug, serde::Serialize)]
-struct Official {
-    #[serde(flatten)]
-    recorded: Recorded,
-    est: Vec<GpuEstimate>,
-}
-
-#[derive(Debug, serde::Serialize)]
-struct CostModel {
-    formula: &'static str,
-    est_launch_s: f64,
-    est_sync_s: f64,
-    gpus: Vec<account::Gpu>,
-}
 
 pub fn run(args: &Args, dev: &Device) -> anyhow::Result<()> {
     let route: Route = match args.account_as.parse() {
@@ -97,128 +41,21 @@ pub fn run(args: &Args, dev: &Device) -> anyhow::Result<()> {
             args.chunk_rays
         );
     }
-    let data = account_scene(args, run.train.images_per_step)?;
-    let t = &run.train;
-    let mut source = DatasetSource::new(
-        data.clone(),
-        t.rays_per_step,
-        t.images_per_step,
-        t.perturb_bg,
-        t.seed,
-        dev,
-    )?;
-    let mut trainer = Trainer::new(run, data.clone(), dev)?;
-
-    let bar = progress::bar(args.quiet, 2, "step accounting");
-    bar.enable_steady_tick(std::time::Duration::from_millis(500));
-    bar.set_message(format!(
-        "one {} training step of {} rays (it runs for real)",
-        args.preset, args.rays
-    ));
-    let read_every = match route {
-        Route::Cpu => trainer.read_every(),
-        Route::Cuda => match trainer.run_config().train.read_every {
-            0 => pma_model::train::AUTO_READ_EVERY_DEVICE,
-            k => k,
-        },
-    };
-    let (step, chunks, wall_s, extrapolated_from, read_back) = match args.extrapolate_from {
-        None => {
-            let a = account_step(&mut trainer, &mut source, route)?;
-            (a.report, a.chunks, a.wall_s, None, a.read_back)
-        }
-        Some(n) => {
-            let e = account_one_pass_extrapolated(trainer.run_config(), data, dev, route, n)?;
-            if !e.counts_constant {
-                eprintln!(
-                    "warning: op, sync or upload counts grew with the rays across {:?};                      extrapolated linearly (they were exactly affine)",
-                    e.from
-                );
-            }
-            (e.report, 1, e.wall_s, Some(e.from), e.read_back)
-        }
-    };
-    bar.inc(1);
-    bar.set_message("one inference pass");
-    let batch = source.next_batch()?;
-    let avatar = trainer.avatar();
-    let (_, inference) = account::measure(dev, route, || -> anyhow::Result<_> {
-        Ok(avatar.render_rays(&batch.rays, &batch.poses, &Default::default())?)
-    })?;
-    bar.finish_and_clear();
-
-    let s = step.summary();
-    let total = s.total;
-    let file = AccountFile {
+    let req = AccountRequest {
+        run,
         preset: args.preset.clone(),
-        device: args.device.clone(),
-        account_as: route,
-        rays: args.rays,
-        chunk_rays: args.chunk_rays,
-        chunks,
-        step_wall_s: wall_s,
-        step_extrapolated_from: extrapolated_from,
-        ops_per_step: total.ops,
-        launches_per_step: total.launches,
-        syncs_per_step: total.syncs,
-        read_back_syncs: read_back.syncs,
-        read_every,
-        uploads_per_step: total.all_uploads(),
-        explicit_uploads_per_step: total.uploads,
-        param_uploads_per_step: total.param_uploads,
-        bytes_per_step: total.bytes(),
-        flops_per_step: total.flops,
-        step: s,
-        inference: inference.summary(),
-        official: official.map(|r| Official {
-            est: r.estimates(),
-            recorded: r,
-        }),
-        cost_model: CostModel {
-            formula: "estimate: per op max(bytes / bandwidth, FLOPs / peak) + launches x launch \
-                      overhead; per upload (explicit or dims/strides) one launch overhead; per \
-                      sync a latency; uploaded and read-back bytes over the host link",
-            est_launch_s: LAUNCH_S,
-            est_sync_s: SYNC_S,
-            gpus: GPUS.to_vec(),
-        },
+        device_name: args.device.clone(),
+        route,
+        extrapolate_from: args.extrapolate_from,
+        official,
+        scene_dir: args.out.join("account-scene"),
     };
-    print_tables(&file);
+    let report = pma_model::bench::account(req, dev, &mut Phases::new(args.quiet))?;
+    print_tables(&report);
     let path = args.out.join("account.json");
-    write_json(&file, &path)?;
+    write_json(&report, &path)?;
     println!("wrote {}", path.display());
     Ok(())
-}
-
-/// 16 training images (4 cameras × 4 walk frames, 96×96), as many as the paper's step
-/// samples from, made once in `--out`.
-fn account_scene(
-    args: &Args,
-    images_per_step: usize,
-) -> anyhow::Result<Arc<pma_data::dataset::Dataset>> {
-    let dir = args.out.join("account-scene");
-    let synth = pma_data::synth::SynthConfig {
-        train_cams: 4,
-        test_cams: 1,
-        frames: 4,
-        novel_pose_walk: 1,
-        novel_pose_dance: 1,
-        ..Default::default()
-    };
-    if !dir.join("train.npz").is_file() {
-        println!("synthesising the accounting scene into {}", dir.display());
-        pma_data::synth::generate(&synth, &dir, &mut |_, _| {})
-            .context("synthesising the accounting scene")?;
-    }
-    let data = read_dataset(&dir.join("train.npz"), pma_data::dataset::Profile::Train)?;
-    if data.n_images() < images_per_step {
-        refuse!(
-            "{}: {} images, the preset samples {images_per_step} per step",
-            dir.display(),
-            data.n_images()
-        );
-    }
-    Ok(Arc::new(data))
 }
 
 fn gb(b: u64) -> f64 {
@@ -266,7 +103,7 @@ fn print_stage_table(title: &str, s: &Summary) {
     row("total", 1, &s.total, &s.est);
 }
 
-fn print_tables(f: &AccountFile) {
+fn print_tables(f: &AccountReport) {
     println!(
         "step accounting: {} preset, {} rays, device {}, counted as {} would run it \
          (counts are exact; times are estimates)",

@@ -1,0 +1,604 @@
+//! Parity against each [`BenchOption`], side by side in one process: network points/s and
+//! rays/s of inference, ms per rendered W×H image, ms per training step, peak RSS of each
+//! phase, the render's difference from parity's, held-out PSNR and LPIPS against ground
+//! truth, the same after a wall-clock training budget per option, and the achieved GFLOP/s
+//! against an estimate of the machine's fp32 peak.
+//!
+//! Render timings go round-robin over the options (every option's first repeat, then every
+//! option's second, ...), so a machine whose speed drifts during the run shifts all options
+//! alike. Training is timed per option within its wall-clock budget, one option after the
+//! other.
+//!
+//! FLOPs and the peak they are set against are [`crate::compute::flops`]'s: matmul FLOPs per
+//! network point (3× for a training step: forward, input and weight gradients) over
+//! cores × GHz × FLOP/cycle from /proc/cpuinfo.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Instant;
+
+use candle_core::{Device, Tensor};
+use pma_data::camera::Camera;
+use pma_data::dataset::{Dataset, Profile};
+use pma_data::metrics::psnr;
+use pma_data::skeleton::Joints;
+use pma_data::synth::{generate, SynthConfig};
+use serde::{Deserialize, Serialize};
+
+use super::{peak_rss_mib, reset_peak_rss, BenchError, BenchObserver, BenchOption, Result};
+use crate::compute::flops;
+use crate::eval::{dataset_pose, evaluate, read_dataset, EvalOptions};
+use crate::network::occupancy::OccupancyConfig;
+use crate::render::avatar::{Avatar, Poses};
+use crate::render::image::{body_box, ImageOptions, RenderedImage};
+use crate::render::PassOptions;
+use crate::train::{Preset, RunConfig, Trainer};
+
+/// Rays per render chunk of every bench render and held-out score.
+const CHUNK: usize = 4096;
+
+/// What to measure.
+#[derive(Debug, Clone)]
+pub struct BenchRequest {
+    pub preset: Preset,
+    /// Render this trained model (its own preset) instead of training one in-process.
+    pub model: Option<PathBuf>,
+    /// Where the scene (`scene/`) and the model trained in-process (`model.safetensors`) go.
+    pub out: PathBuf,
+    /// The synthetic scene: training data and the held-out images.
+    pub scene: SynthConfig,
+    /// Seconds of in-process training of the rendered model (without `model`).
+    pub train_seconds: f64,
+    /// Training budget per option for the held-out columns (0: three timed steps only).
+    pub budget_seconds: f64,
+    /// Rendered image size (square).
+    pub res: usize,
+    /// Timed renders per option after one untimed one (medians are reported).
+    pub repeats: usize,
+    /// Held-out images scored.
+    pub eval_images: usize,
+    pub options: Vec<BenchOption>,
+    /// The grid of the training rows with `occupancy` (its warm-up decides when the grid
+    /// starts to skip samples).
+    pub occupancy: OccupancyConfig,
+    /// Training poses the rendered model's grid is built over when an option needs one and
+    /// the model has none.
+    pub occupancy_poses: usize,
+    pub device: Device,
+}
+
+/// One option's measurements (a row of `bench.json`).
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+pub struct OptionResult {
+    #[serde(flatten)]
+    pub option: BenchOption,
+    /// Median ms per rendered image.
+    pub ms_per_image: f64,
+    /// Rays traced per image (pixels inside the body box) per second.
+    pub rays_per_s: f64,
+    /// Network points (far-away constants included) per second.
+    pub network_points_per_s: f64,
+    /// All samples the rendered rays stand for (rays × (Sc + Sf)) per second.
+    pub samples_per_s: f64,
+    pub network_points_per_image: u64,
+    /// Achieved matmul GFLOP/s (network points × FLOPs per point / time).
+    pub gflops: f64,
+    /// Median ms per training step (the option's culling in training).
+    pub ms_per_step: f64,
+    /// Achieved matmul GFLOP/s of a training step (evaluated points × FLOPs per point ×
+    /// `flops::TRAIN_FACTOR` / median step time).
+    #[serde(default)]
+    pub train_gflops: f64,
+    /// Parity's median ms per step over this option's (training speed-up).
+    #[serde(default)]
+    pub step_speedup_vs_parity: f64,
+    /// Share of a training step's samples that ran the network (far-away constants
+    /// included), over the option's training steps.
+    #[serde(default)]
+    pub train_evaluated_fraction: f64,
+    /// Peak RSS of this option's phases (VmHWM after a reset; process-wide if no reset).
+    pub peak_rss_mib: f64,
+    /// PSNR of this option's W×H render against the parity render (inf = identical).
+    pub psnr_vs_parity_render: f64,
+    /// Max |Δrgb| against the parity render.
+    pub max_abs_diff_vs_parity: f64,
+    /// Held-out PSNR of the rendered model (`pma eval`'s protocol) and its loss against
+    /// parity.
+    pub heldout_psnr: f64,
+    pub psnr_loss_vs_parity_db: f64,
+    /// Held-out LPIPS (`None` under LPIPS's 31×31 minimum).
+    pub heldout_lpips: Option<f64>,
+    /// Held-out PSNR after `budget_seconds` of training with this option from the same init.
+    pub budget_heldout_psnr: Option<f64>,
+    pub budget_heldout_lpips: Option<f64>,
+    pub budget_iterations: Option<u64>,
+    /// Speed-up of rays/s against parity.
+    pub speedup_vs_parity: f64,
+}
+
+/// `bench.json`.
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+pub struct BenchReport {
+    pub preset: String,
+    pub res: usize,
+    pub repeats: usize,
+    pub model: String,
+    pub flops_per_point: f64,
+    pub peak_gflops: f64,
+    pub peak_estimate: String,
+    pub rss_reset_supported: bool,
+    /// Fraction of (image chunk, joint) pairs whose window is 0 on every coarse sample of
+    /// the chunk (what skipping optional joints could leave out).
+    pub inactive_joint_fraction: f64,
+    pub options: Vec<OptionResult>,
+    /// Whole-process `pma forward` runs on a ray batch, if asked for.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub forward: Option<ForwardResult>,
+}
+
+/// Wall time of whole `pma forward` processes (start-up, loading, the pass, writing).
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+pub struct ForwardResult {
+    pub batch: String,
+    pub model: String,
+    pub rays: usize,
+    /// Seconds of each timed run (after one warm-up run), in run order.
+    pub runs_s: Vec<f64>,
+    pub median_s: f64,
+    pub rays_per_s: f64,
+}
+
+/// The median of `v` (the upper one of an even count; NaN when empty).
+pub fn median(v: &mut [f64]) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+/// Measure every option of `req` (see the module docs). The first option is the one the
+/// others are compared with.
+pub fn measure(req: &BenchRequest, obs: &mut dyn BenchObserver) -> Result<BenchReport> {
+    if req.options.is_empty() || req.repeats == 0 {
+        return Err(BenchError::Setting(
+            "a bench needs at least one option and one repeat".into(),
+        ));
+    }
+    let rss_reset = reset_peak_rss();
+    let scene = prepare_scene(req, obs)?;
+    // Loaded before the per-option peak-RSS resets, so no option's phase pays for it.
+    crate::eval::lpips::Lpips::shared()?;
+    let (avatar, model_desc) = bench_model(req, &scene, obs)?;
+    let avatar = match req.options.iter().any(|o| o.occupancy) && avatar.occupancy().is_none() {
+        true => grid_for(req, avatar, &scene, obs)?,
+        false => avatar,
+    };
+    let cfg = avatar.config().clone();
+    let fpp = flops::per_point(&cfg);
+    let (peak, peak_how) = flops::fp32_peak();
+    let view = bench_view(req, &scene)?;
+    let inactive = inactive_joint_fraction(&avatar, &view)?;
+
+    let mut results = measure_inference(req, &avatar, &scene, &view, fpp, rss_reset, obs)?;
+    measure_training(req, &cfg, &scene, &mut results, rss_reset, obs)?;
+    let (parity_rays, parity_step) = (results[0].rays_per_s, results[0].ms_per_step);
+    for r in &mut results {
+        r.speedup_vs_parity = r.rays_per_s / parity_rays;
+        r.step_speedup_vs_parity = parity_step / r.ms_per_step;
+    }
+    Ok(BenchReport {
+        preset: req.preset.name().to_string(),
+        res: req.res,
+        repeats: req.repeats,
+        model: model_desc,
+        flops_per_point: fpp,
+        peak_gflops: peak,
+        peak_estimate: peak_how,
+        rss_reset_supported: rss_reset,
+        inactive_joint_fraction: inactive,
+        options: results,
+        forward: None,
+    })
+}
+
+/// The scene's training split and the held-out images the quality columns use.
+struct Scene {
+    train: Arc<Dataset>,
+    held: Dataset,
+    eval_set: Vec<usize>,
+}
+
+/// The synthetic scene in `out/scene` (made once): training data and held-out images.
+fn prepare_scene(req: &BenchRequest, obs: &mut dyn BenchObserver) -> Result<Scene> {
+    let dir = match req.scene.seed {
+        0 => req.out.join("scene"),
+        n => req.out.join(format!("scene-seed{n}")),
+    };
+    if !dir.join("novel_view.npz").is_file() {
+        obs.note(&format!("synthesising the scene into {}", dir.display()));
+        generate(&req.scene, &dir, &mut |_, _| {}).map_err(|source| BenchError::Scene {
+            what: "bench",
+            source: Box::new(source),
+        })?;
+    }
+    let train = Arc::new(read_dataset(&dir.join("train.npz"), Profile::Train)?);
+    let held = read_dataset(&dir.join("novel_view.npz"), Profile::Eval)?;
+    for (file, data) in [("train.npz", &*train), ("novel_view.npz", &held)] {
+        for w in &data.warnings {
+            obs.warning(&format!("{}: {w}", dir.join(file).display()));
+        }
+    }
+    let k = req.eval_images.min(held.n_images()).max(1);
+    let eval_set: Vec<usize> = (0..k).map(|i| i * held.n_images() / k).collect();
+    Ok(Scene {
+        train,
+        held,
+        eval_set,
+    })
+}
+
+/// Train `run` for `seconds` (at least 2 steps, at most `max_steps`); returns the trainer,
+/// the step times (ms) and the share of the steps' samples that ran the network. `elapsed`
+/// hears the seconds spent after every step.
+fn train_for(
+    run: RunConfig,
+    data: Arc<Dataset>,
+    seconds: f64,
+    max_steps: u64,
+    dev: &Device,
+    elapsed: &mut dyn FnMut(f64),
+) -> Result<(Trainer, Vec<f64>, f64)> {
+    let samples_per_step =
+        (run.train.rays_per_step * (run.model.n_samples + run.model.n_importance)) as f64;
+    let mut trainer = Trainer::new(run, data, dev)?;
+    let start = Instant::now();
+    let mut times = Vec::new();
+    while (times.len() < 2 || start.elapsed().as_secs_f64() < seconds)
+        && (times.len() as u64) < max_steps
+    {
+        let t = Instant::now();
+        trainer.step()?;
+        times.push(t.elapsed().as_secs_f64() * 1e3);
+        elapsed(start.elapsed().as_secs_f64());
+    }
+    let points = trainer.pass_totals().points_evaluated as f64;
+    let fraction = points / (samples_per_step * times.len().max(1) as f64);
+    Ok((trainer, times, fraction))
+}
+
+/// Mean held-out PSNR and LPIPS of `avatar` on the scene's held-out images, by
+/// [`crate::eval::evaluate`] (LPIPS `None` for images under its minimum size).
+fn heldout_scores(
+    avatar: &Avatar,
+    scene: &Scene,
+    pass: &PassOptions,
+) -> Result<(f64, Option<f64>)> {
+    let opts = EvalOptions {
+        pass: pass.clone(),
+        ..EvalOptions::quick(CHUNK)
+    };
+    let r = evaluate(
+        avatar,
+        &scene.held,
+        "novel_view",
+        &scene.eval_set,
+        &opts,
+        &mut |_, _| {},
+    )?;
+    Ok((r.psnr, (!r.lpips.is_nan()).then_some(r.lpips)))
+}
+
+/// The model that is rendered: `req.model`, or one trained in-process for
+/// `req.train_seconds`. Returns it with a description for the report.
+fn bench_model(
+    req: &BenchRequest,
+    scene: &Scene,
+    obs: &mut dyn BenchObserver,
+) -> Result<(Avatar, String)> {
+    let load = |path: &std::path::Path| {
+        Avatar::load(path, &req.device).map_err(|source| BenchError::Load {
+            path: path.to_path_buf(),
+            source: Box::new(source),
+        })
+    };
+    if let Some(p) = &req.model {
+        return Ok((load(p)?, p.display().to_string()));
+    }
+    obs.phase("training the bench model (s)", req.train_seconds as u64);
+    let (trainer, _, _) = train_for(
+        RunConfig::from_preset(req.preset),
+        scene.train.clone(),
+        req.train_seconds,
+        u64::MAX,
+        &req.device,
+        &mut |s| obs.progress(s.min(req.train_seconds) as u64, ""),
+    )?;
+    obs.phase_end();
+    let path = req.out.join("model.safetensors");
+    trainer.avatar().save(&path)?;
+    obs.note(&format!(
+        "trained {} iterations of {} in-process ({:.0} s)",
+        trainer.iteration(),
+        req.preset.name(),
+        req.train_seconds
+    ));
+    Ok((
+        load(&path)?,
+        format!("{} (trained in-process)", path.display()),
+    ))
+}
+
+/// `avatar` with an occupancy grid built from the scene's training poses (for the
+/// rendering rows of the options with the grid).
+fn grid_for(
+    req: &BenchRequest,
+    avatar: Avatar,
+    scene: &Scene,
+    obs: &mut dyn BenchObserver,
+) -> Result<Avatar> {
+    use crate::tools::occupancy::{build, BuildOptions};
+    let opts = BuildOptions {
+        config: req.occupancy.clone(),
+        poses: req.occupancy_poses.max(1),
+        ..Default::default()
+    };
+    obs.phase("building the occupancy grid (poses)", opts.poses as u64);
+    let t = Instant::now();
+    let (avatar, s) = build(avatar, &scene.train, &opts, &mut |d, _| {
+        obs.progress(d as u64, "")
+    })?;
+    obs.phase_end();
+    obs.note(&format!(
+        "built the occupancy grid of the rendered model in {:.1} s ({} poses, {} network \
+         points, {:.1} % of cells occupied)",
+        t.elapsed().as_secs_f64(),
+        s.poses,
+        s.points,
+        100.0 * s.occupied_fraction
+    ));
+    Ok(avatar)
+}
+
+/// The W×H view every option renders: the first held-out image's pose and camera,
+/// intrinsics rescaled.
+struct View {
+    poses: Poses,
+    kp3d: Joints,
+    cam: Camera,
+    opts: ImageOptions,
+    /// Pixels inside the body box (the rays traced).
+    box_rays: f64,
+}
+
+fn bench_view(req: &BenchRequest, scene: &Scene) -> Result<View> {
+    let held = &scene.held;
+    let n0 = scene.eval_set[0];
+    let (poses, kp3d) = dataset_pose(held, held.pose_row(n0)?, &req.device)?;
+    let cam0 = held.image_camera(n0)?;
+    let sx = req.res as f32 / cam0.width as f32;
+    let sy = req.res as f32 / cam0.height as f32;
+    let cam = Camera::new(
+        req.res,
+        req.res,
+        cam0.fx * sx,
+        cam0.fy * sy,
+        cam0.cx * sx,
+        cam0.cy * sy,
+        cam0.c2w,
+    )?;
+    let opts = ImageOptions {
+        chunk: CHUNK,
+        head: held.head()?,
+        device: req.device.clone(),
+        pass: PassOptions::parity(),
+    };
+    let box_rays = {
+        let b = body_box(&cam, &kp3d, opts.head);
+        let res = req.res as i64;
+        ((b.x1.min(res) - b.x0.max(0)).max(0) * (b.y1.min(res) - b.y0.max(0)).max(0)) as f64
+    };
+    Ok(View {
+        poses,
+        kp3d,
+        cam,
+        opts,
+        box_rays,
+    })
+}
+
+/// Inference per option: render time, points, peak RSS, and the quality columns.
+fn measure_inference(
+    req: &BenchRequest,
+    avatar: &Avatar,
+    scene: &Scene,
+    view: &View,
+    flops_per_point: f64,
+    rss_reset: bool,
+    obs: &mut dyn BenchObserver,
+) -> Result<Vec<OptionResult>> {
+    let opts = &req.options;
+    let samples_per_ray = {
+        let c = avatar.config();
+        (c.n_samples + c.n_importance) as f64
+    };
+    let render = |a: &Avatar, pass: PassOptions| -> Result<RenderedImage> {
+        let opts = ImageOptions {
+            pass,
+            ..view.opts.clone()
+        };
+        Ok(a.render_image(&view.poses, &view.kp3d, &view.cam, None, &opts)?)
+    };
+    let mut results: Vec<OptionResult> = Vec::new();
+    let mut parity: Option<(RenderedImage, f64)> = None;
+    obs.phase(
+        "inference per option",
+        (opts.len() * (1 + req.repeats)) as u64,
+    );
+    let mut done = 0;
+    // First each option's untimed render (the warm-up), its quality and memory.
+    for opt in opts {
+        obs.progress(done, &format!("render {}", opt.name));
+        let pass = opt.apply();
+        if rss_reset {
+            reset_peak_rss();
+        }
+        let img = render(avatar, pass.clone())?;
+        let (held_psnr, held_lpips) = heldout_scores(avatar, scene, &pass)?;
+        let peak_rss = peak_rss_mib().unwrap_or(f64::NAN);
+        let (vs_parity, max_diff) = match &parity {
+            None => (f64::INFINITY, 0.0),
+            Some((p, _)) => (
+                psnr(&img.rgb, &p.rgb)?,
+                img.rgb
+                    .iter()
+                    .zip(&p.rgb)
+                    .map(|(a, b)| (a - b).abs() as f64)
+                    .fold(0.0, f64::max),
+            ),
+        };
+        let parity_psnr = parity.as_ref().map_or(held_psnr, |p| p.1);
+        if parity.is_none() {
+            parity = Some((img, held_psnr));
+        }
+        results.push(OptionResult {
+            option: opt.clone(),
+            peak_rss_mib: peak_rss,
+            psnr_vs_parity_render: vs_parity,
+            max_abs_diff_vs_parity: max_diff,
+            heldout_psnr: held_psnr,
+            psnr_loss_vs_parity_db: parity_psnr - held_psnr,
+            heldout_lpips: held_lpips,
+            ..Default::default()
+        });
+        done += 1;
+    }
+    // Then the timed renders, round-robin over the options: a VM whose speed drifts
+    // during the run slows every option alike instead of the ones timed last.
+    let mut times = vec![Vec::new(); opts.len()];
+    for _ in 0..req.repeats {
+        for ((opt, t_opt), res) in opts.iter().zip(times.iter_mut()).zip(results.iter_mut()) {
+            obs.progress(done, &format!("time {}", opt.name));
+            let pass = opt.apply();
+            let t = Instant::now();
+            let img = render(avatar, pass)?;
+            t_opt.push(t.elapsed().as_secs_f64());
+            res.network_points_per_image = img.stats.points_evaluated;
+            done += 1;
+        }
+    }
+    for (res, t_opt) in results.iter_mut().zip(times.iter_mut()) {
+        let sec = median(t_opt);
+        let points = res.network_points_per_image as f64;
+        res.ms_per_image = sec * 1e3;
+        res.rays_per_s = view.box_rays / sec;
+        res.network_points_per_s = points / sec;
+        res.samples_per_s = view.box_rays * samples_per_ray / sec;
+        res.gflops = points * flops_per_point / sec / 1e9;
+    }
+    obs.phase_end();
+    BenchOption::reset();
+    Ok(results)
+}
+
+/// Training per option: ms per step and held-out quality after the same wall-clock budget.
+fn measure_training(
+    req: &BenchRequest,
+    cfg: &crate::Config,
+    scene: &Scene,
+    results: &mut [OptionResult],
+    rss_reset: bool,
+    obs: &mut dyn BenchObserver,
+) -> Result<()> {
+    let dev = &req.device;
+    let budget = req.budget_seconds.max(0.0);
+    obs.phase("training per option", req.options.len() as u64);
+    for (k, (res, opt)) in results.iter_mut().zip(&req.options).enumerate() {
+        obs.progress(k as u64, &format!("train {}", opt.name));
+        let mut run = RunConfig::from_preset(req.preset);
+        run.model = cfg.clone();
+        opt.configure(&mut run, &req.occupancy);
+        let samples_per_step =
+            (run.train.rays_per_step * (cfg.n_samples + cfg.n_importance)) as f64;
+        if rss_reset {
+            reset_peak_rss();
+        }
+        let (seconds, max_steps) = if budget > 0.0 {
+            (budget, u64::MAX)
+        } else {
+            (0.0, 3)
+        };
+        let (trainer, mut times, fraction) = train_for(
+            run,
+            scene.train.clone(),
+            seconds,
+            max_steps,
+            dev,
+            &mut |_| {},
+        )?;
+        if times.len() > 1 {
+            times.remove(0); // warm-up
+        }
+        res.ms_per_step = median(&mut times);
+        res.train_evaluated_fraction = fraction;
+        res.train_gflops =
+            samples_per_step * fraction * flops::per_point(cfg) * flops::TRAIN_FACTOR
+                / (res.ms_per_step * 1e6);
+        res.peak_rss_mib = res.peak_rss_mib.max(peak_rss_mib().unwrap_or(f64::NAN));
+        if budget > 0.0 {
+            let pass = opt.apply();
+            let (p, l) = heldout_scores(trainer.avatar(), scene, &pass)?;
+            res.budget_heldout_psnr = Some(p);
+            res.budget_heldout_lpips = l;
+            res.budget_iterations = Some(trainer.iteration());
+        }
+    }
+    obs.phase_end();
+    BenchOption::reset();
+    Ok(())
+}
+
+/// Fraction of (render chunk, joint) pairs with a zero window on every coarse sample.
+fn inactive_joint_fraction(avatar: &Avatar, view: &View) -> Result<f64> {
+    let (cam, kp3d, poses, opts) = (&view.cam, &view.kp3d, &view.poses, &view.opts);
+    let pbox = body_box(cam, kp3d, opts.head);
+    let (w, h) = (cam.width as i64, cam.height as i64);
+    let pixels: Vec<(usize, usize)> = (pbox.y0.max(0)..pbox.y1.min(h))
+        .flat_map(|y| (pbox.x0.max(0)..pbox.x1.min(w)).map(move |x| (x as usize, y as usize)))
+        .collect();
+    let scales = avatar.axis_scale()?.detach();
+    let align: Vec<f32> = avatar.tensors()["pts_embedder.transforms"]
+        .flatten_all()?
+        .to_vec1()?;
+    let skts: Vec<f32> = poses.skts.flatten_all()?.to_vec1()?;
+    let test = crate::render::cull::WindowTest::new(
+        &align,
+        &skts,
+        &scales.flatten_all()?.to_vec1::<f32>()?,
+        avatar.config().window_alpha,
+        avatar.config().window_beta,
+        0.0,
+    )?;
+    let (mut inactive, mut total) = (0usize, 0usize);
+    let origin = cam.origin();
+    for chunk in pixels.chunks(opts.chunk) {
+        let c = chunk.len();
+        let o: Vec<f32> = chunk.iter().flat_map(|_| origin).collect();
+        let d: Vec<f32> = chunk
+            .iter()
+            .flat_map(|&(x, y)| cam.ray_dir(x, y, false))
+            .collect();
+        let samples = avatar.ray_caster().cast(
+            &Tensor::from_vec(o, (c, 3), &opts.device)?,
+            &Tensor::from_vec(d, (c, 3), &opts.device)?,
+            &poses.cyls,
+            &poses.skts,
+            &scales,
+        )?;
+        let pts: Vec<f32> = samples.pts.flatten_all()?.to_vec1()?;
+        let active = test.active_joints(&pts, c, avatar.ray_caster().n_samples())?;
+        inactive += active[0].iter().filter(|a| !**a).count();
+        total += 24;
+    }
+    Ok(inactive as f64 / total.max(1) as f64)
+}

@@ -1,0 +1,157 @@
+//! The configurations `pma bench` compares with parity.
+//!
+//! A new kind of option is one more field of [`BenchOption`] (it then appears in every row
+//! of `bench.json`), set in [`BenchOption::apply`] and [`BenchOption::configure`], and the
+//! rows that use it in [`options`].
+
+use serde::{Deserialize, Serialize};
+
+use crate::network::occupancy::OccupancyConfig;
+use crate::render::{Culling, PassOptions, SampleFill};
+use crate::train::RunConfig;
+
+/// One configuration: how rays and samples are culled, whether the occupancy grid skips
+/// samples, and which sine runs.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct BenchOption {
+    pub name: String,
+    pub culling: Culling,
+    /// The occupancy grid (rendering: the bench model's; training: one built and refreshed
+    /// during the run).
+    #[serde(default)]
+    pub occupancy: bool,
+    /// The vectorised sine (`--fast-sine`) instead of libm's.
+    #[serde(default)]
+    pub fast_sine: bool,
+}
+
+impl BenchOption {
+    /// No culling, libm's sine: what the reference computes.
+    pub fn parity() -> Self {
+        Self {
+            name: "parity".into(),
+            ..Default::default()
+        }
+    }
+
+    /// The pass options of this option's renders.
+    pub fn pass(&self) -> PassOptions {
+        PassOptions {
+            culling: self.culling.clone(),
+            occupancy: self.occupancy,
+        }
+    }
+
+    /// Render with this option: sets the sine (a process-wide switch) and returns the
+    /// pass options.
+    pub fn apply(&self) -> PassOptions {
+        crate::compute::fast_sine::set_enabled(self.fast_sine);
+        self.pass()
+    }
+
+    /// Train with this option: `run`'s culling, a grid of `grid`'s settings when the option
+    /// uses one, and the sine (a process-wide switch).
+    pub fn configure(&self, run: &mut RunConfig, grid: &OccupancyConfig) {
+        crate::compute::fast_sine::set_enabled(self.fast_sine);
+        run.train.culling = self.culling.clone();
+        run.train.occupancy = self.occupancy.then(|| grid.clone());
+    }
+
+    /// Back to parity's process-wide settings (after the last option).
+    pub fn reset() {
+        crate::compute::fast_sine::set_enabled(false);
+    }
+}
+
+/// Parity, ray culling, ray and sample culling at each of `thresholds`, then the vectorised
+/// sine alone and with the last (most aggressive) culling option; with `occupancy` the grid
+/// alone and with that culling option.
+pub fn options(thresholds: &[f64], occupancy: bool) -> Vec<BenchOption> {
+    let mut v = vec![
+        BenchOption::parity(),
+        BenchOption {
+            name: "rays".into(),
+            culling: Culling {
+                rays: true,
+                ..Default::default()
+            },
+            ..BenchOption::parity()
+        },
+    ];
+    for &t in thresholds {
+        v.push(BenchOption {
+            name: format!("rays+samples@{t:e}"),
+            culling: Culling {
+                rays: true,
+                sample_threshold: Some(t),
+                sample_fill: SampleFill::Network,
+            },
+            ..BenchOption::parity()
+        });
+    }
+    let last = v.last().cloned().expect("parity is always there");
+    v.push(BenchOption {
+        name: "fast-sine".into(),
+        fast_sine: true,
+        ..BenchOption::parity()
+    });
+    if last.name != "rays" {
+        v.push(BenchOption {
+            name: format!("{}+fast-sine", last.name),
+            fast_sine: true,
+            ..last.clone()
+        });
+    }
+    if occupancy {
+        v.push(BenchOption {
+            name: "occupancy".into(),
+            occupancy: true,
+            ..BenchOption::parity()
+        });
+        v.push(BenchOption {
+            name: format!("{}+occupancy", last.name),
+            occupancy: true,
+            ..last
+        });
+    }
+    v
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parity_first_then_culling_then_the_sine() {
+        let names: Vec<String> = options(&[0.0, 1e-2], false)
+            .into_iter()
+            .map(|o| o.name)
+            .collect();
+        assert_eq!(
+            names,
+            [
+                "parity",
+                "rays",
+                "rays+samples@0e0",
+                "rays+samples@1e-2",
+                "fast-sine",
+                "rays+samples@1e-2+fast-sine"
+            ]
+        );
+        // Without thresholds the last culling option is "rays", which gets no sine twin.
+        let names: Vec<String> = options(&[], false).into_iter().map(|o| o.name).collect();
+        assert_eq!(names, ["parity", "rays", "fast-sine"]);
+        let o = options(&[1e-4], false);
+        assert_eq!(o[2].culling.sample_threshold, Some(1e-4));
+        assert_eq!(o[4].culling, o[2].culling);
+        assert!(o[4].fast_sine && !o[2].fast_sine);
+        assert!(o.iter().all(|o| !o.occupancy));
+        // The grid alone, then with the last culling option (without the sine).
+        let o = options(&[1e-4], true);
+        let names: Vec<&str> = o[5..].iter().map(|o| o.name.as_str()).collect();
+        assert_eq!(names, ["occupancy", "rays+samples@1e-4+occupancy"]);
+        assert!(o[5].occupancy && o[5].culling == Culling::default() && !o[5].fast_sine);
+        assert!(o[6].occupancy && o[6].culling == o[2].culling && !o[6].fast_sine);
+        assert!(o[6].pass().occupancy && o[6].pass().culling == o[2].culling);
+    }
+}
