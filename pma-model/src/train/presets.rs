@@ -369,8 +369,19 @@ impl RunConfig {
             Some(toml::Value::String(s)) => s.parse()?,
             Some(v) => return Err(bad(format!("`preset` must be a string, found {v}"))),
         };
-        let model_over = take_table(&mut root, "model")?;
-        let train_over = take_table(&mut root, "train")?;
+        let mut model_over = take_table(&mut root, "model")?;
+        let mut train_over = take_table(&mut root, "train")?;
+        // Run directories written before culling became a training option keep it under
+        // [model]; they still resume.
+        if let Some(c) = model_over.remove("culling") {
+            if train_over.contains_key("culling") {
+                return Err(bad(
+                    "`culling` is given under both [model] and [train]; keep [train.culling]"
+                        .into(),
+                ));
+            }
+            train_over.insert("culling".into(), c);
+        }
         if let Some(k) = root.keys().next() {
             return Err(bad(format!(
                 "unknown top-level key `{k}` (expected preset, [model], [train])"
@@ -599,6 +610,17 @@ mod tests {
             run.train.images_per_step,
             TrainConfig::cpu_small().images_per_step
         );
+    }
+
+    #[test]
+    fn culling_under_model_is_read_as_the_training_culling() {
+        let old = "preset = \"tiny\"\n[model.culling]\nrays = true\nsample_threshold = 0.2\n";
+        let run = RunConfig::from_toml_str(old).unwrap();
+        assert!(run.train.culling.rays);
+        assert_eq!(run.train.culling.sample_threshold, Some(0.2));
+        let both = format!("{old}[train.culling]\nrays = true\n");
+        let e = RunConfig::from_toml_str(&both).unwrap_err().to_string();
+        assert!(e.contains("both [model] and [train]"), "{e}");
     }
 
     #[test]
