@@ -43,10 +43,7 @@ fn loads_reference_export_and_infers_config() {
         .filter(|t| t.kind == TensorKind::Param)
         .map(|t| t.shape.iter().product::<usize>())
         .sum();
-    assert_eq!(
-        n_params, 3_111_524,
-        "golden README parameter count"
-    );
+    assert_eq!(n_params, 3_111_524, "golden README parameter count");
 }
 
 #[test]
