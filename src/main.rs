@@ -66,6 +66,8 @@ enum Command {
     Render(cli::render::Args),
     /// Extract a coloured mesh (PLY) of a trained avatar in one pose by marching cubes.
     Mesh(cli::mesh::Args),
+    /// Occupancy grids: build one for a trained model (`build`).
+    Occupancy(cli::occupancy::Args),
     /// Parity mode against each culling option: speed, memory and error side by side.
     #[cfg(feature = "train")]
     Bench(cli::bench::Args),
@@ -120,6 +122,7 @@ fn run(command: Command) -> anyhow::Result<()> {
         Command::Ablate(a) => cli::ablate::run(a),
         Command::Render(a) => cli::render::run(a),
         Command::Mesh(a) => cli::mesh::run(a),
+        Command::Occupancy(a) => cli::occupancy::run(a),
         #[cfg(feature = "train")]
         Command::Bench(a) => cli::bench::run(a),
         Command::CheckStability(a) => cli::check_stability::run(a),

@@ -1,8 +1,10 @@
-//! `pma-infer MODEL OUT.png [SIZE] [--device D]`: the smallest program that uses a trained avatar.
+//! `pma-infer MODEL OUT.png [SIZE] [--device D] [--occupancy]`: the smallest program that uses
+//! a trained avatar.
 //!
 //! Loads a pma checkpoint and renders the avatar's rest pose, standing upright (head −y),
 //! from the front at SIZE×SIZE pixels (default 256) on a black background, with normalised
-//! view directions (as `pma render`). It links `pma-model` without its `train` feature and
+//! view directions (as `pma render`). `--occupancy` skips the samples in the empty cells of
+//! the model's occupancy grid (the model must have one). It links `pma-model` without its `train` feature and
 //! parses its arguments by hand, so it pulls in no optimiser, loss, CLI or progress-bar code.
 
 use std::path::{Path, PathBuf};
@@ -14,9 +16,10 @@ use pma_data::cylinder::HeadDir;
 use pma_data::fsio::{parent_dir, AtomicFile};
 use pma_model::render::camera_path::{facing, framing_camera, load_avatar, ViewDirs};
 use pma_model::render::image::ImageOptions;
+use pma_model::render::PassOptions;
 
-const USAGE: &str =
-    "usage: pma-infer MODEL.safetensors OUT.png [SIZE] [--device cpu|cuda|cuda:N|metal]";
+const USAGE: &str = "usage: pma-infer MODEL.safetensors OUT.png [SIZE] \
+                     [--device cpu|cuda|cuda:N|metal] [--occupancy]";
 
 type BoxError = Box<dyn std::error::Error>;
 
@@ -41,6 +44,8 @@ struct Args {
     size: usize,
     /// `--device` as given (default cpu); opened in `run` so parsing stays side-effect free.
     device: String,
+    /// `--occupancy`: skip the samples in empty cells of the model's grid.
+    occupancy: bool,
 }
 
 fn parse(mut args: Vec<String>) -> Result<Args, BoxError> {
@@ -57,8 +62,16 @@ fn parse(mut args: Vec<String>) -> Result<Args, BoxError> {
             None => return Err(format!("--device needs a value\n{USAGE}").into()),
         };
     }
+    let occupancy = match args.iter().position(|a| a == "--occupancy") {
+        Some(i) => {
+            args.remove(i);
+            true
+        }
+        None => false,
+    };
     let mut a = parse_positional(&args)?;
     a.device = device;
+    a.occupancy = occupancy;
     Ok(a)
 }
 
@@ -73,6 +86,7 @@ fn parse_positional(args: &[String]) -> Result<Args, BoxError> {
             out: out.into(),
             size: 256,
             device: String::new(),
+            occupancy: false,
         }),
         [model, out, size] => {
             let size: usize = size
@@ -85,6 +99,7 @@ fn parse_positional(args: &[String]) -> Result<Args, BoxError> {
                 out: out.into(),
                 size,
                 device: String::new(),
+                occupancy: false,
             })
         }
         _ => Err(USAGE.into()),
@@ -106,6 +121,10 @@ fn run(args: &Args) -> Result<(), BoxError> {
     // Ray tensors must live on the model's device.
     let opts = ImageOptions {
         device: device.clone(),
+        pass: PassOptions {
+            occupancy: args.occupancy,
+            ..PassOptions::default()
+        },
         ..ImageOptions::default()
     };
     let img = avatar.render_image(&poses, &kp3d, &cam, None, &opts)?;

@@ -52,6 +52,43 @@ fn renders_one_png_and_rejects_bad_input() {
     assert!(lit > 0 && lit < 24 * 24, "{lit} non-black pixels");
     assert_ne!(img.get_pixel(12, 12).0, [0, 0, 0], "the body at the centre");
 
+    // `--occupancy` needs a grid; with a never-refreshed one (every cell occupied) the
+    // render is the same image.
+    let out = infer(&[
+        model.to_str().unwrap(),
+        png.to_str().unwrap(),
+        "24",
+        "--occupancy",
+    ]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && err.contains("no occupancy grid"),
+        "{err}"
+    );
+    let gridded = tmp.path().join("grid.safetensors");
+    let grid = pma_model::network::occupancy::OccupancyGrid::new(Default::default()).unwrap();
+    Avatar::load(&model, &Device::Cpu)
+        .unwrap()
+        .with_occupancy(Some(grid))
+        .save(&gridded)
+        .unwrap();
+    let png2 = tmp.path().join("grid.png");
+    let out = infer(&[
+        gridded.to_str().unwrap(),
+        png2.to_str().unwrap(),
+        "24",
+        "--occupancy",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert_eq!(
+        image::open(&png2).unwrap().to_rgb8().into_raw(),
+        img.clone().into_raw()
+    );
+
     for (args, needle) in [
         (vec![model.to_str().unwrap()], "usage"),
         (

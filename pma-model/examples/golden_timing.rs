@@ -38,10 +38,22 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let (mut fwd, mut bwd) = (Vec::new(), Vec::new());
     for i in 0..7 {
         let t = Instant::now();
-        let out = avatar.forward(&rays, &poses, &mut Mode::Train(None), None)?;
+        let out = avatar.forward(
+            &rays,
+            &poses,
+            &mut Mode::Train(None),
+            &Default::default(),
+            None,
+        )?;
         let f = t.elapsed().as_secs_f64();
         let t = Instant::now();
-        let out2 = avatar.forward(&rays, &poses, &mut Mode::Train(None), None)?;
+        let out2 = avatar.forward(
+            &rays,
+            &poses,
+            &mut Mode::Train(None),
+            &Default::default(),
+            None,
+        )?;
         let loss = training_loss(&out2, &target, &LossWeights::default())?;
         loss.total.backward()?;
         let b = t.elapsed().as_secs_f64();

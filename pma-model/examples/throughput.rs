@@ -93,7 +93,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let mut times = Vec::new();
         for i in 0..=repeats {
             let t = Instant::now();
-            avatar.render_rays(&batch.rays, &batch.poses)?;
+            avatar.render_rays(&batch.rays, &batch.poses, &Default::default())?;
             if i > 0 {
                 times.push(t.elapsed().as_secs_f64());
             }

@@ -8,6 +8,7 @@ mod train_support;
 use candle_core::{Device, Tensor};
 use pma_model::compute::parallel::{set_workers, workers};
 use pma_model::render::avatar::Avatar;
+use pma_model::render::PassOptions;
 use pma_model::train::{BatchSource, DatasetSource, FixedBatch, Trainer};
 use train_support::{first_batch, tiny_run, tiny_scene};
 
@@ -62,7 +63,9 @@ fn worker_count_does_not_change_results() {
     let avatar = Avatar::new(run.model.clone(), &rest, 1, &Device::Cpu).unwrap();
     let render = |w: usize| {
         set_workers(w);
-        let out = avatar.render_rays(&batch.rays, &batch.poses).unwrap();
+        let out = avatar
+            .render_rays(&batch.rays, &batch.poses, &PassOptions::parity())
+            .unwrap();
         (flat(&out.fine.rgb), flat(&out.fine.acc))
     };
     let (rgb1, acc1) = render(1);
@@ -72,17 +75,16 @@ fn worker_count_does_not_change_results() {
     assert_eq!(acc1, acc3, "accumulated opacity");
 
     // The culled route sizes its network calls by the worker count: still the same result.
-    let mut avatar = avatar;
-    avatar
-        .set_culling(pma_model::network::config::Culling {
-            rays: true,
-            sample_threshold: Some(0.2),
-            sample_fill: pma_model::network::config::SampleFill::Network,
-        })
-        .unwrap();
+    let culled = PassOptions::culled(pma_model::render::Culling {
+        rays: true,
+        sample_threshold: Some(0.2),
+        sample_fill: pma_model::render::SampleFill::Network,
+    });
     let render = |w: usize| {
         set_workers(w);
-        let out = avatar.render_rays(&batch.rays, &batch.poses).unwrap();
+        let out = avatar
+            .render_rays(&batch.rays, &batch.poses, &culled)
+            .unwrap();
         (flat(&out.fine.rgb), flat(&out.raw))
     };
     let (rgb1, raw1) = render(1);

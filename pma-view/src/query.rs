@@ -180,6 +180,7 @@ pub fn render_request(
             "h",
             "cull_rays",
             "cull_samples",
+            "occupancy",
             "score",
         ],
     )?;
@@ -220,6 +221,7 @@ pub fn render_request(
         pass: PassOptions {
             cull_rays: flag(&q, "cull_rays", true)?,
             cull_samples: flag(&q, "cull_samples", true)?,
+            occupancy: flag(&q, "occupancy", false)?,
         },
         score: flag(&q, "score", false)?,
     })
@@ -239,8 +241,9 @@ mod tests {
         assert_eq!(r.pose, 3);
         assert_eq!(r.cam, CamSpec::Dataset(1));
         assert_eq!((r.width, r.height), (32, 24));
-        assert!(!r.pass.cull_rays && r.pass.cull_samples);
+        assert!(!r.pass.cull_rays && r.pass.cull_samples && !r.pass.occupancy);
         assert!(r.score);
+        assert!(req("cam=0&occupancy=1").unwrap().pass.occupancy);
         // URLSearchParams encodes commas.
         let r = req("pose=0&eye=0%2C-1%2C3&target=0,0.5,0&fov=30").unwrap();
         assert_eq!(

@@ -1,8 +1,8 @@
 //! The avatar behind the server and how one frame is rendered.
 //!
-//! [`Renderer`] owns the avatar and is used by one thread only, so per-pass options
-//! ([`PassOptions`]) reach the avatar in one place ([`Renderer::prepared`]) without a lock.
-//! It reloads the model when its file changes (a training run writing a new checkpoint).
+//! [`Renderer`] owns the avatar and is used by one thread only; the page's per-pass switches
+//! ([`PassOptions`]) become the pass options of each frame's render. It reloads the model
+//! when its file changes (a training run writing a new checkpoint).
 //!
 //! A frame is one call of `pma_model::render::image::render_image`, the renderer every
 //! command uses, with a chunk renderer that first asks whether the frame is still wanted:
@@ -17,10 +17,10 @@ use pma_data::interrupt::Interrupted;
 use pma_model::compute::numerics::Numerics;
 use pma_model::error::ModelError;
 use pma_model::eval::{quantize, score_image, PsnrRegion};
-use pma_model::network::config::{Culling, SampleFill};
 use pma_model::render::avatar::{Avatar, Mode, Rays};
 use pma_model::render::camera_path::{load_avatar, look_at, ViewDirs};
 use pma_model::render::image::{render_image, ChunkRender, ImageOptions, RenderedImage};
+use pma_model::render::{Culling, SampleFill};
 use serde::Serialize;
 
 use crate::query::{CamSpec, RenderRequest};
@@ -36,6 +36,9 @@ pub struct PassOptions {
     /// Samples outside every joint's window (w^p = 0 exactly) get the network's far-away
     /// output instead of running it (exact: the image does not change).
     pub cull_samples: bool,
+    /// Samples in cells the model's occupancy grid marks empty get the far-away output too
+    /// (approximate; needs a model with a grid).
+    pub occupancy: bool,
 }
 
 /// A switch as the page lists it (`GET /api/info`); its `id` is the render request's
@@ -64,14 +67,26 @@ pub const SWITCHES: &[Switch] = &[
                does not change)",
         on: true,
     },
+    Switch {
+        id: "occupancy",
+        label: "skip empty cells",
+        help: "samples in cells the model's occupancy grid marks empty skip the network \
+               (approximate; the model needs a grid: pma train --occupancy or \
+               pma occupancy build)",
+        on: false,
+    },
 ];
 
 impl PassOptions {
-    fn culling(&self) -> Culling {
-        Culling {
-            rays: self.cull_rays,
-            sample_threshold: self.cull_samples.then_some(0.0),
-            sample_fill: SampleFill::Network,
+    /// The avatar's pass options for these switches.
+    fn model_options(&self) -> pma_model::render::PassOptions {
+        pma_model::render::PassOptions {
+            culling: Culling {
+                rays: self.cull_rays,
+                sample_threshold: self.cull_samples.then_some(0.0),
+                sample_fill: SampleFill::Network,
+            },
+            occupancy: self.occupancy,
         }
     }
 }
@@ -158,8 +173,6 @@ pub struct Renderer {
     stamp: Option<Stamp>,
     /// Models loaded so far (1 after [`Renderer::load`]).
     version: u64,
-    /// The per-pass options the avatar is set up for.
-    pass: Option<PassOptions>,
     /// Why the newest model file could not be loaded (the previous model stays).
     reload_error: Option<String>,
 }
@@ -198,6 +211,7 @@ pub struct FrameStats {
     pub samples: u64,
     pub cull_rays: bool,
     pub cull_samples: bool,
+    pub occupancy: bool,
     /// Centre of the body (the camera's turning point).
     pub centre: [f32; 3],
     /// The dataset image this view is, when scored.
@@ -253,7 +267,6 @@ impl Renderer {
             avatar,
             stamp,
             version: 1,
-            pass: None,
             reload_error: None,
         })
     }
@@ -278,23 +291,11 @@ impl Renderer {
         match load_avatar(&file, &self.device, self.dirs).map(|a| a.with_numerics(self.numerics)) {
             Ok(a) => {
                 self.avatar = a;
-                self.pass = None;
                 self.version += 1;
                 self.reload_error = None;
             }
             Err(e) => self.reload_error = Some(format!("{}: {e}", file.display())),
         }
-    }
-
-    /// The avatar set up for `pass`: the one place where the page's switches reach it.
-    // pma-model's error carries candle's (large) one.
-    #[allow(clippy::result_large_err)]
-    fn prepared(&mut self, pass: &PassOptions) -> Result<&Avatar, ModelError> {
-        if self.pass != Some(*pass) {
-            self.avatar.set_culling(pass.culling())?;
-            self.pass = Some(*pass);
-        }
-        Ok(&self.avatar)
     }
 
     /// Render `req`. `superseded` is asked before every chunk of rays; once it says yes the
@@ -326,10 +327,10 @@ impl Renderer {
         let reload_error = self.reload_error.clone();
         let chunk = self.chunk;
         let device = self.device.clone();
-        let avatar = self.prepared(&req.pass).map_err(|e| failed(&e))?;
+        let avatar = &self.avatar;
+        let pass = req.pass.model_options();
         let item = scene.pose(req.pose, avatar).map_err(|e| failed(&e))?;
         let start = Instant::now();
-        let before = avatar.points_evaluated();
         let mut rays = 0usize;
         let result = (|| -> Result<RenderedImage, ModelError> {
             let pose = avatar.pose_features(&item.poses, None)?;
@@ -344,18 +345,26 @@ impl Renderer {
                     bgs: Some(bg.clone()),
                     framecodes: vec![-1; n],
                 };
-                let out = avatar.forward_with_pose(&batch, &item.poses, &pose, &mut Mode::Infer)?;
+                let out = avatar.forward_with_pose(
+                    &batch,
+                    &item.poses,
+                    &pose,
+                    &mut Mode::Infer,
+                    &pass,
+                )?;
                 rays += n;
                 Ok(ChunkRender {
                     rgb: out.fine.rgb,
                     acc: out.fine.acc,
                     disp: out.fine.disp,
+                    stats: out.stats,
                 })
             };
             let opts = ImageOptions {
                 chunk,
                 head: scene.head(),
                 device,
+                pass: pass.clone(),
             };
             render_image(&mut chunk_fn, &cam, &item.kp3d, None, &opts)
         })();
@@ -366,7 +375,7 @@ impl Renderer {
             Err(e) => return Err(failed(&e)),
         };
         let secs = start.elapsed().as_secs_f64();
-        let samples = avatar.points_evaluated() - before;
+        let samples = img.stats.points_evaluated;
         let scores = match image {
             Some(n) => Some(score(scene, n, &img).map_err(|e| failed(&e))?),
             None => None,
@@ -384,6 +393,7 @@ impl Renderer {
                 samples,
                 cull_rays: req.pass.cull_rays,
                 cull_samples: req.pass.cull_samples,
+                occupancy: req.pass.occupancy,
                 centre: scene.centre(&item.kp3d),
                 image,
                 scores,

@@ -1,4 +1,5 @@
-//! `pma bench`: parity against each speed option (culling thresholds, the vectorised sine),
+//! `pma bench`: parity against each speed option (culling thresholds, the vectorised sine,
+//! with `--occupancy` the occupancy grid alone and with the last culling option),
 //! side by side in one process: render and training speed, memory, the render's difference
 //! from parity's and held-out quality (`pma_model::bench::measure` measures; see its docs
 //! for how). Writes `bench.json` and `error_vs_time.png`.
@@ -49,6 +50,22 @@ pub struct Args {
     /// Sample thresholds to compare (each with ray culling on).
     #[arg(long, value_delimiter = ',', default_value = "0,1e-6,1e-4,1e-2")]
     pub thresholds: Vec<f64>,
+    /// Add the occupancy-grid rows: the grid alone and with the last threshold's culling.
+    /// Rendering uses the model's grid (built from the scene's training poses when it has
+    /// none); training builds and refreshes one during each run.
+    #[arg(long)]
+    pub occupancy: bool,
+    /// Training poses the rendered model's grid is built over when it has none (each costs
+    /// one network point per cell: 24 joints × ~28,000 cells).
+    #[arg(long, default_value_t = 4)]
+    pub occupancy_poses: usize,
+    /// Training rows with the grid: steps without it before it is built and used.
+    #[arg(long, default_value_t = 200)]
+    pub occupancy_warmup: u64,
+    /// Seed of the synthetic bench scene (colours, glyphs, camera ring): another seed is a
+    /// scene the options were not tuned on.
+    #[arg(long, default_value_t = 0)]
+    pub scene_seed: u64,
     /// Smallest run that exercises everything (tests): tiny preset, 32×32, one repeat,
     /// 2 s budgets, a 32-pixel scene.
     #[arg(long)]
@@ -113,7 +130,10 @@ pub fn run(mut args: Args) -> anyhow::Result<()> {
         return account::run(&args, &dev);
     }
     let preset: Preset = args.preset.parse()?;
-    let mut scene = pma_data::synth::SynthConfig::default();
+    let mut scene = pma_data::synth::SynthConfig {
+        seed: args.scene_seed,
+        ..Default::default()
+    };
     if args.quick {
         scene.res = 32;
         scene.frames = 8;
@@ -130,7 +150,12 @@ pub fn run(mut args: Args) -> anyhow::Result<()> {
         res: args.res,
         repeats: args.repeats,
         eval_images: args.eval_images,
-        options: options(&args.thresholds),
+        options: options(&args.thresholds, args.occupancy),
+        occupancy: pma_model::network::occupancy::OccupancyConfig {
+            warmup_steps: args.occupancy_warmup,
+            ..Default::default()
+        },
+        occupancy_poses: args.occupancy_poses,
         device: dev,
         numerics: super::numerics(),
     };

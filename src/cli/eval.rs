@@ -14,8 +14,8 @@ use pma_data::dataset::Profile;
 use pma_model::eval::{
     evaluate, mean_foreground_colour, resolve_split, split_images, spread, EvalOptions, EvalReport,
 };
-use pma_model::network::config::Culling;
 use pma_model::render::avatar::Avatar;
+use pma_model::render::PassOptions;
 
 use super::{read_dataset, write_json};
 
@@ -60,7 +60,7 @@ pub struct Args {
     #[arg(long)]
     pub train_data: Option<PathBuf>,
     #[command(flatten)]
-    pub cull: Culling,
+    pub pass: PassOptions,
     /// Compute device: cpu, cuda, cuda:N, metal (cuda/metal need a binary built with that
     /// feature).
     #[arg(long, default_value = "cpu")]
@@ -104,10 +104,9 @@ pub fn run(mut args: Args) -> anyhow::Result<()> {
             .output_dir("--out", &out, ["eval.json"])
             .output_opt("--freq-png", args.freq_png.as_deref()),
     )?;
-    let mut avatar = Avatar::load(&args.model, &device)
+    let avatar = Avatar::load(&args.model, &device)
         .with_context(|| format!("loading model {}", args.model.display()))?
         .with_numerics(super::numerics());
-    avatar.set_culling(args.cull.clone())?;
     let data = read_dataset(&data_path, Profile::Eval)?;
     let images = split_images(&data, &data_path, &split)?;
     let images = spread(&images, args.max_images.unwrap_or(usize::MAX));
@@ -135,6 +134,7 @@ pub fn run(mut args: Args) -> anyhow::Result<()> {
         png_dir: Some(out.clone()),
         pngs: args.pngs,
         baseline_colour: baseline,
+        pass: args.pass.clone(),
     };
     let report = evaluate(&avatar, &data, &split.name, &images, &opts, &mut |_, _| {})?;
     warn_empty_masks(&report, &data.source);

@@ -89,7 +89,8 @@ pub fn run(mut args: Args) -> Result<()> {
             Mode::Infer
         }
     };
-    let out = avatar.forward(&input.rays, &input.poses, &mut opts, None)?;
+    let parity = pma_model::render::PassOptions::parity();
+    let out = avatar.forward(&input.rays, &input.poses, &mut opts, &parity, None)?;
     if args.time > 0 {
         time_forward(&args, &avatar, &input, &mut opts, &dev)?;
     }
@@ -130,7 +131,8 @@ fn time_forward(
         // must not start before earlier work ends nor stop before this work does.
         dev.synchronize()?;
         let t0 = std::time::Instant::now();
-        let o = avatar.forward(&input.rays, &input.poses, opts, None)?;
+        let parity = pma_model::render::PassOptions::parity();
+        let o = avatar.forward(&input.rays, &input.poses, opts, &parity, None)?;
         dev.synchronize()?;
         secs.push(t0.elapsed().as_secs_f64());
         drop(o);

@@ -57,6 +57,10 @@ pub struct Args {
     /// Evaluate the network outside the part boxes too.
     #[arg(long)]
     pub no_box_mask: bool,
+    /// Points in cells the model's occupancy grid marks empty get density 0 without the
+    /// network (the model needs a grid: `pma train --occupancy` or `pma occupancy build`).
+    #[arg(long)]
+    pub occupancy: bool,
     /// Colour with the reference's raw view directions (see `pma render --reference-dirs`).
     #[arg(long)]
     pub reference_dirs: bool,
@@ -103,6 +107,9 @@ pub fn run(mut args: Args) -> anyhow::Result<()> {
     let (poses, kp3d) = avatar.pose_from_bones(&bones, root)?;
     let mut field = AvatarField::new(&avatar, &poses)?;
     field.mask_outside_boxes = !args.no_box_mask;
+    if args.occupancy {
+        field = field.skip_empty_cells(&poses)?;
+    }
     let (lo, hi) = field.bounds();
     let grid = Grid::covering(lo, hi, args.res, 2)?;
 

@@ -15,6 +15,7 @@ pub mod forward;
 pub mod inspect;
 pub mod mesh;
 pub mod metrics;
+pub mod occupancy;
 pub mod plot;
 pub mod progress;
 pub mod render;

@@ -16,9 +16,9 @@ use anyhow::Context as _;
 use pma_data::cylinder::HeadDir;
 use pma_data::dataset::Profile;
 use pma_model::eval::{read_split, SplitData};
-use pma_model::network::config::Culling;
 use pma_model::render::avatar::Avatar;
 use pma_model::render::camera_path::{load_avatar, parse_resolution, ViewDirs};
+use pma_model::render::PassOptions;
 use pma_model::tools::retarget::{MotionClip, RootScale};
 use pma_model::tools::video::{
     dataset_items, frame_file, motion_items, render_video, shot_rays, shots, CameraMode,
@@ -98,7 +98,7 @@ pub struct Args {
     #[arg(long)]
     pub quiet: bool,
     #[command(flatten)]
-    pub cull: Culling,
+    pub pass: PassOptions,
     /// Compute device: cpu, cuda, cuda:N, metal (cuda/metal need a binary built with that
     /// feature).
     #[arg(long, default_value = "cpu")]
@@ -122,10 +122,9 @@ pub fn run(mut args: Args) -> anyhow::Result<()> {
     } else {
         ViewDirs::Normalized
     };
-    let mut avatar = load_avatar(&args.model, &device, dirs)
+    let avatar = load_avatar(&args.model, &device, dirs)
         .with_context(|| format!("loading model {}", args.model.display()))?
         .with_numerics(super::numerics());
-    avatar.set_culling(args.cull.clone())?;
 
     let data = match &args.data {
         Some(d) => {
@@ -195,6 +194,7 @@ pub fn run(mut args: Args) -> anyhow::Result<()> {
         device,
         gif_fps: (!args.no_gif).then_some(args.fps),
         strip: args.strip,
+        pass: args.pass.clone(),
     };
     let total: u64 = shots
         .iter()

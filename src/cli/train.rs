@@ -59,10 +59,16 @@ pub struct Args {
     #[arg(long, value_enum)]
     pub variant: Option<pma_model::network::config::Variant>,
     /// Culling in training (docs/numerics.md, "Empty rays and culling"): overrides the
-    /// config's `[model.culling]` when `--cull-rays` or `--cull-samples` is given. Not for a
+    /// config's `[train.culling]` when `--cull-rays` or `--cull-samples` is given. Not for a
     /// resumed run (its culling is in its config).
     #[command(flatten)]
-    pub cull: pma_model::network::config::Culling,
+    pub cull: pma_model::render::Culling,
+    /// Build an occupancy grid during training, refresh it every few steps and skip the
+    /// samples in its empty cells after the warm-up (`[train.occupancy]` sets its
+    /// resolution, threshold and schedule); it is saved with every checkpoint. Not for a
+    /// resumed run.
+    #[arg(long)]
+    pub occupancy: bool,
     /// No progress bar (log lines only).
     #[arg(long)]
     pub quiet: bool,
@@ -98,9 +104,19 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     if !args.cull.is_off() {
         match run.as_mut() {
-            Some(run) => run.model.culling = args.cull.clone(),
+            Some(run) => run.train.culling = args.cull.clone(),
             None => refuse!(
                 "--cull-rays/--cull-samples cannot change a resumed run (its culling is in {CONFIG_FILE})"
+            ),
+        }
+    }
+    if args.occupancy {
+        match run.as_mut() {
+            Some(run) => {
+                run.train.occupancy.get_or_insert_with(Default::default);
+            }
+            None => refuse!(
+                "--occupancy cannot change a resumed run (its occupancy grid settings are in {CONFIG_FILE})"
             ),
         }
     }

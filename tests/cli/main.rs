@@ -17,6 +17,7 @@ mod forward;
 mod inspect;
 mod mesh;
 mod metrics;
+mod occupancy;
 mod render;
 mod synth;
 mod train;

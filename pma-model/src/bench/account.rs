@@ -147,7 +147,7 @@ pub fn account(
     let batch = source.next_batch()?;
     let avatar = trainer.avatar();
     let (_, inference) = account::measure(dev, req.route, || -> Result<_> {
-        Ok(avatar.render_rays(&batch.rays, &batch.poses)?)
+        Ok(avatar.render_rays(&batch.rays, &batch.poses, &Default::default())?)
     })?;
     obs.phase_end();
 

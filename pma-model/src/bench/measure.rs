@@ -28,8 +28,10 @@ use serde::{Deserialize, Serialize};
 use super::{peak_rss_mib, reset_peak_rss, BenchError, BenchObserver, BenchOption, Result};
 use crate::compute::flops;
 use crate::eval::{dataset_pose, evaluate, read_dataset, EvalOptions};
+use crate::network::occupancy::OccupancyConfig;
 use crate::render::avatar::{Avatar, Poses};
 use crate::render::image::{body_box, ImageOptions, RenderedImage};
+use crate::render::PassOptions;
 use crate::train::{Preset, RunConfig, Trainer};
 
 /// Rays per render chunk of every bench render and held-out score.
@@ -56,6 +58,12 @@ pub struct BenchRequest {
     /// Held-out images scored.
     pub eval_images: usize,
     pub options: Vec<BenchOption>,
+    /// The grid of the training rows with `occupancy` (its warm-up decides when the grid
+    /// starts to skip samples).
+    pub occupancy: OccupancyConfig,
+    /// Training poses the rendered model's grid is built over when an option needs one and
+    /// the model has none.
+    pub occupancy_poses: usize,
     pub device: Device,
     /// How every avatar computes before an option changes it (`--tf32`).
     pub numerics: crate::compute::numerics::Numerics,
@@ -163,7 +171,11 @@ pub fn measure(req: &BenchRequest, obs: &mut dyn BenchObserver) -> Result<BenchR
     let scene = prepare_scene(req, obs)?;
     // Loaded before the per-option peak-RSS resets, so no option's phase pays for it.
     crate::eval::lpips::Lpips::shared()?;
-    let (mut avatar, model_desc) = bench_model(req, &scene, obs)?;
+    let (avatar, model_desc) = bench_model(req, &scene, obs)?;
+    let mut avatar = match req.options.iter().any(|o| o.occupancy) && avatar.occupancy().is_none() {
+        true => grid_for(req, avatar, &scene, obs)?,
+        false => avatar,
+    };
     let cfg = avatar.config().clone();
     let fpp = flops::per_point(&cfg);
     let (peak, peak_how) = flops::fp32_peak();
@@ -201,7 +213,10 @@ struct Scene {
 
 /// The synthetic scene in `out/scene` (made once): training data and held-out images.
 fn prepare_scene(req: &BenchRequest, obs: &mut dyn BenchObserver) -> Result<Scene> {
-    let dir = req.out.join("scene");
+    let dir = match req.scene.seed {
+        0 => req.out.join("scene"),
+        n => req.out.join(format!("scene-seed{n}")),
+    };
     if !dir.join("novel_view.npz").is_file() {
         obs.note(&format!("synthesising the scene into {}", dir.display()));
         generate(&req.scene, &dir, &mut |_, _| {}).map_err(|source| BenchError::Scene {
@@ -239,7 +254,6 @@ fn train_for(
     let samples_per_step =
         (run.train.rays_per_step * (run.model.n_samples + run.model.n_importance)) as f64;
     let mut trainer = Trainer::new(run, data, dev)?;
-    let points_before = trainer.avatar().points_evaluated();
     let start = Instant::now();
     let mut times = Vec::new();
     while (times.len() < 2 || start.elapsed().as_secs_f64() < seconds)
@@ -250,15 +264,22 @@ fn train_for(
         times.push(t.elapsed().as_secs_f64() * 1e3);
         elapsed(start.elapsed().as_secs_f64());
     }
-    let points = (trainer.avatar().points_evaluated() - points_before) as f64;
+    let points = trainer.pass_totals().points_evaluated as f64;
     let fraction = points / (samples_per_step * times.len().max(1) as f64);
     Ok((trainer, times, fraction))
 }
 
 /// Mean held-out PSNR and LPIPS of `avatar` on the scene's held-out images, by
 /// [`crate::eval::evaluate`] (LPIPS `None` for images under its minimum size).
-fn heldout_scores(avatar: &Avatar, scene: &Scene) -> Result<(f64, Option<f64>)> {
-    let opts = EvalOptions::quick(CHUNK);
+fn heldout_scores(
+    avatar: &Avatar,
+    scene: &Scene,
+    pass: &PassOptions,
+) -> Result<(f64, Option<f64>)> {
+    let opts = EvalOptions {
+        pass: pass.clone(),
+        ..EvalOptions::quick(CHUNK)
+    };
     let r = evaluate(
         avatar,
         &scene.held,
@@ -314,6 +335,37 @@ fn bench_model(
     ))
 }
 
+/// `avatar` with an occupancy grid built from the scene's training poses (for the
+/// rendering rows of the options with the grid).
+fn grid_for(
+    req: &BenchRequest,
+    avatar: Avatar,
+    scene: &Scene,
+    obs: &mut dyn BenchObserver,
+) -> Result<Avatar> {
+    use crate::tools::occupancy::{build, BuildOptions};
+    let opts = BuildOptions {
+        config: req.occupancy.clone(),
+        poses: req.occupancy_poses.max(1),
+        ..Default::default()
+    };
+    obs.phase("building the occupancy grid (poses)", opts.poses as u64);
+    let t = Instant::now();
+    let (avatar, s) = build(avatar, &scene.train, &opts, &mut |d, _| {
+        obs.progress(d as u64, "")
+    })?;
+    obs.phase_end();
+    obs.note(&format!(
+        "built the occupancy grid of the rendered model in {:.1} s ({} poses, {} network \
+         points, {:.1} % of cells occupied)",
+        t.elapsed().as_secs_f64(),
+        s.poses,
+        s.points,
+        100.0 * s.occupied_fraction
+    ));
+    Ok(avatar)
+}
+
 /// The W×H view every option renders: the first held-out image's pose and camera,
 /// intrinsics rescaled.
 struct View {
@@ -345,6 +397,7 @@ fn bench_view(req: &BenchRequest, scene: &Scene) -> Result<View> {
         chunk: CHUNK,
         head: held.head()?,
         device: req.device.clone(),
+        pass: PassOptions::parity(),
     };
     let box_rays = {
         let b = body_box(&cam, &kp3d, opts.head);
@@ -375,8 +428,12 @@ fn measure_inference(
         let c = avatar.config();
         (c.n_samples + c.n_importance) as f64
     };
-    let render = |a: &Avatar| -> Result<RenderedImage> {
-        Ok(a.render_image(&view.poses, &view.kp3d, &view.cam, None, &view.opts)?)
+    let render = |a: &Avatar, pass: PassOptions| -> Result<RenderedImage> {
+        let opts = ImageOptions {
+            pass,
+            ..view.opts.clone()
+        };
+        Ok(a.render_image(&view.poses, &view.kp3d, &view.cam, None, &opts)?)
     };
     let mut results: Vec<OptionResult> = Vec::new();
     let mut parity: Option<(RenderedImage, f64)> = None;
@@ -388,12 +445,12 @@ fn measure_inference(
     // First each option's untimed render (the warm-up), its quality and memory.
     for opt in opts {
         obs.progress(done, &format!("render {}", opt.name));
-        opt.apply(avatar)?;
+        let pass = opt.apply(avatar);
         if rss_reset {
             reset_peak_rss();
         }
-        let img = render(avatar)?;
-        let (held_psnr, held_lpips) = heldout_scores(avatar, scene)?;
+        let img = render(avatar, pass.clone())?;
+        let (held_psnr, held_lpips) = heldout_scores(avatar, scene, &pass)?;
         let peak_rss = peak_rss_mib().unwrap_or(f64::NAN);
         let (vs_parity, max_diff) = match &parity {
             None => (f64::INFINITY, 0.0),
@@ -428,12 +485,11 @@ fn measure_inference(
     for _ in 0..req.repeats {
         for ((opt, t_opt), res) in opts.iter().zip(times.iter_mut()).zip(results.iter_mut()) {
             obs.progress(done, &format!("time {}", opt.name));
-            opt.apply(avatar)?;
-            let before = avatar.points_evaluated();
+            let pass = opt.apply(avatar);
             let t = Instant::now();
-            let _ = render(avatar)?;
+            let img = render(avatar, pass)?;
             t_opt.push(t.elapsed().as_secs_f64());
-            res.network_points_per_image = avatar.points_evaluated() - before;
+            res.network_points_per_image = img.stats.points_evaluated;
             done += 1;
         }
     }
@@ -447,7 +503,7 @@ fn measure_inference(
         res.gflops = points * flops_per_point / sec / 1e9;
     }
     obs.phase_end();
-    BenchOption::parity().apply(avatar)?;
+    BenchOption::parity().apply(avatar);
     Ok(results)
 }
 
@@ -468,7 +524,7 @@ fn measure_training(
         let mut run = RunConfig::from_preset(req.preset);
         run.model = cfg.clone();
         run.numerics = req.numerics;
-        opt.configure(&mut run);
+        opt.configure(&mut run, &req.occupancy);
         let samples_per_step =
             (run.train.rays_per_step * (cfg.n_samples + cfg.n_importance)) as f64;
         if rss_reset {
@@ -497,14 +553,8 @@ fn measure_training(
                 / (res.ms_per_step * 1e6);
         res.peak_rss_mib = res.peak_rss_mib.max(peak_rss_mib().unwrap_or(f64::NAN));
         if budget > 0.0 {
-            let mut a = Avatar::from_tensors(
-                trainer.avatar().config().clone(),
-                trainer.avatar().tensors(),
-                dev,
-            )?
-            .with_numerics(trainer.run_config().numerics);
-            opt.apply(&mut a)?;
-            let (p, l) = heldout_scores(&a, scene)?;
+            let pass = opt.pass();
+            let (p, l) = heldout_scores(trainer.avatar(), scene, &pass)?;
             res.budget_heldout_psnr = Some(p);
             res.budget_heldout_lpips = l;
             res.budget_iterations = Some(trainer.iteration());

@@ -6,15 +6,20 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::network::config::{Culling, SampleFill};
-use crate::render::Avatar;
+use crate::network::occupancy::OccupancyConfig;
+use crate::render::{Avatar, Culling, PassOptions, SampleFill};
 use crate::train::RunConfig;
 
-/// One configuration: how rays and samples are culled, and which sine runs.
+/// One configuration: how rays and samples are culled, whether the occupancy grid skips
+/// samples, and which sine runs.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct BenchOption {
     pub name: String,
     pub culling: Culling,
+    /// The occupancy grid (rendering: the bench model's; training: one built and refreshed
+    /// during the run).
+    #[serde(default)]
+    pub occupancy: bool,
     /// The vectorised sine (`--fast-sine`) instead of libm's.
     #[serde(default)]
     pub fast_sine: bool,
@@ -29,25 +34,37 @@ impl BenchOption {
         }
     }
 
-    /// Render with this option: `avatar`'s culling and sine (its other numerics kept).
-    pub fn apply(&self, avatar: &mut Avatar) -> crate::error::Result<()> {
+    /// The pass options of this option's renders.
+    pub fn pass(&self) -> PassOptions {
+        PassOptions {
+            culling: self.culling.clone(),
+            occupancy: self.occupancy,
+        }
+    }
+
+    /// Render with this option: sets `avatar`'s sine (its other numerics kept) and returns
+    /// the pass options.
+    pub fn apply(&self, avatar: &mut Avatar) -> PassOptions {
         avatar.set_numerics(crate::compute::numerics::Numerics {
             fast_sine: self.fast_sine,
             ..avatar.numerics()
         });
-        avatar.set_culling(self.culling.clone())
+        self.pass()
     }
 
-    /// Train with this option: `run`'s culling and sine (its other numerics kept).
-    pub fn configure(&self, run: &mut RunConfig) {
+    /// Train with this option: `run`'s culling and sine (its other numerics kept), and a
+    /// grid of `grid`'s settings when the option uses one.
+    pub fn configure(&self, run: &mut RunConfig, grid: &OccupancyConfig) {
         run.numerics.fast_sine = self.fast_sine;
-        run.model.culling = self.culling.clone();
+        run.train.culling = self.culling.clone();
+        run.train.occupancy = self.occupancy.then(|| grid.clone());
     }
 }
 
 /// Parity, ray culling, ray and sample culling at each of `thresholds`, then the vectorised
-/// sine alone and with the last (most aggressive) culling option.
-pub fn options(thresholds: &[f64]) -> Vec<BenchOption> {
+/// sine alone and with the last (most aggressive) culling option; with `occupancy` the grid
+/// alone and with that culling option.
+pub fn options(thresholds: &[f64], occupancy: bool) -> Vec<BenchOption> {
     let mut v = vec![
         BenchOption::parity(),
         BenchOption {
@@ -56,7 +73,7 @@ pub fn options(thresholds: &[f64]) -> Vec<BenchOption> {
                 rays: true,
                 ..Default::default()
             },
-            fast_sine: false,
+            ..BenchOption::parity()
         },
     ];
     for &t in thresholds {
@@ -67,7 +84,7 @@ pub fn options(thresholds: &[f64]) -> Vec<BenchOption> {
                 sample_threshold: Some(t),
                 sample_fill: SampleFill::Network,
             },
-            fast_sine: false,
+            ..BenchOption::parity()
         });
     }
     let last = v.last().cloned().expect("parity is always there");
@@ -80,6 +97,18 @@ pub fn options(thresholds: &[f64]) -> Vec<BenchOption> {
         v.push(BenchOption {
             name: format!("{}+fast-sine", last.name),
             fast_sine: true,
+            ..last.clone()
+        });
+    }
+    if occupancy {
+        v.push(BenchOption {
+            name: "occupancy".into(),
+            occupancy: true,
+            ..BenchOption::parity()
+        });
+        v.push(BenchOption {
+            name: format!("{}+occupancy", last.name),
+            occupancy: true,
             ..last
         });
     }
@@ -92,7 +121,10 @@ mod tests {
 
     #[test]
     fn parity_first_then_culling_then_the_sine() {
-        let names: Vec<String> = options(&[0.0, 1e-2]).into_iter().map(|o| o.name).collect();
+        let names: Vec<String> = options(&[0.0, 1e-2], false)
+            .into_iter()
+            .map(|o| o.name)
+            .collect();
         assert_eq!(
             names,
             [
@@ -105,11 +137,19 @@ mod tests {
             ]
         );
         // Without thresholds the last culling option is "rays", which gets no sine twin.
-        let names: Vec<String> = options(&[]).into_iter().map(|o| o.name).collect();
+        let names: Vec<String> = options(&[], false).into_iter().map(|o| o.name).collect();
         assert_eq!(names, ["parity", "rays", "fast-sine"]);
-        let o = options(&[1e-4]);
+        let o = options(&[1e-4], false);
         assert_eq!(o[2].culling.sample_threshold, Some(1e-4));
         assert_eq!(o[4].culling, o[2].culling);
         assert!(o[4].fast_sine && !o[2].fast_sine);
+        assert!(o.iter().all(|o| !o.occupancy));
+        // The grid alone, then with the last culling option (without the sine).
+        let o = options(&[1e-4], true);
+        let names: Vec<&str> = o[5..].iter().map(|o| o.name.as_str()).collect();
+        assert_eq!(names, ["occupancy", "rays+samples@1e-4+occupancy"]);
+        assert!(o[5].occupancy && o[5].culling == Culling::default() && !o[5].fast_sine);
+        assert!(o[6].occupancy && o[6].culling == o[2].culling && !o[6].fast_sine);
+        assert!(o[6].pass().occupancy && o[6].pass().culling == o[2].culling);
     }
 }

@@ -28,6 +28,7 @@ use serde::Serialize;
 
 use crate::render::avatar::{Avatar, Poses};
 use crate::render::image::{ImageOptions, RenderedImage};
+use crate::render::options::PassOptions;
 
 pub mod lpips;
 mod png;
@@ -249,6 +250,8 @@ pub struct EvalOptions {
     pub pngs: usize,
     /// Colour of the trivial baseline; `None` skips it.
     pub baseline_colour: Option<[f64; 3]>,
+    /// What the renders may leave out (parity by default).
+    pub pass: PassOptions,
 }
 
 impl EvalOptions {
@@ -261,6 +264,7 @@ impl EvalOptions {
             png_dir: None,
             pngs: 0,
             baseline_colour: None,
+            pass: PassOptions::default(),
         }
     }
 }
@@ -324,7 +328,7 @@ pub fn evaluate(
     let mut freq = spectrum::FreqAccumulator::default();
     for (k, &n) in images.iter().enumerate() {
         crate::interrupt::check()?;
-        let rendered = render_dataset_image(avatar, data, n, opts.chunk)?;
+        let rendered = render_dataset_image(avatar, data, n, opts.chunk, &opts.pass)?;
         let pred = quantize(&rendered);
         let (gt, mask) = ground_truth(data, n)?;
         let Some(scores) = score(&pred, &gt, &mask, h, w, opts)? else {
@@ -458,12 +462,13 @@ pub fn dataset_pose(data: &Dataset, p: usize, device: &Device) -> Result<(Poses,
 }
 
 /// Render image `n` of `data` with its pose and camera, black background, mean frame code
-/// (frame-code index −1, as for frames the model has not seen).
+/// (frame-code index −1, as for frames the model has not seen), leaving out what `pass` says.
 pub fn render_dataset_image(
     avatar: &Avatar,
     data: &Dataset,
     n: usize,
     chunk: usize,
+    pass: &PassOptions,
 ) -> Result<RenderedImage> {
     let device = avatar.device().clone();
     let p = data.pose_row(n)?;
@@ -473,6 +478,7 @@ pub fn render_dataset_image(
         chunk,
         head: data.head()?,
         device,
+        pass: pass.clone(),
     };
     Ok(avatar.render_image(&poses, &kp3d, &cam, None, &opts)?)
 }

@@ -10,6 +10,13 @@
 //! | `skeleton` | `{"names": [...], "parents": [...]}` |
 //! | `rest_pose` | `[[x,y,z]; J]` (equals the `rest_pose` tensor) |
 //! | `n_framecodes` | decimal string (equals `config.n_framecodes`) |
+//! | `occupancy` | only with an occupancy grid: its [`OccupancyMeta`] as JSON |
+//!
+//! **Optional group.** A model with an occupancy grid ([`crate::network::occupancy`])
+//! carries one more tensor, `occupancy.density` [24,R,R,R] f32, with the `occupancy` metadata
+//! key; a model without one has neither, so its file is byte for byte what it was before
+//! grids existed. The grid is checked like the rest: its shape against its metadata, every
+//! value finite and >= 0; a tensor without the key (or the key without the tensor) is refused.
 //!
 //! A safetensors file without this metadata (e.g. one exported straight from a PyTorch
 //! state_dict, like `fixtures/golden/model.safetensors`) is accepted too: its config is the
@@ -34,6 +41,11 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::{ModelError, Result};
 use crate::network::config::Config;
+use crate::network::occupancy::{OccupancyGrid, OccupancyMeta};
+
+/// The optional occupancy group's tensor and metadata key (see the module docs).
+pub const OCCUPANCY_TENSOR: &str = "occupancy.density";
+pub const OCCUPANCY_KEY: &str = "occupancy";
 
 pub const FORMAT: &str = "pma-checkpoint";
 pub const FORMAT_VERSION: u32 = 1;
@@ -97,6 +109,8 @@ pub struct Checkpoint {
     pub config: Config,
     pub tensors: HashMap<String, Tensor>,
     pub meta: CheckpointMeta,
+    /// The optional occupancy grid (not among `tensors`).
+    pub occupancy: Option<OccupancyGrid>,
 }
 
 /// Compare `(name, shape, dtype)` triples against the layout of `cfg`; one line per problem.
@@ -143,7 +157,17 @@ pub fn check_tensors<'a>(
 /// `tensors` must be exactly the tensors of [`tensor_layout`]`(cfg)`, f32. The `rest_pose`
 /// metadata is taken from the `rest_pose` tensor so the two cannot disagree.
 pub fn save(path: &Path, tensors: &HashMap<String, Tensor>, cfg: &Config) -> Result<()> {
-    let bytes = to_bytes(path, tensors, cfg)?;
+    save_with(path, tensors, cfg, None)
+}
+
+/// [`save`] with the optional occupancy grid.
+pub fn save_with(
+    path: &Path,
+    tensors: &HashMap<String, Tensor>,
+    cfg: &Config,
+    occupancy: Option<&OccupancyGrid>,
+) -> Result<()> {
+    let bytes = to_bytes_with(path, tensors, cfg, occupancy)?;
     pma_data::fsio::write_atomic(path, &bytes).map_err(|source| ModelError::Write {
         path: path.to_path_buf(),
         source,
@@ -153,6 +177,16 @@ pub fn save(path: &Path, tensors: &HashMap<String, Tensor>, cfg: &Config) -> Res
 /// The bytes [`save`] writes (`path` names the file in errors), for writers that commit
 /// several files together.
 pub fn to_bytes(path: &Path, tensors: &HashMap<String, Tensor>, cfg: &Config) -> Result<Vec<u8>> {
+    to_bytes_with(path, tensors, cfg, None)
+}
+
+/// [`to_bytes`] with the optional occupancy grid.
+pub fn to_bytes_with(
+    path: &Path,
+    tensors: &HashMap<String, Tensor>,
+    cfg: &Config,
+    occupancy: Option<&OccupancyGrid>,
+) -> Result<Vec<u8>> {
     cfg.validate()?;
     let problems = check_tensors(
         cfg,
@@ -178,10 +212,25 @@ pub fn to_bytes(path: &Path, tensors: &HashMap<String, Tensor>, cfg: &Config) ->
     meta.insert("skeleton".to_string(), to_json(&SkeletonMeta::smpl())?);
     meta.insert("rest_pose".to_string(), to_json(&rest_pose)?);
     meta.insert("n_framecodes".to_string(), cfg.n_framecodes.to_string());
+    let grid = match occupancy {
+        Some(g) => {
+            meta.insert(OCCUPANCY_KEY.to_string(), to_json(&g.meta())?);
+            Some(Tensor::from_slice(
+                g.density(),
+                g.shape().to_vec(),
+                &Device::Cpu,
+            )?)
+        }
+        None => None,
+    };
 
     // safetensors views need contiguous CPU-readable data; candle's `View` impl copies as needed.
-    let bytes = safetensors::serialize(tensors.iter().map(|(n, t)| (n.as_str(), t)), Some(meta))
-        .map_err(|source| ModelError::Safetensors {
+    let all = tensors
+        .iter()
+        .map(|(n, t)| (n.as_str(), t))
+        .chain(grid.iter().map(|t| (OCCUPANCY_TENSOR, t)));
+    let bytes =
+        safetensors::serialize(all, Some(meta)).map_err(|source| ModelError::Safetensors {
             path: path.to_path_buf(),
             source,
         })?;
@@ -239,7 +288,10 @@ pub fn load_with(path: &Path, device: &Device, opts: &LoadOptions) -> Result<Che
 
     let mut problems = Vec::new();
     let meta_map = header.metadata().clone().unwrap_or_default();
-    let views = st.tensors();
+    let (grid_views, views): (Vec<_>, Vec<_>) = st
+        .tensors()
+        .into_iter()
+        .partition(|(n, _)| n == OCCUPANCY_TENSOR);
     let found: Vec<(&str, &[usize], DType)> = views
         .iter()
         .map(|(n, v)| (n.as_str(), v.shape(), dtype_of(v.dtype())))
@@ -283,6 +335,13 @@ pub fn load_with(path: &Path, device: &Device, opts: &LoadOptions) -> Result<Che
     if problems.is_empty() && !opts.allow_non_finite {
         problems.extend(non_finite(&views));
     }
+    let occupancy = match read_occupancy(&meta_map, grid_views.first().map(|(_, v)| v)) {
+        Ok(g) => g,
+        Err(p) => {
+            problems.push(p);
+            None
+        }
+    };
     if !problems.is_empty() {
         if format_version.is_some() {
             problems.push(format!(
@@ -319,7 +378,52 @@ pub fn load_with(path: &Path, device: &Device, opts: &LoadOptions) -> Result<Che
             rest_pose,
             config_inferred: format_version.is_none(),
         },
+        occupancy,
     })
+}
+
+/// The optional occupancy group: both the tensor and its metadata key, or neither.
+fn read_occupancy(
+    meta_map: &HashMap<String, String>,
+    view: Option<&safetensors::tensor::TensorView<'_>>,
+) -> std::result::Result<Option<OccupancyGrid>, String> {
+    let (json, view) = match (meta_map.get(OCCUPANCY_KEY), view) {
+        (None, None) => return Ok(None),
+        (Some(_), None) => {
+            return Err(format!(
+                "metadata `{OCCUPANCY_KEY}` without the tensor `{OCCUPANCY_TENSOR}`"
+            ))
+        }
+        (None, Some(_)) => {
+            return Err(format!(
+                "tensor `{OCCUPANCY_TENSOR}` without the metadata key `{OCCUPANCY_KEY}`"
+            ))
+        }
+        (Some(j), Some(v)) => (j, v),
+    };
+    let meta: OccupancyMeta = serde_json::from_str(json)
+        .map_err(|e| format!("metadata `{OCCUPANCY_KEY}` is not a valid grid description: {e}"))?;
+    meta.config
+        .validate(&format!("metadata `{OCCUPANCY_KEY}`"))
+        .map_err(|e| e.to_string())?;
+    let r = meta.config.resolution;
+    let want = [N_JOINTS, r, r, r];
+    if view.shape() != want || view.dtype() != safetensors::Dtype::F32 {
+        return Err(format!(
+            "tensor `{OCCUPANCY_TENSOR}`: expected f32 of shape {want:?} (resolution {r} in its \
+             metadata), found {:?} of shape {:?}",
+            view.dtype(),
+            view.shape()
+        ));
+    }
+    let values: Vec<f32> = view
+        .data()
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect();
+    OccupancyGrid::from_parts(meta, values)
+        .map(Some)
+        .map_err(|e| format!("tensor `{OCCUPANCY_TENSOR}`: {e}"))
 }
 
 /// A checkpoint file's bytes: a regular file of at most [`MAX_CHECKPOINT_BYTES`], read up

@@ -29,70 +29,6 @@ pub struct Quirks {
     pub robust_ray_bounds: bool,
 }
 
-/// What culled samples are given (see [`Culling`]).
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
-#[serde(rename_all = "snake_case")]
-pub enum SampleFill {
-    /// The network's own output there: where w^p = 0 for every joint, every windowed feature
-    /// is 0 and the network reduces to a global constant density and a colour that depends
-    /// only on the view. It is evaluated once per ray at a far-away point (or, in inference
-    /// when that density is 0, once per pass), so culling at threshold 0 is exact.
-    #[default]
-    Network,
-    /// Density 0 and black: cheapest, exact only where the network learned empty space.
-    Zero,
-}
-
-/// Leaving work out (docs/numerics.md, "Empty rays and culling"). Everything is off by
-/// default, which is parity with the reference; the section is omitted from checkpoint JSON
-/// while it is off. With the `cli` feature it is also the `--cull-rays`, `--cull-samples T`
-/// and `--cull-fill` flags.
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
-#[cfg_attr(feature = "cli", derive(clap::Args))]
-#[serde(default)]
-pub struct Culling {
-    /// Rays that cross no (enlarged) bone box skip the network: raw outputs 0, so the
-    /// render is exactly the background with zero weights, acc, depth and disparity.
-    #[cfg_attr(
-        feature = "cli",
-        arg(
-            long = "cull-rays",
-            help = "Rays that cross no bone box get the background without running the network"
-        )
-    )]
-    pub rays: bool,
-    /// Samples whose spatial window w^p is <= this for every joint skip the network and get
-    /// `sample_fill`. `Some(0.0)` culls only exact zeros (exact with `SampleFill::Network`);
-    /// `None` is off.
-    #[cfg_attr(
-        feature = "cli",
-        arg(
-            long = "cull-samples",
-            value_name = "T",
-            help = "Samples whose spatial window is <= T for every joint skip the network \
-                    (0 = only exact zeros, which leaves the image unchanged)"
-        )
-    )]
-    pub sample_threshold: Option<f64>,
-    #[cfg_attr(
-        feature = "cli",
-        arg(
-            long = "cull-fill",
-            value_enum,
-            default_value = "network",
-            help = "What culled samples get: `network` (the network's far-away constant) or `zero`"
-        )
-    )]
-    pub sample_fill: SampleFill,
-}
-
-impl Culling {
-    pub fn is_off(&self) -> bool {
-        !self.rays && self.sample_threshold.is_none()
-    }
-}
-
 /// Limit of every layer count of a [`Config`] (the paper's deepest, the trunk, has 8).
 pub const MAX_DEPTH: usize = 32;
 /// Limit of every width of a [`Config`] (the paper's widest have 256).
@@ -169,9 +105,6 @@ pub struct Config {
     pub box_bound: f64,
     /// Reference quirks that can be switched off.
     pub quirks: Quirks,
-    /// Work left out at evaluation time (off = parity).
-    #[serde(skip_serializing_if = "Culling::is_off")]
-    pub culling: Culling,
     /// Which parts of the model exist (the paper's ablations); omitted from checkpoint JSON
     /// for the full model.
     #[serde(skip_serializing_if = "Variant::is_full")]
@@ -303,7 +236,6 @@ impl Config {
             far: 100.0,
             box_bound: 1.1,
             quirks: Quirks::default(),
-            culling: Culling::default(),
             variant: Variant::Full,
         }
     }
@@ -409,19 +341,6 @@ impl Config {
         ] {
             if !(v.is_finite() && v > 0.0) {
                 bad.push(format!("{name} must be finite and > 0, found {v}"));
-            }
-        }
-        if let Some(t) = self.culling.sample_threshold {
-            if !(t.is_finite() && (0.0..1.0).contains(&t)) {
-                bad.push(format!(
-                    "culling.sample_threshold must be in [0, 1), found {t}"
-                ));
-            }
-            if !self.variant.spatial_window() {
-                bad.push(format!(
-                    "culling.sample_threshold needs the spatial window, which variant `{}` does not use",
-                    self.variant
-                ));
             }
         }
         if bad.is_empty() {

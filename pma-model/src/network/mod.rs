@@ -11,6 +11,7 @@
 //! | --- | --- |
 //! | [`config`], [`presets`] | the architecture's sizes and switches; named sizes |
 //! | [`params`], [`checkpoint`] | tensor registration and initialisation; the file format |
+//! | [`occupancy`] | per joint, which cells of its box frame hold density (optional, saved with the model) |
 //! | [`run_dir`] | a training run's directory: its complete checkpoints, the newest model |
 //! | [`nn`] | linear and sine layers |
 //! | [`encoders`] | 6D joint rotations, per-joint point encoders, spherical harmonics |
@@ -28,6 +29,7 @@ pub mod gnn;
 mod layers;
 pub mod modulator;
 pub mod nn;
+pub mod occupancy;
 pub mod params;
 pub mod presets;
 pub mod run_dir;
@@ -44,7 +46,7 @@ use pma_data::skeleton::{self, Joints, N_JOINTS};
 use crate::compute::host::host_f32;
 use crate::compute::numerics::Numerics;
 use crate::error::{ModelError, Result};
-use config::{Config, Culling};
+use config::Config;
 use encoders::{pose6d, spherical_harmonics};
 pub use layers::tensor_layout;
 use layers::Layers;
@@ -462,15 +464,6 @@ impl Network {
     /// Effective box half-extents s: [24,3].
     pub fn axis_scale(&self) -> Result<Tensor> {
         self.layers.gnn.axis_scale()
-    }
-
-    /// Switch culling (leaving work out, [`crate::render::cull`]) on or off for later passes.
-    pub fn set_culling(&mut self, culling: Culling) -> Result<()> {
-        let mut cfg = self.cfg.clone();
-        cfg.culling = culling;
-        cfg.validate()?;
-        self.cfg = cfg;
-        Ok(())
     }
 
     /// A_j of the ray caster's boxes (`raycast.transforms`): [24,4,4].

@@ -4,41 +4,48 @@
 //! GNN → projected part features, box sizes) once per pose; ray casting; the coarse network
 //! pass and render; importance sampling; the fine pass on the new samples only; merge and
 //! the fine render. How the samples of a pass reach the network (densely, in chunks, or
-//! culled) is [`crate::render::points`]'s business.
+//! culled) is [`crate::render::points`]'s business; what a pass may leave out is its
+//! [`PassOptions`] argument, and what it did comes back in [`Outputs::stats`].
 
 use std::collections::HashMap;
 use std::path::Path;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
 
 use candle_core::{DType, Device, Tensor, Var};
 use pma_data::skeleton::Joints;
 
 use crate::compute::host::host_f32;
 use crate::error::{ModelError, Result};
-use crate::network::config::{Config, Culling};
+use crate::network::config::Config;
+use crate::network::occupancy::OccupancyGrid;
 pub use crate::network::trace::Trace;
 use crate::network::Network;
 pub use crate::network::PoseFeatures;
 pub use crate::render::batch::{Mode, NoiseFn, Outputs, Poses, Rays};
 use crate::render::bones::BoneFrames;
+use crate::render::occupancy::{RefreshOptions, RefreshStats};
+pub use crate::render::options::{PassOptions, PassStats};
 use crate::render::points::PointEval;
 pub use crate::render::points::INFERENCE_POINT_CHUNK;
 use crate::render::raycast::{merge_raw, CoarseSamples, RayCaster};
 use crate::render::volume::raw2outputs;
 
-/// A network and the ray caster of its bone boxes.
+/// A network, the ray caster of its bone boxes, and the optional occupancy grid saved with
+/// it.
 pub struct Avatar {
     net: Network,
     caster: RayCaster,
-    /// Points that went through the network since construction (bench counters).
-    points_evaluated: AtomicU64,
+    /// Shared with the passes that consult it; the trainer's refresh writes it between steps.
+    occupancy: Option<Arc<OccupancyGrid>>,
 }
 
 impl Avatar {
-    /// Load a checkpoint for inference (or to continue training). Strict: see
-    /// [`crate::network::checkpoint::load`].
+    /// Load a checkpoint (with its occupancy grid, if it has one) for inference or to
+    /// continue training. Strict: see [`crate::network::checkpoint::load`].
     pub fn load(path: impl AsRef<Path>, device: &Device) -> Result<Self> {
-        Self::from_network(Network::load(path, device)?)
+        let ck = crate::network::checkpoint::load(path.as_ref(), device)?;
+        let net = Network::from_tensors(ck.config, ck.tensors, device)?;
+        Ok(Self::from_network(net)?.with_occupancy(ck.occupancy))
     }
 
     /// A freshly initialised avatar for `rest_pose` with the reference's initialisation,
@@ -62,7 +69,7 @@ impl Avatar {
         Ok(Self {
             net,
             caster,
-            points_evaluated: AtomicU64::new(0),
+            occupancy: None,
         })
     }
 
@@ -84,21 +91,30 @@ impl Avatar {
         self.net.numerics()
     }
 
+    /// The same avatar with `grid` as its occupancy grid (`None`: without one).
+    pub fn with_occupancy(mut self, grid: Option<OccupancyGrid>) -> Self {
+        self.occupancy = grid.map(Arc::new);
+        self
+    }
+
     /// The same avatar with every tensor converted to `dtype` (f16/bf16 inference, f64
-    /// checks). Inputs are converted at the forward entry points, and the ray caster keeps
-    /// working in f32.
+    /// checks); the occupancy grid is kept. Inputs are converted at the forward entry points,
+    /// and the ray caster keeps working in f32.
     pub fn with_dtype(&self, dtype: DType) -> Result<Self> {
-        Self::from_network(self.net.with_dtype(dtype)?)
+        let mut a = Self::from_network(self.net.with_dtype(dtype)?)?;
+        a.occupancy = self.occupancy.clone();
+        Ok(a)
     }
 
     // ---- forward pass -------------------------------------------------------------------
 
-    /// Render a ray batch: the full coarse + fine forward pass.
+    /// Render a ray batch: the full coarse + fine forward pass, leaving out what `opts` says.
     pub fn forward(
         &self,
         rays: &Rays,
         poses: &Poses,
         mode: &mut Mode,
+        opts: &PassOptions,
         mut trace: Option<&mut Trace>,
     ) -> Result<Outputs> {
         crate::render::batch::check_batch(rays, poses)?;
@@ -108,7 +124,7 @@ impl Avatar {
         let mut pose_trace = trace.as_ref().map(|_| Trace::default());
         let pose = self.pose_features(poses, pose_trace.as_mut())?;
         crate::compute::profile::mark("pose features", self.device());
-        let out = self.forward_inner(rays, poses, &pose, mode, trace.as_deref_mut())?;
+        let out = self.forward_inner(rays, poses, &pose, mode, opts, trace.as_deref_mut())?;
         if let (Some(t), Some(pt)) = (trace, pose_trace) {
             for stage in ["coarse", "fine"] {
                 for (k, v) in &pt.tensors {
@@ -128,17 +144,25 @@ impl Avatar {
         poses: &Poses,
         pose: &PoseFeatures,
         mode: &mut Mode,
+        opts: &PassOptions,
     ) -> Result<Outputs> {
         crate::render::batch::check_batch(rays, poses)?;
         let cast = crate::render::batch::cast_batch(rays, poses, self.dtype())?;
         let (rays, poses) = cast.as_ref().map_or((rays, poses), |(r, p)| (r, p));
-        self.forward_inner(rays, poses, pose, mode, None)
+        self.forward_inner(rays, poses, pose, mode, opts, None)
     }
 
     /// Step 2, ray casting (no gradient) with the current, detached box sizes: on the host
-    /// when the rays are on the CPU or culling needs the host bounds, as tensor ops on the
-    /// rays' device otherwise ([`crate::render::raycast::device`]).
-    pub fn cast(&self, rays: &Rays, poses: &Poses, pose: &PoseFeatures) -> Result<CoarseSamples> {
+    /// when the rays are on the CPU or the pass leaves work out (culling and the occupancy
+    /// grid need the host bounds and samples), as tensor ops on the rays' device otherwise
+    /// ([`crate::render::raycast::device`]).
+    pub fn cast(
+        &self,
+        rays: &Rays,
+        poses: &Poses,
+        pose: &PoseFeatures,
+        opts: &PassOptions,
+    ) -> Result<CoarseSamples> {
         check_pose_count(poses, pose)?;
         let args = (
             &rays.origins,
@@ -147,7 +171,7 @@ impl Avatar {
             &poses.skts,
             &pose.scales.detach(),
         );
-        if self.casts_on_host(&rays.origins) {
+        if self.casts_on_host(&rays.origins, opts) {
             self.caster.cast(args.0, args.1, args.2, args.3, args.4)
         } else {
             self.caster
@@ -165,6 +189,7 @@ impl Avatar {
         pose: &PoseFeatures,
         coarse: CoarseSamples,
         mode: &mut Mode,
+        opts: &PassOptions,
     ) -> Result<Outputs> {
         crate::render::batch::check_batch(rays, poses)?;
         check_pose_count(poses, pose)?;
@@ -174,7 +199,7 @@ impl Avatar {
                 self.dtype()
             )));
         }
-        self.render(rays, poses, pose, coarse, mode, None)
+        self.render(rays, poses, pose, coarse, mode, opts, None)
     }
 
     /// Steps 2–5 of the forward pass.
@@ -184,19 +209,21 @@ impl Avatar {
         poses: &Poses,
         pose: &PoseFeatures,
         mode: &mut Mode,
+        opts: &PassOptions,
         trace: Option<&mut Trace>,
     ) -> Result<Outputs> {
-        let coarse = self.cast(rays, poses, pose)?;
+        let coarse = self.cast(rays, poses, pose, opts)?;
         crate::compute::profile::mark("cast", self.device());
-        self.render(rays, poses, pose, coarse, mode, trace)
+        self.render(rays, poses, pose, coarse, mode, opts, trace)
     }
 
     /// Whether ray casting and importance sampling run on the host for rays like `t`.
-    fn casts_on_host(&self, t: &Tensor) -> bool {
-        crate::compute::account::cpu_route(t.device()) || !self.config().culling.is_off()
+    fn casts_on_host(&self, t: &Tensor, opts: &PassOptions) -> bool {
+        crate::compute::account::cpu_route(t.device()) || opts.leaves_out_work()
     }
 
     /// Steps 3–5: the coarse pass and render, importance sampling, the fine pass and render.
+    #[allow(clippy::too_many_arguments)]
     fn render(
         &self,
         rays: &Rays,
@@ -204,6 +231,7 @@ impl Avatar {
         pose: &PoseFeatures,
         coarse: CoarseSamples,
         mode: &mut Mode,
+        opts: &PassOptions,
         mut trace: Option<&mut Trace>,
     ) -> Result<Outputs> {
         let prof = crate::compute::profile::mark;
@@ -215,16 +243,19 @@ impl Avatar {
             pose,
             coarse.bounds.as_ref(),
             trace.is_some(),
+            opts,
+            self.occupancy.as_ref(),
         )?;
         // 3. Coarse pass and render.
         let tr = trace.as_deref_mut();
         let raw_coarse = points.run(&self.net, pose, &coarse.pts, &view, mode, "coarse", tr)?;
+        let coarse_evaluated = points.samples_evaluated();
         prof("coarse network", self.device());
         let render_coarse = raw2outputs(&raw_coarse, &coarse.z, &rays.dirs, rays.bgs.as_ref())?;
         prof("coarse render", self.device());
         // 4. Importance samples from the coarse weights, then the fine pass on those only.
         let weights = render_coarse.weights.detach();
-        let fine = if self.casts_on_host(&rays.origins) {
+        let fine = if self.casts_on_host(&rays.origins, opts) {
             self.caster
                 .resample(&rays.origins, &rays.dirs, &coarse.z, &weights)?
         } else {
@@ -239,8 +270,13 @@ impl Avatar {
         let raw = merge_raw(&raw_coarse, &raw_fine, &fine.perm, self.net.numerics())?;
         let render_fine = raw2outputs(&raw, &fine.z_all, &rays.dirs, rays.bgs.as_ref())?;
         prof("merge + fine render", self.device());
-        self.points_evaluated
-            .fetch_add(points.evaluated() as u64, Ordering::Relaxed);
+        let stats = PassStats {
+            samples: (raw.dim(0)? * raw.dim(1)?) as u64,
+            points_evaluated: points.evaluated() as u64,
+            coarse_evaluated: coarse_evaluated as u64,
+            fine_evaluated: (points.samples_evaluated() - coarse_evaluated) as u64,
+            skipped_empty: points.skipped_empty() as u64,
+        };
         if let Some(t) = trace {
             let r = rays.origins.dim(0)?;
             for (stage, samples) in [("coarse", coarse.z.dim(1)?), ("fine", fine.z.dim(1)?)] {
@@ -263,6 +299,7 @@ impl Avatar {
             raw,
             coarse: render_coarse,
             fine: render_fine,
+            stats,
         })
     }
 
@@ -362,14 +399,27 @@ impl Avatar {
         self.net.axis_scale()
     }
 
-    /// Switch culling (leaving work out, [`crate::render::cull`]) on or off for later passes.
-    pub fn set_culling(&mut self, culling: Culling) -> Result<()> {
-        self.net.set_culling(culling)
+    /// The occupancy grid saved with the model, if it has one.
+    pub fn occupancy(&self) -> Option<&OccupancyGrid> {
+        self.occupancy.as_deref()
     }
 
-    /// Points evaluated by the network (far-away constants included) since construction.
-    pub fn points_evaluated(&self) -> u64 {
-        self.points_evaluated.load(Ordering::Relaxed)
+    /// Refresh the occupancy grid from the network's density for `poses` (whose pose
+    /// features are `pose`): see [`crate::render::occupancy::refresh`]. The avatar must have a
+    /// grid.
+    pub fn refresh_occupancy<R: rand::Rng>(
+        &mut self,
+        poses: &Poses,
+        pose: &PoseFeatures,
+        opts: RefreshOptions,
+        rng: &mut R,
+    ) -> Result<RefreshStats> {
+        let grid = self.occupancy.as_mut().ok_or_else(|| {
+            ModelError::Input("occupancy: the model has no occupancy grid to refresh".into())
+        })?;
+        // Copied first only if a pass still holds the grid.
+        let grid = Arc::make_mut(grid);
+        crate::render::occupancy::refresh(&self.net, grid, poses, pose, opts, rng)
     }
 
     /// All tensors (parameters and buffers) by reference name, for saving.
@@ -382,9 +432,14 @@ impl Avatar {
         self.net.trainable()
     }
 
-    /// Save as a pma checkpoint (atomic).
+    /// Save as a pma checkpoint (atomic), with the occupancy grid if there is one.
     pub fn save(&self, path: impl AsRef<Path>) -> Result<()> {
-        self.net.save(path)
+        crate::network::checkpoint::save_with(
+            path.as_ref(),
+            &self.tensors(),
+            self.config(),
+            self.occupancy(),
+        )
     }
 }
 

@@ -4,6 +4,7 @@ use candle_core::{DType, Tensor};
 use pma_data::skeleton::Joints;
 
 use crate::error::{ModelError, Result};
+use crate::render::options::PassStats;
 use crate::render::raycast::RayBounds;
 use crate::render::volume::RenderOutputs;
 
@@ -81,6 +82,8 @@ pub struct Outputs {
     /// Host-side ray bounds (near/far, box hits); `None` when the rays were cast on the
     /// device ([`crate::render::raycast::device`]).
     pub bounds: Option<RayBounds>,
+    /// What the pass evaluated and left out.
+    pub stats: PassStats,
 }
 
 /// Shapes of a batch: R rays in P equal per-pose blocks.

@@ -39,14 +39,15 @@ pub enum ViewDirs {
     Reference,
 }
 
-/// Load a checkpoint for rendering with the chosen view-direction handling.
+/// Load a checkpoint (with its occupancy grid, if any) for rendering with the chosen
+/// view-direction handling.
 pub fn load_avatar(path: &Path, device: &Device, dirs: ViewDirs) -> Result<Avatar> {
     let ck = checkpoint::load(path, device)?;
     let mut cfg = ck.config;
     if dirs == ViewDirs::Normalized {
         cfg.quirks.normalize_view_dirs = true;
     }
-    Avatar::from_tensors(cfg, ck.tensors, device)
+    Ok(Avatar::from_tensors(cfg, ck.tensors, device)?.with_occupancy(ck.occupancy))
 }
 
 fn v3(a: [f32; 3]) -> DVec3 {

@@ -8,6 +8,12 @@
 //!   is an approximation: every sample of such a ray lies outside all ±1.1 boxes, where
 //!   w^p ≤ exp(−2·1.1⁶) ≈ 0.03 but not 0, and the network learned (not was forced) to be
 //!   empty there. Rays that do hit a box are evaluated exactly as in parity mode.
+//! * **Empty cells.** With an occupancy grid ([`crate::network::occupancy`]), a sample whose
+//!   window is above t for some joints, all of which mark its cell (in their own x̄) empty,
+//!   skips the network too and gets what a culled sample gets: the network's far-away
+//!   constant ([`SampleFate::Empty`]). A sample in an occupied cell of any such joint is
+//!   always evaluated. This changes the render wherever the skipped density was not 0; the
+//!   grid's threshold bounds it.
 //! * **Sample culling.** A sample whose spatial window w^p is ≤ t for every joint skips the
 //!   network. Where w^p = 0 for all joints the window product w = w^p·w^f is 0, so the max-pool,
 //!   f^m and every windowed point feature are 0, and the network's output is a global constant
@@ -30,6 +36,7 @@
 use pma_data::skeleton::N_JOINTS;
 
 use crate::error::{ModelError, Result};
+use crate::network::occupancy::OccupancyGrid;
 use crate::render::bones::BoneFrames;
 
 /// `exp(−x)` is exactly 0 in f32 for x > 103.98 (half the smallest subnormal); culling at
@@ -56,6 +63,9 @@ pub enum SampleFate {
     Evaluate,
     /// w^p ≤ t for every joint: the network's far-away constant (or 0 with `SampleFill::Zero`).
     Outside,
+    /// Every joint with w^p > t marks the sample's cell empty in the occupancy grid: filled
+    /// like [`SampleFate::Outside`].
+    Empty,
     /// The ray crosses no bone box: raw outputs 0.
     RayCulled,
 }
@@ -147,15 +157,21 @@ impl WindowTest {
         self.roots.len()
     }
 
+    /// x̄ of joint j of pose p at world point x, and α·Σ_k x̄_k⁶ (w^p = exp(−that)).
+    pub fn x_bar(&self, p: usize, j: usize, x: [f32; 3]) -> ([f64; 3], f64) {
+        let m = &self.maps[p * N_JOINTS + j];
+        let mut xb = [0f64; 3];
+        let mut sum = 0f64;
+        for (row, v) in m.iter().zip(xb.iter_mut()) {
+            *v = row[0] * x[0] as f64 + row[1] * x[1] as f64 + row[2] * x[2] as f64 + row[3];
+            sum += (*v * *v).powi(self.half_beta);
+        }
+        (xb, self.alpha * sum)
+    }
+
     /// α·Σ_k x̄_k⁶ of joint j of pose p at world point x (w^p = exp(−that)).
     pub fn exponent(&self, p: usize, j: usize, x: [f32; 3]) -> f64 {
-        let m = &self.maps[p * N_JOINTS + j];
-        let mut sum = 0f64;
-        for row in m {
-            let v = row[0] * x[0] as f64 + row[1] * x[1] as f64 + row[2] * x[2] as f64 + row[3];
-            sum += (v * v).powi(self.half_beta);
-        }
-        self.alpha * sum
+        self.x_bar(p, j, x).1
     }
 
     /// Largest spatial window over the joints of pose p at x (f64; for tests and reports).
@@ -168,6 +184,27 @@ impl WindowTest {
     /// True when w^p ≤ the threshold for every joint of pose p at x.
     pub fn outside(&self, p: usize, x: [f32; 3]) -> bool {
         (0..N_JOINTS).all(|j| self.exponent(p, j, x) >= self.cut)
+    }
+
+    /// The fate of a sample of pose p at x on a ray that is not culled: evaluated as soon as
+    /// one joint with w^p above the threshold marks its cell occupied (any such joint when
+    /// there is no grid), [`SampleFate::Empty`] when there are such joints and all mark it
+    /// empty, [`SampleFate::Outside`] when there are none.
+    pub fn fate(&self, p: usize, x: [f32; 3], grid: Option<&OccupancyGrid>) -> SampleFate {
+        let mut active = false;
+        for j in 0..N_JOINTS {
+            let (xb, e) = self.x_bar(p, j, x);
+            if e < self.cut {
+                match grid {
+                    Some(g) if !g.occupied(j, xb) => active = true,
+                    _ => return SampleFate::Evaluate,
+                }
+            }
+        }
+        match active {
+            true => SampleFate::Empty,
+            false => SampleFate::Outside,
+        }
     }
 
     /// A world point where every joint's window of pose p is exactly 0: 1 km (or further)
@@ -188,13 +225,15 @@ impl WindowTest {
     }
 
     /// Fate of each sample of pts: [R,S,3] (host, row-major), rays grouped by pose in equal
-    /// contiguous blocks; `ray_alive[r]` false marks a culled ray.
+    /// contiguous blocks; `ray_alive[r]` false marks a culled ray; `grid` the occupancy grid
+    /// to consult (see [`Self::fate`]).
     pub fn fates(
         &self,
         pts: &[f32],
         n_rays: usize,
         s: usize,
         ray_alive: Option<&[bool]>,
+        grid: Option<&OccupancyGrid>,
     ) -> Result<Vec<SampleFate>> {
         check_samples(pts, n_rays, s, self.n_poses())?;
         if let Some(a) = ray_alive {
@@ -222,12 +261,10 @@ impl WindowTest {
                 for k in 0..s {
                     let i = 3 * (r * s + k);
                     let x = [pts[i], pts[i + 1], pts[i + 2]];
-                    out.push(if !alive {
-                        SampleFate::RayCulled
-                    } else if self.outside(p, x) {
-                        SampleFate::Outside
+                    out.push(if alive {
+                        self.fate(p, x, grid)
                     } else {
-                        SampleFate::Evaluate
+                        SampleFate::RayCulled
                     });
                 }
             }
@@ -348,6 +385,81 @@ mod tests {
         assert!(err.to_string().contains("joint 2 axis 1"), "{err}");
         assert!(WindowTest::new(&eye, &eye, &scales, 2.0, 6, f64::NAN).is_err());
         let w = identity_setup(0.5);
-        assert!(w.fates(&[0.0; 5], 1, 2, None).is_err());
+        assert!(w.fates(&[0.0; 5], 1, 2, None, None).is_err());
+    }
+
+    /// A sample in an occupied cell of any joint whose window is above the threshold is
+    /// evaluated; it is left out only when every such joint marks its cell empty.
+    #[test]
+    fn a_sample_in_an_occupied_cell_is_never_skipped() {
+        use crate::network::occupancy::{OccupancyConfig, OccupancyGrid};
+        let mut eye = vec![0f32; N_JOINTS * 16];
+        for j in 0..N_JOINTS {
+            for d in 0..4 {
+                eye[j * 16 + 5 * d] = 1.0;
+            }
+            // Joint j's box sits at x = 0.1·j, so neighbouring joints overlap.
+            eye[j * 16 + 3] = -0.1 * j as f32;
+        }
+        let scales = vec![0.3f32; N_JOINTS * 3];
+        let cfg = OccupancyConfig {
+            resolution: 8,
+            dilation: 0,
+            ..Default::default()
+        };
+        let mut grid = OccupancyGrid::new(cfg).unwrap();
+        let mut state = 99u64;
+        let mut rnd = || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 40) as f32 / (1u64 << 24) as f32
+        };
+        for j in 0..N_JOINTS {
+            for c in 0..512 {
+                let sigma = if rnd() < 0.3 { 1.0 } else { 0.0 };
+                grid.update(j, c, sigma).unwrap();
+            }
+        }
+        grid.finish_refresh();
+        for t in [0.0, 0.2] {
+            let w = WindowTest::new(&eye, &eye, &scales, 2.0, 6, t).unwrap();
+            let n = 4000;
+            let pts: Vec<f32> = (0..3 * n)
+                .map(|i| match i % 3 {
+                    0 => rnd() * 8.0 - 1.5,
+                    _ => rnd() * 0.8 - 0.4,
+                })
+                .collect();
+            let fates = w.fates(&pts, n, 1, None, Some(&grid)).unwrap();
+            let mut seen = [0usize; 3];
+            for (i, fate) in fates.iter().enumerate() {
+                let x = [pts[3 * i], pts[3 * i + 1], pts[3 * i + 2]];
+                let active: Vec<usize> = (0..N_JOINTS)
+                    .filter(|&j| w.exponent(0, j, x) < exponent_cut(t))
+                    .collect();
+                let any_occupied = active.iter().any(|&j| grid.occupied(j, w.x_bar(0, j, x).0));
+                let expected = match (active.is_empty(), any_occupied) {
+                    (true, _) => SampleFate::Outside,
+                    (false, true) => SampleFate::Evaluate,
+                    (false, false) => SampleFate::Empty,
+                };
+                assert_eq!(*fate, expected, "sample {i} at {x:?}, threshold {t}");
+                seen[match fate {
+                    SampleFate::Evaluate => 0,
+                    SampleFate::Empty => 1,
+                    _ => 2,
+                }] += 1;
+            }
+            assert!(seen.iter().all(|&k| k > 50), "every fate occurs: {seen:?}");
+            // Without a grid, the same samples are evaluated or outside, never empty.
+            let plain = w.fates(&pts, n, 1, None, None).unwrap();
+            for (a, b) in plain.iter().zip(&fates) {
+                match b {
+                    SampleFate::Empty => assert_eq!(*a, SampleFate::Evaluate),
+                    _ => assert_eq!(a, b),
+                }
+            }
+        }
     }
 }

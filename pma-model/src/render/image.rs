@@ -29,6 +29,7 @@ use crate::compute::host::host_f32_shaped;
 use crate::error::{ModelError, Result};
 use crate::render::avatar::{Avatar, Mode, Rays};
 use crate::render::batch::{Outputs, Poses};
+use crate::render::options::{PassOptions, PassStats};
 
 /// Rays per chunk of the reference render path.
 pub const DEFAULT_CHUNK: usize = 5120;
@@ -42,6 +43,8 @@ pub struct ChunkRender {
     pub acc: Tensor,
     /// disp: [C]
     pub disp: Tensor,
+    /// What the chunk's pass evaluated (zeros for renderers that do not count).
+    pub stats: PassStats,
 }
 
 /// Renders one chunk of rays of a single pose (e.g. the avatar's ray renderer behind a
@@ -80,6 +83,9 @@ pub struct ImageOptions {
     pub head: HeadDir,
     /// Device the ray tensors are created on.
     pub device: Device,
+    /// What the avatar's passes may leave out ([`Avatar::render_image`]; a chunk renderer of
+    /// [`render_image`] makes its own choice).
+    pub pass: PassOptions,
 }
 
 impl Default for ImageOptions {
@@ -88,6 +94,7 @@ impl Default for ImageOptions {
             chunk: DEFAULT_CHUNK,
             head: HeadDir::NegY,
             device: Device::Cpu,
+            pass: PassOptions::default(),
         }
     }
 }
@@ -103,6 +110,8 @@ pub struct RenderedImage {
     pub acc: Vec<f32>,
     /// disp: [H,W]; 0 outside the body box.
     pub disp: Vec<f32>,
+    /// What the passes of the image evaluated, summed over its chunks.
+    pub stats: PassStats,
 }
 
 /// Pixels to ray-trace for a pose seen by `cam`: the 2-D box of the render cylinder of
@@ -166,6 +175,7 @@ pub fn render_image<R: ChunkRenderer + ?Sized>(
         })
         .collect();
     let origin = cam.origin();
+    let mut stats = PassStats::default();
     for chunk in pixels.chunks(opts.chunk) {
         crate::interrupt::check()?;
         let c = chunk.len();
@@ -186,6 +196,7 @@ pub fn render_image<R: ChunkRenderer + ?Sized>(
         let chunk_rgb = host_f32_shaped("chunk rgb", &out.rgb, &[c, 3])?;
         let chunk_acc = host_f32_shaped("chunk acc", &out.acc, &[c])?;
         let chunk_disp = host_f32_shaped("chunk disp", &out.disp, &[c])?;
+        stats.add(&out.stats);
         for (i, &p) in chunk.iter().enumerate() {
             rgb[3 * p..3 * p + 3].copy_from_slice(&chunk_rgb[3 * i..3 * i + 3]);
             acc[p] = chunk_acc[i];
@@ -198,20 +209,23 @@ pub fn render_image<R: ChunkRenderer + ?Sized>(
         rgb,
         acc,
         disp,
+        stats,
     })
 }
 
 impl Avatar {
     // ---- whole renders ------------------------------------------------------------------
 
-    /// Inference: render rays (eval mode, no noise, no gradient, bounded memory).
-    pub fn render_rays(&self, rays: &Rays, poses: &Poses) -> Result<Outputs> {
-        self.forward(rays, poses, &mut Mode::Infer, None)
+    /// Inference: render rays (eval mode, no noise, no gradient, bounded memory), leaving
+    /// out what `opts` says.
+    pub fn render_rays(&self, rays: &Rays, poses: &Poses, opts: &PassOptions) -> Result<Outputs> {
+        self.forward(rays, poses, &mut Mode::Infer, opts, None)
     }
 
     /// Render a whole image of one pose (eval mode, mean frame code, black or given
     /// background), in chunks of rays inside the body's 2-D box: memory stays bounded at any
-    /// resolution. `kp3d` are the pose's joint positions (for the box).
+    /// resolution. `kp3d` are the pose's joint positions (for the box); `opts.pass` says what
+    /// the passes may leave out.
     pub fn render_image(
         &self,
         poses: &Poses,
@@ -235,11 +249,12 @@ impl Avatar {
                 bgs: Some(bg.clone()),
                 framecodes: vec![-1; o.dim(0)?],
             };
-            let out = self.forward_with_pose(&rays, poses, &pose, &mut Mode::Infer)?;
+            let out = self.forward_with_pose(&rays, poses, &pose, &mut Mode::Infer, &opts.pass)?;
             Ok(ChunkRender {
                 rgb: out.fine.rgb,
                 acc: out.fine.acc,
                 disp: out.fine.disp,
+                stats: out.stats,
             })
         };
         render_image(&mut renderer, cam, kp3d, background, opts)

@@ -8,9 +8,11 @@
 //! | [`batch_file`] | the ray-batch npz of `pma forward` and its outputs npz |
 //! | [`bones`] | world → bone-aligned box frames of a batch of poses |
 //! | [`raycast`] | near/far from the bounding cylinder and the boxes; 48 + 24 samples |
+//! | [`options`] | what one pass may leave out ([`PassOptions`]), and what it did |
 //! | [`cull`] | which rays and samples may skip the network |
 //! | [`points`] | the routes of a pass's samples through the network |
 //! | [`volume`] | volume rendering (differentiable) |
+//! | [`occupancy`] | refreshing an avatar's occupancy grid from the network's density |
 //! | [`avatar`] | the forward pass, top-down |
 //! | [`image`] | whole images in bounded memory |
 //! | [`camera_path`] | orbit, bullet-time and framing cameras |
@@ -26,8 +28,11 @@ pub mod bones;
 pub mod camera_path;
 pub mod cull;
 pub mod image;
+pub mod occupancy;
+pub mod options;
 pub mod points;
 pub mod raycast;
 pub mod volume;
 
 pub use avatar::Avatar;
+pub use options::{Culling, PassOptions, PassStats, SampleFill};

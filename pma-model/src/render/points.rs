@@ -6,24 +6,28 @@
 //!
 //! * **dense**: one call for all poses with the graph kept (training, the parity hook);
 //! * **chunked**: bounded chunks on the CPU workers, outputs detached (inference);
-//! * **culled**: only the samples culling keeps ([`crate::render::cull`]); the rest are filled
-//!   from the network's far-away constant or with zeros. Gradients reach the evaluated
+//! * **culled**: only the samples culling and the occupancy grid keep
+//!   ([`crate::render::cull`]); the rest are filled from the network's far-away constant or
+//!   with zeros. Gradients reach the evaluated
 //!   samples and the constants, so training with culling at threshold 0 has parity's loss
 //!   and its gradients up to float summation order (docs/numerics.md, "Empty rays and
 //!   culling").
 //!
 //! Whatever the route, the result is raw [R,S,4] (rgb, density after noise and ReLU).
 
+use std::sync::Arc;
+
 use candle_core::{DType, Tensor};
 
 use crate::compute::host::host_f32;
 use crate::compute::ops::select_rows;
 use crate::error::{ModelError, Result};
-use crate::network::config::{Culling, SampleFill};
+use crate::network::occupancy::OccupancyGrid;
 use crate::network::trace::Trace;
 use crate::network::{Network, PoseFeatures};
 use crate::render::batch::{Mode, Poses};
 use crate::render::cull::{ray_fates, SampleFate, WindowTest};
+use crate::render::options::{PassOptions, SampleFill};
 use crate::render::raycast::RayBounds;
 
 /// Points per network call in inference: the largest per-point tensors are [n,24,128] f32,
@@ -36,6 +40,10 @@ pub(crate) struct PointEval {
     route: Route,
     /// Points that went through the network in this pass (far-away constants included).
     evaluated: usize,
+    /// Samples of this pass that went through the network (far-away constants not included).
+    samples_evaluated: usize,
+    /// Samples left out because the occupancy grid marks their cells empty.
+    skipped_empty: usize,
 }
 
 enum Route {
@@ -45,8 +53,10 @@ enum Route {
 }
 
 impl PointEval {
-    /// The route for `mode` and the avatar's culling options. A traced pass never culls:
-    /// the trace needs the intermediates of every sample.
+    /// The route for `mode` and the pass's options (`grid`: the avatar's occupancy grid,
+    /// needed when the options ask for it). A traced pass never leaves work out: the trace
+    /// needs the intermediates of every sample.
+    #[allow(clippy::too_many_arguments)]
     pub fn new(
         net: &Network,
         mode: &Mode,
@@ -54,10 +64,22 @@ impl PointEval {
         pose: &PoseFeatures,
         bounds: Option<&RayBounds>,
         traced: bool,
+        opts: &PassOptions,
+        grid: Option<&Arc<OccupancyGrid>>,
     ) -> Result<Self> {
-        let culling = &net.config().culling;
-        if !traced && !culling.is_off() {
-            let ctx = CullCtx::new(net, culling, poses, pose, bounds)?;
+        if !traced && opts.leaves_out_work() {
+            let grid = match (opts.occupancy, grid) {
+                (false, _) => None,
+                (true, Some(g)) => Some(g.clone()),
+                (true, None) => {
+                    return Err(ModelError::Input(
+                        "occupancy: the model has no occupancy grid (train with `--occupancy` \
+                         or build one with `pma occupancy build`)"
+                            .into(),
+                    ))
+                }
+            };
+            let ctx = CullCtx::new(net, opts, grid, poses, pose, bounds)?;
             return Ok(Self::on(Route::Culled(Box::new(ctx))));
         }
         Ok(Self::on(if mode.is_inference() {
@@ -71,12 +93,25 @@ impl PointEval {
         Self {
             route,
             evaluated: 0,
+            samples_evaluated: 0,
+            skipped_empty: 0,
         }
     }
 
-    /// Points that went through the network so far in this pass.
+    /// Points that went through the network so far in this pass (far-away constants
+    /// included).
     pub fn evaluated(&self) -> usize {
         self.evaluated
+    }
+
+    /// Samples that went through the network so far in this pass.
+    pub fn samples_evaluated(&self) -> usize {
+        self.samples_evaluated
+    }
+
+    /// Samples left out so far because the occupancy grid marks their cells empty.
+    pub fn skipped_empty(&self) -> usize {
+        self.skipped_empty
     }
 
     /// raw: [R,S,4] for the samples pts: [R,S,3] with view features view: [R,V].
@@ -96,17 +131,21 @@ impl PointEval {
             Route::Dense => {
                 let (rgb, sigma) = dense(net, pose, pts, view, stage, trace)?;
                 self.evaluated += r * s;
+                self.samples_evaluated += r * s;
                 (rgb, sigma, None)
             }
             Route::Chunked => {
                 let (rgb, sigma) = chunked(net, pose, pts, view)?;
                 self.evaluated += r * s;
+                self.samples_evaluated += r * s;
                 (rgb, sigma, None)
             }
             Route::Culled(c) => {
-                let before = c.evaluated;
+                let before = (c.evaluated, c.samples_evaluated, c.skipped_empty);
                 let out = c.run(net, pose, pts, view, mode)?;
-                self.evaluated += c.evaluated - before;
+                self.evaluated += c.evaluated - before.0;
+                self.samples_evaluated += c.samples_evaluated - before.1;
+                self.skipped_empty += c.skipped_empty - before.2;
                 out
             }
         };
@@ -209,6 +248,8 @@ fn chunked(
 /// Culling state of one forward pass (coarse and fine share the far-away constants).
 pub(crate) struct CullCtx {
     test: Option<WindowTest>,
+    /// The occupancy grid to consult, when the pass uses it.
+    grid: Option<Arc<OccupancyGrid>>,
     /// `ray_hits_body` when rays are culled.
     ray_alive: Option<Vec<bool>>,
     fill: SampleFill,
@@ -217,6 +258,10 @@ pub(crate) struct CullCtx {
     evaluated: usize,
     /// The network's numerics (its row gathers).
     numerics: crate::compute::numerics::Numerics,
+    /// Samples this route sent through the network.
+    samples_evaluated: usize,
+    /// Samples left out because their cells are empty.
+    skipped_empty: usize,
 }
 
 /// Network outputs at the far-away point, one row per ray that needed one.
@@ -256,12 +301,15 @@ struct Job {
 impl CullCtx {
     fn new(
         net: &Network,
-        c: &Culling,
+        opts: &PassOptions,
+        grid: Option<Arc<OccupancyGrid>>,
         poses: &Poses,
         pose: &PoseFeatures,
         bounds: Option<&RayBounds>,
     ) -> Result<Self> {
         let cfg = net.config();
+        opts.validate(cfg)?;
+        let c = &opts.culling;
         let ray_alive = match (c.rays, bounds) {
             (false, _) => None,
             (true, Some(b)) => Some(b.ray_hits_body.clone()),
@@ -271,7 +319,7 @@ impl CullCtx {
                 ))
             }
         };
-        let test = match c.sample_threshold {
+        let test = match opts.window_threshold() {
             Some(t) => Some(WindowTest::new(
                 net.bone_align(),
                 &host_f32(&poses.skts)?,
@@ -284,11 +332,14 @@ impl CullCtx {
         };
         Ok(Self {
             test,
+            grid,
             ray_alive,
             fill: c.sample_fill,
             consts: ConstRows::default(),
             evaluated: 0,
             numerics: net.numerics(),
+            samples_evaluated: 0,
+            skipped_empty: 0,
         })
     }
 
@@ -309,15 +360,23 @@ impl CullCtx {
         let (r, s, _) = pts.dims3()?;
         let n = r * s;
         let fates = match (&self.test, &self.ray_alive) {
-            (Some(t), alive) => t.fates(&host_f32(pts)?, r, s, alive.as_deref())?,
+            (Some(t), alive) => t.fates(
+                &host_f32(pts)?,
+                r,
+                s,
+                alive.as_deref(),
+                self.grid.as_deref(),
+            )?,
             (None, Some(alive)) => ray_fates(r, s, alive)?,
             (None, None) => vec![SampleFate::Evaluate; n],
         };
+        self.skipped_empty += fates.iter().filter(|f| **f == SampleFate::Empty).count();
         let network_fill = self.fill == SampleFill::Network;
         let noisy = matches!(mode, Mode::Train(Some(_))) && net.config().density_noise_std > 0.0;
+        let filled = |f: &SampleFate| matches!(f, SampleFate::Outside | SampleFate::Empty);
         let need: Vec<usize> = if network_fill {
             (0..r)
-                .filter(|&ray| fates[ray * s..(ray + 1) * s].contains(&SampleFate::Outside))
+                .filter(|&ray| fates[ray * s..(ray + 1) * s].iter().any(filled))
                 .collect()
         } else {
             Vec::new()
@@ -351,7 +410,7 @@ impl CullCtx {
                 .iter()
                 .map(|f| match f {
                     SampleFate::Evaluate => 1.0,
-                    SampleFate::Outside if network_fill => 1.0,
+                    SampleFate::Outside | SampleFate::Empty if network_fill => 1.0,
                     _ => 0.0,
                 })
                 .collect();
@@ -499,6 +558,7 @@ impl CullCtx {
             evaluated += job.len;
         }
         self.evaluated += evaluated + far_done;
+        self.samples_evaluated += evaluated;
         Ok((rgbs, sigmas, evaluated))
     }
 
@@ -528,7 +588,7 @@ impl CullCtx {
                     next += 1;
                     next - 1
                 }
-                SampleFate::Outside if network_fill => {
+                SampleFate::Outside | SampleFate::Empty if network_fill => {
                     evaluated as u32
                         + if consts.shared {
                             0
@@ -692,7 +752,7 @@ mod tests {
         let mut alive = vec![true; r];
         alive[7] = false;
         alive[1500] = false;
-        let fates = test.fates(&host, r, s, Some(&alive)).unwrap();
+        let fates = test.fates(&host, r, s, Some(&alive), None).unwrap();
         let kept = fates.iter().filter(|f| **f == SampleFate::Evaluate).count();
         let outside = fates.iter().filter(|f| **f == SampleFate::Outside).count();
         assert!(
@@ -705,11 +765,14 @@ mod tests {
             .collect();
         let ctx = CullCtx {
             test: Some(test.clone()),
+            grid: None,
             ray_alive: Some(alive),
             fill: SampleFill::Network,
             consts: ConstRows::default(),
             evaluated: 0,
             numerics: Default::default(),
+            samples_evaluated: 0,
+            skipped_empty: 0,
         };
         let bits = |x: &[f32]| x.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
         let reference = per_call_rows(

@@ -17,7 +17,7 @@ use rand_chacha::ChaCha8Rng;
 use crate::compute::host::host_f32 as host32;
 use crate::error::{ModelError, Result};
 use crate::network::config::Config;
-use crate::render::avatar::{Avatar, Mode, Outputs, Poses, Rays, Trace};
+use crate::render::avatar::{Avatar, Mode, Outputs, PassOptions, Poses, Rays, Trace};
 use crate::render::bones::BoneFrames;
 use crate::render::raycast::RayCaster;
 use crate::render::volume::raw2outputs;
@@ -250,7 +250,14 @@ pub fn forward_backward(
     // Every intermediate is traced and counted: candle's ReLU maps NaN to 0, so a NaN density
     // head would otherwise render as empty space without a trace in the outputs.
     let mut trace = Trace::default();
-    let out = avatar.forward(&rays, poses, &mut Mode::Train(None), Some(&mut trace))?;
+    let parity = PassOptions::parity();
+    let out = avatar.forward(
+        &rays,
+        poses,
+        &mut Mode::Train(None),
+        &parity,
+        Some(&mut trace),
+    )?;
     let loss = training_like_loss(&out)?;
     let grads = loss.backward()?;
     let (grad_norm, grad_bad) = grad_norm(avatar, &grads)?;

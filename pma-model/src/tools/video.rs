@@ -35,6 +35,7 @@ use crate::eval::{dataset_pose, spread, write_png, EvalError};
 use crate::render::avatar::{Avatar, Poses, Rays};
 use crate::render::camera_path::{bullet_time, facing, framing_camera, Orbit, ViewDirs};
 use crate::render::image::{body_box, render_image, ChunkRender, ImageOptions, RenderedImage};
+use crate::render::options::PassOptions;
 use crate::tools::retarget::{retarget, MotionClip, RootScale};
 
 /// How the camera moves over the frames (see the module docs).
@@ -282,6 +283,8 @@ pub struct VideoOptions {
     pub gif_fps: Option<f64>,
     /// `strip.png` of this many evenly spread frames side by side.
     pub strip: Option<usize>,
+    /// What the passes may leave out (parity by default).
+    pub pass: PassOptions,
 }
 
 /// One frame of `render.json`.
@@ -421,6 +424,7 @@ pub fn render_video(
         chunk: opts.chunk,
         head: opts.head,
         device: opts.device.clone(),
+        pass: opts.pass.clone(),
     };
     let gif_path = opts.out.join("render.gif");
     let mut gif = match opts.gif_fps {
@@ -502,12 +506,13 @@ fn render_shot(
             bgs: Some(bg.clone()),
             framecodes: vec![-1; o.dim(0)?],
         };
-        let out = avatar.render_rays(&rays, &item.poses)?;
+        let out = avatar.render_rays(&rays, &item.poses, &opts.pass)?;
         progress.rays(o.dim(0)? as u64);
         Ok(ChunkRender {
             rgb: out.fine.rgb,
             acc: out.fine.acc,
             disp: out.fine.disp,
+            stats: out.stats,
         })
     };
     render_image(&mut renderer, camera, &item.kp3d, Some(background), opts)

@@ -7,6 +7,8 @@ use serde::{Deserialize, Serialize};
 
 use super::error::TrainError;
 use crate::network::config::Config;
+use crate::network::occupancy::OccupancyConfig;
+use crate::render::options::{Culling, PassOptions};
 
 /// Limit of the rays of a training step and of a render chunk (the paper's step: 3,072).
 pub const MAX_RAYS: usize = crate::render::MAX_CHUNK_RAYS;
@@ -74,6 +76,15 @@ pub struct TrainConfig {
     /// [`crate::train::AUTO_READ_EVERY_DEVICE`] steps on other devices. Never changes the
     /// training itself.
     pub read_every: u64,
+    /// Culling in the training step (`[train.culling]`; docs/numerics.md, "Empty rays and
+    /// culling"). Off by default (parity); omitted from the saved configuration while off.
+    #[serde(skip_serializing_if = "Culling::is_off")]
+    pub culling: Culling,
+    /// An occupancy grid built and refreshed during training and used by its steps after the
+    /// warm-up (`[train.occupancy]`, `pma train --occupancy`), saved with every checkpoint.
+    /// Off (`None`) by default; omitted from the saved configuration while off.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub occupancy: Option<OccupancyConfig>,
 }
 
 impl Default for TrainConfig {
@@ -110,6 +121,20 @@ impl TrainConfig {
             max_consecutive_skips: 100,
             chunk_rays: 0,
             read_every: 0,
+            culling: Culling::default(),
+            occupancy: None,
+        }
+    }
+
+    /// The pass options of a training step at iteration `iter` (completed iterations): the
+    /// culling, and the occupancy grid once its warm-up is over.
+    pub fn pass_options(&self, iter: u64) -> PassOptions {
+        PassOptions {
+            culling: self.culling.clone(),
+            occupancy: self
+                .occupancy
+                .as_ref()
+                .is_some_and(|o| iter >= o.warmup_steps),
         }
     }
 
@@ -235,6 +260,16 @@ impl TrainConfig {
         if self.max_consecutive_skips == 0 {
             bad.push("max_consecutive_skips must be > 0".to_string());
         }
+        if let Some(t) = self.culling.sample_threshold {
+            if !(t.is_finite() && (0.0..1.0).contains(&t)) {
+                bad.push(format!(
+                    "culling.sample_threshold must be in [0, 1), found {t}"
+                ));
+            }
+        }
+        if let Some(o) = &self.occupancy {
+            bad.extend(o.problems().into_iter().map(|p| format!("occupancy.{p}")));
+        }
         if bad.is_empty() {
             Ok(())
         } else {
@@ -339,15 +374,31 @@ impl RunConfig {
             Some(toml::Value::String(s)) => s.parse()?,
             Some(v) => return Err(bad(format!("`preset` must be a string, found {v}"))),
         };
-        let model_over = take_table(&mut root, "model")?;
-        let train_over = take_table(&mut root, "train")?;
+        let mut model_over = take_table(&mut root, "model")?;
+        let mut train_over = take_table(&mut root, "train")?;
+        // Run directories written before culling became a training option keep it under
+        // [model]; they still resume.
+        if let Some(c) = model_over.remove("culling") {
+            if train_over.contains_key("culling") {
+                return Err(bad(
+                    "`culling` is given under both [model] and [train]; keep [train.culling]"
+                        .into(),
+                ));
+            }
+            train_over.insert("culling".into(), c);
+        }
         if let Some(k) = root.keys().next() {
             return Err(bad(format!(
                 "unknown top-level key `{k}` (expected preset, [model], [train])"
             )));
         }
-        let model: Config = merge("model", &preset.model(), model_over)?;
-        let train: TrainConfig = merge("train", &preset.train(), train_over)?;
+        let model: Config = merge("model", &preset.model(), model_over, &[])?;
+        let train: TrainConfig = merge(
+            "train",
+            &preset.train(),
+            train_over,
+            &["culling", "occupancy"],
+        )?;
         let run = Self {
             preset,
             model,
@@ -374,7 +425,13 @@ impl RunConfig {
 
     pub fn validate(&self) -> Result<(), TrainError> {
         self.model.validate()?;
-        self.train.validate()
+        self.train.validate()?;
+        let mut all = self.train.pass_options(0);
+        all.occupancy = self.train.occupancy.is_some();
+        match all.problem(&self.model) {
+            Some(p) => Err(TrainError::Config(p)),
+            None => Ok(()),
+        }
     }
 
     /// The one rule for what may change when a run is resumed, used wherever a run is
@@ -484,11 +541,14 @@ fn take_table(root: &mut toml::Table, key: &str) -> Result<toml::Table, TrainErr
 }
 
 /// Overlay `over` on the serialised `base` (one level deep: nested tables such as
-/// `model.quirks` are merged too) and deserialise the result.
+/// `model.quirks` are merged too) and deserialise the result. `optional` names the tables of
+/// the section that the serialised base leaves out while they are off (their own types
+/// refuse unknown keys, so they are taken as given).
 fn merge<T: Serialize + serde::de::DeserializeOwned>(
     section: &str,
     base: &T,
     over: toml::Table,
+    optional: &[&str],
 ) -> Result<T, TrainError> {
     let bad = |msg: String| TrainError::Config(msg);
     let mut merged = toml::Table::try_from(base).map_err(|e| {
@@ -498,7 +558,14 @@ fn merge<T: Serialize + serde::de::DeserializeOwned>(
         ))
     })?;
     for (k, v) in over {
+        let optional = optional.contains(&k.as_str());
         match (merged.get_mut(&k), v) {
+            (None, toml::Value::Table(t)) if optional => {
+                merged.insert(k, toml::Value::Table(t));
+            }
+            (Some(toml::Value::Table(dst)), toml::Value::Table(src)) if optional => {
+                dst.extend(src);
+            }
             (None, _) => return Err(bad(format!("unknown key `{section}.{k}`"))),
             (Some(toml::Value::Table(dst)), toml::Value::Table(src)) => {
                 for (k2, v2) in src {
@@ -549,6 +616,17 @@ mod tests {
             run.train.images_per_step,
             TrainConfig::cpu_small().images_per_step
         );
+    }
+
+    #[test]
+    fn culling_under_model_is_read_as_the_training_culling() {
+        let old = "preset = \"tiny\"\n[model.culling]\nrays = true\nsample_threshold = 0.2\n";
+        let run = RunConfig::from_toml_str(old).unwrap();
+        assert!(run.train.culling.rays);
+        assert_eq!(run.train.culling.sample_threshold, Some(0.2));
+        let both = format!("{old}[train.culling]\nrays = true\n");
+        let e = RunConfig::from_toml_str(&both).unwrap_err().to_string();
+        assert!(e.contains("both [model] and [train]"), "{e}");
     }
 
     #[test]

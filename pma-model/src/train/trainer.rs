@@ -29,7 +29,9 @@ use super::source::DatasetSource;
 use super::state::{Progress, RngState, TrainState};
 use super::TrainError;
 use crate::network::config::Config;
-use crate::render::avatar::{Avatar, Mode, Rays};
+use crate::network::occupancy::OccupancyGrid;
+use crate::render::avatar::{Avatar, Mode, PassOptions, PassStats, Rays};
+use crate::render::occupancy::{CellChoice, RefreshOptions};
 use crate::render::raycast::CoarseSamples;
 use crate::train::presets::{RunConfig, TrainConfig};
 use pma_data::dataset::Dataset;
@@ -378,11 +380,20 @@ pub struct Trainer {
     /// Rays per chunk, fixed at the first step (free device memory changes once the
     /// allocator holds a step's tensors, and the chunking sets the summation order).
     chunk: Option<usize>,
+    /// What the passes of the steps so far evaluated and left out (host counts).
+    pass_totals: PassStats,
+    /// Network points spent refreshing the occupancy grid so far.
+    refresh_points: u64,
 }
 
 /// The density-noise stream is seeded from the run seed on its own ChaCha stream, so it
 /// never overlaps the sampler's or the initialisation's draws.
 const NOISE_STREAM: u64 = 0x6e_6f69_7365;
+
+/// The occupancy refreshes draw their cells and points from the run seed on this stream,
+/// re-seeded from the iteration, so a resumed run refreshes exactly like an uninterrupted
+/// one without saving a generator.
+const OCCUPANCY_STREAM: u64 = 0x6f_6363_7570;
 
 /// Read-back interval of `read_every = 0` on devices other than the CPU (an estimate: a
 /// read-back drains the device's queue once, tens of microseconds, against steps of tens of
@@ -402,6 +413,11 @@ impl Trainer {
                 "the avatar's config differs from the run's model config".to_string(),
             ));
         }
+        // A run with the grid starts one (or continues the one saved with its model).
+        let avatar = match (&run.train.occupancy, avatar.occupancy()) {
+            (Some(cfg), None) => avatar.with_occupancy(Some(OccupancyGrid::new(cfg.clone())?)),
+            _ => avatar,
+        };
         let vars = avatar.trainable();
         let t = &run.train;
         let adam = Adam::reference(&vars, t.lr_freq, t.lr, t.betas, t.eps)?;
@@ -421,6 +437,8 @@ impl Trainer {
             source,
             noise_rng,
             chunk: None,
+            pass_totals: PassStats::default(),
+            refresh_points: 0,
         })
     }
 
@@ -525,6 +543,17 @@ impl Trainer {
         self.opt.pending()
     }
 
+    /// What the passes of this trainer's steps evaluated and left out, summed (host counts,
+    /// known at once).
+    pub fn pass_totals(&self) -> PassStats {
+        self.pass_totals
+    }
+
+    /// Network points this trainer spent refreshing its occupancy grid.
+    pub fn refresh_points(&self) -> u64 {
+        self.refresh_points
+    }
+
     /// One iteration on the next batch of the source. Every [`Self::read_every`] iterations
     /// the numbers of the steps since the last read-back come back (oldest first); otherwise
     /// the result is empty. Errors of those steps (a streak of skipped steps:
@@ -611,12 +640,47 @@ impl Trainer {
         let device = self.avatar.device().clone();
         crate::compute::profile::start(&device);
         let chunk = self.chunk_size(batch.rays.origins.dim(0)?);
-        let (loss, mut grads) = self.gradients(batch, chunk)?;
+        let opts = self.run.train.pass_options(self.opt.iter);
+        let (loss, mut grads, stats) = self.gradients(batch, chunk, &opts)?;
         if let Some(h) = hook {
             h(&mut grads);
         }
         self.opt.apply(&loss, grads)?;
         crate::compute::profile::mark("grad norm + Adam", &device);
+        self.pass_totals.add(&stats);
+        self.refresh_occupancy(batch)?;
+        Ok(())
+    }
+
+    /// After step `iter` (completed iterations): refresh the occupancy grid on the batch's
+    /// poses with the updated weights when it is due. The refresh that ends the warm-up (and
+    /// any before the grid's first) evaluates every cell; later ones every `refresh_every`
+    /// steps a share of them. It makes no interruption check: the step is already applied.
+    fn refresh_occupancy(&mut self, batch: &TrainBatch) -> Result<(), TrainError> {
+        let Some(cfg) = self.run.train.occupancy.clone() else {
+            return Ok(());
+        };
+        let iter = self.opt.iter;
+        let built = self.avatar.occupancy().is_some_and(|g| g.is_built());
+        let cells = match (iter >= cfg.warmup_steps, built) {
+            (false, _) => return Ok(()),
+            (true, false) => CellChoice::All,
+            (true, true) if (iter - cfg.warmup_steps) % cfg.refresh_every == 0 => {
+                CellChoice::Share(cfg.refresh_share)
+            }
+            (true, true) => return Ok(()),
+        };
+        let mut rng = ChaCha8Rng::seed_from_u64(
+            self.run.train.seed ^ iter.wrapping_mul(0x9e37_79b9_7f4a_7c15),
+        );
+        rng.set_stream(OCCUPANCY_STREAM);
+        let pose = self.avatar.pose_features(&batch.poses, None)?;
+        let opts = RefreshOptions { cells, decay: true };
+        let stats = self
+            .avatar
+            .refresh_occupancy(&batch.poses, &pose, opts, &mut rng)?;
+        self.refresh_points += stats.cells as u64;
+        crate::compute::profile::mark("occupancy refresh", self.avatar.device());
         Ok(())
     }
 
@@ -650,7 +714,8 @@ impl Trainer {
         &mut self,
         batch: &TrainBatch,
         chunk: usize,
-    ) -> Result<(StepLoss, Vec<Option<Tensor>>), TrainError> {
+        opts: &PassOptions,
+    ) -> Result<(StepLoss, Vec<Option<Tensor>>, PassStats), TrainError> {
         let r = batch.rays.origins.dim(0)?;
         let n_poses = batch.poses.bones.len();
         if n_poses == 0 || r % n_poses != 0 {
@@ -664,7 +729,7 @@ impl Trainer {
         let avatar = &self.avatar;
         let pose = avatar.pose_features(&batch.poses, None)?;
         crate::compute::profile::mark("pose features", &device);
-        let coarse = avatar.cast(&batch.rays, &batch.poses, &pose)?;
+        let coarse = avatar.cast(&batch.rays, &batch.poses, &pose, opts)?;
         crate::compute::profile::mark("cast", &device);
         let cfg = avatar.config();
         let noise = match cfg.density_noise_std > 0.0 {
@@ -678,7 +743,8 @@ impl Trainer {
         };
         let weights = self.run.train.loss_weights();
         let params = &self.params;
-        let run_chunk = |start: usize| -> Result<(StepLoss, Vec<Option<Tensor>>), TrainError> {
+        type ChunkOut = (StepLoss, Vec<Option<Tensor>>, PassStats);
+        let run_chunk = |start: usize| -> Result<ChunkOut, TrainError> {
             let len = per_pose.min(k - start);
             let ids = (len < k)
                 .then(|| -> candle_core::Result<_> {
@@ -716,7 +782,7 @@ impl Trainer {
                 Some(_) => Mode::Train(Some(&mut noise_fn)),
                 None => Mode::Train(None),
             };
-            let out = avatar.forward_cast(&rays, &batch.poses, &pose, samples, &mut mode)?;
+            let out = avatar.forward_cast(&rays, &batch.poses, &pose, samples, &mut mode, opts)?;
             let share = crate::train::loss::loss_share(&out, &target, &weights, r, start == 0)?;
             let f64_of = |t: &Tensor| t.detach().to_dtype(DType::F64);
             let mse = (&out.fine.rgb.detach() - &target)?.sqr()?.sum_all()?;
@@ -734,10 +800,11 @@ impl Trainer {
                 .iter()
                 .map(|v| store.get(v.as_tensor()).map(|d| d.detach()))
                 .collect();
-            Ok((numbers, grads))
+            Ok((numbers, grads, out.stats))
         };
         let mut loss = StepLoss::zeros(&device)?;
         let mut grads: Vec<Option<Tensor>> = vec![None; params.len()];
+        let mut stats = PassStats::default();
         let starts: Vec<usize> = (0..k).step_by(per_pose).collect();
         // One wave of chunks per round of workers; sums are taken in chunk order, so the
         // result is the sequential loop's, bit for bit, whatever the worker count.
@@ -746,7 +813,8 @@ impl Trainer {
             crate::interrupt::check()?;
             let outs =
                 crate::compute::parallel::map_ordered(workers, wave.len(), |i| run_chunk(wave[i]))?;
-            for (part, chunk_grads) in outs {
+            for (part, chunk_grads, chunk_stats) in outs {
+                stats.add(&chunk_stats);
                 loss = StepLoss {
                     total: (loss.total + part.total)?,
                     fine: (loss.fine + part.fine)?,
@@ -764,7 +832,7 @@ impl Trainer {
                 }
             }
         }
-        Ok((loss, grads))
+        Ok((loss, grads, stats))
     }
 
     /// What a checkpoint holds besides the model (see [`super::checkpoint`], which writes

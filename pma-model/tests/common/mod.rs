@@ -6,6 +6,7 @@ use std::path::PathBuf;
 
 use candle_core::{DType, Device, Tensor};
 use pma_model::network::checkpoint;
+pub use pma_model::render::avatar::PassOptions;
 use pma_model::render::avatar::{Avatar, Mode, Outputs, Poses, Rays, Trace};
 
 /// The device the golden cases run on: the CPU, or `PMA_TEST_DEVICE` (e.g. `cuda` for
@@ -143,11 +144,16 @@ impl GoldenCase {
             .collect()
     }
 
-    /// Train-mode forward with density noise off, as the golden run.
+    /// Train-mode forward with density noise off, as the golden run (parity).
     pub fn forward(&self, trace: Option<&mut Trace>) -> Outputs {
-        let mut opts = Mode::Train(None);
+        self.forward_with(&PassOptions::parity(), trace)
+    }
+
+    /// [`Self::forward`] leaving out what `opts` says.
+    pub fn forward_with(&self, opts: &PassOptions, trace: Option<&mut Trace>) -> Outputs {
+        let mut mode = Mode::Train(None);
         self.avatar
-            .forward(&self.rays, &self.poses, &mut opts, trace)
+            .forward(&self.rays, &self.poses, &mut mode, opts, trace)
             .unwrap()
     }
 }

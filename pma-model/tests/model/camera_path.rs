@@ -181,11 +181,12 @@ fn render(avatar: &Avatar, cam: &Camera, normalise_input: bool) -> Vec<f32> {
                 bgs: Some(bg.clone()),
                 framecodes: vec![-1; o.dim(0)?],
             };
-            let out = avatar.render_rays(&rays, &poses)?;
+            let out = avatar.render_rays(&rays, &poses, &Default::default())?;
             Ok(ChunkRender {
                 rgb: out.fine.rgb,
                 acc: out.fine.acc,
                 disp: out.fine.disp,
+                stats: out.stats,
             })
         };
     let opts = ImageOptions {

@@ -4,21 +4,22 @@
 
 use crate::common::*;
 use candle_core::{Device, Tensor};
-use pma_model::network::config::{Config, Culling, SampleFill};
+use pma_model::network::config::Config;
 use pma_model::render::avatar::{Avatar, Mode, Outputs};
 use pma_model::render::cull::{SampleFate, WindowTest};
 use pma_model::render::image::ImageOptions;
+use pma_model::render::{Culling, PassOptions, SampleFill};
 
-fn culling(rays: bool, threshold: Option<f64>) -> Culling {
-    Culling {
+fn culling(rays: bool, threshold: Option<f64>) -> PassOptions {
+    PassOptions::culled(Culling {
         rays,
         sample_threshold: threshold,
         sample_fill: SampleFill::Network,
-    }
+    })
 }
 
 /// Every output tensor of a forward pass, by name.
-fn tensors(o: &Outputs) -> Vec<(&'static str, Vec<f32>)> {
+pub(crate) fn tensors(o: &Outputs) -> Vec<(&'static str, Vec<f32>)> {
     vec![
         ("fine/rgb", flat(&o.fine.rgb)),
         ("fine/acc", flat(&o.fine.acc)),
@@ -37,7 +38,7 @@ fn tensors(o: &Outputs) -> Vec<(&'static str, Vec<f32>)> {
     ]
 }
 
-fn assert_identical(a: &Outputs, b: &Outputs, what: &str) {
+pub(crate) fn assert_identical(a: &Outputs, b: &Outputs, what: &str) {
     let mut problems = Vec::new();
     for ((name, x), (_, y)) in tensors(a).into_iter().zip(tensors(b)) {
         assert_eq!(x.len(), y.len(), "{what}: {name} sizes differ");
@@ -70,29 +71,27 @@ fn zero_window_samples(avatar: &Avatar, case: &GoldenCase, pts: &Tensor) -> usiz
     )
     .unwrap();
     let (r, s, _) = pts.dims3().unwrap();
-    test.fates(&flat(pts), r, s, None)
+    test.fates(&flat(pts), r, s, None, None)
         .unwrap()
         .iter()
         .filter(|f| **f == SampleFate::Outside)
         .count()
 }
 
-fn inference(case: &GoldenCase) -> Outputs {
-    let mut opts = Mode::Infer;
+fn inference(case: &GoldenCase, opts: &PassOptions) -> Outputs {
     case.avatar
-        .forward(&case.rays, &case.poses, &mut opts, None)
+        .forward(&case.rays, &case.poses, &mut Mode::Infer, opts, None)
         .unwrap()
 }
 
 fn threshold_zero_is_parity(dir: &str, sigma_override: bool) {
-    let mut case = GoldenCase::load(dir, sigma_override);
+    let case = GoldenCase::load(dir, sigma_override);
     let parity = case.forward(None);
-    let parity_inf = inference(&case);
+    let parity_inf = inference(&case, &PassOptions::parity());
     let culled_coarse = zero_window_samples(&case.avatar, &case, &parity.z_coarse_pts(&case));
-    case.avatar.set_culling(culling(false, Some(0.0))).unwrap();
-    let before = case.avatar.points_evaluated();
-    let culled = case.forward(None);
-    let evaluated = case.avatar.points_evaluated() - before;
+    let cull = culling(false, Some(0.0));
+    let culled = case.forward_with(&cull, None);
+    let evaluated = culled.stats.points_evaluated;
     let total = parity.raw.dims()[0] * parity.raw.dims()[1];
     println!(
         "[{dir}] {culled_coarse} coarse samples have a zero window; network points {evaluated} of {total}"
@@ -108,7 +107,7 @@ fn threshold_zero_is_parity(dir: &str, sigma_override: bool) {
     assert_identical(&parity, &culled, dir);
     // Inference (chunked, detached; one shared constant row when its density is 0): every
     // rendered output is identical; raw colours of zero-density culled samples may differ.
-    let culled_inf = inference(&case);
+    let culled_inf = inference(&case, &cull);
     for (a, b, name) in [
         (&parity_inf.fine.rgb, &culled_inf.fine.rgb, "rgb"),
         (
@@ -155,10 +154,9 @@ fn threshold_zero_equals_parity_on_the_dense_golden_case() {
 
 #[test]
 fn culled_rays_are_background_and_hitting_rays_are_unchanged() {
-    let mut case = GoldenCase::load("golden/dense", true);
+    let case = GoldenCase::load("golden/dense", true);
     let parity = case.forward(None);
-    case.avatar.set_culling(culling(true, None)).unwrap();
-    let culled = case.forward(None);
+    let culled = case.forward_with(&culling(true, None), None);
     let hits = &parity.bounds.as_ref().unwrap().ray_hits_body;
     let n_miss = hits.iter().filter(|h| !**h).count();
     assert!(
@@ -226,7 +224,7 @@ fn small_sample_threshold_changes_the_render_by_a_bounded_amount() {
         "sigma_linear.bias".into(),
         Tensor::new(&[2f32], &dev).unwrap(),
     );
-    let mut avatar = Avatar::from_tensors(cfg, tensors, &dev).unwrap();
+    let avatar = Avatar::from_tensors(cfg, tensors, &dev).unwrap();
     let (poses, kp3d) = avatar.pose_from_bones(&[[0.0; 3]; 24], [0.0; 3]).unwrap();
     let c2w = [
         [1.0, 0.0, 0.0, 0.0],
@@ -235,18 +233,19 @@ fn small_sample_threshold_changes_the_render_by_a_bounded_amount() {
         [0.0, 0.0, 0.0, 1.0],
     ];
     let cam = pma_data::camera::Camera::new(40, 40, 40.0, 40.0, 20.0, 20.0, c2w).unwrap();
-    let opts = ImageOptions::default();
     let parity = avatar
-        .render_image(&poses, &kp3d, &cam, None, &opts)
+        .render_image(&poses, &kp3d, &cam, None, &ImageOptions::default())
         .unwrap();
     let mut prev = 0.0;
     for t in [1e-6, 1e-4, 1e-2] {
-        avatar.set_culling(culling(false, Some(t))).unwrap();
-        let before = avatar.points_evaluated();
+        let opts = ImageOptions {
+            pass: culling(false, Some(t)),
+            ..Default::default()
+        };
         let img = avatar
             .render_image(&poses, &kp3d, &cam, None, &opts)
             .unwrap();
-        let points = avatar.points_evaluated() - before;
+        let points = img.stats.points_evaluated;
         let max = parity
             .rgb
             .iter()

@@ -42,7 +42,7 @@ fn gradients(
     let mut opts = pma_model::render::avatar::Mode::Train(None);
     let out = case
         .avatar
-        .forward(&c_rays, &case.poses, &mut opts, None)
+        .forward(&c_rays, &case.poses, &mut opts, &Default::default(), None)
         .unwrap();
     let loss = if which == "grad_l1fine" {
         l1(&out.fine.rgb, &target).unwrap()

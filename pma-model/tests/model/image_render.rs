@@ -94,6 +94,7 @@ fn mock<'a>(
             rgb: Tensor::from_vec(rgb, (n, 3), &dev)?,
             acc: Tensor::from_vec(acc, n, &dev)?,
             disp: Tensor::from_vec(disp, n, &dev)?,
+            stats: Default::default(),
         })
     }
 }
@@ -235,6 +236,7 @@ fn bad_inputs_are_errors() {
             rgb: Tensor::zeros((n, 3), candle_core::DType::F32, &dev)?,
             acc: Tensor::zeros(n + 1, candle_core::DType::F32, &dev)?,
             disp: Tensor::zeros(n, candle_core::DType::F32, &dev)?,
+            stats: Default::default(),
         })
     };
     let msg = render_image(&mut wrong, &cam, &kp, None, &opts)

@@ -965,7 +965,13 @@ fn full_forward_and_training_gradients() {
         let mut opts = Mode::Train(None);
         let mut trace = Trace::default();
         let out = avatar
-            .forward(&rays, &poses, &mut opts, Some(&mut trace))
+            .forward(
+                &rays,
+                &poses,
+                &mut opts,
+                &Default::default(),
+                Some(&mut trace),
+            )
             .unwrap();
 
         let bounds = out.bounds.as_ref().unwrap();

@@ -18,6 +18,7 @@ mod layers;
 mod lpips;
 mod mesh;
 mod numerics;
+mod occupancy;
 mod overfit_tiny;
 mod raycast_device;
 mod raycast_golden;

@@ -6,10 +6,18 @@
 use crate::common::*;
 use pma_model::compute::numerics::Numerics;
 use pma_model::render::avatar::{Avatar, Mode, Outputs};
+use pma_model::render::PassOptions;
 
 fn train_forward(a: &Avatar, case: &GoldenCase) -> Outputs {
-    a.forward(&case.rays, &case.poses, &mut Mode::Train(None), None)
-        .unwrap()
+    let parity = PassOptions::parity();
+    a.forward(
+        &case.rays,
+        &case.poses,
+        &mut Mode::Train(None),
+        &parity,
+        None,
+    )
+    .unwrap()
 }
 
 fn bits(o: &Outputs) -> Vec<u32> {

@@ -32,7 +32,13 @@ fn probe_psnr(t: &Trainer, probe: &TrainBatch) -> f64 {
     let mut opts = Mode::Train(Some(&mut noise));
     let out = t
         .avatar()
-        .forward(&probe.rays, &probe.poses, &mut opts, None)
+        .forward(
+            &probe.rays,
+            &probe.poses,
+            &mut opts,
+            &Default::default(),
+            None,
+        )
         .unwrap();
     let mse = (&out.fine.rgb - &probe.target)
         .unwrap()

@@ -181,3 +181,44 @@ fn read_back_interval_does_not_change_the_run() {
     assert!(adam_bits(&every) == adam_bits(&third), "optimizer state");
     third.save_checkpoint(&dir).unwrap();
 }
+
+/// With an occupancy grid: the grid is saved with the model and refreshed on resume exactly
+/// as in the uninterrupted run (its cells are drawn from the run seed and the iteration).
+#[test]
+fn resume_with_an_occupancy_grid_equals_uninterrupted_run() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tiny_scene(&tmp.path().join("scene"));
+    let mut run = tiny_run();
+    run.train.occupancy = Some(pma_model::network::occupancy::OccupancyConfig {
+        resolution: 8,
+        warmup_steps: 1,
+        refresh_every: 1,
+        ..Default::default()
+    });
+    let (n, m) = (2, 2);
+    let trainer = || Trainer::new(run.clone(), data.clone(), &Device::Cpu).unwrap();
+    let mut full = trainer();
+    for _ in 0..n + m {
+        full.step().unwrap();
+    }
+    let ckpt = tmp.path().join("run");
+    std::fs::create_dir_all(&ckpt).unwrap();
+    let mut first = trainer();
+    for _ in 0..n {
+        first.step().unwrap();
+    }
+    first.save_checkpoint(&ckpt).unwrap();
+    drop(first);
+    let mut resumed = Trainer::resume(&ckpt, run.clone(), data.clone(), &Device::Cpu).unwrap();
+    assert!(resumed.avatar().occupancy().is_some_and(|g| g.is_built()));
+    for _ in 0..m {
+        resumed.step().unwrap();
+    }
+    let (a, b) = (full.avatar().occupancy(), resumed.avatar().occupancy());
+    assert_eq!(a.unwrap().refreshes(), (n + m) as u64);
+    assert!(a == b, "the grid differs after resume");
+    assert!(
+        param_bits(&full) == param_bits(&resumed),
+        "parameters differ after resume"
+    );
+}

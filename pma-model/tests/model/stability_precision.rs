@@ -13,7 +13,13 @@ use pma_model::tools::stability::tensor_stats;
 fn forward(case: &GoldenCase, avatar: &pma_model::render::avatar::Avatar) -> Outputs {
     let mut opts = Mode::Train(None);
     avatar
-        .forward(&case.rays, &case.poses, &mut opts, None)
+        .forward(
+            &case.rays,
+            &case.poses,
+            &mut opts,
+            &Default::default(),
+            None,
+        )
         .unwrap()
 }
 

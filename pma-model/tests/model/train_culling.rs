@@ -1,4 +1,4 @@
-//! Culling in training (`culling.*` of the model config): at threshold 0 a training step —
+//! Culling in training (`[train.culling]` of the run config): at threshold 0 a training step —
 //! unchunked and in ray chunks — has parity mode's loss bit for bit and its gradients up to
 //! float summation order. Not bit for bit: the culled samples of a ray share one far-away
 //! row, so the weight gradients form aᵀ(Σᵢ δᵢ) over that row where parity forms Σᵢ aᵀδᵢ over
@@ -11,8 +11,8 @@ use std::sync::Arc;
 use crate::train_support::{first_batch, tiny_run, tiny_scene};
 use candle_core::{Device, Tensor};
 use pma_data::dataset::Dataset;
-use pma_model::network::config::{Culling, SampleFill};
 use pma_model::render::avatar::Avatar;
+use pma_model::render::{Culling, SampleFill};
 use pma_model::train::{FixedBatch, StepStats, TrainBatch, Trainer};
 
 fn flat(t: &Tensor) -> Vec<f32> {
@@ -31,7 +31,7 @@ struct Step {
 fn one_step(data: &Arc<Dataset>, batch: &TrainBatch, chunk: usize, culling: Culling) -> Step {
     let mut run = tiny_run();
     run.model.n_framecodes = data.n_images();
-    run.model.culling = culling;
+    run.train.culling = culling;
     run.train.chunk_rays = chunk;
     let rest = data.rest_pose.unwrap();
     let avatar = Avatar::new(run.model.clone(), &rest, run.train.seed, &Device::Cpu).unwrap();
@@ -39,7 +39,6 @@ fn one_step(data: &Arc<Dataset>, batch: &TrainBatch, chunk: usize, culling: Cull
         Trainer::with_source(run, avatar, Box::new(FixedBatch(batch.clone()))).unwrap();
     let names = trainer.param_names().to_vec();
     let mut grads = Vec::new();
-    let before = trainer.avatar().points_evaluated();
     let stats = trainer
         .step_hooked(&mut |g: &mut [Option<Tensor>]| {
             grads = g
@@ -48,7 +47,7 @@ fn one_step(data: &Arc<Dataset>, batch: &TrainBatch, chunk: usize, culling: Cull
                 .collect();
         })
         .unwrap();
-    let points = trainer.avatar().points_evaluated() - before;
+    let points = trainer.pass_totals().points_evaluated;
     Step {
         stats,
         grads,

@@ -90,7 +90,13 @@ fn each_variant_trains_and_round_trips_through_a_checkpoint() {
         let loaded = Avatar::from_tensors(ck.config, ck.tensors, &Device::Cpu).unwrap();
         let render = |a: &Avatar| -> Vec<u32> {
             let out = a
-                .forward(&probe.rays, &probe.poses, &mut Mode::Eval, None)
+                .forward(
+                    &probe.rays,
+                    &probe.poses,
+                    &mut Mode::Eval,
+                    &Default::default(),
+                    None,
+                )
                 .unwrap();
             bits(&out.fine.rgb)
         };

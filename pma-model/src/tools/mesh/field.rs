@@ -6,6 +6,7 @@ use pma_data::skeleton::N_JOINTS;
 use crate::compute::host::host_f32;
 use crate::error::{ModelError, Result};
 use crate::render::avatar::{Avatar, PoseFeatures, Poses, INFERENCE_POINT_CHUNK};
+use crate::render::cull::{SampleFate, WindowTest};
 
 /// One part's box in world space: `x_aligned = rot·x + trans`, inside iff every
 /// `|x_aligned[k]| <= half[k]`.
@@ -35,6 +36,10 @@ impl PartBox {
 /// docs/conventions.md, "Ray sampler") get density 0 unless [`AvatarField::mask_outside_boxes`] is off: the
 /// network was never asked about those regions while training, and its output there is
 /// whatever the untrained constant branch says (floaters).
+///
+/// With [`AvatarField::skip_empty_cells`], points that the avatar's occupancy grid marks
+/// empty for every joint whose window reaches them get density 0 without the network, as a
+/// render with `--occupancy` leaves them out.
 pub struct AvatarField<'a> {
     avatar: &'a Avatar,
     pose: PoseFeatures,
@@ -44,6 +49,8 @@ pub struct AvatarField<'a> {
     pub mask_outside_boxes: bool,
     /// Points per network call.
     pub chunk: usize,
+    /// The window test of the pose, when empty cells are skipped.
+    empty_cells: Option<WindowTest>,
 }
 
 impl<'a> AvatarField<'a> {
@@ -77,7 +84,30 @@ impl<'a> AvatarField<'a> {
             boxes,
             mask_outside_boxes: true,
             chunk: INFERENCE_POINT_CHUNK,
+            empty_cells: None,
         })
+    }
+
+    /// The same field with density 0 in the cells the avatar's occupancy grid marks empty
+    /// (see the type's docs); an avatar without a grid is refused.
+    pub fn skip_empty_cells(mut self, poses: &Poses) -> Result<Self> {
+        if self.avatar.occupancy().is_none() {
+            return Err(ModelError::Input(
+                "occupancy: the model has no occupancy grid (train with `--occupancy` or build \
+                 one with `pma occupancy build`)"
+                    .into(),
+            ));
+        }
+        let cfg = self.avatar.config();
+        self.empty_cells = Some(WindowTest::new(
+            self.avatar.bone_align(),
+            &host_f32(&poses.skts)?,
+            &host_f32(&self.pose.scales)?,
+            cfg.window_alpha,
+            cfg.window_beta,
+            0.0,
+        )?);
+        Ok(self)
     }
 
     /// World-space bounds of the union of the part boxes.
@@ -163,10 +193,19 @@ impl<'a> AvatarField<'a> {
         self.boxes.iter().any(|b| b.contains(p))
     }
 
+    /// Whether the occupancy grid leaves `p` out (only with [`Self::skip_empty_cells`]).
+    fn in_empty_cell(&self, p: &[f32; 3]) -> bool {
+        match (&self.empty_cells, self.avatar.occupancy()) {
+            (Some(test), Some(grid)) => test.fate(0, *p, Some(grid)) == SampleFate::Empty,
+            _ => false,
+        }
+    }
+
     /// Density `relu(σ)` at `pts` (no noise).
     pub fn density(&self, pts: &[[f32; 3]]) -> Result<Vec<f32>> {
         let keep: Vec<usize> = (0..pts.len())
             .filter(|&i| !self.mask_outside_boxes || self.in_any_box(&pts[i]))
+            .filter(|&i| !self.in_empty_cell(&pts[i]))
             .collect();
         let mut out = vec![0f32; pts.len()];
         if keep.is_empty() {

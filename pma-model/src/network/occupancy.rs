@@ -1,0 +1,467 @@
+//! The occupancy grid: for each joint, which cells of its bone-normalised frame x̄ (the
+//! frame the spatial window w^p is computed in) have held density.
+//!
+//! **Domain and resolution.** Each joint has `resolution`³ cells over x̄ ∈ [−extent, extent]³.
+//! The default, 32³ over [−2, 2]³, covers every point where the joint's window can be non-zero
+//! in f32: w^p = exp(−α Σ x̄_k⁶) is exactly 0 once α Σ x̄_k⁶ ≥ 105 (α = 2), i.e. beyond
+//! |x̄_k| = 52.5^(1/6) ≈ 1.94 on any axis, so the grid answers for every joint a sample can be
+//! tested against, at any culling threshold. A cell is 1/8 of a box half-extent wide (the body
+//! inside a box spans about [−1, 1], 16 cells): fine enough to leave out the empty corners
+//! of a limb's box, small enough to keep (24·32³ f32 = 3 MiB in a checkpoint) and to refresh
+//! in a fraction of a training step's time. Twice the resolution would cost 8× both.
+//!
+//! **Update rule** (Instant-NGP's and nerfacc's): a refresh evaluates the density
+//! relu(σ), without density noise, at one random point in each chosen cell, for a training
+//! pose, and sets `cell = max(decay · cell, σ)`. A cell is occupied when its value is above
+//! min(`threshold`, mean of all cell values) — Instant-NGP's rule: early in training, when
+//! the density is still small everywhere, the cells with more than the average stay
+//! occupied instead of the whole grid emptying and starving the body of gradients; occupancy is then dilated by `dilation` cells in every direction, so that a
+//! surface that moves inside its bone frame with the pose (skin near a joint, cloth) is not
+//! cut where the training poses did not put it. Cells keep the largest density seen over
+//! the poses they were evaluated for; the decay lets a cell empty again once the body has
+//! moved out of it. A grid that was never refreshed counts every cell as occupied.
+//!
+//! The grid only leaves work out ([`crate::render::cull`] asks it): a model renders the same
+//! way without it, and its checkpoint tensors are a separate, optional group
+//! ([`crate::network::checkpoint`]).
+
+use pma_data::skeleton::N_JOINTS;
+use serde::{Deserialize, Serialize};
+
+use crate::error::{ModelError, Result};
+
+/// Largest grid resolution accepted (per axis; 24·128³ cells are 200 MiB of f32).
+pub const MAX_RESOLUTION: usize = 128;
+
+/// How the grid is laid out and kept (the `[train.occupancy]` table of a run; saved with the
+/// grid in the checkpoint).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct OccupancyConfig {
+    /// Cells per axis of each joint's grid.
+    pub resolution: usize,
+    /// The grid covers x̄ ∈ [−extent, extent]³ of each joint.
+    pub extent: f64,
+    /// Density relu(σ) above which a cell is occupied.
+    pub threshold: f64,
+    /// Factor a cell's value is multiplied by each time it is evaluated again.
+    pub decay: f64,
+    /// Occupied cells mark their neighbours up to this many cells away occupied too.
+    pub dilation: usize,
+    /// Training: steps between refreshes.
+    pub refresh_every: u64,
+    /// Training: share of each joint's cells evaluated by a refresh (half at random, half
+    /// among the occupied cells); the refresh that ends the warm-up evaluates every cell.
+    pub refresh_share: f64,
+    /// Training: steps that run without the grid while it is being built.
+    pub warmup_steps: u64,
+}
+
+impl Default for OccupancyConfig {
+    fn default() -> Self {
+        Self {
+            resolution: 32,
+            extent: 2.0,
+            threshold: 0.5,
+            decay: 0.95,
+            dilation: 1,
+            refresh_every: 16,
+            refresh_share: 0.125,
+            warmup_steps: 200,
+        }
+    }
+}
+
+impl OccupancyConfig {
+    /// Refuse settings the grid cannot be built or used with; `what` names the source.
+    pub fn validate(&self, what: &str) -> Result<()> {
+        let bad = self.problems();
+        match bad.is_empty() {
+            true => Ok(()),
+            false => Err(ModelError::Input(format!("{what}: {}", bad.join("; ")))),
+        }
+    }
+
+    /// Every setting the grid cannot be built or used with, one line each.
+    pub fn problems(&self) -> Vec<String> {
+        let mut bad = Vec::new();
+        if !(2..=MAX_RESOLUTION).contains(&self.resolution) {
+            bad.push(format!(
+                "resolution must be in 2..={MAX_RESOLUTION}, found {}",
+                self.resolution
+            ));
+        }
+        if !(self.extent.is_finite() && self.extent > 0.0 && self.extent <= 100.0) {
+            bad.push(format!(
+                "extent must be finite and in (0, 100], found {}",
+                self.extent
+            ));
+        }
+        if !(self.threshold.is_finite() && self.threshold >= 0.0) {
+            bad.push(format!(
+                "threshold must be finite and >= 0, found {}",
+                self.threshold
+            ));
+        }
+        if !(self.decay.is_finite() && self.decay > 0.0 && self.decay <= 1.0) {
+            bad.push(format!("decay must be in (0, 1], found {}", self.decay));
+        }
+        if self.dilation > self.resolution.max(2) / 2 {
+            bad.push(format!(
+                "dilation must be at most half the resolution ({}), found {}",
+                self.resolution / 2,
+                self.dilation
+            ));
+        }
+        if self.refresh_every == 0 {
+            bad.push("refresh_every must be >= 1".to_string());
+        }
+        if !(self.refresh_share.is_finite()
+            && self.refresh_share > 0.0
+            && self.refresh_share <= 1.0)
+        {
+            bad.push(format!(
+                "refresh_share must be in (0, 1], found {}",
+                self.refresh_share
+            ));
+        }
+        bad
+    }
+
+    /// Cells of one joint's grid.
+    pub fn cells_per_joint(&self) -> usize {
+        self.resolution.pow(3)
+    }
+}
+
+/// The grid itself (see the module docs).
+#[derive(Debug, Clone, PartialEq)]
+pub struct OccupancyGrid {
+    cfg: OccupancyConfig,
+    /// Per joint and cell, the decayed largest density seen: [24,R,R,R] (z, y, x; x fastest).
+    density: Vec<f32>,
+    /// `density > threshold`, dilated, in the same layout.
+    occupied: Vec<bool>,
+    /// Refreshes applied so far (0: never built, every cell counts as occupied).
+    refreshes: u64,
+}
+
+/// What a checkpoint's metadata says about its grid.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct OccupancyMeta {
+    pub config: OccupancyConfig,
+    pub refreshes: u64,
+}
+
+impl OccupancyGrid {
+    /// An empty grid that was never refreshed (every cell counts as occupied).
+    pub fn new(cfg: OccupancyConfig) -> Result<Self> {
+        cfg.validate("occupancy")?;
+        let n = N_JOINTS * cfg.cells_per_joint();
+        Ok(Self {
+            density: vec![0.0; n],
+            occupied: vec![true; n],
+            refreshes: 0,
+            cfg,
+        })
+    }
+
+    /// A grid from saved values: `density` [24·R³] in the layout of [`Self::density`]; values
+    /// must be finite and >= 0.
+    pub fn from_parts(meta: OccupancyMeta, density: Vec<f32>) -> Result<Self> {
+        let mut g = Self::new(meta.config)?;
+        if density.len() != g.density.len() {
+            return Err(ModelError::shape(
+                "occupancy.density",
+                g.shape(),
+                format!("{} values", density.len()),
+            ));
+        }
+        if let Some(i) = density.iter().position(|v| !(v.is_finite() && *v >= 0.0)) {
+            return Err(ModelError::Input(format!(
+                "occupancy.density: value {} at flat index {i} (must be finite and >= 0)",
+                density[i]
+            )));
+        }
+        g.density = density;
+        g.refreshes = meta.refreshes;
+        g.update_occupied();
+        Ok(g)
+    }
+
+    pub fn config(&self) -> &OccupancyConfig {
+        &self.cfg
+    }
+
+    /// [24, R, R, R].
+    pub fn shape(&self) -> [usize; 4] {
+        let r = self.cfg.resolution;
+        [N_JOINTS, r, r, r]
+    }
+
+    pub fn meta(&self) -> OccupancyMeta {
+        OccupancyMeta {
+            config: self.cfg.clone(),
+            refreshes: self.refreshes,
+        }
+    }
+
+    /// Refreshes applied so far.
+    pub fn refreshes(&self) -> u64 {
+        self.refreshes
+    }
+
+    /// Whether the grid was ever refreshed (before, every cell counts as occupied).
+    pub fn is_built(&self) -> bool {
+        self.refreshes > 0
+    }
+
+    /// The cell values, [24·R³] (joint, z, y, x; x fastest).
+    pub fn density(&self) -> &[f32] {
+        &self.density
+    }
+
+    /// Width of a cell in x̄.
+    pub fn cell_size(&self) -> f64 {
+        2.0 * self.cfg.extent / self.cfg.resolution as f64
+    }
+
+    /// The cell of joint j's grid holding x̄ (flat index within the joint), or `None` outside
+    /// the domain.
+    pub fn cell_of(&self, x_bar: [f64; 3]) -> Option<usize> {
+        let r = self.cfg.resolution;
+        let (e, w) = (self.cfg.extent, self.cell_size());
+        let mut idx = [0usize; 3];
+        for k in 0..3 {
+            let u = (x_bar[k] + e) / w;
+            // NaN fails both tests and stays outside.
+            if !(u >= 0.0 && u < r as f64) {
+                return None;
+            }
+            idx[k] = u as usize;
+        }
+        Some((idx[2] * r + idx[1]) * r + idx[0])
+    }
+
+    /// The lower corner of cell `c` of a joint's grid, in x̄.
+    pub fn cell_corner(&self, c: usize) -> [f64; 3] {
+        let r = self.cfg.resolution;
+        let (e, w) = (self.cfg.extent, self.cell_size());
+        [
+            (c % r) as f64 * w - e,
+            ((c / r) % r) as f64 * w - e,
+            (c / (r * r)) as f64 * w - e,
+        ]
+    }
+
+    /// Whether joint j's grid marks the cell of x̄ occupied. Outside the domain, and before
+    /// the first refresh, every point counts as occupied.
+    pub fn occupied(&self, j: usize, x_bar: [f64; 3]) -> bool {
+        match self.cell_of(x_bar) {
+            Some(c) => self.occupied[j * self.cfg.cells_per_joint() + c],
+            None => true,
+        }
+    }
+
+    /// Whether cell c of joint j is occupied.
+    pub fn cell_occupied(&self, j: usize, c: usize) -> bool {
+        self.occupied[j * self.cfg.cells_per_joint() + c]
+    }
+
+    /// One fresh density sample σ for cell c of joint j: `cell = max(decay·cell, σ)`. The
+    /// occupancy follows at [`Self::finish_refresh`]. Non-finite or negative σ is refused
+    /// (the caller passes relu(σ) of the network, without noise).
+    pub fn update(&mut self, j: usize, c: usize, sigma: f32) -> Result<()> {
+        if !(sigma.is_finite() && sigma >= 0.0) {
+            return Err(ModelError::Input(format!(
+                "occupancy: density {sigma} for joint {j} cell {c} (must be finite and >= 0)"
+            )));
+        }
+        let i = j * self.cfg.cells_per_joint() + c;
+        let v = &mut self.density[i];
+        *v = (*v * self.cfg.decay as f32).max(sigma);
+        Ok(())
+    }
+
+    /// One fresh density sample without the decay: `cell = max(cell, σ)` (building a grid for
+    /// a trained model from many poses).
+    pub fn update_max(&mut self, j: usize, c: usize, sigma: f32) -> Result<()> {
+        if !(sigma.is_finite() && sigma >= 0.0) {
+            return Err(ModelError::Input(format!(
+                "occupancy: density {sigma} for joint {j} cell {c} (must be finite and >= 0)"
+            )));
+        }
+        let i = j * self.cfg.cells_per_joint() + c;
+        self.density[i] = self.density[i].max(sigma);
+        Ok(())
+    }
+
+    /// After a refresh's updates: threshold and dilate again, count the refresh.
+    pub fn finish_refresh(&mut self) {
+        self.refreshes += 1;
+        self.update_occupied();
+    }
+
+    /// Share of all cells marked occupied.
+    pub fn occupied_fraction(&self) -> f64 {
+        self.occupied.iter().filter(|o| **o).count() as f64 / self.occupied.len().max(1) as f64
+    }
+
+    /// The threshold cells are compared with: min(`threshold`, mean cell value).
+    pub fn effective_threshold(&self) -> f64 {
+        let mean =
+            self.density.iter().map(|&v| v as f64).sum::<f64>() / self.density.len().max(1) as f64;
+        self.cfg.threshold.min(mean)
+    }
+
+    fn update_occupied(&mut self) {
+        if self.refreshes == 0 {
+            self.occupied.fill(true);
+            return;
+        }
+        let t = self.effective_threshold() as f32;
+        let n = self.cfg.cells_per_joint();
+        for (occ, dens) in self.occupied.chunks_mut(n).zip(self.density.chunks(n)) {
+            for (o, d) in occ.iter_mut().zip(dens) {
+                *o = *d > t;
+            }
+            dilate(occ, self.cfg.resolution, self.cfg.dilation);
+        }
+    }
+}
+
+/// Box dilation of one joint's cells (x fastest) by `d` cells: a running maximum along
+/// each axis in turn, which is the cube of side 2d + 1.
+fn dilate(occ: &mut [bool], r: usize, d: usize) {
+    if d == 0 {
+        return;
+    }
+    let idx = |x: usize, y: usize, z: usize| (z * r + y) * r + x;
+    let mut line = vec![false; r];
+    for axis in 0..3 {
+        for u in 0..r {
+            for v in 0..r {
+                let at = |i: usize| match axis {
+                    0 => idx(i, u, v),
+                    1 => idx(u, i, v),
+                    _ => idx(u, v, i),
+                };
+                for (i, l) in line.iter_mut().enumerate() {
+                    *l = occ[at(i)];
+                }
+                for i in 0..r {
+                    occ[at(i)] = line[i.saturating_sub(d)..=(i + d).min(r - 1)]
+                        .iter()
+                        .any(|b| *b);
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn cfg(resolution: usize, dilation: usize) -> OccupancyConfig {
+        OccupancyConfig {
+            resolution,
+            dilation,
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn cells_cover_the_domain_and_outside_counts_as_occupied() {
+        let mut g = OccupancyGrid::new(cfg(4, 0)).unwrap();
+        assert!(g.occupied(0, [0.1, 0.1, 0.1]), "never built: occupied");
+        g.finish_refresh();
+        // extent 2, 4 cells: [-2,-1), [-1,0), [0,1), [1,2).
+        assert_eq!(g.cell_of([-2.0, -2.0, -2.0]), Some(0));
+        assert_eq!(g.cell_of([1.99, -2.0, -2.0]), Some(3));
+        assert_eq!(g.cell_of([0.5, 0.5, 0.5]), Some((2 * 4 + 2) * 4 + 2));
+        assert_eq!(g.cell_of([2.0, 0.0, 0.0]), None);
+        assert_eq!(g.cell_of([f64::NAN, 0.0, 0.0]), None);
+        assert!(!g.occupied(3, [0.5, 0.5, 0.5]));
+        assert!(g.occupied(3, [2.5, 0.0, 0.0]), "outside the domain");
+        for c in 0..64 {
+            assert_eq!(g.cell_of(g.cell_corner(c).map(|v| v + 1e-9)), Some(c));
+        }
+    }
+
+    #[test]
+    fn decay_max_threshold_and_dilation() {
+        let mut g = OccupancyGrid::new(cfg(8, 1)).unwrap();
+        let c = g.cell_of([0.1, 0.1, 0.1]).unwrap();
+        g.update(5, c, 2.0).unwrap();
+        g.finish_refresh();
+        assert!(g.cell_occupied(5, c));
+        assert!(!g.cell_occupied(4, c), "other joints untouched");
+        // The 3×3×3 block around c is occupied, nothing further.
+        let r = 8;
+        let (x, y, z) = (c % r, (c / r) % r, c / (r * r));
+        for cz in 0..r {
+            for cy in 0..r {
+                for cx in 0..r {
+                    let near = cx.abs_diff(x) <= 1 && cy.abs_diff(y) <= 1 && cz.abs_diff(z) <= 1;
+                    assert_eq!(g.cell_occupied(5, (cz * r + cy) * r + cx), near);
+                }
+            }
+        }
+        assert_eq!(g.occupied_fraction(), 27.0 / (24.0 * 512.0));
+        // Alone, the cell is above the mean however far it decays: it stays occupied.
+        for _ in 0..100 {
+            g.update(5, c, 0.0).unwrap();
+            g.finish_refresh();
+        }
+        assert!(g.cell_occupied(5, c) && g.effective_threshold() < 1e-5);
+        // With density 1 in every cell of the other joints the threshold is 0.5 again; a cell
+        // with a smaller sample decays, stays above 0.5 for a while, then empties.
+        let others = |g: &mut OccupancyGrid| {
+            for j in (0..24).filter(|&j| j != 5) {
+                for cell in 0..512 {
+                    g.update(j, cell, 1.0).unwrap();
+                }
+            }
+        };
+        others(&mut g);
+        g.update(5, c, 2.0).unwrap();
+        g.finish_refresh();
+        let mut n = 0;
+        while g.cell_occupied(5, c) {
+            g.update(5, c, 0.1).unwrap();
+            others(&mut g);
+            g.finish_refresh();
+            n += 1;
+        }
+        // 2·0.95^n <= 0.5 first at n = 28.
+        assert_eq!(n, 28);
+        assert_eq!(g.effective_threshold(), 0.5);
+        assert!(g.update(0, 0, f32::NAN).is_err());
+        assert!(g.update(0, 0, -1.0).is_err());
+    }
+
+    #[test]
+    fn saved_values_are_checked() {
+        let g = OccupancyGrid::new(cfg(4, 0)).unwrap();
+        let meta = OccupancyMeta {
+            config: cfg(4, 0),
+            refreshes: 3,
+        };
+        let ok = OccupancyGrid::from_parts(meta.clone(), vec![1.0; 24 * 64]).unwrap();
+        assert_eq!(ok.refreshes(), 3);
+        assert_eq!(ok.occupied_fraction(), 1.0);
+        assert!(OccupancyGrid::from_parts(meta.clone(), vec![1.0; 24 * 63]).is_err());
+        let mut nan = vec![0.0; 24 * 64];
+        nan[17] = f32::NAN;
+        let err = OccupancyGrid::from_parts(meta.clone(), nan).unwrap_err();
+        assert!(err.to_string().contains("flat index 17"), "{err}");
+        let bad = OccupancyMeta {
+            config: cfg(1, 0),
+            refreshes: 0,
+        };
+        assert!(OccupancyGrid::from_parts(bad, vec![0.0; 24]).is_err());
+        assert_eq!(g.shape(), [24, 4, 4, 4]);
+    }
+}

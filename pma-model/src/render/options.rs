@@ -1,0 +1,203 @@
+//! What one pass may leave out, chosen per pass (all off = parity), and what it did.
+//!
+//! [`PassOptions`] is an argument of every forward pass and image render; the avatar holds no
+//! switch. [`PassStats`] comes back with each pass's outputs.
+
+use serde::{Deserialize, Serialize};
+
+use crate::error::{ModelError, Result};
+use crate::network::config::Config;
+
+/// What culled samples are given (see [`Culling`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
+#[serde(rename_all = "snake_case")]
+pub enum SampleFill {
+    /// The network's own output there: where w^p = 0 for every joint, every windowed feature
+    /// is 0 and the network reduces to a global constant density and a colour that depends
+    /// only on the view. It is evaluated once per ray at a far-away point (or, in inference
+    /// when that density is 0, once per pass), so culling at threshold 0 is exact.
+    #[default]
+    Network,
+    /// Density 0 and black: cheapest, exact only where the network learned empty space.
+    Zero,
+}
+
+/// Leaving work out by the bone boxes and the spatial window (docs/numerics.md, "Empty rays
+/// and culling"). Everything is off by default, which is parity with the reference. With the
+/// `cli` feature it is also the `--cull-rays`, `--cull-samples T` and `--cull-fill` flags.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "cli", derive(clap::Args))]
+#[serde(default, deny_unknown_fields)]
+pub struct Culling {
+    /// Rays that cross no (enlarged) bone box skip the network: raw outputs 0, so the
+    /// render is exactly the background with zero weights, acc, depth and disparity.
+    #[cfg_attr(
+        feature = "cli",
+        arg(
+            long = "cull-rays",
+            help = "Rays that cross no bone box get the background without running the network"
+        )
+    )]
+    pub rays: bool,
+    /// Samples whose spatial window w^p is <= this for every joint skip the network and get
+    /// `sample_fill`. `Some(0.0)` culls only exact zeros (exact with `SampleFill::Network`);
+    /// `None` is off.
+    #[cfg_attr(
+        feature = "cli",
+        arg(
+            long = "cull-samples",
+            value_name = "T",
+            help = "Samples whose spatial window is <= T for every joint skip the network \
+                    (0 = only exact zeros, which leaves the image unchanged)"
+        )
+    )]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sample_threshold: Option<f64>,
+    #[cfg_attr(
+        feature = "cli",
+        arg(
+            long = "cull-fill",
+            value_enum,
+            default_value = "network",
+            help = "What culled samples get: `network` (the network's far-away constant) or `zero`"
+        )
+    )]
+    pub sample_fill: SampleFill,
+}
+
+impl Culling {
+    pub fn is_off(&self) -> bool {
+        !self.rays && self.sample_threshold.is_none()
+    }
+
+    /// What is wrong with these settings for a model of `cfg`: a threshold outside [0, 1),
+    /// or one for a variant without the spatial window.
+    pub fn problem(&self, cfg: &Config) -> Option<String> {
+        let t = self.sample_threshold?;
+        if !(t.is_finite() && (0.0..1.0).contains(&t)) {
+            return Some(format!(
+                "culling: the sample threshold must be in [0, 1), found {t}"
+            ));
+        }
+        if !cfg.variant.spatial_window() {
+            return Some(format!(
+                "culling: the sample threshold needs the spatial window, which variant `{}` \
+                 does not use",
+                cfg.variant
+            ));
+        }
+        None
+    }
+}
+
+/// The per-pass choices of a forward pass or an image render. The default is parity.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "cli", derive(clap::Args))]
+#[serde(default, deny_unknown_fields)]
+pub struct PassOptions {
+    #[cfg_attr(feature = "cli", command(flatten))]
+    pub culling: Culling,
+    /// Samples whose cell is empty in the occupancy grid of every joint whose window is above
+    /// the culling threshold (0 without `--cull-samples`) skip the network, like samples
+    /// outside every window ([`crate::network::occupancy`]). Needs a model with a grid.
+    #[cfg_attr(
+        feature = "cli",
+        arg(
+            long = "occupancy",
+            help = "Samples in empty cells of the model's occupancy grid skip the network \
+                    (the model needs a grid: `pma train --occupancy` or `pma occupancy build`)"
+        )
+    )]
+    pub occupancy: bool,
+}
+
+impl PassOptions {
+    /// Parity: every sample of every ray runs the network.
+    pub fn parity() -> Self {
+        Self::default()
+    }
+
+    /// Culling only.
+    pub fn culled(culling: Culling) -> Self {
+        Self {
+            culling,
+            occupancy: false,
+        }
+    }
+
+    /// Whether the pass leaves nothing out.
+    pub fn is_parity(&self) -> bool {
+        self.culling.is_off() && !self.occupancy
+    }
+
+    /// Whether some samples may skip the network (the culled route of
+    /// [`crate::render::points`]).
+    pub fn leaves_out_work(&self) -> bool {
+        !self.is_parity()
+    }
+
+    /// The w^p threshold the window test uses: the culling threshold, or exact zeros when
+    /// only the occupancy grid asks for the test.
+    pub fn window_threshold(&self) -> Option<f64> {
+        match (self.culling.sample_threshold, self.occupancy) {
+            (Some(t), _) => Some(t),
+            (None, true) => Some(0.0),
+            (None, false) => None,
+        }
+    }
+
+    /// What is wrong with these options for a model of `cfg`, if anything.
+    pub fn problem(&self, cfg: &Config) -> Option<String> {
+        if let Some(p) = self.culling.problem(cfg) {
+            return Some(p);
+        }
+        if self.occupancy && !cfg.variant.spatial_window() {
+            return Some(format!(
+                "occupancy: the grid is consulted for joints whose spatial window is above the \
+                 threshold, which variant `{}` does not use",
+                cfg.variant
+            ));
+        }
+        None
+    }
+
+    /// Refuse options a model of `cfg` cannot run with ([`Self::problem`]).
+    pub fn validate(&self, cfg: &Config) -> Result<()> {
+        match self.problem(cfg) {
+            Some(p) => Err(ModelError::Input(p)),
+            None => Ok(()),
+        }
+    }
+}
+
+/// What one pass did.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct PassStats {
+    /// Samples of the pass (rays × (coarse + importance samples)).
+    pub samples: u64,
+    /// Points that went through the network (far-away constants included).
+    pub points_evaluated: u64,
+    /// Samples of the coarse pass that ran the network.
+    pub coarse_evaluated: u64,
+    /// Samples of the fine (importance) pass that ran the network.
+    pub fine_evaluated: u64,
+    /// Samples skipped because every active joint marked their cell empty.
+    pub skipped_empty: u64,
+}
+
+impl PassStats {
+    /// Add another pass's counts (a render's chunks).
+    pub fn add(&mut self, o: &PassStats) {
+        self.samples += o.samples;
+        self.points_evaluated += o.points_evaluated;
+        self.coarse_evaluated += o.coarse_evaluated;
+        self.fine_evaluated += o.fine_evaluated;
+        self.skipped_empty += o.skipped_empty;
+    }
+
+    /// Share of the samples that ran the network (far-away constants not counted).
+    pub fn evaluated_fraction(&self) -> f64 {
+        (self.coarse_evaluated + self.fine_evaluated) as f64 / self.samples.max(1) as f64
+    }
+}

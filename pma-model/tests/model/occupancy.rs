@@ -1,0 +1,302 @@
+//! The occupancy grid only leaves work out: without the option every output is bit for bit
+//! what it is without a grid; a grid with every cell occupied changes nothing; a checkpoint
+//! with a grid round-trips and, stripped of it, is byte for byte the parity checkpoint; bad
+//! grid tensors are refused; a model trained with the grid renders without it exactly as
+//! its tensors do.
+
+use std::collections::HashMap;
+
+use crate::common::*;
+use crate::culling::assert_identical;
+use candle_core::Device;
+use pma_model::error::ModelError;
+use pma_model::network::checkpoint::{self, OCCUPANCY_KEY, OCCUPANCY_TENSOR};
+use pma_model::network::occupancy::{OccupancyConfig, OccupancyGrid};
+use pma_model::render::avatar::Avatar;
+use pma_model::render::{Culling, PassOptions, SampleFill};
+
+/// A grid of resolution 16 where about `share` of each joint's cells hold density 1
+/// (a fixed pseudo-random pattern), the rest 0; no dilation.
+fn patterned_grid(share: f32) -> OccupancyGrid {
+    let cfg = OccupancyConfig {
+        resolution: 16,
+        dilation: 0,
+        ..Default::default()
+    };
+    let mut grid = OccupancyGrid::new(cfg).unwrap();
+    let mut state = 7u64;
+    for j in 0..24 {
+        for c in 0..16 * 16 * 16 {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            let u = (state >> 40) as f32 / (1u64 << 24) as f32;
+            grid.update(j, c, if u < share { 1.0 } else { 0.0 })
+                .unwrap();
+        }
+    }
+    grid.finish_refresh();
+    grid
+}
+
+fn with_grid(case: GoldenCase, grid: Option<OccupancyGrid>) -> GoldenCase {
+    GoldenCase {
+        avatar: case.avatar.with_occupancy(grid),
+        ..case
+    }
+}
+
+fn occupancy_only() -> PassOptions {
+    PassOptions {
+        occupancy: true,
+        ..PassOptions::parity()
+    }
+}
+
+#[test]
+fn without_the_option_a_grid_changes_no_output() {
+    let plain = GoldenCase::load("golden/dense", true);
+    let gridded = with_grid(
+        GoldenCase::load("golden/dense", true),
+        Some(patterned_grid(0.3)),
+    );
+    assert_identical(&plain.forward(None), &gridded.forward(None), "parity");
+    let cull = PassOptions::culled(Culling {
+        rays: true,
+        sample_threshold: Some(0.0),
+        sample_fill: SampleFill::Network,
+    });
+    let (a, b) = (
+        plain.forward_with(&cull, None),
+        gridded.forward_with(&cull, None),
+    );
+    assert_identical(&a, &b, "culling without --occupancy");
+    assert_eq!(a.stats, b.stats);
+    assert_eq!(b.stats.skipped_empty, 0);
+
+    // With the option the same grid does leave samples out (the test above is not vacuous).
+    let on = gridded.forward_with(&occupancy_only(), None);
+    println!("with the grid: {:?}", on.stats);
+    assert!(on.stats.skipped_empty > 0, "{:?}", on.stats);
+    assert!(
+        on.stats.points_evaluated < a.stats.points_evaluated,
+        "{:?} vs {:?}",
+        on.stats,
+        a.stats
+    );
+}
+
+#[test]
+fn a_grid_with_every_cell_occupied_is_parity() {
+    let parity = GoldenCase::load("golden/dense", true).forward(None);
+    // Never refreshed: every cell counts as occupied.
+    let fresh = OccupancyGrid::new(OccupancyConfig::default()).unwrap();
+    let case = with_grid(GoldenCase::load("golden/dense", true), Some(fresh));
+    let out = case.forward_with(&occupancy_only(), None);
+    assert_eq!(out.stats.skipped_empty, 0);
+    assert_identical(&parity, &out, "unbuilt grid");
+    // Refreshed with density everywhere.
+    let full = patterned_grid(1.1);
+    assert_eq!(full.occupied_fraction(), 1.0);
+    let case = with_grid(case, Some(full));
+    let out = case.forward_with(&occupancy_only(), None);
+    assert_eq!(out.stats.skipped_empty, 0);
+    assert_identical(&parity, &out, "full grid");
+}
+
+#[test]
+fn occupancy_without_a_grid_is_refused() {
+    let case = GoldenCase::load("golden/dense", true);
+    let mut mode = pma_model::render::avatar::Mode::Infer;
+    let Err(err) = case
+        .avatar
+        .forward(&case.rays, &case.poses, &mut mode, &occupancy_only(), None)
+    else {
+        panic!("a pass with --occupancy on a model without a grid ran");
+    };
+    assert!(err.to_string().contains("no occupancy grid"), "{err}");
+}
+
+fn golden_avatar() -> Avatar {
+    Avatar::load(fixtures().join("golden/model.safetensors"), &Device::Cpu).unwrap()
+}
+
+#[test]
+fn a_checkpoint_with_a_grid_round_trips_and_without_it_is_the_parity_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let (plain_path, grid_path) = (dir.path().join("plain.st"), dir.path().join("grid.st"));
+    let grid = patterned_grid(0.4);
+    golden_avatar().save(&plain_path).unwrap();
+    let gridded = golden_avatar().with_occupancy(Some(grid.clone()));
+    gridded.save(&grid_path).unwrap();
+
+    let back = Avatar::load(&grid_path, &Device::Cpu).unwrap();
+    assert_eq!(back.occupancy(), Some(&grid), "grid round trip");
+    let (a, b) = (gridded.tensors(), back.tensors());
+    assert_eq!(a.len(), b.len());
+    for (name, t) in &a {
+        assert_eq!(flat(t), flat(&b[name]), "{name}");
+    }
+    assert!(Avatar::load(&plain_path, &Device::Cpu)
+        .unwrap()
+        .occupancy()
+        .is_none());
+
+    // Stripped of its grid, the model saves to exactly the parity file.
+    let stripped = dir.path().join("stripped.st");
+    back.with_occupancy(None).save(&stripped).unwrap();
+    let plain = std::fs::read(&plain_path).unwrap();
+    assert_eq!(plain, std::fs::read(&stripped).unwrap());
+    // The parity file holds neither part of the optional group.
+    let (_, header) = safetensors::SafeTensors::read_metadata(&plain).unwrap();
+    assert!(!header
+        .metadata()
+        .clone()
+        .unwrap_or_default()
+        .contains_key(OCCUPANCY_KEY));
+    let st = safetensors::SafeTensors::deserialize(&plain).unwrap();
+    assert!(st.names().iter().all(|n| *n != OCCUPANCY_TENSOR));
+}
+
+/// A copy of the checkpoint at `src` with its grid tensor replaced by `f32` values of
+/// `shape` (`None`: without the tensor) and its grid metadata kept.
+fn tampered(src: &std::path::Path, dst: &std::path::Path, grid: Option<(Vec<usize>, Vec<f32>)>) {
+    let bytes = std::fs::read(src).unwrap();
+    let (_, header) = safetensors::SafeTensors::read_metadata(&bytes).unwrap();
+    let meta: HashMap<String, String> = header.metadata().clone().unwrap();
+    let st = safetensors::SafeTensors::deserialize(&bytes).unwrap();
+    let mut views: Vec<(String, safetensors::tensor::TensorView<'_>)> = st
+        .tensors()
+        .into_iter()
+        .filter(|(n, _)| n != OCCUPANCY_TENSOR)
+        .collect();
+    let data: Vec<u8>;
+    if let Some((shape, values)) = grid {
+        data = values.iter().flat_map(|v| v.to_le_bytes()).collect();
+        views.push((
+            OCCUPANCY_TENSOR.to_string(),
+            safetensors::tensor::TensorView::new(safetensors::Dtype::F32, shape, &data).unwrap(),
+        ));
+    }
+    let out = safetensors::serialize(views, Some(meta)).unwrap();
+    std::fs::write(dst, out).unwrap();
+}
+
+fn problems_of(path: &std::path::Path) -> Vec<String> {
+    match checkpoint::load(path, &Device::Cpu) {
+        Err(ModelError::Checkpoint { problems, .. }) => problems,
+        Err(other) => panic!("expected a checkpoint error, got {other}"),
+        Ok(_) => panic!("{} loaded", path.display()),
+    }
+}
+
+#[test]
+fn bad_grid_tensors_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let good = dir.path().join("good.st");
+    golden_avatar()
+        .with_occupancy(Some(patterned_grid(0.4)))
+        .save(&good)
+        .unwrap();
+    let n = 24 * 16 * 16 * 16;
+    let bad = dir.path().join("bad.st");
+
+    tampered(&good, &bad, Some((vec![24, 16, 16, 8], vec![0.0; n / 2])));
+    let p = problems_of(&bad);
+    assert!(
+        p.iter()
+            .any(|l| l.contains(OCCUPANCY_TENSOR) && l.contains("[24, 16, 16, 8]")),
+        "{p:#?}"
+    );
+
+    let mut nan = vec![0.0; n];
+    nan[1234] = f32::NAN;
+    tampered(&good, &bad, Some((vec![24, 16, 16, 16], nan)));
+    let p = problems_of(&bad);
+    assert!(
+        p.iter()
+            .any(|l| l.contains(OCCUPANCY_TENSOR) && l.contains("flat index 1234")),
+        "{p:#?}"
+    );
+
+    let mut negative = vec![0.0; n];
+    negative[7] = -1.0;
+    tampered(&good, &bad, Some((vec![24, 16, 16, 16], negative)));
+    assert!(problems_of(&bad).iter().any(|l| l.contains("flat index 7")));
+
+    tampered(&good, &bad, None);
+    let p = problems_of(&bad);
+    assert!(p.iter().any(|l| l.contains("without the tensor")), "{p:#?}");
+
+    // The values themselves load (the tampering keeps a valid file valid).
+    tampered(&good, &bad, Some((vec![24, 16, 16, 16], vec![0.25; n])));
+    let ck = checkpoint::load(&bad, &Device::Cpu).unwrap();
+    assert_eq!(ck.occupancy.unwrap().density()[0], 0.25);
+}
+
+#[cfg(feature = "train")]
+mod trained {
+    use super::*;
+    use crate::train_support::{first_batch, tiny_run, tiny_scene};
+    use pma_model::render::avatar::Mode;
+    use pma_model::train::Trainer;
+
+    /// A model trained with the grid (refreshed during training, used by the steps after the
+    /// warm-up) renders without it exactly as its tensors do without a grid, and its saved
+    /// checkpoint carries the grid the trainer built.
+    #[test]
+    fn a_model_trained_with_the_grid_renders_without_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let data = tiny_scene(dir.path());
+        let mut run = tiny_run();
+        run.model.n_framecodes = data.n_images();
+        run.train.occupancy = Some(OccupancyConfig {
+            resolution: 16,
+            warmup_steps: 2,
+            refresh_every: 1,
+            refresh_share: 0.25,
+            threshold: 0.05,
+            ..Default::default()
+        });
+        let probe = first_batch(&data, &run);
+        let mut trainer = Trainer::new(run, data.clone(), &Device::Cpu).unwrap();
+        for _ in 0..6 {
+            trainer.step().unwrap();
+        }
+        let totals = trainer.pass_totals();
+        let grid = trainer.avatar().occupancy().expect("a grid").clone();
+        println!(
+            "trained: {totals:?}; grid refreshed {} times, {:.1} % occupied; {} refresh points",
+            grid.refreshes(),
+            100.0 * grid.occupied_fraction(),
+            trainer.refresh_points()
+        );
+        // Built at the end of the warm-up and refreshed after every later step.
+        assert_eq!(grid.refreshes(), 5);
+        assert!(trainer.refresh_points() > 0);
+        assert!(
+            totals.skipped_empty > 0,
+            "no training sample was skipped: the test would not exercise the grid ({totals:?})"
+        );
+
+        let trained = trainer.avatar();
+        let bare = Avatar::from_tensors(trained.config().clone(), trained.tensors(), &Device::Cpu)
+            .unwrap();
+        let render = |a: &Avatar, opts: &PassOptions| {
+            a.forward(&probe.rays, &probe.poses, &mut Mode::Infer, opts, None)
+                .unwrap()
+        };
+        let parity = PassOptions::parity();
+        let (with, without) = (render(trained, &parity), render(&bare, &parity));
+        assert_identical(&with, &without, "trained model, parity");
+
+        let path = dir.path().join("model.safetensors");
+        trained.save(&path).unwrap();
+        let loaded = Avatar::load(&path, &Device::Cpu).unwrap();
+        assert_eq!(loaded.occupancy(), Some(&grid));
+        assert_identical(&render(&loaded, &parity), &without, "saved model, parity");
+        let skipped = render(&loaded, &occupancy_only());
+        println!("probe with the grid: {:?}", skipped.stats);
+        assert!(skipped.stats.points_evaluated <= without.stats.points_evaluated);
+    }
+}
