@@ -19,7 +19,8 @@ while IFS= read -r cu; do
     echo "FAIL $cu: #include is not available to NVRTC at run time" >&2; exit 1
   fi
   nvcc --ptx -arch=compute_"$ARCH" -Werror all-warnings -o "$out/$(basename "$cu" .cu).ptx" "$cu"
-  for k in $(grep -oE '__global__ void [A-Za-z0-9_]+' "$cu" | awk '{print $3}'); do
+  # Kernels are declared `extern "C" __global__ void name` or `PMA_KERNEL void name`.
+  for k in $(grep -oE '(__global__|PMA_KERNEL) void [A-Za-z0-9_]+' "$cu" | awk '{print $3}'); do
     grep -q "\.entry $k" "$out/$(basename "$cu" .cu).ptx" || { echo "FAIL $cu: no entry $k" >&2; exit 1; }
   done
   echo "ok   $cu (compute_$ARCH)"

@@ -30,6 +30,10 @@ struct Cli {
     /// the error). Off by default.
     #[arg(long, global = true)]
     fast_sine: bool,
+    /// On CUDA, sum every gradient in a fixed order (no atomics), so a training run repeats
+    /// and resumes bit for bit; a little slower. The CPU is deterministic anyway.
+    #[arg(long, global = true)]
+    deterministic: bool,
     #[command(subcommand)]
     command: Command,
 }
@@ -82,7 +86,7 @@ fn main() -> ExitCode {
     let result = cli::check_workers(cli.workers).and_then(|()| {
         // Before any candle op: candle sizes its thread pool once.
         pma_model::compute::parallel::configure_cpu(cli.workers);
-        pma_model::compute::fast_sine::set_enabled(cli.fast_sine);
+        cli::set_numerics(cli.fast_sine, cli.deterministic);
         run(cli.command)
     });
     match result {

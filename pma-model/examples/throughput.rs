@@ -30,13 +30,17 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let train_rays: usize = scene::arg("--train-rays", 512);
     let infer_rays: usize = scene::arg("--infer-rays", 4096);
     let repeats: usize = scene::arg("--repeats", 3).max(1);
-    // `--no-fused`: plain candle ops instead of the fused CPU kernels (A/B measurement).
-    pma_model::compute::fused::set_enabled(!std::env::args().any(|a| a == "--no-fused"));
-    // `--fast-sine`: the vectorised sine (not parity mode: last-bit differences).
-    pma_model::compute::fast_sine::set_enabled(std::env::args().any(|a| a == "--fast-sine"));
+    let numerics = pma_model::compute::numerics::Numerics {
+        // `--no-fused`: plain candle ops instead of the fused CPU kernels (A/B measurement).
+        fused: !std::env::args().any(|a| a == "--no-fused"),
+        // `--fast-sine`: the vectorised sine (not parity mode: last-bit differences).
+        fast_sine: std::env::args().any(|a| a == "--fast-sine"),
+        ..Default::default()
+    };
     let dir = tempfile::tempdir()?;
     let data = scene::scene(dir.path())?;
     let mut run = RunConfig::from_preset(Preset::Paper);
+    run.numerics = numerics;
     let samples = (run.model.n_samples + run.model.n_importance) as f64;
     let flops_per_point = pma_model::compute::flops::per_point(&run.model);
     let (peak, peak_how) = pma_model::compute::flops::fp32_peak();
@@ -46,17 +50,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     };
     println!(
         "paper config, {}, {workers} workers x {} candle threads, fused kernels {}",
-        if pma_model::compute::fast_sine::enabled() {
+        if numerics.fast_sine {
             "fast sine (not parity)"
         } else {
             "parity mode"
         },
         candle_core::utils::get_num_threads(),
-        if pma_model::compute::fused::enabled() {
-            "on"
-        } else {
-            "off"
-        }
+        if numerics.fused { "on" } else { "off" }
     );
 
     if train_rays > 0 {
@@ -86,7 +86,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         run.model.n_framecodes = data.n_images();
         let rest = data.rest_pose.ok_or("scene without rest pose")?;
         let avatar =
-            pma_model::render::avatar::Avatar::new(run.model.clone(), &rest, 0, &Device::Cpu)?;
+            pma_model::render::avatar::Avatar::new(run.model.clone(), &rest, 0, &Device::Cpu)?
+                .with_numerics(numerics);
         let mut src = DatasetSource::new(data, infer_rays, 16, false, 0, &Device::Cpu)?;
         let batch = src.next_batch()?;
         let mut times = Vec::new();

@@ -115,6 +115,8 @@ pub struct ViewOptions {
     pub view_dirs: ViewDirs,
     /// Rays per network call: a newer request stops a frame within one chunk.
     pub chunk: usize,
+    /// How the avatar computes (`--fast-sine`).
+    pub numerics: pma_model::compute::numerics::Numerics,
 }
 
 /// A loaded model and scene with a bound listener; [`Server::run`] serves.
@@ -163,6 +165,7 @@ impl Server {
             opts.device.clone(),
             opts.view_dirs,
             opts.chunk,
+            opts.numerics,
         )?;
         let scene = Scene::load(
             renderer.avatar(),

@@ -14,6 +14,7 @@ use std::time::{Instant, UNIX_EPOCH};
 use candle_core::{Device, Tensor};
 use pma_data::camera::Camera;
 use pma_data::interrupt::Interrupted;
+use pma_model::compute::numerics::Numerics;
 use pma_model::error::ModelError;
 use pma_model::eval::{quantize, score_image, PsnrRegion};
 use pma_model::render::avatar::{Avatar, Mode, Rays};
@@ -167,6 +168,7 @@ pub struct Renderer {
     device: Device,
     dirs: ViewDirs,
     chunk: usize,
+    numerics: Numerics,
     avatar: Avatar,
     stamp: Option<Stamp>,
     /// Models loaded so far (1 after [`Renderer::load`]).
@@ -234,12 +236,14 @@ fn finite(v: f64) -> Option<f64> {
 }
 
 impl Renderer {
-    /// Load the model of `source` (`chunk` rays per network call).
+    /// Load the model of `source` (`chunk` rays per network call) to compute with
+    /// `numerics`.
     pub fn load(
         source: ModelSource,
         device: Device,
         dirs: ViewDirs,
         chunk: usize,
+        numerics: Numerics,
     ) -> Result<Renderer, ViewError> {
         if chunk == 0 {
             return Err(ViewError::Input("--chunk must be >= 1".into()));
@@ -253,12 +257,13 @@ impl Renderer {
             )));
         }
         let stamp = stamp(&file);
-        let avatar = load_avatar(&file, &device, dirs)?;
+        let avatar = load_avatar(&file, &device, dirs)?.with_numerics(numerics);
         Ok(Renderer {
             source,
             device,
             dirs,
             chunk,
+            numerics,
             avatar,
             stamp,
             version: 1,
@@ -283,7 +288,7 @@ impl Renderer {
             return;
         }
         self.stamp = now;
-        match load_avatar(&file, &self.device, self.dirs) {
+        match load_avatar(&file, &self.device, self.dirs).map(|a| a.with_numerics(self.numerics)) {
             Ok(a) => {
                 self.avatar = a;
                 self.version += 1;

@@ -167,6 +167,7 @@ fn run_variant(
         eval_data: Some(dir.join("novel_view.npz")),
         chunk_rays: None,
         device: candle_core::Device::Cpu,
+        numerics: super::numerics(),
     };
     let title = format!("pma ablate `{v}`: held-out PSNR vs wall-clock time");
     let outcome = train(&req, args.quiet, &title)?;
@@ -178,7 +179,8 @@ fn run_variant(
         .iter()
         .filter_map(|r| r.eval_psnr.map(|p| (r.wall_s, p)))
         .collect();
-    let avatar = Avatar::load(&outcome.model, &candle_core::Device::Cpu)?;
+    let avatar =
+        Avatar::load(&outcome.model, &candle_core::Device::Cpu)?.with_numerics(super::numerics());
     let parameters = avatar
         .trainable()
         .iter()

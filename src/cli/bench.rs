@@ -157,6 +157,7 @@ pub fn run(mut args: Args) -> anyhow::Result<()> {
         },
         occupancy_poses: args.occupancy_poses,
         device: dev,
+        numerics: super::numerics(),
     };
     let mut report = measure(&req, &mut Phases::new(args.quiet))?;
     if let Some(batch) = &args.forward_batch {

@@ -61,6 +61,7 @@ pub fn run(args: Args) -> Result<()> {
         cfg.quirks.per_ray_cylinder_fallback = true;
         avatar = Avatar::from_tensors(cfg, tensors, &device)?;
     }
+    let avatar = avatar.with_numerics(super::numerics());
     let opts = ProbeOptions::default();
     let bar = super::progress::bar(args.quiet, stability::case_count(&opts)? as u64, "probes");
     let report = stability::run_all(&avatar, &opts, &mut |row| {

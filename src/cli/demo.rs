@@ -206,6 +206,7 @@ fn train_scene(
         eval_data: Some(scene.join("novel_view.npz")),
         chunk_rays: None,
         device: device.clone(),
+        numerics: super::numerics(),
     };
     let outcome = train(
         &req,
@@ -231,7 +232,7 @@ fn evaluate_splits(
     device: &candle_core::Device,
 ) -> anyhow::Result<BTreeMap<String, SplitSummary>> {
     let renders = out.join("renders");
-    let avatar = Avatar::load(model, device)?;
+    let avatar = Avatar::load(model, device)?.with_numerics(super::numerics());
     let baseline = mean_foreground_colour(&read_dataset(&scene.join("train.npz"), Profile::Eval)?)?;
     std::fs::create_dir_all(&renders).with_context(|| format!("creating {}", renders.display()))?;
     let opts = EvalOptions {

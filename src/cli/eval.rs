@@ -105,7 +105,8 @@ pub fn run(mut args: Args) -> anyhow::Result<()> {
             .output_opt("--freq-png", args.freq_png.as_deref()),
     )?;
     let avatar = Avatar::load(&args.model, &device)
-        .with_context(|| format!("loading model {}", args.model.display()))?;
+        .with_context(|| format!("loading model {}", args.model.display()))?
+        .with_numerics(super::numerics());
     let data = read_dataset(&data_path, Profile::Eval)?;
     let images = split_images(&data, &data_path, &split)?;
     let images = spread(&images, args.max_images.unwrap_or(usize::MAX));

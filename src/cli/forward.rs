@@ -77,7 +77,8 @@ pub fn run(mut args: Args) -> Result<()> {
         allow_non_finite: args.allow_non_finite,
         overrides: args.sigma_override.clone(),
     };
-    let avatar = load_model(&args.model, &batch, &input.rest, &model_opts, &dev)?;
+    let avatar = load_model(&args.model, &batch, &input.rest, &model_opts, &dev)?
+        .with_numerics(super::numerics());
     let mut opts = match (args.grad, args.train_mode) {
         (true, true) => Mode::Train(None),
         (true, false) => Mode::Eval,

@@ -101,7 +101,8 @@ pub fn run(mut args: Args) -> anyhow::Result<()> {
         ViewDirs::Normalized
     };
     let avatar = load_avatar(&args.model, &device, dirs)
-        .with_context(|| format!("loading model {}", args.model.display()))?;
+        .with_context(|| format!("loading model {}", args.model.display()))?
+        .with_numerics(super::numerics());
     let (bones, root) = mesh_pose(&args, &avatar)?;
     let (poses, kp3d) = avatar.pose_from_bones(&bones, root)?;
     let mut field = AvatarField::new(&avatar, &poses)?;

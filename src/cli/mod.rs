@@ -29,6 +29,7 @@ use std::path::Path;
 use anyhow::Context as _;
 use pma_data::dataset::{Dataset, Profile};
 use pma_data::{ErrorKind, ExitKind};
+use pma_model::compute::numerics::Numerics;
 
 /// Exit status of a command refused because of its input (a split the file does not hold,
 /// a corrupt file, an out-of-range flag, an output that would replace an input), as for
@@ -225,11 +226,29 @@ pub fn device(spec: &str) -> anyhow::Result<candle_core::Device> {
     Ok(pma_model::compute::device::parse_device(spec)?)
 }
 
-/// [`device`], then TF32 matrix products on (`--tf32`, CUDA only: refused elsewhere) or off.
+/// [`device`], checking `--tf32` (CUDA only: refused elsewhere), which [`numerics`] then
+/// carries to every avatar the command builds.
 pub fn device_tf32(spec: &str, tf32: bool) -> anyhow::Result<candle_core::Device> {
     let dev = device(spec)?;
-    pma_model::compute::device::set_tf32(tf32, &dev)?;
+    pma_model::compute::device::check_tf32(tf32, &dev)?;
+    NUMERICS.lock().unwrap_or_else(|e| e.into_inner()).tf32 = tf32;
     Ok(dev)
+}
+
+/// The numeric choices of this command line (`--fast-sine`, `--tf32`): one command runs per
+/// process, and every avatar and trainer it builds gets them.
+static NUMERICS: std::sync::Mutex<Numerics> = std::sync::Mutex::new(Numerics::PARITY);
+
+/// `--fast-sine` and `--deterministic` (set once, before the command runs).
+pub fn set_numerics(fast_sine: bool, deterministic: bool) {
+    let mut k = NUMERICS.lock().unwrap_or_else(|e| e.into_inner());
+    k.fast_sine = fast_sine;
+    k.deterministic = deterministic;
+}
+
+/// How this command's avatars compute.
+pub fn numerics() -> Numerics {
+    *NUMERICS.lock().unwrap_or_else(|e| e.into_inner())
 }
 
 /// Read a dataset for `profile`, printing its warnings.

@@ -88,7 +88,8 @@ fn run_build(mut args: BuildArgs) -> anyhow::Result<()> {
     };
     config.validate("occupancy (--resolution, --threshold, --dilation)")?;
     let avatar = Avatar::load(&args.model, &device)
-        .with_context(|| format!("loading model {}", args.model.display()))?;
+        .with_context(|| format!("loading model {}", args.model.display()))?
+        .with_numerics(super::numerics());
     let data = read_dataset(&args.data, Profile::Render)?;
     let opts = BuildOptions {
         config,

@@ -123,7 +123,8 @@ pub fn run(mut args: Args) -> anyhow::Result<()> {
         ViewDirs::Normalized
     };
     let avatar = load_avatar(&args.model, &device, dirs)
-        .with_context(|| format!("loading model {}", args.model.display()))?;
+        .with_context(|| format!("loading model {}", args.model.display()))?
+        .with_numerics(super::numerics());
 
     let data = match &args.data {
         Some(d) => {

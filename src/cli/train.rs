@@ -147,6 +147,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         eval_data,
         chunk_rays: args.chunk_rays,
         device: super::device_tf32(&args.device, args.tf32)?,
+        numerics: super::numerics(),
     };
     let outcome = train(
         &req,

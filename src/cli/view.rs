@@ -60,6 +60,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             ViewDirs::Normalized
         },
         chunk: args.chunk,
+        numerics: super::numerics(),
     };
     let server = Server::start(opts).map_err(cli_error)?;
     for w in server.warnings() {

@@ -71,6 +71,7 @@ fn training_resumes_from_a_converted_reference_checkpoint() {
         preset: Preset::Paper,
         model: ck.config.clone(),
         train: TrainConfig::paper(),
+        numerics: Default::default(),
     };
     let mut trainer = Trainer::resume_with_source(
         dir.path(),

@@ -65,6 +65,8 @@ pub struct BenchRequest {
     /// the model has none.
     pub occupancy_poses: usize,
     pub device: Device,
+    /// How every avatar computes before an option changes it (`--tf32`).
+    pub numerics: crate::compute::numerics::Numerics,
 }
 
 /// One option's measurements (a row of `bench.json`).
@@ -170,7 +172,7 @@ pub fn measure(req: &BenchRequest, obs: &mut dyn BenchObserver) -> Result<BenchR
     // Loaded before the per-option peak-RSS resets, so no option's phase pays for it.
     crate::eval::lpips::Lpips::shared()?;
     let (avatar, model_desc) = bench_model(req, &scene, obs)?;
-    let avatar = match req.options.iter().any(|o| o.occupancy) && avatar.occupancy().is_none() {
+    let mut avatar = match req.options.iter().any(|o| o.occupancy) && avatar.occupancy().is_none() {
         true => grid_for(req, avatar, &scene, obs)?,
         false => avatar,
     };
@@ -180,7 +182,7 @@ pub fn measure(req: &BenchRequest, obs: &mut dyn BenchObserver) -> Result<BenchR
     let view = bench_view(req, &scene)?;
     let inactive = inactive_joint_fraction(&avatar, &view)?;
 
-    let mut results = measure_inference(req, &avatar, &scene, &view, fpp, rss_reset, obs)?;
+    let mut results = measure_inference(req, &mut avatar, &scene, &view, fpp, rss_reset, obs)?;
     measure_training(req, &cfg, &scene, &mut results, rss_reset, obs)?;
     let (parity_rays, parity_step) = (results[0].rays_per_s, results[0].ms_per_step);
     for r in &mut results {
@@ -297,17 +299,21 @@ fn bench_model(
     obs: &mut dyn BenchObserver,
 ) -> Result<(Avatar, String)> {
     let load = |path: &std::path::Path| {
-        Avatar::load(path, &req.device).map_err(|source| BenchError::Load {
-            path: path.to_path_buf(),
-            source: Box::new(source),
-        })
+        Avatar::load(path, &req.device)
+            .map(|a| a.with_numerics(req.numerics))
+            .map_err(|source| BenchError::Load {
+                path: path.to_path_buf(),
+                source: Box::new(source),
+            })
     };
     if let Some(p) = &req.model {
         return Ok((load(p)?, p.display().to_string()));
     }
     obs.phase("training the bench model (s)", req.train_seconds as u64);
+    let mut run = RunConfig::from_preset(req.preset);
+    run.numerics = req.numerics;
     let (trainer, _, _) = train_for(
-        RunConfig::from_preset(req.preset),
+        run,
         scene.train.clone(),
         req.train_seconds,
         u64::MAX,
@@ -410,7 +416,7 @@ fn bench_view(req: &BenchRequest, scene: &Scene) -> Result<View> {
 /// Inference per option: render time, points, peak RSS, and the quality columns.
 fn measure_inference(
     req: &BenchRequest,
-    avatar: &Avatar,
+    avatar: &mut Avatar,
     scene: &Scene,
     view: &View,
     flops_per_point: f64,
@@ -439,7 +445,7 @@ fn measure_inference(
     // First each option's untimed render (the warm-up), its quality and memory.
     for opt in opts {
         obs.progress(done, &format!("render {}", opt.name));
-        let pass = opt.apply();
+        let pass = opt.apply(avatar);
         if rss_reset {
             reset_peak_rss();
         }
@@ -479,7 +485,7 @@ fn measure_inference(
     for _ in 0..req.repeats {
         for ((opt, t_opt), res) in opts.iter().zip(times.iter_mut()).zip(results.iter_mut()) {
             obs.progress(done, &format!("time {}", opt.name));
-            let pass = opt.apply();
+            let pass = opt.apply(avatar);
             let t = Instant::now();
             let img = render(avatar, pass)?;
             t_opt.push(t.elapsed().as_secs_f64());
@@ -497,7 +503,7 @@ fn measure_inference(
         res.gflops = points * flops_per_point / sec / 1e9;
     }
     obs.phase_end();
-    BenchOption::reset();
+    BenchOption::parity().apply(avatar);
     Ok(results)
 }
 
@@ -517,6 +523,7 @@ fn measure_training(
         obs.progress(k as u64, &format!("train {}", opt.name));
         let mut run = RunConfig::from_preset(req.preset);
         run.model = cfg.clone();
+        run.numerics = req.numerics;
         opt.configure(&mut run, &req.occupancy);
         let samples_per_step =
             (run.train.rays_per_step * (cfg.n_samples + cfg.n_importance)) as f64;
@@ -546,7 +553,7 @@ fn measure_training(
                 / (res.ms_per_step * 1e6);
         res.peak_rss_mib = res.peak_rss_mib.max(peak_rss_mib().unwrap_or(f64::NAN));
         if budget > 0.0 {
-            let pass = opt.apply();
+            let pass = opt.pass();
             let (p, l) = heldout_scores(trainer.avatar(), scene, &pass)?;
             res.budget_heldout_psnr = Some(p);
             res.budget_heldout_lpips = l;
@@ -554,7 +561,6 @@ fn measure_training(
         }
     }
     obs.phase_end();
-    BenchOption::reset();
     Ok(())
 }
 

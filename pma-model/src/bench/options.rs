@@ -7,7 +7,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::network::occupancy::OccupancyConfig;
-use crate::render::{Culling, PassOptions, SampleFill};
+use crate::render::{Avatar, Culling, PassOptions, SampleFill};
 use crate::train::RunConfig;
 
 /// One configuration: how rays and samples are culled, whether the occupancy grid skips
@@ -42,24 +42,22 @@ impl BenchOption {
         }
     }
 
-    /// Render with this option: sets the sine (a process-wide switch) and returns the
-    /// pass options.
-    pub fn apply(&self) -> PassOptions {
-        crate::compute::fast_sine::set_enabled(self.fast_sine);
+    /// Render with this option: sets `avatar`'s sine (its other numerics kept) and returns
+    /// the pass options.
+    pub fn apply(&self, avatar: &mut Avatar) -> PassOptions {
+        avatar.set_numerics(crate::compute::numerics::Numerics {
+            fast_sine: self.fast_sine,
+            ..avatar.numerics()
+        });
         self.pass()
     }
 
-    /// Train with this option: `run`'s culling, a grid of `grid`'s settings when the option
-    /// uses one, and the sine (a process-wide switch).
+    /// Train with this option: `run`'s culling and sine (its other numerics kept), and a
+    /// grid of `grid`'s settings when the option uses one.
     pub fn configure(&self, run: &mut RunConfig, grid: &OccupancyConfig) {
-        crate::compute::fast_sine::set_enabled(self.fast_sine);
+        run.numerics.fast_sine = self.fast_sine;
         run.train.culling = self.culling.clone();
         run.train.occupancy = self.occupancy.then(|| grid.clone());
-    }
-
-    /// Back to parity's process-wide settings (after the last option).
-    pub fn reset() {
-        crate::compute::fast_sine::set_enabled(false);
     }
 }
 

@@ -151,11 +151,9 @@ pub struct Tf32Error {
     pub device: String,
 }
 
-/// Let cuBLAS run f32 matrix products in TF32 on tensor cores (`--tf32`) or not (the
-/// default). A process-wide switch of candle's CUDA backend: it changes results (10-bit
-/// mantissa products, f32 accumulation; see docs/numerics.md, "Low precision"), so it is
-/// never on unless asked for. Refused on a device other than CUDA, where it would do nothing.
-pub fn set_tf32(on: bool, device: &Device) -> Result<(), Tf32Error> {
+/// Whether TF32 (`--tf32`, [`crate::compute::numerics::Numerics::tf32`]) can be asked for on
+/// `device`: refused on a device other than CUDA, where it would do nothing.
+pub fn check_tf32(on: bool, device: &Device) -> Result<(), Tf32Error> {
     if on && !device.is_cuda() {
         return Err(Tf32Error {
             device: if device.is_metal() {
@@ -166,7 +164,6 @@ pub fn set_tf32(on: bool, device: &Device) -> Result<(), Tf32Error> {
             .to_string(),
         });
     }
-    candle_core::cuda::set_gemm_reduced_precision_f32(on);
     Ok(())
 }
 
@@ -188,9 +185,9 @@ mod tests {
 
     #[test]
     fn tf32_is_refused_off_cuda() {
-        let e = set_tf32(true, &Device::Cpu).unwrap_err().to_string();
+        let e = check_tf32(true, &Device::Cpu).unwrap_err().to_string();
         assert!(e.contains("--tf32 needs a CUDA device"), "{e}");
-        assert!(set_tf32(false, &Device::Cpu).is_ok());
+        assert!(check_tf32(false, &Device::Cpu).is_ok());
     }
 
     #[test]

@@ -12,34 +12,14 @@
 //! The reduction is exact enough while |x| ≤ 2^26 (see `PIO2_1`); larger and non-finite
 //! arguments go to libm.
 
-use std::sync::atomic::{AtomicBool, Ordering};
-
 use candle_core::{CpuStorage, CustomOp1, DType, Layout, Shape, Tensor};
 
 use crate::error::Result;
 
-static FAST: AtomicBool = AtomicBool::new(false);
-
-/// Use the vectorised sine (off by default: parity mode uses candle's libm sine).
-pub fn set_enabled(on: bool) {
-    FAST.store(on, Ordering::Relaxed);
-}
-
-/// Whether the vectorised sine is in use.
-pub fn enabled() -> bool {
-    FAST.load(Ordering::Relaxed)
-}
-
-/// `sin(x)`: the vectorised kernel for f32 CPU tensors when enabled, candle's otherwise.
-pub fn sin(x: &Tensor) -> Result<Tensor> {
-    sin_flavour(x, enabled())
-}
-
-/// `sin(x)` with the flavour chosen by the caller rather than the global switch.
-/// In parity mode (`fast` false) f32 CPU tensors take [`crate::compute::libm_sine`], libm's own bits
-/// at vector speed; other devices and dtypes take candle's `sin`, as does a CPU run accounted
-/// as CUDA ([`crate::compute::account`]).
-pub(crate) fn sin_flavour(x: &Tensor, fast: bool) -> Result<Tensor> {
+/// `sin(x)`: the vectorised kernel (`fast`, f32 CPU tensors) or, in parity mode, libm's bits
+/// at vector speed ([`crate::compute::libm_sine`]); other devices and dtypes take candle's
+/// `sin`, as does a CPU run accounted as CUDA ([`crate::compute::account`]).
+pub fn sin(x: &Tensor, fast: bool) -> Result<Tensor> {
     if x.device().is_cpu() && x.dtype() == DType::F32 && !crate::compute::account::emulates_cuda() {
         let x = x.contiguous()?;
         let cos = crate::compute::ops::Kept::new(x.track_op());
@@ -298,8 +278,7 @@ mod tests {
         let dev = Device::Cpu;
         let xs = grid(-30.0, 30.0, 1001);
         let x = Var::from_vec(xs.clone(), 1001, &dev).unwrap();
-        // The op itself, not the process-wide switch: other tests run alongside. With the
-        // cosine kept by the forward and without it (recomputed by the backward).
+        // The op itself. With the cosine kept by the forward and without it (recomputed by the backward).
         for keep in [false, true] {
             let cos = crate::compute::ops::Kept::new(keep);
             let y = x.as_tensor().apply_op1(Sine { fast: true, cos }).unwrap();
@@ -311,9 +290,9 @@ mod tests {
                 assert!((d - v.cos()).abs() <= 1.2e-7, "cos({v}) = {d}");
             }
         }
-        // Switched off (the default): libm's sine and cosine, bit for bit, forward and back.
-        // A second backward over the same graph finds the kept cosine used and recomputes it.
-        let y = sin(x.as_tensor()).unwrap();
+        // Not fast (parity): libm's sine and cosine, bit for bit, forward and back. A second
+        // backward over the same graph finds the kept cosine used and recomputes it.
+        let y = sin(x.as_tensor(), false).unwrap();
         let loss = y.sum_all().unwrap();
         for pass in 0..2 {
             let g = loss.backward().unwrap();

@@ -19,43 +19,38 @@
 //! What a backward needs from its forward (the arg-max, cos of the sine's argument) is kept
 //! once and used once; a second backward over the same graph computes it again.
 //!
-//! They run on CPU in f32; other devices and dtypes take the plain path, as does a CPU run
-//! accounted as CUDA ([`crate::compute::account`]).
-//! [`set_enabled`]`(false)` forces the plain path everywhere, for A/B measurements.
+//! They run on CPU in f32 when the network's [`Numerics::fused`] is on; other devices and
+//! dtypes take the plain path, as does a CPU run accounted as CUDA
+//! ([`crate::compute::account`]).
 
-use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 
 use candle_core::{CpuStorage, CustomOp2, CustomOp3, DType, Layout, Shape, Storage, Tensor};
 
+#[cfg(feature = "cuda")]
+use candle_core::cuda_backend::cudarc::driver::CudaSlice;
+
+use crate::compute::numerics::Numerics;
 use crate::compute::ops::f32_slice;
 use crate::error::Result;
 
-static ENABLED: AtomicBool = AtomicBool::new(true);
-
-/// Turns the fused CPU kernels on (the default) or off (plain candle ops everywhere).
-pub fn set_enabled(on: bool) {
-    ENABLED.store(on, Ordering::Relaxed);
-}
-
-/// Whether the fused kernels are in use.
-pub fn enabled() -> bool {
-    ENABLED.load(Ordering::Relaxed)
-}
-
 /// The fused kernels are CPU-only: tensors elsewhere, and runs accounted as CUDA, take the
 /// plain ops.
-fn applies(ts: &[&Tensor]) -> bool {
-    enabled()
-        && !crate::compute::account::emulates_cuda()
+fn applies(k: Numerics, ts: &[&Tensor]) -> bool {
+    k.fused && cpu_f32(ts)
+}
+
+/// Whether `ts` are f32 tensors on the CPU's route.
+fn cpu_f32(ts: &[&Tensor]) -> bool {
+    !crate::compute::account::emulates_cuda()
         && ts
             .iter()
             .all(|t| t.device().is_cpu() && t.dtype() == DType::F32)
 }
 
 /// `y + b` broadcast over rows: y: [rows,out], b: [out] -> [rows,out].
-pub fn add_bias(y: &Tensor, b: &Tensor) -> Result<Tensor> {
-    if !applies(&[y, b]) || y.rank() != 2 || b.rank() != 1 {
+pub fn add_bias(y: &Tensor, b: &Tensor, k: Numerics) -> Result<Tensor> {
+    if !applies(k, &[y, b]) || y.rank() != 2 || b.rank() != 1 {
         return Ok(y.broadcast_add(b)?);
     }
     Ok(y.contiguous()?.apply_op2(&b.contiguous()?, BiasAdd)?)
@@ -64,7 +59,7 @@ pub fn add_bias(y: &Tensor, b: &Tensor) -> Result<Tensor> {
 /// `max_j (q[n,j,:] + g[p(n),j,:]) · w_p[n,j]`: q: [N,J,H], g: [P,J,H], w_p: [N,J] -> [N,H],
 /// the N points grouped by pose in P equal blocks (point n belongs to pose `n / (N/P)`).
 /// No gradient flows to `w_p` (the reference detaches the spatial window).
-pub fn window_pool(q: &Tensor, g: &Tensor, w_p: &Tensor) -> Result<Tensor> {
+pub fn window_pool(q: &Tensor, g: &Tensor, w_p: &Tensor, k: Numerics) -> Result<Tensor> {
     let (n, j, h) = q.dims3()?;
     let p = g.dim(0)?;
     if g.dims() != [p, j, h] || p == 0 || n % p != 0 {
@@ -83,12 +78,61 @@ pub fn window_pool(q: &Tensor, g: &Tensor, w_p: &Tensor) -> Result<Tensor> {
             .broadcast_mul(&w_p.unsqueeze(candle_core::D::Minus1)?)?
             .max(1)?)
     };
-    if !applies(&[q, g, w_p]) {
+    let modeled = models_cuda(k, &[q, g, w_p]);
+    if !(applies(k, &[q, g, w_p]) || applies_cuda(k, &[q, g, w_p]) || modeled) {
         return plain();
     }
     let (q, g) = (q.contiguous()?, g.contiguous()?);
-    let arg = crate::compute::ops::Kept::new(q.track_op() || g.track_op());
-    Ok(q.apply_op3(&g, &w_p.detach().contiguous()?, WindowPool { arg })?)
+    let tracked = q.track_op() || g.track_op();
+    let op = WindowPool {
+        arg: crate::compute::ops::Kept::new(tracked),
+        modeled,
+        held: Mutex::new(None),
+        #[cfg(feature = "cuda")]
+        arg_dev: crate::compute::ops::Kept::new(tracked),
+    };
+    let out = q.apply_op3(&g, &w_p.detach().contiguous()?, op)?;
+    if modeled {
+        // The CUDA kernel also writes the arg-max (u32 [N,H]); the custom op's count has
+        // its one launch and the max.
+        candle_core::account::record(
+            true,
+            candle_core::account::Op {
+                name: "pma-window-pool",
+                launches: 0,
+                param_uploads: 0,
+                bytes_read: 0,
+                bytes_written: (out.elem_count() * 4) as u64,
+                flops: 0,
+            },
+        );
+    }
+    Ok(out)
+}
+
+/// Whether a CPU run accounted as CUDA ([`crate::compute::account`]) should count the
+/// CUDA kernel of [`crate::compute::cuda`] rather than candle's plain ops: the fused ops
+/// then run on the CPU and count what their kernel launches, reads and writes.
+fn models_cuda(k: Numerics, ts: &[&Tensor]) -> bool {
+    k.fused
+        && crate::compute::account::emulates_cuda()
+        && ts
+            .iter()
+            .all(|t| t.device().is_cpu() && t.dtype() == DType::F32)
+}
+
+/// Whether `ts` are f32 tensors on CUDA and the network asks for fused kernels: the
+/// kernels of [`crate::compute::cuda`] (which exist in a `cuda` build only).
+fn applies_cuda(k: Numerics, ts: &[&Tensor]) -> bool {
+    k.fused && cuda_f32(ts)
+}
+
+/// Whether `ts` are f32 tensors on CUDA in a `cuda` build.
+fn cuda_f32(ts: &[&Tensor]) -> bool {
+    cfg!(feature = "cuda")
+        && ts
+            .iter()
+            .all(|t| t.device().is_cuda() && t.dtype() == DType::F32)
 }
 
 /// The pose extractor's head `o` = [Θ_0..Θ_{K-1}, Φ_0..Φ_{K-1}] (each block `f` wide), as
@@ -124,18 +168,16 @@ struct HeadGrad {
     /// Layer 0 has handed the buffer over: a later backward pass over the same graph makes
     /// every layer return its own gradient.
     taken: bool,
+    /// The buffer of a CUDA backward, on the device.
+    #[cfg(feature = "cuda")]
+    dev_buf: Option<CudaSlice<f32>>,
 }
 
 impl FilmHead {
     /// `o`: [N,2·K·f] for K = `n_layers`; γ = `mul`·Θ + `add`.
-    pub fn new(o: &Tensor, n_layers: usize, (mul, add): (f64, f64)) -> Self {
-        Self::with(
-            o,
-            n_layers,
-            (mul, add),
-            crate::compute::fast_sine::enabled(),
-            applies(&[o]),
-        )
+    pub fn new(o: &Tensor, n_layers: usize, (mul, add): (f64, f64), k: Numerics) -> Self {
+        let fused = applies(k, &[o]) || applies_cuda(k, &[o]);
+        Self::with(o, n_layers, (mul, add), k.fast_sine, fused)
     }
 
     /// [`Self::new`] with the sine flavour and the kernel choice made by the caller.
@@ -180,11 +222,11 @@ impl FilmHead {
             && k < n_layers
             && o.dim(1)? == 2 * n_layers * f
             && o.dim(0)? == pre.dim(0)?;
-        if !(self.fused && fits && applies(&[pre])) {
+        if !(self.fused && fits && (cpu_f32(&[pre]) || cuda_f32(&[pre]))) {
             let theta = o.narrow(1, k * f, f)?;
             let phi = o.narrow(1, (n_layers + k) * f, f)?;
             let arg = (pre * theta.affine(mul, add)?)?.add(&phi)?;
-            return crate::compute::fast_sine::sin_flavour(&arg, self.fast);
+            return crate::compute::fast_sine::sin(&arg, self.fast);
         }
         let (pre, o) = (pre.contiguous()?, o.contiguous()?);
         let op = FilmSine {
@@ -194,6 +236,8 @@ impl FilmHead {
             add: add as f32,
             fast: self.fast,
             cos: crate::compute::ops::Kept::new(pre.track_op() || o.track_op()),
+            #[cfg(feature = "cuda")]
+            cos_dev: crate::compute::ops::Kept::new(pre.track_op() || o.track_op()),
             shared: chained.then(|| self.grad.clone()),
         };
         Ok(pre.apply_op2(&o, op)?)
@@ -209,6 +253,9 @@ struct FilmSine {
     fast: bool,
     /// cos of the argument, kept by the forward for the backward.
     cos: crate::compute::ops::Kept<Vec<f32>>,
+    /// The same on the device, from a CUDA forward.
+    #[cfg(feature = "cuda")]
+    cos_dev: crate::compute::ops::Kept<CudaSlice<f32>>,
     /// The head gradient shared along a [`FilmHead::stack`].
     shared: Option<Arc<Mutex<HeadGrad>>>,
 }
@@ -285,6 +332,24 @@ impl CustomOp2 for FilmSine {
         Ok((CpuStorage::F32(sin), l1.shape().clone()))
     }
 
+    #[cfg(feature = "cuda")]
+    fn cuda_fwd(
+        &self,
+        s1: &candle_core::CudaStorage,
+        l1: &Layout,
+        s2: &candle_core::CudaStorage,
+        l2: &Layout,
+    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
+        let (n, f) = self.check(l1, l2)?;
+        candle_core::account::report_launches(1, 0);
+        let keep = self.cos_dev.wanted();
+        let (out, cos) = crate::compute::cuda::film_sine(s1, l1, s2, l2, self.film(n, f), keep)?;
+        if let Some(c) = cos {
+            self.cos_dev.put(c);
+        }
+        Ok((out, l1.shape().clone()))
+    }
+
     fn bwd(
         &self,
         pre: &Tensor,
@@ -292,6 +357,10 @@ impl CustomOp2 for FilmSine {
         _res: &Tensor,
         grad: &Tensor,
     ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>)> {
+        #[cfg(feature = "cuda")]
+        if pre.device().is_cuda() {
+            return self.cuda_bwd(pre, o, grad);
+        }
         let (n, f) = pre.dims2()?;
         let w = 2 * self.n_layers * f;
         let (pre_c, o_c, d_c) = (pre.contiguous()?, o.contiguous()?, grad.contiguous()?);
@@ -348,6 +417,155 @@ impl CustomOp2 for FilmSine {
         }
         let g_o = Tensor::from_vec(g_o, (n, w), o.device())?;
         Ok((Some(g_pre), Some(g_o)))
+    }
+}
+
+#[cfg(feature = "cuda")]
+impl FilmSine {
+    fn film(&self, n: usize, f: usize) -> crate::compute::cuda::Film {
+        crate::compute::cuda::Film {
+            n,
+            f,
+            k: self.k,
+            n_layers: self.n_layers,
+            mul: self.mul,
+            add: self.add,
+        }
+    }
+
+    /// The CUDA backward: one kernel writes the input's gradient and this layer's blocks of
+    /// the head gradient, shared along a stack as on the CPU (layer 0, run last, returns it).
+    fn cuda_bwd(
+        &self,
+        pre: &Tensor,
+        o: &Tensor,
+        grad: &Tensor,
+    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>)> {
+        let (n, f) = pre.dims2()?;
+        let w = 2 * self.n_layers * f;
+        let (pre_c, o_c, d_c) = (pre.contiguous()?, o.contiguous()?, grad.contiguous()?);
+        let mut shared = self
+            .shared
+            .as_ref()
+            .map(|s| s.lock().unwrap_or_else(|e| e.into_inner()));
+        let defer = shared.as_ref().is_some_and(|s| !s.taken);
+        let head = match shared.as_mut() {
+            Some(s) if defer => s.dev_buf.take(),
+            _ => None,
+        };
+        let op = FilmGrad {
+            film: self.film(n, f),
+            cos: self.cos_dev.take().filter(|c| c.len() >= n * f),
+            head: Mutex::new(head),
+        };
+        let g_pre = d_c.apply_op3_no_bwd(&pre_c, &o_c, &op)?;
+        let head = op.head.into_inner().unwrap_or_else(|e| e.into_inner());
+        if let Some(s) = shared.as_mut().filter(|_| defer) {
+            if self.k > 0 {
+                s.dev_buf = head;
+                return Ok((Some(g_pre), None));
+            }
+            s.taken = true;
+        }
+        let head =
+            head.ok_or_else(|| candle_core::Error::Msg("film sine: no head gradient".into()))?;
+        let g_o = d_c.apply_op1_no_bwd(&HeadOut {
+            buf: Mutex::new(Some(head)),
+            shape: Shape::from((n, w)),
+        })?;
+        Ok((Some(g_pre), Some(g_o)))
+    }
+}
+
+/// A FiLM-sine layer's CUDA backward on (grad, pre, o): the gradient of pre; the layer's
+/// head-gradient blocks go into `head` (allocated zeroed when it is `None`).
+#[cfg(feature = "cuda")]
+struct FilmGrad {
+    film: crate::compute::cuda::Film,
+    cos: Option<CudaSlice<f32>>,
+    head: Mutex<Option<CudaSlice<f32>>>,
+}
+
+#[cfg(feature = "cuda")]
+impl CustomOp3 for FilmGrad {
+    fn name(&self) -> &'static str {
+        "pma-film-sine-grad"
+    }
+
+    fn cpu_fwd(
+        &self,
+        _: &CpuStorage,
+        _: &Layout,
+        _: &CpuStorage,
+        _: &Layout,
+        _: &CpuStorage,
+        _: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        candle_core::bail!("film sine gradient: the CUDA kernel got CPU tensors")
+    }
+
+    fn cuda_fwd(
+        &self,
+        s1: &candle_core::CudaStorage,
+        l1: &Layout,
+        s2: &candle_core::CudaStorage,
+        l2: &Layout,
+        s3: &candle_core::CudaStorage,
+        l3: &Layout,
+    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
+        let d = self.film;
+        if l1.shape().dims2()? != (d.n, d.f) || l3.shape().dims2()? != (d.n, 2 * d.n_layers * d.f) {
+            candle_core::bail!(
+                "film sine gradient: shapes do not agree with [{}, {}]",
+                d.n,
+                d.f
+            )
+        }
+        let mut head = self.head.lock().unwrap_or_else(|e| e.into_inner());
+        // The kernel, and the head gradient's memset when this layer starts it.
+        candle_core::account::report_launches(if head.is_none() { 2 } else { 1 }, 0);
+        let g_pre = crate::compute::cuda::film_sine_grad(
+            s1,
+            l1,
+            s2,
+            l2,
+            s3,
+            l3,
+            self.cos.as_ref(),
+            &mut head,
+            d,
+        )?;
+        Ok((g_pre, l1.shape().clone()))
+    }
+}
+
+/// Hands a finished CUDA head gradient to candle as a tensor (no launch).
+#[cfg(feature = "cuda")]
+struct HeadOut {
+    buf: Mutex<Option<CudaSlice<f32>>>,
+    shape: Shape,
+}
+
+#[cfg(feature = "cuda")]
+impl candle_core::CustomOp1 for HeadOut {
+    fn name(&self) -> &'static str {
+        "pma-film-head-grad"
+    }
+
+    fn cpu_fwd(&self, _: &CpuStorage, _: &Layout) -> candle_core::Result<(CpuStorage, Shape)> {
+        candle_core::bail!("film sine head gradient: a CUDA buffer for a CPU tensor")
+    }
+
+    fn cuda_fwd(
+        &self,
+        s: &candle_core::CudaStorage,
+        _: &Layout,
+    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
+        candle_core::account::report_launches(0, 0);
+        let buf = self.buf.lock().unwrap_or_else(|e| e.into_inner()).take();
+        let buf = buf
+            .ok_or_else(|| candle_core::Error::Msg("film sine: head gradient used twice".into()))?;
+        Ok((crate::compute::cuda::storage_of(buf, s), self.shape.clone()))
     }
 }
 
@@ -418,6 +636,13 @@ impl CustomOp2 for BiasAdd {
 /// of every output for the backward, which then need not pool again.
 struct WindowPool {
     arg: crate::compute::ops::Kept<Vec<u32>>,
+    /// On a CPU run accounted as CUDA: count the CUDA kernels (see [`models_cuda`]).
+    modeled: bool,
+    /// The kept arg-max's bytes, live on the modeled device until the backward takes it.
+    held: Mutex<Option<candle_core::account::Held>>,
+    /// The arg-max of a CUDA forward, on the device.
+    #[cfg(feature = "cuda")]
+    arg_dev: crate::compute::ops::Kept<crate::compute::cuda::ArgMax>,
 }
 
 /// One point's pooled row: `best[k] = max_j (q[j,k] + g[j,k]) · w[j]` and the first joint
@@ -486,9 +711,35 @@ impl CustomOp3 for WindowPool {
             );
         }
         if self.arg.wanted() {
+            if self.modeled {
+                let held = candle_core::account::hold(true, arg.len() * 4);
+                *self.held.lock().unwrap_or_else(|e| e.into_inner()) = Some(held);
+            }
             self.arg.put(arg);
         }
         Ok((CpuStorage::F32(dst), Shape::from((n, h))))
+    }
+
+    #[cfg(feature = "cuda")]
+    fn cuda_fwd(
+        &self,
+        s1: &candle_core::CudaStorage,
+        l1: &Layout,
+        s2: &candle_core::CudaStorage,
+        l2: &Layout,
+        s3: &candle_core::CudaStorage,
+        l3: &Layout,
+    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
+        let (n, j, h) = l1.shape().dims3()?;
+        let (p, j2, h2) = l2.shape().dims3()?;
+        if j2 != j || h2 != h || p == 0 || n % p != 0 || l3.shape().dims2()? != (n, j) {
+            candle_core::bail!("window pool: shapes do not agree with q [{n},{j},{h}]")
+        }
+        candle_core::account::report_launches(1, 0);
+        let (out, arg) =
+            crate::compute::cuda::window_pool(s1, l1, s2, l2, s3, l3, [n, j, h, n / p])?;
+        self.arg_dev.put(arg);
+        Ok((out, Shape::from((n, h))))
     }
 
     fn bwd(
@@ -499,6 +750,13 @@ impl CustomOp3 for WindowPool {
         _res: &Tensor,
         grad: &Tensor,
     ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+        #[cfg(feature = "cuda")]
+        if q.device().is_cuda() {
+            return self.cuda_bwd(q, g, w_p, grad);
+        }
+        if self.modeled {
+            return self.modeled_bwd(q, g, w_p, grad);
+        }
         let (n, j, h) = q.dims3()?;
         let poses = g.dim(0)?;
         let per_pose = n / poses;
@@ -543,6 +801,229 @@ impl CustomOp3 for WindowPool {
     }
 }
 
+impl WindowPool {
+    /// The backward of a CPU run accounted as CUDA, as the CUDA backward runs: the kept
+    /// arg-max (or the forward's kernel again), then one op per gradient, each counted as
+    /// its kernel (reading the upstream gradient, the window and the arg-max).
+    fn modeled_bwd(
+        &self,
+        q: &Tensor,
+        g: &Tensor,
+        w_p: &Tensor,
+        grad: &Tensor,
+    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+        let (n, j, h) = q.dims3()?;
+        let p = g.dim(0)?;
+        let w = w_p.contiguous()?;
+        let arg = match self.arg.take().filter(|a| a.len() == n * h) {
+            Some(a) => a,
+            None => {
+                // The forward's kernel once more (its outputs: the max and the arg-max).
+                let (qc, gc) = (q.contiguous()?, g.contiguous()?);
+                let guards = [&qc, &gc, &w].map(|t| t.storage_and_layout());
+                let [qs, gs, ws] = [0, 1, 2].map(|i| cpu_slice(&guards[i].0, guards[i].1));
+                let (qs, gs, ws) = (qs?, gs?, ws?);
+                let mut arg = vec![0u32; n * h];
+                let mut best = vec![0f32; h];
+                let per_pose = n / p;
+                for i in 0..n {
+                    let gp = (i / per_pose) * j * h;
+                    pool_row(
+                        &qs[i * j * h..(i + 1) * j * h],
+                        &gs[gp..gp + j * h],
+                        &ws[i * j..(i + 1) * j],
+                        &mut best,
+                        &mut arg[i * h..(i + 1) * h],
+                    );
+                }
+                candle_core::account::record(
+                    true,
+                    candle_core::account::Op {
+                        name: "pma-window-pool",
+                        launches: 1,
+                        param_uploads: 0,
+                        bytes_read: ((qs.len() + gs.len() + ws.len()) * 4) as u64,
+                        bytes_written: (n * h * 8) as u64,
+                        flops: 0,
+                    },
+                );
+                arg
+            }
+        };
+        // The arg-max is the kernels' input now: live (as a tensor) until they are done.
+        let arg = candle_core::account::uncounted(|| Tensor::from_vec(arg, (n, h), q.device()))?;
+        let held = candle_core::account::hold(true, n * h * 4);
+        self.held.lock().unwrap_or_else(|e| e.into_inner()).take();
+        let grad = grad.contiguous()?;
+        let gq = grad.apply_op3_no_bwd(&w, &arg, &PoolGradCpu { p, of_g: false })?;
+        let gg = grad.apply_op3_no_bwd(&w, &arg, &PoolGradCpu { p, of_g: true })?;
+        drop(held);
+        Ok((Some(gq), Some(gg), None))
+    }
+}
+
+/// One gradient of the window pool on the CPU from (upstream gradient [N,H], window [N,J],
+/// arg-max [N,H] u32), as a custom op so that a CPU run accounted as CUDA counts it as the
+/// kernel `window_pool.cu` runs for it: grad q [N,J,H] or (`of_g`) grad g [P,J,H], the same
+/// values as the CPU backward.
+struct PoolGradCpu {
+    p: usize,
+    of_g: bool,
+}
+
+impl CustomOp3 for PoolGradCpu {
+    fn name(&self) -> &'static str {
+        "pma-window-pool-grad"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+        s3: &CpuStorage,
+        l3: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let (n, h) = l1.shape().dims2()?;
+        let (n2, j) = l2.shape().dims2()?;
+        let dm = f32_slice(s1, l1, "window pool gradient: grad")?;
+        let w = f32_slice(s2, l2, "window pool gradient: w_p")?;
+        let CpuStorage::U32(arg) = s3 else {
+            candle_core::bail!("window pool gradient: the arg-max is not u32")
+        };
+        let p = self.p;
+        if n2 != n || l3.shape().dims2()? != (n, h) || p == 0 || n % p != 0 {
+            candle_core::bail!("window pool gradient: shapes do not agree with [{n},{j},{h}]")
+        }
+        let per_pose = n / p;
+        // The CPU backward's loop, keeping one of its two outputs.
+        let mut out = vec![0f32; if self.of_g { p * j * h } else { n * j * h }];
+        for i in 0..n {
+            let gp = (i / per_pose) * j * h;
+            for k in 0..h {
+                let jj = arg[i * h + k] as usize;
+                let d = dm[i * h + k] * w[i * j + jj];
+                if self.of_g {
+                    out[gp + jj * h + k] += d;
+                } else {
+                    out[i * j * h + jj * h + k] = d;
+                }
+            }
+        }
+        let shape = if self.of_g { (p, j, h) } else { (n, j, h) };
+        Ok((CpuStorage::F32(out), Shape::from(shape)))
+    }
+}
+
+#[cfg(feature = "cuda")]
+impl WindowPool {
+    /// The CUDA backward: the forward's arg-max (or the forward's kernel again, for a second
+    /// backward), then one kernel per gradient.
+    fn cuda_bwd(
+        &self,
+        q: &Tensor,
+        g: &Tensor,
+        w_p: &Tensor,
+        grad: &Tensor,
+    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+        let (n, j, h) = q.dims3()?;
+        let p = g.dim(0)?;
+        let w = w_p.contiguous()?;
+        let arg = match self.arg_dev.take() {
+            Some(a) => a,
+            None => {
+                let (q, g) = (q.contiguous()?, g.contiguous()?);
+                let guards = [&q, &g, &w].map(|t| t.storage_and_layout());
+                let cuda = |i: usize| match &*guards[i].0 {
+                    Storage::Cuda(c) => Ok(c),
+                    _ => Err(candle_core::Error::Msg(
+                        "window pool: expected CUDA tensors".into(),
+                    )),
+                };
+                let (_, arg) = crate::compute::cuda::window_pool(
+                    cuda(0)?,
+                    guards[0].1,
+                    cuda(1)?,
+                    guards[1].1,
+                    cuda(2)?,
+                    guards[2].1,
+                    [n, j, h, n / p],
+                )?;
+                arg
+            }
+        };
+        let grad = grad.contiguous()?;
+        let gq = grad.apply_op2_no_bwd(
+            &w,
+            &PoolGrad {
+                arg: arg.clone(),
+                dims: [n, p, j, h],
+                of_g: false,
+            },
+        )?;
+        let gg = grad.apply_op2_no_bwd(
+            &w,
+            &PoolGrad {
+                arg,
+                dims: [n, p, j, h],
+                of_g: true,
+            },
+        )?;
+        Ok((Some(gq), Some(gg), None))
+    }
+}
+
+/// One gradient of the CUDA window pool (of q, or of g when `of_g`), from the upstream
+/// gradient and the spatial window: a kernel of `window_pool.cu`.
+#[cfg(feature = "cuda")]
+struct PoolGrad {
+    arg: crate::compute::cuda::ArgMax,
+    /// N, P, J, H.
+    dims: [usize; 4],
+    of_g: bool,
+}
+
+#[cfg(feature = "cuda")]
+impl CustomOp2 for PoolGrad {
+    fn name(&self) -> &'static str {
+        "pma-window-pool-grad"
+    }
+
+    fn cpu_fwd(
+        &self,
+        _: &CpuStorage,
+        _: &Layout,
+        _: &CpuStorage,
+        _: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        candle_core::bail!("window pool gradient: the CUDA kernel got CPU tensors")
+    }
+
+    fn cuda_fwd(
+        &self,
+        s1: &candle_core::CudaStorage,
+        l1: &Layout,
+        s2: &candle_core::CudaStorage,
+        l2: &Layout,
+    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
+        let [n, p, j, h] = self.dims;
+        if l1.shape().dims2()? != (n, h) || l2.shape().dims2()? != (n, j) {
+            candle_core::bail!("window pool gradient: shapes do not agree with [{n},{j},{h}]")
+        }
+        candle_core::account::report_launches(1, 0);
+        if self.of_g {
+            let out =
+                crate::compute::cuda::window_pool_grad_g(s1, l1, s2, l2, &self.arg, self.dims)?;
+            Ok((out, Shape::from((p, j, h))))
+        } else {
+            let out =
+                crate::compute::cuda::window_pool_grad_q(s1, l1, s2, l2, &self.arg, [n, j, h])?;
+            Ok((out, Shape::from((n, j, h))))
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -563,6 +1044,43 @@ mod tests {
             })
             .collect();
         Tensor::from_vec(v, shape, &Device::Cpu).unwrap()
+    }
+
+    /// Counted as CUDA (the fused pool then counts as its kernels), the window pool still
+    /// computes the CPU's values and gradients, bit for bit, including a second backward
+    /// that finds the arg-max used.
+    #[test]
+    fn window_pool_counted_as_cuda_keeps_the_cpu_bits() {
+        use crate::compute::account::{Account, Route};
+        let (n, j, h, p) = (12, 5, 7, 3);
+        let q = Var::from_tensor(&rand(&[n, j, h], 1)).unwrap();
+        let g = Var::from_tensor(&rand(&[p, j, h], 2)).unwrap();
+        let w = rand(&[n, j], 3).abs().unwrap();
+        let up = rand(&[n, h], 4);
+        let run = || {
+            let y = window_pool(q.as_tensor(), g.as_tensor(), &w, Numerics::PARITY).unwrap();
+            let loss = (&y * &up).unwrap().sum_all().unwrap();
+            let bits = |t: &Tensor| -> Vec<u32> {
+                let v: Vec<f32> = t.flatten_all().unwrap().to_vec1().unwrap();
+                v.iter().map(|x| x.to_bits()).collect()
+            };
+            let mut out = vec![bits(&y)];
+            for _ in 0..2 {
+                let gr = loss.backward().unwrap();
+                out.push(bits(gr.get(&q).unwrap()));
+                out.push(bits(gr.get(&g).unwrap()));
+            }
+            out
+        };
+        let cpu = run();
+        let account = Account::start(&Device::Cpu, Route::Cuda).unwrap();
+        let counted = run();
+        let report = account.finish();
+        assert_eq!(cpu, counted);
+        let launches = |op: &str| report.ops.get(op).map_or(0, |c| c.launches);
+        // Forward once, the arg-max again for the second backward, two gradients each time.
+        assert_eq!(launches("pma-window-pool"), 2, "{:?}", report.ops.keys());
+        assert_eq!(launches("pma-window-pool-grad"), 4);
     }
 
     fn max_abs(a: &Tensor, b: &Tensor) -> f32 {
@@ -601,8 +1119,8 @@ mod tests {
             let b = Var::from_tensor(&rand(&[out], 5)).unwrap();
             let (m, z) = if fused {
                 (
-                    window_pool(q.as_tensor(), g.as_tensor(), &w).unwrap(),
-                    add_bias(y.as_tensor(), b.as_tensor()).unwrap(),
+                    window_pool(q.as_tensor(), g.as_tensor(), &w, Numerics::PARITY).unwrap(),
+                    add_bias(y.as_tensor(), b.as_tensor(), Numerics::PARITY).unwrap(),
                 )
             } else {
                 let part = q
@@ -649,7 +1167,7 @@ mod tests {
         assert_eq!(max_abs(&a.4, &b.4), 0.0, "grad y");
         assert_eq!(max_abs(&a.5, &b.5), 0.0, "grad bias");
         // The kernels actually ran (they are off when disabled or for other dtypes).
-        assert!(applies(&[&a.0]));
+        assert!(applies(Numerics::PARITY, &[&a.0]));
     }
 
     /// The fused FiLM-sine layer gives the plain ops' values and gradients bit for bit, with
@@ -723,7 +1241,11 @@ mod tests {
             // What the network's linear layer computes: x Wᵀ, then the bias.
             let linear = |k: usize, h: &Tensor| {
                 let (w, b) = &vars[k];
-                add_bias(&h.matmul(&w.as_tensor().t()?)?, b.as_tensor())
+                add_bias(
+                    &h.matmul(&w.as_tensor().t()?)?,
+                    b.as_tensor(),
+                    Numerics::PARITY,
+                )
             };
             let head = FilmHead::with(o.as_tensor(), kk, (15.0, 30.0), false, fused);
             let outs = head.stack(x.as_tensor(), linear).unwrap();
@@ -780,13 +1302,17 @@ mod tests {
         let mut wv = vec![0.5f32; 12];
         wv[5] = f32::NAN;
         let w = Tensor::from_vec(wv, (3, 4), &Device::Cpu).unwrap();
-        let m = window_pool(&q, &g, &w).unwrap().to_vec2::<f32>().unwrap();
+        let m = window_pool(&q, &g, &w, Numerics::PARITY)
+            .unwrap()
+            .to_vec2::<f32>()
+            .unwrap();
         assert!(m[1].iter().all(|v| v.is_nan()), "row 1 has a NaN window");
         assert!(m[0].iter().chain(&m[2]).all(|v| v.is_finite()));
         let m64 = window_pool(
             &q.to_dtype(DType::F64).unwrap(),
             &g.to_dtype(DType::F64).unwrap(),
             &w.to_dtype(DType::F64).unwrap(),
+            Numerics::PARITY,
         )
         .unwrap();
         assert_eq!(m64.dtype(), DType::F64);

@@ -6,7 +6,9 @@
 //!
 //! | module | what |
 //! | --- | --- |
-//! | [`fused`] | fused CPU kernels: the window max-pool, the FiLM-sine stack, bias adds |
+//! | [`numerics`] | a network's numeric choices: fused kernels, fast sine, row ops, TF32 |
+//! | [`fused`] | fused kernels: the window max-pool, the FiLM-sine stack, bias adds |
+//! | [`cuda`] | the fused ops' CUDA kernels (`cuda/kernels/*.cu`, NVRTC at run time) |
 //! | [`libm_sine`] | glibc's sinf/cosf recipe, lane-wise (bit-identical, vectorised) |
 //! | [`fast_sine`] | the sine op; the optional polynomial sine (`--fast-sine`, not parity) |
 //! | [`ops`] | row gathers with a parallel backward on CUDA (`ops/kernels/*.cu`) |
@@ -18,12 +20,14 @@
 //! | [`account`] | what a step launches and waits for on a GPU, counted on any device; a cost model |
 
 pub mod account;
+pub mod cuda;
 pub mod device;
 pub mod fast_sine;
 pub mod flops;
 pub mod fused;
 pub mod host;
 pub mod libm_sine;
+pub mod numerics;
 pub mod ops;
 pub mod parallel;
 pub mod profile;

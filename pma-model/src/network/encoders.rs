@@ -5,6 +5,7 @@
 use candle_core::{Device, Tensor};
 use pma_data::skeleton::{pose_to_rot6d, Joints, N_JOINTS};
 
+use crate::compute::numerics::Numerics;
 use crate::error::{ModelError, Result};
 use crate::network::nn::SineLayer;
 use crate::network::params::{Init, Params};
@@ -50,8 +51,8 @@ impl PointEnc {
     }
 
     /// x_bar: [N,J,3] -> [N,J,C]
-    pub fn forward(&self, x_bar: &Tensor) -> Result<Tensor> {
-        self.layer.forward(x_bar)
+    pub fn forward(&self, x_bar: &Tensor, k: Numerics) -> Result<Tensor> {
+        self.layer.forward(x_bar, k)
     }
 }
 

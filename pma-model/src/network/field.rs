@@ -3,6 +3,7 @@
 
 use candle_core::{Tensor, D};
 
+use crate::compute::numerics::Numerics;
 use crate::error::{ModelError, Result};
 use crate::network::config::Config;
 use crate::network::nn::Linear;
@@ -79,11 +80,11 @@ impl Field {
     }
 
     /// s: [N,K·F] modulator output; view: [N,SH+code] view features -> outputs.
-    pub fn forward(&self, s: &Tensor, view: &Tensor) -> Result<FieldOutputs> {
+    pub fn forward(&self, s: &Tensor, view: &Tensor, k: Numerics) -> Result<FieldOutputs> {
         let mut h = s.clone();
         let mut l0_pre = None;
         for (i, layer) in self.pts_linears.iter().enumerate() {
-            let pre = layer.forward(&h)?;
+            let pre = layer.forward(&h, k)?;
             if i == 0 {
                 l0_pre = Some(pre.clone());
             }
@@ -93,12 +94,12 @@ impl Field {
                 h = Tensor::cat(&[s, &h], D::Minus1)?;
             }
         }
-        let sigma_raw = self.sigma.forward(&h)?;
-        let feature_linear = self.feature.forward(&h)?;
+        let sigma_raw = self.sigma.forward(&h, k)?;
+        let feature_linear = self.feature.forward(&h, k)?;
         let view_pre = self
             .view
-            .forward(&Tensor::cat(&[&feature_linear, view], D::Minus1)?)?;
-        let rgb_logits = self.rgb.forward(&view_pre.relu()?)?;
+            .forward(&Tensor::cat(&[&feature_linear, view], D::Minus1)?, k)?;
+        let rgb_logits = self.rgb.forward(&view_pre.relu()?, k)?;
         let rgb = candle_nn::ops::sigmoid(&rgb_logits)?.affine(1.002, -0.001)?;
         Ok(FieldOutputs {
             l0_pre: l0_pre.expect("trunk has at least one layer"),
@@ -136,7 +137,7 @@ impl FrameCodes {
     /// (unseen frames). Indices beyond the table are clamped to the last code when the
     /// largest exceeds n (the reference's rule, which lets `idx == n` through and crashes:
     /// here that is an error unless `quirks.fix_framecode_clamp`).
-    pub fn lookup(&self, idx: &[i64], training: bool) -> Result<Tensor> {
+    pub fn lookup(&self, idx: &[i64], training: bool, k: Numerics) -> Result<Tensor> {
         let n = self.weight.dim(0)? as i64;
         let r = idx.len();
         if !training && !idx.is_empty() && idx.iter().all(|&i| i < 0) {
@@ -165,6 +166,6 @@ impl FrameCodes {
             .collect();
         let ids = Tensor::from_vec(ids, r, self.weight.device())?;
         // A row gather whose gradient is parallel on CUDA (bit-identical on the CPU).
-        crate::compute::ops::select_rows(&self.weight, &ids)
+        crate::compute::ops::select_rows(&self.weight, &ids, k)
     }
 }

@@ -44,6 +44,7 @@ use candle_nn::{VarBuilder, VarMap};
 use pma_data::skeleton::{self, Joints, N_JOINTS};
 
 use crate::compute::host::host_f32;
+use crate::compute::numerics::Numerics;
 use crate::error::{ModelError, Result};
 use config::Config;
 use encoders::{pose6d, spherical_harmonics};
@@ -79,6 +80,8 @@ pub struct Network {
     align_trans: Tensor,
     /// A_j on the host, [24,4,4] row-major: the culling test runs there.
     align_host: Vec<f32>,
+    /// How every pass computes ([`Self::with_numerics`]).
+    numerics: Numerics,
 }
 
 impl Network {
@@ -179,7 +182,19 @@ impl Network {
             device: device.clone(),
             dtype,
             cfg,
+            numerics: Numerics::default(),
         })
+    }
+
+    /// The same network computing with `numerics` (kernels, sine, TF32) in every later pass.
+    pub fn with_numerics(mut self, numerics: Numerics) -> Self {
+        self.numerics = numerics;
+        self
+    }
+
+    /// Compute with `numerics` from the next pass on.
+    pub fn set_numerics(&mut self, numerics: Numerics) {
+        self.numerics = numerics;
     }
 
     /// The same network with every tensor converted to `dtype` (f16/bf16 inference, f64
@@ -190,7 +205,8 @@ impl Network {
             .into_iter()
             .map(|(k, t)| Ok((k, t.to_dtype(dtype)?)))
             .collect::<Result<HashMap<_, _>>>()?;
-        Self::from_tensors(self.cfg.clone(), tensors, &self.device)
+        Ok(Self::from_tensors(self.cfg.clone(), tensors, &self.device)?
+            .with_numerics(self.numerics))
     }
 
     /// Step 1, the pose-only work for every pose of the batch: 6D rotations, the GNN, its
@@ -218,7 +234,7 @@ impl Network {
             .layers
             .gnn
             .forward(&theta, trace.is_some().then_some(&mut layers))?;
-        let g = win_fun.project_pose(&g_feat)?;
+        let g = win_fun.project_pose(&g_feat, self.numerics)?;
         if let Some(t) = trace {
             t.put("pose6d", &theta);
             for (l, pre) in layers.iter().enumerate() {
@@ -266,6 +282,7 @@ impl Network {
         let m = poses.len();
         let j = N_JOINTS;
         let net = &self.layers;
+        let k = self.numerics;
         if m == 0 || n % m != 0 || poses.end > pose.g.dim(0)? {
             return Err(ModelError::Input(format!(
                 "network: {n} points cannot be split into equal blocks of poses {poses:?} \
@@ -312,8 +329,8 @@ impl Network {
         let g = pose.g.narrow(0, poses.start, m)?;
         let (win, e) = match (&net.win_fun, &net.pts_enc_pose) {
             (Some(win_fun), Some(enc)) if v.feature_window() => {
-                let e = enc.forward(&x_bar)?;
-                (Some(win_fun.forward(&g, &e, &w_p)?), Some(e))
+                let e = enc.forward(&x_bar, k)?;
+                (Some(win_fun.forward(&g, &e, &w_p, k)?), Some(e))
             }
             _ => (None, None),
         };
@@ -328,18 +345,18 @@ impl Network {
         // Frequencies and phases from f^m drive the sine layers (Eqs. 7–8); `only-gnn` feeds
         // f^m to the NeRF trunk instead, `only-syn` runs the layers unmodulated.
         let modulation = match (&net.pose_extractor, &f_m) {
-            (Some(ext), Some(f_m)) => Some(ext.forward(f_m)?),
+            (Some(ext), Some(f_m)) => Some(ext.forward(f_m, k)?),
             _ => None,
         };
         let (s, z) = match (&net.modulator, &net.pts_enc_point) {
             (Some(modulator), Some(enc)) => {
-                let z = enc.forward(&x_bar)?;
+                let z = enc.forward(&x_bar, k)?;
                 let x_tilde = z
                     .broadcast_mul(&w.unsqueeze(D::Minus1)?)?
                     .reshape((n, j * self.cfg.point_enc_dim))?;
                 let s = match &modulation {
-                    Some(m) => modulator.forward(&x_tilde, m)?,
-                    None => modulator.forward_fixed(&x_tilde)?,
+                    Some(m) => modulator.forward(&x_tilde, m, k)?,
+                    None => modulator.forward_fixed(&x_tilde, k)?,
                 };
                 (s, Some(z))
             }
@@ -350,7 +367,7 @@ impl Network {
             ),
         };
         // NeRF density and colour heads.
-        let out = net.field.forward(&s, view)?;
+        let out = net.field.forward(&s, view, k)?;
         if let Some((tr, stage)) = trace {
             // Θ mapped to the frequencies γ the layers use, stacked per layer like Φ.
             let gp = match (&modulation, &net.modulator) {
@@ -407,7 +424,10 @@ impl Network {
         };
         let sh = spherical_harmonics(&d, self.cfg.sh_degree)?;
         Ok(match &self.layers.framecodes {
-            Some(codes) => Tensor::cat(&[&sh, &codes.lookup(framecodes, training)?], 1)?,
+            Some(codes) => {
+                let code = codes.lookup(framecodes, training, self.numerics)?;
+                Tensor::cat(&[&sh, &code], 1)?
+            }
             None => sh,
         })
     }
@@ -416,6 +436,11 @@ impl Network {
 
     pub fn config(&self) -> &Config {
         &self.cfg
+    }
+
+    /// How the network computes.
+    pub fn numerics(&self) -> Numerics {
+        self.numerics
     }
 
     pub fn device(&self) -> &Device {

@@ -5,6 +5,7 @@
 
 use candle_core::Tensor;
 
+use crate::compute::numerics::Numerics;
 use crate::error::Result;
 use crate::network::config::Config;
 use crate::network::nn::{Linear, SineLayer};
@@ -67,18 +68,18 @@ impl PoseExtractor {
 
     /// f_m: [N,H] -> Θ, Φ. The head's output is laid out as [Θ_0..Θ_{K-1}, Φ_0..Φ_{K-1}],
     /// each block F wide.
-    pub fn forward(&self, f_m: &Tensor) -> Result<Modulation> {
+    pub fn forward(&self, f_m: &Tensor, k: Numerics) -> Result<Modulation> {
         let mut h = f_m.clone();
         for layer in &self.hidden {
-            h = layer.forward(&h)?;
+            h = layer.forward(&h, k)?;
         }
-        let o = self.head.forward(&h)?;
-        let (k, f) = (self.n_pm, self.freq_dim);
-        let freq = (0..k)
+        let o = self.head.forward(&h, k)?;
+        let (n_pm, f) = (self.n_pm, self.freq_dim);
+        let freq = (0..n_pm)
             .map(|i| o.narrow(1, i * f, f))
             .collect::<candle_core::Result<Vec<_>>>()?;
-        let phase = (0..k)
-            .map(|i| o.narrow(1, (k + i) * f, f))
+        let phase = (0..n_pm)
+            .map(|i| o.narrow(1, (n_pm + i) * f, f))
             .collect::<candle_core::Result<Vec<_>>>()?;
         Ok(Modulation {
             freq,
@@ -144,11 +145,12 @@ impl Modulator {
     }
 
     /// The same layers without modulation: `h_k = sin(γ(0) (M_k h_{k-1} + ν_k))`.
-    pub fn forward_fixed(&self, x_tilde: &Tensor) -> Result<Tensor> {
+    pub fn forward_fixed(&self, x_tilde: &Tensor, k: Numerics) -> Result<Tensor> {
         let mut h = x_tilde.clone();
         let mut outs = Vec::with_capacity(self.layers.len());
         for layer in &self.layers {
-            h = crate::compute::fast_sine::sin(&(layer.forward(&h)? * self.gamma0())?)?;
+            let pre = (layer.forward(&h, k)? * self.gamma0())?;
+            h = crate::compute::fast_sine::sin(&pre, k.fast_sine)?;
             outs.push(h.clone());
         }
         Ok(Tensor::cat(&outs, 1)?)
@@ -156,20 +158,19 @@ impl Modulator {
 
     /// x_tilde: [N,J·Ce] windowed point encodings -> S: [N,K·F], the concatenated outputs
     /// `h_k = sin(γ_k ⊙ (M_k h_{k-1} + ν_k) + Φ_k)` of all modulated layers.
-    pub fn forward(&self, x_tilde: &Tensor, m: &Modulation) -> Result<Tensor> {
+    pub fn forward(&self, x_tilde: &Tensor, m: &Modulation, k: Numerics) -> Result<Tensor> {
         if let Some(o) = &m.head {
-            let head =
-                crate::compute::fused::FilmHead::new(o, self.layers.len(), self.gamma_affine());
-            let outs = head.stack(x_tilde, |k, h| self.layers[k].forward(h))?;
+            let n = self.layers.len();
+            let head = crate::compute::fused::FilmHead::new(o, n, self.gamma_affine(), k);
+            let outs = head.stack(x_tilde, |l, h| self.layers[l].forward(h, k))?;
             return Ok(Tensor::cat(&outs, 1)?);
         }
         let mut h = x_tilde.clone();
         let mut outs = Vec::with_capacity(self.layers.len());
-        for (k, layer) in self.layers.iter().enumerate() {
-            let pre = layer.forward(&h)?;
-            h = crate::compute::fast_sine::sin(
-                &(pre * self.gamma(&m.freq[k])?)?.add(&m.phase[k])?,
-            )?;
+        for (l, layer) in self.layers.iter().enumerate() {
+            let pre = layer.forward(&h, k)?;
+            let arg = (pre * self.gamma(&m.freq[l])?)?.add(&m.phase[l])?;
+            h = crate::compute::fast_sine::sin(&arg, k.fast_sine)?;
             outs.push(h.clone());
         }
         Ok(Tensor::cat(&outs, 1)?)

@@ -3,6 +3,7 @@
 
 use candle_core::{Tensor, D};
 
+use crate::compute::numerics::Numerics;
 use crate::error::Result;
 use crate::network::params::{Init, Params};
 
@@ -25,13 +26,14 @@ impl Linear {
     }
 
     /// x: [..., in] -> [..., out]
-    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+    pub fn forward(&self, x: &Tensor, k: Numerics) -> Result<Tensor> {
         let dims = x.dims().to_vec();
         let in_dim = *dims.last().unwrap_or(&0);
         let rows = x.elem_count() / in_dim.max(1);
         let y = crate::compute::fused::add_bias(
-            &x.reshape((rows, in_dim))?.matmul(&self.weight.t()?)?,
+            &crate::compute::numerics::matmul(&x.reshape((rows, in_dim))?, &self.weight.t()?, k)?,
             &self.bias,
+            k,
         )?;
         let mut out_dims = dims;
         *out_dims
@@ -64,12 +66,12 @@ impl SineLayer {
     }
 
     /// Pre-activation `W x + b`: x: [..., in] -> [..., out]
-    pub fn pre(&self, x: &Tensor) -> Result<Tensor> {
-        self.linear.forward(x)
+    pub fn pre(&self, x: &Tensor, k: Numerics) -> Result<Tensor> {
+        self.linear.forward(x, k)
     }
 
     /// x: [..., in] -> [..., out]
-    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+    pub fn forward(&self, x: &Tensor, k: Numerics) -> Result<Tensor> {
         // ω scales W and b ([out,in] work) rather than every output row: one pass over the
         // activations fewer, forward and backward. For ω a power of two (the reference's 8
         // and 16) the scaling is exact, so the result is bit-identical either way.
@@ -77,7 +79,7 @@ impl SineLayer {
             weight: (&self.linear.weight * self.w0)?,
             bias: (&self.linear.bias * self.w0)?,
         };
-        crate::compute::fast_sine::sin(&scaled.forward(x)?)
+        crate::compute::fast_sine::sin(&scaled.forward(x, k)?, k.fast_sine)
     }
 }
 

@@ -4,6 +4,7 @@
 
 use candle_core::{Tensor, D};
 
+use crate::compute::numerics::Numerics;
 use crate::error::Result;
 use crate::network::config::Config;
 use crate::network::nn::{Linear, SineLayer};
@@ -81,14 +82,14 @@ impl WinFun {
 
     /// Per-pose projection g = layer_pose(G): [P,J,C] -> [P,J,H]. Computed once per pose;
     /// it also is the feature that f^m aggregates.
-    pub fn project_pose(&self, g_feat: &Tensor) -> Result<Tensor> {
-        self.layer_pose.forward(g_feat)
+    pub fn project_pose(&self, g_feat: &Tensor, k: Numerics) -> Result<Tensor> {
+        self.layer_pose.forward(g_feat, k)
     }
 
     /// The points of P poses: g: [P,J,H] (each pose's projection), e: [N,J,Ce] pose-branch
     /// point encodings, w_p: [N,J] spatial window, with the N points grouped by pose in P
     /// equal blocks.
-    pub fn forward(&self, g: &Tensor, e: &Tensor, w_p: &Tensor) -> Result<Window> {
+    pub fn forward(&self, g: &Tensor, e: &Tensor, w_p: &Tensor, k: Numerics) -> Result<Window> {
         // layer_point's bias is added to the per-pose g ([P,J,H]) rather than to every point:
         // one pass over the [N,J,H] part features fewer, forward and backward (the bias
         // gradient is then a sum over P·J rows, not over N·J).
@@ -96,14 +97,16 @@ impl WinFun {
             crate::error::ModelError::Config("this variant has no feature window".into())
         })?;
         let (n, j, ce) = e.dims3()?;
-        let q = e
-            .reshape((n * j, ce))?
-            .matmul(&f.layer_point.weight.t()?)?
-            .reshape((n, j, ()))?;
+        let q = crate::compute::numerics::matmul(
+            &e.reshape((n * j, ce))?,
+            &f.layer_point.weight.t()?,
+            k,
+        )?
+        .reshape((n, j, ()))?;
         let g_b = g.broadcast_add(&f.layer_point.bias)?;
-        let pooled = crate::compute::fused::window_pool(&q, &g_b, w_p)?;
-        let h = f.sin1.forward(&f.sin0.forward(&pooled)?)?;
-        let logits = f.last.forward(&h)?;
+        let pooled = crate::compute::fused::window_pool(&q, &g_b, w_p, k)?;
+        let h = f.sin1.forward(&f.sin0.forward(&pooled, k)?, k)?;
+        let logits = f.last.forward(&h, k)?;
         let w_f = candle_nn::ops::sigmoid(&logits)?;
         let w = (w_p * &w_f)?;
         Ok(Window {

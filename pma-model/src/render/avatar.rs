@@ -73,6 +73,24 @@ impl Avatar {
         })
     }
 
+    /// The same avatar computing with `numerics` (kernels, sine, TF32) in every later pass.
+    pub fn with_numerics(self, numerics: crate::compute::numerics::Numerics) -> Self {
+        Self {
+            net: self.net.with_numerics(numerics),
+            ..self
+        }
+    }
+
+    /// Compute with `numerics` from the next pass on.
+    pub fn set_numerics(&mut self, numerics: crate::compute::numerics::Numerics) {
+        self.net.set_numerics(numerics);
+    }
+
+    /// How the avatar computes.
+    pub fn numerics(&self) -> crate::compute::numerics::Numerics {
+        self.net.numerics()
+    }
+
     /// The same avatar with `grid` as its occupancy grid (`None`: without one).
     pub fn with_occupancy(mut self, grid: Option<OccupancyGrid>) -> Self {
         self.occupancy = grid.map(Arc::new);
@@ -249,7 +267,7 @@ impl Avatar {
         let raw_fine = points.run(&self.net, pose, &fine.pts, &view, mode, "fine", tr)?;
         prof("fine network", self.device());
         // 5. Merge with the coarse outputs (reused, noise included) and render again.
-        let raw = merge_raw(&raw_coarse, &raw_fine, &fine.perm)?;
+        let raw = merge_raw(&raw_coarse, &raw_fine, &fine.perm, self.net.numerics())?;
         let render_fine = raw2outputs(&raw, &fine.z_all, &rays.dirs, rays.bgs.as_ref())?;
         prof("merge + fine render", self.device());
         let stats = PassStats {

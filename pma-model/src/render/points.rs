@@ -20,6 +20,7 @@ use std::sync::Arc;
 use candle_core::{DType, Tensor};
 
 use crate::compute::host::host_f32;
+use crate::compute::ops::select_rows;
 use crate::error::{ModelError, Result};
 use crate::network::occupancy::OccupancyGrid;
 use crate::network::trace::Trace;
@@ -255,6 +256,8 @@ pub(crate) struct CullCtx {
     consts: ConstRows,
     /// Points this route sent through the network (far-away constants included).
     evaluated: usize,
+    /// The network's numerics (its row gathers).
+    numerics: crate::compute::numerics::Numerics,
     /// Samples this route sent through the network.
     samples_evaluated: usize,
     /// Samples left out because their cells are empty.
@@ -334,6 +337,7 @@ impl CullCtx {
             fill: c.sample_fill,
             consts: ConstRows::default(),
             evaluated: 0,
+            numerics: net.numerics(),
             samples_evaluated: 0,
             skipped_empty: 0,
         })
@@ -498,8 +502,8 @@ impl CullCtx {
             Tensor::cat(&[pts_flat, far], 0)?
         };
         Ok(Plan {
-            pts: crate::compute::ops::select_rows(&source, &Tensor::from_vec(src, rows, dev)?)?,
-            view: crate::compute::ops::select_rows(view, &Tensor::from_vec(rays_of, rows, dev)?)?,
+            pts: select_rows(&source, &Tensor::from_vec(src, rows, dev)?, self.numerics)?,
+            view: select_rows(view, &Tensor::from_vec(rays_of, rows, dev)?, self.numerics)?,
             jobs,
         })
     }
@@ -611,8 +615,8 @@ impl CullCtx {
         let n = fates.len();
         let idx = Tensor::from_vec(idx, n, dev)?;
         // Row gathers whose backward (training with culling) is parallel on CUDA.
-        let rgb = crate::compute::ops::select_rows(&Tensor::cat(&rgb_rows, 0)?, &idx)?;
-        let sigma_raw = crate::compute::ops::select_rows(&Tensor::cat(&sigma_rows, 0)?, &idx)?;
+        let rgb = select_rows(&Tensor::cat(&rgb_rows, 0)?, &idx, self.numerics)?;
+        let sigma_raw = select_rows(&Tensor::cat(&sigma_rows, 0)?, &idx, self.numerics)?;
         Ok((rgb, sigma_raw, any_zero))
     }
 
@@ -766,6 +770,7 @@ mod tests {
             fill: SampleFill::Network,
             consts: ConstRows::default(),
             evaluated: 0,
+            numerics: Default::default(),
             samples_evaluated: 0,
             skipped_empty: 0,
         };

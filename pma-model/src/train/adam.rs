@@ -396,6 +396,19 @@ impl Adam {
         has: &[bool],
         apply: Option<&Tensor>,
     ) -> Result<(), TrainError> {
+        self.step_clipped(g, has, apply, None)
+    }
+
+    /// [`Self::step_masked`] of `g · coef` (`coef` an f32 scalar on the device: the
+    /// global-norm clip factor). On CUDA the whole update, clip and mask included, is one
+    /// kernel ([`crate::compute::cuda`], `adam.cu`, the same bits as the tensor ops).
+    pub fn step_clipped(
+        &mut self,
+        g: &Tensor,
+        has: &[bool],
+        apply: Option<&Tensor>,
+        coef: Option<&Tensor>,
+    ) -> Result<(), TrainError> {
         let n_slots = self.slots.len();
         if n_slots == 0 || !has.iter().any(|&h| h) {
             return Ok(());
@@ -426,6 +439,54 @@ impl Adam {
         let bias2_sqrt = tables.bias2_sqrt.index_select(&t_idx, 0)?;
         let lr: Vec<f64> = self.slots.iter().map(|s| self.groups[s.group].lr).collect();
         let step_size = Tensor::from_vec(lr, n_slots, &dev)?.div(&bias1)?;
+        #[cfg(feature = "cuda")]
+        if dev.is_cuda() {
+            let has_u8: Vec<u8> = has.iter().map(|&h| h as u8).collect();
+            let ok = match apply {
+                Some(a) => a.to_dtype(DType::U8)?.reshape(1)?,
+                None => Tensor::new(&[1u8], &dev)?,
+            };
+            let params: Vec<Tensor> = self
+                .slots
+                .iter()
+                .map(|s| s.var.as_tensor().detach().flatten_all())
+                .collect::<candle_core::Result<_>>()?;
+            let coef = coef
+                .map(|c| c.to_dtype(DType::F32)?.reshape(1))
+                .transpose()?;
+            let (p, m, v) = crate::compute::cuda::adam(
+                &g.detach().contiguous()?,
+                &Tensor::cat(&params, 0)?,
+                &self.exp_avg,
+                &self.exp_avg_sq,
+                &self.slot_of,
+                &step_size.to_dtype(DType::F32)?,
+                &bias2_sqrt.recip()?.to_dtype(DType::F32)?,
+                &Tensor::from_vec(has_u8, n_slots, &dev)?,
+                &ok,
+                coef.as_ref(),
+                crate::compute::cuda::AdamScalars {
+                    one_minus_b1: (1.0 - b1) as f32,
+                    b2: b2 as f32,
+                    one_minus_b2: (1.0 - b2) as f32,
+                    eps: eps as f32,
+                },
+            )?;
+            for slot in &self.slots {
+                slot.var.set(
+                    &p.narrow(0, slot.offset, slot.len)?
+                        .reshape(slot.var.shape())?,
+                )?;
+            }
+            self.exp_avg = m;
+            self.exp_avg_sq = v;
+            self.steps = t;
+            return Ok(());
+        }
+        let g = match coef {
+            Some(c) => g.broadcast_mul(c)?,
+            None => g.clone(),
+        };
         // Per element: the f32 factors a per-parameter update would multiply by.
         let per_elem = |v: Tensor| -> candle_core::Result<Tensor> {
             v.to_dtype(DType::F32)?.index_select(&self.slot_of, 0)

@@ -306,7 +306,7 @@ impl Trainer {
                 )));
             }
         }
-        let avatar = Avatar::load(&point.model, device)?;
+        let avatar = Avatar::load(&point.model, device)?.with_numerics(run.numerics);
         let mut trainer = Self::with_source(run, avatar, source)?;
         trainer.restore(state)?;
         Ok(trainer)

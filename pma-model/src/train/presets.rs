@@ -345,6 +345,10 @@ pub struct RunConfig {
     pub preset: Preset,
     pub model: Config,
     pub train: TrainConfig,
+    /// How the network computes (kernels, sine, TF32): a choice of this process, not saved
+    /// with the run, so a resumed run may change it.
+    #[serde(skip)]
+    pub numerics: crate::compute::numerics::Numerics,
 }
 
 impl RunConfig {
@@ -353,6 +357,7 @@ impl RunConfig {
             preset,
             model: preset.model(),
             train: preset.train(),
+            numerics: Default::default(),
         }
     }
 
@@ -398,6 +403,7 @@ impl RunConfig {
             preset,
             model,
             train,
+            numerics: Default::default(),
         };
         run.validate()?;
         Ok(run)

@@ -58,6 +58,9 @@ pub struct TrainRequest {
     pub chunk_rays: Option<usize>,
     /// Where the model trains.
     pub device: Device,
+    /// How the network computes (not part of the run's configuration: a resumed run may
+    /// change it).
+    pub numerics: crate::compute::numerics::Numerics,
 }
 
 /// What a training session did.
@@ -274,6 +277,7 @@ fn resolve_run(req: &TrainRequest, point: Option<&ResumePoint>) -> Result<RunCon
     if let Some(c) = req.chunk_rays {
         run.train.chunk_rays = c;
     }
+    run.numerics = req.numerics;
     run.validate()?;
     Ok(run)
 }

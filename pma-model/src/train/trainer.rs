@@ -179,17 +179,20 @@ impl Optimization {
         let (g, has) = self.adam.flatten(&grads)?;
         let norm = g.to_dtype(DType::F64)?.sqr()?.sum_all()?.sqrt()?;
         let ok = (finite(&loss.total)? * finite(&norm)?)?;
-        let g = if self.cfg.grad_clip > 0.0 {
+        let coef = if self.cfg.grad_clip > 0.0 {
             // torch's clip_grad_norm_: max_norm / (norm + 1e-6), applied below 1.
             let max = Tensor::full(self.cfg.grad_clip, (), norm.device())?;
             let coef = max.div(&norm.affine(1.0, 1e-6)?)?;
             let one = coef.ones_like()?;
-            let coef = coef.lt(&one)?.where_cond(&coef, &one)?;
-            g.broadcast_mul(&coef.to_dtype(DType::F32)?)?
+            Some(
+                coef.lt(&one)?
+                    .where_cond(&coef, &one)?
+                    .to_dtype(DType::F32)?,
+            )
         } else {
-            g
+            None
         };
-        self.adam.step_masked(&g, &has, Some(&ok))?;
+        self.adam.step_clipped(&g, &has, Some(&ok), coef.as_ref())?;
         let numbers = Tensor::cat(&[&loss.stacked()?, &norm.unsqueeze(0)?], 0)?;
         self.pending.push(Pending { iter, lrs, numbers });
         self.iter = iter;
@@ -456,7 +459,8 @@ impl Trainer {
             ))
         })?;
         let source = Self::dataset_source(&run, data, device)?;
-        let avatar = Avatar::new(run.model.clone(), &rest, run.train.seed, device)?;
+        let avatar = Avatar::new(run.model.clone(), &rest, run.train.seed, device)?
+            .with_numerics(run.numerics);
         Self::with_source(run, avatar, source)
     }
 

@@ -83,6 +83,11 @@ fn one_pass_step_syncs_and_ops() {
     let a = account_step(&mut trainer, &mut source, Route::Cuda).unwrap();
     check(&a, 1, 1_450);
     assert!(a.report.total.flops > 0 && a.report.total.param_uploads > 0);
+    // The window max-pool counts as its CUDA kernels (per network pass, coarse and fine:
+    // one launch forward, one per gradient), not as candle's broadcast add, product and max.
+    let launches = |op: &str| a.report.ops.get(op).map_or(0, |c| c.launches);
+    assert_eq!(launches("pma-window-pool"), 2, "{:?}", a.report.ops.keys());
+    assert_eq!(launches("pma-window-pool-grad"), 4);
     // The first step is every step: the next one launches and moves exactly as much.
     let b = account_step(&mut trainer, &mut source, Route::Cuda).unwrap();
     assert_eq!(a.report.total, b.report.total);

@@ -36,6 +36,9 @@ use pma_model::render::raycast::{merge_raw, merge_sorted, RayCaster};
 use pma_model::render::volume::raw2outputs;
 use pma_model::train::loss::{training_loss, LossWeights};
 
+/// The parity numerics (the default) for the layers called one by one.
+const K: pma_model::compute::numerics::Numerics = pma_model::compute::numerics::Numerics::PARITY;
+
 fn fixture_dir() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../fixtures/layers")
 }
@@ -548,7 +551,7 @@ fn forward_sampling_and_render_stages() {
         let perm: Vec<i64> = flat_f32(&fine.perm).iter().map(|&p| p as i64).collect();
         fx.check_exact(case, "out/raycast/sorted_idxs", &perm);
         let raw_all =
-            merge_raw(&raw0, &fx.get(case, "out/fine/raw"), &fine.perm).expect("merge_raw");
+            merge_raw(&raw0, &fx.get(case, "out/fine/raw"), &fine.perm, K).expect("merge_raw");
         fx.check_t(case, "out/render_fine/raw", &raw_all);
         let r1 = raw2outputs(&raw_all, &fine.z_all, &d, Some(&bgs)).expect("fine render");
         for (key, t) in [
@@ -730,8 +733,8 @@ fn point_encoders_match_torch() {
         let enc_point =
             PointEnc::new(vb.pp("pts_enc_point"), cfg.point_enc_dim, cfg.sin_w0_point).unwrap();
         let x_bar = input_var(&fx, case, "x_bar");
-        let e = enc_pose.forward(x_bar.as_tensor()).unwrap();
-        let z = enc_point.forward(x_bar.as_tensor()).unwrap();
+        let e = enc_pose.forward(x_bar.as_tensor(), K).unwrap();
+        let z = enc_point.forward(x_bar.as_tensor(), K).unwrap();
         fx.check_t(case, "out/pts_enc_pose", &e);
         fx.check_t(case, "out/pts_enc_point", &z);
         let loss = fx.loss(case, &[("pts_enc_pose", &e), ("pts_enc_point", &z)]);
@@ -772,10 +775,10 @@ fn window_matches_torch() {
         let g_feat = input_var(&fx, case, "gnn_feat");
         let e = input_var(&fx, case, "pts_enc_pose");
         let w_p = fx.input(case, "w_p");
-        let g = win.project_pose(g_feat.as_tensor()).unwrap();
+        let g = win.project_pose(g_feat.as_tensor(), K).unwrap();
         fx.check_t(case, "out/win_layer_pose", &g);
         // All poses in one call: each pose's g applies to its block of points.
-        let out = win.forward(&g, e.as_tensor(), &w_p).unwrap();
+        let out = win.forward(&g, e.as_tensor(), &w_p, K).unwrap();
         let (w, f_m) = (out.w.clone(), aggregate(&out.w, &g).unwrap());
         fx.check_t(case, "out/win_maxpool", &out.pooled);
         fx.check_t(case, "out/win_logits", &out.logits);
@@ -808,7 +811,7 @@ fn pose_extractor_matches_torch() {
         let pe = PoseExtractor::new(vb.pp("pose_extractor"), &cfg).unwrap();
         let modulator = Modulator::new(vb.pp("modulator"), &cfg).unwrap();
         let f_m = input_var(&fx, case, "f_m");
-        let m = pe.forward(f_m.as_tensor()).unwrap();
+        let m = pe.forward(f_m.as_tensor(), K).unwrap();
         let theta = Tensor::stack(&m.freq, 0).unwrap();
         let phi = Tensor::stack(&m.phase, 0).unwrap();
         fx.check_t(case, "out/theta", &theta);
@@ -859,7 +862,7 @@ fn modulator_matches_torch() {
             "out/gamma",
             &modulator.gamma(theta.as_tensor()).unwrap(),
         );
-        let s = modulator.forward(x_tilde.as_tensor(), &m).unwrap();
+        let s = modulator.forward(x_tilde.as_tensor(), &m, K).unwrap();
         fx.check_t(case, "out/S", &s);
         let loss = fx.loss(case, &[("S", &s)]);
         fx.check_t(case, "out/loss", &loss);
@@ -892,7 +895,7 @@ fn field_and_frame_codes_match_torch() {
         let codes = FrameCodes::new(vb.pp("framecodes"), &cfg).unwrap();
         let s = input_var(&fx, case, "S");
         let idx: Vec<i64> = fx.input(case, "frame_idx").to_vec1().unwrap();
-        let code = codes.lookup(&idx, training).unwrap();
+        let code = codes.lookup(&idx, training, K).unwrap();
         fx.check_t(case, "out/framecode", &code);
         let sh = spherical_harmonics(&fx.input(case, "view_dirs"), cfg.sh_degree).unwrap();
         fx.check_t(case, "out/sh", &sh);
@@ -900,6 +903,7 @@ fn field_and_frame_codes_match_torch() {
             .forward(
                 s.as_tensor(),
                 &Tensor::cat(&[&sh, &code], D::Minus1).unwrap(),
+                K,
             )
             .unwrap();
         let density = out.sigma_raw.relu().unwrap();

@@ -17,6 +17,7 @@ mod image_render;
 mod layers;
 mod lpips;
 mod mesh;
+mod numerics;
 mod occupancy;
 mod overfit_tiny;
 mod raycast_device;

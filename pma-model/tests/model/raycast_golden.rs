@@ -217,10 +217,15 @@ fn tensor_entry_points_match_host_code() {
     // merge_raw applied to the z values themselves must reproduce the merged list.
     let zc = g["raycast/z_vals_coarse"].unsqueeze(2).unwrap();
     let zf = fine.z.unsqueeze(2).unwrap();
-    let merged = pma_model::render::raycast::merge_raw(&zc, &zf, &fine.perm)
-        .unwrap()
-        .squeeze(2)
-        .unwrap();
+    let merged = pma_model::render::raycast::merge_raw(
+        &zc,
+        &zf,
+        &fine.perm,
+        pma_model::compute::numerics::Numerics::PARITY,
+    )
+    .unwrap()
+    .squeeze(2)
+    .unwrap();
     let merged: Vec<f32> = merged.flatten_all().unwrap().to_vec1().unwrap();
     let z_all: Vec<f32> = fine.z_all.flatten_all().unwrap().to_vec1().unwrap();
     assert_eq!(merged, z_all);

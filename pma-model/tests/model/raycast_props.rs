@@ -206,7 +206,13 @@ fn merge_raw_routes_gradients_to_both_passes() {
     let coarse = Var::from_tensor(&Tensor::new(&[[[1f32], [3.], [5.]]], &dev).unwrap()).unwrap();
     let fine = Var::from_tensor(&Tensor::new(&[[[2f32], [4.]]], &dev).unwrap()).unwrap();
     let perm = Tensor::new(&[[0u32, 3, 1, 4, 2]], &dev).unwrap();
-    let merged = merge_raw(coarse.as_tensor(), fine.as_tensor(), &perm).unwrap();
+    let merged = merge_raw(
+        coarse.as_tensor(),
+        fine.as_tensor(),
+        &perm,
+        pma_model::compute::numerics::Numerics::PARITY,
+    )
+    .unwrap();
     let values: Vec<f32> = merged.flatten_all().unwrap().to_vec1().unwrap();
     assert_eq!(values, vec![1., 2., 3., 4., 5.]);
     let weights = Tensor::new(&[[[10f32], [20.], [30.], [40.], [50.]]], &dev).unwrap();

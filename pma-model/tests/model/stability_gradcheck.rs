@@ -23,6 +23,9 @@ use pma_model::Config;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
+/// The parity numerics (the default) for the layers called one by one.
+const K: pma_model::compute::numerics::Numerics = pma_model::compute::numerics::Numerics::PARITY;
+
 const DEV: Device = Device::Cpu;
 
 struct Setup {
@@ -195,7 +198,7 @@ fn point_encoders_window_and_aggregation() {
         let x = Var::from_tensor(&rand_t(&mut s.rng, &[5, 24, 3], -span, span)).unwrap();
         let w = rand_t(&mut s.rng, &[5, 24, cfg.point_enc_dim], -1.0, 1.0);
         let loss = || {
-            (enc.forward(x.as_tensor()).unwrap() * &w)
+            (enc.forward(x.as_tensor(), K).unwrap() * &w)
                 .unwrap()
                 .sum_all()
                 .unwrap()
@@ -221,7 +224,7 @@ fn point_encoders_window_and_aggregation() {
     let w_p = rand_t(&mut s.rng, &[6, 24], 0.0, 1.0);
     let out_w = rand_t(&mut s.rng, &[6, cfg.win_hidden], -1.0, 1.0);
     let loss = || {
-        let w = win.forward(g.as_tensor(), e.as_tensor(), &w_p).unwrap();
+        let w = win.forward(g.as_tensor(), e.as_tensor(), &w_p, K).unwrap();
         let f_m = aggregate(&w.w, g.as_tensor()).unwrap();
         (f_m * &out_w).unwrap().sum_all().unwrap()
     };
@@ -251,7 +254,7 @@ fn pose_extractor_and_modulator_at_huge_frequencies() {
     let f_m = Var::from_tensor(&rand_t(&mut s.rng, &[4, cfg.win_hidden], -1.0, 1.0)).unwrap();
     let w = rand_t(&mut s.rng, &[4, 2 * cfg.n_pm * cfg.freq_dim], -1.0, 1.0);
     let loss = || {
-        let m = ext.forward(f_m.as_tensor()).unwrap();
+        let m = ext.forward(f_m.as_tensor(), K).unwrap();
         let all: Vec<Tensor> = m.freq.iter().chain(&m.phase).cloned().collect();
         (Tensor::cat(&all, 1).unwrap() * &w)
             .unwrap()
@@ -292,7 +295,7 @@ fn pose_extractor_and_modulator_at_huge_frequencies() {
                 phase: phase.clone(),
                 head: None,
             };
-            (modu.forward(&x, &m).unwrap() * &out_w)
+            (modu.forward(&x, &m, K).unwrap() * &out_w)
                 .unwrap()
                 .sum_all()
                 .unwrap()
@@ -321,7 +324,7 @@ fn field_view_encoding_and_compositing() {
     let view = rand_t(&mut s.rng, &[n, vdim], -1.0, 1.0);
     let w = rand_t(&mut s.rng, &[n, 4], -1.0, 1.0);
     let loss = || {
-        let o = field.forward(input.as_tensor(), &view).unwrap();
+        let o = field.forward(input.as_tensor(), &view, K).unwrap();
         (Tensor::cat(&[&o.rgb, &o.sigma_raw], 1).unwrap() * &w)
             .unwrap()
             .sum_all()

@@ -94,6 +94,7 @@ fn one_step_on_the_golden_batch_matches_the_reference() {
         preset: pma_model::train::Preset::Paper,
         model: cfg,
         train: TrainConfig::paper(),
+        numerics: Default::default(),
     };
     let batch = golden_batch(&golden);
     let mut trainer = Trainer::with_source(run, avatar, Box::new(FixedBatch(batch))).unwrap();

@@ -32,6 +32,7 @@ pub fn run(args: &Args, dev: &Device) -> anyhow::Result<()> {
     };
     let preset: Preset = args.preset.parse()?;
     let mut run = RunConfig::from_preset(preset);
+    run.numerics = super::super::numerics();
     run.train.rays_per_step = args.rays;
     run.train.chunk_rays = args.chunk_rays;
     if let Err(e) = run.train.validate() {

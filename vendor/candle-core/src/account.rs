@@ -13,9 +13,10 @@
 //! operation, every copy out of a tensor into host memory (`to_vec*`, `to_scalar`) and every
 //! tensor made from host data. That is how a run on the CPU shows what it would cost on a GPU.
 
+use std::any::Any;
 use std::cell::{Cell, RefCell};
 use std::sync::atomic::{AtomicUsize, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex, Weak};
 
 use crate::{DType, Layout, Shape};
 
@@ -28,6 +29,8 @@ thread_local! {
     static REPORTED: Cell<Option<(u32, u32)>> = const { Cell::new(None) };
     /// Inside [`host_only`]: CPU storage is host memory even for a `host_as_device` sink.
     static HOST_ONLY: Cell<bool> = const { Cell::new(false) };
+    /// Inside [`uncounted`]: nothing is counted.
+    static UNCOUNTED: Cell<bool> = const { Cell::new(false) };
 }
 
 /// One storage operation, as candle's CUDA backend would run it.
@@ -72,6 +75,7 @@ pub trait Observer: Send + Sync {
 pub struct Sink {
     observer: Arc<dyn Observer>,
     host_as_device: bool,
+    live: Arc<Mutex<Live>>,
 }
 
 impl Sink {
@@ -80,11 +84,62 @@ impl Sink {
         Self {
             observer,
             host_as_device,
+            live: Arc::default(),
         }
     }
 
     pub fn host_as_device(&self) -> bool {
         self.host_as_device
+    }
+
+    /// Bytes of the storages (and [`hold`]s) made while this sink counted that are alive now.
+    pub fn live_bytes(&self) -> u64 {
+        let mut live = self.live.lock().unwrap_or_else(|e| e.into_inner());
+        live.sweep();
+        live.bytes
+    }
+
+    /// The largest [`Self::live_bytes`] since the sink was made or [`Self::reset_peak`]; it
+    /// is taken at every allocation, where live bytes reach their maxima.
+    pub fn peak_live_bytes(&self) -> u64 {
+        self.live.lock().unwrap_or_else(|e| e.into_inner()).peak
+    }
+
+    /// Start a new peak from the bytes alive now.
+    pub fn reset_peak(&self) {
+        let mut live = self.live.lock().unwrap_or_else(|e| e.into_inner());
+        live.sweep();
+        live.peak = live.bytes;
+    }
+}
+
+/// The storages a sink has seen made, each with its bytes, while they live.
+#[derive(Default)]
+struct Live {
+    entries: Vec<(Weak<dyn Any + Send + Sync>, u64)>,
+    bytes: u64,
+    peak: u64,
+}
+
+impl Live {
+    /// Forget what has been dropped.
+    fn sweep(&mut self) {
+        let mut freed = 0;
+        self.entries.retain(|(w, b)| {
+            let alive = w.strong_count() > 0;
+            if !alive {
+                freed += b;
+            }
+            alive
+        });
+        self.bytes -= freed;
+    }
+
+    fn add(&mut self, what: Weak<dyn Any + Send + Sync>, bytes: u64) {
+        self.sweep();
+        self.entries.push((what, bytes));
+        self.bytes += bytes;
+        self.peak = self.peak.max(self.bytes);
     }
 }
 
@@ -148,6 +203,78 @@ pub fn report_launches(launches: u32, param_uploads: u32) {
     }
 }
 
+/// Run `f` without counting anything it does (ops, reads, uploads, allocations): for code
+/// that computes what a custom kernel would, whose cost is [`record`]ed instead.
+pub fn uncounted<T>(f: impl FnOnce() -> T) -> T {
+    if !on() {
+        return f();
+    }
+    let prev = UNCOUNTED.with(|u| u.replace(true));
+    let out = f();
+    UNCOUNTED.with(|u| u.set(prev));
+    out
+}
+
+/// Count `op` as if storage of the CPU (`cpu`) or of a device had run it (a kernel that pma
+/// computes another way on this device, see [`uncounted`]).
+pub fn record(cpu: bool, op: Op) {
+    if on() {
+        emit(cpu, || Event::Op(op));
+    }
+}
+
+/// Bytes held outside any storage while the guard lives (a custom op's state kept from its
+/// forward for its backward): they count as live memory like a storage's.
+#[must_use = "the bytes count as live while the guard lives"]
+pub struct Held(#[allow(dead_code)] Option<Arc<dyn Any + Send + Sync>>);
+
+/// Count `bytes` as live memory of this thread's sink (when it counts CPU storage, `cpu`,
+/// or the device's) until the returned guard drops.
+pub fn hold(cpu: bool, bytes: usize) -> Held {
+    if !on() {
+        return Held(None);
+    }
+    let token: Arc<dyn Any + Send + Sync> = Arc::new(());
+    let weak = Arc::downgrade(&token);
+    let mut kept = false;
+    with_counting_sink(cpu, |s| {
+        s.live
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .add(weak, bytes as u64);
+        kept = true;
+    });
+    Held(kept.then_some(token))
+}
+
+/// A new storage of `bytes` behind `storage` (every tensor constructor that allocates).
+#[inline]
+pub(crate) fn alloc<T: Any + Send + Sync>(cpu: bool, storage: &Arc<T>, bytes: usize) {
+    if on() {
+        let weak: Weak<T> = Arc::downgrade(storage);
+        with_counting_sink(cpu, |s| {
+            s.live
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .add(weak, bytes as u64)
+        });
+    }
+}
+
+/// Run `f` with this thread's sink if it counts storage of the CPU (`cpu`) or of a device.
+fn with_counting_sink(cpu: bool, f: impl FnOnce(&Sink)) {
+    if UNCOUNTED.with(Cell::get) {
+        return;
+    }
+    SINK.with_borrow(|s| {
+        if let Some(s) = s {
+            if !cpu || (s.host_as_device && !HOST_ONLY.with(Cell::get)) {
+                f(s)
+            }
+        }
+    })
+}
+
 /// Run `f`, host work on every device (a scalar operand's cast before its upload): its CPU
 /// storage operations are not counted even by a `host_as_device` sink.
 pub(crate) fn host_only<T>(f: impl FnOnce() -> T) -> T {
@@ -161,13 +288,7 @@ pub(crate) fn host_only<T>(f: impl FnOnce() -> T) -> T {
 }
 
 fn emit(cpu: bool, event: impl FnOnce() -> Event) {
-    SINK.with_borrow(|s| {
-        if let Some(s) = s {
-            if !cpu || (s.host_as_device && !HOST_ONLY.with(Cell::get)) {
-                s.observer.event(&event());
-            }
-        }
-    })
+    with_counting_sink(cpu, |s| s.observer.event(&event()))
 }
 
 /// Count an operation on storage of the CPU (`cpu`) or of a device.

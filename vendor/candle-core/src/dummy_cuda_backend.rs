@@ -315,3 +315,8 @@ pub fn gemm_reduced_precision_f32() -> bool {
 /// This bool controls whether reduced precision reductions (e.g., with tf32 accumulation type) are
 /// allowed with f32 GEMMs.
 pub fn set_gemm_reduced_precision_f32(_b: bool) {}
+
+/// Run `f` (there are no GEMMs to scope without CUDA; a pma change).
+pub fn with_gemm_reduced_precision_f32<T>(_on: bool, f: impl FnOnce() -> T) -> T {
+    f()
+}

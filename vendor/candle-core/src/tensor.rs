@@ -167,10 +167,17 @@ pub(crate) fn from_storage<S: Into<Shape>>(
 ) -> Tensor {
     let dtype = storage.dtype();
     let device = storage.device();
+    let layout = Layout::contiguous(shape);
+    let storage = Arc::new(RwLock::new(storage));
+    crate::account::alloc(
+        device.is_cpu(),
+        &storage,
+        layout.shape().elem_count() * dtype.size_in_bytes(),
+    );
     let tensor_ = Tensor_ {
         id: TensorId::new(),
-        storage: Arc::new(RwLock::new(storage)),
-        layout: Layout::contiguous(shape),
+        storage,
+        layout,
         op,
         is_variable,
         dtype,
@@ -2373,9 +2380,15 @@ impl Tensor {
     /// memory.
     pub fn copy(&self) -> Result<Tensor> {
         let op = BackpropOp::new1(self, Op::Copy);
+        let storage = Arc::new(RwLock::new(self.storage().try_clone(self.layout())?));
+        crate::account::alloc(
+            self.device.is_cpu(),
+            &storage,
+            crate::account::tensor_bytes(self.layout(), self.dtype),
+        );
         let tensor_ = Tensor_ {
             id: TensorId::new(),
-            storage: Arc::new(RwLock::new(self.storage().try_clone(self.layout())?)),
+            storage,
             layout: self.layout.clone(),
             op,
             is_variable: false,
@@ -2441,9 +2454,15 @@ impl Tensor {
                 }
             };
             let op = BackpropOp::new1(self, Op::ToDevice);
+            let storage = Arc::new(RwLock::new(storage));
+            crate::account::alloc(
+                device.is_cpu(),
+                &storage,
+                crate::account::tensor_bytes(self.layout(), self.dtype),
+            );
             let tensor_ = Tensor_ {
                 id: TensorId::new(),
-                storage: Arc::new(RwLock::new(storage)),
+                storage,
                 layout: self.layout.clone(),
                 op,
                 is_variable: false,

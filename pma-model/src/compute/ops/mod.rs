@@ -12,65 +12,54 @@
 //! (rows in index order, each accumulated from zero), so forward values and gradients are
 //! bit-identical to the plain ops (`tests` below). On CUDA, rows that share an index (all
 //! rays of an image share its frame code) are summed in no fixed order: the gradient can
-//! differ from run to run by float rounding. Other dtypes and devices take the plain ops.
+//! differ from run to run by float rounding, unless [`Numerics::deterministic`] asks for
+//! the ordered kernel. Other dtypes and devices take the plain ops.
 //!
 //! The kernels (`kernels/rows.cu`) are compiled at run time with NVRTC, once per process;
 //! `scripts/check-cuda-kernels.sh` compiles them with nvcc ahead of time.
 
-use std::sync::atomic::{AtomicBool, Ordering};
-
 use candle_core::backend::BackendStorage;
 use candle_core::{CpuStorage, CustomOp2, DType, Layout, Shape, Tensor};
 
+use crate::compute::numerics::Numerics;
 use crate::error::{ModelError, Result};
 
 /// CUDA source of the row kernels (NVRTC at run time, nvcc in `scripts/check-cuda-kernels.sh`).
 pub const ROWS_CU: &str = include_str!("kernels/rows.cu");
 
-static ENABLED: AtomicBool = AtomicBool::new(true);
-
-/// Turns the custom row op on (the default) or off (candle's `index_select`/`gather`), for
-/// A/B measurements.
-pub fn set_enabled(on: bool) {
-    ENABLED.store(on, Ordering::Relaxed);
-}
-
-/// Whether the custom row op is in use.
-pub fn enabled() -> bool {
-    ENABLED.load(Ordering::Relaxed)
-}
-
-fn applies(x: &Tensor) -> bool {
-    enabled() && x.dtype() == DType::F32 && (x.device().is_cpu() || x.device().is_cuda())
+fn applies(k: Numerics, x: &Tensor) -> bool {
+    k.row_ops && x.dtype() == DType::F32 && (x.device().is_cpu() || x.device().is_cuda())
 }
 
 /// `x.index_select(ids, 0)`: x [N,C], ids [M] (u32) -> [M,C].
-pub fn select_rows(x: &Tensor, ids: &Tensor) -> Result<Tensor> {
+pub fn select_rows(x: &Tensor, ids: &Tensor, k: Numerics) -> Result<Tensor> {
     let (n, c) = x.dims2()?;
     let m = ids.dims1()?;
-    if !applies(x) {
+    if !applies(k, x) {
         return Ok(x.index_select(&ids.to_dtype(DType::U32)?, 0)?);
     }
-    let out = gather_rows(&x.reshape((1, n, c))?, &ids.reshape((1, m))?)?;
+    let out = gather_rows(&x.reshape((1, n, c))?, &ids.reshape((1, m))?, k)?;
     Ok(out.reshape((m, c))?)
 }
 
 /// Rows of x picked along dim 1, the same index for every column: x [B,N,C], ids [B,M]
 /// (u32, < N) -> out [B,M,C] with `out[b,m,:] = x[b, ids[b,m], :]` (candle's
 /// `x.gather(ids broadcast to [B,M,C], 1)`).
-pub fn gather_rows(x: &Tensor, ids: &Tensor) -> Result<Tensor> {
+pub fn gather_rows(x: &Tensor, ids: &Tensor, k: Numerics) -> Result<Tensor> {
     let (b, _n, c) = x.dims3()?;
     let (bi, m) = ids.dims2()?;
     if bi != b {
         return Err(ModelError::shape("row ids", format!("[{b},M]"), ids.dims()));
     }
     let ids = ids.to_dtype(DType::U32)?;
-    if !applies(x) {
+    if !applies(k, x) {
         let idx = ids.unsqueeze(2)?.broadcast_as((b, m, c))?.contiguous()?;
         return Ok(x.gather(&idx, 1)?);
     }
-    Ok(x.contiguous()?
-        .apply_op2(&ids.detach().contiguous()?, GatherRows)?)
+    let op = GatherRows {
+        deterministic: k.deterministic,
+    };
+    Ok(x.contiguous()?.apply_op2(&ids.detach().contiguous()?, op)?)
 }
 
 /// A value a custom op's forward leaves for its backward (cos of a sine's argument, a
@@ -144,7 +133,10 @@ fn dims_bmc(l_vals: &Layout, l_ids: &Layout, what: &str) -> candle_core::Result<
 }
 
 /// Forward: x [B,N,C], ids [B,M] -> [B,M,C].
-struct GatherRows;
+struct GatherRows {
+    /// Sum the backward's rows in index order, without atomics ([`Numerics::deterministic`]).
+    deterministic: bool,
+}
 
 impl CustomOp2 for GatherRows {
     fn name(&self) -> &'static str {
@@ -191,6 +183,7 @@ impl CustomOp2 for GatherRows {
             l2,
             [b, n, m, c],
             b * m * c,
+            b * m * c,
         )?;
         Ok((out, Shape::from((b, m, c))))
     }
@@ -203,9 +196,13 @@ impl CustomOp2 for GatherRows {
         grad: &Tensor,
     ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>)> {
         let n = x.dim(1)?;
-        let gx = grad
-            .contiguous()?
-            .apply_op2_no_bwd(ids, &ScatterAddRows { n })?;
+        let gx = grad.contiguous()?.apply_op2_no_bwd(
+            ids,
+            &ScatterAddRows {
+                n,
+                deterministic: self.deterministic,
+            },
+        )?;
         Ok((Some(gx), None))
     }
 }
@@ -213,6 +210,9 @@ impl CustomOp2 for GatherRows {
 /// Backward: grad [B,M,C], ids [B,M] -> grad_x [B,N,C], rows summed from zero.
 struct ScatterAddRows {
     n: usize,
+    /// The CUDA kernel sums in index order (the CPU always does).
+    #[cfg_attr(not(feature = "cuda"), allow(dead_code))]
+    deterministic: bool,
 }
 
 impl CustomOp2 for ScatterAddRows {
@@ -257,15 +257,13 @@ impl CustomOp2 for ScatterAddRows {
     ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
         let [b, m, _, c] = dims_bmc(l1, l2, "scatter-add rows")?;
         let n = self.n;
-        let out = cuda::launch(
-            "pma_scatter_add_rows_f32",
-            s1,
-            l1,
-            s2,
-            l2,
-            [b, n, m, c],
-            b * n * c,
-        )?;
+        // Ordered: a thread per element of the output; atomics: one per element of grad.
+        let (kernel, threads) = if self.deterministic {
+            ("pma_scatter_add_rows_ordered_f32", b * n * c)
+        } else {
+            ("pma_scatter_add_rows_f32", b * m * c)
+        };
+        let out = cuda::launch(kernel, s1, l1, s2, l2, [b, n, m, c], threads, b * n * c)?;
         Ok((out, Shape::from((b, n, c))))
     }
 }
@@ -292,7 +290,8 @@ mod cuda {
     }
 
     /// Run `kernel` (one of rows.cu's, same argument list) with values s1 and ids s2 into a
-    /// zeroed f32 buffer of `out_len` elements; one thread per element of [B,M,C].
+    /// zeroed f32 buffer of `out_len` elements, over `threads` elements (grid-stride).
+    #[allow(clippy::too_many_arguments)]
     pub(super) fn launch(
         kernel: &str,
         s1: &CudaStorage,
@@ -300,11 +299,11 @@ mod cuda {
         s2: &CudaStorage,
         l2: &Layout,
         [b, n, m, c]: [usize; 4],
+        threads: usize,
         out_len: usize,
     ) -> candle_core::Result<CudaStorage> {
         super::report_cuda_launches();
         let dev = s1.device().clone();
-        let threads = b * m * c;
         let to_u32 = |v: usize, what: &str| {
             u32::try_from(v).map_err(|_| {
                 candle_core::Error::Msg(format!("{kernel}: {what} {v} exceeds the kernel's u32"))
@@ -335,7 +334,7 @@ mod cuda {
                 builder.arg(d);
             }
             // SAFETY: the argument list matches rows.cu's kernels; every index is bounds-checked
-            // inside the kernel and the grid-stride loop covers B·M·C elements.
+            // inside the kernel and the grid-stride loop covers `threads` elements.
             unsafe { builder.launch(cfg) }.w()?;
         }
         Ok(CudaStorage::wrap_cuda_slice(out, dev))
@@ -385,7 +384,7 @@ mod tests {
         let up = Tensor::from_vec(values(m * c, 2), (m, c), &dev).unwrap();
 
         let plain = x.as_tensor().index_select(&ids, 0).unwrap();
-        let ours = select_rows(x.as_tensor(), &ids).unwrap();
+        let ours = select_rows(x.as_tensor(), &ids, Numerics::PARITY).unwrap();
         assert_eq!(bits(&ours), bits(&plain));
         let (a, b) = (grad_of(&ours, &up, &x), grad_of(&plain, &up, &x));
         assert_eq!(bits(&a), bits(&b));
@@ -412,7 +411,7 @@ mod tests {
 
         let idx = ids.unsqueeze(2).unwrap().broadcast_as((b, n, c)).unwrap();
         let plain = x.as_tensor().gather(&idx.contiguous().unwrap(), 1).unwrap();
-        let ours = gather_rows(x.as_tensor(), &ids).unwrap();
+        let ours = gather_rows(x.as_tensor(), &ids, Numerics::PARITY).unwrap();
         assert_eq!(bits(&ours), bits(&plain));
         assert_eq!(
             bits(&grad_of(&ours, &up, &x)),
@@ -424,10 +423,17 @@ mod tests {
     fn bad_index_is_an_error() {
         let x = Tensor::zeros((3, 2), DType::F32, &Device::Cpu).unwrap();
         let ids = Tensor::new(&[0u32, 3], &Device::Cpu).unwrap();
-        let e = select_rows(&x, &ids).unwrap_err().to_string();
+        let e = select_rows(&x, &ids, Numerics::PARITY)
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("index 3 out of range for 3 rows"), "{e}");
         let ids = Tensor::new(&[[0u32, 1]], &Device::Cpu).unwrap();
-        assert!(gather_rows(&x.reshape((1, 3, 2)).unwrap(), &ids.repeat((2, 1)).unwrap()).is_err());
+        assert!(gather_rows(
+            &x.reshape((1, 3, 2)).unwrap(),
+            &ids.repeat((2, 1)).unwrap(),
+            Numerics::PARITY
+        )
+        .is_err());
     }
 
     /// CUDA against the CPU (skipped without a GPU): values identical, gradients equal up to
@@ -443,7 +449,7 @@ mod tests {
             let ids: Vec<u32> = (0..b * m).map(|i| ((i * 7 + i / 5) % n) as u32).collect();
             let ids = Tensor::from_vec(ids, (b, m), dev).unwrap();
             let up = Tensor::from_vec(values(b * m * c, 6), (b, m, c), dev).unwrap();
-            let y = gather_rows(x.as_tensor(), &ids).unwrap();
+            let y = gather_rows(x.as_tensor(), &ids, Numerics::PARITY).unwrap();
             let gx = grad_of(&y, &up, &x).to_device(&Device::Cpu).unwrap();
             (y.to_device(&Device::Cpu).unwrap(), gx)
         };

@@ -597,7 +597,12 @@ pub fn merge_sorted(
 
 /// Reorder network outputs with the merge permutation (a gather, so gradients reach both
 /// inputs): raw_coarse: [R,Sc,C], raw_fine: [R,Sf,C], perm: [R,Sc+Sf] u32 -> [R,Sc+Sf,C].
-pub fn merge_raw(raw_coarse: &Tensor, raw_fine: &Tensor, perm: &Tensor) -> Result<Tensor> {
+pub fn merge_raw(
+    raw_coarse: &Tensor,
+    raw_fine: &Tensor,
+    perm: &Tensor,
+    k: crate::compute::numerics::Numerics,
+) -> Result<Tensor> {
     let (r, sc, c) = raw_coarse.dims3()?;
     let (rf, sf, cf) = raw_fine.dims3()?;
     if (rf, cf) != (r, c) {
@@ -613,7 +618,7 @@ pub fn merge_raw(raw_coarse: &Tensor, raw_fine: &Tensor, perm: &Tensor) -> Resul
     let cat = Tensor::cat(&[raw_coarse, raw_fine], 1)?;
     // candle's gather backward (scatter_add) loops over the samples serially on CUDA; the
     // row op's does not, and is bit-identical on the CPU.
-    crate::compute::ops::gather_rows(&cat, perm)
+    crate::compute::ops::gather_rows(&cat, perm, k)
 }
 
 /// `torch.linspace(0, 1, n)` in float32: the step is rounded once and the second half is

@@ -2547,10 +2547,29 @@ static MM_BF16_REDUCED_PRECISION: std::sync::atomic::AtomicBool =
 static MM_F32_REDUCED_PRECISION: std::sync::atomic::AtomicBool =
     std::sync::atomic::AtomicBool::new(false);
 
+thread_local! {
+    /// The calling thread's choice inside [`with_gemm_reduced_precision_f32`] (a pma change).
+    static MM_F32_REDUCED_PRECISION_SCOPE: std::cell::Cell<Option<bool>> =
+        const { std::cell::Cell::new(None) };
+}
+
 /// This bool controls whether reduced precision reductions (e.g., with tf32 accumulation type) are
-/// allowed with f32 GEMMs.
+/// allowed with f32 GEMMs: the calling thread's scoped choice
+/// ([`with_gemm_reduced_precision_f32`]) if it made one, else the process-wide setting.
 pub fn gemm_reduced_precision_f32() -> bool {
-    MM_F32_REDUCED_PRECISION.load(std::sync::atomic::Ordering::Relaxed)
+    MM_F32_REDUCED_PRECISION_SCOPE
+        .with(|c| c.get())
+        .unwrap_or_else(|| MM_F32_REDUCED_PRECISION.load(std::sync::atomic::Ordering::Relaxed))
+}
+
+/// Run `f` with reduced precision f32 GEMMs allowed (`on`) or not for the GEMMs this thread
+/// launches inside it, whatever the process-wide setting (a pma change: TF32 for some
+/// products only).
+pub fn with_gemm_reduced_precision_f32<T>(on: bool, f: impl FnOnce() -> T) -> T {
+    let prev = MM_F32_REDUCED_PRECISION_SCOPE.with(|c| c.replace(Some(on)));
+    let out = f();
+    MM_F32_REDUCED_PRECISION_SCOPE.with(|c| c.set(prev));
+    out
 }
 
 /// This bool controls whether reduced precision reductions (e.g., with tf32 accumulation type) are

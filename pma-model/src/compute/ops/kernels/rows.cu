@@ -41,3 +41,27 @@ extern "C" __global__ void pma_scatter_add_rows_f32(
         }
     }
 }
+
+// The same sum in a fixed order (Numerics::deterministic): one thread per element of
+// grad_x [B,N,C] scans ids[b, 0..M] and adds the matching rows in index order from +0, as
+// the CPU does. No atomics, so a run repeats bit for bit; costs M index reads per element.
+extern "C" __global__ void pma_scatter_add_rows_ordered_f32(
+    const float *grad, const unsigned int *ids, float *grad_x,
+    unsigned int b_size, unsigned int n, unsigned int m, unsigned int c)
+{
+    const unsigned long long total = (unsigned long long)b_size * n * c;
+    for (unsigned long long i = (unsigned long long)blockIdx.x * blockDim.x + threadIdx.x;
+         i < total; i += (unsigned long long)blockDim.x * gridDim.x) {
+        const unsigned long long row = i / c;  // b * n + idx
+        const unsigned int col = (unsigned int)(i % c);
+        const unsigned long long b = row / n;
+        const unsigned int idx = (unsigned int)(row % n);
+        float acc = 0.0f;
+        for (unsigned int j = 0; j < m; ++j) {
+            if (ids[b * m + j] == idx) {
+                acc += grad[(b * m + j) * c + col];
+            }
+        }
+        grad_x[i] = acc;
+    }
+}

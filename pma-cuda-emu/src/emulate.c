@@ -1,0 +1,95 @@
+/* pma-model's CUDA kernels as host C: the qualifiers are defined away, the grid variables
+ * are globals, and each pma_emu_* entry point runs its kernel once per (block, thread) of
+ * the grid it is given, sequentially (the kernels use no shared memory, no barriers and no
+ * atomics, so this is every interleaving's result). */
+#include <math.h>
+#include <stdbool.h>
+
+typedef struct {
+    unsigned int x, y, z;
+} pma_dim3;
+
+static pma_dim3 blockIdx, threadIdx, blockDim, gridDim;
+
+#define PMA_KERNEL static
+static inline float __fmul_rn(float a, float b) { return a * b; }
+static inline float __fadd_rn(float a, float b) { return a + b; }
+static inline float __fsub_rn(float a, float b) { return a - b; }
+static inline float __fdiv_rn(float a, float b) { return a / b; }
+static inline float __fsqrt_rn(float a) { return sqrtf(a); }
+
+#include "adam.cu"
+#include "film_sine.cu"
+#include "window_pool.cu"
+
+#define PMA_GRID(blocks, threads, call)                                 \
+    do {                                                                \
+        gridDim.x = (blocks);                                           \
+        blockDim.x = (threads);                                         \
+        gridDim.y = gridDim.z = blockDim.y = blockDim.z = 1;            \
+        for (unsigned int b_ = 0; b_ < (blocks); ++b_) {                \
+            for (unsigned int t_ = 0; t_ < (threads); ++t_) {           \
+                blockIdx.x = b_;                                        \
+                threadIdx.x = t_;                                       \
+                call;                                                   \
+            }                                                           \
+        }                                                               \
+    } while (0)
+
+void pma_emu_window_pool_f32(const float *q, const float *g, const float *w, float *out,
+                             unsigned int *arg, unsigned int n, unsigned int j,
+                             unsigned int h, unsigned int per_pose, unsigned int blocks,
+                             unsigned int threads)
+{
+    PMA_GRID(blocks, threads, pma_window_pool_f32(q, g, w, out, arg, n, j, h, per_pose));
+}
+
+void pma_emu_window_pool_grad_q_f32(const float *grad, const float *w,
+                                    const unsigned int *arg, float *grad_q, unsigned int n,
+                                    unsigned int j, unsigned int h, unsigned int blocks,
+                                    unsigned int threads)
+{
+    PMA_GRID(blocks, threads, pma_window_pool_grad_q_f32(grad, w, arg, grad_q, n, j, h));
+}
+
+void pma_emu_window_pool_grad_g_f32(const float *grad, const float *w,
+                                    const unsigned int *arg, float *grad_g, unsigned int p,
+                                    unsigned int j, unsigned int h, unsigned int per_pose,
+                                    unsigned int blocks, unsigned int threads)
+{
+    PMA_GRID(blocks, threads,
+             pma_window_pool_grad_g_f32(grad, w, arg, grad_g, p, j, h, per_pose));
+}
+
+void pma_emu_film_sine_f32(const float *pre, const float *o, float *out, float *cos_out,
+                           unsigned int n, unsigned int f, unsigned int k,
+                           unsigned int n_layers, float mul, float add, int keep_cos,
+                           unsigned int blocks, unsigned int threads)
+{
+    PMA_GRID(blocks, threads,
+             pma_film_sine_f32(pre, o, out, cos_out, n, f, k, n_layers, mul, add, keep_cos));
+}
+
+void pma_emu_film_sine_grad_f32(const float *grad, const float *pre, const float *o,
+                                const float *cos_in, float *g_pre, float *g_o, unsigned int n,
+                                unsigned int f, unsigned int k, unsigned int n_layers,
+                                float mul, float add, int have_cos, unsigned int blocks,
+                                unsigned int threads)
+{
+    PMA_GRID(blocks, threads,
+             pma_film_sine_grad_f32(grad, pre, o, cos_in, g_pre, g_o, n, f, k, n_layers, mul,
+                                    add, have_cos));
+}
+
+void pma_emu_adam_f32(const float *g, const float *p_old, const float *m_old,
+                      const float *v_old, float *p, float *m, float *v,
+                      const unsigned int *slot_of, const float *step_size,
+                      const float *inv_bias2, const unsigned char *has,
+                      const unsigned char *ok, const float *coef, int clip, unsigned int n,
+                      float one_minus_b1, float b2, float one_minus_b2, float eps,
+                      unsigned int blocks, unsigned int threads)
+{
+    PMA_GRID(blocks, threads,
+             pma_adam_f32(g, p_old, m_old, v_old, p, m, v, slot_of, step_size, inv_bias2, has,
+                          ok, coef, clip, n, one_minus_b1, b2, one_minus_b2, eps));
+}
