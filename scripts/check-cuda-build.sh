@@ -6,6 +6,9 @@
 #
 #   target-cuda/gpu-check/pma            the CUDA build of the CLI (stripped)
 #   target-cuda/gpu-check/model-tests    the golden/gradient tests (PMA_TEST_DEVICE=cuda)
+#   target-cuda/gpu-kit.tar.xz           both, plus (with OFFICIAL=DIR) the official code and
+#                                        the wheels it needs beyond the GPU image's packages:
+#                                        what a GPU session carries (its limit is 64 MiB)
 #
 # Steps: the nvcc toolchain from NVIDIA's wheels (scripts/cuda-toolchain-from-wheels.sh,
 # skipped when DIR/env.sh exists), nvcc on pma's own kernels (scripts/check-cuda-kernels.sh),
@@ -44,4 +47,25 @@ mkdir -p "$kit"
 strip -o "$kit/pma" "$CARGO_TARGET_DIR/release/pma"
 strip -o "$kit/model-tests" "$bin"
 ls -la "$kit"
-echo "== ok: scripts/gpu-check.sh finds $kit/pma and $kit/model-tests (run it from the repo root)"
+
+echo "== kit (xz)"
+stage=$(mktemp -d)
+trap 'rm -rf "$stage"' EXIT
+cp "$kit/pma" "$kit/model-tests" "$stage/"
+if [ -n "${OFFICIAL:-}" ]; then
+  # The official code without its history, and hydra/omegaconf (pure Python; the GPU image
+  # has torch, numpy, safetensors and pyyaml but not these).
+  mkdir -p "$stage/official" "$stage/wheels"
+  tar -C "$OFFICIAL" --exclude=.git -cf - . | tar -C "$stage/official" -xf -
+  t python3 -m pip wheel -q --no-deps -w "$stage/wheels" \
+    hydra-core==1.3.2 omegaconf==2.3.0 antlr4-python3-runtime==4.9.3
+fi
+t sh -c "tar -C '$stage' -cf - . | xz -9e -T0 > '$CARGO_TARGET_DIR/gpu-kit.tar.xz.tmp'"
+mv "$CARGO_TARGET_DIR/gpu-kit.tar.xz.tmp" "$CARGO_TARGET_DIR/gpu-kit.tar.xz"
+bytes=$(stat -c %s "$CARGO_TARGET_DIR/gpu-kit.tar.xz")
+echo "kit: $CARGO_TARGET_DIR/gpu-kit.tar.xz, $bytes bytes ($(( bytes / 1048576 )) MiB; unpacked $(du -sm "$stage" | cut -f1) MiB)"
+if [ "$bytes" -gt $(( 64 * 1048576 )) ]; then
+  echo "check-cuda-build: the kit is over the 64 MiB a GPU session can carry" >&2
+  exit 1
+fi
+echo "== ok: carry target-cuda/gpu-kit.tar.xz; scripts/gpu-check.sh unpacks it (run it from the repo root)"

@@ -25,9 +25,12 @@ mkdir -p "$DIR/wheels"
 PIP_PLAT="--no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
   --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64"
 # Versions that go together for CUDA 13.0 (runtime 13.0.96 is the newest 13.0 patch).
+# Exit 3 when the wheels cannot be fetched (no network or no pip), so that a caller can tell
+# "no toolchain here" apart from a broken build.
 python3 -m pip download -q $PIP_PLAT -d "$DIR/wheels" \
   nvidia-cuda-nvcc==13.0.88 nvidia-cuda-crt==13.0.88 nvidia-nvvm==13.0.88 \
-  nvidia-cuda-runtime==13.0.96 nvidia-cuda-cccl==13.0.85
+  nvidia-cuda-runtime==13.0.96 nvidia-cuda-cccl==13.0.85 \
+  || { echo "cuda-toolchain-from-wheels: could not download NVIDIA's toolchain wheels" >&2; exit 3; }
 tmp=$(mktemp -d)
 for w in "$DIR"/wheels/*.whl; do unzip -q -o "$w" -d "$tmp"; done
 cp -a "$tmp"/nvidia/cu13/. "$DIR"/

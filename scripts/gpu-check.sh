@@ -1,8 +1,9 @@
 #!/bin/bash
 # One run on a CUDA machine (H100/H200, PyTorch installed, no network) that prints what pma's
 # GPU work needs measured (docs/gpu.md). Builds nothing: the binaries come from a build
-# machine: scripts/check-cuda-build.sh leaves them in target-cuda/gpu-check/, which a GPU
-# session carries over (an ignored path).
+# machine: scripts/check-cuda-build.sh leaves them packed in target-cuda/gpu-kit.tar.xz, which
+# a GPU session carries over (an ignored path) and this script unpacks into
+# target-cuda/gpu-check/ (the binaries; official/ and wheels/ when the kit has them).
 #
 #   scripts/gpu-check.sh                       # everything, ~8–9 minutes
 #
@@ -11,6 +12,7 @@
 #   PMA_TESTBIN  CUDA build of pma-model's `model` test binary: golden forward + gradient
 #                parity on CUDA (default target-cuda/gpu-check/model-tests; skipped if absent)
 #   OFFICIAL     official PM-Avatars checkout: its training it/s via bench/official/run_official.py
+#                (default: the kit's copy, target-cuda/gpu-check/official, when there is one)
 #   OUT          output directory                       (default runs/gpu-check)
 #   MINUTES      wall-clock minutes per timed training run (default 0.75)
 #   PYTHON       python with PyTorch                    (default python3)
@@ -19,6 +21,18 @@
 # nvidia-smi sampled every 200 ms while it runs.
 set -uo pipefail
 cd "$(dirname "$0")/.."
+KIT=target-cuda/gpu-check
+if [ -f target-cuda/gpu-kit.tar.xz ] && [ ! -x "$KIT/pma" ]; then
+  mkdir -p "$KIT" && tar -C "$KIT" -xJf target-cuda/gpu-kit.tar.xz \
+    || { echo "gpu-check: could not unpack target-cuda/gpu-kit.tar.xz" >&2; exit 1; }
+fi
+if [ -d "$KIT/wheels" ] && [ -n "$(ls "$KIT"/wheels/*.whl 2>/dev/null)" ]; then
+  # The official code's Python packages that the GPU image lacks (no registry there).
+  "${PYTHON:-python3}" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir \
+    --upgrade --target /tmp/pma-site "$KIT"/wheels/*.whl \
+    && export PYTHONPATH=/tmp/pma-site${PYTHONPATH:+:$PYTHONPATH}
+fi
+[ -z "${OFFICIAL:-}" ] && [ -d "$KIT/official" ] && OFFICIAL=$PWD/$KIT/official
 PMA_BIN=${PMA_BIN:-target-cuda/gpu-check/pma}
 PMA_TESTBIN=${PMA_TESTBIN:-target-cuda/gpu-check/model-tests}
 OFFICIAL=${OFFICIAL:-}
