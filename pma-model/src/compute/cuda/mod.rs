@@ -38,8 +38,9 @@ mod launch {
     use candle_core::cuda_backend::{CudaDevice, WrapErr};
     use candle_core::{CpuStorage, CudaStorage, CustomOp1, Layout, Result, Shape, Storage, Tensor};
 
-    /// PTX of `src`, compiled once per process into `cell` (`file` names it in errors).
-    fn ptx(
+    /// PTX of `src`, compiled once per process into `cell` (`file`, the source's path in
+    /// pma-model/src, names it in errors). Every NVRTC kernel of pma goes through here.
+    pub(crate) fn ptx(
         cell: &'static OnceLock<std::result::Result<String, String>>,
         src: &str,
         file: &str,
@@ -47,7 +48,7 @@ mod launch {
         cell.get_or_init(|| {
             candle_core::cuda_backend::cudarc::nvrtc::compile_ptx(src)
                 .map(|p| p.to_src())
-                .map_err(|e| format!("compiling pma-model/src/compute/cuda/kernels/{file}: {e}"))
+                .map_err(|e| format!("compiling pma-model/src/{file}: {e}"))
         })
         .as_deref()
         .map_err(|e| candle_core::Error::Msg(e.clone()))
@@ -55,17 +56,25 @@ mod launch {
 
     fn window_pool_ptx() -> Result<&'static str> {
         static PTX: OnceLock<std::result::Result<String, String>> = OnceLock::new();
-        ptx(&PTX, super::WINDOW_POOL_CU, "window_pool.cu")
+        ptx(
+            &PTX,
+            super::WINDOW_POOL_CU,
+            "compute/cuda/kernels/window_pool.cu",
+        )
     }
 
     fn adam_ptx() -> Result<&'static str> {
         static PTX: OnceLock<std::result::Result<String, String>> = OnceLock::new();
-        ptx(&PTX, super::ADAM_CU, "adam.cu")
+        ptx(&PTX, super::ADAM_CU, "compute/cuda/kernels/adam.cu")
     }
 
     fn film_sine_ptx() -> Result<&'static str> {
         static PTX: OnceLock<std::result::Result<String, String>> = OnceLock::new();
-        ptx(&PTX, super::FILM_SINE_CU, "film_sine.cu")
+        ptx(
+            &PTX,
+            super::FILM_SINE_CU,
+            "compute/cuda/kernels/film_sine.cu",
+        )
     }
 
     fn u32_of(v: usize, what: &str) -> Result<u32> {

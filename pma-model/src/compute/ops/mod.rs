@@ -280,13 +280,7 @@ mod cuda {
     /// PTX of `kernels/rows.cu`, compiled once per process.
     fn ptx() -> candle_core::Result<&'static str> {
         static PTX: OnceLock<Result<String, String>> = OnceLock::new();
-        PTX.get_or_init(|| {
-            candle_core::cuda_backend::cudarc::nvrtc::compile_ptx(super::ROWS_CU)
-                .map(|p| p.to_src())
-                .map_err(|e| format!("compiling pma-model/src/compute/ops/kernels/rows.cu: {e}"))
-        })
-        .as_deref()
-        .map_err(|e| candle_core::Error::Msg(e.clone()))
+        crate::compute::cuda::ptx(&PTX, super::ROWS_CU, "compute/ops/kernels/rows.cu")
     }
 
     /// Run `kernel` (one of rows.cu's, same argument list) with values s1 and ids s2 into a
