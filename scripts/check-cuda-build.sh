@@ -12,8 +12,8 @@
 #
 # Steps: the nvcc toolchain from NVIDIA's wheels (scripts/cuda-toolchain-from-wheels.sh,
 # skipped when DIR/env.sh exists), nvcc on pma's own kernels (scripts/check-cuda-kernels.sh),
-# then the two release builds. Prints the time of each step. On a 2-core machine the cold
-# build takes far longer than CI's budget, hence a script rather than a CI step.
+# then the two release builds and the kit. Prints the time of each step. CI runs the cheaper
+# scripts/ci-cuda-check.sh (type-check and lint, no codegen, nothing linked) instead.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 TC=$(realpath -m "${1:-/tmp/cuda-tc}")
