@@ -34,6 +34,11 @@ struct Cli {
     /// and resumes bit for bit; a little slower. The CPU is deterministic anyway.
     #[arg(long, global = true)]
     deterministic: bool,
+    /// The density trunk's matrix products with bf16 inputs, weights and outputs (f32
+    /// accumulation), as bf16 tensor cores compute them; emulated by rounding on the CPU.
+    /// Not parity: docs/numerics.md gives its measured PSNR cost. Off by default.
+    #[arg(long, global = true)]
+    bf16_trunk: bool,
     #[command(subcommand)]
     command: Command,
 }
@@ -86,7 +91,7 @@ fn main() -> ExitCode {
     let result = cli::check_workers(cli.workers).and_then(|()| {
         // Before any candle op: candle sizes its thread pool once.
         pma_model::compute::parallel::configure_cpu(cli.workers);
-        cli::set_numerics(cli.fast_sine, cli.deterministic);
+        cli::set_numerics(cli.fast_sine, cli.deterministic, cli.bf16_trunk);
         run(cli.command)
     });
     match result {

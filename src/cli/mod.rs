@@ -239,11 +239,12 @@ pub fn device_tf32(spec: &str, tf32: bool) -> anyhow::Result<candle_core::Device
 /// process, and every avatar and trainer it builds gets them.
 static NUMERICS: std::sync::Mutex<Numerics> = std::sync::Mutex::new(Numerics::PARITY);
 
-/// `--fast-sine` and `--deterministic` (set once, before the command runs).
-pub fn set_numerics(fast_sine: bool, deterministic: bool) {
+/// `--fast-sine`, `--deterministic` and `--bf16-trunk` (set once, before the command runs).
+pub fn set_numerics(fast_sine: bool, deterministic: bool, bf16_trunk: bool) {
     let mut k = NUMERICS.lock().unwrap_or_else(|e| e.into_inner());
     k.fast_sine = fast_sine;
     k.deterministic = deterministic;
+    k.bf16_trunk = bf16_trunk;
 }
 
 /// How this command's avatars compute.

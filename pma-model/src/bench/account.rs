@@ -67,6 +67,9 @@ pub struct AccountReport {
     pub bytes_per_step: u64,
     /// Matmul FLOPs.
     pub flops_per_step: u64,
+    /// The most bytes allocated during the step alive at once (activations, gradients, the
+    /// new optimizer state; not the parameters and moments from before it): counted.
+    pub peak_live_bytes_per_step: u64,
     pub step: Summary,
     /// `render_rays` of `rays` rays (the batch already made).
     pub inference: Summary,
@@ -172,6 +175,7 @@ pub fn account(
         param_uploads_per_step: total.param_uploads,
         bytes_per_step: total.bytes(),
         flops_per_step: total.flops,
+        peak_live_bytes_per_step: s.peak_live_bytes,
         step: s,
         inference: inference.summary(),
         official: req.official.map(|r| Official {

@@ -11,6 +11,10 @@
 //!   gradient to them backward.
 //! * **The FiLM-sine layers** of the modulator, reading Θ and Φ out of the pose extractor's
 //!   head ([`FilmHead`]).
+//! * **Every linear layer** `x Wᵀ + b` as one op ([`linear`]): candle keeps each op's inputs
+//!   alive until the graph is dropped, so a product followed by a bias add kept the product,
+//!   a second [rows,out] tensor per layer that no backward reads. One op keeps only its
+//!   output: the largest cut of a training step's peak memory, on every device.
 //!
 //! All compute the same f32 operations in the same order as the plain path, so forward
 //! values are bit-identical and gradients identical except on exact ties of the max, where
@@ -46,6 +50,33 @@ fn cpu_f32(ts: &[&Tensor]) -> bool {
         && ts
             .iter()
             .all(|t| t.device().is_cpu() && t.dtype() == DType::F32)
+}
+
+/// `x Wᵀ + b`: x: [rows,in], W: [out,in] (PyTorch's layout), b: [out] -> [rows,out], as one
+/// op that keeps only its output for the backward (see the module docs): the same product
+/// (candle's, under the network's TF32 choice) and the same bias add, so values and
+/// gradients are those of [`add_bias`] after the product. Counted as what it launches: the
+/// product, then the bias add.
+pub fn linear(x: &Tensor, w: &Tensor, b: &Tensor, k: Numerics) -> Result<Tensor> {
+    let plain =
+        || -> Result<Tensor> { add_bias(&crate::compute::numerics::matmul(x, &w.t()?, k)?, b, k) };
+    let fits = x.rank() == 2
+        && w.rank() == 2
+        && b.rank() == 1
+        && x.dim(1)? == w.dim(1)?
+        && b.dim(0)? == w.dim(0)?;
+    let on_route = cpu_f32(&[x, w, b]) || cuda_f32(&[x, w, b]) || modeled_f32(&[x, w, b]);
+    if !(k.fused && fits && on_route) {
+        return plain();
+    }
+    let (x, w, b) = (x.contiguous()?, w.contiguous()?, b.contiguous()?);
+    let op = Linear {
+        cpu_route: cpu_f32(&[&x]),
+    };
+    Ok(candle_core::cuda::with_gemm_reduced_precision_f32(
+        k.tf32,
+        || x.apply_op3(&w, &b, op),
+    )?)
 }
 
 /// `y + b` broadcast over rows: y: [rows,out], b: [out] -> [rows,out].
@@ -110,12 +141,186 @@ pub fn window_pool(q: &Tensor, g: &Tensor, w_p: &Tensor, k: Numerics) -> Result<
     Ok(out)
 }
 
+/// [`window_pool`] of `q = e · Wᵀ` (e: [N·J,Ce], W: [H,Ce] in PyTorch's layout, viewed as
+/// [N,J,H]) as one op that computes the product and pools it without keeping q: the pool's
+/// backward needs only its arg-max, and a [N,J,H] product kept alive until the backward was
+/// the largest single tensor of a training step. The same product and pool as the two ops,
+/// so the same values and gradients.
+pub fn window_pool_of(
+    e: &Tensor,
+    w: &Tensor,
+    g: &Tensor,
+    w_p: &Tensor,
+    k: Numerics,
+) -> Result<Tensor> {
+    let (nj, ce) = e.dims2()?;
+    let (h, ce2) = w.dims2()?;
+    let (p, j, h2) = g.dims3()?;
+    if ce2 != ce || h2 != h || j == 0 || nj % j != 0 {
+        return Err(crate::error::ModelError::shape(
+            "window pool: e, W and g",
+            format!("e [N·{j},Ce], W [{h2},Ce]"),
+            e.dims(),
+        ));
+    }
+    let n = nj / j;
+    let on = [e, w, g, w_p];
+    let fused = applies(k, &on) || applies_cuda(k, &on) || models_cuda(k, &on);
+    if !fused || p == 0 || n % p != 0 {
+        let q = crate::compute::numerics::matmul(e, &w.t()?, k)?.reshape((n, j, h))?;
+        return window_pool(&q, g, w_p, k);
+    }
+    let (e, w, g) = (e.contiguous()?, w.contiguous()?, g.contiguous()?);
+    let tracked = e.track_op() || w.track_op() || g.track_op();
+    let op = WindowPoolOf {
+        inner: WindowPool {
+            arg: crate::compute::ops::Kept::new(tracked),
+            modeled: models_cuda(k, &on),
+            held: Mutex::new(None),
+            #[cfg(feature = "cuda")]
+            arg_dev: crate::compute::ops::Kept::new(tracked),
+        },
+        w_p: w_p.detach().contiguous()?,
+        j,
+    };
+    Ok(candle_core::cuda::with_gemm_reduced_precision_f32(
+        k.tf32,
+        || e.apply_op3(&w, &g, op),
+    )?)
+}
+
+/// [`window_pool_of`]'s op on (e, W, g), the spatial window held (no gradient flows to it).
+struct WindowPoolOf {
+    inner: WindowPool,
+    w_p: Tensor,
+    j: usize,
+}
+
+impl WindowPoolOf {
+    /// Count the op as its two kernels: this op is the product; the pool is recorded beside
+    /// it (reading q, g and the window; writing the max, and the arg-max when kept).
+    fn report(&self, cpu: bool, (n, j, h, ce): (usize, usize, usize, usize), g_len: usize) {
+        let (nj, h64, ce) = ((n * j) as u64, h as u64, ce as u64);
+        candle_core::account::report_launches(1, 0);
+        candle_core::account::report_bytes(4 * (nj * ce + h64 * ce), 4 * nj * h64);
+        candle_core::account::report_flops(2 * nj * h64 * ce);
+        let kept = u64::from(self.inner.arg.wanted());
+        let nh = (n * h) as u64;
+        candle_core::account::record(
+            cpu,
+            candle_core::account::Op {
+                name: "pma-window-pool",
+                launches: 1,
+                param_uploads: 0,
+                bytes_read: 4 * (nj * h64 + g_len as u64 + nj),
+                bytes_written: 4 * nh * (1 + kept),
+                flops: 0,
+            },
+        );
+    }
+
+    fn dims(&self, l1: &Layout, l2: &Layout) -> candle_core::Result<(usize, usize, usize, usize)> {
+        let (nj, ce) = l1.shape().dims2()?;
+        let (h, ce2) = l2.shape().dims2()?;
+        if ce2 != ce || nj % self.j != 0 {
+            candle_core::bail!(
+                "window pool: e {:?} and W {:?} do not agree",
+                l1.shape(),
+                l2.shape()
+            )
+        }
+        Ok((nj / self.j, self.j, h, ce))
+    }
+}
+
+impl CustomOp3 for WindowPoolOf {
+    fn name(&self) -> &'static str {
+        "matmul"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+        s3: &CpuStorage,
+        l3: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        use candle_core::backend::BackendStorage;
+        let (n, j, h, ce) = self.dims(l1, l2)?;
+        self.report(true, (n, j, h, ce), l3.shape().elem_count());
+        // The product exactly as `Tensor::matmul` calls it for e · Wᵀ; freed on return.
+        let q = s1.matmul(s2, (1, n * j, h, ce), l1, &l2.transpose(0, 1)?)?;
+        let (wp, wl) = self.w_p.storage_and_layout();
+        let Storage::Cpu(wp) = &*wp else {
+            candle_core::bail!("window pool: the window is not on the CPU")
+        };
+        self.inner
+            .cpu_fwd(&q, &Layout::contiguous((n, j, h)), s3, l3, wp, wl)
+    }
+
+    #[cfg(feature = "cuda")]
+    fn cuda_fwd(
+        &self,
+        s1: &candle_core::CudaStorage,
+        l1: &Layout,
+        s2: &candle_core::CudaStorage,
+        l2: &Layout,
+        s3: &candle_core::CudaStorage,
+        l3: &Layout,
+    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
+        use candle_core::backend::BackendStorage;
+        let (n, j, h, ce) = self.dims(l1, l2)?;
+        self.report(false, (n, j, h, ce), l3.shape().elem_count());
+        let p = l3.shape().dims3()?.0;
+        let q = s1.matmul(s2, (1, n * j, h, ce), l1, &l2.transpose(0, 1)?)?;
+        let (wp, wl) = self.w_p.storage_and_layout();
+        let Storage::Cuda(wp) = &*wp else {
+            candle_core::bail!("window pool: the window is not on the GPU")
+        };
+        let (out, arg) = crate::compute::cuda::window_pool(
+            &q,
+            &Layout::contiguous((n, j, h)),
+            s3,
+            l3,
+            wp,
+            wl,
+            [n, j, h, n / p],
+        )?;
+        self.inner.arg_dev.put(arg);
+        Ok((out, Shape::from((n, h))))
+    }
+
+    fn bwd(
+        &self,
+        e: &Tensor,
+        w: &Tensor,
+        g: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+        let q = QSource::Product { e, w, j: self.j };
+        let (gq, gg) = self.inner.grads(&q, g, &self.w_p, grad)?;
+        // candle's matmul backward for e · (Wᵀ) on the [N·J,H] view, then the transpose's.
+        let gq = gq.reshape((e.dim(0)?, w.dim(0)?))?;
+        let wt = w.t()?;
+        let ge = gq.matmul(&wt.t()?)?;
+        let gw = e.t()?.matmul(&gq)?.t()?;
+        Ok((Some(ge), Some(gw), Some(gg)))
+    }
+}
+
 /// Whether a CPU run accounted as CUDA ([`crate::compute::account`]) should count the
 /// CUDA kernel of [`crate::compute::cuda`] rather than candle's plain ops: the fused ops
 /// then run on the CPU and count what their kernel launches, reads and writes.
 fn models_cuda(k: Numerics, ts: &[&Tensor]) -> bool {
-    k.fused
-        && crate::compute::account::emulates_cuda()
+    k.fused && modeled_f32(ts)
+}
+
+/// Whether `ts` are f32 tensors on the CPU of a run accounted as CUDA.
+fn modeled_f32(ts: &[&Tensor]) -> bool {
+    crate::compute::account::emulates_cuda()
         && ts
             .iter()
             .all(|t| t.device().is_cpu() && t.dtype() == DType::F32)
@@ -158,6 +363,8 @@ pub struct FilmHead {
     add: f64,
     fast: bool,
     fused: bool,
+    /// A CPU run accounted as CUDA: the CPU kernels run and count as the CUDA ones.
+    modeled: bool,
     grad: Arc<Mutex<HeadGrad>>,
 }
 
@@ -168,6 +375,8 @@ struct HeadGrad {
     /// Layer 0 has handed the buffer over: a later backward pass over the same graph makes
     /// every layer return its own gradient.
     taken: bool,
+    /// The buffer's bytes, live on the modeled device while the layers fill it.
+    held: Option<candle_core::account::Held>,
     /// The buffer of a CUDA backward, on the device.
     #[cfg(feature = "cuda")]
     dev_buf: Option<CudaSlice<f32>>,
@@ -176,8 +385,11 @@ struct HeadGrad {
 impl FilmHead {
     /// `o`: [N,2·K·f] for K = `n_layers`; γ = `mul`·Θ + `add`.
     pub fn new(o: &Tensor, n_layers: usize, (mul, add): (f64, f64), k: Numerics) -> Self {
-        let fused = applies(k, &[o]) || applies_cuda(k, &[o]);
-        Self::with(o, n_layers, (mul, add), k.fast_sine, fused)
+        let modeled = models_cuda(k, &[o]);
+        let fused = applies(k, &[o]) || applies_cuda(k, &[o]) || modeled;
+        let mut head = Self::with(o, n_layers, (mul, add), k.fast_sine, fused);
+        head.modeled = modeled;
+        head
     }
 
     /// [`Self::new`] with the sine flavour and the kernel choice made by the caller.
@@ -189,6 +401,7 @@ impl FilmHead {
             add,
             fast,
             fused,
+            modeled: false,
             grad: Arc::default(),
         }
     }
@@ -222,22 +435,33 @@ impl FilmHead {
             && k < n_layers
             && o.dim(1)? == 2 * n_layers * f
             && o.dim(0)? == pre.dim(0)?;
-        if !(self.fused && fits && (cpu_f32(&[pre]) || cuda_f32(&[pre]))) {
+        let on_route = if self.modeled {
+            modeled_f32(&[pre])
+        } else {
+            cpu_f32(&[pre]) || cuda_f32(&[pre])
+        };
+        if !(self.fused && fits && on_route) {
             let theta = o.narrow(1, k * f, f)?;
             let phi = o.narrow(1, (n_layers + k) * f, f)?;
             let arg = (pre * theta.affine(mul, add)?)?.add(&phi)?;
             return crate::compute::fast_sine::sin(&arg, self.fast);
         }
         let (pre, o) = (pre.contiguous()?, o.contiguous()?);
+        // On the CPU the cosine is kept: libm's is the costly part of the backward. On a GPU
+        // the backward recomputes it from pre and Φ (the same bytes read as a kept cosine,
+        // and a [N,f] tensor less alive from forward to backward).
+        let keep_cos =
+            (pre.track_op() || o.track_op()) && !(self.modeled || pre.device().is_cuda());
         let op = FilmSine {
             k,
             n_layers,
             mul: mul as f32,
             add: add as f32,
             fast: self.fast,
-            cos: crate::compute::ops::Kept::new(pre.track_op() || o.track_op()),
+            cos: crate::compute::ops::Kept::new(keep_cos),
             #[cfg(feature = "cuda")]
-            cos_dev: crate::compute::ops::Kept::new(pre.track_op() || o.track_op()),
+            cos_dev: crate::compute::ops::Kept::new(keep_cos),
+            modeled: self.modeled,
             shared: chained.then(|| self.grad.clone()),
         };
         Ok(pre.apply_op2(&o, op)?)
@@ -256,6 +480,8 @@ struct FilmSine {
     /// The same on the device, from a CUDA forward.
     #[cfg(feature = "cuda")]
     cos_dev: crate::compute::ops::Kept<CudaSlice<f32>>,
+    /// A CPU run accounted as CUDA ([`FilmHead`]).
+    modeled: bool,
     /// The head gradient shared along a [`FilmHead::stack`].
     shared: Option<Arc<Mutex<HeadGrad>>>,
 }
@@ -289,6 +515,22 @@ impl FilmSine {
         crate::compute::fast_sine::trig(&a, shift, self.fast)
     }
 
+    /// Bytes `film_sine.cu`'s forward reads (pre, and the Θ_k, Φ_k blocks of o) and writes
+    /// (the sine, and the cosine when it is kept).
+    fn fwd_bytes(n: usize, f: usize, keep_cos: bool) -> (u64, u64) {
+        let nf = (n * f * 4) as u64;
+        (3 * nf, nf * (1 + u64::from(keep_cos)))
+    }
+
+    /// Bytes its backward reads (upstream gradient, pre, Θ_k, and the kept cosine or Φ_k to
+    /// recompute it) and writes (pre's gradient, the layer's two head-gradient blocks, and
+    /// the memset of the whole head gradient, [N,w], when this layer starts it).
+    fn bwd_bytes(n: usize, f: usize, w: usize, starts_head: bool) -> (u64, u64) {
+        let nf = (n * f * 4) as u64;
+        let memset = if starts_head { (n * w * 4) as u64 } else { 0 };
+        (4 * nf, 3 * nf + memset)
+    }
+
     fn check(&self, l1: &Layout, l2: &Layout) -> candle_core::Result<(usize, usize)> {
         let (n, f) = l1.shape().dims2()?;
         let (n2, w) = l2.shape().dims2()?;
@@ -316,11 +558,13 @@ impl CustomOp2 for FilmSine {
         s2: &CpuStorage,
         l2: &Layout,
     ) -> candle_core::Result<(CpuStorage, Shape)> {
-        let (_, f) = self.check(l1, l2)?;
+        let (n, f) = self.check(l1, l2)?;
         let (pre, o) = (
             f32_slice(s1, l1, "film sine: pre")?,
             f32_slice(s2, l2, "film sine: o")?,
         );
+        let (read, written) = Self::fwd_bytes(n, f, self.cos.wanted());
+        candle_core::account::report_bytes(read, written);
         let a = self.argument(pre, o, f);
         let sin = if self.cos.wanted() {
             let (sin, cos) = crate::compute::fast_sine::trig_pair(&a, self.fast);
@@ -343,6 +587,8 @@ impl CustomOp2 for FilmSine {
         let (n, f) = self.check(l1, l2)?;
         candle_core::account::report_launches(1, 0);
         let keep = self.cos_dev.wanted();
+        let (read, written) = Self::fwd_bytes(n, f, keep);
+        candle_core::account::report_bytes(read, written);
         let (out, cos) = crate::compute::cuda::film_sine(s1, l1, s2, l2, self.film(n, f), keep)?;
         if let Some(c) = cos {
             self.cos_dev.put(c);
@@ -361,6 +607,9 @@ impl CustomOp2 for FilmSine {
         if pre.device().is_cuda() {
             return self.cuda_bwd(pre, o, grad);
         }
+        if self.modeled {
+            return self.modeled_bwd(pre, o, grad);
+        }
         let (n, f) = pre.dims2()?;
         let w = 2 * self.n_layers * f;
         let (pre_c, o_c, d_c) = (pre.contiguous()?, o.contiguous()?, grad.contiguous()?);
@@ -371,7 +620,6 @@ impl CustomOp2 for FilmSine {
             Some(c) if c.len() == n * f => c,
             _ => self.trig(self.argument(p, oo, f), 1),
         };
-        let mut g_pre = Vec::with_capacity(n * f);
         // Layers after the first write into the stack's shared head gradient and return
         // none of their own; layer 0 (run last) returns it. See [`FilmHead`].
         let mut shared = self
@@ -386,9 +634,39 @@ impl CustomOp2 for FilmSine {
         if g_o.len() != n * w {
             candle_core::bail!("film sine: shared head gradient has the wrong size")
         }
-        // The plain graph's steps, each gradient starting from candle's zero accumulator:
-        // g_a = grad·cos(a); the add passes it to the product and to Φ; the product gives
-        // pre g_a·γ and γ g_a·pre; the affine gives Θ (g_γ·mul) + 0.
+        let g_pre = self.grad_rows(p, oo, d, &cos, &mut g_o, f);
+        drop(guards);
+        let g_pre = Tensor::from_vec(g_pre, (n, f), pre.device())?;
+        if let Some(s) = shared.as_mut().filter(|_| defer) {
+            if self.k > 0 {
+                s.buf = Some(g_o);
+                return Ok((Some(g_pre), None));
+            }
+            s.taken = true;
+        }
+        let g_o = Tensor::from_vec(g_o, (n, w), o.device())?;
+        Ok((Some(g_pre), Some(g_o)))
+    }
+}
+
+impl FilmSine {
+    /// The gradient of pre, and this layer's blocks of the head gradient written into `g_o`
+    /// ([N,w]), from pre, o, the upstream gradient `d` and cos of the argument. The plain
+    /// graph's steps, each gradient starting from candle's zero accumulator: g_a = d·cos(a);
+    /// the add passes it to the product and to Φ; the product gives pre g_a·γ and γ g_a·pre;
+    /// the affine gives Θ (g_γ·mul) + 0.
+    fn grad_rows(
+        &self,
+        p: &[f32],
+        oo: &[f32],
+        d: &[f32],
+        cos: &[f32],
+        g_o: &mut [f32],
+        f: usize,
+    ) -> Vec<f32> {
+        let n = p.len() / f.max(1);
+        let w = 2 * self.n_layers * f;
+        let mut g_pre = Vec::with_capacity(n * f);
         for i in 0..n {
             let (theta, _) = self.blocks(oo, i, f);
             let prow = &p[i * f..(i + 1) * f];
@@ -406,17 +684,130 @@ impl CustomOp2 for FilmSine {
                 go[p0 + c] = 0f32 + ga;
             }
         }
-        drop(guards);
-        let g_pre = Tensor::from_vec(g_pre, (n, f), pre.device())?;
+        g_pre
+    }
+
+    /// The backward of a CPU run accounted as CUDA, shaped as the CUDA backward: one op per
+    /// layer counted as `film_sine.cu`'s gradient kernel, the head gradient handed over by
+    /// layer 0 without a launch. The same values as the CPU backward.
+    fn modeled_bwd(
+        &self,
+        pre: &Tensor,
+        o: &Tensor,
+        grad: &Tensor,
+    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>)> {
+        let (n, f) = pre.dims2()?;
+        let w = 2 * self.n_layers * f;
+        let (pre_c, o_c, d_c) = (pre.contiguous()?, o.contiguous()?, grad.contiguous()?);
+        let mut shared = self
+            .shared
+            .as_ref()
+            .map(|s| s.lock().unwrap_or_else(|e| e.into_inner()));
+        let defer = shared.as_ref().is_some_and(|s| !s.taken);
+        let head = match shared.as_mut() {
+            Some(s) if defer => s.buf.take().zip(s.held.take()),
+            _ => None,
+        };
+        let op = FilmGradCpu {
+            layer: self,
+            cos: self.cos.take().filter(|c| c.len() == n * f),
+            head: Mutex::new(head),
+        };
+        let g_pre = d_c.apply_op3_no_bwd(&pre_c, &o_c, &op)?;
+        let head = op.head.into_inner().unwrap_or_else(|e| e.into_inner());
+        let (buf, held) =
+            head.ok_or_else(|| candle_core::Error::Msg("film sine: no head gradient".into()))?;
         if let Some(s) = shared.as_mut().filter(|_| defer) {
             if self.k > 0 {
-                s.buf = Some(g_o);
+                s.buf = Some(buf);
+                s.held = Some(held);
                 return Ok((Some(g_pre), None));
             }
             s.taken = true;
         }
-        let g_o = Tensor::from_vec(g_o, (n, w), o.device())?;
+        let g_o = d_c.apply_op1_no_bwd(&HeadOutCpu {
+            buf: Mutex::new(Some(buf)),
+            shape: Shape::from((n, w)),
+        })?;
+        drop(held);
         Ok((Some(g_pre), Some(g_o)))
+    }
+}
+
+/// A FiLM-sine layer's backward on (grad, pre, o) in a CPU run accounted as CUDA, counted as
+/// `film_sine.cu`'s gradient kernel: the gradient of pre; the layer's head-gradient blocks go
+/// into `head` (made zeroed, with its bytes held live, when it is `None`).
+struct FilmGradCpu<'a> {
+    layer: &'a FilmSine,
+    cos: Option<Vec<f32>>,
+    head: Mutex<Option<(Vec<f32>, candle_core::account::Held)>>,
+}
+
+impl CustomOp3 for FilmGradCpu<'_> {
+    fn name(&self) -> &'static str {
+        "pma-film-sine-grad"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+        s3: &CpuStorage,
+        l3: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let (n, f) = l2.shape().dims2()?;
+        let film = self.layer;
+        let w = 2 * film.n_layers * f;
+        if l1.shape().dims2()? != (n, f) || l3.shape().dims2()? != (n, w) {
+            candle_core::bail!("film sine gradient: shapes do not agree with [{n}, {f}]")
+        }
+        let d = f32_slice(s1, l1, "film sine gradient: grad")?;
+        let p = f32_slice(s2, l2, "film sine gradient: pre")?;
+        let oo = f32_slice(s3, l3, "film sine gradient: o")?;
+        let mut head = self.head.lock().unwrap_or_else(|e| e.into_inner());
+        let starts = head.is_none();
+        candle_core::account::report_launches(if starts { 2 } else { 1 }, 0);
+        let (read, written) = FilmSine::bwd_bytes(n, f, w, starts);
+        candle_core::account::report_bytes(read, written);
+        let (g_o, _) = head.get_or_insert_with(|| {
+            (
+                vec![0f32; n * w],
+                candle_core::account::hold(true, n * w * 4),
+            )
+        });
+        if g_o.len() != n * w {
+            candle_core::bail!("film sine: shared head gradient has the wrong size")
+        }
+        let cos = match &self.cos {
+            Some(c) => std::borrow::Cow::Borrowed(c.as_slice()),
+            None => std::borrow::Cow::Owned(film.trig(film.argument(p, oo, f), 1)),
+        };
+        let g_pre = film.grad_rows(p, oo, d, &cos, g_o, f);
+        Ok((CpuStorage::F32(g_pre), Shape::from((n, f))))
+    }
+}
+
+/// Hands a finished head gradient to candle as a tensor, counted as the CUDA hand-over
+/// (no launch, nothing moved).
+struct HeadOutCpu {
+    buf: Mutex<Option<Vec<f32>>>,
+    shape: Shape,
+}
+
+impl candle_core::CustomOp1 for HeadOutCpu {
+    fn name(&self) -> &'static str {
+        "pma-film-head-grad"
+    }
+
+    fn cpu_fwd(&self, _: &CpuStorage, _: &Layout) -> candle_core::Result<(CpuStorage, Shape)> {
+        candle_core::account::report_launches(0, 0);
+        candle_core::account::report_bytes(0, 0);
+        let buf = self.buf.lock().unwrap_or_else(|e| e.into_inner()).take();
+        let buf = buf
+            .ok_or_else(|| candle_core::Error::Msg("film sine: head gradient used twice".into()))?;
+        Ok((CpuStorage::F32(buf), self.shape.clone()))
     }
 }
 
@@ -524,6 +915,8 @@ impl CustomOp3 for FilmGrad {
         let mut head = self.head.lock().unwrap_or_else(|e| e.into_inner());
         // The kernel, and the head gradient's memset when this layer starts it.
         candle_core::account::report_launches(if head.is_none() { 2 } else { 1 }, 0);
+        let (read, written) = FilmSine::bwd_bytes(d.n, d.f, 2 * d.n_layers * d.f, head.is_none());
+        candle_core::account::report_bytes(read, written);
         let g_pre = crate::compute::cuda::film_sine_grad(
             s1,
             l1,
@@ -562,6 +955,7 @@ impl candle_core::CustomOp1 for HeadOut {
         _: &Layout,
     ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
         candle_core::account::report_launches(0, 0);
+        candle_core::account::report_bytes(0, 0);
         let buf = self.buf.lock().unwrap_or_else(|e| e.into_inner()).take();
         let buf = buf
             .ok_or_else(|| candle_core::Error::Msg("film sine: head gradient used twice".into()))?;
@@ -578,6 +972,138 @@ fn cpu_slice<'a>(s: &'a Storage, l: &Layout) -> candle_core::Result<&'a [f32]> {
 }
 
 struct BiasAdd;
+
+/// Column sums of `grad` ([rows,out]) in row order from zero: the sums candle's reduction
+/// forms, in one contiguous pass (the bias gradient).
+fn row_sums(grad: &Tensor, out: usize) -> candle_core::Result<Tensor> {
+    let grad_c = grad.contiguous()?;
+    let (storage, layout) = grad_c.storage_and_layout();
+    let mut sums = vec![0f32; out];
+    for row in cpu_slice(&storage, layout)?.chunks_exact(out) {
+        for (a, v) in sums.iter_mut().zip(row) {
+            *a += v;
+        }
+    }
+    drop(storage);
+    Tensor::from_vec(sums, out, grad.device())
+}
+
+/// [`linear`]'s op on (x, W, b).
+struct Linear {
+    /// The CPU's route: the bias gradient as [`BiasAdd`] sums it. Elsewhere (CUDA, a CPU run
+    /// accounted as CUDA) it is candle's reduction, as after a `broadcast_add`.
+    cpu_route: bool,
+}
+
+impl Linear {
+    /// (rows, in, out), checked.
+    fn dims(l1: &Layout, l2: &Layout, l3: &Layout) -> candle_core::Result<(usize, usize, usize)> {
+        let (rows, inn) = l1.shape().dims2()?;
+        let (out, inn2) = l2.shape().dims2()?;
+        if inn2 != inn || l3.shape().dims1()? != out {
+            candle_core::bail!(
+                "linear: x {:?}, W {:?} and b {:?} do not agree",
+                l1.shape(),
+                l2.shape(),
+                l3.shape()
+            )
+        }
+        Ok((rows, inn, out))
+    }
+
+    /// Count the op as its two kernels: this op is the product (its launch, bytes and
+    /// FLOPs), the bias add is recorded beside it (with the dims upload of its broadcast).
+    fn report(cpu: bool, rows: usize, inn: usize, out: usize) {
+        let (rows, inn, out) = (rows as u64, inn as u64, out as u64);
+        candle_core::account::report_launches(1, 0);
+        candle_core::account::report_bytes(4 * (rows * inn + out * inn), 4 * rows * out);
+        candle_core::account::report_flops(2 * rows * out * inn);
+        candle_core::account::record(
+            cpu,
+            candle_core::account::Op {
+                name: "add",
+                launches: 1,
+                param_uploads: 1,
+                bytes_read: 4 * (rows * out + out),
+                bytes_written: 4 * rows * out,
+                flops: 0,
+            },
+        );
+    }
+}
+
+impl CustomOp3 for Linear {
+    fn name(&self) -> &'static str {
+        "matmul"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+        s3: &CpuStorage,
+        l3: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        use candle_core::backend::BackendStorage;
+        let (rows, inn, out) = Self::dims(l1, l2, l3)?;
+        Self::report(true, rows, inn, out);
+        // The product exactly as `Tensor::matmul` calls it for x · Wᵀ.
+        let y = s1.matmul(s2, (1, rows, out, inn), l1, &l2.transpose(0, 1)?)?;
+        let CpuStorage::F32(mut y) = y else {
+            candle_core::bail!("linear: the product is not f32")
+        };
+        let b = f32_slice(s3, l3, "linear: b")?;
+        for row in y.chunks_exact_mut(out.max(1)) {
+            for (a, c) in row.iter_mut().zip(b) {
+                *a += c;
+            }
+        }
+        Ok((CpuStorage::F32(y), Shape::from((rows, out))))
+    }
+
+    #[cfg(feature = "cuda")]
+    fn cuda_fwd(
+        &self,
+        s1: &candle_core::CudaStorage,
+        l1: &Layout,
+        s2: &candle_core::CudaStorage,
+        l2: &Layout,
+        s3: &candle_core::CudaStorage,
+        l3: &Layout,
+    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
+        use candle_core::backend::BackendStorage;
+        let (rows, inn, out) = Self::dims(l1, l2, l3)?;
+        Self::report(false, rows, inn, out);
+        // cuBLAS, then candle's broadcast add kernel; the product is freed on return.
+        let y = s1.matmul(s2, (1, rows, out, inn), l1, &l2.transpose(0, 1)?)?;
+        let y_l = Layout::contiguous((rows, out));
+        let b_l = l3.broadcast_as((rows, out))?;
+        let sum = y.binary_impl::<candle_core::op::Add>(s3, &y_l, &b_l)?;
+        Ok((sum, Shape::from((rows, out))))
+    }
+
+    fn bwd(
+        &self,
+        x: &Tensor,
+        w: &Tensor,
+        _b: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+        // candle's matmul backward for x · (Wᵀ), then the transpose's: the same products.
+        let wt = w.t()?;
+        let gx = grad.matmul(&wt.t()?)?;
+        let gw = x.t()?.matmul(grad)?.t()?;
+        let out = w.dim(0)?;
+        let gb = match self.cpu_route {
+            true => row_sums(grad, out)?,
+            false => grad.sum(0)?,
+        };
+        Ok((Some(gx), Some(gw), Some(gb)))
+    }
+}
 
 impl CustomOp2 for BiasAdd {
     fn name(&self) -> &'static str {
@@ -616,18 +1142,8 @@ impl CustomOp2 for BiasAdd {
         _res: &Tensor,
         grad: &Tensor,
     ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>)> {
-        let out = b.elem_count();
         // Row order, from zero: the same summation candle's reduction does.
-        let grad_c = grad.contiguous()?;
-        let (storage, layout) = grad_c.storage_and_layout();
-        let mut sums = vec![0f32; out];
-        for row in cpu_slice(&storage, layout)?.chunks_exact(out) {
-            for (a, v) in sums.iter_mut().zip(row) {
-                *a += v;
-            }
-        }
-        drop(storage);
-        let gb = Tensor::from_vec(sums, out, b.device())?;
+        let gb = row_sums(grad, b.elem_count())?;
         Ok((Some(grad.clone()), Some(gb)))
     }
 }
@@ -750,42 +1266,95 @@ impl CustomOp3 for WindowPool {
         _res: &Tensor,
         grad: &Tensor,
     ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+        let (gq, gg) = self.grads(&QSource::Tensor(q), g, w_p, grad)?;
+        Ok((Some(gq), Some(gg), None))
+    }
+}
+
+/// Where a window pool's backward gets q when it must pool again (a second backward over
+/// the same graph): the forward's input, or the product [`window_pool_of`] computed it from.
+enum QSource<'a> {
+    Tensor(&'a Tensor),
+    /// q = e · Wᵀ, [N·J,Ce] · [H,Ce]ᵀ, viewed as [N,J,H].
+    Product {
+        e: &'a Tensor,
+        w: &'a Tensor,
+        j: usize,
+    },
+}
+
+impl QSource<'_> {
+    fn dims(&self) -> candle_core::Result<(usize, usize, usize)> {
+        match self {
+            Self::Tensor(q) => q.dims3(),
+            Self::Product { e, w, j } => Ok((e.dim(0)? / j, *j, w.dim(0)?)),
+        }
+    }
+
+    fn get(&self) -> candle_core::Result<Tensor> {
+        match self {
+            Self::Tensor(q) => Ok((*q).clone()),
+            Self::Product { e, w, j } => {
+                let (n, h) = (e.dim(0)? / j, w.dim(0)?);
+                e.matmul(&w.t()?)?.reshape((n, *j, h))
+            }
+        }
+    }
+}
+
+impl WindowPool {
+    /// The gradients of q and g: from the forward's kept arg-max, or (a second backward)
+    /// from pooling q again.
+    fn grads(
+        &self,
+        q: &QSource,
+        g: &Tensor,
+        w_p: &Tensor,
+        grad: &Tensor,
+    ) -> candle_core::Result<(Tensor, Tensor)> {
         #[cfg(feature = "cuda")]
-        if q.device().is_cuda() {
+        if g.device().is_cuda() {
             return self.cuda_bwd(q, g, w_p, grad);
         }
         if self.modeled {
             return self.modeled_bwd(q, g, w_p, grad);
         }
-        let (n, j, h) = q.dims3()?;
+        let (n, j, h) = q.dims()?;
         let poses = g.dim(0)?;
         let per_pose = n / poses;
-        let (q_c, g_c, w_c, d_c) = (
-            q.contiguous()?,
-            g.contiguous()?,
-            w_p.contiguous()?,
-            grad.contiguous()?,
-        );
-        let guards = [&q_c, &g_c, &w_c, &d_c].map(|t| t.storage_and_layout());
-        let [q, g, w, dm] = [0, 1, 2, 3].map(|i| cpu_slice(&guards[i].0, guards[i].1));
-        let (q, g, w, dm) = (q?, g?, w?, dm?);
+        // The forward's arg-max (used once; a second backward pools again).
+        let kept = match self.arg.take().filter(|a| a.len() == n * h) {
+            Some(a) => a,
+            None => {
+                let (qc, gc, wc) = (q.get()?.contiguous()?, g.contiguous()?, w_p.contiguous()?);
+                let guards = [&qc, &gc, &wc].map(|t| t.storage_and_layout());
+                let [qs, gs, ws] = [0, 1, 2].map(|i| cpu_slice(&guards[i].0, guards[i].1));
+                let (qs, gs, ws) = (qs?, gs?, ws?);
+                let mut arg = vec![0u32; n * h];
+                let mut best = vec![0f32; h];
+                for i in 0..n {
+                    let gp = (i / per_pose) * j * h;
+                    pool_row(
+                        &qs[i * j * h..(i + 1) * j * h],
+                        &gs[gp..gp + j * h],
+                        &ws[i * j..(i + 1) * j],
+                        &mut best,
+                        &mut arg[i * h..(i + 1) * h],
+                    );
+                }
+                arg
+            }
+        };
+        let (w_c, d_c) = (w_p.contiguous()?, grad.contiguous()?);
+        let guards = [&w_c, &d_c].map(|t| t.storage_and_layout());
+        let [w, dm] = [0, 1].map(|i| cpu_slice(&guards[i].0, guards[i].1));
+        let (w, dm) = (w?, dm?);
         let mut gq = vec![0f32; n * j * h];
         let mut gg = vec![0f32; poses * j * h];
-        // The forward's arg-max (used once; a second backward pools again).
-        let kept = self.arg.take().filter(|a| a.len() == n * h);
-        let mut arg = vec![0u32; h];
-        let mut best = vec![0f32; h];
         for i in 0..n {
             let wn = &w[i * j..(i + 1) * j];
             let gp = (i / per_pose) * j * h;
-            let arg_i = match &kept {
-                Some(a) => &a[i * h..(i + 1) * h],
-                None => {
-                    let g_i = &g[gp..gp + j * h];
-                    pool_row(&q[i * j * h..(i + 1) * j * h], g_i, wn, &mut best, &mut arg);
-                    &arg[..]
-                }
-            };
+            let arg_i = &kept[i * h..(i + 1) * h];
             let dmn = &dm[i * h..(i + 1) * h];
             for k in 0..h {
                 let jj = arg_i[k] as usize;
@@ -795,9 +1364,9 @@ impl CustomOp3 for WindowPool {
             }
         }
         drop(guards);
-        let gq = Tensor::from_vec(gq, (n, j, h), q_c.device())?;
-        let gg = Tensor::from_vec(gg, (poses, j, h), g_c.device())?;
-        Ok((Some(gq), Some(gg), None))
+        let gq = Tensor::from_vec(gq, (n, j, h), g.device())?;
+        let gg = Tensor::from_vec(gg, (poses, j, h), g.device())?;
+        Ok((gq, gg))
     }
 }
 
@@ -807,19 +1376,19 @@ impl WindowPool {
     /// its kernel (reading the upstream gradient, the window and the arg-max).
     fn modeled_bwd(
         &self,
-        q: &Tensor,
+        q: &QSource,
         g: &Tensor,
         w_p: &Tensor,
         grad: &Tensor,
-    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
-        let (n, j, h) = q.dims3()?;
+    ) -> candle_core::Result<(Tensor, Tensor)> {
+        let (n, j, h) = q.dims()?;
         let p = g.dim(0)?;
         let w = w_p.contiguous()?;
         let arg = match self.arg.take().filter(|a| a.len() == n * h) {
             Some(a) => a,
             None => {
                 // The forward's kernel once more (its outputs: the max and the arg-max).
-                let (qc, gc) = (q.contiguous()?, g.contiguous()?);
+                let (qc, gc) = (q.get()?.contiguous()?, g.contiguous()?);
                 let guards = [&qc, &gc, &w].map(|t| t.storage_and_layout());
                 let [qs, gs, ws] = [0, 1, 2].map(|i| cpu_slice(&guards[i].0, guards[i].1));
                 let (qs, gs, ws) = (qs?, gs?, ws?);
@@ -851,14 +1420,14 @@ impl WindowPool {
             }
         };
         // The arg-max is the kernels' input now: live (as a tensor) until they are done.
-        let arg = candle_core::account::uncounted(|| Tensor::from_vec(arg, (n, h), q.device()))?;
+        let arg = candle_core::account::uncounted(|| Tensor::from_vec(arg, (n, h), g.device()))?;
         let held = candle_core::account::hold(true, n * h * 4);
         self.held.lock().unwrap_or_else(|e| e.into_inner()).take();
         let grad = grad.contiguous()?;
         let gq = grad.apply_op3_no_bwd(&w, &arg, &PoolGradCpu { p, of_g: false })?;
         let gg = grad.apply_op3_no_bwd(&w, &arg, &PoolGradCpu { p, of_g: true })?;
         drop(held);
-        Ok((Some(gq), Some(gg), None))
+        Ok((gq, gg))
     }
 }
 
@@ -922,18 +1491,18 @@ impl WindowPool {
     /// backward), then one kernel per gradient.
     fn cuda_bwd(
         &self,
-        q: &Tensor,
+        q: &QSource,
         g: &Tensor,
         w_p: &Tensor,
         grad: &Tensor,
-    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
-        let (n, j, h) = q.dims3()?;
+    ) -> candle_core::Result<(Tensor, Tensor)> {
+        let (n, j, h) = q.dims()?;
         let p = g.dim(0)?;
         let w = w_p.contiguous()?;
         let arg = match self.arg_dev.take() {
             Some(a) => a,
             None => {
-                let (q, g) = (q.contiguous()?, g.contiguous()?);
+                let (q, g) = (q.get()?.contiguous()?, g.contiguous()?);
                 let guards = [&q, &g, &w].map(|t| t.storage_and_layout());
                 let cuda = |i: usize| match &*guards[i].0 {
                     Storage::Cuda(c) => Ok(c),
@@ -970,7 +1539,7 @@ impl WindowPool {
                 of_g: true,
             },
         )?;
-        Ok((Some(gq), Some(gg), None))
+        Ok((gq, gg))
     }
 }
 
@@ -1044,6 +1613,106 @@ mod tests {
             })
             .collect();
         Tensor::from_vec(v, shape, &Device::Cpu).unwrap()
+    }
+
+    fn bits_of(t: &Tensor) -> Vec<u32> {
+        let v: Vec<f32> = t.flatten_all().unwrap().to_vec1().unwrap();
+        v.iter().map(|x| x.to_bits()).collect()
+    }
+
+    /// The one-op linear layer gives the product-then-bias-add bits, forward and backward
+    /// (twice over the same graph), on the CPU route and counted as CUDA, where it counts
+    /// as the product and the bias add it launches.
+    #[test]
+    fn linear_matches_product_and_bias_add_bit_for_bit() {
+        use crate::compute::account::{Account, Route};
+        let empty = linear(
+            &Tensor::zeros((0, 4), DType::F32, &Device::Cpu).unwrap(),
+            &rand(&[2, 4], 60),
+            &rand(&[2], 59),
+            Numerics::PARITY,
+        )
+        .unwrap();
+        assert_eq!(empty.dims(), [0, 2]);
+        for (rows, inn, out) in [(37, 5, 9), (1, 3, 64), (300, 3, 2)] {
+            let x = Var::from_tensor(&rand(&[rows, inn], 61)).unwrap();
+            let w = Var::from_tensor(&rand(&[out, inn], 62)).unwrap();
+            let b = Var::from_tensor(&rand(&[out], 63)).unwrap();
+            let up = rand(&[rows, out], 64);
+            let run = |fused: bool| {
+                let k = Numerics {
+                    fused,
+                    ..Numerics::PARITY
+                };
+                let y = linear(x.as_tensor(), w.as_tensor(), b.as_tensor(), k).unwrap();
+                let loss = (&y * &up).unwrap().sum_all().unwrap();
+                let mut all = vec![bits_of(&y)];
+                for _ in 0..2 {
+                    let g = loss.backward().unwrap();
+                    for (i, v) in [&x, &w, &b].into_iter().enumerate() {
+                        let gv = g.get(v.as_tensor());
+                        assert!(gv.is_some(), "fused {fused}, rows {rows}: no gradient {i}");
+                        all.push(bits_of(gv.unwrap()));
+                    }
+                }
+                all
+            };
+            let plain = run(false);
+            assert_eq!(run(true), plain, "[{rows},{inn}] x [{out},{inn}]");
+            let account = Account::start(&Device::Cpu, Route::Cuda).unwrap();
+            let counted = run(true);
+            let r = account.finish();
+            assert_eq!(counted, plain);
+            // Forward: the product and the bias add, as two launches.
+            let op = |n: &str| r.ops.get(n).copied().unwrap_or_default();
+            assert_eq!(op("matmul").flops, 2 * (rows * out * inn) as u64 * 5);
+            assert!(op("add").launches >= 1);
+        }
+    }
+
+    /// The window pool of a product computed inside it gives the bits of the product
+    /// followed by the pool (values, and gradients of e, W and g over two backward passes),
+    /// on the CPU route and counted as CUDA.
+    #[test]
+    fn window_pool_of_a_product_matches_product_then_pool() {
+        use crate::compute::account::{Account, Route};
+        let (n, j, h, ce, p) = (12, 5, 7, 4, 3);
+        let e = Var::from_tensor(&rand(&[n * j, ce], 71)).unwrap();
+        let w = Var::from_tensor(&rand(&[h, ce], 72)).unwrap();
+        let g = Var::from_tensor(&rand(&[p, j, h], 73)).unwrap();
+        let wp = rand(&[n, j], 74).abs().unwrap();
+        let up = rand(&[n, h], 75);
+        let run = |fused_op: bool| {
+            let k = Numerics::PARITY;
+            let y = if fused_op {
+                window_pool_of(e.as_tensor(), w.as_tensor(), g.as_tensor(), &wp, k).unwrap()
+            } else {
+                let q = crate::compute::numerics::matmul(e.as_tensor(), &w.t().unwrap(), k)
+                    .unwrap()
+                    .reshape((n, j, h))
+                    .unwrap();
+                window_pool(&q, g.as_tensor(), &wp, k).unwrap()
+            };
+            let loss = (&y * &up).unwrap().sum_all().unwrap();
+            let mut all = vec![bits_of(&y)];
+            for _ in 0..2 {
+                let gr = loss.backward().unwrap();
+                for v in [&e, &w, &g] {
+                    all.push(bits_of(gr.get(v.as_tensor()).unwrap()));
+                }
+            }
+            all
+        };
+        let two_ops = run(false);
+        assert_eq!(run(true), two_ops);
+        let account = Account::start(&Device::Cpu, Route::Cuda).unwrap();
+        let counted = run(true);
+        let r = account.finish();
+        assert_eq!(counted, two_ops);
+        // Forward: the product and the pool; the second backward pools again.
+        let launches = |op: &str| r.ops.get(op).map_or(0, |c| c.launches);
+        assert_eq!(launches("pma-window-pool"), 2, "{:?}", r.ops.keys());
+        assert_eq!(launches("pma-window-pool-grad"), 4);
     }
 
     /// Counted as CUDA (the fused pool then counts as its kernels), the window pool still
@@ -1293,6 +1962,67 @@ mod tests {
             });
             assert!(nonzero, "head gradient block {block} is empty");
         }
+    }
+
+    /// A stack accounted as CUDA runs the CPU kernels (the same bits) and counts
+    /// `film_sine.cu`'s launches and bytes: one kernel per layer each way, the head
+    /// gradient's memset once, no plain ops and nothing uploaded.
+    #[test]
+    fn film_stack_counted_as_cuda_keeps_the_cpu_bits() {
+        use crate::compute::account::{Account, Route};
+        let (n, kk, f) = (19, 3, 8);
+        let x = Var::from_tensor(&rand(&[n, f], 51)).unwrap();
+        let o = Var::from_tensor(&(rand(&[n, 2 * kk * f], 52) * 4.0).unwrap()).unwrap();
+        let wts = rand(&[n, kk * f], 53);
+        let run = || {
+            let head = FilmHead::new(o.as_tensor(), kk, (15.0, 30.0), Numerics::PARITY);
+            let outs = head.stack(x.as_tensor(), |_, h| Ok(h.clone())).unwrap();
+            let y = Tensor::cat(&outs, 1).unwrap();
+            let g = (&y * &wts).unwrap().sum_all().unwrap().backward().unwrap();
+            [
+                y,
+                g.get(x.as_tensor()).unwrap().clone(),
+                g.get(o.as_tensor()).unwrap().clone(),
+            ]
+        };
+        let bits = |ts: &[Tensor; 3]| -> Vec<Vec<u32>> {
+            ts.iter()
+                .map(|t| {
+                    let v: Vec<f32> = t.flatten_all().unwrap().to_vec1().unwrap();
+                    v.iter().map(|x| x.to_bits()).collect()
+                })
+                .collect()
+        };
+        let cpu = bits(&run());
+        let account = Account::start(&Device::Cpu, Route::Cuda).unwrap();
+        let counted = run();
+        let report = account.finish();
+        assert_eq!(cpu, bits(&counted));
+        let op = |name: &str| report.ops.get(name).copied().unwrap_or_default();
+        let nf = (n * f * 4) as u64;
+        let fwd = op("pma-film-sine");
+        assert_eq!((fwd.ops, fwd.launches), (kk as u64, kk as u64));
+        // Pre and the layer's Θ, Φ blocks in; the sine out (the backward recomputes the
+        // cosine, as on CUDA).
+        assert_eq!(fwd.bytes_read, kk as u64 * 3 * nf);
+        assert_eq!(fwd.bytes_written, kk as u64 * nf);
+        let bwd = op("pma-film-sine-grad");
+        assert_eq!((bwd.ops, bwd.launches), (kk as u64, kk as u64 + 1));
+        assert_eq!(bwd.bytes_read, kk as u64 * 4 * nf);
+        let head = (n * 2 * kk * f * 4) as u64;
+        assert_eq!(bwd.bytes_written, kk as u64 * 3 * nf + head);
+        assert_eq!(op("pma-film-head-grad").launches, 0);
+        for plain in ["sin", "cos", "affine"] {
+            assert_eq!(
+                op(plain).ops,
+                0,
+                "plain op `{plain}` in {:?}",
+                report.ops.keys()
+            );
+        }
+        assert_eq!(report.total.uploads, 0);
+        // The head gradient was alive with the activations.
+        assert!(report.peak_live_bytes >= head);
     }
 
     #[test]

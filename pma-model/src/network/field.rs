@@ -84,7 +84,10 @@ impl Field {
         let mut h = s.clone();
         let mut l0_pre = None;
         for (i, layer) in self.pts_linears.iter().enumerate() {
-            let pre = layer.forward(&h, k)?;
+            let pre = match k.bf16_trunk {
+                true => layer.forward_bf16(&h, k)?,
+                false => layer.forward(&h, k)?,
+            };
             if i == 0 {
                 l0_pre = Some(pre.clone());
             }

@@ -30,8 +30,9 @@ impl Linear {
         let dims = x.dims().to_vec();
         let in_dim = *dims.last().unwrap_or(&0);
         let rows = x.elem_count() / in_dim.max(1);
-        let y = crate::compute::fused::add_bias(
-            &crate::compute::numerics::matmul(&x.reshape((rows, in_dim))?, &self.weight.t()?, k)?,
+        let y = crate::compute::fused::linear(
+            &x.reshape((rows, in_dim))?,
+            &self.weight,
             &self.bias,
             k,
         )?;
@@ -40,6 +41,20 @@ impl Linear {
             .last_mut()
             .expect("linear input has at least one dim") = self.weight.dim(0)?;
         Ok(y.reshape(out_dims)?)
+    }
+}
+
+impl Linear {
+    /// [`Self::forward`] as a bf16 tensor-core product computes it: input, weight and output
+    /// rounded to bf16 ([`crate::compute::numerics::bf16`]), the sum in f32, the bias added
+    /// in f32 before the output is rounded.
+    pub fn forward_bf16(&self, x: &Tensor, k: Numerics) -> Result<Tensor> {
+        use crate::compute::numerics::bf16;
+        let rounded = Self {
+            weight: bf16(&self.weight)?,
+            bias: self.bias.clone(),
+        };
+        bf16(&rounded.forward(&bf16(x)?, k)?)
     }
 }
 

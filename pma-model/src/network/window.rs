@@ -97,14 +97,14 @@ impl WinFun {
             crate::error::ModelError::Config("this variant has no feature window".into())
         })?;
         let (n, j, ce) = e.dims3()?;
-        let q = crate::compute::numerics::matmul(
-            &e.reshape((n * j, ce))?,
-            &f.layer_point.weight.t()?,
-            k,
-        )?
-        .reshape((n, j, ()))?;
         let g_b = g.broadcast_add(&f.layer_point.bias)?;
-        let pooled = crate::compute::fused::window_pool(&q, &g_b, w_p, k)?;
+        let pooled = crate::compute::fused::window_pool_of(
+            &e.reshape((n * j, ce))?,
+            &f.layer_point.weight,
+            &g_b,
+            w_p,
+            k,
+        )?;
         let h = f.sin1.forward(&f.sin0.forward(&pooled, k)?, k)?;
         let logits = f.last.forward(&h, k)?;
         let w_f = candle_nn::ops::sigmoid(&logits)?;

@@ -83,6 +83,16 @@ struct Slot {
     len: usize,
 }
 
+/// What one update needs besides the gradients: betas, eps, and per slot the step size
+/// `lr / (1 − b1^t)` and `sqrt(1 − b2^t)` (f64 on the device).
+struct Scalars {
+    b1: f64,
+    b2: f64,
+    eps: f64,
+    step_size: Tensor,
+    bias2_sqrt: Tensor,
+}
+
 /// `1 − b1^t` and `sqrt(1 − b2^t)` for t = 0..len, in f64 on the device (index t).
 struct BiasTables {
     len: usize,
@@ -439,50 +449,43 @@ impl Adam {
         let bias2_sqrt = tables.bias2_sqrt.index_select(&t_idx, 0)?;
         let lr: Vec<f64> = self.slots.iter().map(|s| self.groups[s.group].lr).collect();
         let step_size = Tensor::from_vec(lr, n_slots, &dev)?.div(&bias1)?;
-        #[cfg(feature = "cuda")]
-        if dev.is_cuda() {
-            let has_u8: Vec<u8> = has.iter().map(|&h| h as u8).collect();
-            let ok = match apply {
-                Some(a) => a.to_dtype(DType::U8)?.reshape(1)?,
-                None => Tensor::new(&[1u8], &dev)?,
-            };
-            let params: Vec<Tensor> = self
-                .slots
-                .iter()
-                .map(|s| s.var.as_tensor().detach().flatten_all())
-                .collect::<candle_core::Result<_>>()?;
-            let coef = coef
-                .map(|c| c.to_dtype(DType::F32)?.reshape(1))
-                .transpose()?;
-            let (p, m, v) = crate::compute::cuda::adam(
-                &g.detach().contiguous()?,
-                &Tensor::cat(&params, 0)?,
-                &self.exp_avg,
-                &self.exp_avg_sq,
-                &self.slot_of,
-                &step_size.to_dtype(DType::F32)?,
-                &bias2_sqrt.recip()?.to_dtype(DType::F32)?,
-                &Tensor::from_vec(has_u8, n_slots, &dev)?,
-                &ok,
-                coef.as_ref(),
-                crate::compute::cuda::AdamScalars {
-                    one_minus_b1: (1.0 - b1) as f32,
-                    b2: b2 as f32,
-                    one_minus_b2: (1.0 - b2) as f32,
-                    eps: eps as f32,
-                },
+        let scalars = Scalars {
+            b1,
+            b2,
+            eps,
+            step_size,
+            bias2_sqrt,
+        };
+        let modeled = crate::compute::account::emulates_cuda() && dev.is_cpu();
+        let (p, m, v) = if dev.is_cuda() || modeled {
+            self.device_update(g, has, apply, coef, &scalars)?
+        } else {
+            self.plain_update(g, has, apply, coef, &scalars)?
+        };
+        for slot in &self.slots {
+            slot.var.set(
+                &p.narrow(0, slot.offset, slot.len)?
+                    .reshape(slot.var.shape())?,
             )?;
-            for slot in &self.slots {
-                slot.var.set(
-                    &p.narrow(0, slot.offset, slot.len)?
-                        .reshape(slot.var.shape())?,
-                )?;
-            }
-            self.exp_avg = m;
-            self.exp_avg_sq = v;
-            self.steps = t;
-            return Ok(());
         }
+        self.exp_avg = m;
+        self.exp_avg_sq = v;
+        self.steps = t;
+        Ok(())
+    }
+
+    /// The update as tensor ops (the CPU's route): new (parameters, first moments, second
+    /// moments), flat.
+    fn plain_update(
+        &self,
+        g: &Tensor,
+        has: &[bool],
+        apply: Option<&Tensor>,
+        coef: Option<&Tensor>,
+        sc: &Scalars,
+    ) -> Result<(Tensor, Tensor, Tensor), TrainError> {
+        let (b1, b2, eps) = (sc.b1, sc.b2, sc.eps);
+        let n_slots = self.slots.len();
         let g = match coef {
             Some(c) => g.broadcast_mul(c)?,
             None => g.clone(),
@@ -491,19 +494,14 @@ impl Adam {
         let per_elem = |v: Tensor| -> candle_core::Result<Tensor> {
             v.to_dtype(DType::F32)?.index_select(&self.slot_of, 0)
         };
-        let step_size = per_elem(step_size)?;
-        let inv_bias2 = per_elem(bias2_sqrt.recip()?)?;
+        let step_size = per_elem(sc.step_size.clone())?;
+        let inv_bias2 = per_elem(sc.bias2_sqrt.recip()?)?;
         let g = g.detach();
         let m = (&self.exp_avg + ((&g - &self.exp_avg)? * (1.0 - b1))?)?;
         let v = ((&self.exp_avg_sq * b2)? + (g.sqr()? * (1.0 - b2))?)?;
         let denom = (v.sqrt()?.mul(&inv_bias2)? + eps)?;
         let update = (m.mul(&step_size)? / denom)?;
-        let params: Vec<Tensor> = self
-            .slots
-            .iter()
-            .map(|s| s.var.as_tensor().detach().flatten_all())
-            .collect::<candle_core::Result<_>>()?;
-        let p_old = Tensor::cat(&params, 0)?;
+        let p_old = self.flat_params()?;
         let mut p = (&p_old - update)?;
         let (mut m, mut v) = (m, v);
         // Where the update does not apply, everything keeps its old value.
@@ -513,7 +511,7 @@ impl Adam {
             (Some(a), true) => Some(a.broadcast_as(p.shape())?),
             (a, false) => {
                 let has_u8: Vec<u8> = has.iter().map(|&h| h as u8).collect();
-                let slot_has = Tensor::from_vec(has_u8, n_slots, &dev)?;
+                let slot_has = Tensor::from_vec(has_u8, n_slots, &self.device)?;
                 let mut mask = slot_has.index_select(&self.slot_of, 0)?;
                 if let Some(a) = a {
                     mask = mask.broadcast_mul(&a.to_dtype(DType::U8)?)?;
@@ -526,16 +524,83 @@ impl Adam {
             m = mask.where_cond(&m, &self.exp_avg)?;
             v = mask.where_cond(&v, &self.exp_avg_sq)?;
         }
-        for slot in &self.slots {
-            slot.var.set(
-                &p.narrow(0, slot.offset, slot.len)?
-                    .reshape(slot.var.shape())?,
-            )?;
+        Ok((p, m, v))
+    }
+
+    /// Every parameter, flat in slot order.
+    fn flat_params(&self) -> candle_core::Result<Tensor> {
+        let params: Vec<Tensor> = self
+            .slots
+            .iter()
+            .map(|s| s.var.as_tensor().detach().flatten_all())
+            .collect::<candle_core::Result<_>>()?;
+        Tensor::cat(&params, 0)
+    }
+
+    /// The update as one kernel (`adam.cu`): on CUDA, or counted as that kernel in a CPU run
+    /// accounted as CUDA (computed by [`Self::plain_update`], which gives the same bits).
+    fn device_update(
+        &self,
+        g: &Tensor,
+        has: &[bool],
+        apply: Option<&Tensor>,
+        coef: Option<&Tensor>,
+        sc: &Scalars,
+    ) -> Result<(Tensor, Tensor, Tensor), TrainError> {
+        let dev = &self.device;
+        let has_u8: Vec<u8> = has.iter().map(|&h| h as u8).collect();
+        let ok = match apply {
+            Some(a) => a.to_dtype(DType::U8)?.reshape(1)?,
+            None => Tensor::new(&[1u8], dev)?,
+        };
+        let p_old = self.flat_params()?;
+        let coef = coef
+            .map(|c| c.to_dtype(DType::F32)?.reshape(1))
+            .transpose()?;
+        let step_size = sc.step_size.to_dtype(DType::F32)?;
+        let inv_bias2 = sc.bias2_sqrt.recip()?.to_dtype(DType::F32)?;
+        let has_t = Tensor::from_vec(has_u8, has.len(), dev)?;
+        #[cfg(feature = "cuda")]
+        if dev.is_cuda() {
+            return Ok(crate::compute::cuda::adam(
+                &g.detach().contiguous()?,
+                &p_old,
+                &self.exp_avg,
+                &self.exp_avg_sq,
+                &self.slot_of,
+                &step_size,
+                &inv_bias2,
+                &has_t,
+                &ok,
+                coef.as_ref(),
+                crate::compute::cuda::AdamScalars {
+                    one_minus_b1: (1.0 - sc.b1) as f32,
+                    b2: sc.b2 as f32,
+                    one_minus_b2: (1.0 - sc.b2) as f32,
+                    eps: sc.eps as f32,
+                },
+            )?);
         }
-        self.exp_avg = m;
-        self.exp_avg_sq = v;
-        self.steps = t;
-        Ok(())
+        drop((p_old, step_size, inv_bias2, has_t, ok));
+        let (p, m, v) = candle_core::account::uncounted(|| -> Result<_, TrainError> {
+            let (p, m, v) = self.plain_update(g, has, apply, coef.as_ref(), sc)?;
+            Ok((
+                p.to_vec1::<f32>()?,
+                m.to_vec1::<f32>()?,
+                v.to_vec1::<f32>()?,
+            ))
+        })?;
+        let n = p.len() as u64;
+        let slots = has.len() as u64;
+        // adam.cu reads g, p, m, v, the slot of every element, per slot the step size,
+        // 1/sqrt(1 − b2^t) and the has-gradient flag, the ok flag and the clip factor.
+        let read = 4 * 4 * n + 4 * n + 9 * slots + 1 + 4;
+        let (p, m, v) = (
+            crate::compute::account::emit(g, "pma-adam", p, 1, (read, 3 * 4 * n))?,
+            crate::compute::account::emit(g, "pma-wrap", m, 0, (0, 0))?,
+            crate::compute::account::emit(g, "pma-wrap", v, 0, (0, 0))?,
+        );
+        Ok((p, m, v))
     }
 
     /// Bias-correction tables covering step counts 0..len (grown by doubling).
@@ -687,6 +752,84 @@ mod tests {
     /// One flat update equals an update per parameter (the reference formula per tensor),
     /// bit for bit, with two groups, a parameter without a gradient on one step, and a masked
     /// step that changes nothing.
+    /// Steps accounted as CUDA (clipped, masked, one parameter without a gradient) give the
+    /// CPU route's bits and count the update as `adam.cu`'s one launch, with none of the
+    /// plain update's element-wise ops.
+    #[test]
+    fn update_counted_as_cuda_keeps_the_cpu_bits() {
+        use crate::compute::account::{Account, Route};
+        let dev = Device::Cpu;
+        let shapes: [&[usize]; 3] = [&[3, 4], &[5], &[2, 2]];
+        let names = ["graph_net.w", "pts_linears.0.weight", "pts_linears.0.bias"];
+        let make = || -> Vec<(String, Var)> {
+            names
+                .iter()
+                .zip(shapes)
+                .enumerate()
+                .map(|(k, (name, s))| {
+                    let len: usize = s.iter().product();
+                    let v: Vec<f32> = (0..len).map(|i| (i + k) as f32 * 0.37 - 1.1).collect();
+                    let t = Tensor::from_vec(v, s, &dev).unwrap();
+                    (name.to_string(), Var::from_tensor(&t).unwrap())
+                })
+                .collect()
+        };
+        let run = |accounted: bool| {
+            let vars = make();
+            let mut adam = Adam::reference(&vars, 1e-3, 5e-3, [0.9, 0.999], 1e-8).unwrap();
+            let account = accounted.then(|| Account::start(&dev, Route::Cuda).unwrap());
+            for step in 0..3usize {
+                let grads: Vec<Option<Tensor>> = adam
+                    .param_names()
+                    .enumerate()
+                    .map(|(k, _)| {
+                        let shape = vars[k].1.shape().clone();
+                        let len = shape.elem_count();
+                        let g: Vec<f32> = (0..len)
+                            .map(|i| ((i * 5 + k + step) % 7) as f32 * 0.3 - 0.8)
+                            .collect();
+                        (step != 1 || k != 2).then(|| Tensor::from_vec(g, shape, &dev).unwrap())
+                    })
+                    .collect();
+                let (flat, has) = adam.flatten(&grads).unwrap();
+                let coef = Tensor::new(0.75f32, &dev).unwrap();
+                let ok = Tensor::new(u8::from(step != 2), &dev).unwrap();
+                adam.step_clipped(&flat, &has, Some(&ok), Some(&coef))
+                    .unwrap();
+            }
+            let report = account.map(Account::finish);
+            let mut bits: Vec<Vec<u32>> = vars
+                .iter()
+                .map(|(_, v)| {
+                    let x: Vec<f32> = v.flatten_all().unwrap().to_vec1().unwrap();
+                    x.iter().map(|x| x.to_bits()).collect()
+                })
+                .collect();
+            for t in [&adam.exp_avg, &adam.exp_avg_sq] {
+                let x: Vec<f32> = t.to_vec1().unwrap();
+                bits.push(x.iter().map(|x| x.to_bits()).collect());
+            }
+            (bits, report)
+        };
+        let (cpu, _) = run(false);
+        let (counted, report) = run(true);
+        let report = report.unwrap();
+        assert_eq!(cpu, counted);
+        let op = |name: &str| report.ops.get(name).copied().unwrap_or_default();
+        assert_eq!((op("pma-adam").ops, op("pma-adam").launches), (3, 3));
+        assert_eq!(op("pma-wrap").launches, 0);
+        let n = 12 + 5 + 4;
+        assert_eq!(op("pma-adam").bytes_written, 3 * 3 * 4 * n);
+        for plain in ["sqrt", "sqr", "sub", "where"] {
+            assert_eq!(
+                op(plain).ops,
+                0,
+                "plain op `{plain}` in {:?}",
+                report.ops.keys()
+            );
+        }
+    }
+
     #[test]
     fn flat_update_equals_per_parameter_updates_and_masks() {
         let shapes: [&[usize]; 3] = [&[2, 3], &[4], &[1, 5]];

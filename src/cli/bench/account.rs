@@ -193,6 +193,11 @@ fn print_tables(f: &AccountReport) {
         oc.map(|c| format!("{:.2}", gb(c.bytes()))),
     );
     line(
+        "GB peak live memory (allocated in the step)",
+        format!("{:.2}", gb(f.peak_live_bytes_per_step)),
+        oc.map(|_| "not counted".to_string()),
+    );
+    line(
         "TFLOP (matmul)",
         format!("{:.3}", f.flops_per_step as f64 / 1e12),
         oc.map(|c| format!("{:.3}", c.flops as f64 / 1e12)),

@@ -27,6 +27,10 @@ thread_local! {
     static SINK: RefCell<Option<Sink>> = const { RefCell::new(None) };
     /// Launches and parameter uploads a custom op reported for itself while it ran.
     static REPORTED: Cell<Option<(u32, u32)>> = const { Cell::new(None) };
+    /// Bytes read and written a custom op reported for itself while it ran.
+    static REPORTED_BYTES: Cell<Option<(u64, u64)>> = const { Cell::new(None) };
+    /// Matmul FLOPs a custom op reported for itself while it ran.
+    static REPORTED_FLOPS: Cell<u64> = const { Cell::new(0) };
     /// Inside [`host_only`]: CPU storage is host memory even for a `host_as_device` sink.
     static HOST_ONLY: Cell<bool> = const { Cell::new(false) };
     /// Inside [`uncounted`]: nothing is counted.
@@ -105,6 +109,13 @@ impl Sink {
         self.live.lock().unwrap_or_else(|e| e.into_inner()).peak
     }
 
+    /// The live bytes right after each allocation counted so far, in order: where the peak
+    /// can be. Runs that make the same allocations in the same order at different sizes
+    /// give traces of the same length, so a peak can be extrapolated point by point.
+    pub fn live_trace(&self) -> Vec<u64> {
+        self.live.lock().unwrap_or_else(|e| e.into_inner()).trace.clone()
+    }
+
     /// Start a new peak from the bytes alive now.
     pub fn reset_peak(&self) {
         let mut live = self.live.lock().unwrap_or_else(|e| e.into_inner());
@@ -119,6 +130,7 @@ struct Live {
     entries: Vec<(Weak<dyn Any + Send + Sync>, u64)>,
     bytes: u64,
     peak: u64,
+    trace: Vec<u64>,
 }
 
 impl Live {
@@ -140,6 +152,7 @@ impl Live {
         self.entries.push((what, bytes));
         self.bytes += bytes;
         self.peak = self.peak.max(self.bytes);
+        self.trace.push(self.bytes);
     }
 }
 
@@ -200,6 +213,23 @@ pub fn on() -> bool {
 pub fn report_launches(launches: u32, param_uploads: u32) {
     if on() {
         REPORTED.with(|r| r.set(Some((launches, param_uploads))));
+    }
+}
+
+/// Called by a custom op while it runs: its kernel reads `read` and writes `written` bytes
+/// (counted instead of the default: every input's footprint and the output), for a kernel
+/// that reads part of an input or writes a second output.
+pub fn report_bytes(read: u64, written: u64) {
+    if on() {
+        REPORTED_BYTES.with(|r| r.set(Some((read, written))));
+    }
+}
+
+/// Called by a custom op while it runs: it makes a matrix product of `flops` FLOPs (counted
+/// instead of the default, 0).
+pub fn report_flops(flops: u64) {
+    if on() {
+        REPORTED_FLOPS.with(|r| r.set(flops));
     }
 }
 
@@ -330,18 +360,27 @@ pub(crate) fn custom<T>(
         return run().map(|(t, s, _)| (t, s));
     }
     REPORTED.with(|r| r.set(None));
+    REPORTED_BYTES.with(|r| r.set(None));
+    REPORTED_FLOPS.with(|r| r.set(0));
     let (t, shape, dtype) = run()?;
     // Unreported: one kernel, with its dims/strides upload for a strided first input (the
     // rule of candle-nn's element-wise custom ops).
     let default = (1, inputs.first().map_or(0, |(l, _)| strided(l)));
     let (launches, param_uploads) = REPORTED.with(|r| r.take()).unwrap_or(default);
+    let (bytes_read, bytes_written) = REPORTED_BYTES.with(|r| r.take()).unwrap_or_else(|| {
+        (
+            inputs.iter().map(|(l, d)| bytes(l, *d)).sum(),
+            (shape.elem_count() * dtype.size_in_bytes()) as u64,
+        )
+    });
+    let flops = REPORTED_FLOPS.with(|r| r.replace(0));
     op(cpu, || Op {
         name,
         launches,
         param_uploads,
-        bytes_read: inputs.iter().map(|(l, d)| bytes(l, *d)).sum(),
-        bytes_written: (shape.elem_count() * dtype.size_in_bytes()) as u64,
-        flops: 0,
+        bytes_read,
+        bytes_written,
+        flops,
     });
     Ok((t, shape))
 }

@@ -711,11 +711,16 @@ impl GradStore {
     /// Adds `grad` to the gradient of `tensor`. The first contribution is stored as it is
     /// (made contiguous) instead of being added to a fresh zero tensor: one allocation,
     /// memset and pass fewer per node, and the same values (only a -0 now stays -0).
+    /// What is stored is detached (unless `CANDLE_GRAD_DO_NOT_DETACH`): a gradient computed
+    /// from a tracked tensor (a weight's, `lhs.t().matmul(grad)`) would otherwise hold its
+    /// inputs, the upstream gradient among them, alive until the store is dropped.
     fn accumulate(&mut self, tensor: &Tensor, grad: &Tensor) -> Result<()> {
+        let keep_graph = CANDLE_GRAD_DO_NOT_DETACH.with(|b| *b);
+        let cut = |t: Tensor| if keep_graph { t } else { t.detach() };
         match self.0.entry(tensor.id()) {
             Entry::Occupied(mut entry) => {
                 let sum = entry.get().add(grad)?;
-                entry.insert(sum);
+                entry.insert(cut(sum));
             }
             Entry::Vacant(entry) => {
                 let grad = if grad.is_contiguous() {
@@ -723,7 +728,7 @@ impl GradStore {
                 } else {
                     grad.contiguous()?
                 };
-                entry.insert(grad);
+                entry.insert(cut(grad));
             }
         }
         Ok(())

@@ -20,7 +20,7 @@ use std::sync::{Arc, Mutex};
 use std::thread::ThreadId;
 
 use candle_core::account::{self as hook, Event, Sink};
-use candle_core::Device;
+use candle_core::{Device, Tensor};
 use serde::{Deserialize, Serialize};
 
 use crate::error::{ModelError, Result};
@@ -159,6 +159,14 @@ pub struct Report {
     pub stages: Vec<Stage>,
     /// Per op name.
     pub ops: BTreeMap<String, Counts>,
+    #[serde(default)]
+    /// The most bytes of memory allocated during the run that were alive at once: the
+    /// run's activations, gradients and new state. What existed before it started (the
+    /// parameters, the optimizer's moments) is not included.
+    pub peak_live_bytes: u64,
+    /// The live bytes after every allocation of the run, in order (for [`Self::extrapolate`]).
+    #[serde(skip)]
+    pub live_trace: Vec<u64>,
 }
 
 impl Report {
@@ -270,11 +278,30 @@ impl Report {
                 .ok_or_else(|| bad(format!("op `{name}`")))?;
             ops.insert(name.clone(), counts);
         }
+        // The peak is the largest live size after an allocation. Each of those is affine in
+        // the size when the runs allocate alike, but which one is largest can change with
+        // the size: extrapolate every point, then take the largest.
+        let same_len =
+            a.live_trace.len() == b.live_trace.len() && b.live_trace.len() == c.live_trace.len();
+        if !same_len {
+            return Err(bad("the sequence of allocations".into()));
+        }
+        let live_trace = (0..a.live_trace.len())
+            .map(|i| {
+                affine(
+                    [&a.live_trace, &b.live_trace, &c.live_trace].map(|t| t[i]),
+                    k,
+                )
+            })
+            .collect::<Option<Vec<u64>>>()
+            .ok_or_else(|| bad("the live memory after an allocation".into()))?;
         Ok(Report {
             route: a.route,
             total,
             stages,
             ops,
+            peak_live_bytes: live_trace.iter().copied().max().unwrap_or(0),
+            live_trace,
         })
     }
 }
@@ -284,6 +311,8 @@ impl Report {
 pub struct Summary {
     pub route: Route,
     pub total: Counts,
+    /// [`Report::peak_live_bytes`].
+    pub peak_live_bytes: u64,
     pub stages: Vec<StageSummary>,
     pub ops: BTreeMap<String, Counts>,
     /// Estimated times on every GPU of [`GPUS`].
@@ -305,6 +334,7 @@ impl Report {
         Summary {
             route: self.route,
             total: self.total,
+            peak_live_bytes: self.peak_live_bytes,
             stages: self
                 .stages
                 .iter()
@@ -475,6 +505,8 @@ fn join(sink: Sink, tally: Arc<Tally>, route: Route) -> Joined {
 /// [`crate::compute::parallel::map_ordered`]), from [`Account::start`] to [`Account::finish`].
 pub struct Account {
     tally: Arc<Tally>,
+    /// Where this thread's events go: it also keeps the live-memory peak.
+    sink: Sink,
     route: Route,
     joined: Option<Joined>,
     /// The run belongs to the thread that opened it.
@@ -493,9 +525,10 @@ impl Account {
         }
         let tally = Arc::new(Tally::default());
         let sink = Sink::new(tally.clone(), device.is_cpu());
-        let joined = join(sink, tally.clone(), route);
+        let joined = join(sink.clone(), tally.clone(), route);
         Ok(Self {
             tally,
+            sink,
             route,
             joined: Some(joined),
             _not_send: std::marker::PhantomData,
@@ -524,6 +557,8 @@ impl Account {
             total: t.total,
             stages: std::mem::take(&mut t.stages),
             ops,
+            peak_live_bytes: self.sink.peak_live_bytes(),
+            live_trace: self.sink.live_trace(),
         }
     }
 }
@@ -537,6 +572,54 @@ pub fn measure<T, E: From<ModelError>>(
     let account = Account::start(device, route)?;
     let out = f()?;
     Ok((out, account.finish()))
+}
+
+/// A CPU tensor holding `data`, made by a custom op on `like` that counts as `name` with
+/// `launches` launches and `bytes` (read, written): how a CPU run accounted as CUDA hands
+/// over a result it computed uncounted ([`candle_core::account::uncounted`]) as the output
+/// of the kernel that computes it on a GPU (its storage then counts as live memory too).
+pub fn emit(
+    like: &Tensor,
+    name: &'static str,
+    data: Vec<f32>,
+    launches: u32,
+    bytes: (u64, u64),
+) -> candle_core::Result<Tensor> {
+    like.apply_op1_no_bwd(&Emit {
+        name,
+        data: Mutex::new(Some(data)),
+        launches,
+        bytes,
+    })
+}
+
+struct Emit {
+    name: &'static str,
+    data: Mutex<Option<Vec<f32>>>,
+    launches: u32,
+    bytes: (u64, u64),
+}
+
+impl candle_core::CustomOp1 for Emit {
+    fn name(&self) -> &'static str {
+        self.name
+    }
+
+    fn cpu_fwd(
+        &self,
+        _: &candle_core::CpuStorage,
+        _: &candle_core::Layout,
+    ) -> candle_core::Result<(candle_core::CpuStorage, candle_core::Shape)> {
+        hook::report_launches(self.launches, 0);
+        hook::report_bytes(self.bytes.0, self.bytes.1);
+        let data = self.data.lock().unwrap_or_else(|e| e.into_inner()).take();
+        let data = data.ok_or_else(|| candle_core::Error::Msg("emit: used twice".into()))?;
+        let n = data.len();
+        Ok((
+            candle_core::CpuStorage::F32(data),
+            candle_core::Shape::from(n),
+        ))
+    }
 }
 
 /// This thread's accounted run, captured to be joined on worker threads.
@@ -747,12 +830,46 @@ mod tests {
         let e = Report::extrapolate([&r1, &r2, &r3], 4).unwrap();
         let direct = run(50);
         assert_eq!(e.total, direct.total);
+        assert_eq!(e.peak_live_bytes, direct.peak_live_bytes);
+        assert!(e.peak_live_bytes >= 50 * 8 * 4);
         assert_eq!(e.ops, direct.ops);
         assert_eq!(e.stages, direct.stages);
         // Sizes 10, 20, 40 are not equally spaced: the bytes are not affine in the step.
         let r4 = run(40);
         assert!(Report::extrapolate([&r1, &r2, &r4], 4).is_err());
         assert!(Report::extrapolate([&r1, &r2, &run_other(&dev)], 4).is_err());
+    }
+
+    /// A backward keeps the activations and the gradients in flight, not every upstream
+    /// gradient a weight's gradient was computed from (candle's store keeps what it stores
+    /// detached: vendor/candle-core PATCH.md, change 1).
+    #[test]
+    fn backward_holds_no_upstream_gradient_through_a_weight_gradient() {
+        let dev = Device::Cpu;
+        let (rows, width, layers) = (256usize, 32usize, 6usize);
+        let x = Tensor::ones((rows, width), DType::F32, &dev).unwrap();
+        let ws: Vec<candle_core::Var> = (0..layers)
+            .map(|_| candle_core::Var::ones((width, width), DType::F32, &dev).unwrap())
+            .collect();
+        let (_, r) = measure(&dev, Route::Cuda, || {
+            let mut h = x.clone();
+            for w in &ws {
+                h = (h.matmul(w.as_tensor())? * 0.01)?;
+            }
+            let g = h.sum_all()?.backward()?;
+            Ok(g.get(ws[0].as_tensor()).is_some())
+        })
+        .unwrap();
+        let act = (rows * width * 4) as u64;
+        // Forward: a product and a scaled copy per layer. Backward: a few [rows,width]
+        // gradients at a time, plus the weights' gradients.
+        let activations = 2 * layers as u64 * act;
+        let weights = (layers * width * width * 4) as u64;
+        assert!(
+            r.peak_live_bytes <= activations + 3 * act + weights + 4096,
+            "peak {} for {activations} of activations",
+            r.peak_live_bytes
+        );
     }
 
     fn run_other(dev: &Device) -> Report {

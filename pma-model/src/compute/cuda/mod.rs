@@ -436,6 +436,11 @@ mod launch {
         fn cuda_fwd(&self, g: &CudaStorage, lg: &Layout) -> Result<(CudaStorage, Shape)> {
             candle_core::account::report_launches(1, 0);
             let n = lg.shape().elem_count();
+            // g, p, m, v, slot_of, per slot step size, 1/sqrt(1 − b2^t) and the flag, ok,
+            // the clip factor; p, m and v written.
+            let slots = self.others.get(5).map_or(0, |t| t.elem_count()) as u64;
+            let n64 = n as u64;
+            candle_core::account::report_bytes(5 * 4 * n64 + 9 * slots + 5, 3 * 4 * n64);
             let guards: Vec<_> = self.others.iter().map(|t| t.storage_and_layout()).collect();
             let mut cuda = Vec::with_capacity(guards.len());
             for (guard, l) in &guards {
@@ -532,6 +537,7 @@ mod launch {
 
         fn cuda_fwd(&self, s: &CudaStorage, _: &Layout) -> Result<(CudaStorage, Shape)> {
             candle_core::account::report_launches(0, 0);
+            candle_core::account::report_bytes(0, 0);
             let buf = self.buf.lock().unwrap_or_else(|e| e.into_inner()).take();
             let buf =
                 buf.ok_or_else(|| candle_core::Error::Msg("wrap: buffer used twice".into()))?;
