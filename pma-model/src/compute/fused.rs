@@ -23,9 +23,11 @@
 //! What a backward needs from its forward (the arg-max, cos of the sine's argument) is kept
 //! once and used once; a second backward over the same graph computes it again.
 //!
-//! They run on CPU in f32 when the network's [`Numerics::fused`] is on; other devices and
-//! dtypes take the plain path, as does a CPU run accounted as CUDA
-//! ([`crate::compute::account`]).
+//! They run in f32 when the network's [`Numerics::fused`] is on: on the CPU as written here,
+//! on CUDA through the kernels of [`crate::compute::cuda`] (the linear layer through cuBLAS
+//! and candle's bias-add kernel), and in a CPU run accounted as CUDA
+//! ([`crate::compute::account`]) as the CPU code counted as those kernels. Other dtypes take
+//! the plain path.
 
 use std::sync::{Arc, Mutex};
 
