@@ -1,7 +1,8 @@
 //! `pma check-stability`: run the numerical-stability probes (`pma_model::tools::stability`)
 //! on a checkpoint or a freshly initialised avatar and print one table row per case. Exits
 //! non-zero when any output or gradient is non-finite (with `--strict`, also on broken
-//! invariants such as far < near).
+//! invariants such as far < near). A model with an occupancy grid is probed with the grid on
+//! (the route `--occupancy` renders and trains with), unless `--no-occupancy`.
 
 use std::path::PathBuf;
 
@@ -9,6 +10,7 @@ use anyhow::{bail, Context, Result};
 
 use super::refuse;
 use pma_model::render::avatar::Avatar;
+use pma_model::render::PassOptions;
 use pma_model::tools::stability::{self, ProbeOptions};
 use pma_model::Config;
 
@@ -28,6 +30,13 @@ pub struct Args {
     /// Also fail on broken invariants (weights outside [0,1], far < near, batch dependence).
     #[arg(long)]
     strict: bool,
+    /// Run every forward probe with the occupancy grid on (the default when the model has a
+    /// grid); refused for a model without one.
+    #[arg(long, conflicts_with = "no_occupancy")]
+    occupancy: bool,
+    /// Probe the parity route even when the model has an occupancy grid.
+    #[arg(long)]
+    no_occupancy: bool,
     /// Compute device: cpu, cuda, cuda:N, metal.
     #[arg(long, default_value = "cpu")]
     device: String,
@@ -59,10 +68,27 @@ pub fn run(args: Args) -> Result<()> {
         let mut cfg = avatar.config().clone();
         cfg.quirks.robust_ray_bounds = true;
         cfg.quirks.per_ray_cylinder_fallback = true;
-        avatar = Avatar::from_tensors(cfg, tensors, &device)?;
+        let grid = avatar.occupancy().cloned();
+        avatar = Avatar::from_tensors(cfg, tensors, &device)?.with_occupancy(grid);
     }
     let avatar = avatar.with_numerics(super::numerics());
-    let opts = ProbeOptions::default();
+    if args.occupancy && avatar.occupancy().is_none() {
+        let which = model.as_deref().map_or_else(
+            || format!("the fresh `{}` avatar", args.preset),
+            |p| p.display().to_string(),
+        );
+        refuse!(
+            "--occupancy: {which} has no occupancy grid (train with `--occupancy` or build one \
+             with `pma occupancy build`)"
+        );
+    }
+    let opts = ProbeOptions {
+        pass: PassOptions {
+            occupancy: avatar.occupancy().is_some() && !args.no_occupancy,
+            ..PassOptions::parity()
+        },
+        ..ProbeOptions::default()
+    };
     let bar = super::progress::bar(args.quiet, stability::case_count(&opts)? as u64, "probes");
     let report = stability::run_all(&avatar, &opts, &mut |row| {
         bar.set_message(row.case.clone());
@@ -70,6 +96,7 @@ pub fn run(args: Args) -> Result<()> {
     })?;
     bar.finish_and_clear();
     print!("{}", report.table());
+    println!("{}", report.pass_summary());
     let (bad, broken) = (report.non_finite(), report.violations());
     println!("non-finite values: {bad}; broken invariants: {broken}");
     if bad > 0 {

@@ -103,6 +103,13 @@ pub fn run(mut args: Args) -> anyhow::Result<()> {
     let avatar = load_avatar(&args.model, &device, dirs)
         .with_context(|| format!("loading model {}", args.model.display()))?
         .with_numerics(super::numerics());
+    if args.occupancy && avatar.occupancy().is_none() {
+        refuse!(
+            "--occupancy: {} has no occupancy grid (train with `--occupancy` or build one with \
+             `pma occupancy build`)",
+            args.model.display()
+        );
+    }
     let (bones, root) = mesh_pose(&args, &avatar)?;
     let (poses, kp3d) = avatar.pose_from_bones(&bones, root)?;
     let mut field = AvatarField::new(&avatar, &poses)?;
@@ -123,6 +130,13 @@ pub fn run(mut args: Args) -> anyhow::Result<()> {
     )?;
     bar.finish_and_clear();
     let t_density = t0.elapsed().as_secs_f64();
+    if args.occupancy {
+        let (evaluated, skipped) = field.density_counts();
+        println!(
+            "occupancy grid: {skipped} of {} density points skipped as empty",
+            evaluated + skipped
+        );
+    }
     let t1 = Instant::now();
     let mut mesh = marching_cubes(&values, &grid, args.threshold)?;
     let t_mc = t1.elapsed().as_secs_f64();

@@ -1,11 +1,15 @@
-//! `pma check-stability`: the probe table on a fresh avatar and on a checkpoint, and a
-//! non-zero exit when a checkpoint produces non-finite values.
+//! `pma check-stability`: the probe table on a fresh avatar and on a checkpoint, a non-zero
+//! exit when a checkpoint produces non-finite values, and the probes of a model with an
+//! occupancy grid run with the grid on.
 
 use std::process::Command;
 
 use candle_core::{Device, Tensor};
+use pma_model::network::occupancy::{OccupancyConfig, OccupancyGrid};
 use pma_model::render::avatar::Avatar;
 use pma_model::Config;
+
+use crate::run::fails_with;
 
 fn pma() -> Command {
     Command::new(env!("CARGO_BIN_EXE_pma"))
@@ -87,4 +91,115 @@ fn a_poisoned_checkpoint_fails() {
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(!out.status.success(), "{stdout}");
     assert!(String::from_utf8_lossy(&out.stderr).contains("non-finite"));
+}
+
+/// A resolution-16 grid where about 30 % of each joint's cells hold density 1 (a fixed
+/// pseudo-random pattern) and the rest 0, so that some probe samples fall in empty cells.
+fn patterned_grid() -> OccupancyGrid {
+    let cfg = OccupancyConfig {
+        resolution: 16,
+        dilation: 0,
+        ..Default::default()
+    };
+    let mut grid = OccupancyGrid::new(cfg).unwrap();
+    let mut state = 11u64;
+    for j in 0..24 {
+        for c in 0..16 * 16 * 16 {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            let occupied = (state >> 40) % 10 < 3;
+            grid.update(j, c, if occupied { 1.0 } else { 0.0 }).unwrap();
+        }
+    }
+    grid.finish_refresh();
+    grid
+}
+
+/// The number in `line` just before `word` (e.g. "12 of" -> 12 for word "of").
+fn number_before(line: &str, word: &str) -> u64 {
+    let head = &line[..line
+        .find(word)
+        .unwrap_or_else(|| panic!("{word:?} in {line:?}"))];
+    head.split_whitespace().last().unwrap().parse().unwrap()
+}
+
+#[test]
+fn a_model_with_a_grid_is_probed_with_the_grid_on() {
+    let tmp = tempfile::tempdir().unwrap();
+    let cfg = Config {
+        n_framecodes: 2,
+        ..Config::tiny()
+    };
+    let plain = Avatar::new(cfg, &pma_data::synth::rest_pose(), 0, &Device::Cpu).unwrap();
+    let plain_path = tmp.path().join("plain.safetensors");
+    plain.save(&plain_path).unwrap();
+    let gridded_path = tmp.path().join("grid.safetensors");
+    plain
+        .with_occupancy(Some(patterned_grid()))
+        .save(&gridded_path)
+        .unwrap();
+    let probe = |model: &std::path::Path, extra: &[&str]| {
+        let mut cmd = pma();
+        // `--fixes` rebuilds the avatar from its tensors: the grid has to survive that too.
+        cmd.args([
+            "check-stability",
+            "--quiet",
+            "--fixes",
+            "--strict",
+            "--model",
+        ])
+        .arg(model);
+        cmd.args(extra).output().unwrap()
+    };
+
+    // The grid is on without asking: every forward probe consults it and it skips samples.
+    let out = probe(&gridded_path, &[]);
+    let stdout = String::from_utf8_lossy(&out.stdout).to_string();
+    assert!(
+        out.status.success(),
+        "{stdout}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(stdout.contains("skipped (empty)"), "{stdout}");
+    let summary = stdout
+        .lines()
+        .find(|l| l.starts_with("occupancy grid: on in "))
+        .unwrap_or_else(|| panic!("no grid summary in\n{stdout}"));
+    let on = number_before(summary, "of");
+    let forward = number_before(summary, "forward probes");
+    assert_eq!(on, forward, "{summary}");
+    // Extreme poses, the γ and the axis-scale probes: every one renders through the grid.
+    assert!(forward >= 20, "{summary}");
+    let rest = &summary[summary.find(';').unwrap()..];
+    let skipped_samples = number_before(rest, "of");
+    let total_samples = number_before(rest, "samples skipped");
+    assert!(
+        skipped_samples > 0 && skipped_samples < total_samples,
+        "{summary}"
+    );
+    assert!(
+        stdout.contains("non-finite values: 0; broken invariants: 0"),
+        "{stdout}"
+    );
+
+    // The same with `--occupancy` said out loud, and the parity route with `--no-occupancy`.
+    let same = probe(&gridded_path, &["--occupancy"]);
+    assert!(same.status.success());
+    assert_eq!(String::from_utf8_lossy(&same.stdout), stdout);
+    let off = probe(&gridded_path, &["--no-occupancy"]);
+    let off_stdout = String::from_utf8_lossy(&off.stdout);
+    assert!(off.status.success(), "{off_stdout}");
+    assert!(
+        off_stdout.contains("occupancy grid: off (") && !off_stdout.contains("skipped (empty)"),
+        "{off_stdout}"
+    );
+
+    // `--occupancy` on a model without a grid: exit 2, one line naming the flag.
+    let out = probe(&plain_path, &["--occupancy"]);
+    assert_eq!(out.status.code(), Some(2));
+    let stderr = String::from_utf8_lossy(&out.stderr).to_string();
+    assert_eq!(stderr.trim_end().lines().count(), 1, "{stderr}");
+    fails_with(out, "--occupancy");
+    assert!(stderr.contains("no occupancy grid"), "{stderr}");
 }

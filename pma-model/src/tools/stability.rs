@@ -6,6 +6,11 @@
 //! (weights outside [0,1], far < near, unsorted importance samples, a ray whose bounds depend
 //! on the rest of its batch). `pma check-stability` prints them; the `stability_*` tests
 //! assert on them. Nothing here changes the avatar.
+//!
+//! The forward probes take the pass's [`PassOptions`] ([`ProbeOptions::pass`]), so a model with
+//! an occupancy grid is probed on the route it renders and trains with. Such a pass cannot be
+//! traced (the trace needs every sample's intermediates), so the hidden-value check then runs
+//! on a separate parity forward of the same rays.
 
 use std::collections::HashMap;
 
@@ -35,6 +40,10 @@ pub struct ProbeRow {
     pub grad_norm: Option<f64>,
     /// Broken invariants (see the module docs).
     pub violations: usize,
+    /// Samples of the probed forward pass (0 for probes without one).
+    pub samples: u64,
+    /// Samples the occupancy grid left out; `None` where the probe did not consult a grid.
+    pub skipped_empty: Option<u64>,
 }
 
 /// All rows of a run.
@@ -63,18 +72,64 @@ impl Report {
             .max()
             .unwrap_or(4)
             .max(4);
+        // The column only appears when some probe consulted a grid, so a parity run prints
+        // the table it always printed.
+        let grid = self.rows.iter().any(|r| r.skipped_empty.is_some());
         let mut s = format!(
-            "{:<w$}  {:>12}  {:>10}  {:>12}  {:>10}\n",
+            "{:<w$}  {:>12}  {:>10}  {:>12}  {:>10}",
             "case", "max |output|", "non-finite", "grad norm", "violations"
         );
+        if grid {
+            s += &format!("  {:>15}", "skipped (empty)");
+        }
+        s += "\n";
         for r in &self.rows {
             let g = r.grad_norm.map_or("-".to_string(), |g| format!("{g:.3e}"));
             s += &format!(
-                "{:<w$}  {:>12.3e}  {:>10}  {:>12}  {:>10}\n",
+                "{:<w$}  {:>12.3e}  {:>10}  {:>12}  {:>10}",
                 r.case, r.max_abs, r.non_finite, g, r.violations
             );
+            if grid {
+                let k = r
+                    .skipped_empty
+                    .map_or("-".to_string(), |k| format!("{k} / {}", r.samples));
+                s += &format!("  {k:>15}");
+            }
+            s += "\n";
         }
         s
+    }
+
+    /// Probes whose forward pass consulted the occupancy grid, and all probes with a forward
+    /// pass.
+    pub fn grid_probes(&self) -> (usize, usize) {
+        let forward = self.rows.iter().filter(|r| r.samples > 0);
+        let on = forward
+            .clone()
+            .filter(|r| r.skipped_empty.is_some())
+            .count();
+        (on, forward.count())
+    }
+
+    /// Samples the grid left out and samples of the probes that consulted it.
+    pub fn grid_skipped(&self) -> (u64, u64) {
+        self.rows
+            .iter()
+            .filter_map(|r| r.skipped_empty.map(|k| (k, r.samples)))
+            .fold((0, 0), |(a, b), (k, n)| (a + k, b + n))
+    }
+
+    /// One line on how the forward probes ran: parity, or with the grid and what it skipped.
+    pub fn pass_summary(&self) -> String {
+        let (on, forward) = self.grid_probes();
+        if on == 0 {
+            return format!("occupancy grid: off ({forward} forward probes at parity)");
+        }
+        let (skipped, samples) = self.grid_skipped();
+        format!(
+            "occupancy grid: on in {on} of {forward} forward probes; {skipped} of {samples} \
+             samples skipped as empty (hidden values checked on a parity pass of the same rays)"
+        )
     }
 }
 
@@ -226,9 +281,19 @@ pub fn probe_rays(kp3d: &Joints) -> (Vec<f32>, Vec<f32>) {
 /// A training-like forward and backward on the probe rays of `bones` (root at the origin):
 /// training mode without noise, loss = L1 of both renders against grey + 1e-3·Σ box volumes.
 pub fn probe_pose(avatar: &Avatar, case: &str, bones: &Joints) -> Result<ProbeRow> {
+    probe_pose_with(avatar, case, bones, &PassOptions::parity())
+}
+
+/// [`probe_pose`] with the forward pass run under `pass` (e.g. with the occupancy grid on).
+pub fn probe_pose_with(
+    avatar: &Avatar,
+    case: &str,
+    bones: &Joints,
+    pass: &PassOptions,
+) -> Result<ProbeRow> {
     let (poses, kp3d) = avatar.pose_from_bones(bones, [0.0; 3])?;
     let (o, d) = probe_rays(&kp3d);
-    forward_backward(avatar, case, &poses, &o, &d)
+    forward_backward_with(avatar, case, &poses, &o, &d, pass)
 }
 
 /// [`probe_pose`] on given host rays: origins, dirs [R,3].
@@ -239,6 +304,19 @@ pub fn forward_backward(
     origins: &[f32],
     dirs: &[f32],
 ) -> Result<ProbeRow> {
+    forward_backward_with(avatar, case, poses, origins, dirs, &PassOptions::parity())
+}
+
+/// [`forward_backward`] with the pass run under `pass`.
+pub fn forward_backward_with(
+    avatar: &Avatar,
+    case: &str,
+    poses: &Poses,
+    origins: &[f32],
+    dirs: &[f32],
+    pass: &PassOptions,
+) -> Result<ProbeRow> {
+    pass.validate(avatar.config())?;
     let dev = avatar.device();
     let r = origins.len() / 3;
     let rays = Rays {
@@ -250,14 +328,21 @@ pub fn forward_backward(
     // Every intermediate is traced and counted: candle's ReLU maps NaN to 0, so a NaN density
     // head would otherwise render as empty space without a trace in the outputs.
     let mut trace = Trace::default();
-    let parity = PassOptions::parity();
-    let out = avatar.forward(
-        &rays,
-        poses,
-        &mut Mode::Train(None),
-        &parity,
-        Some(&mut trace),
-    )?;
+    let out = if pass.is_parity() {
+        avatar.forward(&rays, poses, &mut Mode::Train(None), pass, Some(&mut trace))?
+    } else {
+        // A traced pass takes every sample, so it cannot show the pass under test; trace a
+        // parity pass of the same rays for the hidden values and probe the real one.
+        let parity = PassOptions::parity();
+        avatar.forward(
+            &rays,
+            poses,
+            &mut Mode::Train(None),
+            &parity,
+            Some(&mut trace),
+        )?;
+        avatar.forward(&rays, poses, &mut Mode::Train(None), pass, None)?
+    };
     let loss = training_like_loss(&out)?;
     let grads = loss.backward()?;
     let (grad_norm, grad_bad) = grad_norm(avatar, &grads)?;
@@ -292,6 +377,8 @@ pub fn forward_backward(
         non_finite: bad + grad_bad + hidden,
         grad_norm: Some(grad_norm),
         violations,
+        samples: out.stats.samples,
+        skipped_empty: pass.occupancy.then_some(out.stats.skipped_empty),
     })
 }
 
@@ -369,7 +456,7 @@ pub fn with_constant_gamma(avatar: &Avatar, gamma: f64) -> Result<Avatar> {
         format!("{head}.bias"),
         Tensor::from_vec(bv, b.shape(), dev)?.to_dtype(dt)?,
     );
-    Avatar::from_tensors(cfg, tensors, dev)
+    Ok(Avatar::from_tensors(cfg, tensors, dev)?.with_occupancy(avatar.occupancy().cloned()))
 }
 
 /// The avatar with the raw axis-scale parameter set to `factor × base_scale` (0 or negative
@@ -378,7 +465,10 @@ pub fn with_axis_scale(avatar: &Avatar, factor: f64) -> Result<Avatar> {
     let mut tensors = avatar.tensors();
     let base = tensors["graph_net.base_scale"].clone();
     tensors.insert("graph_net.axis_scale".into(), (base * factor)?);
-    Avatar::from_tensors(avatar.config().clone(), tensors, avatar.device())
+    Ok(
+        Avatar::from_tensors(avatar.config().clone(), tensors, avatar.device())?
+            .with_occupancy(avatar.occupancy().cloned()),
+    )
 }
 
 /// Volume rendering on stiff inputs: for every interval length δ in 1e-7..1e10, rays with
@@ -488,6 +578,8 @@ pub fn probe_compositing(cfg: &Config) -> Result<Vec<ProbeRow>> {
             non_finite: bad + g_bad,
             grad_norm: Some(gn),
             violations: violations + is_bad,
+            samples: 0,
+            skipped_empty: None,
         });
     }
     Ok(rows)
@@ -598,6 +690,8 @@ pub fn probe_geometry(avatar: &Avatar, bones: &Joints) -> Result<ProbeRow> {
         non_finite: bad,
         grad_norm: None,
         violations,
+        samples: 0,
+        skipped_empty: None,
     })
 }
 
@@ -650,6 +744,9 @@ pub struct ProbeOptions {
     pub gammas: Vec<f64>,
     /// Raw axis-scale factors (× base scale) for the floor probes.
     pub scale_factors: Vec<f64>,
+    /// Options of every probed forward pass (parity by default; `occupancy` for a model with
+    /// a grid, so the probes see the samples it leaves out).
+    pub pass: PassOptions,
 }
 
 impl Default for ProbeOptions {
@@ -657,6 +754,7 @@ impl Default for ProbeOptions {
         Self {
             gammas: vec![-1e4, 0.0, 1e2, 1e3, 1e4],
             scale_factors: vec![0.0, -1e-3, 1e-30],
+            pass: PassOptions::parity(),
         }
     }
 }
@@ -673,6 +771,14 @@ pub fn run_all(
     opts: &ProbeOptions,
     progress: &mut dyn FnMut(&ProbeRow),
 ) -> Result<Report> {
+    opts.pass.validate(avatar.config())?;
+    if opts.pass.occupancy && avatar.occupancy().is_none() {
+        return Err(ModelError::Input(
+            "occupancy: the model has no occupancy grid (train with `--occupancy` or build one \
+             with `pma occupancy build`)"
+                .into(),
+        ));
+    }
     let mut report = Report::default();
     let mut add = |row: ProbeRow, report: &mut Report| {
         progress(&row);
@@ -681,7 +787,7 @@ pub fn run_all(
     let poses = extreme_poses()?;
     for (name, bones) in &poses {
         add(
-            probe_pose(avatar, &format!("pose: {name}"), bones)?,
+            probe_pose_with(avatar, &format!("pose: {name}"), bones, &opts.pass)?,
             &mut report,
         );
     }
@@ -689,14 +795,24 @@ pub fn run_all(
     for &g in &opts.gammas {
         let a = with_constant_gamma(avatar, g)?;
         add(
-            probe_pose(&a, &format!("gamma {g:.0e}, every joint pi"), hard)?,
+            probe_pose_with(
+                &a,
+                &format!("gamma {g:.0e}, every joint pi"),
+                hard,
+                &opts.pass,
+            )?,
             &mut report,
         );
     }
     for &f in &opts.scale_factors {
         let a = with_axis_scale(avatar, f)?;
         add(
-            probe_pose(&a, &format!("axis scale {f:e} x base (floor)"), hard)?,
+            probe_pose_with(
+                &a,
+                &format!("axis scale {f:e} x base (floor)"),
+                hard,
+                &opts.pass,
+            )?,
             &mut report,
         );
     }

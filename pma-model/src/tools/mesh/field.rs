@@ -1,5 +1,7 @@
 //! A trained avatar as a density/radiance field for mesh extraction.
 
+use std::sync::atomic::{AtomicUsize, Ordering};
+
 use candle_core::{DType, Device, Tensor};
 use pma_data::skeleton::N_JOINTS;
 
@@ -51,6 +53,9 @@ pub struct AvatarField<'a> {
     pub chunk: usize,
     /// The window test of the pose, when empty cells are skipped.
     empty_cells: Option<WindowTest>,
+    /// Density points so far that ran the network, and that the grid left out.
+    evaluated: AtomicUsize,
+    skipped_empty: AtomicUsize,
 }
 
 impl<'a> AvatarField<'a> {
@@ -85,6 +90,8 @@ impl<'a> AvatarField<'a> {
             mask_outside_boxes: true,
             chunk: INFERENCE_POINT_CHUNK,
             empty_cells: None,
+            evaluated: AtomicUsize::new(0),
+            skipped_empty: AtomicUsize::new(0),
         })
     }
 
@@ -201,12 +208,28 @@ impl<'a> AvatarField<'a> {
         }
     }
 
+    /// Density points [`Self::density`] has sent through the network so far, and those the
+    /// occupancy grid left out (points outside the boxes, when masked, count in neither).
+    pub fn density_counts(&self) -> (usize, usize) {
+        (
+            self.evaluated.load(Ordering::Relaxed),
+            self.skipped_empty.load(Ordering::Relaxed),
+        )
+    }
+
     /// Density `relu(σ)` at `pts` (no noise).
     pub fn density(&self, pts: &[[f32; 3]]) -> Result<Vec<f32>> {
-        let keep: Vec<usize> = (0..pts.len())
+        let in_boxes: Vec<usize> = (0..pts.len())
             .filter(|&i| !self.mask_outside_boxes || self.in_any_box(&pts[i]))
+            .collect();
+        let keep: Vec<usize> = in_boxes
+            .iter()
+            .copied()
             .filter(|&i| !self.in_empty_cell(&pts[i]))
             .collect();
+        self.evaluated.fetch_add(keep.len(), Ordering::Relaxed);
+        self.skipped_empty
+            .fetch_add(in_boxes.len() - keep.len(), Ordering::Relaxed);
         let mut out = vec![0f32; pts.len()];
         if keep.is_empty() {
             return Ok(out);
