@@ -4,6 +4,8 @@
 //! from parity's and held-out quality (`pma_model::bench::measure` measures; see its docs
 //! for how). Writes `bench.json` and `error_vs_time.png`.
 //!
+//! `--shares` replaces all of this by counts (`pma_model::bench::shares`): the share of
+//! samples that run the network per pass under each way of leaving work out.
 //! `--forward-batch` adds the wall time of whole `pma forward` processes (`bench/forward.rs`).
 //! `--account` replaces all of this by step accounting (`bench/account.rs`): counts of one
 //! training step and one inference pass as a GPU would run them, with estimated GPU times.
@@ -20,6 +22,7 @@ use super::{refuse, write_json};
 
 mod account;
 mod forward;
+mod shares;
 
 #[derive(clap::Args, Debug, Clone)]
 pub struct Args {
@@ -116,6 +119,26 @@ pub struct Args {
     /// estimated beside pma's.
     #[arg(long, requires = "account")]
     pub official_json: Option<PathBuf>,
+    /// Counts instead of timings: the share of samples that run the network in the coarse
+    /// and the fine pass with ray culling, w^p culling, the occupancy grid and all combined,
+    /// on held-out renders and training batches; writes `shares.json`. The model is
+    /// `--model`, or `--preset` trained in-process for `--shares-steps` steps; its grid is
+    /// built over `--occupancy-poses` training poses when it has none.
+    #[arg(long, conflicts_with_all = ["account", "forward_only"])]
+    pub shares: bool,
+    /// Training steps of the in-process model of `--shares`.
+    #[arg(long, default_value_t = 100, requires = "shares")]
+    pub shares_steps: u64,
+    /// Rays per step of that training (default: the preset's). The counted training
+    /// batches keep the preset's rays per step.
+    #[arg(long, requires = "shares")]
+    pub shares_train_rays: Option<usize>,
+    /// The w^p threshold of the culling rows of `--shares`.
+    #[arg(long, default_value_t = 0.6, requires = "shares")]
+    pub shares_threshold: f64,
+    /// Training batches counted by `--shares` (0: held-out renders only).
+    #[arg(long, default_value_t = 1, requires = "shares")]
+    pub shares_batches: usize,
 }
 
 pub fn run(mut args: Args) -> anyhow::Result<()> {
@@ -128,6 +151,9 @@ pub fn run(mut args: Args) -> anyhow::Result<()> {
     }
     if args.account {
         return account::run(&args, &dev);
+    }
+    if args.shares {
+        return shares::run(&args, &dev);
     }
     let preset: Preset = args.preset.parse()?;
     let mut scene = pma_data::synth::SynthConfig {
@@ -250,6 +276,14 @@ fn check_args(args: &mut Args) -> anyhow::Result<()> {
         if !(t.is_finite() && (0.0..1.0).contains(&t)) {
             refuse!("--thresholds: {t} is not in [0, 1)");
         }
+    }
+    let t = args.shares_threshold;
+    if !(t.is_finite() && (0.0..1.0).contains(&t)) {
+        refuse!("--shares-threshold: expected a number in [0, 1), found {t}");
+    }
+    if args.shares && args.quick {
+        args.shares_steps = args.shares_steps.min(2);
+        args.occupancy_poses = args.occupancy_poses.min(2);
     }
     Ok(())
 }

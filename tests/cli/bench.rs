@@ -291,3 +291,170 @@ fn account_refuses_bad_flags() {
     assert_eq!(o.status.code(), Some(2));
     fails_with(o, "one-pass");
 }
+
+/// A resolution-16 grid where about 30 % of each joint's cells hold density 1 (a fixed
+/// pseudo-random pattern) and the rest 0.
+fn patterned_grid() -> pma_model::network::occupancy::OccupancyGrid {
+    use pma_model::network::occupancy::{OccupancyConfig, OccupancyGrid};
+    let cfg = OccupancyConfig {
+        resolution: 16,
+        dilation: 0,
+        ..Default::default()
+    };
+    let mut grid = OccupancyGrid::new(cfg).unwrap();
+    let mut state = 5u64;
+    for j in 0..24 {
+        for c in 0..16 * 16 * 16 {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            let occupied = (state >> 40) % 10 < 3;
+            grid.update(j, c, if occupied { 1.0 } else { 0.0 }).unwrap();
+        }
+    }
+    grid.finish_refresh();
+    grid
+}
+
+fn u(v: &serde_json::Value, key: &str) -> u64 {
+    v[key].as_u64().unwrap_or_else(|| panic!("{key} in {v}"))
+}
+
+/// The rows of one ray set, by option name.
+fn rows(
+    json: &serde_json::Value,
+    set: &str,
+) -> std::collections::BTreeMap<String, serde_json::Value> {
+    json[set]
+        .as_array()
+        .unwrap_or_else(|| panic!("{set} in {json}"))
+        .iter()
+        .map(|r| (r["option"].as_str().unwrap().to_string(), r.clone()))
+        .collect()
+}
+
+/// What must hold between the rows of one ray set whatever the model: parity evaluates
+/// everything; a culled ray skips all its samples (so ray culling's coarse and fine shares
+/// are both the share of rays that hit a box); each way of leaving work out only removes
+/// coarse samples from what the parts it combines keep (the coarse samples are placed
+/// before any decision; the fine ones follow the coarse weights, which the options change).
+fn check_rows(json: &serde_json::Value, set: &str) {
+    let r = rows(json, set);
+    let (sc, sf) = (
+        u(json, "coarse_samples_per_ray"),
+        u(json, "fine_samples_per_ray"),
+    );
+    let p = &r["parity"];
+    let rays = u(p, "rays");
+    assert!(rays > 0, "{set}: {p}");
+    for row in r.values() {
+        assert_eq!(u(row, "rays"), rays, "{set}: {row}");
+        assert_eq!(u(row, "coarse_samples"), rays * sc);
+        assert_eq!(u(row, "fine_samples"), rays * sf);
+        assert!(u(row, "coarse_evaluated") + u(row, "skipped_empty") <= rays * (sc + sf));
+    }
+    assert_eq!(u(p, "coarse_evaluated"), rays * sc, "{set}");
+    assert_eq!(u(p, "fine_evaluated"), rays * sf, "{set}");
+    assert_eq!(u(p, "skipped_empty"), 0);
+    let ray = &r["rays"];
+    let hit = u(ray, "coarse_evaluated") / sc;
+    assert_eq!(u(ray, "coarse_evaluated"), hit * sc, "{set}: {ray}");
+    assert_eq!(u(ray, "fine_evaluated"), hit * sf, "{set}: {ray}");
+    assert!(
+        hit < rays,
+        "{set}: some rays of the body box miss every bone box"
+    );
+    let c = |name: &str| u(&r[name], "coarse_evaluated");
+    assert!(c("samples<=0.6") < rays * sc);
+    assert!(c("rays+samples<=0.6") <= c("rays").min(c("samples<=0.6")));
+    let all = "rays+samples<=0.6+occupancy";
+    assert!(
+        c(all) <= c("rays+samples<=0.6").min(c("occupancy")),
+        "{set}"
+    );
+    for name in ["rays", "samples<=0.6", "rays+samples<=0.6"] {
+        assert_eq!(u(&r[name], "skipped_empty"), 0, "{set}: {name}");
+    }
+}
+
+#[test]
+fn shares_count_the_samples_each_pass_runs() {
+    use super::run::{fails_with, ok, pma};
+    let dir = tempfile::tempdir().unwrap();
+    let out = |name: &str| dir.path().join(name);
+    let s = |p: &std::path::Path| p.to_str().unwrap().to_string();
+    let shares = |args: &[String]| {
+        let mut a: Vec<String> = [
+            "bench",
+            "--shares",
+            "--quick",
+            "--quiet",
+            "--shares-batches",
+            "2",
+        ]
+        .iter()
+        .map(|x| x.to_string())
+        .collect();
+        a.extend_from_slice(args);
+        let refs: Vec<&str> = a.iter().map(String::as_str).collect();
+        ok(pma(&refs))
+    };
+    let read = |d: &std::path::Path| -> serde_json::Value {
+        serde_json::from_slice(&std::fs::read(d.join("shares.json")).unwrap()).unwrap()
+    };
+
+    // The preset trained in-process for --quick's 2 steps, its grid built from its density.
+    let first = shares(&["--out".into(), s(&out("a"))]);
+    let text = String::from_utf8_lossy(&first.stdout).to_string();
+    assert!(text.contains("a count (deterministic"), "{text}");
+    let json = read(&out("a"));
+    assert_eq!(json["train_steps"], 2);
+    assert_eq!(json["batches"], 2);
+    assert!(json["grid"]
+        .as_str()
+        .unwrap()
+        .starts_with("built over 2 training poses"));
+    check_rows(&json, "render");
+    check_rows(&json, "training_batches");
+
+    // The same model with a grid of known occupancy saved with it: the grid is used as
+    // saved, leaves samples out and keeps others, and two runs give the same counts.
+    let model = out("a").join("shares-model.safetensors");
+    let gridded = out("gridded.safetensors");
+    pma_model::render::avatar::Avatar::load(&model, &candle_core::Device::Cpu)
+        .unwrap()
+        .with_occupancy(Some(patterned_grid()))
+        .save(&gridded)
+        .unwrap();
+    for d in ["b", "c"] {
+        shares(&["--model".into(), s(&gridded), "--out".into(), s(&out(d))]);
+    }
+    let (b, c) = (read(&out("b")), read(&out("c")));
+    assert_eq!(b, c, "counts repeat");
+    assert!(b["grid"]
+        .as_str()
+        .unwrap()
+        .starts_with("saved with the model (16^3"));
+    assert!(b["train_steps"].is_null());
+    for set in ["render", "training_batches"] {
+        check_rows(&b, set);
+        let occ = &rows(&b, set)["occupancy"];
+        let (skipped, kept) = (u(occ, "skipped_empty"), u(occ, "coarse_evaluated"));
+        assert!(skipped > 0 && kept > 0, "{set}: {occ}");
+    }
+
+    // Bad flags: one line, exit 2.
+    let o = pma(&[
+        "bench",
+        "--shares",
+        "--quick",
+        "--shares-threshold",
+        "1.5",
+        "--out",
+        &s(&out("d")),
+    ]);
+    assert_eq!(o.status.code(), Some(2));
+    fails_with(o, "--shares-threshold");
+    let o = pma(&["bench", "--shares-steps", "3", "--out", &s(&out("d"))]);
+    assert_eq!(o.status.code(), Some(2));
+}

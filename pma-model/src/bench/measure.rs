@@ -168,7 +168,7 @@ pub fn measure(req: &BenchRequest, obs: &mut dyn BenchObserver) -> Result<BenchR
         ));
     }
     let rss_reset = reset_peak_rss();
-    let scene = prepare_scene(req, obs)?;
+    let scene = prepare_scene(&req.out, &req.scene, req.eval_images, obs)?;
     // Loaded before the per-option peak-RSS resets, so no option's phase pays for it.
     crate::eval::lpips::Lpips::shared()?;
     let (avatar, model_desc) = bench_model(req, &scene, obs)?;
@@ -205,21 +205,27 @@ pub fn measure(req: &BenchRequest, obs: &mut dyn BenchObserver) -> Result<BenchR
 }
 
 /// The scene's training split and the held-out images the quality columns use.
-struct Scene {
-    train: Arc<Dataset>,
-    held: Dataset,
-    eval_set: Vec<usize>,
+pub(crate) struct Scene {
+    pub train: Arc<Dataset>,
+    pub held: Dataset,
+    pub eval_set: Vec<usize>,
 }
 
-/// The synthetic scene in `out/scene` (made once): training data and held-out images.
-fn prepare_scene(req: &BenchRequest, obs: &mut dyn BenchObserver) -> Result<Scene> {
-    let dir = match req.scene.seed {
-        0 => req.out.join("scene"),
-        n => req.out.join(format!("scene-seed{n}")),
+/// The synthetic scene in `out/scene` (made once): training data and `eval_images`
+/// held-out images spread over the novel-view split.
+pub(crate) fn prepare_scene(
+    out: &std::path::Path,
+    scene: &SynthConfig,
+    eval_images: usize,
+    obs: &mut dyn BenchObserver,
+) -> Result<Scene> {
+    let dir = match scene.seed {
+        0 => out.join("scene"),
+        n => out.join(format!("scene-seed{n}")),
     };
     if !dir.join("novel_view.npz").is_file() {
         obs.note(&format!("synthesising the scene into {}", dir.display()));
-        generate(&req.scene, &dir, &mut |_, _| {}).map_err(|source| BenchError::Scene {
+        generate(scene, &dir, &mut |_, _| {}).map_err(|source| BenchError::Scene {
             what: "bench",
             source: Box::new(source),
         })?;
@@ -231,7 +237,7 @@ fn prepare_scene(req: &BenchRequest, obs: &mut dyn BenchObserver) -> Result<Scen
             obs.warning(&format!("{}: {w}", dir.join(file).display()));
         }
     }
-    let k = req.eval_images.min(held.n_images()).max(1);
+    let k = eval_images.min(held.n_images()).max(1);
     let eval_set: Vec<usize> = (0..k).map(|i| i * held.n_images() / k).collect();
     Ok(Scene {
         train,

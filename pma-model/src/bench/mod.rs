@@ -6,6 +6,7 @@
 //! | [`options`] | the configurations compared ([`BenchOption`]): culling, the vectorised sine |
 //! | [`measure`] | render and training speed, memory and quality per option ([`BenchReport`]) |
 //! | [`account`] | one training step and one inference pass as a GPU would run them |
+//! | [`shares`] | the share of samples that run the network per pass, per option (counts) |
 //!
 //! Everything runs for real on this machine; timings are wall times of this process, and
 //! held-out quality is scored by [`crate::eval`]'s protocol.
@@ -13,10 +14,12 @@
 pub mod account;
 pub mod measure;
 pub mod options;
+pub mod shares;
 
 pub use account::{account, AccountReport, AccountRequest};
 pub use measure::{measure, BenchReport, BenchRequest, ForwardResult, OptionResult};
 pub use options::{options, BenchOption};
+pub use shares::{shares, PassShare, SharesReport, SharesRequest};
 
 use crate::error::ModelError;
 use crate::eval::EvalError;
