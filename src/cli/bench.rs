@@ -56,6 +56,8 @@ pub struct Args {
     /// Add the occupancy-grid rows: the grid alone and with the last threshold's culling.
     /// Rendering uses the model's grid (built from the scene's training poses when it has
     /// none); training builds and refreshes one during each run.
+    /// With `--account`: the accounted step trains with a grid (built by one unaccounted
+    /// step before it) and the report says what it left out.
     #[arg(long)]
     pub occupancy: bool,
     /// Training poses the rendered model's grid is built over when it has none (each costs

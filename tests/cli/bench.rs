@@ -458,3 +458,66 @@ fn shares_count_the_samples_each_pass_runs() {
     let o = pma(&["bench", "--shares-steps", "3", "--out", &s(&out("d"))]);
     assert_eq!(o.status.code(), Some(2));
 }
+
+/// `--account --occupancy`: the accounted step trains with a grid (built by the unaccounted
+/// step before it) and says what the grid left out; the same flags without the grid have no
+/// such block. A grid step is not extrapolated.
+#[test]
+fn account_with_the_occupancy_grid() {
+    use super::run::{fails_with, ok, pma};
+    let dir = tempfile::tempdir().unwrap();
+    let account = |name: &str, extra: &[&str]| -> serde_json::Value {
+        let out = dir.path().join(name);
+        let mut a = vec![
+            "--workers",
+            "1",
+            "bench",
+            "--account",
+            "--quiet",
+            "--preset",
+            "tiny",
+            "--rays",
+            "32",
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        a.extend_from_slice(extra);
+        ok(pma(&a));
+        serde_json::from_slice(&std::fs::read(out.join("account.json")).unwrap()).unwrap()
+    };
+    let plain = account("plain", &[]);
+    assert!(plain.get("occupancy").is_none(), "{plain}");
+    let grid = account("grid", &["--occupancy"]);
+    let o = &grid["occupancy"];
+    let (samples, evaluated, skipped) = (
+        u(o, "samples"),
+        u(o, "samples_evaluated"),
+        u(o, "skipped_empty"),
+    );
+    let cfg = pma_model::Config::tiny();
+    assert_eq!(
+        samples,
+        32 * (cfg.n_samples + cfg.n_importance) as u64,
+        "{o}"
+    );
+    assert!(skipped > 0 && evaluated + skipped <= samples, "{o}");
+    // Fewer samples through the network: fewer matmul FLOPs in the step.
+    assert!(u(&grid, "flops_per_step") < u(&plain, "flops_per_step"));
+
+    let o = pma(&[
+        "bench",
+        "--account",
+        "--quiet",
+        "--preset",
+        "tiny",
+        "--rays",
+        "96",
+        "--extrapolate-from",
+        "32",
+        "--occupancy",
+        "--out",
+        dir.path().join("x").to_str().unwrap(),
+    ]);
+    assert_eq!(o.status.code(), Some(2));
+    fails_with(o, "--occupancy");
+}

@@ -33,6 +33,10 @@ pub struct AccountRequest {
     pub official: Option<Recorded>,
     /// Where the accounting scene is made (once).
     pub scene_dir: PathBuf,
+    /// Account a step that trains with an occupancy grid of these settings: one step runs
+    /// first, unaccounted, and the refresh that ends its warm-up builds the grid, so the
+    /// accounted step is a plain step that consults it (no refresh in it).
+    pub occupancy: Option<crate::network::occupancy::OccupancyConfig>,
 }
 
 /// `account.json`.
@@ -73,8 +77,23 @@ pub struct AccountReport {
     pub step: Summary,
     /// `render_rays` of `rays` rays (the batch already made).
     pub inference: Summary,
+    /// With the grid: what the accounted step's passes evaluated.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub occupancy: Option<OccupancyAccount>,
     pub official: Option<Official>,
     pub cost_model: CostModel,
+}
+
+/// What the accounted step of a run with the occupancy grid evaluated.
+#[derive(Debug, Serialize)]
+pub struct OccupancyAccount {
+    /// Share of the grid's cells occupied when the step ran.
+    pub occupied_fraction: f64,
+    /// The step's samples (both passes), those that ran the network, and those the grid
+    /// left out.
+    pub samples: u64,
+    pub samples_evaluated: u64,
+    pub skipped_empty: u64,
 }
 
 /// The official code's recorded counts and their estimates.
@@ -100,7 +119,18 @@ pub fn account(
     dev: &Device,
     obs: &mut dyn BenchObserver,
 ) -> Result<AccountReport> {
-    let run = req.run;
+    let mut run = req.run;
+    if let Some(cfg) = &req.occupancy {
+        if req.extrapolate_from.is_some() {
+            return Err(BenchError::Setting(
+                "--occupancy: a grid step is not extrapolated (drop --extrapolate-from)".into(),
+            ));
+        }
+        run.train.occupancy = Some(crate::network::occupancy::OccupancyConfig {
+            warmup_steps: 1,
+            ..cfg.clone()
+        });
+    }
     let data = account_scene(&req.scene_dir, run.train.images_per_step, obs)?;
     let t = &run.train;
     let (rays, chunk_rays) = (t.rays_per_step, t.chunk_rays);
@@ -129,6 +159,13 @@ pub fn account(
             k => k,
         },
     };
+    if req.occupancy.is_some() {
+        obs.note("one unaccounted step first: the refresh that ends it builds the grid");
+        let batch = source.next_batch()?;
+        trainer.advance(&batch)?;
+        trainer.read_back()?;
+    }
+    let before = trainer.pass_totals();
     let (step, chunks, wall_s, extrapolated_from, read_back) = match req.extrapolate_from {
         None => {
             let a = account_step(&mut trainer, &mut source, req.route)?;
@@ -145,6 +182,19 @@ pub fn account(
             }
             (e.report, 1, e.wall_s, Some(e.from), e.read_back)
         }
+    };
+    let occupancy = match (&req.occupancy, trainer.avatar().occupancy()) {
+        (Some(_), Some(grid)) => {
+            let after = trainer.pass_totals();
+            let evaluated = |p: &crate::render::PassStats| p.coarse_evaluated + p.fine_evaluated;
+            Some(OccupancyAccount {
+                occupied_fraction: grid.occupied_fraction(),
+                samples: after.samples - before.samples,
+                samples_evaluated: evaluated(&after) - evaluated(&before),
+                skipped_empty: after.skipped_empty - before.skipped_empty,
+            })
+        }
+        _ => None,
     };
     obs.progress(1, "one inference pass");
     let batch = source.next_batch()?;
@@ -178,6 +228,7 @@ pub fn account(
         peak_live_bytes_per_step: s.peak_live_bytes,
         step: s,
         inference: inference.summary(),
+        occupancy,
         official: req.official.map(|r| Official {
             est: r.estimates(),
             recorded: r,

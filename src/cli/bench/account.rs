@@ -50,6 +50,9 @@ pub fn run(args: &Args, dev: &Device) -> anyhow::Result<()> {
         extrapolate_from: args.extrapolate_from,
         official,
         scene_dir: args.out.join("account-scene"),
+        occupancy: args
+            .occupancy
+            .then(pma_model::network::occupancy::OccupancyConfig::default),
     };
     let report = pma_model::bench::account(req, dev, &mut Phases::new(args.quiet))?;
     print_tables(&report);
@@ -125,6 +128,17 @@ fn print_tables(f: &AccountReport) {
         ),
         &f.step,
     );
+    if let Some(o) = &f.occupancy {
+        println!(
+            "occupancy grid ({:.1} % of cells occupied): the step ran {} of {} samples through \
+             the network ({:.1} %), {} left out as empty",
+            100.0 * o.occupied_fraction,
+            o.samples_evaluated,
+            o.samples,
+            100.0 * o.samples_evaluated as f64 / o.samples.max(1) as f64,
+            o.skipped_empty
+        );
+    }
     print_stage_table(
         &format!("inference pass (render_rays, {} rays)", f.rays),
         &f.inference,
