@@ -19,7 +19,9 @@ static inline float __fdiv_rn(float a, float b) { return a / b; }
 static inline float __fsqrt_rn(float a) { return sqrtf(a); }
 
 #include "adam.cu"
+#include "bias_relu.cu"
 #include "film_sine.cu"
+#include "sine_linear.cu"
 #include "window_pool.cu"
 
 #define PMA_GRID(blocks, threads, call)                                 \
@@ -93,3 +95,58 @@ void pma_emu_adam_f32(const float *g, const float *p_old, const float *m_old,
              pma_adam_f32(g, p_old, m_old, v_old, p, m, v, slot_of, step_size, inv_bias2, has,
                           ok, coef, clip, n, one_minus_b1, b2, one_minus_b2, eps));
 }
+
+void pma_emu_sine_linear_f32(const float *x, const float *wb, const float *sc, float *y,
+                             unsigned int rows, unsigned int in, unsigned int outs,
+                             unsigned int blocks, unsigned int threads)
+{
+    PMA_GRID(blocks, threads, pma_sine_linear_f32(x, wb, sc, y, rows, in, outs));
+}
+
+void pma_emu_sine_linear_grad_part_f32(const float *grad, const float *x, const float *wb,
+                                       const float *sc, float *part, unsigned int rows,
+                                       unsigned int in, unsigned int outs,
+                                       unsigned int blocks, unsigned int threads)
+{
+    PMA_GRID(blocks, threads,
+             pma_sine_linear_grad_part_f32(grad, x, wb, sc, part, rows, in, outs));
+}
+
+void pma_emu_sine_linear_grad_rows_f32(const float *grad, const float *x, const float *wb,
+                                       const float *sc, float *g_rows, unsigned int rows,
+                                       unsigned int in, unsigned int outs,
+                                       unsigned int blocks, unsigned int threads)
+{
+    PMA_GRID(blocks, threads,
+             pma_sine_linear_grad_rows_f32(grad, x, wb, sc, g_rows, rows, in, outs));
+}
+
+void pma_emu_sine_linear_grad_sum_f32(const float *part, float *g, unsigned int n_blocks,
+                                      unsigned int in, unsigned int outs, unsigned int blocks,
+                                      unsigned int threads)
+{
+    PMA_GRID(blocks, threads, pma_sine_linear_grad_sum_f32(part, g, n_blocks, in, outs));
+}
+
+unsigned int pma_emu_sine_linear_rows(void) { return PMA_SINE_LINEAR_ROWS; }
+
+void pma_emu_bias_relu_f32(const float *z, const float *b, float *y, unsigned int rows,
+                           unsigned int outs, unsigned int blocks, unsigned int threads)
+{
+    PMA_GRID(blocks, threads, pma_bias_relu_f32(z, b, y, rows, outs));
+}
+
+void pma_emu_relu_grad_f32(const float *grad, const float *y, float *gz, float *part,
+                           unsigned int rows, unsigned int outs, unsigned int blocks,
+                           unsigned int threads)
+{
+    PMA_GRID(blocks, threads, pma_relu_grad_f32(grad, y, gz, part, rows, outs));
+}
+
+void pma_emu_bias_grad_sum_f32(const float *part, float *gb, unsigned int n_blocks,
+                               unsigned int outs, unsigned int blocks, unsigned int threads)
+{
+    PMA_GRID(blocks, threads, pma_bias_grad_sum_f32(part, gb, n_blocks, outs));
+}
+
+unsigned int pma_emu_bias_relu_rows(void) { return PMA_BIAS_RELU_ROWS; }

@@ -29,6 +29,79 @@ impl Grid {
 }
 
 extern "C" {
+    fn pma_emu_sine_linear_f32(
+        x: *const f32,
+        wb: *const f32,
+        sc: *const f32,
+        y: *mut f32,
+        rows: c_uint,
+        inp: c_uint,
+        outs: c_uint,
+        blocks: c_uint,
+        threads: c_uint,
+    );
+    fn pma_emu_sine_linear_grad_part_f32(
+        grad: *const f32,
+        x: *const f32,
+        wb: *const f32,
+        sc: *const f32,
+        part: *mut f32,
+        rows: c_uint,
+        inp: c_uint,
+        outs: c_uint,
+        blocks: c_uint,
+        threads: c_uint,
+    );
+    fn pma_emu_sine_linear_grad_rows_f32(
+        grad: *const f32,
+        x: *const f32,
+        wb: *const f32,
+        sc: *const f32,
+        g_rows: *mut f32,
+        rows: c_uint,
+        inp: c_uint,
+        outs: c_uint,
+        blocks: c_uint,
+        threads: c_uint,
+    );
+    fn pma_emu_sine_linear_grad_sum_f32(
+        part: *const f32,
+        g: *mut f32,
+        n_blocks: c_uint,
+        inp: c_uint,
+        outs: c_uint,
+        blocks: c_uint,
+        threads: c_uint,
+    );
+    fn pma_emu_bias_relu_f32(
+        z: *const f32,
+        b: *const f32,
+        y: *mut f32,
+        rows: c_uint,
+        outs: c_uint,
+        blocks: c_uint,
+        threads: c_uint,
+    );
+    fn pma_emu_relu_grad_f32(
+        grad: *const f32,
+        y: *const f32,
+        gz: *mut f32,
+        part: *mut f32,
+        rows: c_uint,
+        outs: c_uint,
+        blocks: c_uint,
+        threads: c_uint,
+    );
+    fn pma_emu_bias_grad_sum_f32(
+        part: *const f32,
+        gb: *mut f32,
+        n_blocks: c_uint,
+        outs: c_uint,
+        blocks: c_uint,
+        threads: c_uint,
+    );
+    fn pma_emu_bias_relu_rows() -> c_uint;
+    fn pma_emu_sine_linear_rows() -> c_uint;
     fn pma_emu_adam_f32(
         g: *const f32,
         p_old: *const f32,
@@ -393,4 +466,180 @@ pub fn adam(
         )
     };
     out
+}
+
+/// Sizes of one narrow-input SIREN layer: `rows` rows of `inp` inputs, `out` outputs.
+#[derive(Debug, Clone, Copy)]
+pub struct SineLinearDims {
+    pub rows: usize,
+    pub inp: usize,
+    pub out: usize,
+}
+
+impl SineLinearDims {
+    fn check(&self, x: usize, wb: usize, sc: usize) -> [c_uint; 3] {
+        assert!(
+            (1..=4).contains(&self.inp),
+            "sine linear: bad dims {self:?}"
+        );
+        assert_eq!(x, self.rows * self.inp, "x");
+        assert_eq!(wb, self.out * (self.inp + 1), "[W|b]");
+        assert_eq!(sc, self.rows, "s");
+        [self.rows, self.inp, self.out]
+            .map(|v| c_uint::try_from(v).expect("dims fit the kernel's u32"))
+    }
+}
+
+/// The kernel's rows per partial sum (`PMA_SINE_LINEAR_ROWS`).
+pub fn sine_linear_rows() -> usize {
+    // SAFETY: a constant getter without arguments.
+    unsafe { pma_emu_sine_linear_rows() as usize }
+}
+
+/// `sine_linear.cu`'s forward: s_r sin(x Wᵀ + b) [rows,out], with wb = [W|b] [out,in+1].
+pub fn sine_linear(x: &[f32], wb: &[f32], sc: &[f32], d: SineLinearDims, grid: Grid) -> Vec<f32> {
+    let [rows, inp, out] = d.check(x.len(), wb.len(), sc.len());
+    let mut y = vec![f32::NAN; d.rows * d.out];
+    // SAFETY: the buffers have the lengths the kernel indexes for these dims (checked).
+    unsafe {
+        pma_emu_sine_linear_f32(
+            x.as_ptr(),
+            wb.as_ptr(),
+            sc.as_ptr(),
+            y.as_mut_ptr(),
+            rows,
+            inp,
+            out,
+            grid.blocks,
+            grid.threads,
+        )
+    };
+    y
+}
+
+/// `sine_linear.cu`'s backward: ([W|b]'s gradient [out, in+1], from two launches; per row
+/// [rows, in+1], x's gradient and s's, from one) for the upstream gradient [rows,out].
+pub fn sine_linear_grad(
+    grad: &[f32],
+    x: &[f32],
+    wb: &[f32],
+    sc: &[f32],
+    d: SineLinearDims,
+    [grid_part, grid_sum, grid_rows]: [Grid; 3],
+) -> (Vec<f32>, Vec<f32>) {
+    let [rows, inp, out] = d.check(x.len(), wb.len(), sc.len());
+    assert_eq!(grad.len(), d.rows * d.out, "grad");
+    let n_blocks = d.rows.div_ceil(sine_linear_rows());
+    let width = d.inp + 1;
+    // Poisoned, so that an element no thread writes shows.
+    let mut part = vec![f32::NAN; (n_blocks * d.out * width).max(1)];
+    let mut g = vec![f32::NAN; d.out * width];
+    let mut g_rows = vec![f32::NAN; d.rows * width];
+    let nb = c_uint::try_from(n_blocks).expect("blocks fit the kernel's u32");
+    // SAFETY: `part` holds [blocks, out, in+1], `g` [out, in+1] and `g_rows` [rows, in+1],
+    // as the kernels index them.
+    unsafe {
+        pma_emu_sine_linear_grad_part_f32(
+            grad.as_ptr(),
+            x.as_ptr(),
+            wb.as_ptr(),
+            sc.as_ptr(),
+            part.as_mut_ptr(),
+            rows,
+            inp,
+            out,
+            grid_part.blocks,
+            grid_part.threads,
+        );
+        pma_emu_sine_linear_grad_sum_f32(
+            part.as_ptr(),
+            g.as_mut_ptr(),
+            nb,
+            inp,
+            out,
+            grid_sum.blocks,
+            grid_sum.threads,
+        );
+        pma_emu_sine_linear_grad_rows_f32(
+            grad.as_ptr(),
+            x.as_ptr(),
+            wb.as_ptr(),
+            sc.as_ptr(),
+            g_rows.as_mut_ptr(),
+            rows,
+            inp,
+            out,
+            grid_rows.blocks,
+            grid_rows.threads,
+        );
+    }
+    (g, g_rows)
+}
+
+/// The kernel's rows per partial sum of the bias gradient (`PMA_BIAS_RELU_ROWS`).
+pub fn bias_relu_rows() -> usize {
+    // SAFETY: a constant getter without arguments.
+    unsafe { pma_emu_bias_relu_rows() as usize }
+}
+
+/// `bias_relu.cu`'s forward: max(z + b, 0) [rows, b.len()].
+pub fn bias_relu(z: &[f32], b: &[f32], grid: Grid) -> Vec<f32> {
+    let out = b.len();
+    let rows = z.len().checked_div(out).unwrap_or(0);
+    assert_eq!(z.len(), rows * out, "z");
+    let mut y = vec![f32::NAN; z.len()];
+    let c = |v: usize| c_uint::try_from(v).expect("dims fit the kernel's u32");
+    // SAFETY: z and y are [rows, out], b [out].
+    unsafe {
+        pma_emu_bias_relu_f32(
+            z.as_ptr(),
+            b.as_ptr(),
+            y.as_mut_ptr(),
+            c(rows),
+            c(out),
+            grid.blocks,
+            grid.threads,
+        )
+    };
+    y
+}
+
+/// `bias_relu.cu`'s backward, its two launches: (the product's gradient [rows,out], the
+/// bias gradient [out]) from the upstream gradient and the forward's output.
+pub fn relu_grad(
+    grad: &[f32],
+    y: &[f32],
+    out: usize,
+    grid_rows: Grid,
+    grid_sum: Grid,
+) -> (Vec<f32>, Vec<f32>) {
+    let rows = y.len().checked_div(out).unwrap_or(0);
+    assert_eq!(grad.len(), y.len(), "grad");
+    let n_blocks = rows.div_ceil(bias_relu_rows());
+    let mut gz = vec![f32::NAN; y.len()];
+    let mut part = vec![f32::NAN; (n_blocks * out).max(1)];
+    let mut gb = vec![f32::NAN; out];
+    let c = |v: usize| c_uint::try_from(v).expect("dims fit the kernel's u32");
+    // SAFETY: grad, y and gz are [rows, out], part [blocks, out], gb [out].
+    unsafe {
+        pma_emu_relu_grad_f32(
+            grad.as_ptr(),
+            y.as_ptr(),
+            gz.as_mut_ptr(),
+            part.as_mut_ptr(),
+            c(rows),
+            c(out),
+            grid_rows.blocks,
+            grid_rows.threads,
+        );
+        pma_emu_bias_grad_sum_f32(
+            part.as_ptr(),
+            gb.as_mut_ptr(),
+            c(n_blocks),
+            c(out),
+            grid_sum.blocks,
+            grid_sum.threads,
+        );
+    }
+    (gz, gb)
 }

@@ -316,7 +316,7 @@ impl CustomOp3 for WindowPoolOf {
 /// Whether a CPU run accounted as CUDA ([`crate::compute::account`]) should count the
 /// CUDA kernel of [`crate::compute::cuda`] rather than candle's plain ops: the fused ops
 /// then run on the CPU and count what their kernel launches, reads and writes.
-fn models_cuda(k: Numerics, ts: &[&Tensor]) -> bool {
+pub(crate) fn models_cuda(k: Numerics, ts: &[&Tensor]) -> bool {
     k.fused && modeled_f32(ts)
 }
 
@@ -330,7 +330,7 @@ fn modeled_f32(ts: &[&Tensor]) -> bool {
 
 /// Whether `ts` are f32 tensors on CUDA and the network asks for fused kernels: the
 /// kernels of [`crate::compute::cuda`] (which exist in a `cuda` build only).
-fn applies_cuda(k: Numerics, ts: &[&Tensor]) -> bool {
+pub(crate) fn applies_cuda(k: Numerics, ts: &[&Tensor]) -> bool {
     k.fused && cuda_f32(ts)
 }
 
@@ -997,22 +997,27 @@ struct Linear {
     cpu_route: bool,
 }
 
-impl Linear {
-    /// (rows, in, out), checked.
-    fn dims(l1: &Layout, l2: &Layout, l3: &Layout) -> candle_core::Result<(usize, usize, usize)> {
-        let (rows, inn) = l1.shape().dims2()?;
-        let (out, inn2) = l2.shape().dims2()?;
-        if inn2 != inn || l3.shape().dims1()? != out {
-            candle_core::bail!(
-                "linear: x {:?}, W {:?} and b {:?} do not agree",
-                l1.shape(),
-                l2.shape(),
-                l3.shape()
-            )
-        }
-        Ok((rows, inn, out))
+/// A linear layer's (rows, in, out) from the layouts of x [rows,in], W [out,in], b [out],
+/// checked.
+pub(crate) fn linear_dims(
+    l1: &Layout,
+    l2: &Layout,
+    l3: &Layout,
+) -> candle_core::Result<(usize, usize, usize)> {
+    let (rows, inn) = l1.shape().dims2()?;
+    let (out, inn2) = l2.shape().dims2()?;
+    if inn2 != inn || l3.shape().dims1()? != out {
+        candle_core::bail!(
+            "linear: x {:?}, W {:?} and b {:?} do not agree",
+            l1.shape(),
+            l2.shape(),
+            l3.shape()
+        )
     }
+    Ok((rows, inn, out))
+}
 
+impl Linear {
     /// Count the op as its two kernels: this op is the product (its launch, bytes and
     /// FLOPs), the bias add is recorded beside it (with the dims upload of its broadcast).
     fn report(cpu: bool, rows: usize, inn: usize, out: usize) {
@@ -1049,7 +1054,7 @@ impl CustomOp3 for Linear {
         l3: &Layout,
     ) -> candle_core::Result<(CpuStorage, Shape)> {
         use candle_core::backend::BackendStorage;
-        let (rows, inn, out) = Self::dims(l1, l2, l3)?;
+        let (rows, inn, out) = linear_dims(l1, l2, l3)?;
         Self::report(true, rows, inn, out);
         // The product exactly as `Tensor::matmul` calls it for x · Wᵀ.
         let y = s1.matmul(s2, (1, rows, out, inn), l1, &l2.transpose(0, 1)?)?;
@@ -1076,7 +1081,7 @@ impl CustomOp3 for Linear {
         l3: &Layout,
     ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
         use candle_core::backend::BackendStorage;
-        let (rows, inn, out) = Self::dims(l1, l2, l3)?;
+        let (rows, inn, out) = linear_dims(l1, l2, l3)?;
         Self::report(false, rows, inn, out);
         // cuBLAS, then candle's broadcast add kernel; the product is freed on return.
         let y = s1.matmul(s2, (1, rows, out, inn), l1, &l2.transpose(0, 1)?)?;

@@ -8,6 +8,8 @@
 //! | --- | --- |
 //! | [`numerics`] | a network's numeric choices: fused kernels, fast sine, row ops, TF32 |
 //! | [`fused`] | fused kernels: the window max-pool, the FiLM-sine stack, bias adds |
+//! | [`linear_relu`] | a linear layer and its ReLU as one op on a GPU's route |
+//! | [`sine_linear`] | the point encoders' SIREN layer as one op on a GPU's route |
 //! | [`cuda`] | the fused ops' CUDA kernels (`cuda/kernels/*.cu`, NVRTC at run time) |
 //! | [`libm_sine`] | glibc's sinf/cosf recipe, lane-wise (bit-identical, vectorised) |
 //! | [`fast_sine`] | the sine op; the optional polynomial sine (`--fast-sine`, not parity) |
@@ -27,7 +29,9 @@ pub mod flops;
 pub mod fused;
 pub mod host;
 pub mod libm_sine;
+pub mod linear_relu;
 pub mod numerics;
 pub mod ops;
 pub mod parallel;
 pub mod profile;
+pub mod sine_linear;

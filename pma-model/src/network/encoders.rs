@@ -54,6 +54,12 @@ impl PointEnc {
     pub fn forward(&self, x_bar: &Tensor, k: Numerics) -> Result<Tensor> {
         self.layer.forward(x_bar, k)
     }
+
+    /// `w ⊙ forward(x̄)`: x̄ [N,J,3], w [N,J] -> [N,J,out], each joint's features times its
+    /// window weight (one op on a GPU's route).
+    pub fn forward_weighted(&self, x_bar: &Tensor, w: &Tensor, k: Numerics) -> Result<Tensor> {
+        self.layer.forward_scaled(x_bar, Some(w), k)
+    }
 }
 
 /// Real spherical harmonics up to `degree` (≤ 4) of directions d: [R,3] -> [R,degree²].

@@ -12,16 +12,16 @@ use crate::network::params::{Init, Params};
 /// Intermediates of one field evaluation (for parity tests).
 #[derive(Debug, Clone)]
 pub struct FieldOutputs {
-    /// density_l0_pre_relu: [N,W]
-    pub l0_pre: Tensor,
+    /// density_l0_pre_relu: [N,W] (when asked for: a fused linear-ReLU keeps no input)
+    pub l0_pre: Option<Tensor>,
     /// density feature h: [N,W] (after the last ReLU)
     pub feature: Tensor,
     /// sigma_raw: [N,1] before noise and ReLU
     pub sigma_raw: Tensor,
     /// feature_linear(h): [N,W]
     pub feature_linear: Tensor,
-    /// views_linears.0 before ReLU: [N,view_W]
-    pub view_pre: Tensor,
+    /// views_linears.0 before ReLU: [N,view_W] (when asked for)
+    pub view_pre: Option<Tensor>,
     /// rgb logits: [N,3]
     pub rgb_logits: Tensor,
     /// rgb = 1.002·sigmoid(logits) − 0.001: [N,3]
@@ -79,19 +79,35 @@ impl Field {
         })
     }
 
-    /// s: [N,K·F] modulator output; view: [N,SH+code] view features -> outputs.
-    pub fn forward(&self, s: &Tensor, view: &Tensor, k: Numerics) -> Result<FieldOutputs> {
+    /// s: [N,K·F] modulator output; view: [N,SH+code] view features -> outputs; the
+    /// pre-ReLU values `l0_pre` and `view_pre` when `keep_pre` (traces).
+    pub fn forward(
+        &self,
+        s: &Tensor,
+        view: &Tensor,
+        k: Numerics,
+        keep_pre: bool,
+    ) -> Result<FieldOutputs> {
+        // Each ReLU layer is one op with its linear layer unless a pre-ReLU value is wanted
+        // or the trunk emulates bf16.
+        let linear_relu = |layer: &Linear, h: &Tensor, keep: bool| -> Result<(Tensor, _)> {
+            if !keep && !k.bf16_trunk {
+                return Ok((layer.forward_relu(h, k)?, None));
+            }
+            let pre = match k.bf16_trunk {
+                true => layer.forward_bf16(h, k)?,
+                false => layer.forward(h, k)?,
+            };
+            Ok((pre.relu()?, Some(pre)))
+        };
         let mut h = s.clone();
         let mut l0_pre = None;
         for (i, layer) in self.pts_linears.iter().enumerate() {
-            let pre = match k.bf16_trunk {
-                true => layer.forward_bf16(&h, k)?,
-                false => layer.forward(&h, k)?,
-            };
+            let (out, pre) = linear_relu(layer, &h, keep_pre && i == 0)?;
             if i == 0 {
-                l0_pre = Some(pre.clone());
+                l0_pre = pre;
             }
-            h = pre.relu()?;
+            h = out;
             if self.skips.contains(&i) {
                 // The reference concatenates the input first, then the features.
                 h = Tensor::cat(&[s, &h], D::Minus1)?;
@@ -99,13 +115,12 @@ impl Field {
         }
         let sigma_raw = self.sigma.forward(&h, k)?;
         let feature_linear = self.feature.forward(&h, k)?;
-        let view_pre = self
-            .view
-            .forward(&Tensor::cat(&[&feature_linear, view], D::Minus1)?, k)?;
-        let rgb_logits = self.rgb.forward(&view_pre.relu()?, k)?;
+        let view_in = Tensor::cat(&[&feature_linear, view], D::Minus1)?;
+        let (view_h, view_pre) = linear_relu(&self.view, &view_in, keep_pre)?;
+        let rgb_logits = self.rgb.forward(&view_h, k)?;
         let rgb = candle_nn::ops::sigmoid(&rgb_logits)?.affine(1.002, -0.001)?;
         Ok(FieldOutputs {
-            l0_pre: l0_pre.expect("trunk has at least one layer"),
+            l0_pre,
             feature: h,
             sigma_raw,
             feature_linear,

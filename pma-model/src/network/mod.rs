@@ -350,15 +350,21 @@ impl Network {
         };
         let (s, z) = match (&net.modulator, &net.pts_enc_point) {
             (Some(modulator), Some(enc)) => {
-                let z = enc.forward(&x_bar, k)?;
-                let x_tilde = z
-                    .broadcast_mul(&w.unsqueeze(D::Minus1)?)?
-                    .reshape((n, j * self.cfg.point_enc_dim))?;
+                // A trace keeps z; otherwise the weighting is part of the encoder's op.
+                let (z, x_tilde) = match trace.is_some() {
+                    true => {
+                        let z = enc.forward(&x_bar, k)?;
+                        let x_tilde = z.broadcast_mul(&w.unsqueeze(D::Minus1)?)?;
+                        (Some(z), x_tilde)
+                    }
+                    false => (None, enc.forward_weighted(&x_bar, &w, k)?),
+                };
+                let x_tilde = x_tilde.reshape((n, j * self.cfg.point_enc_dim))?;
                 let s = match &modulation {
                     Some(m) => modulator.forward(&x_tilde, m, k)?,
                     None => modulator.forward_fixed(&x_tilde, k)?,
                 };
-                (s, Some(z))
+                (s, z)
             }
             _ => (
                 f_m.clone()
@@ -367,7 +373,7 @@ impl Network {
             ),
         };
         // NeRF density and colour heads.
-        let out = net.field.forward(&s, view, k)?;
+        let out = net.field.forward(&s, view, k, trace.is_some())?;
         if let Some((tr, stage)) = trace {
             // Θ mapped to the frequencies γ the layers use, stacked per layer like Φ.
             let gp = match (&modulation, &net.modulator) {
@@ -392,11 +398,11 @@ impl Network {
                 gp.as_ref().map(|g| ("mod_freq", &g.0)),
                 gp.as_ref().map(|g| ("mod_phase", &g.1)),
                 Some(("modulator_out", &s)),
-                Some(("density_l0_pre_relu", &out.l0_pre)),
+                out.l0_pre.as_ref().map(|t| ("density_l0_pre_relu", t)),
                 Some(("density_feat", &out.feature)),
                 Some(("sigma_raw", &out.sigma_raw)),
                 Some(("feature_linear", &out.feature_linear)),
-                Some(("view_l0_pre_relu", &out.view_pre)),
+                out.view_pre.as_ref().map(|t| ("view_l0_pre_relu", t)),
                 Some(("rgb_logits", &out.rgb_logits)),
             ]
             .into_iter()

@@ -45,6 +45,11 @@ impl Linear {
 }
 
 impl Linear {
+    /// `max(x Wᵀ + b, 0)`: x: [rows, in] -> [rows, out] ([`crate::compute::linear_relu`]).
+    pub fn forward_relu(&self, x: &Tensor, k: Numerics) -> Result<Tensor> {
+        crate::compute::linear_relu::linear_relu(x, &self.weight, &self.bias, k)
+    }
+
     /// [`Self::forward`] as a bf16 tensor-core product computes it: input, weight and output
     /// rounded to bf16 ([`crate::compute::numerics::bf16`]), the sum in f32, the bias added
     /// in f32 before the output is rounded.
@@ -87,18 +92,39 @@ impl SineLayer {
 
     /// x: [..., in] -> [..., out]
     pub fn forward(&self, x: &Tensor, k: Numerics) -> Result<Tensor> {
+        self.forward_scaled(x, None, k)
+    }
+
+    /// `scale ⊙ forward(x)`, each output row times its scale: x: [..., in], scale: [...]
+    /// -> [..., out]. One op on a GPU's route for a narrow x
+    /// ([`crate::compute::sine_linear`]).
+    pub fn forward_scaled(
+        &self,
+        x: &Tensor,
+        scale: Option<&Tensor>,
+        k: Numerics,
+    ) -> Result<Tensor> {
         // ω scales W and b ([out,in] work) rather than every output row: one pass over the
         // activations fewer, forward and backward. For ω a power of two (the reference's 8
         // and 16) the scaling is exact, so the result is bit-identical either way.
-        let scaled = Linear {
-            weight: (&self.linear.weight * self.w0)?,
-            bias: (&self.linear.bias * self.w0)?,
-        };
-        crate::compute::fast_sine::sin(&scaled.forward(x, k)?, k.fast_sine)
+        let (w, b) = (
+            (&self.linear.weight * self.w0)?,
+            (&self.linear.bias * self.w0)?,
+        );
+        let dims = x.dims().to_vec();
+        let in_dim = *dims.last().unwrap_or(&0);
+        let rows = x.elem_count() / in_dim.max(1);
+        let scale = scale.map(|s| s.reshape(rows)).transpose()?;
+        let x2 = x.reshape((rows, in_dim))?;
+        let y = crate::compute::sine_linear::sine_linear(&x2, &w, &b, scale.as_ref(), k)?;
+        let mut out_dims = dims;
+        *out_dims
+            .last_mut()
+            .expect("sine layer input has at least one dim") = w.dim(0)?;
+        Ok(y.reshape(out_dims)?)
     }
 }
 
-/// Per-joint weights applied to every batch row: x: [P,J,in], W: [J,in,out] -> [P,J,out].
 pub fn per_joint_matmul(x: &Tensor, w: &Tensor) -> Result<Tensor> {
     // [J,P,in] @ [J,in,out] batches over joints; transposing back keeps [P,J,out].
     let xt = x.transpose(0, 1)?.contiguous()?;

@@ -14,10 +14,16 @@ use crate::train_support::{tiny_run, tiny_scene};
 /// A fresh tiny trainer (64 rays of 2 images per step) in chunks of `chunk_rays`, and its
 /// batch source.
 fn tiny(chunk_rays: usize) -> (tempfile::TempDir, Trainer, DatasetSource) {
+    tiny_with_rays(chunk_rays, tiny_run().train.rays_per_step)
+}
+
+/// [`tiny`] with `rays` rays per step.
+fn tiny_with_rays(chunk_rays: usize, rays: usize) -> (tempfile::TempDir, Trainer, DatasetSource) {
     let dir = tempfile::tempdir().unwrap();
     let data = tiny_scene(dir.path());
     let mut run = tiny_run();
     run.train.chunk_rays = chunk_rays;
+    run.train.rays_per_step = rays;
     let t = &run.train;
     let dev = candle_core::Device::Cpu;
     let source = DatasetSource::new(
@@ -96,20 +102,19 @@ fn one_pass_step_syncs_and_ops() {
 
 #[test]
 fn one_pass_step_extrapolates_exactly() {
-    // 16, 32 and 48 rays extrapolated to 64, against the 64-ray step itself.
+    // 64, 128 and 192 rays extrapolated to 256, against the 256-ray step itself: sizes whose
+    // every count is affine (the fused kernels' partial sums come in blocks of 256 and 1,024
+    // rows, so their bytes are affine only where the rows fill whole blocks).
     let dir = tempfile::tempdir().unwrap();
     let data = tiny_scene(dir.path());
-    let e = account_one_pass_extrapolated(
-        &tiny_run(),
-        data,
-        &candle_core::Device::Cpu,
-        Route::Cuda,
-        16,
-    )
-    .unwrap();
-    assert_eq!(e.from, [16, 32, 48]);
+    let mut run = tiny_run();
+    run.train.rays_per_step = 256;
+    let e = account_one_pass_extrapolated(&run, data, &candle_core::Device::Cpu, Route::Cuda, 64)
+        .unwrap();
+    assert_eq!(e.from, [64, 128, 192]);
     assert!(e.counts_constant);
-    let direct = account(0);
+    let (_dir, mut trainer, mut source) = tiny_with_rays(0, 256);
+    let direct = account_step(&mut trainer, &mut source, Route::Cuda).unwrap();
     assert_eq!(e.report.total, direct.report.total);
     assert_eq!(e.report.ops, direct.report.ops);
     assert_eq!(e.report.stages, direct.report.stages);

@@ -324,7 +324,7 @@ fn field_view_encoding_and_compositing() {
     let view = rand_t(&mut s.rng, &[n, vdim], -1.0, 1.0);
     let w = rand_t(&mut s.rng, &[n, 4], -1.0, 1.0);
     let loss = || {
-        let o = field.forward(input.as_tensor(), &view, K).unwrap();
+        let o = field.forward(input.as_tensor(), &view, K, false).unwrap();
         (Tensor::cat(&[&o.rgb, &o.sigma_raw], 1).unwrap() * &w)
             .unwrap()
             .sum_all()

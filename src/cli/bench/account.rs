@@ -7,7 +7,7 @@ use std::collections::BTreeMap;
 
 use candle_core::Device;
 use pma_model::bench::{AccountReport, AccountRequest};
-use pma_model::compute::account::{Counts, GpuEstimate, Recorded, Route, Summary, GPUS};
+use pma_model::compute::account::{Counts, GpuEstimate, Recorded, Route, StageOp, Summary, GPUS};
 use pma_model::compute::account::{LAUNCH_S, SYNC_S};
 use pma_model::train::{Preset, RunConfig};
 
@@ -144,18 +144,26 @@ fn print_tables(f: &AccountReport) {
         &f.inference,
     );
 
-    let mut top: Vec<(&String, &Counts)> = f.step.ops.iter().collect();
-    top.sort_by_key(|(_, c)| std::cmp::Reverse(c.launches));
-    println!("\nops of the step by launches (first 12 of {}):", top.len());
-    for (name, c) in top.iter().take(12) {
+    let mut top: Vec<(&str, &StageOp)> = f
+        .step
+        .stages
+        .iter()
+        .flat_map(|s| s.ops.iter().map(move |o| (s.name.as_str(), o)))
+        .collect();
+    top.sort_by(|a, b| b.1.est_h200_s.total_cmp(&a.1.est_h200_s));
+    println!(
+        "\nops of the step by estimated H200 time (first 15 of {} stage/op pairs):",
+        top.len()
+    );
+    for (stage, o) in top.iter().take(15) {
         println!(
-            "  {:<24} {:>7} ops {:>7} launches {:>6} params {:>9.3} GB {:>9.2} GFLOP",
-            name,
-            c.ops,
-            c.launches,
-            c.param_uploads,
-            gb(c.bytes()),
-            c.flops as f64 / 1e9
+            "  {:<20} {:<22} {:>6} launches {:>9.3} GB {:>9.2} GFLOP {:>8.2} est ms",
+            stage,
+            o.name,
+            o.launches,
+            gb(o.bytes),
+            o.flops as f64 / 1e9,
+            o.est_h200_s * 1e3
         );
     }
 

@@ -144,12 +144,14 @@ mod tests {
         let costs = [
             // memory-bound: 3.35 GB at 3.35 TB/s = 1 ms
             Cost {
+                op: "a",
                 launches: 1,
                 bytes: 3_350_000_000,
                 flops: 0,
             },
             // compute-bound: 67 GFLOP at 67 TFLOP/s = 1 ms (TF32: 67/494.5 ms)
             Cost {
+                op: "b",
                 launches: 2,
                 bytes: 8,
                 flops: 67_000_000_000,

@@ -133,6 +133,9 @@ impl Counts {
 /// One op as the cost model sees it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Cost {
+    /// The op's name (candle's op name or a pma kernel's); not part of a recorded file.
+    #[serde(skip)]
+    pub op: &'static str,
     pub launches: u32,
     pub bytes: u64,
     pub flops: u64,
@@ -249,7 +252,11 @@ impl Report {
                 .zip(&sb.costs)
                 .zip(&sc.costs)
                 .map(|((x, y), z)| {
+                    if x.op != y.op || y.op != z.op {
+                        return None;
+                    }
                     Some(Cost {
+                        op: x.op,
                         launches: u32::try_from(affine(
                             [x, y, z].map(|c| u64::from(c.launches)),
                             k,
@@ -326,6 +333,47 @@ pub struct StageSummary {
     pub times: u64,
     pub counts: Counts,
     pub est: Vec<GpuEstimate>,
+    /// The stage's ops by name, the most expensive on an H200 first.
+    pub ops: Vec<StageOp>,
+}
+
+/// The ops of one name within a stage: where a stage's estimated time goes.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct StageOp {
+    pub name: &'static str,
+    pub ops: u64,
+    pub launches: u64,
+    pub bytes: u64,
+    pub flops: u64,
+    /// Their estimated time on an H200 with FP32 matmuls (roofline and launches; the
+    /// stage's uploads and syncs are not split by op).
+    pub est_h200_s: f64,
+}
+
+impl Stage {
+    /// [`StageSummary::ops`].
+    pub fn by_op(&self) -> Vec<StageOp> {
+        let h200 = gpu("h200").expect("H200 is one of the cost model's GPUs");
+        let mut names: Vec<&'static str> = self.costs.iter().map(|c| c.op).collect();
+        names.sort_unstable();
+        names.dedup();
+        let mut ops: Vec<StageOp> = names
+            .into_iter()
+            .map(|name| {
+                let of = || self.costs.iter().filter(move |c| c.op == name);
+                StageOp {
+                    name,
+                    ops: of().count() as u64,
+                    launches: of().map(|c| u64::from(c.launches)).sum(),
+                    bytes: of().map(|c| c.bytes).sum(),
+                    flops: of().map(|c| c.flops).sum(),
+                    est_h200_s: estimate(of(), &Counts::default(), h200, false).est_s,
+                }
+            })
+            .collect();
+        ops.sort_by(|a, b| b.est_h200_s.total_cmp(&a.est_h200_s));
+        ops
+    }
 }
 
 impl Report {
@@ -343,6 +391,7 @@ impl Report {
                     times: s.times,
                     counts: s.counts,
                     est: estimates(s.costs.iter(), &s.counts),
+                    ops: s.by_op(),
                 })
                 .collect(),
             ops: self.ops.clone(),
@@ -432,6 +481,7 @@ impl hook::Observer for Tally {
         pending.0.add(e);
         if let Event::Op(op) = e {
             pending.1.push(Cost {
+                op: op.name,
                 launches: op.launches,
                 bytes: op.bytes_read + op.bytes_written,
                 flops: op.flops,

@@ -17,6 +17,12 @@ pub const WINDOW_POOL_CU: &str = include_str!("kernels/window_pool.cu");
 /// CUDA source of one FiLM-sine layer and its gradient.
 pub const FILM_SINE_CU: &str = include_str!("kernels/film_sine.cu");
 
+/// CUDA source of the narrow-input SIREN layer and its weight gradients.
+pub const SINE_LINEAR_CU: &str = include_str!("kernels/sine_linear.cu");
+
+/// CUDA source of the bias add and ReLU after a product, and their gradients.
+pub const BIAS_RELU_CU: &str = include_str!("kernels/bias_relu.cu");
+
 /// CUDA source of the flat Adam update.
 pub const ADAM_CU: &str = include_str!("kernels/adam.cu");
 
@@ -74,6 +80,24 @@ mod launch {
             &PTX,
             super::FILM_SINE_CU,
             "compute/cuda/kernels/film_sine.cu",
+        )
+    }
+
+    fn bias_relu_ptx() -> Result<&'static str> {
+        static PTX: OnceLock<std::result::Result<String, String>> = OnceLock::new();
+        ptx(
+            &PTX,
+            super::BIAS_RELU_CU,
+            "compute/cuda/kernels/bias_relu.cu",
+        )
+    }
+
+    fn sine_linear_ptx() -> Result<&'static str> {
+        static PTX: OnceLock<std::result::Result<String, String>> = OnceLock::new();
+        ptx(
+            &PTX,
+            super::SINE_LINEAR_CU,
+            "compute/cuda/kernels/sine_linear.cu",
         )
     }
 
@@ -353,6 +377,219 @@ mod launch {
             unsafe { b.launch(config(len)?) }.w()?;
         }
         Ok(CudaStorage::wrap_cuda_slice(g_pre, dev))
+    }
+
+    /// `s_r sin(x Wᵀ + b)`: x [R,IN], [W|b] [OUT,IN+1], s [R] (contiguous f32,
+    /// 1 ≤ IN ≤ 4) -> [R,OUT]. One launch.
+    pub(crate) fn sine_linear(
+        (x, lx): (&CudaStorage, &Layout),
+        (wb, lwb): (&CudaStorage, &Layout),
+        (sc, lsc): (&CudaStorage, &Layout),
+        (rows, inp, out): (usize, usize, usize),
+    ) -> Result<CudaStorage> {
+        let dev = x.device().clone();
+        let y = output::<f32>(&dev, rows * out)?;
+        if rows * out > 0 {
+            let func = dev.get_or_load_custom_func(
+                "pma_sine_linear_f32",
+                "pma_sine_linear",
+                sine_linear_ptx()?,
+            )?;
+            let (xv, wv, sv) = (f32s(x, lx)?, f32s(wb, lwb)?, f32s(sc, lsc)?);
+            let dims = [
+                u32_of(rows, "rows")?,
+                u32_of(inp, "IN")?,
+                u32_of(out, "OUT")?,
+            ];
+            let mut bld = func.builder();
+            bld.arg(&xv);
+            bld.arg(&wv);
+            bld.arg(&sv);
+            bld.arg(&y);
+            for d in &dims {
+                bld.arg(d);
+            }
+            // SAFETY: the arguments match `pma_sine_linear_f32`'s list; the caller checked
+            // the shapes (x [R,IN], [W|b] [OUT,IN+1], s [R], IN within the kernel's bound).
+            unsafe { bld.launch(config(rows * out)?) }.w()?;
+        }
+        Ok(CudaStorage::wrap_cuda_slice(y, dev))
+    }
+
+    /// The gradient [OUT, IN+1] of [W|b] in [`sine_linear`] from the upstream gradient
+    /// [R,OUT]: partial sums per block of rows, then their sum in block order (two
+    /// launches); or, `of_rows`, [R, IN+1]: x's gradient and s's (one launch).
+    pub(crate) fn sine_linear_grad(
+        (grad, lg): (&CudaStorage, &Layout),
+        (x, lx): (&CudaStorage, &Layout),
+        (wb, lwb): (&CudaStorage, &Layout),
+        (sc, lsc): (&CudaStorage, &Layout),
+        (rows, inp, out): (usize, usize, usize),
+        of_rows: bool,
+    ) -> Result<CudaStorage> {
+        let dev = grad.device().clone();
+        let width = inp + 1;
+        let dims = [
+            u32_of(rows, "rows")?,
+            u32_of(inp, "IN")?,
+            u32_of(out, "OUT")?,
+        ];
+        let (gv, xv, wv, sv) = (
+            f32s(grad, lg)?,
+            f32s(x, lx)?,
+            f32s(wb, lwb)?,
+            f32s(sc, lsc)?,
+        );
+        let blocks = rows.div_ceil(crate::compute::sine_linear::ROWS_PER_BLOCK);
+        let (len, name, threads) = match of_rows {
+            true => (rows * width, "pma_sine_linear_grad_rows_f32", rows),
+            false => (
+                blocks * out * width,
+                "pma_sine_linear_grad_part_f32",
+                blocks * out,
+            ),
+        };
+        if len == 0 || (!of_rows && out == 0) {
+            // No rows or no outputs: nothing to sum, the gradients are zero.
+            let n = if of_rows { rows * width } else { out * width };
+            let zero = dev.alloc_zeros::<f32>(n.max(1))?;
+            return Ok(CudaStorage::wrap_cuda_slice(zero, dev));
+        }
+        let first = output::<f32>(&dev, len)?;
+        let func = dev.get_or_load_custom_func(name, "pma_sine_linear", sine_linear_ptx()?)?;
+        let mut bld = func.builder();
+        bld.arg(&gv);
+        bld.arg(&xv);
+        bld.arg(&wv);
+        bld.arg(&sv);
+        bld.arg(&first);
+        for d in &dims {
+            bld.arg(d);
+        }
+        // SAFETY: the arguments match the list of `name` (both kernels take the same);
+        // grad is [R,OUT], x [R,IN], [W|b] [OUT,IN+1], s [R]; `first` holds what the kernel
+        // writes: [R,IN+1] per row, or [blocks,OUT,IN+1] for blocks = ceil(R / rows per block).
+        unsafe { bld.launch(config(threads)?) }.w()?;
+        if of_rows {
+            return Ok(CudaStorage::wrap_cuda_slice(first, dev));
+        }
+        let g = output::<f32>(&dev, out * width)?;
+        let func = dev.get_or_load_custom_func(
+            "pma_sine_linear_grad_sum_f32",
+            "pma_sine_linear",
+            sine_linear_ptx()?,
+        )?;
+        let sums = [u32_of(blocks, "blocks")?, dims[1], dims[2]];
+        let mut bld = func.builder();
+        bld.arg(&first);
+        bld.arg(&g);
+        for d in &sums {
+            bld.arg(d);
+        }
+        // SAFETY: the arguments match `pma_sine_linear_grad_sum_f32`'s list; the partial
+        // sums were written in full by the launch before, on the same stream.
+        unsafe { bld.launch(config(out * width)?) }.w()?;
+        Ok(CudaStorage::wrap_cuda_slice(g, dev))
+    }
+
+    /// `max(z + b, 0)`: z [R,OUT] (contiguous from its start), b [OUT] -> [R,OUT]. One
+    /// launch.
+    pub(crate) fn bias_relu(
+        z: &CudaStorage,
+        b: &CudaStorage,
+        lb: &Layout,
+        [rows, out]: [usize; 2],
+    ) -> Result<CudaStorage> {
+        let dev = z.device().clone();
+        let y = output::<f32>(&dev, rows * out)?;
+        if rows * out > 0 {
+            let func = dev.get_or_load_custom_func(
+                "pma_bias_relu_f32",
+                "pma_bias_relu",
+                bias_relu_ptx()?,
+            )?;
+            let zv = z.as_cuda_slice::<f32>()?;
+            let bv = f32s(b, lb)?;
+            let dims = [u32_of(rows, "rows")?, u32_of(out, "OUT")?];
+            let mut bld = func.builder();
+            bld.arg(zv);
+            bld.arg(&bv);
+            bld.arg(&y);
+            for d in &dims {
+                bld.arg(d);
+            }
+            // SAFETY: the arguments match `pma_bias_relu_f32`'s list; z is the product
+            // [R,OUT] just made, b [OUT].
+            unsafe { bld.launch(config(rows * out)?) }.w()?;
+        }
+        Ok(CudaStorage::wrap_cuda_slice(y, dev))
+    }
+
+    /// The product's gradient [R,OUT] where y > 0, and the bias gradient's partial sums
+    /// per block of rows [blocks, OUT]. One launch.
+    pub(crate) fn relu_grad(
+        grad: &CudaStorage,
+        lg: &Layout,
+        y: &CudaStorage,
+        ly: &Layout,
+        [rows, out]: [usize; 2],
+    ) -> Result<(CudaStorage, CudaSlice<f32>)> {
+        let dev = grad.device().clone();
+        let blocks = rows.div_ceil(crate::compute::linear_relu::ROWS_PER_BLOCK);
+        let gz = output::<f32>(&dev, rows * out)?;
+        let part = output::<f32>(&dev, blocks * out)?;
+        if blocks * out > 0 {
+            let func = dev.get_or_load_custom_func(
+                "pma_relu_grad_f32",
+                "pma_bias_relu",
+                bias_relu_ptx()?,
+            )?;
+            let (gv, yv) = (f32s(grad, lg)?, f32s(y, ly)?);
+            let dims = [u32_of(rows, "rows")?, u32_of(out, "OUT")?];
+            let mut bld = func.builder();
+            bld.arg(&gv);
+            bld.arg(&yv);
+            bld.arg(&gz);
+            bld.arg(&part);
+            for d in &dims {
+                bld.arg(d);
+            }
+            // SAFETY: the arguments match `pma_relu_grad_f32`'s list; grad and y are
+            // [R,OUT], `part` [blocks,OUT] for blocks = ceil(R / PMA_BIAS_RELU_ROWS).
+            unsafe { bld.launch(config(blocks * out)?) }.w()?;
+        }
+        Ok((CudaStorage::wrap_cuda_slice(gz, dev), part))
+    }
+
+    /// The bias gradient [OUT]: the partial sums [blocks, OUT] added in block order. One
+    /// launch (a memset when there are no blocks).
+    pub(crate) fn bias_grad_sum(
+        like: &CudaStorage,
+        part: &CudaSlice<f32>,
+        [blocks, out]: [usize; 2],
+    ) -> Result<CudaStorage> {
+        let dev = like.device().clone();
+        if blocks == 0 || out == 0 {
+            let zero = dev.alloc_zeros::<f32>(out.max(1))?;
+            return Ok(CudaStorage::wrap_cuda_slice(zero, dev));
+        }
+        let gb = output::<f32>(&dev, out)?;
+        let func = dev.get_or_load_custom_func(
+            "pma_bias_grad_sum_f32",
+            "pma_bias_relu",
+            bias_relu_ptx()?,
+        )?;
+        let dims = [u32_of(blocks, "blocks")?, u32_of(out, "OUT")?];
+        let mut bld = func.builder();
+        bld.arg(part);
+        bld.arg(&gb);
+        for d in &dims {
+            bld.arg(d);
+        }
+        // SAFETY: the arguments match `pma_bias_grad_sum_f32`'s list; `part` holds
+        // [blocks,OUT], written by `relu_grad` on the same stream.
+        unsafe { bld.launch(config(out)?) }.w()?;
+        Ok(CudaStorage::wrap_cuda_slice(gb, dev))
     }
 
     /// A finished head gradient as a storage.
