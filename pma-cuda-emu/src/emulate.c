@@ -19,7 +19,7 @@ static inline float __fdiv_rn(float a, float b) { return a / b; }
 static inline float __fsqrt_rn(float a) { return sqrtf(a); }
 
 #include "adam.cu"
-#include "bias_relu.cu"
+#include "bias_act.cu"
 #include "film_sine.cu"
 #include "sine_linear.cu"
 #include "window_pool.cu"
@@ -136,11 +136,17 @@ void pma_emu_bias_relu_f32(const float *z, const float *b, float *y, unsigned in
     PMA_GRID(blocks, threads, pma_bias_relu_f32(z, b, y, rows, outs));
 }
 
-void pma_emu_relu_grad_f32(const float *grad, const float *y, float *gz, float *part,
-                           unsigned int rows, unsigned int outs, unsigned int blocks,
-                           unsigned int threads)
+void pma_emu_bias_sine_f32(const float *z, const float *b, float *y, unsigned int rows,
+                           unsigned int outs, unsigned int blocks, unsigned int threads)
 {
-    PMA_GRID(blocks, threads, pma_relu_grad_f32(grad, y, gz, part, rows, outs));
+    PMA_GRID(blocks, threads, pma_bias_sine_f32(z, b, y, rows, outs));
+}
+
+void pma_emu_act_grad_f32(const float *grad, const float *kept, const float *b, float *gz,
+                          float *part, unsigned int rows, unsigned int outs, int sine,
+                          unsigned int blocks, unsigned int threads)
+{
+    PMA_GRID(blocks, threads, pma_act_grad_f32(grad, kept, b, gz, part, rows, outs, sine));
 }
 
 void pma_emu_bias_grad_sum_f32(const float *part, float *gb, unsigned int n_blocks,
@@ -149,4 +155,4 @@ void pma_emu_bias_grad_sum_f32(const float *part, float *gb, unsigned int n_bloc
     PMA_GRID(blocks, threads, pma_bias_grad_sum_f32(part, gb, n_blocks, outs));
 }
 
-unsigned int pma_emu_bias_relu_rows(void) { return PMA_BIAS_RELU_ROWS; }
+unsigned int pma_emu_bias_act_rows(void) { return PMA_BIAS_ACT_ROWS; }

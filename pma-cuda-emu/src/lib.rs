@@ -82,13 +82,24 @@ extern "C" {
         blocks: c_uint,
         threads: c_uint,
     );
-    fn pma_emu_relu_grad_f32(
+    fn pma_emu_bias_sine_f32(
+        z: *const f32,
+        b: *const f32,
+        y: *mut f32,
+        rows: c_uint,
+        outs: c_uint,
+        blocks: c_uint,
+        threads: c_uint,
+    );
+    fn pma_emu_act_grad_f32(
         grad: *const f32,
-        y: *const f32,
+        kept: *const f32,
+        b: *const f32,
         gz: *mut f32,
         part: *mut f32,
         rows: c_uint,
         outs: c_uint,
+        sine: c_int,
         blocks: c_uint,
         threads: c_uint,
     );
@@ -100,7 +111,7 @@ extern "C" {
         blocks: c_uint,
         threads: c_uint,
     );
-    fn pma_emu_bias_relu_rows() -> c_uint;
+    fn pma_emu_bias_act_rows() -> c_uint;
     fn pma_emu_sine_linear_rows() -> c_uint;
     fn pma_emu_adam_f32(
         g: *const f32,
@@ -576,22 +587,27 @@ pub fn sine_linear_grad(
     (g, g_rows)
 }
 
-/// The kernel's rows per partial sum of the bias gradient (`PMA_BIAS_RELU_ROWS`).
-pub fn bias_relu_rows() -> usize {
+/// The kernel's rows per partial sum of the bias gradient (`PMA_BIAS_ACT_ROWS`).
+pub fn bias_act_rows() -> usize {
     // SAFETY: a constant getter without arguments.
-    unsafe { pma_emu_bias_relu_rows() as usize }
+    unsafe { pma_emu_bias_act_rows() as usize }
 }
 
-/// `bias_relu.cu`'s forward: max(z + b, 0) [rows, b.len()].
-pub fn bias_relu(z: &[f32], b: &[f32], grid: Grid) -> Vec<f32> {
+/// `bias_act.cu`'s forward: max(z + b, 0), or sin(z + b) when `sine`, [rows, b.len()].
+pub fn bias_act(z: &[f32], b: &[f32], sine: bool, grid: Grid) -> Vec<f32> {
     let out = b.len();
     let rows = z.len().checked_div(out).unwrap_or(0);
     assert_eq!(z.len(), rows * out, "z");
     let mut y = vec![f32::NAN; z.len()];
     let c = |v: usize| c_uint::try_from(v).expect("dims fit the kernel's u32");
+    let f = if sine {
+        pma_emu_bias_sine_f32
+    } else {
+        pma_emu_bias_relu_f32
+    };
     // SAFETY: z and y are [rows, out], b [out].
     unsafe {
-        pma_emu_bias_relu_f32(
+        f(
             z.as_ptr(),
             b.as_ptr(),
             y.as_mut_ptr(),
@@ -604,31 +620,36 @@ pub fn bias_relu(z: &[f32], b: &[f32], grid: Grid) -> Vec<f32> {
     y
 }
 
-/// `bias_relu.cu`'s backward, its two launches: (the product's gradient [rows,out], the
-/// bias gradient [out]) from the upstream gradient and the forward's output.
-pub fn relu_grad(
+/// `bias_act.cu`'s backward, its two launches: (the product's gradient [rows,out], the bias
+/// gradient [out]) from the upstream gradient and what the forward kept (the ReLU's output,
+/// or the sine's product z).
+pub fn act_grad(
     grad: &[f32],
-    y: &[f32],
-    out: usize,
+    kept: &[f32],
+    b: &[f32],
+    sine: bool,
     grid_rows: Grid,
     grid_sum: Grid,
 ) -> (Vec<f32>, Vec<f32>) {
-    let rows = y.len().checked_div(out).unwrap_or(0);
-    assert_eq!(grad.len(), y.len(), "grad");
-    let n_blocks = rows.div_ceil(bias_relu_rows());
-    let mut gz = vec![f32::NAN; y.len()];
+    let out = b.len();
+    let rows = kept.len().checked_div(out).unwrap_or(0);
+    assert_eq!(grad.len(), kept.len(), "grad");
+    let n_blocks = rows.div_ceil(bias_act_rows());
+    let mut gz = vec![f32::NAN; kept.len()];
     let mut part = vec![f32::NAN; (n_blocks * out).max(1)];
     let mut gb = vec![f32::NAN; out];
     let c = |v: usize| c_uint::try_from(v).expect("dims fit the kernel's u32");
-    // SAFETY: grad, y and gz are [rows, out], part [blocks, out], gb [out].
+    // SAFETY: grad, kept and gz are [rows, out], b [out], part [blocks, out], gb [out].
     unsafe {
-        pma_emu_relu_grad_f32(
+        pma_emu_act_grad_f32(
             grad.as_ptr(),
-            y.as_ptr(),
+            kept.as_ptr(),
+            b.as_ptr(),
             gz.as_mut_ptr(),
             part.as_mut_ptr(),
             c(rows),
             c(out),
+            c_int::from(sine),
             grid_rows.blocks,
             grid_rows.threads,
         );

@@ -8,7 +8,7 @@
 //! | --- | --- |
 //! | [`numerics`] | a network's numeric choices: fused kernels, fast sine, row ops, TF32 |
 //! | [`fused`] | fused kernels: the window max-pool, the FiLM-sine stack, bias adds |
-//! | [`linear_relu`] | a linear layer and its ReLU as one op on a GPU's route |
+//! | [`linear_act`] | a linear layer and its ReLU or sine as one op on a GPU's route |
 //! | [`sine_linear`] | the point encoders' SIREN layer as one op on a GPU's route |
 //! | [`cuda`] | the fused ops' CUDA kernels (`cuda/kernels/*.cu`, NVRTC at run time) |
 //! | [`libm_sine`] | glibc's sinf/cosf recipe, lane-wise (bit-identical, vectorised) |
@@ -29,7 +29,7 @@ pub mod flops;
 pub mod fused;
 pub mod host;
 pub mod libm_sine;
-pub mod linear_relu;
+pub mod linear_act;
 pub mod numerics;
 pub mod ops;
 pub mod parallel;

@@ -45,9 +45,9 @@ impl Linear {
 }
 
 impl Linear {
-    /// `max(x Wᵀ + b, 0)`: x: [rows, in] -> [rows, out] ([`crate::compute::linear_relu`]).
+    /// `max(x Wᵀ + b, 0)`: x: [rows, in] -> [rows, out] ([`crate::compute::linear_act`]).
     pub fn forward_relu(&self, x: &Tensor, k: Numerics) -> Result<Tensor> {
-        crate::compute::linear_relu::linear_relu(x, &self.weight, &self.bias, k)
+        crate::compute::linear_act::linear_relu(x, &self.weight, &self.bias, k)
     }
 
     /// [`Self::forward`] as a bf16 tensor-core product computes it: input, weight and output
@@ -116,7 +116,11 @@ impl SineLayer {
         let rows = x.elem_count() / in_dim.max(1);
         let scale = scale.map(|s| s.reshape(rows)).transpose()?;
         let x2 = x.reshape((rows, in_dim))?;
-        let y = crate::compute::sine_linear::sine_linear(&x2, &w, &b, scale.as_ref(), k)?;
+        let y = match (scale, in_dim > crate::compute::sine_linear::MAX_IN) {
+            // A wide input (the pose extractor): cuBLAS's product, then bias and sine.
+            (None, true) => crate::compute::linear_act::linear_sine(&x2, &w, &b, k)?,
+            (scale, _) => crate::compute::sine_linear::sine_linear(&x2, &w, &b, scale.as_ref(), k)?,
+        };
         let mut out_dims = dims;
         *out_dims
             .last_mut()

@@ -20,8 +20,9 @@ pub const FILM_SINE_CU: &str = include_str!("kernels/film_sine.cu");
 /// CUDA source of the narrow-input SIREN layer and its weight gradients.
 pub const SINE_LINEAR_CU: &str = include_str!("kernels/sine_linear.cu");
 
-/// CUDA source of the bias add and ReLU after a product, and their gradients.
-pub const BIAS_RELU_CU: &str = include_str!("kernels/bias_relu.cu");
+/// CUDA source of the bias add and activation (ReLU or sine) after a product, and their
+/// gradients.
+pub const BIAS_ACT_CU: &str = include_str!("kernels/bias_act.cu");
 
 /// CUDA source of the flat Adam update.
 pub const ADAM_CU: &str = include_str!("kernels/adam.cu");
@@ -83,13 +84,9 @@ mod launch {
         )
     }
 
-    fn bias_relu_ptx() -> Result<&'static str> {
+    fn bias_act_ptx() -> Result<&'static str> {
         static PTX: OnceLock<std::result::Result<String, String>> = OnceLock::new();
-        ptx(
-            &PTX,
-            super::BIAS_RELU_CU,
-            "compute/cuda/kernels/bias_relu.cu",
-        )
+        ptx(&PTX, super::BIAS_ACT_CU, "compute/cuda/kernels/bias_act.cu")
     }
 
     fn sine_linear_ptx() -> Result<&'static str> {
@@ -492,22 +489,24 @@ mod launch {
         Ok(CudaStorage::wrap_cuda_slice(g, dev))
     }
 
-    /// `max(z + b, 0)`: z [R,OUT] (contiguous from its start), b [OUT] -> [R,OUT]. One
-    /// launch.
-    pub(crate) fn bias_relu(
+    /// `max(z + b, 0)`, or `sin(z + b)` when `sine`: z [R,OUT] (contiguous from its
+    /// start), b [OUT] -> [R,OUT]. One launch.
+    pub(crate) fn bias_act(
         z: &CudaStorage,
         b: &CudaStorage,
         lb: &Layout,
         [rows, out]: [usize; 2],
+        sine: bool,
     ) -> Result<CudaStorage> {
         let dev = z.device().clone();
         let y = output::<f32>(&dev, rows * out)?;
         if rows * out > 0 {
-            let func = dev.get_or_load_custom_func(
-                "pma_bias_relu_f32",
-                "pma_bias_relu",
-                bias_relu_ptx()?,
-            )?;
+            let name = if sine {
+                "pma_bias_sine_f32"
+            } else {
+                "pma_bias_relu_f32"
+            };
+            let func = dev.get_or_load_custom_func(name, "pma_bias_act", bias_act_ptx()?)?;
             let zv = z.as_cuda_slice::<f32>()?;
             let bv = f32s(b, lb)?;
             let dims = [u32_of(rows, "rows")?, u32_of(out, "OUT")?];
@@ -518,44 +517,45 @@ mod launch {
             for d in &dims {
                 bld.arg(d);
             }
-            // SAFETY: the arguments match `pma_bias_relu_f32`'s list; z is the product
-            // [R,OUT] just made, b [OUT].
+            // SAFETY: the arguments match the list of `name` (both kernels take the same);
+            // z is the product [R,OUT] just made, b [OUT].
             unsafe { bld.launch(config(rows * out)?) }.w()?;
         }
         Ok(CudaStorage::wrap_cuda_slice(y, dev))
     }
 
-    /// The product's gradient [R,OUT] where y > 0, and the bias gradient's partial sums
-    /// per block of rows [blocks, OUT]. One launch.
-    pub(crate) fn relu_grad(
-        grad: &CudaStorage,
-        lg: &Layout,
-        y: &CudaStorage,
-        ly: &Layout,
+    /// The product's gradient [R,OUT] (ReLU: where the output `kept` is > 0; sine: times
+    /// cos(kept + b), `kept` the product), and the bias gradient's partial sums per block of
+    /// rows [blocks, OUT]. One launch.
+    pub(crate) fn act_grad(
+        (grad, lg): (&CudaStorage, &Layout),
+        (kept, lk): (&CudaStorage, &Layout),
+        (b, lb): (&CudaStorage, &Layout),
         [rows, out]: [usize; 2],
+        sine: bool,
     ) -> Result<(CudaStorage, CudaSlice<f32>)> {
         let dev = grad.device().clone();
-        let blocks = rows.div_ceil(crate::compute::linear_relu::ROWS_PER_BLOCK);
+        let blocks = rows.div_ceil(crate::compute::linear_act::ROWS_PER_BLOCK);
         let gz = output::<f32>(&dev, rows * out)?;
         let part = output::<f32>(&dev, blocks * out)?;
         if blocks * out > 0 {
-            let func = dev.get_or_load_custom_func(
-                "pma_relu_grad_f32",
-                "pma_bias_relu",
-                bias_relu_ptx()?,
-            )?;
-            let (gv, yv) = (f32s(grad, lg)?, f32s(y, ly)?);
+            let func =
+                dev.get_or_load_custom_func("pma_act_grad_f32", "pma_bias_act", bias_act_ptx()?)?;
+            let (gv, kv, bv) = (f32s(grad, lg)?, f32s(kept, lk)?, f32s(b, lb)?);
             let dims = [u32_of(rows, "rows")?, u32_of(out, "OUT")?];
+            let sine = i32::from(sine);
             let mut bld = func.builder();
             bld.arg(&gv);
-            bld.arg(&yv);
+            bld.arg(&kv);
+            bld.arg(&bv);
             bld.arg(&gz);
             bld.arg(&part);
             for d in &dims {
                 bld.arg(d);
             }
-            // SAFETY: the arguments match `pma_relu_grad_f32`'s list; grad and y are
-            // [R,OUT], `part` [blocks,OUT] for blocks = ceil(R / PMA_BIAS_RELU_ROWS).
+            bld.arg(&sine);
+            // SAFETY: the arguments match `pma_act_grad_f32`'s list; grad and kept are
+            // [R,OUT], b [OUT], `part` [blocks,OUT] for blocks = ceil(R / PMA_BIAS_ACT_ROWS).
             unsafe { bld.launch(config(blocks * out)?) }.w()?;
         }
         Ok((CudaStorage::wrap_cuda_slice(gz, dev), part))
@@ -574,11 +574,8 @@ mod launch {
             return Ok(CudaStorage::wrap_cuda_slice(zero, dev));
         }
         let gb = output::<f32>(&dev, out)?;
-        let func = dev.get_or_load_custom_func(
-            "pma_bias_grad_sum_f32",
-            "pma_bias_relu",
-            bias_relu_ptx()?,
-        )?;
+        let func =
+            dev.get_or_load_custom_func("pma_bias_grad_sum_f32", "pma_bias_act", bias_act_ptx()?)?;
         let dims = [u32_of(blocks, "blocks")?, u32_of(out, "OUT")?];
         let mut bld = func.builder();
         bld.arg(part);
@@ -587,7 +584,7 @@ mod launch {
             bld.arg(d);
         }
         // SAFETY: the arguments match `pma_bias_grad_sum_f32`'s list; `part` holds
-        // [blocks,OUT], written by `relu_grad` on the same stream.
+        // [blocks,OUT], written by `act_grad` on the same stream.
         unsafe { bld.launch(config(out)?) }.w()?;
         Ok(CudaStorage::wrap_cuda_slice(gb, dev))
     }
