@@ -1017,25 +1017,42 @@ pub(crate) fn linear_dims(
     Ok((rows, inn, out))
 }
 
-impl Linear {
-    /// Count the op as its two kernels: this op is the product (its launch, bytes and
-    /// FLOPs), the bias add is recorded beside it (with the dims upload of its broadcast).
-    fn report(cpu: bool, rows: usize, inn: usize, out: usize) {
-        let (rows, inn, out) = (rows as u64, inn as u64, out as u64);
-        candle_core::account::report_launches(1, 0);
-        candle_core::account::report_bytes(4 * (rows * inn + out * inn), 4 * rows * out);
-        candle_core::account::report_flops(2 * rows * out * inn);
-        candle_core::account::record(
-            cpu,
-            candle_core::account::Op {
-                name: "add",
-                launches: 1,
-                param_uploads: 1,
-                bytes_read: 4 * (rows * out + out),
-                bytes_written: 4 * rows * out,
-                flops: 0,
-            },
-        );
+/// Count a linear layer's op as its two kernels: the op is the product (its launch, bytes
+/// and FLOPs), its epilogue `name` (reading the product and the bias, writing the output,
+/// with `params` dims uploads) is recorded beside it.
+pub(crate) fn report_linear(
+    cpu: bool,
+    (rows, inn, out): (usize, usize, usize),
+    name: &'static str,
+    params: u32,
+) {
+    let (rows, inn, out) = (rows as u64, inn as u64, out as u64);
+    candle_core::account::report_launches(1, 0);
+    candle_core::account::report_bytes(4 * (rows * inn + out * inn), 4 * rows * out);
+    candle_core::account::report_flops(2 * rows * out * inn);
+    candle_core::account::record(
+        cpu,
+        candle_core::account::Op {
+            name,
+            launches: 1,
+            param_uploads: params,
+            bytes_read: 4 * (rows * out + out),
+            bytes_written: 4 * rows * out,
+            flops: 0,
+        },
+    );
+}
+
+/// The product x · Wᵀ on the CPU, exactly as `Tensor::matmul` calls it.
+pub(crate) fn cpu_product(
+    (s1, l1): (&CpuStorage, &Layout),
+    (s2, l2): (&CpuStorage, &Layout),
+    (rows, inn, out): (usize, usize, usize),
+) -> candle_core::Result<Vec<f32>> {
+    use candle_core::backend::BackendStorage;
+    match s1.matmul(s2, (1, rows, out, inn), l1, &l2.transpose(0, 1)?)? {
+        CpuStorage::F32(y) => Ok(y),
+        _ => candle_core::bail!("linear: the product is not f32"),
     }
 }
 
@@ -1053,14 +1070,10 @@ impl CustomOp3 for Linear {
         s3: &CpuStorage,
         l3: &Layout,
     ) -> candle_core::Result<(CpuStorage, Shape)> {
-        use candle_core::backend::BackendStorage;
-        let (rows, inn, out) = linear_dims(l1, l2, l3)?;
-        Self::report(true, rows, inn, out);
-        // The product exactly as `Tensor::matmul` calls it for x · Wᵀ.
-        let y = s1.matmul(s2, (1, rows, out, inn), l1, &l2.transpose(0, 1)?)?;
-        let CpuStorage::F32(mut y) = y else {
-            candle_core::bail!("linear: the product is not f32")
-        };
+        let d = linear_dims(l1, l2, l3)?;
+        let (rows, out) = (d.0, d.2);
+        report_linear(true, d, "add", 1);
+        let mut y = cpu_product((s1, l1), (s2, l2), d)?;
         let b = f32_slice(s3, l3, "linear: b")?;
         for row in y.chunks_exact_mut(out.max(1)) {
             for (a, c) in row.iter_mut().zip(b) {
@@ -1082,7 +1095,7 @@ impl CustomOp3 for Linear {
     ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
         use candle_core::backend::BackendStorage;
         let (rows, inn, out) = linear_dims(l1, l2, l3)?;
-        Self::report(false, rows, inn, out);
+        report_linear(false, (rows, inn, out), "add", 1);
         // cuBLAS, then candle's broadcast add kernel; the product is freed on return.
         let y = s1.matmul(s2, (1, rows, out, inn), l1, &l2.transpose(0, 1)?)?;
         let y_l = Layout::contiguous((rows, out));

@@ -22,7 +22,7 @@ use std::sync::{Arc, Mutex};
 
 use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, Layout, Shape, Tensor};
 
-use crate::compute::fused::{applies_cuda, linear_dims, models_cuda};
+use crate::compute::fused::{applies_cuda, cpu_product, linear_dims, models_cuda, report_linear};
 use crate::compute::numerics::Numerics;
 use crate::compute::ops::f32_slice;
 use crate::error::Result;
@@ -155,27 +155,12 @@ struct LinearAct {
 }
 
 impl LinearAct {
-    /// Count the op as its two kernels: this op is the product; the bias add and the
-    /// activation is recorded beside it.
-    fn report(&self, cpu: bool, rows: usize, inn: usize, out: usize) {
-        let (rows, inn, out) = (rows as u64, inn as u64, out as u64);
-        candle_core::account::report_launches(1, 0);
-        candle_core::account::report_bytes(4 * (rows * inn + out * inn), 4 * rows * out);
-        candle_core::account::report_flops(2 * rows * out * inn);
-        candle_core::account::record(
-            cpu,
-            candle_core::account::Op {
-                name: match self.act {
-                    Act::Relu => "pma-bias-relu",
-                    Act::Sine => "pma-bias-sine",
-                },
-                launches: 1,
-                param_uploads: 0,
-                bytes_read: 4 * (rows * out + out),
-                bytes_written: 4 * rows * out,
-                flops: 0,
-            },
-        );
+    /// The name the bias-and-activation kernel is counted under.
+    fn epilogue(&self) -> &'static str {
+        match self.act {
+            Act::Relu => "pma-bias-relu",
+            Act::Sine => "pma-bias-sine",
+        }
     }
 }
 
@@ -193,13 +178,10 @@ impl CustomOp3 for LinearAct {
         s3: &CpuStorage,
         l3: &Layout,
     ) -> candle_core::Result<(CpuStorage, Shape)> {
-        use candle_core::backend::BackendStorage;
-        let (rows, inn, out) = linear_dims(l1, l2, l3)?;
-        self.report(true, rows, inn, out);
-        let z = s1.matmul(s2, (1, rows, out, inn), l1, &l2.transpose(0, 1)?)?;
-        let CpuStorage::F32(z) = z else {
-            candle_core::bail!("linear act: the product is not f32")
-        };
+        let d = linear_dims(l1, l2, l3)?;
+        report_linear(true, d, self.epilogue(), 0);
+        let (rows, out) = (d.0, d.2);
+        let z = cpu_product((s1, l1), (s2, l2), d)?;
         let y = bias_act(&z, f32_slice(s3, l3, "linear act: b")?, self.act, self.fast);
         if self.keep {
             let held = candle_core::account::hold(true, 4 * z.len());
@@ -220,7 +202,7 @@ impl CustomOp3 for LinearAct {
     ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
         use candle_core::backend::BackendStorage;
         let (rows, inn, out) = linear_dims(l1, l2, l3)?;
-        self.report(false, rows, inn, out);
+        report_linear(false, (rows, inn, out), self.epilogue(), 0);
         // cuBLAS, then the bias add and activation; the product is freed on return unless
         // the sine's backward needs it.
         let z = s1.matmul(s2, (1, rows, out, inn), l1, &l2.transpose(0, 1)?)?;
