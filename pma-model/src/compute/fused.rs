@@ -373,15 +373,21 @@ pub struct FilmHead {
 /// The head gradient the layers of one [`FilmHead::stack`] fill in.
 #[derive(Default)]
 struct HeadGrad {
+    /// The buffer of the CPU route's backward.
     buf: Option<Vec<f32>>,
+    /// The buffer of a device backward (CUDA, or a CPU run accounted as CUDA).
+    dev: Option<HeadBuf>,
     /// Layer 0 has handed the buffer over: a later backward pass over the same graph makes
     /// every layer return its own gradient.
     taken: bool,
-    /// The buffer's bytes, live on the modeled device while the layers fill it.
-    held: Option<candle_core::account::Held>,
-    /// The buffer of a CUDA backward, on the device.
+}
+
+/// A device backward's head gradient while the layers fill it: on CUDA the device buffer; in
+/// a CPU run accounted as CUDA a host buffer whose bytes are held live on the modeled device.
+enum HeadBuf {
+    Modeled(Vec<f32>, candle_core::account::Held),
     #[cfg(feature = "cuda")]
-    dev_buf: Option<CudaSlice<f32>>,
+    Cuda(CudaSlice<f32>),
 }
 
 impl FilmHead {
@@ -450,8 +456,9 @@ impl FilmHead {
         }
         let (pre, o) = (pre.contiguous()?, o.contiguous()?);
         // On the CPU the cosine is kept: libm's is the costly part of the backward. On a GPU
-        // the backward recomputes it from pre and Φ (the same bytes read as a kept cosine,
-        // and a [N,f] tensor less alive from forward to backward).
+        // (and a CPU run accounted as one) the backward recomputes it from pre and Φ (the
+        // same bytes read as a kept cosine, and a [N,f] tensor less alive from forward to
+        // backward).
         let keep_cos =
             (pre.track_op() || o.track_op()) && !(self.modeled || pre.device().is_cuda());
         let op = FilmSine {
@@ -461,8 +468,6 @@ impl FilmHead {
             add: add as f32,
             fast: self.fast,
             cos: crate::compute::ops::Kept::new(keep_cos),
-            #[cfg(feature = "cuda")]
-            cos_dev: crate::compute::ops::Kept::new(keep_cos),
             modeled: self.modeled,
             shared: chained.then(|| self.grad.clone()),
         };
@@ -477,11 +482,8 @@ struct FilmSine {
     add: f32,
     /// Sine flavour fixed when the graph is built, so the backward matches its forward.
     fast: bool,
-    /// cos of the argument, kept by the forward for the backward.
+    /// cos of the argument, kept by the CPU route's forward for its backward.
     cos: crate::compute::ops::Kept<Vec<f32>>,
-    /// The same on the device, from a CUDA forward.
-    #[cfg(feature = "cuda")]
-    cos_dev: crate::compute::ops::Kept<CudaSlice<f32>>,
     /// A CPU run accounted as CUDA ([`FilmHead`]).
     modeled: bool,
     /// The head gradient shared along a [`FilmHead::stack`].
@@ -588,13 +590,9 @@ impl CustomOp2 for FilmSine {
     ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
         let (n, f) = self.check(l1, l2)?;
         candle_core::account::report_launches(1, 0);
-        let keep = self.cos_dev.wanted();
-        let (read, written) = Self::fwd_bytes(n, f, keep);
+        let (read, written) = Self::fwd_bytes(n, f, false);
         candle_core::account::report_bytes(read, written);
-        let (out, cos) = crate::compute::cuda::film_sine(s1, l1, s2, l2, self.film(n, f), keep)?;
-        if let Some(c) = cos {
-            self.cos_dev.put(c);
-        }
+        let (out, _) = crate::compute::cuda::film_sine(s1, l1, s2, l2, self.film(n, f), false)?;
         Ok((out, l1.shape().clone()))
     }
 
@@ -605,12 +603,8 @@ impl CustomOp2 for FilmSine {
         _res: &Tensor,
         grad: &Tensor,
     ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>)> {
-        #[cfg(feature = "cuda")]
-        if pre.device().is_cuda() {
-            return self.cuda_bwd(pre, o, grad);
-        }
-        if self.modeled {
-            return self.modeled_bwd(pre, o, grad);
+        if self.modeled || pre.device().is_cuda() {
+            return self.device_bwd(pre, o, grad);
         }
         let (n, f) = pre.dims2()?;
         let w = 2 * self.n_layers * f;
@@ -689,10 +683,12 @@ impl FilmSine {
         g_pre
     }
 
-    /// The backward of a CPU run accounted as CUDA, shaped as the CUDA backward: one op per
-    /// layer counted as `film_sine.cu`'s gradient kernel, the head gradient handed over by
-    /// layer 0 without a launch. The same values as the CPU backward.
-    fn modeled_bwd(
+    /// The backward on CUDA, and in a CPU run accounted as CUDA shaped as that backward:
+    /// one op per layer (`film_sine.cu`'s gradient kernel, its memset of the head gradient
+    /// when the layer starts it), the head gradient handed over by layer 0 without a launch.
+    /// The cosine is recomputed (the device routes keep none). The same values as the CPU
+    /// backward, up to CUDA's `cosf`.
+    fn device_bwd(
         &self,
         pre: &Tensor,
         o: &Tensor,
@@ -707,155 +703,18 @@ impl FilmSine {
             .map(|s| s.lock().unwrap_or_else(|e| e.into_inner()));
         let defer = shared.as_ref().is_some_and(|s| !s.taken);
         let head = match shared.as_mut() {
-            Some(s) if defer => s.buf.take().zip(s.held.take()),
-            _ => None,
-        };
-        let op = FilmGradCpu {
-            layer: self,
-            cos: self.cos.take().filter(|c| c.len() == n * f),
-            head: Mutex::new(head),
-        };
-        let g_pre = d_c.apply_op3_no_bwd(&pre_c, &o_c, &op)?;
-        let head = op.head.into_inner().unwrap_or_else(|e| e.into_inner());
-        let (buf, held) =
-            head.ok_or_else(|| candle_core::Error::Msg("film sine: no head gradient".into()))?;
-        if let Some(s) = shared.as_mut().filter(|_| defer) {
-            if self.k > 0 {
-                s.buf = Some(buf);
-                s.held = Some(held);
-                return Ok((Some(g_pre), None));
-            }
-            s.taken = true;
-        }
-        let g_o = d_c.apply_op1_no_bwd(&HeadOutCpu {
-            buf: Mutex::new(Some(buf)),
-            shape: Shape::from((n, w)),
-        })?;
-        drop(held);
-        Ok((Some(g_pre), Some(g_o)))
-    }
-}
-
-/// A FiLM-sine layer's backward on (grad, pre, o) in a CPU run accounted as CUDA, counted as
-/// `film_sine.cu`'s gradient kernel: the gradient of pre; the layer's head-gradient blocks go
-/// into `head` (made zeroed, with its bytes held live, when it is `None`).
-struct FilmGradCpu<'a> {
-    layer: &'a FilmSine,
-    cos: Option<Vec<f32>>,
-    head: Mutex<Option<(Vec<f32>, candle_core::account::Held)>>,
-}
-
-impl CustomOp3 for FilmGradCpu<'_> {
-    fn name(&self) -> &'static str {
-        "pma-film-sine-grad"
-    }
-
-    fn cpu_fwd(
-        &self,
-        s1: &CpuStorage,
-        l1: &Layout,
-        s2: &CpuStorage,
-        l2: &Layout,
-        s3: &CpuStorage,
-        l3: &Layout,
-    ) -> candle_core::Result<(CpuStorage, Shape)> {
-        let (n, f) = l2.shape().dims2()?;
-        let film = self.layer;
-        let w = 2 * film.n_layers * f;
-        if l1.shape().dims2()? != (n, f) || l3.shape().dims2()? != (n, w) {
-            candle_core::bail!("film sine gradient: shapes do not agree with [{n}, {f}]")
-        }
-        let d = f32_slice(s1, l1, "film sine gradient: grad")?;
-        let p = f32_slice(s2, l2, "film sine gradient: pre")?;
-        let oo = f32_slice(s3, l3, "film sine gradient: o")?;
-        let mut head = self.head.lock().unwrap_or_else(|e| e.into_inner());
-        let starts = head.is_none();
-        candle_core::account::report_launches(if starts { 2 } else { 1 }, 0);
-        let (read, written) = FilmSine::bwd_bytes(n, f, w, starts);
-        candle_core::account::report_bytes(read, written);
-        let (g_o, _) = head.get_or_insert_with(|| {
-            (
-                vec![0f32; n * w],
-                candle_core::account::hold(true, n * w * 4),
-            )
-        });
-        if g_o.len() != n * w {
-            candle_core::bail!("film sine: shared head gradient has the wrong size")
-        }
-        let cos = match &self.cos {
-            Some(c) => std::borrow::Cow::Borrowed(c.as_slice()),
-            None => std::borrow::Cow::Owned(film.trig(film.argument(p, oo, f), 1)),
-        };
-        let g_pre = film.grad_rows(p, oo, d, &cos, g_o, f);
-        Ok((CpuStorage::F32(g_pre), Shape::from((n, f))))
-    }
-}
-
-/// Hands a finished head gradient to candle as a tensor, counted as the CUDA hand-over
-/// (no launch, nothing moved).
-struct HeadOutCpu {
-    buf: Mutex<Option<Vec<f32>>>,
-    shape: Shape,
-}
-
-impl candle_core::CustomOp1 for HeadOutCpu {
-    fn name(&self) -> &'static str {
-        "pma-film-head-grad"
-    }
-
-    fn cpu_fwd(&self, _: &CpuStorage, _: &Layout) -> candle_core::Result<(CpuStorage, Shape)> {
-        candle_core::account::report_launches(0, 0);
-        candle_core::account::report_bytes(0, 0);
-        let buf = self.buf.lock().unwrap_or_else(|e| e.into_inner()).take();
-        let buf = buf
-            .ok_or_else(|| candle_core::Error::Msg("film sine: head gradient used twice".into()))?;
-        Ok((CpuStorage::F32(buf), self.shape.clone()))
-    }
-}
-
-#[cfg(feature = "cuda")]
-impl FilmSine {
-    fn film(&self, n: usize, f: usize) -> crate::compute::cuda::Film {
-        crate::compute::cuda::Film {
-            n,
-            f,
-            k: self.k,
-            n_layers: self.n_layers,
-            mul: self.mul,
-            add: self.add,
-        }
-    }
-
-    /// The CUDA backward: one kernel writes the input's gradient and this layer's blocks of
-    /// the head gradient, shared along a stack as on the CPU (layer 0, run last, returns it).
-    fn cuda_bwd(
-        &self,
-        pre: &Tensor,
-        o: &Tensor,
-        grad: &Tensor,
-    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>)> {
-        let (n, f) = pre.dims2()?;
-        let w = 2 * self.n_layers * f;
-        let (pre_c, o_c, d_c) = (pre.contiguous()?, o.contiguous()?, grad.contiguous()?);
-        let mut shared = self
-            .shared
-            .as_ref()
-            .map(|s| s.lock().unwrap_or_else(|e| e.into_inner()));
-        let defer = shared.as_ref().is_some_and(|s| !s.taken);
-        let head = match shared.as_mut() {
-            Some(s) if defer => s.dev_buf.take(),
+            Some(s) if defer => s.dev.take(),
             _ => None,
         };
         let op = FilmGrad {
-            film: self.film(n, f),
-            cos: self.cos_dev.take().filter(|c| c.len() >= n * f),
+            layer: self,
             head: Mutex::new(head),
         };
         let g_pre = d_c.apply_op3_no_bwd(&pre_c, &o_c, &op)?;
         let head = op.head.into_inner().unwrap_or_else(|e| e.into_inner());
         if let Some(s) = shared.as_mut().filter(|_| defer) {
             if self.k > 0 {
-                s.dev_buf = head;
+                s.dev = head;
                 return Ok((Some(g_pre), None));
             }
             s.taken = true;
@@ -870,33 +729,72 @@ impl FilmSine {
     }
 }
 
-/// A FiLM-sine layer's CUDA backward on (grad, pre, o): the gradient of pre; the layer's
-/// head-gradient blocks go into `head` (allocated zeroed when it is `None`).
-#[cfg(feature = "cuda")]
-struct FilmGrad {
-    film: crate::compute::cuda::Film,
-    cos: Option<CudaSlice<f32>>,
-    head: Mutex<Option<CudaSlice<f32>>>,
+/// A FiLM-sine layer's device backward on (grad, pre, o), counted as `film_sine.cu`'s
+/// gradient kernel: the gradient of pre; the layer's head-gradient blocks go into `head`
+/// (made zeroed when it is `None`: on the modeled device with its bytes held live).
+struct FilmGrad<'a> {
+    layer: &'a FilmSine,
+    head: Mutex<Option<HeadBuf>>,
 }
 
-#[cfg(feature = "cuda")]
-impl CustomOp3 for FilmGrad {
+impl FilmGrad<'_> {
+    /// (N, F) of grad and pre, o [N, 2KF] checked; the op counted as the kernel and, when
+    /// this layer starts the head gradient, its memset.
+    fn count(
+        &self,
+        l1: &Layout,
+        l2: &Layout,
+        l3: &Layout,
+        starts: bool,
+    ) -> candle_core::Result<(usize, usize)> {
+        let (n, f) = l2.shape().dims2()?;
+        let w = 2 * self.layer.n_layers * f;
+        if l1.shape().dims2()? != (n, f) || l3.shape().dims2()? != (n, w) {
+            candle_core::bail!("film sine gradient: shapes do not agree with [{n}, {f}]")
+        }
+        candle_core::account::report_launches(if starts { 2 } else { 1 }, 0);
+        let (read, written) = FilmSine::bwd_bytes(n, f, w, starts);
+        candle_core::account::report_bytes(read, written);
+        Ok((n, f))
+    }
+}
+
+impl CustomOp3 for FilmGrad<'_> {
     fn name(&self) -> &'static str {
         "pma-film-sine-grad"
     }
 
     fn cpu_fwd(
         &self,
-        _: &CpuStorage,
-        _: &Layout,
-        _: &CpuStorage,
-        _: &Layout,
-        _: &CpuStorage,
-        _: &Layout,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+        s3: &CpuStorage,
+        l3: &Layout,
     ) -> candle_core::Result<(CpuStorage, Shape)> {
-        candle_core::bail!("film sine gradient: the CUDA kernel got CPU tensors")
+        let mut head = self.head.lock().unwrap_or_else(|e| e.into_inner());
+        let (n, f) = self.count(l1, l2, l3, head.is_none())?;
+        let film = self.layer;
+        let w = 2 * film.n_layers * f;
+        let d = f32_slice(s1, l1, "film sine gradient: grad")?;
+        let p = f32_slice(s2, l2, "film sine gradient: pre")?;
+        let oo = f32_slice(s3, l3, "film sine gradient: o")?;
+        let g_o = match head.get_or_insert_with(|| {
+            HeadBuf::Modeled(
+                vec![0f32; n * w],
+                candle_core::account::hold(true, n * w * 4),
+            )
+        }) {
+            HeadBuf::Modeled(g_o, _) if g_o.len() == n * w => g_o,
+            _ => candle_core::bail!("film sine: the shared head gradient is not this layer's"),
+        };
+        let cos = film.trig(film.argument(p, oo, f), 1);
+        let g_pre = film.grad_rows(p, oo, d, &cos, g_o, f);
+        Ok((CpuStorage::F32(g_pre), Shape::from((n, f))))
     }
 
+    #[cfg(feature = "cuda")]
     fn cuda_fwd(
         &self,
         s1: &candle_core::CudaStorage,
@@ -906,19 +804,15 @@ impl CustomOp3 for FilmGrad {
         s3: &candle_core::CudaStorage,
         l3: &Layout,
     ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
-        let d = self.film;
-        if l1.shape().dims2()? != (d.n, d.f) || l3.shape().dims2()? != (d.n, 2 * d.n_layers * d.f) {
-            candle_core::bail!(
-                "film sine gradient: shapes do not agree with [{}, {}]",
-                d.n,
-                d.f
-            )
-        }
         let mut head = self.head.lock().unwrap_or_else(|e| e.into_inner());
-        // The kernel, and the head gradient's memset when this layer starts it.
-        candle_core::account::report_launches(if head.is_none() { 2 } else { 1 }, 0);
-        let (read, written) = FilmSine::bwd_bytes(d.n, d.f, 2 * d.n_layers * d.f, head.is_none());
-        candle_core::account::report_bytes(read, written);
+        let (n, f) = self.count(l1, l2, l3, head.is_none())?;
+        let mut buf = match head.take() {
+            None => None,
+            Some(HeadBuf::Cuda(b)) => Some(b),
+            Some(HeadBuf::Modeled(..)) => {
+                candle_core::bail!("film sine: a host head gradient for a CUDA layer")
+            }
+        };
         let g_pre = crate::compute::cuda::film_sine_grad(
             s1,
             l1,
@@ -926,42 +820,75 @@ impl CustomOp3 for FilmGrad {
             l2,
             s3,
             l3,
-            self.cos.as_ref(),
-            &mut head,
-            d,
+            None,
+            &mut buf,
+            self.layer.film(n, f),
         )?;
+        *head = buf.map(HeadBuf::Cuda);
         Ok((g_pre, l1.shape().clone()))
     }
 }
 
-/// Hands a finished CUDA head gradient to candle as a tensor (no launch).
-#[cfg(feature = "cuda")]
+/// Hands a finished head gradient to candle as a tensor, counted as the CUDA hand-over (no
+/// launch, nothing moved).
 struct HeadOut {
-    buf: Mutex<Option<CudaSlice<f32>>>,
+    buf: Mutex<Option<HeadBuf>>,
     shape: Shape,
 }
 
-#[cfg(feature = "cuda")]
+impl HeadOut {
+    fn take(&self) -> candle_core::Result<HeadBuf> {
+        candle_core::account::report_launches(0, 0);
+        candle_core::account::report_bytes(0, 0);
+        let buf = self.buf.lock().unwrap_or_else(|e| e.into_inner()).take();
+        buf.ok_or_else(|| candle_core::Error::Msg("film sine: head gradient used twice".into()))
+    }
+}
+
 impl candle_core::CustomOp1 for HeadOut {
     fn name(&self) -> &'static str {
         "pma-film-head-grad"
     }
 
     fn cpu_fwd(&self, _: &CpuStorage, _: &Layout) -> candle_core::Result<(CpuStorage, Shape)> {
-        candle_core::bail!("film sine head gradient: a CUDA buffer for a CPU tensor")
+        match self.take()? {
+            // The held bytes end here: the storage made of the buffer counts from now on.
+            HeadBuf::Modeled(buf, _held) => Ok((CpuStorage::F32(buf), self.shape.clone())),
+            #[cfg(feature = "cuda")]
+            HeadBuf::Cuda(_) => {
+                candle_core::bail!("film sine head gradient: a CUDA buffer for a CPU tensor")
+            }
+        }
     }
 
+    #[cfg(feature = "cuda")]
     fn cuda_fwd(
         &self,
         s: &candle_core::CudaStorage,
         _: &Layout,
     ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
-        candle_core::account::report_launches(0, 0);
-        candle_core::account::report_bytes(0, 0);
-        let buf = self.buf.lock().unwrap_or_else(|e| e.into_inner()).take();
-        let buf = buf
-            .ok_or_else(|| candle_core::Error::Msg("film sine: head gradient used twice".into()))?;
-        Ok((crate::compute::cuda::storage_of(buf, s), self.shape.clone()))
+        match self.take()? {
+            HeadBuf::Cuda(buf) => {
+                Ok((crate::compute::cuda::storage_of(buf, s), self.shape.clone()))
+            }
+            HeadBuf::Modeled(..) => {
+                candle_core::bail!("film sine head gradient: a host buffer for a CUDA tensor")
+            }
+        }
+    }
+}
+
+#[cfg(feature = "cuda")]
+impl FilmSine {
+    fn film(&self, n: usize, f: usize) -> crate::compute::cuda::Film {
+        crate::compute::cuda::Film {
+            n,
+            f,
+            k: self.k,
+            n_layers: self.n_layers,
+            mul: self.mul,
+            add: self.add,
+        }
     }
 }
 
