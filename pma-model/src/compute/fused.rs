@@ -1249,6 +1249,30 @@ impl QSource<'_> {
     }
 }
 
+/// The arg-max joint of every output of a window pool on the CPU, pooling q again (a second
+/// backward over the same graph, whose forward's arg-max was used by the first).
+fn pool_arg_cpu(q: &QSource, g: &Tensor, w_p: &Tensor) -> candle_core::Result<Vec<u32>> {
+    let (n, j, h) = q.dims()?;
+    let per_pose = n / g.dim(0)?.max(1);
+    let (qc, gc, wc) = (q.get()?.contiguous()?, g.contiguous()?, w_p.contiguous()?);
+    let guards = [&qc, &gc, &wc].map(|t| t.storage_and_layout());
+    let [qs, gs, ws] = [0, 1, 2].map(|i| cpu_slice(&guards[i].0, guards[i].1));
+    let (qs, gs, ws) = (qs?, gs?, ws?);
+    let mut arg = vec![0u32; n * h];
+    let mut best = vec![0f32; h];
+    for i in 0..n {
+        let gp = (i / per_pose) * j * h;
+        pool_row(
+            &qs[i * j * h..(i + 1) * j * h],
+            &gs[gp..gp + j * h],
+            &ws[i * j..(i + 1) * j],
+            &mut best,
+            &mut arg[i * h..(i + 1) * h],
+        );
+    }
+    Ok(arg)
+}
+
 impl WindowPool {
     /// The gradients of q and g: from the forward's kept arg-max, or (a second backward)
     /// from pooling q again.
@@ -1272,25 +1296,7 @@ impl WindowPool {
         // The forward's arg-max (used once; a second backward pools again).
         let kept = match self.arg.take().filter(|a| a.len() == n * h) {
             Some(a) => a,
-            None => {
-                let (qc, gc, wc) = (q.get()?.contiguous()?, g.contiguous()?, w_p.contiguous()?);
-                let guards = [&qc, &gc, &wc].map(|t| t.storage_and_layout());
-                let [qs, gs, ws] = [0, 1, 2].map(|i| cpu_slice(&guards[i].0, guards[i].1));
-                let (qs, gs, ws) = (qs?, gs?, ws?);
-                let mut arg = vec![0u32; n * h];
-                let mut best = vec![0f32; h];
-                for i in 0..n {
-                    let gp = (i / per_pose) * j * h;
-                    pool_row(
-                        &qs[i * j * h..(i + 1) * j * h],
-                        &gs[gp..gp + j * h],
-                        &ws[i * j..(i + 1) * j],
-                        &mut best,
-                        &mut arg[i * h..(i + 1) * h],
-                    );
-                }
-                arg
-            }
+            None => pool_arg_cpu(q, g, w_p)?,
         };
         let (w_c, d_c) = (w_p.contiguous()?, grad.contiguous()?);
         let guards = [&w_c, &d_c].map(|t| t.storage_and_layout());
@@ -1335,30 +1341,14 @@ impl WindowPool {
             Some(a) => a,
             None => {
                 // The forward's kernel once more (its outputs: the max and the arg-max).
-                let (qc, gc) = (q.get()?.contiguous()?, g.contiguous()?);
-                let guards = [&qc, &gc, &w].map(|t| t.storage_and_layout());
-                let [qs, gs, ws] = [0, 1, 2].map(|i| cpu_slice(&guards[i].0, guards[i].1));
-                let (qs, gs, ws) = (qs?, gs?, ws?);
-                let mut arg = vec![0u32; n * h];
-                let mut best = vec![0f32; h];
-                let per_pose = n / p;
-                for i in 0..n {
-                    let gp = (i / per_pose) * j * h;
-                    pool_row(
-                        &qs[i * j * h..(i + 1) * j * h],
-                        &gs[gp..gp + j * h],
-                        &ws[i * j..(i + 1) * j],
-                        &mut best,
-                        &mut arg[i * h..(i + 1) * h],
-                    );
-                }
+                let arg = pool_arg_cpu(q, g, &w)?;
                 candle_core::account::record(
                     true,
                     candle_core::account::Op {
                         name: "pma-window-pool",
                         launches: 1,
                         param_uploads: 0,
-                        bytes_read: ((qs.len() + gs.len() + ws.len()) * 4) as u64,
+                        bytes_read: ((n * j * h + g.elem_count() + n * j) * 4) as u64,
                         bytes_written: (n * h * 8) as u64,
                         flops: 0,
                     },
