@@ -1041,14 +1041,15 @@ impl CustomOp3 for Linear {
     ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
         // candle's matmul backward for x · (Wᵀ), then the transpose's: the same products.
         let wt = w.t()?;
-        let gx = grad.matmul(&wt.t()?)?;
+        // No product for an input that takes no gradient (the GNN's pose input).
+        let gx = x.track_op().then(|| grad.matmul(&wt.t()?)).transpose()?;
         let gw = x.t()?.matmul(grad)?.t()?;
         let out = w.dim(0)?;
         let gb = match self.cpu_route {
             true => row_sums(grad, out)?,
             false => grad.sum(0)?,
         };
-        Ok((Some(gx), Some(gw), Some(gb)))
+        Ok((gx, Some(gw), Some(gb)))
     }
 }
 

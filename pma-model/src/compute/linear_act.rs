@@ -244,9 +244,10 @@ impl CustomOp3 for LinearAct {
         let gb = b.apply_op1_no_bwd(&BiasSum { stash })?;
         // candle's matmul backward for x · (Wᵀ), then the transpose's: the same products.
         let wt = w.t()?;
-        let gx = gz.matmul(&wt.t()?)?;
+        // No product for an input that takes no gradient (the GNN's pose input).
+        let gx = x.track_op().then(|| gz.matmul(&wt.t()?)).transpose()?;
         let gw = x.t()?.matmul(&gz)?.t()?;
-        Ok((Some(gx), Some(gw), Some(gb)))
+        Ok((gx, Some(gw), Some(gb)))
     }
 }
 
