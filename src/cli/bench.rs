@@ -121,6 +121,11 @@ pub struct Args {
     /// estimated beside pma's.
     #[arg(long, requires = "account")]
     pub official_json: Option<PathBuf>,
+    /// The free memory (GB) of the GPU the accounted inference pass is sized for: its
+    /// network calls take as many points as that memory holds, as on a CUDA device
+    /// (default: the CPU's 4,096 points per call).
+    #[arg(long, requires = "account")]
+    pub device_memory_gb: Option<f64>,
     /// Counts instead of timings: the share of samples that run the network in the coarse
     /// and the fine pass with ray culling, w^p culling, the occupancy grid and all combined,
     /// on held-out renders and training batches; writes `shares.json`. The model is

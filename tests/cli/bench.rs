@@ -279,6 +279,14 @@ fn account_refuses_bad_flags() {
     let o = with(&["--official-json", "/nonexistent/official.json"]);
     assert_eq!(o.status.code(), Some(2));
     fails_with(o, "official.json");
+    for bad in ["0", "--device-memory-gb=-4", "nan"] {
+        let o = match bad.starts_with("--") {
+            true => with(&[bad]),
+            false => with(&["--device-memory-gb", bad]),
+        };
+        assert_eq!(o.status.code(), Some(2), "--device-memory-gb {bad}");
+        fails_with(o, "--device-memory-gb");
+    }
     // A chunked step is not extrapolated.
     let o = with(&[
         "--rays",

@@ -31,6 +31,9 @@ pub struct AccountRequest {
     pub extrapolate_from: Option<usize>,
     /// The official code's counts, estimated beside pma's.
     pub official: Option<Recorded>,
+    /// Free memory (bytes) of the GPU the inference pass is sized for on a CPU run accounted
+    /// as CUDA ([`account::Account::model_free_memory`]); `None`: the CPU's call size.
+    pub device_memory: Option<usize>,
     /// Where the accounting scene is made (once).
     pub scene_dir: PathBuf,
     /// Account a step that trains with an occupancy grid of these settings: one step runs
@@ -77,6 +80,10 @@ pub struct AccountReport {
     pub step: Summary,
     /// `render_rays` of `rays` rays (the batch already made).
     pub inference: Summary,
+    /// The free memory (bytes) of the GPU the inference pass's network calls were sized for
+    /// (`--device-memory-gb`); absent: the CPU's 4,096 points per call.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub inference_device_memory: Option<usize>,
     /// With the grid: what the accounted step's passes evaluated.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub occupancy: Option<OccupancyAccount>,
@@ -199,9 +206,12 @@ pub fn account(
     obs.progress(1, "one inference pass");
     let batch = source.next_batch()?;
     let avatar = trainer.avatar();
-    let (_, inference) = account::measure(dev, req.route, || -> Result<_> {
-        Ok(avatar.render_rays(&batch.rays, &batch.poses, &Default::default())?)
-    })?;
+    let counting = account::Account::start(dev, req.route)?;
+    if let Some(bytes) = req.device_memory {
+        counting.model_free_memory(bytes);
+    }
+    avatar.render_rays(&batch.rays, &batch.poses, &Default::default())?;
+    let inference = counting.finish();
     obs.phase_end();
 
     let s = step.summary();
@@ -228,6 +238,7 @@ pub fn account(
         peak_live_bytes_per_step: s.peak_live_bytes,
         step: s,
         inference: inference.summary(),
+        inference_device_memory: req.device_memory,
         occupancy,
         official: req.official.map(|r| Official {
             est: r.estimates(),

@@ -126,9 +126,17 @@ fn keep_pool_memory(_dev: &Device) -> candle_core::Result<()> {
 
 /// Free memory of `device` in bytes (`cuMemGetInfo`), or `None` for the CPU and other
 /// devices (and when the driver cannot tell). Memory the stream-ordered pool keeps for reuse
-/// counts as used, so ask before the first step allocates.
-#[cfg(feature = "cuda")]
+/// counts as used, so ask before the first step allocates. A CPU run accounted as CUDA gets
+/// the free memory it models ([`crate::compute::account::Account::model_free_memory`]).
 pub fn free_memory(device: &Device) -> Option<usize> {
+    if device.is_cpu() {
+        return crate::compute::account::modeled_free_memory();
+    }
+    cuda_free_memory(device)
+}
+
+#[cfg(feature = "cuda")]
+fn cuda_free_memory(device: &Device) -> Option<usize> {
     use candle_core::cuda_backend::cudarc::driver::result;
     let Device::Cuda(cuda) = device else {
         return None;
@@ -138,10 +146,27 @@ pub fn free_memory(device: &Device) -> Option<usize> {
     result::mem_get_info().ok().map(|(free, _total)| free)
 }
 
-/// Free memory of `device` in bytes; `None` without the CUDA backend.
 #[cfg(not(feature = "cuda"))]
-pub fn free_memory(_device: &Device) -> Option<usize> {
+fn cuda_free_memory(_device: &Device) -> Option<usize> {
     None
+}
+
+/// Bytes of device memory a network pass holds per point × joint × feature element while it
+/// runs: a training step (forward and backward) is estimated at this from the 8 GiB peak of a
+/// 512-ray chunk of the paper config on the CPU, rounded up. The step account counts about
+/// 20 (docs/gpu.md, "Limits"); the estimate stays until a GPU run measures the real peak. An
+/// inference call keeps at most its forward's share of it, so it bounds that too.
+pub const BYTES_PER_ELEMENT: usize = 80;
+
+/// Share of the free device memory automatic chunks are sized to; the rest is headroom for
+/// the allocator, cuBLAS's workspace and what the estimate misses.
+pub const DEVICE_MEMORY_SHARE: f64 = 0.8;
+
+/// How many points × joints × features [`DEVICE_MEMORY_SHARE`] of `device`'s free memory
+/// holds at [`BYTES_PER_ELEMENT`]; `None` where pma does not size work from device memory
+/// (the CPU).
+pub fn element_budget(device: &Device) -> Option<usize> {
+    free_memory(device).map(|free| (free as f64 * DEVICE_MEMORY_SHARE) as usize / BYTES_PER_ELEMENT)
 }
 
 /// Why `--tf32` was refused.

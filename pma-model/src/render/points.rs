@@ -30,10 +30,32 @@ use crate::render::cull::{ray_fates, SampleFate, WindowTest};
 use crate::render::options::{PassOptions, SampleFill};
 use crate::render::raycast::RayBounds;
 
-/// Points per network call in inference: the largest per-point tensors are [n,24,128] f32,
-/// 48 MiB each at 4,096 points, a handful alive per worker; many chunks also keep the
-/// workers balanced. Larger chunks were no faster.
+/// Points per network call in inference on the CPU: the largest per-point tensors are
+/// [n,24,128] f32, 48 MiB each at 4,096 points, a handful alive per worker; many chunks also
+/// keep the workers balanced. Larger chunks were no faster.
 pub const INFERENCE_POINT_CHUNK: usize = 4_096;
+
+/// Points per network call of an inference pass on `device` for a network of `cfg`: on a
+/// GPU as many as its memory budget holds ([`crate::compute::device::element_budget`], a
+/// point being joints × the widest per-joint feature), at least [`INFERENCE_POINT_CHUNK`]:
+/// each call is ~170 kernel launches whatever its size, so a GPU wants few large calls. The
+/// CPU keeps [`INFERENCE_POINT_CHUNK`].
+pub fn inference_point_chunk(
+    device: &candle_core::Device,
+    cfg: &crate::network::config::Config,
+) -> usize {
+    let per_point = cfg.n_joints * cfg.win_hidden.max(cfg.point_enc_dim).max(1);
+    // A real GPU's free memory is read once: the memory pool keeps what the first passes
+    // allocated, which would read as used afterwards.
+    static GPU_BUDGET: std::sync::OnceLock<Option<usize>> = std::sync::OnceLock::new();
+    let budget = match device.is_cpu() {
+        true => crate::compute::device::element_budget(device),
+        false => *GPU_BUDGET.get_or_init(|| crate::compute::device::element_budget(device)),
+    };
+    budget.map_or(INFERENCE_POINT_CHUNK, |b| {
+        (b / per_point.max(1)).max(INFERENCE_POINT_CHUNK)
+    })
+}
 
 /// The route of one forward pass's samples (see the module docs).
 pub(crate) struct PointEval {
@@ -217,9 +239,12 @@ fn chunked(
 ) -> Result<(Tensor, Tensor)> {
     let (r, s, _) = pts.dims3()?;
     let n_poses = pose.g.dim(0)?;
+    let chunk = inference_point_chunk(pts.device(), net.config());
     let k = r / n_poses;
     let n = k * s;
-    let chunk = INFERENCE_POINT_CHUNK;
+    if chunk >= n && !crate::compute::account::cpu_route(pts.device()) {
+        return pose_groups(net, pose, pts, view, (chunk / n.max(1)).clamp(1, n_poses));
+    }
     let per_pose = n.div_ceil(chunk);
     let inputs = (0..n_poses)
         .map(|p| pose_block(pts, view, p, k))
@@ -245,6 +270,37 @@ fn chunked(
     Ok((Tensor::cat(&rgbs, 0)?, Tensor::cat(&sigmas, 0)?))
 }
 
+/// On a GPU whose calls hold more than a pose's samples: one network call per `group` poses
+/// (the whole pass when it fits), outputs detached at once, in ray order.
+fn pose_groups(
+    net: &Network,
+    pose: &PoseFeatures,
+    pts: &Tensor,
+    view: &Tensor,
+    group: usize,
+) -> Result<(Tensor, Tensor)> {
+    let (r, s, _) = pts.dims3()?;
+    let vdim = view.dim(1)?;
+    let n_poses = pose.g.dim(0)?;
+    let k = r / n_poses;
+    let (mut rgbs, mut sigmas) = (Vec::new(), Vec::new());
+    for p0 in (0..n_poses).step_by(group.max(1)) {
+        crate::interrupt::check()?;
+        let p1 = (p0 + group).min(n_poses);
+        let m = (p1 - p0) * k;
+        let pts_g = pts.narrow(0, p0 * k, m)?.reshape((m * s, 3))?;
+        let view_g = view
+            .narrow(0, p0 * k, m)?
+            .unsqueeze(1)?
+            .broadcast_as((m, s, vdim))?
+            .reshape((m * s, vdim))?;
+        let (rgb, sigma) = net.eval_poses(pose, p0..p1, &pts_g, &view_g, None)?;
+        rgbs.push(rgb.detach());
+        sigmas.push(sigma.detach());
+    }
+    Ok((Tensor::cat(&rgbs, 0)?, Tensor::cat(&sigmas, 0)?))
+}
+
 /// Culling state of one forward pass (coarse and fine share the far-away constants).
 pub(crate) struct CullCtx {
     test: Option<WindowTest>,
@@ -258,6 +314,8 @@ pub(crate) struct CullCtx {
     evaluated: usize,
     /// The network's numerics (its row gathers).
     numerics: crate::compute::numerics::Numerics,
+    /// Points per network call in inference ([`inference_point_chunk`]).
+    point_chunk: usize,
     /// Samples this route sent through the network.
     samples_evaluated: usize,
     /// Samples left out because their cells are empty.
@@ -338,6 +396,7 @@ impl CullCtx {
             consts: ConstRows::default(),
             evaluated: 0,
             numerics: net.numerics(),
+            point_chunk: inference_point_chunk(pose.g.device(), cfg),
             samples_evaluated: 0,
             skipped_empty: 0,
         })
@@ -465,7 +524,7 @@ impl CullCtx {
                 continue;
             }
             let chunk = if inference {
-                INFERENCE_POINT_CHUNK
+                self.point_chunk
             } else {
                 kept.max(1)
             };
@@ -771,6 +830,7 @@ mod tests {
             consts: ConstRows::default(),
             evaluated: 0,
             numerics: Default::default(),
+            point_chunk: INFERENCE_POINT_CHUNK,
             samples_evaluated: 0,
             skipped_empty: 0,
         };

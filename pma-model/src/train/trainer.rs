@@ -269,27 +269,16 @@ impl Optimization {
 /// of the paper config peaked near 8 GiB, so the budget is 128 rays of it (about 2 GiB).
 pub const AUTO_CHUNK_POINT_JOINTS: usize = 128 * 72 * 24 * 128;
 
-/// Bytes of device memory a training step holds per point × joint × feature element (an
-/// estimate from the 8 GiB peak of a 512-ray chunk of the paper config, rounded up).
-pub const TRAIN_BYTES_PER_ELEMENT: usize = 80;
-
-/// Share of the free device memory automatic chunks are sized to; the rest is headroom for
-/// the allocator, cuBLAS's workspace and what the estimate misses.
-pub const DEVICE_MEMORY_SHARE: f64 = 0.8;
-
 /// Rays per chunk of a training step (see [`TrainConfig::chunk_rays`]). Automatic chunks are
-/// sized from the device: [`DEVICE_MEMORY_SHARE`] of its free memory at
-/// [`TRAIN_BYTES_PER_ELEMENT`] on a GPU, [`AUTO_CHUNK_POINT_JOINTS`] on the CPU.
+/// sized from the device ([`crate::compute::device::element_budget`]: a share of its free
+/// memory) on a GPU, [`AUTO_CHUNK_POINT_JOINTS`] on the CPU.
 pub fn chunk_rays(train: &TrainConfig, model: &Config, device: &Device) -> usize {
     if train.chunk_rays > 0 {
         return train.chunk_rays;
     }
     let width = model.win_hidden.max(model.point_enc_dim).max(1);
     let per_ray = (model.n_samples + model.n_importance) * model.n_joints * width;
-    let budget = match crate::compute::device::free_memory(device) {
-        Some(free) => (free as f64 * DEVICE_MEMORY_SHARE) as usize / TRAIN_BYTES_PER_ELEMENT,
-        None => AUTO_CHUNK_POINT_JOINTS,
-    };
+    let budget = crate::compute::device::element_budget(device).unwrap_or(AUTO_CHUNK_POINT_JOINTS);
     (budget / per_ray.max(1)).max(1)
 }
 

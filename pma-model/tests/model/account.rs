@@ -7,7 +7,7 @@
 
 use pma_model::compute::account::Route;
 use pma_model::train::account::{account_one_pass_extrapolated, account_step, StepAccount};
-use pma_model::train::{DatasetSource, Trainer};
+use pma_model::train::{BatchSource, DatasetSource, Trainer};
 
 use crate::train_support::{tiny_run, tiny_scene};
 
@@ -125,4 +125,45 @@ fn chunked_step_syncs_and_ops() {
     // 4 chunks of 16 rays (8 per image).
     let a = account(16);
     check(&a, 4, 4_700);
+}
+
+#[test]
+fn an_inference_pass_sized_for_a_gpu_takes_fewer_calls_and_renders_the_same() {
+    use pma_model::compute::account::Account;
+    // 2,048 rays of 2 poses, 8 coarse samples: 8,192 points per pose, two calls of the
+    // CPU's 4,096 points each per pose and pass.
+    let (_dir, trainer, mut source) = tiny_with_rays(0, 2048);
+    let batch = source.next_batch().unwrap();
+    let avatar = trainer.avatar();
+    let render = |memory: Option<usize>| {
+        let account = Account::start(&candle_core::Device::Cpu, Route::Cuda).unwrap();
+        if let Some(bytes) = memory {
+            account.model_free_memory(bytes);
+        }
+        let out = avatar
+            .render_rays(&batch.rays, &batch.poses, &Default::default())
+            .unwrap();
+        let rgb: Vec<f32> = out.fine.rgb.flatten_all().unwrap().to_vec1().unwrap();
+        (rgb, account.finish())
+    };
+    let (cpu_sized, per_chunk) = render(None);
+    // 1 GB holds the whole pass in one call per network pass: 2 calls instead of 6 (4
+    // coarse, 2 fine of 4,096 points), each with the same matmuls.
+    let (gpu_sized, grouped) = render(Some(1 << 30));
+    let matmuls = |r: &pma_model::compute::account::Report| r.ops["matmul"].launches;
+    assert!(
+        2 * matmuls(&grouped) < matmuls(&per_chunk),
+        "{} matmuls grouped, {} per pose and chunk",
+        matmuls(&grouped),
+        matmuls(&per_chunk)
+    );
+    assert!(grouped.total.launches < per_chunk.total.launches);
+    // The same samples through the same network, in larger products: equal up to the
+    // products' summation order.
+    let worst = cpu_sized
+        .iter()
+        .zip(&gpu_sized)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0f32, f32::max);
+    assert!(worst <= 1e-5, "rgb differs by {worst}");
 }

@@ -42,8 +42,14 @@ pub fn run(args: &Args, dev: &Device) -> anyhow::Result<()> {
             args.chunk_rays
         );
     }
+    let device_memory = match args.device_memory_gb {
+        None => None,
+        Some(gb) if gb.is_finite() && gb > 0.0 && gb <= 1e6 => Some((gb * 1e9) as usize),
+        Some(gb) => refuse!("--device-memory-gb must be a positive number of GB, found {gb}"),
+    };
     let req = AccountRequest {
         run,
+        device_memory,
         preset: args.preset.clone(),
         device_name: args.device.clone(),
         route,
@@ -139,8 +145,15 @@ fn print_tables(f: &AccountReport) {
             o.skipped_empty
         );
     }
+    let sized = match f.inference_device_memory {
+        Some(b) => format!(
+            "network calls sized for a GPU with {:.0} GB free",
+            b as f64 / 1e9
+        ),
+        None => "network calls of 4,096 points (the CPU's)".into(),
+    };
     print_stage_table(
-        &format!("inference pass (render_rays, {} rays)", f.rays),
+        &format!("inference pass (render_rays, {} rays; {sized})", f.rays),
         &f.inference,
     );
 

@@ -442,6 +442,8 @@ impl Recorded {
 #[derive(Default)]
 struct Tally {
     inner: Mutex<TallyInner>,
+    /// The free device memory a CPU run accounted as CUDA sizes its automatic chunks from.
+    free_memory: std::sync::atomic::AtomicUsize,
 }
 
 #[derive(Default)]
@@ -501,6 +503,19 @@ thread_local! {
 #[inline]
 pub fn emulates_cuda() -> bool {
     hook::on() && CURRENT.with_borrow(|c| matches!(c, Some((_, Route::Cuda))))
+}
+
+/// The free device memory this thread's run accounted as CUDA models
+/// ([`Account::model_free_memory`]), if any.
+pub fn modeled_free_memory() -> Option<usize> {
+    if !emulates_cuda() {
+        return None;
+    }
+    CURRENT.with_borrow(|c| {
+        c.as_ref()
+            .map(|(t, _)| t.free_memory.load(std::sync::atomic::Ordering::Relaxed))
+            .filter(|&b| b > 0)
+    })
 }
 
 /// Whether work on `device` takes the CPU's route: on the CPU, outside a run accounted as
@@ -583,6 +598,15 @@ impl Account {
             joined: Some(joined),
             _not_send: std::marker::PhantomData,
         })
+    }
+
+    /// A CPU run accounted as CUDA sizes its automatic chunks (training steps with
+    /// `chunk_rays = 0`, inference calls) as a GPU with `bytes` of free memory would
+    /// ([`crate::compute::device::free_memory`]); without this, with the CPU's budgets.
+    pub fn model_free_memory(&self, bytes: usize) {
+        self.tally
+            .free_memory
+            .store(bytes, std::sync::atomic::Ordering::Relaxed);
     }
 
     /// Close stage `name` (what [`crate::compute::profile::mark`] does for its stages).
