@@ -821,6 +821,9 @@ impl Trainer {
                 }
             }
         }
+        // With several workers this thread waits here for the others' chunks: that wait and
+        // the sums are this stage's, not the optimizer's.
+        crate::compute::profile::mark("chunk sums", &device);
         Ok((loss, grads, stats))
     }
 
