@@ -7,13 +7,13 @@
 //! memory traffic over the [N·24, 64] output. candle's ops write it from the product, read
 //! and write it in the bias add and in the sine, and backward run a cosine, a product, a
 //! column sum and the weight's product over it, about a dozen passes in all, and the window
-//! weight's product and its gradient another eight. Here the
-//! forward writes the output once; the backward reads the upstream gradient once,
-//! recomputing the argument from x (three products per element) and its cosine, and sums
-//! the weight and bias gradients per block of rows, then over the blocks in block order, in
-//! two launches without atomics (a run repeats bit for bit); when x or the scale needs a
-//! gradient (x̄ does: it is divided by the learned box scales; w does: it holds the learned
-//! feature window), a third launch reads it again for both, row by row.
+//! weight's product and its gradient another eight. Here the forward writes the output
+//! once; the backward reads the upstream gradient once, recomputing the argument from x
+//! (three products per element) and its cosine, and sums the weight and bias gradients per
+//! block of rows, then over the blocks in block order, in two launches without atomics (a
+//! run repeats bit for bit); when x or the scale needs a gradient (x̄ does: it is divided by
+//! the learned box scales; w does: it holds the learned feature window), a third launch
+//! reads it again for both, row by row.
 //!
 //! On the CPU's route the layer is candle's ops, whose CPU bits are pma's parity
 //! reference. A CUDA device runs `cuda/kernels/sine_linear.cu`; a CPU run accounted
