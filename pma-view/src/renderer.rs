@@ -87,6 +87,7 @@ impl PassOptions {
                 sample_fill: SampleFill::Network,
             },
             occupancy: self.occupancy,
+            ..Default::default()
         }
     }
 }

@@ -23,6 +23,10 @@ pub struct BenchOption {
     /// The vectorised sine (`--fast-sine`) instead of libm's.
     #[serde(default)]
     pub fast_sine: bool,
+    /// Rendering places the fine samples from the grid (`PassOptions::occupancy_fine`);
+    /// training is that of the same option without it.
+    #[serde(default)]
+    pub occupancy_fine: bool,
 }
 
 impl BenchOption {
@@ -39,6 +43,7 @@ impl BenchOption {
         PassOptions {
             culling: self.culling.clone(),
             occupancy: self.occupancy,
+            occupancy_fine: self.occupancy_fine,
         }
     }
 
@@ -106,10 +111,16 @@ pub fn options(thresholds: &[f64], occupancy: bool) -> Vec<BenchOption> {
             occupancy: true,
             ..BenchOption::parity()
         });
-        v.push(BenchOption {
+        let with_grid = BenchOption {
             name: format!("{}+occupancy", last.name),
             occupancy: true,
             ..last
+        };
+        v.push(with_grid.clone());
+        v.push(BenchOption {
+            name: format!("{}+grid-fine", with_grid.name),
+            occupancy_fine: true,
+            ..with_grid
         });
     }
     v
@@ -147,7 +158,16 @@ mod tests {
         // The grid alone, then with the last culling option (without the sine).
         let o = options(&[1e-4], true);
         let names: Vec<&str> = o[5..].iter().map(|o| o.name.as_str()).collect();
-        assert_eq!(names, ["occupancy", "rays+samples@1e-4+occupancy"]);
+        assert_eq!(
+            names,
+            [
+                "occupancy",
+                "rays+samples@1e-4+occupancy",
+                "rays+samples@1e-4+occupancy+grid-fine"
+            ]
+        );
+        assert!(o[7].occupancy_fine && o[7].pass().occupancy_fine && o[7].pass().occupancy);
+        assert!(o[..7].iter().all(|o| !o.pass().occupancy_fine));
         assert!(o[5].occupancy && o[5].culling == Culling::default() && !o[5].fast_sine);
         assert!(o[6].occupancy && o[6].culling == o[2].culling && !o[6].fast_sine);
         assert!(o[6].pass().occupancy && o[6].pass().culling == o[2].culling);

@@ -122,7 +122,7 @@ pub fn share_options(threshold: f64) -> Vec<BenchOption> {
         name,
         culling,
         occupancy,
-        fast_sine: false,
+        ..BenchOption::default()
     };
     vec![
         BenchOption::parity(),

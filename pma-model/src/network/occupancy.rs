@@ -264,6 +264,15 @@ impl OccupancyGrid {
         }
     }
 
+    /// The value joint j's grid keeps for the cell of x̄ (the decayed largest density seen
+    /// there); 0 outside the domain, where the joint's window is 0.
+    pub fn density_at(&self, j: usize, x_bar: [f64; 3]) -> f32 {
+        match self.cell_of(x_bar) {
+            Some(c) => self.density[j * self.cfg.cells_per_joint() + c],
+            None => 0.0,
+        }
+    }
+
     /// Whether cell c of joint j is occupied.
     pub fn cell_occupied(&self, j: usize, c: usize) -> bool {
         self.occupied[j * self.cfg.cells_per_joint() + c]

@@ -27,8 +27,8 @@ use crate::render::occupancy::{RefreshOptions, RefreshStats};
 pub use crate::render::options::{PassOptions, PassStats};
 use crate::render::points::PointEval;
 pub use crate::render::points::INFERENCE_POINT_CHUNK;
-use crate::render::raycast::{merge_raw, CoarseSamples, RayCaster};
-use crate::render::volume::raw2outputs;
+use crate::render::raycast::{merge_raw, CoarseSamples, FineSamples, RayCaster};
+use crate::render::volume::{raw2outputs, RenderOutputs};
 
 /// A network, the ray caster of its bone boxes, and the optional occupancy grid saved with
 /// it.
@@ -246,6 +246,21 @@ impl Avatar {
             opts,
             self.occupancy.as_ref(),
         )?;
+        if opts.occupancy_fine && trace.is_none() {
+            // 3–4 with the fine samples placed from the grid: one network round for both.
+            let weights = points.grid_weights(&coarse.pts, &coarse.z, &rays.dirs)?;
+            let fine = self
+                .caster
+                .resample(&rays.origins, &rays.dirs, &coarse.z, &weights)?;
+            prof("resample", self.device());
+            let (raw_coarse, raw_fine, coarse_evaluated) =
+                points.run_together(&self.net, pose, &coarse.pts, &fine.pts, &view, mode)?;
+            prof("coarse + fine network", self.device());
+            let render_coarse = raw2outputs(&raw_coarse, &coarse.z, &rays.dirs, rays.bgs.as_ref())?;
+            prof("coarse render", self.device());
+            let (coarse, fine) = ((coarse, raw_coarse, render_coarse), (fine, raw_fine));
+            return self.merge_and_render(rays, pose, coarse, fine, &points, coarse_evaluated);
+        }
         // 3. Coarse pass and render.
         let tr = trace.as_deref_mut();
         let raw_coarse = points.run(&self.net, pose, &coarse.pts, &view, mode, "coarse", tr)?;
@@ -267,16 +282,6 @@ impl Avatar {
         let raw_fine = points.run(&self.net, pose, &fine.pts, &view, mode, "fine", tr)?;
         prof("fine network", self.device());
         // 5. Merge with the coarse outputs (reused, noise included) and render again.
-        let raw = merge_raw(&raw_coarse, &raw_fine, &fine.perm, self.net.numerics())?;
-        let render_fine = raw2outputs(&raw, &fine.z_all, &rays.dirs, rays.bgs.as_ref())?;
-        prof("merge + fine render", self.device());
-        let stats = PassStats {
-            samples: (raw.dim(0)? * raw.dim(1)?) as u64,
-            points_evaluated: points.evaluated() as u64,
-            coarse_evaluated: coarse_evaluated as u64,
-            fine_evaluated: (points.samples_evaluated() - coarse_evaluated) as u64,
-            skipped_empty: points.skipped_empty() as u64,
-        };
         if let Some(t) = trace {
             let r = rays.origins.dim(0)?;
             for (stage, samples) in [("coarse", coarse.z.dim(1)?), ("fine", fine.z.dim(1)?)] {
@@ -290,6 +295,31 @@ impl Avatar {
             t.put("raycast/sorted_idxs", &fine.perm);
             t.put("view_features", &view);
         }
+        let (coarse, fine) = ((coarse, raw_coarse, render_coarse), (fine, raw_fine));
+        self.merge_and_render(rays, pose, coarse, fine, &points, coarse_evaluated)
+    }
+
+    /// Step 5: merge the fine outputs into the coarse ones (reused, noise included) and
+    /// render again.
+    fn merge_and_render(
+        &self,
+        rays: &Rays,
+        pose: &PoseFeatures,
+        (coarse, raw_coarse, render_coarse): (CoarseSamples, Tensor, RenderOutputs),
+        (fine, raw_fine): (FineSamples, Tensor),
+        points: &PointEval,
+        coarse_evaluated: usize,
+    ) -> Result<Outputs> {
+        let raw = merge_raw(&raw_coarse, &raw_fine, &fine.perm, self.net.numerics())?;
+        let render_fine = raw2outputs(&raw, &fine.z_all, &rays.dirs, rays.bgs.as_ref())?;
+        crate::compute::profile::mark("merge + fine render", self.device());
+        let stats = PassStats {
+            samples: (raw.dim(0)? * raw.dim(1)?) as u64,
+            points_evaluated: points.evaluated() as u64,
+            coarse_evaluated: coarse_evaluated as u64,
+            fine_evaluated: (points.samples_evaluated() - coarse_evaluated) as u64,
+            skipped_empty: points.skipped_empty() as u64,
+        };
         Ok(Outputs {
             vol_scale: pose.scales.clone(),
             bounds: coarse.bounds,

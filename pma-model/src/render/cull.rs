@@ -207,6 +207,80 @@ impl WindowTest {
         }
     }
 
+    /// The grid's density at a sample of pose p at x: the largest value the cells of x hold
+    /// over the joints whose window is above the threshold (0 where there are none).
+    pub fn grid_density(&self, p: usize, x: [f32; 3], grid: &OccupancyGrid) -> f32 {
+        let mut d = 0f32;
+        for j in 0..N_JOINTS {
+            let (xb, e) = self.x_bar(p, j, x);
+            if e < self.cut {
+                d = d.max(grid.density_at(j, xb));
+            }
+        }
+        d
+    }
+
+    /// Importance-sampling weights of the coarse samples pts: [R,S,3] at ray parameters
+    /// z: [R,S] along dirs: [R,3] taken from the grid instead of the network: the grid's
+    /// density composited as the coarse render composites the network's (α = 1 − exp(−σδ),
+    /// w = α·T). Culled rays (`ray_alive[r]` false) get zero weights. Returns [R,S].
+    #[allow(clippy::too_many_arguments)]
+    pub fn grid_weights(
+        &self,
+        pts: &[f32],
+        z: &[f32],
+        dirs: &[f32],
+        n_rays: usize,
+        s: usize,
+        ray_alive: Option<&[bool]>,
+        grid: &OccupancyGrid,
+    ) -> Result<Vec<f32>> {
+        check_samples(pts, n_rays, s, self.n_poses())?;
+        if z.len() != n_rays * s || dirs.len() != n_rays * 3 {
+            return Err(ModelError::shape(
+                "z, dirs",
+                format!("[{n_rays},{s}], [{n_rays},3]"),
+                format!("{} and {} values", z.len(), dirs.len()),
+            ));
+        }
+        let per_pose = n_rays / self.n_poses();
+        let workers = crate::compute::parallel::workers();
+        let blocks = if workers > 1 && n_rays * s >= 8 * FATE_BLOCK_SAMPLES {
+            (n_rays * s).div_ceil(FATE_BLOCK_SAMPLES)
+        } else {
+            1
+        };
+        let rays_per_block = n_rays.div_ceil(blocks);
+        let parts = crate::compute::parallel::map_ordered(workers, blocks, |b| {
+            let rays = (b * rays_per_block).min(n_rays)..((b + 1) * rays_per_block).min(n_rays);
+            let mut out = Vec::with_capacity(rays.len() * s);
+            for r in rays {
+                if !ray_alive.is_none_or(|a| a[r]) {
+                    out.extend(std::iter::repeat_n(0f32, s));
+                    continue;
+                }
+                let p = r / per_pose;
+                let d = &dirs[3 * r..3 * r + 3];
+                let norm = ((d[0] * d[0] + d[1] * d[1] + d[2] * d[2]) as f64).sqrt();
+                let mut transmittance = 1f64;
+                for k in 0..s {
+                    let i = r * s + k;
+                    let x = [pts[3 * i], pts[3 * i + 1], pts[3 * i + 2]];
+                    let sigma = self.grid_density(p, x, grid) as f64;
+                    let delta = match k + 1 < s {
+                        true => (z[i + 1] - z[i]) as f64,
+                        false => crate::render::volume::LAST_DELTA,
+                    } * norm;
+                    let alpha = 1.0 - (-sigma * delta).exp();
+                    out.push((alpha * transmittance) as f32);
+                    transmittance *= 1.0 - alpha + 1e-10;
+                }
+            }
+            Ok::<_, ModelError>(out)
+        })?;
+        Ok(parts.concat())
+    }
+
     /// A world point where every joint's window of pose p is exactly 0: 1 km (or further)
     /// from the root along +x.
     pub fn far_point(&self, p: usize) -> Result<[f32; 3]> {
@@ -461,5 +535,61 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// The grid's weights are the compositing weights of its densities along the ray.
+    #[test]
+    fn grid_weights_composite_the_grid_density() {
+        use crate::network::occupancy::{OccupancyConfig, OccupancyGrid};
+        let w = identity_setup(0.5);
+        let mut grid = OccupancyGrid::new(OccupancyConfig {
+            resolution: 8,
+            ..Default::default()
+        })
+        .unwrap();
+        for j in 0..N_JOINTS {
+            for c in 0..512 {
+                // Density 2 in the cells with x̄ > 0 (x > 0 here), 0 elsewhere.
+                let v = if grid.cell_corner(c)[0] >= 0.0 {
+                    2.0
+                } else {
+                    0.0
+                };
+                grid.update(j, c, v).unwrap();
+            }
+        }
+        grid.finish_refresh();
+        let s = 7;
+        let z: Vec<f32> = (0..s).map(|k| (k as f32 - 3.0) * 0.125).collect();
+        // Ray 0 along +x through the origin with |d| = 2; ray 1 the same ray, culled.
+        let mut pts = Vec::new();
+        for _ in 0..2 {
+            for &t in &z {
+                pts.extend([2.0 * t, 0.0, 0.0]);
+            }
+        }
+        let zz: Vec<f32> = z.iter().chain(&z).copied().collect();
+        let dirs = [2.0, 0.0, 0.0, 2.0, 0.0, 0.0];
+        let got = w
+            .grid_weights(&pts, &zz, &dirs, 2, s, Some(&[true, false]), &grid)
+            .unwrap();
+        let mut t = 1f64;
+        for k in 0..s {
+            let sigma = if 2.0 * z[k] >= 0.0 { 2.0 } else { 0.0 };
+            let delta = if k + 1 < s { 0.25 } else { 2e10 };
+            let alpha = 1.0 - (-sigma * delta as f64).exp();
+            let expected = alpha * t;
+            assert!(
+                (got[k] as f64 - expected).abs() < 1e-6,
+                "sample {k}: {} vs {expected}",
+                got[k]
+            );
+            t *= 1.0 - alpha + 1e-10;
+        }
+        assert!(got[..3].iter().all(|&v| v == 0.0) && got[3] > 0.35);
+        assert!(got[s..].iter().all(|&v| v == 0.0));
+        assert!(w
+            .grid_weights(&pts, &zz[1..], &dirs, 2, s, None, &grid)
+            .is_err());
     }
 }

@@ -110,6 +110,21 @@ pub struct PassOptions {
         )
     )]
     pub occupancy: bool,
+    /// With the grid, in inference: the importance samples are placed from the grid's
+    /// densities along the coarse samples instead of from the coarse render, so that the
+    /// coarse and fine samples run the network in one round. Approximate: the fine samples
+    /// land where the grid (not this pose's network) puts density.
+    #[cfg_attr(
+        feature = "cli",
+        arg(
+            long = "occupancy-fine",
+            requires = "occupancy",
+            help = "Place the importance samples from the occupancy grid instead of the coarse \
+                    render: coarse and fine samples run the network in one round (approximate)"
+        )
+    )]
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub occupancy_fine: bool,
 }
 
 impl PassOptions {
@@ -122,13 +137,13 @@ impl PassOptions {
     pub fn culled(culling: Culling) -> Self {
         Self {
             culling,
-            occupancy: false,
+            ..Self::default()
         }
     }
 
     /// Whether the pass leaves nothing out.
     pub fn is_parity(&self) -> bool {
-        self.culling.is_off() && !self.occupancy
+        self.culling.is_off() && !self.occupancy && !self.occupancy_fine
     }
 
     /// Whether some samples may skip the network (the culled route of
@@ -151,6 +166,13 @@ impl PassOptions {
     pub fn problem(&self, cfg: &Config) -> Option<String> {
         if let Some(p) = self.culling.problem(cfg) {
             return Some(p);
+        }
+        if self.occupancy_fine && !self.occupancy {
+            return Some(
+                "occupancy: placing the fine samples from the grid (occupancy_fine) needs the \
+                 grid option (occupancy)"
+                    .into(),
+            );
         }
         if self.occupancy && !cfg.variant.spatial_window() {
             return Some(format!(

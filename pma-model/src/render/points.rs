@@ -136,6 +136,68 @@ impl PointEval {
         self.skipped_empty
     }
 
+    /// Importance weights [R,S] of the coarse samples pts: [R,S,3] at z: [R,S] along dirs:
+    /// [R,3] from the occupancy grid instead of the coarse render; refused when the pass
+    /// consults no grid.
+    pub fn grid_weights(&self, pts: &Tensor, z: &Tensor, dirs: &Tensor) -> Result<Tensor> {
+        let weights = match &self.route {
+            Route::Culled(c) => c.grid_weights(pts, z, dirs)?,
+            _ => None,
+        };
+        weights.ok_or_else(|| {
+            ModelError::Input(
+                "occupancy: placing the fine samples from the grid needs a pass that consults \
+                 the grid"
+                    .into(),
+            )
+        })
+    }
+
+    /// The coarse samples [R,Sc,3] and the fine ones [R,Sf,3] of the same rays in one round
+    /// of network calls (inference, fine samples placed without the coarse render). Returns
+    /// (raw coarse [R,Sc,4], raw fine [R,Sf,4], coarse samples that ran the network).
+    #[allow(clippy::too_many_arguments)]
+    pub fn run_together(
+        &mut self,
+        net: &Network,
+        pose: &PoseFeatures,
+        coarse: &Tensor,
+        fine: &Tensor,
+        view: &Tensor,
+        mode: &mut Mode,
+    ) -> Result<(Tensor, Tensor, usize)> {
+        if !mode.is_inference() {
+            return Err(ModelError::Input(
+                "occupancy: placing the fine samples from the grid is a rendering option \
+                 (training places them from its coarse render)"
+                    .into(),
+            ));
+        }
+        let sc = coarse.dim(1)?;
+        let sf = fine.dim(1)?;
+        let all = Tensor::cat(&[coarse, fine], 1)?;
+        let raw = self.run(net, pose, &all, view, mode, "coarse+fine", None)?;
+        let coarse_evaluated = match &self.route {
+            Route::Culled(c) => c
+                .last_fates
+                .chunks(sc + sf)
+                .map(|ray| {
+                    ray[..sc]
+                        .iter()
+                        .filter(|f| **f == SampleFate::Evaluate)
+                        .count()
+                })
+                .sum(),
+            // The other routes run every sample.
+            _ => coarse.dim(0)? * sc,
+        };
+        Ok((
+            raw.narrow(1, 0, sc)?,
+            raw.narrow(1, sc, sf)?,
+            coarse_evaluated,
+        ))
+    }
+
     /// raw: [R,S,4] for the samples pts: [R,S,3] with view features view: [R,V].
     #[allow(clippy::too_many_arguments)]
     pub fn run(
@@ -320,6 +382,8 @@ pub(crate) struct CullCtx {
     samples_evaluated: usize,
     /// Samples left out because their cells are empty.
     skipped_empty: usize,
+    /// The fates of the last [`Self::run`], [R·S] in sample order.
+    last_fates: Vec<SampleFate>,
 }
 
 /// Network outputs at the far-away point, one row per ray that needed one.
@@ -399,7 +463,29 @@ impl CullCtx {
             point_chunk: inference_point_chunk(pose.g.device(), cfg),
             samples_evaluated: 0,
             skipped_empty: 0,
+            last_fates: Vec::new(),
         })
+    }
+
+    /// Importance weights of the coarse samples from the grid ([`WindowTest::grid_weights`]),
+    /// or `None` when the pass consults no grid.
+    fn grid_weights(&self, pts: &Tensor, z: &Tensor, dirs: &Tensor) -> Result<Option<Tensor>> {
+        let (Some(test), Some(grid)) = (&self.test, &self.grid) else {
+            return Ok(None);
+        };
+        let (r, s, _) = pts.dims3()?;
+        let w = test.grid_weights(
+            &host_f32(pts)?,
+            &host_f32(z)?,
+            &host_f32(dirs)?,
+            r,
+            s,
+            self.ray_alive.as_deref(),
+            grid,
+        )?;
+        Ok(Some(
+            Tensor::from_vec(w, (r, s), z.device())?.to_dtype(z.dtype())?,
+        ))
     }
 
     /// (rgb [n,3], sigma_raw [n,1], the alive mask [n,1] when zero-filled samples must stay
@@ -430,6 +516,7 @@ impl CullCtx {
             (None, None) => vec![SampleFate::Evaluate; n],
         };
         self.skipped_empty += fates.iter().filter(|f| **f == SampleFate::Empty).count();
+        self.last_fates.clone_from(&fates);
         let network_fill = self.fill == SampleFill::Network;
         let noisy = matches!(mode, Mode::Train(Some(_))) && net.config().density_noise_std > 0.0;
         let filled = |f: &SampleFate| matches!(f, SampleFate::Outside | SampleFate::Empty);

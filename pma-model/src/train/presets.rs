@@ -135,6 +135,9 @@ impl TrainConfig {
                 .occupancy
                 .as_ref()
                 .is_some_and(|o| iter >= o.warmup_steps),
+            // Training places its fine samples from the coarse render (its coarse loss
+            // needs that render anyway).
+            occupancy_fine: false,
         }
     }
 

@@ -12,7 +12,7 @@ use candle_core::Device;
 use pma_model::error::ModelError;
 use pma_model::network::checkpoint::{self, OCCUPANCY_KEY, OCCUPANCY_TENSOR};
 use pma_model::network::occupancy::{OccupancyConfig, OccupancyGrid};
-use pma_model::render::avatar::Avatar;
+use pma_model::render::avatar::{Avatar, Outputs};
 use pma_model::render::{Culling, PassOptions, SampleFill};
 
 /// A grid of resolution 16 where about `share` of each joint's cells hold density 1
@@ -299,4 +299,87 @@ mod trained {
         println!("probe with the grid: {:?}", skipped.stats);
         assert!(skipped.stats.points_evaluated <= without.stats.points_evaluated);
     }
+}
+
+fn infer(case: &GoldenCase, opts: &PassOptions) -> pma_model::error::Result<Outputs> {
+    let mut mode = pma_model::render::avatar::Mode::Infer;
+    case.avatar
+        .forward(&case.rays, &case.poses, &mut mode, opts, None)
+}
+
+fn max_abs_diff(a: &candle_core::Tensor, b: &candle_core::Tensor) -> f32 {
+    let (a, b) = (flat(a), flat(b));
+    assert_eq!(a.len(), b.len());
+    a.iter()
+        .zip(&b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max)
+}
+
+/// Fine samples placed from the grid: the coarse samples, their fates and (within a few ulps:
+/// their rows now share calls with the fine samples) their outputs are those of the two-round
+/// pass; the fine samples are where the grid's weights put them, which is not where the
+/// coarse render puts them; the option is refused without the grid option and in training.
+#[test]
+fn fine_samples_placed_from_the_grid() {
+    let case = with_grid(
+        GoldenCase::load("golden/dense", true),
+        Some(patterned_grid(0.3)),
+    );
+    let grid_fine = PassOptions {
+        occupancy_fine: true,
+        ..occupancy_only()
+    };
+    let two = infer(&case, &occupancy_only()).unwrap();
+    let one = infer(&case, &grid_fine).unwrap();
+    assert_eq!(flat(&two.z_coarse), flat(&one.z_coarse));
+    let d = max_abs_diff(&two.raw_coarse, &one.raw_coarse);
+    assert!(d <= 1e-5, "coarse outputs differ by {d}");
+    assert_eq!(two.stats.coarse_evaluated, one.stats.coarse_evaluated);
+    assert_eq!(two.stats.samples, one.stats.samples);
+    assert!(one.stats.fine_evaluated > 0, "{:?}", one.stats);
+    assert!(
+        max_abs_diff(&two.z_vals, &one.z_vals) > 1e-3,
+        "the fine samples did not move"
+    );
+
+    // A grid that was refreshed and found no density anywhere: zero weights, so the fine
+    // samples are the importance sampler's for zero coarse weights, and every sample with
+    // an active joint is left out.
+    let mut empty = OccupancyGrid::new(OccupancyConfig::default()).unwrap();
+    empty.finish_refresh();
+    let case = with_grid(case, Some(empty));
+    let out = infer(&case, &grid_fine).unwrap();
+    let caster = case.avatar.ray_caster();
+    let zc = flat(&out.z_coarse);
+    let expected = caster.importance_z(&zc, &vec![0.0; zc.len()]).unwrap();
+    let mut placed: Vec<f32> = Vec::new();
+    let (sc, all) = (caster.n_samples(), out.z_vals.dim(1).unwrap());
+    let (zc_rows, z_rows) = (zc.chunks(sc), flat(&out.z_vals));
+    for (ray, zc_row) in z_rows.chunks(all).zip(zc_rows) {
+        // The merged z less the coarse ones, in order: the fine samples of this ray.
+        let mut rest: Vec<f32> = ray.to_vec();
+        for z in zc_row {
+            let i = rest.iter().position(|v| v == z).unwrap();
+            rest.remove(i);
+        }
+        placed.extend(rest);
+    }
+    assert_eq!(placed, expected);
+    assert_eq!(out.stats.coarse_evaluated + out.stats.fine_evaluated, 0);
+
+    let no_grid_option = PassOptions {
+        occupancy: false,
+        ..grid_fine.clone()
+    };
+    let err = infer(&case, &no_grid_option).unwrap_err();
+    assert!(err.to_string().contains("occupancy_fine"), "{err}");
+    let mut mode = pma_model::render::avatar::Mode::Train(None);
+    let Err(err) = case
+        .avatar
+        .forward(&case.rays, &case.poses, &mut mode, &grid_fine, None)
+    else {
+        panic!("a training pass placed its fine samples from the grid");
+    };
+    assert!(err.to_string().contains("rendering option"), "{err}");
 }
