@@ -576,8 +576,8 @@ mod tests {
         let mut t = 1f64;
         for k in 0..s {
             let sigma = if 2.0 * z[k] >= 0.0 { 2.0 } else { 0.0 };
-            let delta = if k + 1 < s { 0.25 } else { 2e10 };
-            let alpha = 1.0 - (-sigma * delta as f64).exp();
+            let delta: f64 = if k + 1 < s { 0.25 } else { 2e10 };
+            let alpha = 1.0 - (-sigma * delta).exp();
             let expected = alpha * t;
             assert!(
                 (got[k] as f64 - expected).abs() < 1e-6,

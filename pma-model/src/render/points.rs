@@ -920,6 +920,7 @@ mod tests {
             point_chunk: INFERENCE_POINT_CHUNK,
             samples_evaluated: 0,
             skipped_empty: 0,
+            last_fates: Vec::new(),
         };
         let bits = |x: &[f32]| x.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
         let reference = per_call_rows(

@@ -301,6 +301,7 @@ mod trained {
     }
 }
 
+#[allow(clippy::result_large_err)]
 fn infer(case: &GoldenCase, opts: &PassOptions) -> pma_model::error::Result<Outputs> {
     let mut mode = pma_model::render::avatar::Mode::Infer;
     case.avatar
