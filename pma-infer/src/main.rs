@@ -1,10 +1,12 @@
-//! `pma-infer MODEL OUT.png [SIZE] [--device D] [--occupancy]`: the smallest program that uses
+//! `pma-infer MODEL OUT.png [SIZE] [--device D] [--occupancy] [--early-stop EPS]`: the
+//! smallest program that uses
 //! a trained avatar.
 //!
 //! Loads a pma checkpoint and renders the avatar's rest pose, standing upright (head −y),
 //! from the front at SIZE×SIZE pixels (default 256) on a black background, with normalised
 //! view directions (as `pma render`). `--occupancy` skips the samples in the empty cells of
-//! the model's occupancy grid (the model must have one). It links `pma-model` without its `train` feature and
+//! the model's occupancy grid (the model must have one); `--early-stop EPS` leaves out the
+//! samples behind the depth where a ray's transmittance falls below EPS. It links `pma-model` without its `train` feature and
 //! parses its arguments by hand, so it pulls in no optimiser, loss, CLI or progress-bar code.
 
 use std::path::{Path, PathBuf};
@@ -19,7 +21,7 @@ use pma_model::render::image::ImageOptions;
 use pma_model::render::PassOptions;
 
 const USAGE: &str = "usage: pma-infer MODEL.safetensors OUT.png [SIZE] \
-                     [--device cpu|cuda|cuda:N|metal] [--occupancy]";
+                     [--device cpu|cuda|cuda:N|metal] [--occupancy] [--early-stop EPS]";
 
 type BoxError = Box<dyn std::error::Error>;
 
@@ -46,22 +48,20 @@ struct Args {
     device: String,
     /// `--occupancy`: skip the samples in empty cells of the model's grid.
     occupancy: bool,
+    /// `--early-stop EPS`: the transmittance below which a ray's later samples are skipped.
+    early_stop: Option<f64>,
 }
 
 fn parse(mut args: Vec<String>) -> Result<Args, BoxError> {
-    // `--device D` / `--device=D` may stand anywhere; take it out before the positionals.
-    let mut device = "cpu".to_string();
-    if let Some(i) = args
-        .iter()
-        .position(|a| a == "--device" || a.starts_with("--device="))
-    {
-        let flag = args.remove(i);
-        device = match flag.strip_prefix("--device=") {
-            Some(v) => v.to_string(),
-            None if i < args.len() => args.remove(i),
-            None => return Err(format!("--device needs a value\n{USAGE}").into()),
+    // Flags may stand anywhere; take them out before the positionals.
+    let device = take_value(&mut args, "--device")?.unwrap_or_else(|| "cpu".to_string());
+    let early_stop =
+        match take_value(&mut args, "--early-stop")? {
+            Some(v) => Some(v.parse::<f64>().map_err(|_| {
+                format!("--early-stop needs a transmittance in (0, 1), found {v:?}")
+            })?),
+            None => None,
         };
-    }
     let occupancy = match args.iter().position(|a| a == "--occupancy") {
         Some(i) => {
             args.remove(i);
@@ -72,7 +72,25 @@ fn parse(mut args: Vec<String>) -> Result<Args, BoxError> {
     let mut a = parse_positional(&args)?;
     a.device = device;
     a.occupancy = occupancy;
+    a.early_stop = early_stop;
     Ok(a)
+}
+
+/// Take `NAME VALUE` or `NAME=VALUE` out of `args`.
+fn take_value(args: &mut Vec<String>, name: &str) -> Result<Option<String>, BoxError> {
+    let with_eq = format!("{name}=");
+    let Some(i) = args
+        .iter()
+        .position(|a| a == name || a.starts_with(&with_eq))
+    else {
+        return Ok(None);
+    };
+    let flag = args.remove(i);
+    match flag.strip_prefix(&with_eq) {
+        Some(v) => Ok(Some(v.to_string())),
+        None if i < args.len() => Ok(Some(args.remove(i))),
+        None => Err(format!("{name} needs a value\n{USAGE}").into()),
+    }
 }
 
 fn parse_positional(args: &[String]) -> Result<Args, BoxError> {
@@ -87,6 +105,7 @@ fn parse_positional(args: &[String]) -> Result<Args, BoxError> {
             size: 256,
             device: String::new(),
             occupancy: false,
+            early_stop: None,
         }),
         [model, out, size] => {
             let size: usize = size
@@ -100,6 +119,7 @@ fn parse_positional(args: &[String]) -> Result<Args, BoxError> {
                 size,
                 device: String::new(),
                 occupancy: false,
+                early_stop: None,
             })
         }
         _ => Err(USAGE.into()),
@@ -123,6 +143,7 @@ fn run(args: &Args) -> Result<(), BoxError> {
         device: device.clone(),
         pass: PassOptions {
             occupancy: args.occupancy,
+            early_stop: args.early_stop,
             ..PassOptions::default()
         },
         ..ImageOptions::default()

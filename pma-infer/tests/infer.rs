@@ -89,8 +89,51 @@ fn renders_one_png_and_rejects_bad_input() {
         img.clone().into_raw()
     );
 
+    // The body is opaque: stopping its rays once their transmittance is below 1e-3 leaves
+    // out what is behind the surface, which the image weights by less than that.
+    let png3 = tmp.path().join("early.png");
+    let out = infer(&[
+        model.to_str().unwrap(),
+        png3.to_str().unwrap(),
+        "24",
+        "--early-stop",
+        "1e-3",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let early = image::open(&png3).unwrap().to_rgb8().into_raw();
+    let full = img.clone().into_raw();
+    let worst = early
+        .iter()
+        .zip(&full)
+        .map(|(a, b)| a.abs_diff(*b))
+        .max()
+        .unwrap();
+    assert!(worst <= 1, "early stop changed a pixel by {worst} levels");
+
     for (args, needle) in [
         (vec![model.to_str().unwrap()], "usage"),
+        (
+            vec![
+                model.to_str().unwrap(),
+                png.to_str().unwrap(),
+                "--early-stop",
+                "2",
+            ],
+            "early_stop",
+        ),
+        (
+            vec![
+                model.to_str().unwrap(),
+                png.to_str().unwrap(),
+                "--early-stop",
+                "x",
+            ],
+            "--early-stop needs",
+        ),
         (
             vec![model.to_str().unwrap(), png.to_str().unwrap(), "3"],
             "SIZE must be",

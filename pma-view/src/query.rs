@@ -181,6 +181,7 @@ pub fn render_request(
             "cull_rays",
             "cull_samples",
             "occupancy",
+            "early_stop",
             "score",
         ],
     )?;
@@ -222,6 +223,7 @@ pub fn render_request(
             cull_rays: flag(&q, "cull_rays", true)?,
             cull_samples: flag(&q, "cull_samples", true)?,
             occupancy: flag(&q, "occupancy", false)?,
+            early_stop: flag(&q, "early_stop", false)?,
         },
         score: flag(&q, "score", false)?,
     })
@@ -244,6 +246,7 @@ mod tests {
         assert!(!r.pass.cull_rays && r.pass.cull_samples && !r.pass.occupancy);
         assert!(r.score);
         assert!(req("cam=0&occupancy=1").unwrap().pass.occupancy);
+        assert!(!r.pass.early_stop && req("cam=0&early_stop=1").unwrap().pass.early_stop);
         // URLSearchParams encodes commas.
         let r = req("pose=0&eye=0%2C-1%2C3&target=0,0.5,0&fov=30").unwrap();
         assert_eq!(

@@ -39,7 +39,13 @@ pub struct PassOptions {
     /// Samples in cells the model's occupancy grid marks empty get the far-away output too
     /// (approximate; needs a model with a grid).
     pub occupancy: bool,
+    /// A ray's samples behind the depth where its transmittance falls below
+    /// [`EARLY_STOP`] skip the network (approximate).
+    pub early_stop: bool,
 }
+
+/// The transmittance at which the page's early-stop switch stops a ray.
+pub const EARLY_STOP: f64 = 1e-3;
 
 /// A switch as the page lists it (`GET /api/info`); its `id` is the render request's
 /// parameter. A new per-pass option is one more entry here, one more field of
@@ -75,6 +81,13 @@ pub const SWITCHES: &[Switch] = &[
                pma occupancy build)",
         on: false,
     },
+    Switch {
+        id: "early_stop",
+        label: "stop behind the surface",
+        help: "a ray's samples behind the depth where its transmittance falls below 0.001 \
+               skip the network (approximate)",
+        on: false,
+    },
 ];
 
 impl PassOptions {
@@ -87,6 +100,7 @@ impl PassOptions {
                 sample_fill: SampleFill::Network,
             },
             occupancy: self.occupancy,
+            early_stop: self.early_stop.then_some(EARLY_STOP),
             ..Default::default()
         }
     }
@@ -213,6 +227,7 @@ pub struct FrameStats {
     pub cull_rays: bool,
     pub cull_samples: bool,
     pub occupancy: bool,
+    pub early_stop: bool,
     /// Centre of the body (the camera's turning point).
     pub centre: [f32; 3],
     /// The dataset image this view is, when scored.
@@ -395,6 +410,7 @@ impl Renderer {
                 cull_rays: req.pass.cull_rays,
                 cull_samples: req.pass.cull_samples,
                 occupancy: req.pass.occupancy,
+                early_stop: req.pass.early_stop,
                 centre: scene.centre(&item.kp3d),
                 image,
                 scores,

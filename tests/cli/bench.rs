@@ -44,6 +44,7 @@ fn quick_bench_writes_every_field() {
             "rays",
             "rays+samples@0e0",
             "rays+samples@1e-2",
+            "rays+samples@1e-2+early-stop@1e-3",
             "fast-sine",
             "rays+samples@1e-2+fast-sine"
         ]
@@ -52,7 +53,7 @@ fn quick_bench_writes_every_field() {
         .iter()
         .map(|o| o["fast_sine"].as_bool().unwrap())
         .collect();
-    assert_eq!(fast, [false, false, false, false, true, true]);
+    assert_eq!(fast, [false, false, false, false, false, true, true]);
     for o in options {
         for key in [
             "ms_per_image",
@@ -89,10 +90,16 @@ fn quick_bench_writes_every_field() {
         diff_vs_parity(2),
         diff_vs_parity(1)
     );
+    // The early stop only leaves out more than the culling it is added to.
+    assert!(
+        pts(4) <= pts(3),
+        "early stop ran more points than without it"
+    );
+    assert_eq!(options[4]["early_stop"].as_f64(), Some(1e-3));
     // The vectorised sine leaves out no points, and its render is near parity's (last-bit
     // differences through the network), not identical and not far.
-    assert_eq!(pts(4), pts(0));
-    let diff = options[4]["max_abs_diff_vs_parity"].as_f64().unwrap();
+    assert_eq!(pts(5), pts(0));
+    let diff = options[5]["max_abs_diff_vs_parity"].as_f64().unwrap();
     assert!(diff < 1e-3, "fast sine moved the render by {diff}");
     assert!(dir.path().join("error_vs_time.png").is_file());
 }

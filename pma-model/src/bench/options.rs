@@ -27,7 +27,15 @@ pub struct BenchOption {
     /// training is that of the same option without it.
     #[serde(default)]
     pub occupancy_fine: bool,
+    /// Rendering stops rays early at this transmittance (`PassOptions::early_stop`);
+    /// training is that of the same option without it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub early_stop: Option<f64>,
 }
+
+/// The transmittance at which the bench's early-stop rows stop a ray: what it leaves out is
+/// weighted by less than 0.1 % in the coarse render.
+pub const BENCH_EARLY_STOP: f64 = 1e-3;
 
 impl BenchOption {
     /// No culling, libm's sine: what the reference computes.
@@ -44,6 +52,7 @@ impl BenchOption {
             culling: self.culling.clone(),
             occupancy: self.occupancy,
             occupancy_fine: self.occupancy_fine,
+            early_stop: self.early_stop,
         }
     }
 
@@ -66,9 +75,10 @@ impl BenchOption {
     }
 }
 
-/// Parity, ray culling, ray and sample culling at each of `thresholds`, then the vectorised
-/// sine alone and with the last (most aggressive) culling option; with `occupancy` the grid
-/// alone and with that culling option.
+/// Parity, ray culling, ray and sample culling at each of `thresholds`, the last (most
+/// aggressive) culling option with the early stop, then the vectorised sine alone and with
+/// that culling option; with `occupancy` the grid alone, with that culling option, with the
+/// fine samples placed from the grid and with the early stop.
 pub fn options(thresholds: &[f64], occupancy: bool) -> Vec<BenchOption> {
     let mut v = vec![
         BenchOption::parity(),
@@ -93,6 +103,12 @@ pub fn options(thresholds: &[f64], occupancy: bool) -> Vec<BenchOption> {
         });
     }
     let last = v.last().cloned().expect("parity is always there");
+    let early_stop = |o: &BenchOption| BenchOption {
+        name: format!("{}+early-stop@{BENCH_EARLY_STOP:e}", o.name),
+        early_stop: Some(BENCH_EARLY_STOP),
+        ..o.clone()
+    };
+    v.push(early_stop(&last));
     v.push(BenchOption {
         name: "fast-sine".into(),
         fast_sine: true,
@@ -120,8 +136,9 @@ pub fn options(thresholds: &[f64], occupancy: bool) -> Vec<BenchOption> {
         v.push(BenchOption {
             name: format!("{}+grid-fine", with_grid.name),
             occupancy_fine: true,
-            ..with_grid
+            ..with_grid.clone()
         });
+        v.push(early_stop(&with_grid));
     }
     v
 }
@@ -143,33 +160,51 @@ mod tests {
                 "rays",
                 "rays+samples@0e0",
                 "rays+samples@1e-2",
+                "rays+samples@1e-2+early-stop@1e-3",
                 "fast-sine",
                 "rays+samples@1e-2+fast-sine"
             ]
         );
         // Without thresholds the last culling option is "rays", which gets no sine twin.
         let names: Vec<String> = options(&[], false).into_iter().map(|o| o.name).collect();
-        assert_eq!(names, ["parity", "rays", "fast-sine"]);
+        assert_eq!(
+            names,
+            ["parity", "rays", "rays+early-stop@1e-3", "fast-sine"]
+        );
         let o = options(&[1e-4], false);
         assert_eq!(o[2].culling.sample_threshold, Some(1e-4));
-        assert_eq!(o[4].culling, o[2].culling);
-        assert!(o[4].fast_sine && !o[2].fast_sine);
+        assert_eq!(o[3].culling, o[2].culling);
+        assert_eq!(o[3].pass().early_stop, Some(BENCH_EARLY_STOP));
+        assert_eq!(o[5].culling, o[2].culling);
+        assert!(o[5].fast_sine && !o[2].fast_sine);
         assert!(o.iter().all(|o| !o.occupancy));
+        // Each early-stop row follows the row it differs from only in the early stop (the
+        // bench trains them once).
+        assert!(o.iter().filter(|o| o.early_stop.is_some()).count() == 1);
         // The grid alone, then with the last culling option (without the sine).
         let o = options(&[1e-4], true);
-        let names: Vec<&str> = o[5..].iter().map(|o| o.name.as_str()).collect();
+        let names: Vec<&str> = o[6..].iter().map(|o| o.name.as_str()).collect();
         assert_eq!(
             names,
             [
                 "occupancy",
                 "rays+samples@1e-4+occupancy",
-                "rays+samples@1e-4+occupancy+grid-fine"
+                "rays+samples@1e-4+occupancy+grid-fine",
+                "rays+samples@1e-4+occupancy+early-stop@1e-3"
             ]
         );
-        assert!(o[7].occupancy_fine && o[7].pass().occupancy_fine && o[7].pass().occupancy);
-        assert!(o[..7].iter().all(|o| !o.pass().occupancy_fine));
-        assert!(o[5].occupancy && o[5].culling == Culling::default() && !o[5].fast_sine);
-        assert!(o[6].occupancy && o[6].culling == o[2].culling && !o[6].fast_sine);
-        assert!(o[6].pass().occupancy && o[6].pass().culling == o[2].culling);
+        assert!(o[8].occupancy_fine && o[8].pass().occupancy_fine && o[8].pass().occupancy);
+        assert!(o[..8].iter().all(|o| !o.pass().occupancy_fine));
+        assert!(o[6].occupancy && o[6].culling == Culling::default() && !o[6].fast_sine);
+        assert!(o[7].occupancy && o[7].culling == o[2].culling && !o[7].fast_sine);
+        assert!(o[7].pass().occupancy && o[7].pass().culling == o[2].culling);
+        assert!(o[9].pass().occupancy && !o[9].occupancy_fine);
+        assert_eq!(o[9].pass().early_stop, Some(BENCH_EARLY_STOP));
+        for o in &o {
+            assert!(o
+                .pass()
+                .validate(&crate::network::config::Config::default())
+                .is_ok());
+        }
     }
 }

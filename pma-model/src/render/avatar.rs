@@ -263,7 +263,13 @@ impl Avatar {
         }
         // 3. Coarse pass and render.
         let tr = trace.as_deref_mut();
-        let raw_coarse = points.run(&self.net, pose, &coarse.pts, &view, mode, "coarse", tr)?;
+        let raw_coarse = match opts.early_stop {
+            Some(eps) => {
+                let samples = (&coarse.pts, &coarse.z, &rays.dirs);
+                points.march(&self.net, pose, samples, &view, mode, eps, tr)?
+            }
+            None => points.run(&self.net, pose, &coarse.pts, &view, mode, "coarse", tr)?,
+        };
         let coarse_evaluated = points.samples_evaluated();
         prof("coarse network", self.device());
         let render_coarse = raw2outputs(&raw_coarse, &coarse.z, &rays.dirs, rays.bgs.as_ref())?;
@@ -279,7 +285,7 @@ impl Avatar {
         };
         prof("resample", self.device());
         let tr = trace.as_deref_mut();
-        let raw_fine = points.run(&self.net, pose, &fine.pts, &view, mode, "fine", tr)?;
+        let raw_fine = points.run_fine(&self.net, pose, &fine.pts, &fine.z, &view, mode, tr)?;
         prof("fine network", self.device());
         // 5. Merge with the coarse outputs (reused, noise included) and render again.
         if let Some(t) = trace {
@@ -319,6 +325,7 @@ impl Avatar {
             coarse_evaluated: coarse_evaluated as u64,
             fine_evaluated: (points.samples_evaluated() - coarse_evaluated) as u64,
             skipped_empty: points.skipped_empty() as u64,
+            stopped_early: points.stopped_early() as u64,
         };
         Ok(Outputs {
             vol_scale: pose.scales.clone(),

@@ -68,6 +68,9 @@ pub enum SampleFate {
     Empty,
     /// The ray crosses no bone box: raw outputs 0.
     RayCulled,
+    /// Behind the depth where the ray's transmittance fell below the early-stop threshold
+    /// (`PassOptions::early_stop`): filled like [`SampleFate::Outside`].
+    Behind,
 }
 
 /// Host-side spatial-window test for every pose of a batch.

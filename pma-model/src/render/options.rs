@@ -125,7 +125,27 @@ pub struct PassOptions {
     )]
     #[serde(skip_serializing_if = "std::ops::Not::not")]
     pub occupancy_fine: bool,
+    /// In inference: the coarse samples run the network front to back in
+    /// [`EARLY_STOP_SEGMENT`]-sample segments, and once a ray's transmittance is below this
+    /// threshold its later samples, coarse and fine, skip the network and are filled like
+    /// culled samples. Approximate: what they would have added is weighted by less than the
+    /// threshold in the coarse render (docs/numerics.md, "Empty rays and culling").
+    #[cfg_attr(
+        feature = "cli",
+        arg(
+            long = "early-stop",
+            value_name = "EPS",
+            help = "Samples behind the depth where a ray's transmittance falls below EPS skip \
+                    the network (approximate; e.g. 1e-3)"
+        )
+    )]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub early_stop: Option<f64>,
 }
+
+/// Coarse samples per segment of the early-stop march: a ray stops at a segment's end, so
+/// shorter segments stop closer to the surface but split the pass into more network calls.
+pub const EARLY_STOP_SEGMENT: usize = 8;
 
 impl PassOptions {
     /// Parity: every sample of every ray runs the network.
@@ -143,7 +163,10 @@ impl PassOptions {
 
     /// Whether the pass leaves nothing out.
     pub fn is_parity(&self) -> bool {
-        self.culling.is_off() && !self.occupancy && !self.occupancy_fine
+        self.culling.is_off()
+            && !self.occupancy
+            && !self.occupancy_fine
+            && self.early_stop.is_none()
     }
 
     /// Whether some samples may skip the network (the culled route of
@@ -153,9 +176,13 @@ impl PassOptions {
     }
 
     /// The w^p threshold the window test uses: the culling threshold, or exact zeros when
-    /// only the occupancy grid asks for the test.
+    /// only the occupancy grid or the early stop (whose skipped samples take the far-away
+    /// constant) asks for the test.
     pub fn window_threshold(&self) -> Option<f64> {
-        match (self.culling.sample_threshold, self.occupancy) {
+        match (
+            self.culling.sample_threshold,
+            self.occupancy || self.early_stop.is_some(),
+        ) {
             (Some(t), _) => Some(t),
             (None, true) => Some(0.0),
             (None, false) => None,
@@ -173,6 +200,27 @@ impl PassOptions {
                  grid option (occupancy)"
                     .into(),
             );
+        }
+        if let Some(eps) = self.early_stop {
+            if !(eps.is_finite() && eps > 0.0 && eps < 1.0) {
+                return Some(format!(
+                    "early_stop: the transmittance threshold must be in (0, 1), found {eps}"
+                ));
+            }
+            if self.occupancy_fine {
+                return Some(
+                    "early_stop: the early stop marches the coarse samples before placing the \
+                     fine ones, which occupancy_fine places without them; choose one"
+                        .into(),
+                );
+            }
+            if !cfg.variant.spatial_window() {
+                return Some(format!(
+                    "early_stop: skipped samples take the far-away constant of the spatial \
+                     window, which variant `{}` does not use",
+                    cfg.variant
+                ));
+            }
         }
         if self.occupancy && !cfg.variant.spatial_window() {
             return Some(format!(
@@ -206,6 +254,9 @@ pub struct PassStats {
     pub fine_evaluated: u64,
     /// Samples skipped because every active joint marked their cell empty.
     pub skipped_empty: u64,
+    /// Samples skipped because they lie behind the early stop of their ray.
+    #[serde(default)]
+    pub stopped_early: u64,
 }
 
 impl PassStats {
@@ -216,6 +267,7 @@ impl PassStats {
         self.coarse_evaluated += o.coarse_evaluated;
         self.fine_evaluated += o.fine_evaluated;
         self.skipped_empty += o.skipped_empty;
+        self.stopped_early += o.stopped_early;
     }
 
     /// Share of the samples that ran the network (far-away constants not counted).

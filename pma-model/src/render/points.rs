@@ -27,7 +27,7 @@ use crate::network::trace::Trace;
 use crate::network::{Network, PoseFeatures};
 use crate::render::batch::{Mode, Poses};
 use crate::render::cull::{ray_fates, SampleFate, WindowTest};
-use crate::render::options::{PassOptions, SampleFill};
+use crate::render::options::{PassOptions, SampleFill, EARLY_STOP_SEGMENT};
 use crate::render::raycast::RayBounds;
 
 /// Points per network call in inference on the CPU: the largest per-point tensors are
@@ -66,6 +66,8 @@ pub(crate) struct PointEval {
     samples_evaluated: usize,
     /// Samples left out because the occupancy grid marks their cells empty.
     skipped_empty: usize,
+    /// Samples left out behind their ray's early stop.
+    stopped_early: usize,
 }
 
 enum Route {
@@ -117,6 +119,7 @@ impl PointEval {
             evaluated: 0,
             samples_evaluated: 0,
             skipped_empty: 0,
+            stopped_early: 0,
         }
     }
 
@@ -134,6 +137,79 @@ impl PointEval {
     /// Samples left out so far because the occupancy grid marks their cells empty.
     pub fn skipped_empty(&self) -> usize {
         self.skipped_empty
+    }
+
+    /// Samples left out so far behind their rays' early stops.
+    pub fn stopped_early(&self) -> usize {
+        self.stopped_early
+    }
+
+    /// The coarse pass with the early stop: like [`Self::run`] on pts [R,S,3] at z [R,S]
+    /// along dirs [R,3], but front to back in segments, leaving out the samples of rays whose
+    /// transmittance fell below `eps` (inference only). A pass on another route (traced)
+    /// runs every sample.
+    #[allow(clippy::too_many_arguments)]
+    pub fn march(
+        &mut self,
+        net: &Network,
+        pose: &PoseFeatures,
+        (pts, z, dirs): (&Tensor, &Tensor, &Tensor),
+        view: &Tensor,
+        mode: &mut Mode,
+        eps: f64,
+        trace: Option<&mut Trace>,
+    ) -> Result<Tensor> {
+        if !mode.is_inference() {
+            return Err(ModelError::Input(
+                "early_stop: stopping rays early is a rendering option (every sample of a \
+                 training step takes part in its gradients)"
+                    .into(),
+            ));
+        }
+        let Route::Culled(c) = &mut self.route else {
+            return self.run(net, pose, pts, view, mode, "coarse", trace);
+        };
+        let before = (
+            c.evaluated,
+            c.samples_evaluated,
+            c.skipped_empty,
+            c.stopped_early,
+        );
+        let (rgb, sigma_raw) = c.march(net, pose, pts, z, dirs, view, eps)?;
+        self.count(before);
+        let (r, s, _) = pts.dims3()?;
+        let density = density(net, sigma_raw, mode, r * s)?;
+        Ok(Tensor::cat(&[rgb, density], 1)?.reshape((r, s, 4))?)
+    }
+
+    /// The fine pass: [`Self::run`], leaving out the samples (at z [R,S]) behind the depth
+    /// where [`Self::march`] stopped their ray; the same as `run` when no ray stopped.
+    #[allow(clippy::too_many_arguments)]
+    pub fn run_fine(
+        &mut self,
+        net: &Network,
+        pose: &PoseFeatures,
+        pts: &Tensor,
+        z: &Tensor,
+        view: &Tensor,
+        mode: &mut Mode,
+        trace: Option<&mut Trace>,
+    ) -> Result<Tensor> {
+        match &mut self.route {
+            Route::Culled(c) if !c.stop_z.is_empty() => c.behind = Some(host_f32(z)?),
+            _ => {}
+        }
+        self.run(net, pose, pts, view, mode, "fine", trace)
+    }
+
+    /// Add what the culled route did since `before` (its counters then) to this pass.
+    fn count(&mut self, before: (usize, usize, usize, usize)) {
+        if let Route::Culled(c) = &self.route {
+            self.evaluated += c.evaluated - before.0;
+            self.samples_evaluated += c.samples_evaluated - before.1;
+            self.skipped_empty += c.skipped_empty - before.2;
+            self.stopped_early += c.stopped_early - before.3;
+        }
     }
 
     /// Importance weights [R,S] of the coarse samples pts: [R,S,3] at z: [R,S] along dirs:
@@ -225,11 +301,14 @@ impl PointEval {
                 (rgb, sigma, None)
             }
             Route::Culled(c) => {
-                let before = (c.evaluated, c.samples_evaluated, c.skipped_empty);
+                let before = (
+                    c.evaluated,
+                    c.samples_evaluated,
+                    c.skipped_empty,
+                    c.stopped_early,
+                );
                 let out = c.run(net, pose, pts, view, mode)?;
-                self.evaluated += c.evaluated - before.0;
-                self.samples_evaluated += c.samples_evaluated - before.1;
-                self.skipped_empty += c.skipped_empty - before.2;
+                self.count(before);
                 out
             }
         };
@@ -384,6 +463,23 @@ pub(crate) struct CullCtx {
     skipped_empty: usize,
     /// The fates of the last [`Self::run`], [R·S] in sample order.
     last_fates: Vec<SampleFate>,
+    /// Per ray, the depth z from which its samples are behind its early stop (infinite:
+    /// not stopped); empty when the pass did not march.
+    stop_z: Vec<f32>,
+    /// The z [R·S] of the samples of the next [`Self::run`], when it should leave out those
+    /// behind `stop_z`.
+    behind: Option<Vec<f32>>,
+    /// Samples left out behind their rays' early stops.
+    stopped_early: usize,
+}
+
+/// Whether a sample of this fate takes the far-away constant (or zeros) instead of running
+/// the network.
+fn filled(f: &SampleFate) -> bool {
+    matches!(
+        f,
+        SampleFate::Outside | SampleFate::Empty | SampleFate::Behind
+    )
 }
 
 /// Network outputs at the far-away point, one row per ray that needed one.
@@ -464,6 +560,9 @@ impl CullCtx {
             samples_evaluated: 0,
             skipped_empty: 0,
             last_fates: Vec::new(),
+            stop_z: Vec::new(),
+            behind: None,
+            stopped_early: 0,
         })
     }
 
@@ -504,42 +603,14 @@ impl CullCtx {
     ) -> Result<(Tensor, Tensor, Option<Tensor>)> {
         let (r, s, _) = pts.dims3()?;
         let n = r * s;
-        let fates = match (&self.test, &self.ray_alive) {
-            (Some(t), alive) => t.fates(
-                &host_f32(pts)?,
-                r,
-                s,
-                alive.as_deref(),
-                self.grid.as_deref(),
-            )?,
-            (None, Some(alive)) => ray_fates(r, s, alive)?,
-            (None, None) => vec![SampleFate::Evaluate; n],
-        };
-        self.skipped_empty += fates.iter().filter(|f| **f == SampleFate::Empty).count();
+        let mut fates = self.fates(pts)?;
+        if let Some(z) = self.behind.take() {
+            self.mark_behind(&mut fates, &z, s, 0)?;
+        }
         self.last_fates.clone_from(&fates);
         let network_fill = self.fill == SampleFill::Network;
         let noisy = matches!(mode, Mode::Train(Some(_))) && net.config().density_noise_std > 0.0;
-        let filled = |f: &SampleFate| matches!(f, SampleFate::Outside | SampleFate::Empty);
-        let need: Vec<usize> = if network_fill {
-            (0..r)
-                .filter(|&ray| fates[ray * s..(ray + 1) * s].iter().any(filled))
-                .collect()
-        } else {
-            Vec::new()
-        };
-        if self.consts.row_of_ray.len() != r {
-            self.consts.row_of_ray = vec![u32::MAX; r];
-        }
-        if !need.is_empty() && mode.is_inference() && !noisy && !self.consts.probed {
-            self.probe_shared_constant(net, pose, view, need[0])?;
-        }
-        let far_rays: Vec<usize> = if self.consts.shared {
-            Vec::new()
-        } else {
-            need.into_iter()
-                .filter(|&ray| self.consts.row_of_ray[ray] == u32::MAX)
-                .collect()
-        };
+        let far_rays = self.far_rays(net, pose, view, &fates, s, mode.is_inference() && !noisy)?;
         let plan = self.plan(
             pose.g.dim(0)?,
             pts,
@@ -550,13 +621,13 @@ impl CullCtx {
         )?;
         let (rgbs, sigmas, evaluated) = self.evaluate(net, pose, plan, mode.is_inference())?;
         let (rgb, sigma_raw, any_zero) =
-            self.scatter(rgbs, sigmas, evaluated, &fates, s, network_fill, pts)?;
+            self.scatter(rgbs, sigmas, evaluated, &fates, s, network_fill, pts, None)?;
         let alive = if noisy && any_zero {
             let alive: Vec<f32> = fates
                 .iter()
                 .map(|f| match f {
                     SampleFate::Evaluate => 1.0,
-                    SampleFate::Outside | SampleFate::Empty if network_fill => 1.0,
+                    f if filled(f) && network_fill => 1.0,
                     _ => 0.0,
                 })
                 .collect();
@@ -565,6 +636,178 @@ impl CullCtx {
             None
         };
         Ok((rgb, sigma_raw, alive))
+    }
+
+    /// The fate of every sample of pts [R,S,3] by the window test, ray culling and the grid.
+    fn fates(&mut self, pts: &Tensor) -> Result<Vec<SampleFate>> {
+        let (r, s, _) = pts.dims3()?;
+        let fates = match (&self.test, &self.ray_alive) {
+            (Some(t), alive) => t.fates(
+                &host_f32(pts)?,
+                r,
+                s,
+                alive.as_deref(),
+                self.grid.as_deref(),
+            )?,
+            (None, Some(alive)) => ray_fates(r, s, alive)?,
+            (None, None) => vec![SampleFate::Evaluate; r * s],
+        };
+        self.skipped_empty += fates.iter().filter(|f| **f == SampleFate::Empty).count();
+        Ok(fates)
+    }
+
+    /// Mark [`SampleFate::Behind`] the samples to evaluate at z [R·S] (S per ray) that lie
+    /// at or behind their ray's stop depth, from sample `from` of each ray on.
+    fn mark_behind(
+        &mut self,
+        fates: &mut [SampleFate],
+        z: &[f32],
+        s: usize,
+        from: usize,
+    ) -> Result<()> {
+        if z.len() != fates.len() || self.stop_z.len() * s != fates.len() {
+            return Err(ModelError::shape("early stop: z", [fates.len()], [z.len()]));
+        }
+        for (ray, stop) in self.stop_z.iter().enumerate() {
+            if stop.is_finite() {
+                for i in ray * s + from..(ray + 1) * s {
+                    if fates[i] == SampleFate::Evaluate && z[i] >= *stop {
+                        fates[i] = SampleFate::Behind;
+                        self.stopped_early += 1;
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// The rays (of `fates`, S per ray) whose filled samples still need their far-away
+    /// constant evaluated; `probe`: whether one shared constant may serve every ray
+    /// (inference without noise).
+    fn far_rays(
+        &mut self,
+        net: &Network,
+        pose: &PoseFeatures,
+        view: &Tensor,
+        fates: &[SampleFate],
+        s: usize,
+        probe: bool,
+    ) -> Result<Vec<usize>> {
+        let r = fates.len() / s.max(1);
+        let need: Vec<usize> = if self.fill == SampleFill::Network {
+            (0..r)
+                .filter(|&ray| fates[ray * s..(ray + 1) * s].iter().any(filled))
+                .collect()
+        } else {
+            Vec::new()
+        };
+        if self.consts.row_of_ray.len() != r {
+            self.consts.row_of_ray = vec![u32::MAX; r];
+        }
+        if !need.is_empty() && probe && !self.consts.probed {
+            self.probe_shared_constant(net, pose, view, need[0])?;
+        }
+        Ok(if self.consts.shared {
+            Vec::new()
+        } else {
+            need.into_iter()
+                .filter(|&ray| self.consts.row_of_ray[ray] == u32::MAX)
+                .collect()
+        })
+    }
+
+    /// The coarse pass of [`PointEval::march`] (inference): the samples to evaluate run in
+    /// segments of [`EARLY_STOP_SEGMENT`] samples per ray, front to back; after each
+    /// segment a ray whose transmittance exp(−Σ relu(σ)·δ) is below `eps` stops, and its
+    /// later samples (and the fine samples at or behind the next sample's depth) are
+    /// [`SampleFate::Behind`]. Filled samples count as empty in the transmittance, so a ray
+    /// never stops earlier than its evaluated samples say. Returns (rgb [n,3], sigma_raw [n,1]).
+    #[allow(clippy::too_many_arguments)]
+    fn march(
+        &mut self,
+        net: &Network,
+        pose: &PoseFeatures,
+        pts: &Tensor,
+        z: &Tensor,
+        dirs: &Tensor,
+        view: &Tensor,
+        eps: f64,
+    ) -> Result<(Tensor, Tensor)> {
+        let (r, s, _) = pts.dims3()?;
+        let zh = host_f32(z)?;
+        let dh = host_f32(dirs)?;
+        if zh.len() != r * s || dh.len() != r * 3 {
+            return Err(ModelError::shape("early stop: z", [r, s], z.dims()));
+        }
+        let mut fates = self.fates(pts)?;
+        let network_fill = self.fill == SampleFill::Network;
+        self.stop_z = vec![f32::INFINITY; r];
+        // Optical depth so far, per ray.
+        let mut tau = vec![0f64; r];
+        let (mut rgbs, mut sigmas) = (Vec::new(), Vec::new());
+        let mut eval_row = vec![u32::MAX; r * s];
+        let mut rows = 0usize;
+        for start in (0..s).step_by(EARLY_STOP_SEGMENT) {
+            let end = (start + EARLY_STOP_SEGMENT).min(s);
+            let in_segment = |i: usize| (start..end).contains(&(i % s));
+            let segment: Vec<SampleFate> = fates
+                .iter()
+                .enumerate()
+                .map(|(i, f)| {
+                    if in_segment(i) {
+                        *f
+                    } else {
+                        SampleFate::RayCulled
+                    }
+                })
+                .collect();
+            let far_rays = self.far_rays(net, pose, view, &segment, s, true)?;
+            let plan = self.plan(pose.g.dim(0)?, pts, view, &segment, &far_rays, true)?;
+            let (seg_rgbs, seg_sigmas, evaluated) = self.evaluate(net, pose, plan, true)?;
+            if evaluated == 0 {
+                continue;
+            }
+            let sigma_host = Tensor::cat(&seg_sigmas, 0)?
+                .flatten_all()?
+                .to_dtype(DType::F32)?
+                .to_vec1::<f32>()?;
+            // The plan keeps the segment's samples in sample order.
+            let evaluated_samples = (0..r * s).filter(|&i| segment[i] == SampleFate::Evaluate);
+            for (j, i) in evaluated_samples.enumerate() {
+                eval_row[i] = (rows + j) as u32;
+                let (ray, k) = (i / s, i % s);
+                if k + 1 < s {
+                    let norm =
+                        (dh[3 * ray].powi(2) + dh[3 * ray + 1].powi(2) + dh[3 * ray + 2].powi(2))
+                            .sqrt();
+                    let delta = (zh[i + 1] - zh[i]) * norm;
+                    tau[ray] += f64::from(sigma_host[j].max(0.0) * delta);
+                }
+            }
+            rows += evaluated;
+            rgbs.extend(seg_rgbs);
+            sigmas.extend(seg_sigmas);
+            if end < s {
+                for ray in 0..r {
+                    if self.stop_z[ray].is_infinite() && (-tau[ray]).exp() < eps {
+                        self.stop_z[ray] = zh[ray * s + end];
+                    }
+                }
+                self.mark_behind(&mut fates, &zh, s, end)?;
+            }
+        }
+        self.last_fates.clone_from(&fates);
+        let (rgb, sigma_raw, _) = self.scatter(
+            rgbs,
+            sigmas,
+            rows,
+            &fates,
+            s,
+            network_fill,
+            pts,
+            Some(&eval_row),
+        )?;
+        Ok((rgb, sigma_raw))
     }
 
     /// The network calls: per pose, the kept samples in chunks (one chunk when the graph is
@@ -709,6 +952,7 @@ impl CullCtx {
     }
 
     /// Every sample's row: its own evaluation, its ray's far-away constant, or a zero row.
+    /// The evaluated rows are in sample order, or at `eval_row[i]` for sample i when given.
     /// Returns (rgb [n,3], sigma_raw [n,1], whether any sample got the zero row).
     #[allow(clippy::too_many_arguments)]
     fn scatter(
@@ -720,6 +964,7 @@ impl CullCtx {
         s: usize,
         network_fill: bool,
         pts: &Tensor,
+        eval_row: Option<&[u32]>,
     ) -> Result<(Tensor, Tensor, bool)> {
         let dev = pts.device();
         let consts = &self.consts;
@@ -732,9 +977,9 @@ impl CullCtx {
             .map(|(i, fate)| match fate {
                 SampleFate::Evaluate => {
                     next += 1;
-                    next - 1
+                    eval_row.map_or(next - 1, |rows| rows[i])
                 }
-                SampleFate::Outside | SampleFate::Empty if network_fill => {
+                f if filled(f) && network_fill => {
                     evaluated as u32
                         + if consts.shared {
                             0
@@ -921,6 +1166,9 @@ mod tests {
             samples_evaluated: 0,
             skipped_empty: 0,
             last_fates: Vec::new(),
+            stop_z: Vec::new(),
+            behind: None,
+            stopped_early: 0,
         };
         let bits = |x: &[f32]| x.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
         let reference = per_call_rows(

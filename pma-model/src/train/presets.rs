@@ -138,6 +138,8 @@ impl TrainConfig {
             // Training places its fine samples from the coarse render (its coarse loss
             // needs that render anyway).
             occupancy_fine: false,
+            // Every sample of a training step takes part in its gradients.
+            early_stop: None,
         }
     }
 

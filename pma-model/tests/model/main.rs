@@ -11,6 +11,7 @@ mod account;
 mod camera_path;
 mod checkpoint;
 mod culling;
+mod early_stop;
 mod golden;
 mod grad;
 mod image_render;
