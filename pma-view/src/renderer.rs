@@ -45,7 +45,7 @@ pub struct PassOptions {
 }
 
 /// The transmittance at which the page's early-stop switch stops a ray.
-pub const EARLY_STOP: f64 = 1e-3;
+pub const EARLY_STOP: f64 = 1e-2;
 
 /// A switch as the page lists it (`GET /api/info`); its `id` is the render request's
 /// parameter. A new per-pass option is one more entry here, one more field of
@@ -84,7 +84,7 @@ pub const SWITCHES: &[Switch] = &[
     Switch {
         id: "early_stop",
         label: "stop behind the surface",
-        help: "a ray's samples behind the depth where its transmittance falls below 0.001 \
+        help: "a ray's samples behind the depth where its transmittance falls below 0.01 \
                skip the network (approximate)",
         on: false,
     },

@@ -53,6 +53,9 @@ pub struct Args {
     /// Sample thresholds to compare (each with ray culling on).
     #[arg(long, value_delimiter = ',', default_value = "0,1e-6,1e-4,1e-2")]
     pub thresholds: Vec<f64>,
+    /// The transmittance at which the early-stop rows stop a ray (`render --early-stop`).
+    #[arg(long, value_name = "EPS", default_value_t = pma_model::bench::options::BENCH_EARLY_STOP)]
+    pub early_stop: f64,
     /// Add the occupancy-grid rows: the grid alone and with the last threshold's culling.
     /// Rendering uses the model's grid (built from the scene's training poses when it has
     /// none); training builds and refreshes one during each run.
@@ -183,7 +186,7 @@ pub fn run(mut args: Args) -> anyhow::Result<()> {
         res: args.res,
         repeats: args.repeats,
         eval_images: args.eval_images,
-        options: options(&args.thresholds, args.occupancy),
+        options: options(&args.thresholds, args.occupancy, args.early_stop),
         occupancy: pma_model::network::occupancy::OccupancyConfig {
             warmup_steps: args.occupancy_warmup,
             ..Default::default()
@@ -283,6 +286,10 @@ fn check_args(args: &mut Args) -> anyhow::Result<()> {
         if !(t.is_finite() && (0.0..1.0).contains(&t)) {
             refuse!("--thresholds: {t} is not in [0, 1)");
         }
+    }
+    let e = args.early_stop;
+    if !(e.is_finite() && e > 0.0 && e < 1.0) {
+        refuse!("--early-stop: expected a transmittance in (0, 1), found {e}");
     }
     let t = args.shares_threshold;
     if !(t.is_finite() && (0.0..1.0).contains(&t)) {

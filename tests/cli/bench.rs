@@ -44,7 +44,7 @@ fn quick_bench_writes_every_field() {
             "rays",
             "rays+samples@0e0",
             "rays+samples@1e-2",
-            "rays+samples@1e-2+early-stop@1e-3",
+            "rays+samples@1e-2+early-stop@1e-2",
             "fast-sine",
             "rays+samples@1e-2+fast-sine"
         ]
@@ -95,7 +95,7 @@ fn quick_bench_writes_every_field() {
         pts(4) <= pts(3),
         "early stop ran more points than without it"
     );
-    assert_eq!(options[4]["early_stop"].as_f64(), Some(1e-3));
+    assert_eq!(options[4]["early_stop"].as_f64(), Some(1e-2));
     // The vectorised sine leaves out no points, and its render is near parity's (last-bit
     // differences through the network), not identical and not far.
     assert_eq!(pts(5), pts(0));
@@ -116,6 +116,14 @@ fn bad_thresholds_are_refused() {
     assert!(!out.status.success());
     assert!(err.contains("--thresholds"), "{err}");
     assert!(!err.contains("panicked"), "{err}");
+    let out = Command::new(env!("CARGO_BIN_EXE_pma"))
+        .args(["bench", "--quick", "--early-stop", "0", "--out"])
+        .arg(dir.path())
+        .output()
+        .expect("running pma");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(err.contains("--early-stop"), "{err}");
 }
 
 /// `--forward-only`: one warm-up and `--repeats` whole `pma forward` processes on a batch,

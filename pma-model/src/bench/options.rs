@@ -33,9 +33,9 @@ pub struct BenchOption {
     pub early_stop: Option<f64>,
 }
 
-/// The transmittance at which the bench's early-stop rows stop a ray: what it leaves out is
-/// weighted by less than 0.1 % in the coarse render.
-pub const BENCH_EARLY_STOP: f64 = 1e-3;
+/// The default transmittance at which the bench's early-stop rows stop a ray: what it leaves
+/// out is weighted by less than 1 % in the coarse render.
+pub const BENCH_EARLY_STOP: f64 = 1e-2;
 
 impl BenchOption {
     /// No culling, libm's sine: what the reference computes.
@@ -78,8 +78,8 @@ impl BenchOption {
 /// Parity, ray culling, ray and sample culling at each of `thresholds`, the last (most
 /// aggressive) culling option with the early stop, then the vectorised sine alone and with
 /// that culling option; with `occupancy` the grid alone, with that culling option, with the
-/// fine samples placed from the grid and with the early stop.
-pub fn options(thresholds: &[f64], occupancy: bool) -> Vec<BenchOption> {
+/// fine samples placed from the grid and with the early stop (at transmittance `early_stop`).
+pub fn options(thresholds: &[f64], occupancy: bool, early_stop: f64) -> Vec<BenchOption> {
     let mut v = vec![
         BenchOption::parity(),
         BenchOption {
@@ -104,8 +104,8 @@ pub fn options(thresholds: &[f64], occupancy: bool) -> Vec<BenchOption> {
     }
     let last = v.last().cloned().expect("parity is always there");
     let early_stop = |o: &BenchOption| BenchOption {
-        name: format!("{}+early-stop@{BENCH_EARLY_STOP:e}", o.name),
-        early_stop: Some(BENCH_EARLY_STOP),
+        name: format!("{}+early-stop@{early_stop:e}", o.name),
+        early_stop: Some(early_stop),
         ..o.clone()
     };
     v.push(early_stop(&last));
@@ -149,7 +149,7 @@ mod tests {
 
     #[test]
     fn parity_first_then_culling_then_the_sine() {
-        let names: Vec<String> = options(&[0.0, 1e-2], false)
+        let names: Vec<String> = options(&[0.0, 1e-2], false, BENCH_EARLY_STOP)
             .into_iter()
             .map(|o| o.name)
             .collect();
@@ -160,18 +160,21 @@ mod tests {
                 "rays",
                 "rays+samples@0e0",
                 "rays+samples@1e-2",
-                "rays+samples@1e-2+early-stop@1e-3",
+                "rays+samples@1e-2+early-stop@1e-2",
                 "fast-sine",
                 "rays+samples@1e-2+fast-sine"
             ]
         );
         // Without thresholds the last culling option is "rays", which gets no sine twin.
-        let names: Vec<String> = options(&[], false).into_iter().map(|o| o.name).collect();
+        let names: Vec<String> = options(&[], false, BENCH_EARLY_STOP)
+            .into_iter()
+            .map(|o| o.name)
+            .collect();
         assert_eq!(
             names,
-            ["parity", "rays", "rays+early-stop@1e-3", "fast-sine"]
+            ["parity", "rays", "rays+early-stop@1e-2", "fast-sine"]
         );
-        let o = options(&[1e-4], false);
+        let o = options(&[1e-4], false, BENCH_EARLY_STOP);
         assert_eq!(o[2].culling.sample_threshold, Some(1e-4));
         assert_eq!(o[3].culling, o[2].culling);
         assert_eq!(o[3].pass().early_stop, Some(BENCH_EARLY_STOP));
@@ -182,7 +185,7 @@ mod tests {
         // bench trains them once).
         assert!(o.iter().filter(|o| o.early_stop.is_some()).count() == 1);
         // The grid alone, then with the last culling option (without the sine).
-        let o = options(&[1e-4], true);
+        let o = options(&[1e-4], true, BENCH_EARLY_STOP);
         let names: Vec<&str> = o[6..].iter().map(|o| o.name.as_str()).collect();
         assert_eq!(
             names,
@@ -190,7 +193,7 @@ mod tests {
                 "occupancy",
                 "rays+samples@1e-4+occupancy",
                 "rays+samples@1e-4+occupancy+grid-fine",
-                "rays+samples@1e-4+occupancy+early-stop@1e-3"
+                "rays+samples@1e-4+occupancy+early-stop@1e-2"
             ]
         );
         assert!(o[8].occupancy_fine && o[8].pass().occupancy_fine && o[8].pass().occupancy);

@@ -35,6 +35,9 @@ use crate::render::raycast::RayBounds;
 /// keep the workers balanced. Larger chunks were no faster.
 pub const INFERENCE_POINT_CHUNK: usize = 4_096;
 
+/// The smallest network call of an early-stop segment split over the workers.
+const MIN_MARCH_CHUNK: usize = 512;
+
 /// Points per network call of an inference pass on `device` for a network of `cfg`: on a
 /// GPU as many as its memory budget holds ([`crate::compute::device::element_budget`], a
 /// point being joints × the widest per-joint feature), at least [`INFERENCE_POINT_CHUNK`]:
@@ -617,7 +620,7 @@ impl CullCtx {
             view,
             &fates,
             &far_rays,
-            mode.is_inference(),
+            mode.is_inference().then_some(self.point_chunk),
         )?;
         let (rgbs, sigmas, evaluated) = self.evaluate(net, pose, plan, mode.is_inference())?;
         let (rgb, sigma_raw, any_zero) =
@@ -762,7 +765,17 @@ impl CullCtx {
                 })
                 .collect();
             let far_rays = self.far_rays(net, pose, view, &segment, s, true)?;
-            let plan = self.plan(pose.g.dim(0)?, pts, view, &segment, &far_rays, true)?;
+            // A segment is a fraction of a pass: its calls are split so that every worker
+            // gets one (the stop is approximate anyway, so call sizes may change the bits).
+            let kept = segment
+                .iter()
+                .filter(|f| **f == SampleFate::Evaluate)
+                .count();
+            let workers = crate::compute::parallel::workers_on(pts.device()).max(1);
+            let chunk = self
+                .point_chunk
+                .min(kept.div_ceil(workers).max(MIN_MARCH_CHUNK));
+            let plan = self.plan(pose.g.dim(0)?, pts, view, &segment, &far_rays, Some(chunk))?;
             let (seg_rgbs, seg_sigmas, evaluated) = self.evaluate(net, pose, plan, true)?;
             if evaluated == 0 {
                 continue;
@@ -810,8 +823,9 @@ impl CullCtx {
         Ok((rgb, sigma_raw))
     }
 
-    /// The network calls: per pose, the kept samples in chunks (one chunk when the graph is
-    /// kept), the far-away points of `far_rays` at the back of the pose's last call.
+    /// The network calls: per pose, the kept samples in chunks of `chunk` (one chunk when
+    /// `None`: the graph is kept), the far-away points of `far_rays` at the back of the pose's
+    /// last call.
     ///
     /// All rows are gathered at once and each call reads a range of them, but every call
     /// gets the rows, in the order and number, of a gather per call: a point's output can
@@ -825,7 +839,7 @@ impl CullCtx {
         view: &Tensor,
         fates: &[SampleFate],
         far_rays: &[usize],
-        inference: bool,
+        chunk: Option<usize>,
     ) -> Result<Plan> {
         let (r, s, _) = pts.dims3()?;
         let k = r / n_poses;
@@ -853,11 +867,7 @@ impl CullCtx {
             if kept == 0 && far_p.is_empty() {
                 continue;
             }
-            let chunk = if inference {
-                self.point_chunk
-            } else {
-                kept.max(1)
-            };
+            let chunk = chunk.unwrap_or(kept.max(1)).max(1);
             let n_calls = kept.div_ceil(chunk).max(1);
             for c in 0..n_calls {
                 jobs.push(Job {
@@ -1181,7 +1191,14 @@ mod tests {
             &far_rays,
         );
         let plan = ctx
-            .plan(n_poses, &pts, &view, &fates, &far_rays, true)
+            .plan(
+                n_poses,
+                &pts,
+                &view,
+                &fates,
+                &far_rays,
+                Some(INFERENCE_POINT_CHUNK),
+            )
             .unwrap();
         assert_eq!(plan.jobs.len(), reference.len());
         assert!(reference.len() > n_poses, "some pose needs several calls");
