@@ -172,12 +172,7 @@ impl PointEval {
         let Route::Culled(c) = &mut self.route else {
             return self.run(net, pose, pts, view, mode, "coarse", trace);
         };
-        let before = (
-            c.evaluated,
-            c.samples_evaluated,
-            c.skipped_empty,
-            c.stopped_early,
-        );
+        let before = c.counters();
         let (rgb, sigma_raw) = c.march(net, pose, pts, z, dirs, view, eps)?;
         self.count(before);
         let (r, s, _) = pts.dims3()?;
@@ -198,20 +193,18 @@ impl PointEval {
         mode: &mut Mode,
         trace: Option<&mut Trace>,
     ) -> Result<Tensor> {
-        match &mut self.route {
-            Route::Culled(c) if !c.stop_z.is_empty() => c.behind = Some(host_f32(z)?),
-            _ => {}
-        }
-        self.run(net, pose, pts, view, mode, "fine", trace)
+        self.run_at(net, pose, pts, Some(z), view, mode, "fine", trace)
     }
 
-    /// Add what the culled route did since `before` (its counters then) to this pass.
-    fn count(&mut self, before: (usize, usize, usize, usize)) {
+    /// Add what the culled route did since `before` (its [`CullCtx::counters`] then) to
+    /// this pass.
+    fn count(&mut self, before: [usize; 4]) {
         if let Route::Culled(c) = &self.route {
-            self.evaluated += c.evaluated - before.0;
-            self.samples_evaluated += c.samples_evaluated - before.1;
-            self.skipped_empty += c.skipped_empty - before.2;
-            self.stopped_early += c.stopped_early - before.3;
+            let now = c.counters();
+            self.evaluated += now[0] - before[0];
+            self.samples_evaluated += now[1] - before[1];
+            self.skipped_empty += now[2] - before[2];
+            self.stopped_early += now[3] - before[3];
         }
     }
 
@@ -289,6 +282,23 @@ impl PointEval {
         stage: &str,
         trace: Option<&mut Trace>,
     ) -> Result<Tensor> {
+        self.run_at(net, pose, pts, None, view, mode, stage, trace)
+    }
+
+    /// [`Self::run`]; with the samples' z [R,S], those behind their ray's early stop are left
+    /// out.
+    #[allow(clippy::too_many_arguments)]
+    fn run_at(
+        &mut self,
+        net: &Network,
+        pose: &PoseFeatures,
+        pts: &Tensor,
+        z: Option<&Tensor>,
+        view: &Tensor,
+        mode: &mut Mode,
+        stage: &str,
+        trace: Option<&mut Trace>,
+    ) -> Result<Tensor> {
         let (r, s, _) = pts.dims3()?;
         let (rgb, sigma_raw, alive) = match &mut self.route {
             Route::Dense => {
@@ -304,13 +314,12 @@ impl PointEval {
                 (rgb, sigma, None)
             }
             Route::Culled(c) => {
-                let before = (
-                    c.evaluated,
-                    c.samples_evaluated,
-                    c.skipped_empty,
-                    c.stopped_early,
-                );
-                let out = c.run(net, pose, pts, view, mode)?;
+                let before = c.counters();
+                let behind = match z {
+                    Some(z) if !c.stop_z.is_empty() => Some(host_f32(z)?),
+                    _ => None,
+                };
+                let out = c.run(net, pose, pts, view, mode, behind.as_deref())?;
                 self.count(before);
                 out
             }
@@ -469,9 +478,6 @@ pub(crate) struct CullCtx {
     /// Per ray, the depth z from which its samples are behind its early stop (infinite:
     /// not stopped); empty when the pass did not march.
     stop_z: Vec<f32>,
-    /// The z [R·S] of the samples of the next [`Self::run`], when it should leave out those
-    /// behind `stop_z`.
-    behind: Option<Vec<f32>>,
     /// Samples left out behind their rays' early stops.
     stopped_early: usize,
 }
@@ -564,9 +570,19 @@ impl CullCtx {
             skipped_empty: 0,
             last_fates: Vec::new(),
             stop_z: Vec::new(),
-            behind: None,
             stopped_early: 0,
         })
+    }
+
+    /// (points evaluated, samples evaluated, samples skipped as empty, samples stopped early)
+    /// so far.
+    fn counters(&self) -> [usize; 4] {
+        [
+            self.evaluated,
+            self.samples_evaluated,
+            self.skipped_empty,
+            self.stopped_early,
+        ]
     }
 
     /// Importance weights of the coarse samples from the grid ([`WindowTest::grid_weights`]),
@@ -591,7 +607,8 @@ impl CullCtx {
     }
 
     /// (rgb [n,3], sigma_raw [n,1], the alive mask [n,1] when zero-filled samples must stay
-    /// empty under noise).
+    /// empty under noise). `behind`: the samples' z [R·S], to leave out those behind their
+    /// ray's early stop.
     ///
     /// The far-away points ride in the same network call as the evaluated samples: gemm's
     /// result for a row depends (by an ulp) on the size of the call, not on the row's place
@@ -603,12 +620,16 @@ impl CullCtx {
         pts: &Tensor,
         view: &Tensor,
         mode: &Mode,
+        behind: Option<&[f32]>,
     ) -> Result<(Tensor, Tensor, Option<Tensor>)> {
         let (r, s, _) = pts.dims3()?;
         let n = r * s;
         let mut fates = self.fates(pts)?;
-        if let Some(z) = self.behind.take() {
-            self.mark_behind(&mut fates, &z, s, 0)?;
+        if let Some(z) = behind {
+            if z.len() != n || self.stop_z.len() != r {
+                return Err(ModelError::shape("early stop: z", [n], [z.len()]));
+            }
+            self.mark_behind(&mut fates, z, s, 0..r);
         }
         self.last_fates.clone_from(&fates);
         let network_fill = self.fill == SampleFill::Network;
@@ -659,29 +680,24 @@ impl CullCtx {
         Ok(fates)
     }
 
-    /// Mark [`SampleFate::Behind`] the samples to evaluate at z [R·S] (S per ray) that lie
-    /// at or behind their ray's stop depth, from sample `from` of each ray on.
+    /// Mark [`SampleFate::Behind`] the samples to evaluate of `rays` (at z [R·S], S per ray)
+    /// that lie at or behind their ray's stop depth.
     fn mark_behind(
         &mut self,
         fates: &mut [SampleFate],
         z: &[f32],
         s: usize,
-        from: usize,
-    ) -> Result<()> {
-        if z.len() != fates.len() || self.stop_z.len() * s != fates.len() {
-            return Err(ModelError::shape("early stop: z", [fates.len()], [z.len()]));
-        }
-        for (ray, stop) in self.stop_z.iter().enumerate() {
-            if stop.is_finite() {
-                for i in ray * s + from..(ray + 1) * s {
-                    if fates[i] == SampleFate::Evaluate && z[i] >= *stop {
-                        fates[i] = SampleFate::Behind;
-                        self.stopped_early += 1;
-                    }
+        rays: impl IntoIterator<Item = usize>,
+    ) {
+        for ray in rays {
+            let stop = self.stop_z[ray];
+            for i in ray * s..(ray + 1) * s {
+                if fates[i] == SampleFate::Evaluate && z[i] >= stop {
+                    fates[i] = SampleFate::Behind;
+                    self.stopped_early += 1;
                 }
             }
         }
-        Ok(())
     }
 
     /// The rays (of `fates`, S per ray) whose filled samples still need their far-away
@@ -750,33 +766,36 @@ impl CullCtx {
         let (mut rgbs, mut sigmas) = (Vec::new(), Vec::new());
         let mut eval_row = vec![u32::MAX; r * s];
         let mut rows = 0usize;
+        let norm: Vec<f32> = dh
+            .chunks_exact(3)
+            .map(|d| (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt())
+            .collect();
+        // The fates of one segment; every other sample stays out of its calls.
+        let mut segment = vec![SampleFate::RayCulled; r * s];
         for start in (0..s).step_by(EARLY_STOP_SEGMENT) {
             let end = (start + EARLY_STOP_SEGMENT).min(s);
-            let in_segment = |i: usize| (start..end).contains(&(i % s));
-            let segment: Vec<SampleFate> = fates
-                .iter()
-                .enumerate()
-                .map(|(i, f)| {
-                    if in_segment(i) {
-                        *f
-                    } else {
-                        SampleFate::RayCulled
+            // The segment's samples to evaluate, in sample order (the plan's row order).
+            let mut kept = Vec::new();
+            for ray in 0..r {
+                for i in ray * s + start..ray * s + end {
+                    segment[i] = fates[i];
+                    if fates[i] == SampleFate::Evaluate {
+                        kept.push(i);
                     }
-                })
-                .collect();
+                }
+            }
             let far_rays = self.far_rays(net, pose, view, &segment, s, true)?;
             // A segment is a fraction of a pass: its calls are split so that every worker
             // gets one (the stop is approximate anyway, so call sizes may change the bits).
-            let kept = segment
-                .iter()
-                .filter(|f| **f == SampleFate::Evaluate)
-                .count();
             let workers = crate::compute::parallel::workers_on(pts.device()).max(1);
             let chunk = self
                 .point_chunk
-                .min(kept.div_ceil(workers).max(MIN_MARCH_CHUNK));
+                .min(kept.len().div_ceil(workers).max(MIN_MARCH_CHUNK));
             let plan = self.plan(pose.g.dim(0)?, pts, view, &segment, &far_rays, Some(chunk))?;
             let (seg_rgbs, seg_sigmas, evaluated) = self.evaluate(net, pose, plan, true)?;
+            for ray in 0..r {
+                segment[ray * s + start..ray * s + end].fill(SampleFate::RayCulled);
+            }
             if evaluated == 0 {
                 continue;
             }
@@ -784,16 +803,11 @@ impl CullCtx {
                 .flatten_all()?
                 .to_dtype(DType::F32)?
                 .to_vec1::<f32>()?;
-            // The plan keeps the segment's samples in sample order.
-            let evaluated_samples = (0..r * s).filter(|&i| segment[i] == SampleFate::Evaluate);
-            for (j, i) in evaluated_samples.enumerate() {
+            for (j, &i) in kept.iter().enumerate() {
                 eval_row[i] = (rows + j) as u32;
                 let (ray, k) = (i / s, i % s);
                 if k + 1 < s {
-                    let norm =
-                        (dh[3 * ray].powi(2) + dh[3 * ray + 1].powi(2) + dh[3 * ray + 2].powi(2))
-                            .sqrt();
-                    let delta = (zh[i + 1] - zh[i]) * norm;
+                    let delta = (zh[i + 1] - zh[i]) * norm[ray];
                     tau[ray] += f64::from(sigma_host[j].max(0.0) * delta);
                 }
             }
@@ -801,12 +815,13 @@ impl CullCtx {
             rgbs.extend(seg_rgbs);
             sigmas.extend(seg_sigmas);
             if end < s {
-                for ray in 0..r {
-                    if self.stop_z[ray].is_infinite() && (-tau[ray]).exp() < eps {
-                        self.stop_z[ray] = zh[ray * s + end];
-                    }
+                let stopping: Vec<usize> = (0..r)
+                    .filter(|&ray| self.stop_z[ray].is_infinite() && (-tau[ray]).exp() < eps)
+                    .collect();
+                for &ray in &stopping {
+                    self.stop_z[ray] = zh[ray * s + end];
                 }
-                self.mark_behind(&mut fates, &zh, s, end)?;
+                self.mark_behind(&mut fates, &zh, s, stopping);
             }
         }
         self.last_fates.clone_from(&fates);
@@ -1177,7 +1192,6 @@ mod tests {
             skipped_empty: 0,
             last_fates: Vec::new(),
             stop_z: Vec::new(),
-            behind: None,
             stopped_early: 0,
         };
         let bits = |x: &[f32]| x.iter().map(|v| v.to_bits()).collect::<Vec<_>>();

@@ -67,6 +67,15 @@ pub fn flat(t: &Tensor) -> Vec<f32> {
         .unwrap()
 }
 
+/// The largest |a_i − b_i| of two equally long slices.
+pub fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
+    assert_eq!(a.len(), b.len());
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max)
+}
+
 /// Rows `ray*S + s` of the subset rays from a [R*S, ...] tensor.
 pub fn subset_rows(t: &Tensor, rays: &[usize], s: usize) -> Tensor {
     let idx: Vec<u32> = rays

@@ -25,14 +25,6 @@ fn infer(case: &GoldenCase, opts: &PassOptions) -> pma_model::error::Result<Outp
         .forward(&case.rays, &case.poses, &mut Mode::Infer, opts, None)
 }
 
-fn max_abs_diff_per(a: &[f32], b: &[f32]) -> f32 {
-    assert_eq!(a.len(), b.len());
-    a.iter()
-        .zip(b)
-        .map(|(x, y)| (x - y).abs())
-        .fold(0.0, f32::max)
-}
-
 #[test]
 fn early_stop_leaves_out_only_what_the_threshold_bounds() {
     let case = GoldenCase::load("golden/dense", true);
@@ -51,7 +43,7 @@ fn early_stop_leaves_out_only_what_the_threshold_bounds() {
         (&base.coarse.rgb, &never.coarse.rgb, "rgb0"),
         (&base.fine.acc, &never.fine.acc, "acc"),
     ] {
-        let d = max_abs_diff_per(&flat(a), &flat(b));
+        let d = max_abs_diff(&flat(a), &flat(b));
         assert!(d <= 1e-5, "{name}: {d:e}");
     }
 
@@ -89,8 +81,8 @@ fn early_stop_leaves_out_only_what_the_threshold_bounds() {
         // Behind the stop the transmittance is below eps, so the coarse colour (samples
         // and background, both in [0, 1]) moves by at most 2·eps with or without what is
         // behind, and the opacity by at most eps; the margin is f32 rounding.
-        let rgb = max_abs_diff_per(&flat(&base.coarse.rgb), &flat(&early.coarse.rgb));
-        let acc = max_abs_diff_per(&flat(&base.coarse.acc), &flat(&early.coarse.acc));
+        let rgb = max_abs_diff(&flat(&base.coarse.rgb), &flat(&early.coarse.rgb));
+        let acc = max_abs_diff(&flat(&base.coarse.acc), &flat(&early.coarse.acc));
         println!("eps {eps}: coarse rgb moved {rgb:e}, acc {acc:e}");
         assert!(
             rgb as f64 <= 2.0 * eps + 1e-5,

@@ -11,6 +11,7 @@
 
 use std::sync::Arc;
 
+use crate::common::max_abs_diff;
 use crate::train_support::{first_batch, tiny_run, tiny_scene};
 use candle_core::{Device, Tensor};
 use pma_data::dataset::Dataset;
@@ -81,14 +82,6 @@ fn one_step(data: &Arc<Dataset>, batch: &TrainBatch, chunk: usize) -> Step {
 /// Adam's eps of the run.
 fn run_eps() -> f64 {
     tiny_run().train.eps
-}
-
-fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
-    assert_eq!(a.len(), b.len());
-    a.iter()
-        .zip(b)
-        .map(|(x, y)| (x - y).abs())
-        .fold(0.0, f32::max)
 }
 
 #[test]
