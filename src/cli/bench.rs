@@ -129,6 +129,11 @@ pub struct Args {
     /// (default: the CPU's 4,096 points per call).
     #[arg(long, requires = "account")]
     pub device_memory_gb: Option<f64>,
+    /// The accounted step culls rays and the samples whose w^p ≤ T for every joint
+    /// (`train --cull-rays --cull-samples T`); with `--occupancy` its grid too. The report
+    /// says what the step left out.
+    #[arg(long, value_name = "T", requires = "account")]
+    pub account_cull: Option<f64>,
     /// Counts instead of timings: the share of samples that run the network in the coarse
     /// and the fine pass with ray culling, w^p culling, the occupancy grid and all combined,
     /// on held-out renders and training batches; writes `shares.json`. The model is

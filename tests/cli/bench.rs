@@ -313,6 +313,48 @@ fn account_refuses_bad_flags() {
     ]);
     assert_eq!(o.status.code(), Some(2));
     fails_with(o, "one-pass");
+    for bad in ["1", "-0.5", "nan"] {
+        let o = with(&["--account-cull", bad]);
+        assert_eq!(o.status.code(), Some(2), "--account-cull {bad}");
+        fails_with(o, "--account-cull");
+    }
+}
+
+/// `--account-cull T`: the accounted step culls, and the report says how many of its
+/// samples ran the network.
+#[test]
+fn account_of_a_culled_step_says_what_it_left_out() {
+    use super::run::{ok, pma};
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().to_str().unwrap();
+    let stdout = ok(pma(&[
+        "bench",
+        "--account",
+        "--quiet",
+        "--preset",
+        "tiny",
+        "--rays",
+        "32",
+        "--account-cull",
+        "0.6",
+        "--out",
+        out,
+    ]))
+    .stdout;
+    let text = String::from_utf8_lossy(&stdout);
+    assert!(text.contains("culling (rays, w^p <= 0.6)"), "{text}");
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("account.json")).unwrap()).unwrap();
+    let left = &json["left_out"];
+    assert_eq!(left["sample_threshold"], 0.6);
+    let (all, ran) = (
+        left["samples"].as_u64().unwrap(),
+        left["samples_evaluated"].as_u64().unwrap(),
+    );
+    assert!(
+        ran > 0 && ran < all,
+        "{ran} of {all} samples ran the network"
+    );
 }
 
 /// A resolution-16 grid where about 30 % of each joint's cells hold density 1 (a fixed

@@ -72,7 +72,7 @@ out="$work/candle-core"
 mkdir -p "$out"
 cp -R "$upstream/src" "$upstream/LICENSE" "$out/"
 {
-    echo "# candle-core as published (the version below), with pma's four changes (see PATCH.md)."
+    echo "# candle-core as published (the version below), with pma's five changes (see PATCH.md)."
     echo
     # Everything from [package] on, without the targets whose files are not vendored, the
     # dev-dependencies and the readme (not vendored either).

@@ -84,18 +84,20 @@ pub struct AccountReport {
     /// (`--device-memory-gb`); absent: the CPU's 4,096 points per call.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub inference_device_memory: Option<usize>,
-    /// With the grid: what the accounted step's passes evaluated.
+    /// With culling or the grid: what the accounted step's passes evaluated.
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub occupancy: Option<OccupancyAccount>,
+    pub left_out: Option<LeftOutAccount>,
     pub official: Option<Official>,
     pub cost_model: CostModel,
 }
 
-/// What the accounted step of a run with the occupancy grid evaluated.
+/// What the accounted step of a run with culling or the occupancy grid evaluated.
 #[derive(Debug, Serialize)]
-pub struct OccupancyAccount {
-    /// Share of the grid's cells occupied when the step ran.
-    pub occupied_fraction: f64,
+pub struct LeftOutAccount {
+    /// The step's w^p culling threshold (rays culled too), if it culled.
+    pub sample_threshold: Option<f64>,
+    /// Share of the grid's cells occupied when the step ran, if it used the grid.
+    pub occupied_fraction: Option<f64>,
     /// The step's samples (both passes), those that ran the network, and those the grid
     /// left out.
     pub samples: u64,
@@ -190,18 +192,25 @@ pub fn account(
             (e.report, 1, e.wall_s, Some(e.from), e.read_back)
         }
     };
-    let occupancy = match (&req.occupancy, trainer.avatar().occupancy()) {
-        (Some(_), Some(grid)) => {
+    let grid = req
+        .occupancy
+        .as_ref()
+        .and(trainer.avatar().occupancy())
+        .map(|g| g.occupied_fraction());
+    let sample_threshold = trainer.run_config().train.culling.sample_threshold;
+    let left_out = match grid.is_some() || sample_threshold.is_some() {
+        true => {
             let after = trainer.pass_totals();
             let evaluated = |p: &crate::render::PassStats| p.coarse_evaluated + p.fine_evaluated;
-            Some(OccupancyAccount {
-                occupied_fraction: grid.occupied_fraction(),
+            Some(LeftOutAccount {
+                sample_threshold,
+                occupied_fraction: grid,
                 samples: after.samples - before.samples,
                 samples_evaluated: evaluated(&after) - evaluated(&before),
                 skipped_empty: after.skipped_empty - before.skipped_empty,
             })
         }
-        _ => None,
+        false => None,
     };
     obs.progress(1, "one inference pass");
     let batch = source.next_batch()?;
@@ -239,7 +248,7 @@ pub fn account(
         step: s,
         inference: inference.summary(),
         inference_device_memory: req.device_memory,
-        occupancy,
+        left_out,
         official: req.official.map(|r| Official {
             est: r.estimates(),
             recorded: r,

@@ -82,9 +82,18 @@ pub struct WindowTest {
     /// Half the window exponent β (x̄^β = (x̄²)^(β/2)).
     half_beta: i32,
     cut: f64,
+    /// Half-width of the cube |x̄_k| ≤ r in which w^p can exceed the threshold (∞ when α ≤ 0).
+    reach: f64,
+    /// Per pose and joint: the largest row norm of the world → x̄ map's linear part (how far
+    /// x̄ moves per metre), [P·24].
+    stretch: Vec<f64>,
     /// World position of each pose's root joint (for the far-away point).
     roots: Vec<[f64; 3]>,
 }
+
+/// Joints as bits (bit j = joint j).
+type JointMask = u32;
+const ALL_JOINTS: JointMask = (1 << N_JOINTS) - 1;
 
 impl WindowTest {
     /// align: [24,4,4] A_j (`pts_embedder.transforms`); skts: [P,24,4,4]; scales: [24,3]
@@ -147,11 +156,28 @@ impl WindowTest {
                 maps.push(m);
             }
         }
+        let cut = exponent_cut(threshold);
+        // α·Σ_k x̄_k^β ≥ α·|x̄_k|^β for each k, so outside this cube the exponent is ≥ the cut
+        // (the relative 1e-9 covers the rounding of powf).
+        let reach = match alpha > 0.0 && beta > 0 {
+            true => (cut / alpha).powf(1.0 / beta as f64) * (1.0 + 1e-9),
+            false => f64::INFINITY,
+        };
+        let stretch = maps
+            .iter()
+            .map(|m| {
+                m.iter()
+                    .map(|r| (r[0] * r[0] + r[1] * r[1] + r[2] * r[2]).sqrt())
+                    .fold(0.0, f64::max)
+            })
+            .collect();
         Self {
             maps,
             alpha,
             half_beta: (beta / 2) as i32,
-            cut: exponent_cut(threshold),
+            cut,
+            reach,
+            stretch,
             roots: (0..n_poses).map(|p| frames.root_origin(p)).collect(),
         }
     }
@@ -167,9 +193,75 @@ impl WindowTest {
         let mut sum = 0f64;
         for (row, v) in m.iter().zip(xb.iter_mut()) {
             *v = row[0] * x[0] as f64 + row[1] * x[1] as f64 + row[2] * x[2] as f64 + row[3];
-            sum += (*v * *v).powi(self.half_beta);
+            let sq = *v * *v;
+            // β = 6 (every preset) without the libcall; s·(s·s) is what powi(3) computes.
+            sum += match self.half_beta {
+                3 => sq * (sq * sq),
+                n => sq.powi(n),
+            };
         }
         (xb, self.alpha * sum)
+    }
+
+    /// The joints whose window can exceed the threshold somewhere on the ray through the
+    /// samples xs ([S,3] of one ray of pose p): those whose cube |x̄_k| ≤ reach, widened by
+    /// how far a sample strays from the segment between the two outermost samples (f32
+    /// points are collinear only up to rounding), the segment crosses. Every other joint's
+    /// exponent is ≥ the cut at every sample, so the per-sample test may skip it.
+    fn ray_joints(&self, p: usize, xs: &[f32]) -> JointMask {
+        let n = xs.len() / 3;
+        if n < 2 || !self.reach.is_finite() {
+            return ALL_JOINTS;
+        }
+        let at = |k: usize| [xs[3 * k] as f64, xs[3 * k + 1] as f64, xs[3 * k + 2] as f64];
+        let dist2 =
+            |a: [f64; 3], b: [f64; 3]| (0..3).map(|i| (a[i] - b[i]) * (a[i] - b[i])).sum::<f64>();
+        let farthest = |from: [f64; 3]| {
+            (0..n)
+                .map(|k| (dist2(at(k), from), k))
+                .fold((-1.0, 0), |a, b| if b.0 > a.0 { b } else { a })
+                .1
+        };
+        let a = at(farthest(at(0)));
+        let b = at(farthest(a));
+        let ab = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
+        let len2 = dist2(a, b);
+        // Largest distance of a sample from the segment [a, b].
+        let mut stray = 0f64;
+        for k in 0..n {
+            let x = at(k);
+            let t = match len2 > 0.0 {
+                true => ((0..3).map(|i| (x[i] - a[i]) * ab[i]).sum::<f64>() / len2).clamp(0.0, 1.0),
+                false => 0.0,
+            };
+            let q = [a[0] + t * ab[0], a[1] + t * ab[1], a[2] + t * ab[2]];
+            stray = stray.max(dist2(x, q).sqrt());
+        }
+        let mut mask = 0;
+        for j in 0..N_JOINTS {
+            let m = &self.maps[p * N_JOINTS + j];
+            // Margin for the stray samples plus a little for this test's own rounding.
+            let half =
+                self.reach + self.stretch[p * N_JOINTS + j] * stray + 1e-6 * (1.0 + self.reach);
+            let (mut t0, mut t1) = (0f64, 1f64);
+            for r in m {
+                let xa = r[0] * a[0] + r[1] * a[1] + r[2] * a[2] + r[3];
+                let dx = r[0] * ab[0] + r[1] * ab[1] + r[2] * ab[2];
+                if dx == 0.0 {
+                    if xa.abs() > half {
+                        t1 = -1.0;
+                    }
+                } else {
+                    let (u, v) = ((-half - xa) / dx, (half - xa) / dx);
+                    t0 = t0.max(u.min(v));
+                    t1 = t1.min(u.max(v));
+                }
+            }
+            if t0 <= t1 {
+                mask |= 1 << j;
+            }
+        }
+        mask
     }
 
     /// α·Σ_k x̄_k⁶ of joint j of pose p at world point x (w^p = exp(−that)).
@@ -194,8 +286,23 @@ impl WindowTest {
     /// there is no grid), [`SampleFate::Empty`] when there are such joints and all mark it
     /// empty, [`SampleFate::Outside`] when there are none.
     pub fn fate(&self, p: usize, x: [f32; 3], grid: Option<&OccupancyGrid>) -> SampleFate {
+        self.fate_among(p, x, grid, ALL_JOINTS)
+    }
+
+    /// [`Self::fate`] testing only the joints of `joints` (the others known to be below the
+    /// threshold at x).
+    fn fate_among(
+        &self,
+        p: usize,
+        x: [f32; 3],
+        grid: Option<&OccupancyGrid>,
+        joints: JointMask,
+    ) -> SampleFate {
         let mut active = false;
-        for j in 0..N_JOINTS {
+        let mut left = joints;
+        while left != 0 {
+            let j = left.trailing_zeros() as usize;
+            left &= left - 1;
             let (xb, e) = self.x_bar(p, j, x);
             if e < self.cut {
                 match grid {
@@ -333,16 +440,16 @@ impl WindowTest {
             let rays = (b * rays_per_block).min(n_rays)..((b + 1) * rays_per_block).min(n_rays);
             let mut out = Vec::with_capacity(rays.len() * s);
             for r in rays {
+                if !ray_alive.is_none_or(|a| a[r]) {
+                    out.extend(std::iter::repeat_n(SampleFate::RayCulled, s));
+                    continue;
+                }
                 let p = r / per_pose;
-                let alive = ray_alive.is_none_or(|a| a[r]);
-                for k in 0..s {
-                    let i = 3 * (r * s + k);
-                    let x = [pts[i], pts[i + 1], pts[i + 2]];
-                    out.push(if alive {
-                        self.fate(p, x, grid)
-                    } else {
-                        SampleFate::RayCulled
-                    });
+                let xs = &pts[3 * r * s..3 * (r + 1) * s];
+                // Most rays cross a few joints' reach: the rest are not tested per sample.
+                let joints = self.ray_joints(p, xs);
+                for x in xs.chunks_exact(3) {
+                    out.push(self.fate_among(p, [x[0], x[1], x[2]], grid, joints));
                 }
             }
             Ok::<_, ModelError>(out)
@@ -536,6 +643,90 @@ mod tests {
                     SampleFate::Empty => assert_eq!(*a, SampleFate::Evaluate),
                     _ => assert_eq!(a, b),
                 }
+            }
+        }
+    }
+
+    /// Testing per sample only the joints a ray's segment reaches gives every sample the
+    /// fate the test over all 24 joints gives, and leaves most joints out.
+    #[test]
+    fn joints_out_of_a_rays_reach_are_left_out_without_changing_a_fate() {
+        use crate::network::occupancy::{OccupancyConfig, OccupancyGrid};
+        let mut align = vec![0f32; N_JOINTS * 16];
+        let mut skt = vec![0f32; N_JOINTS * 16];
+        for j in 0..N_JOINTS {
+            let (c, s) = ((0.3 * j as f32).cos(), (0.3 * j as f32).sin());
+            // A rotation about z and a shift per joint, so the boxes are not axis-aligned.
+            align[j * 16..j * 16 + 16].copy_from_slice(&[
+                c, -s, 0.0, 0.0, s, c, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0,
+            ]);
+            for d in 0..4 {
+                skt[j * 16 + 5 * d] = 1.0;
+            }
+            skt[j * 16 + 3] = -0.15 * (j % 8) as f32;
+            skt[j * 16 + 7] = -0.2 * (j / 8) as f32;
+        }
+        let scales: Vec<f32> = (0..N_JOINTS * 3)
+            .map(|i| 0.05 + 0.01 * (i % 5) as f32)
+            .collect();
+        let mut grid = OccupancyGrid::new(OccupancyConfig {
+            resolution: 8,
+            dilation: 0,
+            ..Default::default()
+        })
+        .unwrap();
+        let mut state = 7u64;
+        let mut rnd = || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 40) as f32 / (1u64 << 24) as f32
+        };
+        for j in 0..N_JOINTS {
+            for c in 0..512 {
+                grid.update(j, c, if rnd() < 0.4 { 1.0 } else { 0.0 })
+                    .unwrap();
+            }
+        }
+        grid.finish_refresh();
+        let (n, s) = (600, 16);
+        let mut pts = Vec::with_capacity(n * s * 3);
+        for _ in 0..n {
+            // Rays from a ring of cameras 3 m away towards a point among the boxes.
+            let a = rnd() * 6.3;
+            let o = [3.0 * a.cos() + 0.5, 3.0 * a.sin() + 0.2, rnd() - 0.5];
+            let target = [rnd() * 1.2 - 0.1, rnd() * 0.7 - 0.1, rnd() * 0.4 - 0.2];
+            let d: Vec<f32> = (0..3).map(|i| target[i] - o[i]).collect();
+            for k in 0..s {
+                let z = 0.6 + 0.8 * (k as f32 + rnd()) / s as f32;
+                pts.extend((0..3).map(|i| o[i] + z * d[i]));
+            }
+        }
+        for t in [0.0, 0.6] {
+            for g in [None, Some(&grid)] {
+                let w = WindowTest::new(&align, &skt, &scales, 2.0, 6, t).unwrap();
+                let fates = w.fates(&pts, n, s, None, g).unwrap();
+                let mut kinds = [0usize; 3];
+                for (i, fate) in fates.iter().enumerate() {
+                    let x = [pts[3 * i], pts[3 * i + 1], pts[3 * i + 2]];
+                    assert_eq!(*fate, w.fate(0, x, g), "sample {i}, threshold {t}");
+                    kinds[match fate {
+                        SampleFate::Evaluate => 0,
+                        SampleFate::Empty => 1,
+                        _ => 2,
+                    }] += 1;
+                }
+                assert!(kinds[0] > 100 && kinds[2] > 100, "{kinds:?}");
+                let tested: u32 = (0..n)
+                    .map(|r| {
+                        w.ray_joints(0, &pts[3 * r * s..3 * (r + 1) * s])
+                            .count_ones()
+                    })
+                    .sum();
+                assert!(
+                    (tested as f64) < 0.5 * (n * N_JOINTS) as f64,
+                    "{tested} joint tests for {n} rays at threshold {t}"
+                );
             }
         }
     }

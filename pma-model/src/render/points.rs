@@ -515,6 +515,23 @@ struct Plan {
     jobs: Vec<Job>,
 }
 
+/// The culled stage as ONE network call over every pose (a GPU's plan): pose p's block of
+/// `block` rows holds its kept samples in sample order, then the far-away points of its rays
+/// in `far`, then copies of one of its samples up to the longest block (their outputs are
+/// not read), so that [`Network::eval_poses`] sees equal blocks.
+struct PaddedPlan {
+    pts: Tensor,
+    view: Tensor,
+    n_poses: usize,
+    block: usize,
+    /// Row of the call's output of each sample (evaluated samples only; others 0).
+    eval_row: Vec<u32>,
+    /// Kept samples in all blocks.
+    kept: usize,
+    /// (ray, row of the call's output) of each far-away point.
+    far: Vec<(usize, u32)>,
+}
+
 /// One network call of the culled route on rows `start..start + len + far_rays.len()` of
 /// the plan, all of pose p: `len` kept samples, then the far-away points of `far_rays` (the
 /// rays that still need their constant).
@@ -635,17 +652,37 @@ impl CullCtx {
         let network_fill = self.fill == SampleFill::Network;
         let noisy = matches!(mode, Mode::Train(Some(_))) && net.config().density_noise_std > 0.0;
         let far_rays = self.far_rays(net, pose, view, &fates, s, mode.is_inference() && !noisy)?;
-        let plan = self.plan(
-            pose.g.dim(0)?,
-            pts,
-            view,
-            &fates,
-            &far_rays,
-            mode.is_inference().then_some(self.point_chunk),
-        )?;
-        let (rgbs, sigmas, evaluated) = self.evaluate(net, pose, plan, mode.is_inference())?;
-        let (rgb, sigma_raw, any_zero) =
-            self.scatter(rgbs, sigmas, evaluated, &fates, s, network_fill, pts, None)?;
+        let n_poses = pose.g.dim(0)?;
+        let chunk = mode.is_inference().then_some(self.point_chunk);
+        // A GPU wants one call for all poses (each call is ~170 launches whatever its size);
+        // the CPU's workers take one pose (or chunk) each.
+        let one_call = !pts.device().is_cpu() || crate::compute::account::emulates_cuda();
+        let padded = match one_call {
+            true => self.plan_padded(n_poses, pts, view, &fates, &far_rays, chunk)?,
+            false => None,
+        };
+        let (rgb, sigma_raw, any_zero) = match padded {
+            Some(plan) => {
+                let (rgb, sigma, rows, eval_row) =
+                    self.evaluate_padded(net, pose, plan, mode.is_inference())?;
+                self.scatter(
+                    vec![rgb],
+                    vec![sigma],
+                    rows,
+                    &fates,
+                    s,
+                    network_fill,
+                    pts,
+                    Some(&eval_row),
+                )?
+            }
+            None => {
+                let plan = self.plan(n_poses, pts, view, &fates, &far_rays, chunk)?;
+                let (rgbs, sigmas, evaluated) =
+                    self.evaluate(net, pose, plan, mode.is_inference())?;
+                self.scatter(rgbs, sigmas, evaluated, &fates, s, network_fill, pts, None)?
+            }
+        };
         let alive = if noisy && any_zero {
             let alive: Vec<f32> = fates
                 .iter()
@@ -920,6 +957,129 @@ impl CullCtx {
             view: select_rows(view, &Tensor::from_vec(rays_of, rows, dev)?, self.numerics)?,
             jobs,
         })
+    }
+
+    /// [`PaddedPlan`] for `fates`, or `None` when no sample needs the network or the call
+    /// would exceed `chunk` points (then per-pose calls, [`Self::plan`]).
+    fn plan_padded(
+        &self,
+        n_poses: usize,
+        pts: &Tensor,
+        view: &Tensor,
+        fates: &[SampleFate],
+        far_rays: &[usize],
+        chunk: Option<usize>,
+    ) -> Result<Option<PaddedPlan>> {
+        let (r, s, _) = pts.dims3()?;
+        let k = r / n_poses;
+        let n = r * s;
+        let kept: Vec<usize> = (0..n_poses)
+            .map(|p| {
+                fates[p * k * s..(p + 1) * k * s]
+                    .iter()
+                    .filter(|f| **f == SampleFate::Evaluate)
+                    .count()
+            })
+            .collect();
+        let mut far_of = vec![Vec::new(); n_poses];
+        for &ray in far_rays {
+            far_of[ray / k].push(ray);
+        }
+        let block = (0..n_poses)
+            .map(|p| kept[p] + far_of[p].len())
+            .max()
+            .unwrap_or(0);
+        if block == 0 || chunk.is_some_and(|c| n_poses * block > c) {
+            return Ok(None);
+        }
+        let far_point: Vec<[f32; 3]> = match far_rays.is_empty() {
+            true => Vec::new(),
+            false => {
+                let test = self.test.as_ref().ok_or_else(|| {
+                    ModelError::Input("culling: constants need the window test".into())
+                })?;
+                (0..n_poses)
+                    .map(|p| test.far_point(p))
+                    .collect::<Result<_>>()?
+            }
+        };
+        // Rows of the source: i < n is sample i; n + p is pose p's far-away point.
+        let mut src: Vec<u32> = Vec::with_capacity(n_poses * block);
+        let mut rays_of: Vec<u32> = Vec::with_capacity(n_poses * block);
+        let mut eval_row = vec![0u32; n];
+        let mut far = Vec::with_capacity(far_rays.len());
+        for (p, far_p) in far_of.iter().enumerate() {
+            let first = p * k * s;
+            for i in first..first + k * s {
+                if fates[i] == SampleFate::Evaluate {
+                    eval_row[i] = src.len() as u32;
+                    src.push(i as u32);
+                    rays_of.push((i / s) as u32);
+                }
+            }
+            for &ray in far_p {
+                far.push((ray, src.len() as u32));
+                src.push((n + p) as u32);
+                rays_of.push(ray as u32);
+            }
+            src.resize(src.len() + block - kept[p] - far_p.len(), first as u32);
+            rays_of.resize(
+                rays_of.len() + block - kept[p] - far_p.len(),
+                (first / s) as u32,
+            );
+        }
+        let dev = pts.device();
+        let pts_flat = pts.reshape((n, 3))?;
+        let source = match far_point.is_empty() {
+            true => pts_flat,
+            false => {
+                let flat: Vec<f32> = far_point.concat();
+                let far = Tensor::from_vec(flat, (n_poses, 3), dev)?.to_dtype(pts.dtype())?;
+                Tensor::cat(&[pts_flat, far], 0)?
+            }
+        };
+        let rows = src.len();
+        Ok(Some(PaddedPlan {
+            pts: select_rows(&source, &Tensor::from_vec(src, rows, dev)?, self.numerics)?,
+            view: select_rows(view, &Tensor::from_vec(rays_of, rows, dev)?, self.numerics)?,
+            n_poses,
+            block,
+            eval_row,
+            kept: kept.iter().sum(),
+            far,
+        }))
+    }
+
+    /// Run a [`PaddedPlan`]'s call and file its far-away rows under their rays. Returns
+    /// (rgb, sigma_raw of all its rows, their count, the row of each evaluated sample).
+    fn evaluate_padded(
+        &mut self,
+        net: &Network,
+        pose: &PoseFeatures,
+        plan: PaddedPlan,
+        inference: bool,
+    ) -> Result<(Tensor, Tensor, usize, Vec<u32>)> {
+        crate::interrupt::check()?;
+        let rows = plan.n_poses * plan.block;
+        let (mut rgb, mut sigma) =
+            net.eval_poses(pose, 0..plan.n_poses, &plan.pts, &plan.view, None)?;
+        if inference {
+            (rgb, sigma) = (rgb.detach(), sigma.detach());
+        }
+        if !plan.far.is_empty() {
+            // The constants stay readable by the later stages of the pass (the fine samples
+            // of a ray whose coarse samples needed one): the call's output is kept whole.
+            let consts = &mut self.consts;
+            for &(ray, row) in &plan.far {
+                consts.row_of_ray[ray] = consts.rows as u32 + row;
+            }
+            consts.rows += rows;
+            consts.rgb.push(rgb.clone());
+            consts.sigma.push(sigma.clone());
+        }
+        self.evaluated += rows;
+        self.samples_evaluated += plan.kept;
+        Ok((rgb, sigma, rows, plan.eval_row))
     }
 
     /// Run the jobs on the workers; keep the kept samples' rows in order and file the

@@ -167,3 +167,63 @@ fn an_inference_pass_sized_for_a_gpu_takes_fewer_calls_and_renders_the_same() {
         .fold(0f32, f32::max);
     assert!(worst <= 1e-5, "rgb differs by {worst}");
 }
+
+/// On a GPU a culled pass is one network call for all poses per stage (each pose's kept
+/// samples padded to the longest block), as the dense pass is, and renders what the CPU's
+/// per-pose calls render.
+#[test]
+fn a_culled_pass_on_the_cuda_route_is_one_network_call_per_stage() {
+    use pma_model::compute::account::Account;
+    use pma_model::render::avatar::Mode;
+    use pma_model::render::{Culling, PassOptions, SampleFill};
+    let (_dir, trainer, mut source) = tiny_with_rays(0, 256);
+    let batch = source.next_batch().unwrap();
+    assert!(batch.poses.bones.len() > 1, "several poses per step");
+    let avatar = trainer.avatar();
+    let culled = PassOptions::culled(Culling {
+        rays: true,
+        sample_threshold: Some(1e-2),
+        sample_fill: SampleFill::Network,
+    });
+    let pass = |opts: &PassOptions, cuda: bool| {
+        let account = cuda.then(|| Account::start(&candle_core::Device::Cpu, Route::Cuda).unwrap());
+        let out = avatar
+            .forward(
+                &batch.rays,
+                &batch.poses,
+                &mut Mode::Train(None),
+                opts,
+                None,
+            )
+            .unwrap();
+        let rgb: Vec<f32> = [&out.fine.rgb, &out.coarse.rgb]
+            .iter()
+            .flat_map(|t| t.flatten_all().unwrap().to_vec1::<f32>().unwrap())
+            .collect();
+        (rgb, out.stats, account.map(|a| a.finish()))
+    };
+    let (cpu_rgb, cpu_stats, _) = pass(&culled, false);
+    let (gpu_rgb, gpu_stats, gpu) = pass(&culled, true);
+    let (_, _, dense) = pass(&PassOptions::parity(), true);
+    let matmuls = |r: &pma_model::compute::account::Report| r.ops["matmul"].launches;
+    let (gpu, dense) = (gpu.unwrap(), dense.unwrap());
+    assert!(
+        gpu_stats.coarse_evaluated + gpu_stats.fine_evaluated < gpu_stats.samples,
+        "culling leaves samples out: {gpu_stats:?}"
+    );
+    assert_eq!(cpu_stats.coarse_evaluated, gpu_stats.coarse_evaluated);
+    assert_eq!(cpu_stats.fine_evaluated, gpu_stats.fine_evaluated);
+    assert!(
+        matmuls(&gpu) <= matmuls(&dense),
+        "{} matmuls culled, {} dense",
+        matmuls(&gpu),
+        matmuls(&dense)
+    );
+    // The same samples through the same network in one larger product per stage.
+    let worst = cpu_rgb
+        .iter()
+        .zip(&gpu_rgb)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0f32, f32::max);
+    assert!(worst <= 1e-5, "rgb differs by {worst}");
+}

@@ -42,6 +42,16 @@ pub fn run(args: &Args, dev: &Device) -> anyhow::Result<()> {
             args.chunk_rays
         );
     }
+    if let Some(t) = args.account_cull {
+        if !(t.is_finite() && (0.0..1.0).contains(&t)) {
+            refuse!("--account-cull: expected a w^p threshold in [0, 1), found {t}");
+        }
+        run.train.culling = pma_model::render::Culling {
+            rays: true,
+            sample_threshold: Some(t),
+            sample_fill: pma_model::render::SampleFill::Network,
+        };
+    }
     let device_memory = match args.device_memory_gb {
         None => None,
         Some(gb) if gb.is_finite() && gb > 0.0 && gb <= 1e6 => Some((gb * 1e9) as usize),
@@ -134,11 +144,19 @@ fn print_tables(f: &AccountReport) {
         ),
         &f.step,
     );
-    if let Some(o) = &f.occupancy {
+    if let Some(o) = &f.left_out {
+        let what = match (o.sample_threshold, o.occupied_fraction) {
+            (Some(t), Some(g)) => format!(
+                "culling (rays, w^p <= {t}) and the occupancy grid ({:.1} % of cells occupied)",
+                100.0 * g
+            ),
+            (Some(t), None) => format!("culling (rays, w^p <= {t})"),
+            (None, Some(g)) => format!("occupancy grid ({:.1} % of cells occupied)", 100.0 * g),
+            (None, None) => "nothing left out".into(),
+        };
         println!(
-            "occupancy grid ({:.1} % of cells occupied): the step ran {} of {} samples through \
-             the network ({:.1} %), {} left out as empty",
-            100.0 * o.occupied_fraction,
+            "{what}: the step ran {} of {} samples through the network ({:.1} %), {} left out \
+             as empty",
             o.samples_evaluated,
             o.samples,
             100.0 * o.samples_evaluated as f64 / o.samples.max(1) as f64,
