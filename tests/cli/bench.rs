@@ -314,7 +314,7 @@ fn account_refuses_bad_flags() {
     assert_eq!(o.status.code(), Some(2));
     fails_with(o, "one-pass");
     for bad in ["1", "-0.5", "nan"] {
-        let o = with(&["--account-cull", bad]);
+        let o = with(&[&format!("--account-cull={bad}")]);
         assert_eq!(o.status.code(), Some(2), "--account-cull {bad}");
         fails_with(o, "--account-cull");
     }
@@ -551,9 +551,11 @@ fn account_with_the_occupancy_grid() {
         serde_json::from_slice(&std::fs::read(out.join("account.json")).unwrap()).unwrap()
     };
     let plain = account("plain", &[]);
-    assert!(plain.get("occupancy").is_none(), "{plain}");
+    assert!(plain.get("left_out").is_none(), "{plain}");
     let grid = account("grid", &["--occupancy"]);
-    let o = &grid["occupancy"];
+    let o = &grid["left_out"];
+    assert!(o["occupied_fraction"].as_f64().is_some(), "{o}");
+    assert!(o["sample_threshold"].is_null(), "{o}");
     let (samples, evaluated, skipped) = (
         u(o, "samples"),
         u(o, "samples_evaluated"),
