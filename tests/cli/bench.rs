@@ -318,6 +318,17 @@ fn account_refuses_bad_flags() {
         assert_eq!(o.status.code(), Some(2), "--account-cull {bad}");
         fails_with(o, "--account-cull");
     }
+    // A culled step is not extrapolated.
+    let o = with(&[
+        "--rays",
+        "96",
+        "--extrapolate-from",
+        "32",
+        "--account-cull",
+        "0.6",
+    ]);
+    assert_eq!(o.status.code(), Some(2));
+    fails_with(o, "--account-cull");
 }
 
 /// `--account-cull T`: the accounted step culls, and the report says how many of its

@@ -46,6 +46,10 @@ pub fn run(args: &Args, dev: &Device) -> anyhow::Result<()> {
         if !(t.is_finite() && (0.0..1.0).contains(&t)) {
             refuse!("--account-cull: expected a w^p threshold in [0, 1), found {t}");
         }
+        if args.extrapolate_from.is_some() {
+            // What culling keeps depends on the rays, so the counts are not affine in them.
+            refuse!("--account-cull: a culled step is not extrapolated (drop --extrapolate-from)");
+        }
         run.train.culling = pma_model::render::Culling {
             rays: true,
             sample_threshold: Some(t),
