@@ -331,43 +331,6 @@ fn account_refuses_bad_flags() {
     fails_with(o, "--account-cull");
 }
 
-/// `--account-cull T`: the accounted step culls, and the report says how many of its
-/// samples ran the network.
-#[test]
-fn account_of_a_culled_step_says_what_it_left_out() {
-    use super::run::{ok, pma};
-    let dir = tempfile::tempdir().unwrap();
-    let out = dir.path().to_str().unwrap();
-    let stdout = ok(pma(&[
-        "bench",
-        "--account",
-        "--quiet",
-        "--preset",
-        "tiny",
-        "--rays",
-        "32",
-        "--account-cull",
-        "0.6",
-        "--out",
-        out,
-    ]))
-    .stdout;
-    let text = String::from_utf8_lossy(&stdout);
-    assert!(text.contains("culling (rays, w^p <= 0.6)"), "{text}");
-    let json: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(dir.path().join("account.json")).unwrap()).unwrap();
-    let left = &json["left_out"];
-    assert_eq!(left["sample_threshold"], 0.6);
-    let (all, ran) = (
-        left["samples"].as_u64().unwrap(),
-        left["samples_evaluated"].as_u64().unwrap(),
-    );
-    assert!(
-        ran > 0 && ran < all,
-        "{ran} of {all} samples ran the network"
-    );
-}
-
 /// A resolution-16 grid where about 30 % of each joint's cells hold density 1 (a fixed
 /// pseudo-random pattern) and the rest 0.
 fn patterned_grid() -> pma_model::network::occupancy::OccupancyGrid {
@@ -536,13 +499,14 @@ fn shares_count_the_samples_each_pass_runs() {
 }
 
 /// `--account --occupancy`: the accounted step trains with a grid (built by the unaccounted
-/// step before it) and says what the grid left out; the same flags without the grid have no
-/// such block. A grid step is not extrapolated.
+/// step before it) and says what the grid left out; `--account-cull T` says what culling
+/// left out; the same flags without either have no such block. A grid step is not
+/// extrapolated.
 #[test]
 fn account_with_the_occupancy_grid() {
     use super::run::{fails_with, ok, pma};
     let dir = tempfile::tempdir().unwrap();
-    let account = |name: &str, extra: &[&str]| -> serde_json::Value {
+    let account_printed = |name: &str, extra: &[&str]| -> (serde_json::Value, String) {
         let out = dir.path().join(name);
         let mut a = vec![
             "--workers",
@@ -558,9 +522,22 @@ fn account_with_the_occupancy_grid() {
             out.to_str().unwrap(),
         ];
         a.extend_from_slice(extra);
-        ok(pma(&a));
-        serde_json::from_slice(&std::fs::read(out.join("account.json")).unwrap()).unwrap()
+        let stdout = ok(pma(&a)).stdout;
+        (
+            serde_json::from_slice(&std::fs::read(out.join("account.json")).unwrap()).unwrap(),
+            String::from_utf8_lossy(&stdout).into_owned(),
+        )
     };
+    let account = |name: &str, extra: &[&str]| account_printed(name, extra).0;
+    let (culled, text) = account_printed("culled", &["--account-cull", "0.6"]);
+    assert!(text.contains("culling (rays, w^p <= 0.6)"), "{text}");
+    let left = &culled["left_out"];
+    assert_eq!(left["sample_threshold"], 0.6);
+    let (all, ran) = (u(left, "samples"), u(left, "samples_evaluated"));
+    assert!(
+        ran > 0 && ran < all,
+        "{ran} of {all} samples ran the network"
+    );
     let plain = account("plain", &[]);
     assert!(plain.get("left_out").is_none(), "{plain}");
     let grid = account("grid", &["--occupancy"]);

@@ -522,6 +522,37 @@ fn check_samples(pts: &[f32], n_rays: usize, s: usize, n_poses: usize) -> Result
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::network::occupancy::{OccupancyConfig, OccupancyGrid};
+
+    /// Uniform draws in [0, 1) from a 64-bit LCG seeded with `seed`.
+    fn lcg(seed: u64) -> impl FnMut() -> f32 {
+        let mut state = seed;
+        move || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 40) as f32 / (1u64 << 24) as f32
+        }
+    }
+
+    /// A resolution-8 grid without dilation where each cell of each joint holds density 1
+    /// with probability `share` (draws from `rnd`), else 0.
+    fn random_grid(rnd: &mut impl FnMut() -> f32, share: f32) -> OccupancyGrid {
+        let mut grid = OccupancyGrid::new(OccupancyConfig {
+            resolution: 8,
+            dilation: 0,
+            ..Default::default()
+        })
+        .unwrap();
+        for j in 0..N_JOINTS {
+            for c in 0..512 {
+                grid.update(j, c, if rnd() < share { 1.0 } else { 0.0 })
+                    .unwrap();
+            }
+        }
+        grid.finish_refresh();
+        grid
+    }
 
     fn identity_setup(scale: f32) -> WindowTest {
         let mut eye = vec![0f32; N_JOINTS * 16];
@@ -576,7 +607,6 @@ mod tests {
     /// evaluated; it is left out only when every such joint marks its cell empty.
     #[test]
     fn a_sample_in_an_occupied_cell_is_never_skipped() {
-        use crate::network::occupancy::{OccupancyConfig, OccupancyGrid};
         let mut eye = vec![0f32; N_JOINTS * 16];
         for j in 0..N_JOINTS {
             for d in 0..4 {
@@ -586,26 +616,8 @@ mod tests {
             eye[j * 16 + 3] = -0.1 * j as f32;
         }
         let scales = vec![0.3f32; N_JOINTS * 3];
-        let cfg = OccupancyConfig {
-            resolution: 8,
-            dilation: 0,
-            ..Default::default()
-        };
-        let mut grid = OccupancyGrid::new(cfg).unwrap();
-        let mut state = 99u64;
-        let mut rnd = || {
-            state = state
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (state >> 40) as f32 / (1u64 << 24) as f32
-        };
-        for j in 0..N_JOINTS {
-            for c in 0..512 {
-                let sigma = if rnd() < 0.3 { 1.0 } else { 0.0 };
-                grid.update(j, c, sigma).unwrap();
-            }
-        }
-        grid.finish_refresh();
+        let mut rnd = lcg(99);
+        let grid = random_grid(&mut rnd, 0.3);
         for t in [0.0, 0.2] {
             let w = WindowTest::new(&eye, &eye, &scales, 2.0, 6, t).unwrap();
             let n = 4000;
@@ -651,7 +663,6 @@ mod tests {
     /// fate the test over all 24 joints gives, and leaves most joints out.
     #[test]
     fn joints_out_of_a_rays_reach_are_left_out_without_changing_a_fate() {
-        use crate::network::occupancy::{OccupancyConfig, OccupancyGrid};
         let mut align = vec![0f32; N_JOINTS * 16];
         let mut skt = vec![0f32; N_JOINTS * 16];
         for j in 0..N_JOINTS {
@@ -669,26 +680,8 @@ mod tests {
         let scales: Vec<f32> = (0..N_JOINTS * 3)
             .map(|i| 0.05 + 0.01 * (i % 5) as f32)
             .collect();
-        let mut grid = OccupancyGrid::new(OccupancyConfig {
-            resolution: 8,
-            dilation: 0,
-            ..Default::default()
-        })
-        .unwrap();
-        let mut state = 7u64;
-        let mut rnd = || {
-            state = state
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (state >> 40) as f32 / (1u64 << 24) as f32
-        };
-        for j in 0..N_JOINTS {
-            for c in 0..512 {
-                grid.update(j, c, if rnd() < 0.4 { 1.0 } else { 0.0 })
-                    .unwrap();
-            }
-        }
-        grid.finish_refresh();
+        let mut rnd = lcg(7);
+        let grid = random_grid(&mut rnd, 0.4);
         let (n, s) = (600, 16);
         let mut pts = Vec::with_capacity(n * s * 3);
         for _ in 0..n {
@@ -734,7 +727,6 @@ mod tests {
     /// The grid's weights are the compositing weights of its densities along the ray.
     #[test]
     fn grid_weights_composite_the_grid_density() {
-        use crate::network::occupancy::{OccupancyConfig, OccupancyGrid};
         let w = identity_setup(0.5);
         let mut grid = OccupancyGrid::new(OccupancyConfig {
             resolution: 8,

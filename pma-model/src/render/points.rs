@@ -895,7 +895,6 @@ impl CullCtx {
     ) -> Result<Plan> {
         let (r, s, _) = pts.dims3()?;
         let k = r / n_poses;
-        let dev = pts.device();
         let n = r * s;
         // Rows of the source: i < n is sample i; n + q is the q-th far-away point.
         let mut src: Vec<u32> = Vec::new();
@@ -943,20 +942,37 @@ impl CullCtx {
                 rays_of.extend(far_p.iter().map(|&ray| ray as u32));
             }
         }
-        let rows = src.len();
-        let pts_flat = pts.reshape((n, 3))?;
-        let source = if far_points.is_empty() {
-            pts_flat
-        } else {
-            let m = far_points.len() / 3;
-            let far = Tensor::from_vec(far_points, (m, 3), dev)?.to_dtype(pts.dtype())?;
-            Tensor::cat(&[pts_flat, far], 0)?
+        let (pts, view) = self.gather(pts, far_points, src, view, rays_of)?;
+        Ok(Plan { pts, view, jobs })
+    }
+
+    /// The rows `src` of the samples pts [R,S,3] followed by the points `far` (x, y, z
+    /// each; row R·S + q is the q-th), and the view rows `rays_of`: the inputs of a plan's
+    /// calls, gathered once.
+    fn gather(
+        &self,
+        pts: &Tensor,
+        far: Vec<f32>,
+        src: Vec<u32>,
+        view: &Tensor,
+        rays_of: Vec<u32>,
+    ) -> Result<(Tensor, Tensor)> {
+        let dev = pts.device();
+        let (r, s, _) = pts.dims3()?;
+        let pts_flat = pts.reshape((r * s, 3))?;
+        let source = match far.is_empty() {
+            true => pts_flat,
+            false => {
+                let m = far.len() / 3;
+                let far = Tensor::from_vec(far, (m, 3), dev)?.to_dtype(pts.dtype())?;
+                Tensor::cat(&[pts_flat, far], 0)?
+            }
         };
-        Ok(Plan {
-            pts: select_rows(&source, &Tensor::from_vec(src, rows, dev)?, self.numerics)?,
-            view: select_rows(view, &Tensor::from_vec(rays_of, rows, dev)?, self.numerics)?,
-            jobs,
-        })
+        let rows = src.len();
+        Ok((
+            select_rows(&source, &Tensor::from_vec(src, rows, dev)?, self.numerics)?,
+            select_rows(view, &Tensor::from_vec(rays_of, rows, dev)?, self.numerics)?,
+        ))
     }
 
     /// [`PaddedPlan`] for `fates`, or `None` when no sample needs the network or the call
@@ -1028,20 +1044,10 @@ impl CullCtx {
                 (first / s) as u32,
             );
         }
-        let dev = pts.device();
-        let pts_flat = pts.reshape((n, 3))?;
-        let source = match far_point.is_empty() {
-            true => pts_flat,
-            false => {
-                let flat: Vec<f32> = far_point.concat();
-                let far = Tensor::from_vec(flat, (n_poses, 3), dev)?.to_dtype(pts.dtype())?;
-                Tensor::cat(&[pts_flat, far], 0)?
-            }
-        };
-        let rows = src.len();
+        let (pts, view) = self.gather(pts, far_point.concat(), src, view, rays_of)?;
         Ok(Some(PaddedPlan {
-            pts: select_rows(&source, &Tensor::from_vec(src, rows, dev)?, self.numerics)?,
-            view: select_rows(view, &Tensor::from_vec(rays_of, rows, dev)?, self.numerics)?,
+            pts,
+            view,
             n_poses,
             block,
             eval_row,
