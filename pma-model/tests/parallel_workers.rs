@@ -1,6 +1,6 @@
 //! Data-parallel workers (`pma_model::compute::parallel`) change nothing but the speed: a chunked
-//! training step and an inference pass (plain and culled) give bit-identical results with 1
-//! and with 3 workers.
+//! training step, an inference pass (plain and culled) and a whole image rendered in
+//! parallel ray chunks give bit-identical results with 1 and with 3 workers.
 #![cfg(feature = "train")]
 
 mod train_support;
@@ -91,5 +91,26 @@ fn worker_count_does_not_change_results() {
     let (rgb3, raw3) = render(3);
     assert_eq!(rgb1, rgb3, "culled: rendered colour");
     assert_eq!(raw1, raw3, "culled: raw outputs");
+
+    // A whole image in several ray chunks, which the workers render at the same time.
+    let (poses, kp3d) = pma_model::eval::dataset_pose(&data, 0, &Device::Cpu).unwrap();
+    let cam = data.camera(data.camera_row(0).unwrap()).unwrap();
+    let image = |w: usize, pass: &PassOptions| {
+        set_workers(w);
+        let opts = pma_model::render::image::ImageOptions {
+            chunk: 97,
+            pass: pass.clone(),
+            ..Default::default()
+        };
+        avatar
+            .render_image(&poses, &kp3d, &cam, None, &opts)
+            .unwrap()
+    };
+    for pass in [PassOptions::parity(), culled] {
+        let (one, three) = (image(1, &pass), image(3, &pass));
+        assert!(one.stats.points_evaluated > 0, "the image ran the network");
+        assert!(one.acc.iter().any(|&a| a > 0.0), "the image sees the body");
+        assert_eq!(one, three, "image rendered in parallel chunks");
+    }
     set_workers(1);
 }

@@ -182,6 +182,7 @@ pub fn render_request(
             "cull_samples",
             "occupancy",
             "early_stop",
+            "cull_joints",
             "score",
         ],
     )?;
@@ -224,6 +225,7 @@ pub fn render_request(
             cull_samples: flag(&q, "cull_samples", true)?,
             occupancy: flag(&q, "occupancy", false)?,
             early_stop: flag(&q, "early_stop", false)?,
+            cull_joints: flag(&q, "cull_joints", true)?,
         },
         score: flag(&q, "score", false)?,
     })
@@ -247,6 +249,7 @@ mod tests {
         assert!(r.score);
         assert!(req("cam=0&occupancy=1").unwrap().pass.occupancy);
         assert!(!r.pass.early_stop && req("cam=0&early_stop=1").unwrap().pass.early_stop);
+        assert!(r.pass.cull_joints && !req("cam=0&cull_joints=0").unwrap().pass.cull_joints);
         // URLSearchParams encodes commas.
         let r = req("pose=0&eye=0%2C-1%2C3&target=0,0.5,0&fov=30").unwrap();
         assert_eq!(

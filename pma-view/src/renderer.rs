@@ -42,6 +42,9 @@ pub struct PassOptions {
     /// A ray's samples behind the depth where its transmittance falls below
     /// [`EARLY_STOP`] skip the network (approximate).
     pub early_stop: bool,
+    /// Network calls carry only the joints whose window is non-zero at their samples
+    /// (exact up to float summation order).
+    pub cull_joints: bool,
 }
 
 /// The transmittance at which the page's early-stop switch stops a ray.
@@ -88,6 +91,13 @@ pub const SWITCHES: &[Switch] = &[
                skip the network (approximate)",
         on: false,
     },
+    Switch {
+        id: "cull_joints",
+        label: "group by joints",
+        help: "network calls carry only the joints whose window is non-zero at their \
+               samples (exact up to float rounding; with a culling switch on)",
+        on: true,
+    },
 ];
 
 impl PassOptions {
@@ -101,6 +111,9 @@ impl PassOptions {
             },
             occupancy: self.occupancy,
             early_stop: self.early_stop.then_some(EARLY_STOP),
+            // Grouping alone would switch the culled route on: only with another switch.
+            cull_joints: self.cull_joints
+                && (self.cull_rays || self.cull_samples || self.occupancy || self.early_stop),
             ..Default::default()
         }
     }
@@ -228,6 +241,7 @@ pub struct FrameStats {
     pub cull_samples: bool,
     pub occupancy: bool,
     pub early_stop: bool,
+    pub cull_joints: bool,
     /// Centre of the body (the camera's turning point).
     pub centre: [f32; 3],
     /// The dataset image this view is, when scored.
@@ -322,7 +336,7 @@ impl Renderer {
         &mut self,
         scene: &Scene,
         req: &RenderRequest,
-        superseded: &dyn Fn() -> bool,
+        superseded: &(dyn Fn() -> bool + Sync),
     ) -> Result<Frame, RenderFail> {
         let failed = |e: &dyn std::fmt::Display| RenderFail::Failed(e.to_string());
         if req.pose >= scene.pose_count() {
@@ -347,10 +361,10 @@ impl Renderer {
         let pass = req.pass.model_options();
         let item = scene.pose(req.pose, avatar).map_err(|e| failed(&e))?;
         let start = Instant::now();
-        let mut rays = 0usize;
+        let rays = std::sync::atomic::AtomicUsize::new(0);
         let result = (|| -> Result<RenderedImage, ModelError> {
             let pose = avatar.pose_features(&item.poses, None)?;
-            let mut chunk_fn = |o: &Tensor, d: &Tensor, bg: &Tensor| {
+            let chunk_fn = |o: &Tensor, d: &Tensor, bg: &Tensor| {
                 if superseded() {
                     return Err(ModelError::Interrupted(Interrupted));
                 }
@@ -368,7 +382,7 @@ impl Renderer {
                     &mut Mode::Infer,
                     &pass,
                 )?;
-                rays += n;
+                rays.fetch_add(n, std::sync::atomic::Ordering::Relaxed);
                 Ok(ChunkRender {
                     rgb: out.fine.rgb,
                     acc: out.fine.acc,
@@ -382,7 +396,7 @@ impl Renderer {
                 device,
                 pass: pass.clone(),
             };
-            render_image(&mut chunk_fn, &cam, &item.kp3d, None, &opts)
+            render_image(&chunk_fn, &cam, &item.kp3d, None, &opts)
         })();
         let img = match result {
             Ok(img) => img,
@@ -396,6 +410,7 @@ impl Renderer {
             Some(n) => Some(score(scene, n, &img).map_err(|e| failed(&e))?),
             None => None,
         };
+        let rays = rays.into_inner();
         let png = encode_png(&img).map_err(|e| failed(&e))?;
         Ok(Frame {
             png,
@@ -411,6 +426,7 @@ impl Renderer {
                 cull_samples: req.pass.cull_samples,
                 occupancy: req.pass.occupancy,
                 early_stop: req.pass.early_stop,
+                cull_joints: req.pass.cull_joints,
                 centre: scene.centre(&item.kp3d),
                 image,
                 scores,

@@ -6,7 +6,7 @@
 //! | --- | --- |
 //! | `/`, `/view.js`, `/view.css` | the page, embedded in the binary |
 //! | `/api/info` | poses, dataset cameras, images with ground truth, switches, limits (JSON) |
-//! | `/api/render?pose=P&cam=C&w=W&h=H&cull_rays=1&cull_samples=1&occupancy=0&early_stop=0&score=1` | a frame as PNG, its stats as the `X-Pma-Stats` header (JSON); `eye=x,y,z&target=x,y,z&fov=DEG` instead of `cam` for a free camera |
+//! | `/api/render?pose=P&cam=C&w=W&h=H&cull_rays=1&cull_samples=1&occupancy=0&early_stop=0&cull_joints=1&score=1` | a frame as PNG, its stats as the `X-Pma-Stats` header (JSON); `eye=x,y,z&target=x,y,z&fov=DEG` instead of `cam` for a free camera |
 //! | `/api/gt?image=N` | ground-truth image N on black (PNG) |
 //! | `/api/run` | the run's loss and held-out PSNR curves and its newest checkpoint (JSON) |
 //!

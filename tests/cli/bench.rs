@@ -45,6 +45,8 @@ fn quick_bench_writes_every_field() {
             "rays+samples@0e0",
             "rays+samples@1e-2",
             "rays+samples@1e-2+early-stop@1e-2",
+            "rays+samples@1e-2+joints",
+            "rays+samples@1e-2+early-stop@1e-2+joints",
             "fast-sine",
             "rays+samples@1e-2+fast-sine"
         ]
@@ -53,7 +55,10 @@ fn quick_bench_writes_every_field() {
         .iter()
         .map(|o| o["fast_sine"].as_bool().unwrap())
         .collect();
-    assert_eq!(fast, [false, false, false, false, false, true, true]);
+    assert_eq!(
+        fast,
+        [false, false, false, false, false, false, false, true, true]
+    );
     for o in options {
         for key in [
             "ms_per_image",
@@ -96,10 +101,22 @@ fn quick_bench_writes_every_field() {
         "early stop ran more points than without it"
     );
     assert_eq!(options[4]["early_stop"].as_f64(), Some(1e-2));
+    // Grouping the calls by joints runs the same samples, and renders what the option
+    // without it renders up to float summation order.
+    for (grouped, plain) in [(5, 3), (6, 4)] {
+        assert_eq!(options[grouped]["cull_joints"].as_bool(), Some(true));
+        assert_eq!(
+            pts(grouped),
+            pts(plain),
+            "grouping changed the network points"
+        );
+        let d = (diff_vs_parity(grouped) - diff_vs_parity(plain)).abs();
+        assert!(d < 1e-4, "grouping moved the render against parity by {d}");
+    }
     // The vectorised sine leaves out no points, and its render is near parity's (last-bit
     // differences through the network), not identical and not far.
-    assert_eq!(pts(5), pts(0));
-    let diff = options[5]["max_abs_diff_vs_parity"].as_f64().unwrap();
+    assert_eq!(pts(7), pts(0));
+    let diff = options[7]["max_abs_diff_vs_parity"].as_f64().unwrap();
     assert!(diff < 1e-3, "fast sine moved the render by {diff}");
     assert!(dir.path().join("error_vs_time.png").is_file());
 }

@@ -526,7 +526,7 @@ fn measure_training(
     let budget = req.budget_seconds.max(0.0);
     obs.phase("training per option", req.options.len() as u64);
     // The last option trained: its training settings, trainer and figures. An option that
-    // differs only in how rendering places or stops its samples trains the same way, so it is
+    // differs only in how rendering places, stops or groups its samples trains the same way, so it is
     // scored on that run instead of a second one.
     type Trained = (BenchOption, Trainer, f64, f64);
     let mut previous: Option<Trained> = None;
@@ -536,6 +536,7 @@ fn measure_training(
             name: String::new(),
             occupancy_fine: false,
             early_stop: None,
+            cull_joints: false,
             ..o.clone()
         };
         if let Some((o, trainer, ms, fraction)) = &previous {

@@ -31,6 +31,10 @@ pub struct BenchOption {
     /// training is that of the same option without it.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub early_stop: Option<f64>,
+    /// Rendering groups the network calls by the joints their samples need
+    /// (`PassOptions::cull_joints`); training is that of the same option without it.
+    #[serde(default)]
+    pub cull_joints: bool,
 }
 
 /// The default transmittance at which the bench's early-stop rows stop a ray: what it leaves
@@ -53,6 +57,7 @@ impl BenchOption {
             occupancy: self.occupancy,
             occupancy_fine: self.occupancy_fine,
             early_stop: self.early_stop,
+            cull_joints: self.cull_joints,
         }
     }
 
@@ -76,9 +81,10 @@ impl BenchOption {
 }
 
 /// Parity, ray culling, ray and sample culling at each of `thresholds`, the last (most
-/// aggressive) culling option with the early stop, then the vectorised sine alone and with
-/// that culling option; with `occupancy` the grid alone, with that culling option, with the
-/// fine samples placed from the grid and with the early stop (at transmittance `early_stop`).
+/// aggressive) culling option with the early stop, with the joint grouping and with both,
+/// then the vectorised sine alone and with that culling option; with `occupancy` the grid
+/// alone, with that culling option, with the fine samples placed from the grid, with the
+/// early stop (at transmittance `early_stop`) and with the early stop and the joint grouping.
 pub fn options(thresholds: &[f64], occupancy: bool, early_stop: f64) -> Vec<BenchOption> {
     let mut v = vec![
         BenchOption::parity(),
@@ -108,7 +114,14 @@ pub fn options(thresholds: &[f64], occupancy: bool, early_stop: f64) -> Vec<Benc
         early_stop: Some(early_stop),
         ..o.clone()
     };
+    let joints = |o: &BenchOption| BenchOption {
+        name: format!("{}+joints", o.name),
+        cull_joints: true,
+        ..o.clone()
+    };
     v.push(early_stop(&last));
+    v.push(joints(&last));
+    v.push(joints(&early_stop(&last)));
     v.push(BenchOption {
         name: "fast-sine".into(),
         fast_sine: true,
@@ -139,6 +152,7 @@ pub fn options(thresholds: &[f64], occupancy: bool, early_stop: f64) -> Vec<Benc
             ..with_grid.clone()
         });
         v.push(early_stop(&with_grid));
+        v.push(joints(&early_stop(&with_grid)));
     }
     v
 }
@@ -161,6 +175,8 @@ mod tests {
                 "rays+samples@0e0",
                 "rays+samples@1e-2",
                 "rays+samples@1e-2+early-stop@1e-2",
+                "rays+samples@1e-2+joints",
+                "rays+samples@1e-2+early-stop@1e-2+joints",
                 "fast-sine",
                 "rays+samples@1e-2+fast-sine"
             ]
@@ -172,37 +188,51 @@ mod tests {
             .collect();
         assert_eq!(
             names,
-            ["parity", "rays", "rays+early-stop@1e-2", "fast-sine"]
+            [
+                "parity",
+                "rays",
+                "rays+early-stop@1e-2",
+                "rays+joints",
+                "rays+early-stop@1e-2+joints",
+                "fast-sine"
+            ]
         );
         let o = options(&[1e-4], false, BENCH_EARLY_STOP);
         assert_eq!(o[2].culling.sample_threshold, Some(1e-4));
         assert_eq!(o[3].culling, o[2].culling);
         assert_eq!(o[3].pass().early_stop, Some(BENCH_EARLY_STOP));
-        assert_eq!(o[5].culling, o[2].culling);
-        assert!(o[5].fast_sine && !o[2].fast_sine);
+        // The joint grouping: alone on the last culling option, then with the early stop.
+        assert!(o[4].pass().cull_joints && o[4].culling == o[2].culling);
+        assert!(o[4].pass().early_stop.is_none());
+        assert!(o[5].pass().cull_joints && o[5].pass().early_stop == Some(BENCH_EARLY_STOP));
+        assert!(o[..4].iter().chain(&o[6..]).all(|o| !o.pass().cull_joints));
+        assert_eq!(o[7].culling, o[2].culling);
+        assert!(o[7].fast_sine && !o[2].fast_sine);
         assert!(o.iter().all(|o| !o.occupancy));
         // Each early-stop row follows the row it differs from only in the early stop (the
         // bench trains them once).
-        assert!(o.iter().filter(|o| o.early_stop.is_some()).count() == 1);
+        assert!(o.iter().filter(|o| o.early_stop.is_some()).count() == 2);
         // The grid alone, then with the last culling option (without the sine).
         let o = options(&[1e-4], true, BENCH_EARLY_STOP);
-        let names: Vec<&str> = o[6..].iter().map(|o| o.name.as_str()).collect();
+        let names: Vec<&str> = o[8..].iter().map(|o| o.name.as_str()).collect();
         assert_eq!(
             names,
             [
                 "occupancy",
                 "rays+samples@1e-4+occupancy",
                 "rays+samples@1e-4+occupancy+grid-fine",
-                "rays+samples@1e-4+occupancy+early-stop@1e-2"
+                "rays+samples@1e-4+occupancy+early-stop@1e-2",
+                "rays+samples@1e-4+occupancy+early-stop@1e-2+joints"
             ]
         );
-        assert!(o[8].occupancy_fine && o[8].pass().occupancy_fine && o[8].pass().occupancy);
-        assert!(o[..8].iter().all(|o| !o.pass().occupancy_fine));
-        assert!(o[6].occupancy && o[6].culling == Culling::default() && !o[6].fast_sine);
-        assert!(o[7].occupancy && o[7].culling == o[2].culling && !o[7].fast_sine);
-        assert!(o[7].pass().occupancy && o[7].pass().culling == o[2].culling);
-        assert!(o[9].pass().occupancy && !o[9].occupancy_fine);
-        assert_eq!(o[9].pass().early_stop, Some(BENCH_EARLY_STOP));
+        assert!(o[10].occupancy_fine && o[10].pass().occupancy_fine && o[10].pass().occupancy);
+        assert!(o[..10].iter().all(|o| !o.pass().occupancy_fine));
+        assert!(o[8].occupancy && o[8].culling == Culling::default() && !o[8].fast_sine);
+        assert!(o[9].occupancy && o[9].culling == o[2].culling && !o[9].fast_sine);
+        assert!(o[9].pass().occupancy && o[9].pass().culling == o[2].culling);
+        assert!(o[11].pass().occupancy && !o[11].occupancy_fine);
+        assert_eq!(o[11].pass().early_stop, Some(BENCH_EARLY_STOP));
+        assert!(o[12].pass().cull_joints && o[12].pass().occupancy);
         for o in &o {
             assert!(o
                 .pass()

@@ -278,9 +278,53 @@ impl Network {
         view: &Tensor,
         trace: Option<(&mut Trace, &str)>,
     ) -> Result<(Tensor, Tensor)> {
+        self.eval_joints(pose, poses, pts, view, None, trace)
+    }
+
+    /// [`Self::eval_poses`] carrying only the joints `joints` (ascending, fewer than 24; `None`
+    /// = all) through the per-joint work. Exact when every other joint's spatial window is 0
+    /// at every point of the call: such a joint's windowed features are 0, so it adds nothing
+    /// to f^m or to the first modulated layer, and a 0 in the max-pool, which is put back
+    /// with a max against 0. The sums then skip exact zeros, so outputs may differ from
+    /// [`Self::eval_poses`] in the last bits (float summation order).
+    pub fn eval_joints(
+        &self,
+        pose: &PoseFeatures,
+        poses: std::ops::Range<usize>,
+        pts: &Tensor,
+        view: &Tensor,
+        joints: Option<&[u32]>,
+        trace: Option<(&mut Trace, &str)>,
+    ) -> Result<(Tensor, Tensor)> {
         let n = pts.dim(0)?;
         let m = poses.len();
-        let j = N_JOINTS;
+        let sub = match joints {
+            Some(js) if js.len() < N_JOINTS => {
+                if js.is_empty()
+                    || js.windows(2).any(|w| w[0] >= w[1])
+                    || js[js.len() - 1] as usize >= N_JOINTS
+                {
+                    return Err(ModelError::Input(format!(
+                        "network: joint subset {js:?} is not ascending, non-empty and below {N_JOINTS}"
+                    )));
+                }
+                if trace.is_some() {
+                    return Err(ModelError::Input(
+                        "network: a traced call carries every joint".into(),
+                    ));
+                }
+                Some(Tensor::from_vec(js.to_vec(), js.len(), &self.device)?)
+            }
+            _ => None,
+        };
+        let j = sub.as_ref().map_or(Ok(N_JOINTS), |s| s.dim(0))?;
+        // The per-joint tensors of the joints the call carries.
+        let sel = |t: &Tensor, dim: usize| -> Result<Tensor> {
+            Ok(match &sub {
+                Some(s) => t.index_select(s, dim)?,
+                None => t.clone(),
+            })
+        };
         let net = &self.layers;
         let k = self.numerics;
         if m == 0 || n % m != 0 || poses.end > pose.g.dim(0)? {
@@ -294,7 +338,7 @@ impl Network {
         // World → joint frames of every joint at once (one [n,3]x[3,72] product per pose),
         // then into the bone-aligned frames. Two steps, in the reference's order: folding A_j
         // into skt_j first changes the rounding enough to cost ~1e-4 after the ω=16 encoder.
-        let skt = pose.skts.narrow(0, poses.start, m)?;
+        let skt = sel(&pose.skts.narrow(0, poses.start, m)?, 1)?;
         let rot = skt
             .narrow(2, 0, 3)?
             .narrow(3, 0, 3)?
@@ -314,11 +358,11 @@ impl Network {
         let x_hat = x_jt
             .transpose(0, 1)?
             .contiguous()?
-            .matmul(&self.align_rot_t)?
+            .matmul(&sel(&self.align_rot_t, 0)?)?
             .transpose(0, 1)?
-            .broadcast_add(&self.align_trans)?;
+            .broadcast_add(&sel(&self.align_trans, 0)?)?;
         // Bone-normalised points x̄ and the spatial window w^p (Eq. 4).
-        let x_bar = x_hat.broadcast_div(&pose.scales)?;
+        let x_bar = x_hat.broadcast_div(&sel(&pose.scales, 0)?)?;
         let v = self.cfg.variant;
         let w_p = match v.spatial_window() {
             true => spatial_window(&x_bar, self.cfg.window_alpha, self.cfg.window_beta)?,
@@ -326,11 +370,14 @@ impl Network {
         };
         // Feature window w^f and w = w^p·w^f (Eqs. 5–6), then f^m = Σ_j w_j g_j, with each
         // pose's g ([m,24,H]) applied to its block of points.
-        let g = pose.g.narrow(0, poses.start, m)?;
+        let g = sel(&pose.g.narrow(0, poses.start, m)?, 1)?;
         let (win, e) = match (&net.win_fun, &net.pts_enc_pose) {
             (Some(win_fun), Some(enc)) if v.feature_window() => {
                 let e = enc.forward(&x_bar, k)?;
-                (Some(win_fun.forward(&g, &e, &w_p, k)?), Some(e))
+                (
+                    Some(win_fun.forward(&g, &e, &w_p, sub.as_ref(), k)?),
+                    Some(e),
+                )
             }
             _ => (None, None),
         };
@@ -361,8 +408,8 @@ impl Network {
                 };
                 let x_tilde = x_tilde.reshape((n, j * self.cfg.point_enc_dim))?;
                 let s = match &modulation {
-                    Some(m) => modulator.forward(&x_tilde, m, k)?,
-                    None => modulator.forward_fixed(&x_tilde, k)?,
+                    Some(m) => modulator.forward(&x_tilde, m, sub.as_ref(), k)?,
+                    None => modulator.forward_fixed(&x_tilde, sub.as_ref(), k)?,
                 };
                 (s, z)
             }

@@ -4,6 +4,7 @@
 //! whose frequencies and phases are those predictions.
 
 use candle_core::Tensor;
+use pma_data::skeleton::N_JOINTS;
 
 use crate::compute::numerics::Numerics;
 use crate::error::Result;
@@ -144,11 +145,39 @@ impl Modulator {
         }
     }
 
-    /// The same layers without modulation: `h_k = sin(γ(0) (M_k h_{k-1} + ν_k))`.
-    pub fn forward_fixed(&self, x_tilde: &Tensor, k: Numerics) -> Result<Tensor> {
+    /// The first layer restricted to the input columns of `joints` (each joint's block of
+    /// `point_enc_dim` columns), or the layer itself for `None`.
+    fn first_layer(&self, joints: Option<&Tensor>) -> Result<Linear> {
+        let layer = &self.layers[0];
+        let Some(js) = joints else {
+            return Ok(layer.clone());
+        };
+        let ce = layer.weight.dim(1)? / N_JOINTS;
+        let cols: Vec<u32> = js
+            .to_vec1::<u32>()?
+            .iter()
+            .flat_map(|&j| (0..ce as u32).map(move |c| j * ce as u32 + c))
+            .collect();
+        let cols = Tensor::from_vec(cols, js.dim(0)? * ce, layer.weight.device())?;
+        Ok(Linear {
+            weight: layer.weight.index_select(&cols, 1)?,
+            bias: layer.bias.clone(),
+        })
+    }
+
+    /// The same layers without modulation: `h_k = sin(γ(0) (M_k h_{k-1} + ν_k))`. x_tilde
+    /// holds the blocks of `joints` only when given (see [`Self::forward`]).
+    pub fn forward_fixed(
+        &self,
+        x_tilde: &Tensor,
+        joints: Option<&Tensor>,
+        k: Numerics,
+    ) -> Result<Tensor> {
+        let first = self.first_layer(joints)?;
         let mut h = x_tilde.clone();
         let mut outs = Vec::with_capacity(self.layers.len());
-        for layer in &self.layers {
+        for (l, layer) in self.layers.iter().enumerate() {
+            let layer = if l == 0 { &first } else { layer };
             let pre = (layer.forward(&h, k)? * self.gamma0())?;
             h = crate::compute::fast_sine::sin(&pre, k.fast_sine)?;
             outs.push(h.clone());
@@ -157,18 +186,28 @@ impl Modulator {
     }
 
     /// x_tilde: [N,J·Ce] windowed point encodings -> S: [N,K·F], the concatenated outputs
-    /// `h_k = sin(γ_k ⊙ (M_k h_{k-1} + ν_k) + Φ_k)` of all modulated layers.
-    pub fn forward(&self, x_tilde: &Tensor, m: &Modulation, k: Numerics) -> Result<Tensor> {
+    /// `h_k = sin(γ_k ⊙ (M_k h_{k-1} + ν_k) + Φ_k)` of all modulated layers. With `joints`,
+    /// x_tilde holds only those joints' blocks (the others are 0) and M_0 is taken on their
+    /// columns.
+    pub fn forward(
+        &self,
+        x_tilde: &Tensor,
+        m: &Modulation,
+        joints: Option<&Tensor>,
+        k: Numerics,
+    ) -> Result<Tensor> {
+        let first = self.first_layer(joints)?;
+        let layer = |l: usize| if l == 0 { &first } else { &self.layers[l] };
         if let Some(o) = &m.head {
             let n = self.layers.len();
             let head = crate::compute::fused::FilmHead::new(o, n, self.gamma_affine(), k);
-            let outs = head.stack(x_tilde, |l, h| self.layers[l].forward(h, k))?;
+            let outs = head.stack(x_tilde, |l, h| layer(l).forward(h, k))?;
             return Ok(Tensor::cat(&outs, 1)?);
         }
         let mut h = x_tilde.clone();
         let mut outs = Vec::with_capacity(self.layers.len());
-        for (l, layer) in self.layers.iter().enumerate() {
-            let pre = layer.forward(&h, k)?;
+        for l in 0..self.layers.len() {
+            let pre = layer(l).forward(&h, k)?;
             let arg = (pre * self.gamma(&m.freq[l])?)?.add(&m.phase[l])?;
             h = crate::compute::fast_sine::sin(&arg, k.fast_sine)?;
             outs.push(h.clone());

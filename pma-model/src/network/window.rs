@@ -88,8 +88,16 @@ impl WinFun {
 
     /// The points of P poses: g: [P,J,H] (each pose's projection), e: [N,J,Ce] pose-branch
     /// point encodings, w_p: [N,J] spatial window, with the N points grouped by pose in P
-    /// equal blocks.
-    pub fn forward(&self, g: &Tensor, e: &Tensor, w_p: &Tensor, k: Numerics) -> Result<Window> {
+    /// equal blocks. `joints`: the joints the J rows are (a subset of all, the others having
+    /// w^p = 0 at every point), or `None` for all.
+    pub fn forward(
+        &self,
+        g: &Tensor,
+        e: &Tensor,
+        w_p: &Tensor,
+        joints: Option<&Tensor>,
+        k: Numerics,
+    ) -> Result<Window> {
         // layer_point's bias is added to the per-pose g ([P,J,H]) rather than to every point:
         // one pass over the [N,J,H] part features fewer, forward and backward (the bias
         // gradient is then a sum over P·J rows, not over N·J).
@@ -105,9 +113,18 @@ impl WinFun {
             w_p,
             k,
         )?;
+        // A left-out joint's attenuated feature is 0 (w^p = 0): its entry of the max.
+        let pooled = match joints {
+            Some(_) => pooled.relu()?,
+            None => pooled,
+        };
         let h = f.sin1.forward(&f.sin0.forward(&pooled, k)?, k)?;
         let logits = f.last.forward(&h, k)?;
         let w_f = candle_nn::ops::sigmoid(&logits)?;
+        let w_f = match joints {
+            Some(js) => w_f.index_select(js, 1)?,
+            None => w_f,
+        };
         let w = (w_p * &w_f)?;
         Ok(Window {
             w,

@@ -326,6 +326,7 @@ impl Avatar {
             fine_evaluated: (points.samples_evaluated() - coarse_evaluated) as u64,
             skipped_empty: points.skipped_empty() as u64,
             stopped_early: points.stopped_early() as u64,
+            joint_rows: points.joint_rows() as u64,
         };
         Ok(Outputs {
             vol_scale: pose.scales.clone(),

@@ -26,12 +26,13 @@
 //! half-extents s_j and sixth powers: a few dozen flops per sample and joint on the host,
 //! stopping at the first joint whose window is above the threshold.
 //!
-//! **Optional joints** (a joint whose window is 0 on every sample of a chunk) are measured
-//! ([`WindowTest::active_joints`]) but not skipped: the max-pool over joints in `WinFun` sees
-//! such a joint as an exact 0 entry, so dropping it changes the pooled value wherever every
-//! remaining joint is negative in a channel. Skipping is only sound with a 0 appended to the
-//! max, and it saves only the per-joint encoder/`layer_point` rows and the joint's block of
-//! the first modulated layer; see the bench report for the fraction that could be saved.
+//! **Joint grouping** (`PassOptions::cull_joints`, CPU). A joint whose window is exactly 0 at
+//! every point of a network call adds nothing to the call: its windowed features are 0, so
+//! it contributes 0 to f^m and to the first modulated layer, and a 0 to the max-pool over
+//! joints. [`WindowTest::live_joints`] (at threshold 0) says which joints each sample needs
+//! (4–6 of 24 on average for the kept samples of a trained `cpu-small` avatar); the culled
+//! route sorts a pose's kept samples by them, limb by limb, and cuts its calls so that each
+//! carries few joints (`Network::eval_joints`, with the 0 put back into the max-pool).
 
 use pma_data::skeleton::N_JOINTS;
 
@@ -455,6 +456,41 @@ impl WindowTest {
             Ok::<_, ModelError>(out)
         })?;
         Ok(parts.concat())
+    }
+
+    /// For each sample `samples[i]` of pts: [R,S,3] (rays grouped by pose in equal blocks),
+    /// the joints (bit j) whose window is above the threshold there; with threshold 0, the
+    /// joints whose window is not exactly 0 in f32. Samples are taken in ascending order.
+    pub fn live_joints(
+        &self,
+        pts: &[f32],
+        n_rays: usize,
+        s: usize,
+        samples: &[usize],
+    ) -> Result<Vec<u32>> {
+        check_samples(pts, n_rays, s, self.n_poses())?;
+        let per_pose = n_rays / self.n_poses();
+        let mut out = Vec::with_capacity(samples.len());
+        // The ray test once per ray that has samples in the list.
+        let mut ray_mask = (usize::MAX, 0);
+        for &i in samples {
+            let (r, p) = (i / s, i / s / per_pose);
+            if ray_mask.0 != r {
+                ray_mask = (r, self.ray_joints(p, &pts[3 * r * s..3 * (r + 1) * s]));
+            }
+            let x = [pts[3 * i], pts[3 * i + 1], pts[3 * i + 2]];
+            let mut mask = 0u32;
+            let mut left = ray_mask.1;
+            while left != 0 {
+                let j = left.trailing_zeros() as usize;
+                left &= left - 1;
+                if self.exponent(p, j, x) < self.cut {
+                    mask |= 1 << j;
+                }
+            }
+            out.push(mask);
+        }
+        Ok(out)
     }
 
     /// Per pose, which joints have a window above the threshold at some sample of pts:

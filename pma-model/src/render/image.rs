@@ -9,7 +9,8 @@
 //! Memory: this module holds the output images (rgb, acc, disp: 20 B per pixel), the list of
 //! box pixels (8 B per pixel), together 7 MiB at 512×512, and the rays of one chunk (36 B per
 //! ray); nothing else grows with the resolution or the number of chunks.
-//! The peak is set by the chunk renderer, which sees at most `chunk` rays at a time. For the
+//! The peak is set by the chunk renderer, which sees at most `chunk` rays per CPU worker at a
+//! time (chunks run side by side on the workers; one at a time on a GPU). For the
 //! PM-Avatar network its largest live tensors are the [C·S, 24, 128] f32 window features,
 //! C·S·12 KiB each (S = 48 coarse or 24 fine samples per ray): 2.8 GiB for C = 5120 rays in
 //! the coarse pass, 0.56 GiB for C = 1024. A renderer that evaluates all of a chunk's points at
@@ -48,28 +49,18 @@ pub struct ChunkRender {
 }
 
 /// Renders one chunk of rays of a single pose (e.g. the avatar's ray renderer behind a
-/// closure).
-pub trait ChunkRenderer {
+/// closure). Chunks of one image may be rendered at the same time on the CPU workers.
+pub trait ChunkRenderer: Sync {
     /// rays_o, rays_d: [C,3] (rays_d unnormalised, camera-space z = −1); bgs: [C,3] background
     /// colour of each ray's pixel.
-    fn render_chunk(
-        &mut self,
-        rays_o: &Tensor,
-        rays_d: &Tensor,
-        bgs: &Tensor,
-    ) -> Result<ChunkRender>;
+    fn render_chunk(&self, rays_o: &Tensor, rays_d: &Tensor, bgs: &Tensor) -> Result<ChunkRender>;
 }
 
 impl<F> ChunkRenderer for F
 where
-    F: FnMut(&Tensor, &Tensor, &Tensor) -> Result<ChunkRender>,
+    F: Fn(&Tensor, &Tensor, &Tensor) -> Result<ChunkRender> + Sync,
 {
-    fn render_chunk(
-        &mut self,
-        rays_o: &Tensor,
-        rays_d: &Tensor,
-        bgs: &Tensor,
-    ) -> Result<ChunkRender> {
+    fn render_chunk(&self, rays_o: &Tensor, rays_d: &Tensor, bgs: &Tensor) -> Result<ChunkRender> {
         self(rays_o, rays_d, bgs)
     }
 }
@@ -131,7 +122,7 @@ pub fn body_box(cam: &Camera, kp3d: &Joints, head: HeadDir) -> PixelBox {
 /// Render the full image of one pose. `renderer` holds the pose; kp3d: [24,3] its joints
 /// (world); background: [H,W,3] or `None` for black.
 pub fn render_image<R: ChunkRenderer + ?Sized>(
-    renderer: &mut R,
+    renderer: &R,
     cam: &Camera,
     kp3d: &Joints,
     background: Option<&[f32]>,
@@ -175,9 +166,15 @@ pub fn render_image<R: ChunkRenderer + ?Sized>(
         })
         .collect();
     let origin = cam.origin();
-    let mut stats = PassStats::default();
-    for chunk in pixels.chunks(opts.chunk) {
+    let chunks: Vec<&[usize]> = pixels.chunks(opts.chunk).collect();
+    // Whole chunks on the CPU workers: a pass that leaves work out has a small network share
+    // per chunk and long host stretches (casting, the window test, compositing) that one
+    // chunk at a time would leave a core idle through. A chunk's rays and their results do
+    // not depend on which worker runs it, so neither does the image.
+    let workers = crate::compute::parallel::workers_on(&opts.device);
+    let outs = crate::compute::parallel::map_ordered(workers, chunks.len(), |i| {
         crate::interrupt::check()?;
+        let chunk = chunks[i];
         let c = chunk.len();
         let mut o = Vec::with_capacity(3 * c);
         let mut d = Vec::with_capacity(3 * c);
@@ -193,10 +190,16 @@ pub fn render_image<R: ChunkRenderer + ?Sized>(
             &Tensor::from_vec(d, (c, 3), dev)?,
             &Tensor::from_vec(bg, (c, 3), dev)?,
         )?;
-        let chunk_rgb = host_f32_shaped("chunk rgb", &out.rgb, &[c, 3])?;
-        let chunk_acc = host_f32_shaped("chunk acc", &out.acc, &[c])?;
-        let chunk_disp = host_f32_shaped("chunk disp", &out.disp, &[c])?;
-        stats.add(&out.stats);
+        Ok::<_, ModelError>((
+            host_f32_shaped("chunk rgb", &out.rgb, &[c, 3])?,
+            host_f32_shaped("chunk acc", &out.acc, &[c])?,
+            host_f32_shaped("chunk disp", &out.disp, &[c])?,
+            out.stats,
+        ))
+    })?;
+    let mut stats = PassStats::default();
+    for (chunk, (chunk_rgb, chunk_acc, chunk_disp, chunk_stats)) in chunks.iter().zip(outs) {
+        stats.add(&chunk_stats);
         for (i, &p) in chunk.iter().enumerate() {
             rgb[3 * p..3 * p + 3].copy_from_slice(&chunk_rgb[3 * i..3 * i + 3]);
             acc[p] = chunk_acc[i];
@@ -242,7 +245,7 @@ impl Avatar {
         }
         // The GNN and every other per-pose term once per image, not once per chunk.
         let pose = self.pose_features(poses, None)?;
-        let mut renderer = |o: &Tensor, d: &Tensor, bg: &Tensor| -> Result<ChunkRender> {
+        let renderer = |o: &Tensor, d: &Tensor, bg: &Tensor| -> Result<ChunkRender> {
             let rays = Rays {
                 origins: o.clone(),
                 dirs: d.clone(),
@@ -257,6 +260,6 @@ impl Avatar {
                 stats: out.stats,
             })
         };
-        render_image(&mut renderer, cam, kp3d, background, opts)
+        render_image(&renderer, cam, kp3d, background, opts)
     }
 }

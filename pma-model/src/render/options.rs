@@ -141,6 +141,22 @@ pub struct PassOptions {
     )]
     #[serde(skip_serializing_if = "Option::is_none")]
     pub early_stop: Option<f64>,
+    /// On the CPU: the samples that run the network are grouped by the joints whose spatial
+    /// window is non-zero at them, and each network call carries only the joints non-zero
+    /// somewhere in it through the per-joint work (the two point encoders, the window's
+    /// part features and max-pool, f^m and the first modulated layer). A left-out joint's
+    /// window is exactly 0 at every point of the call, so the outputs are those of the full
+    /// call up to float summation order; calls and their sizes change, so the bits may.
+    #[cfg_attr(
+        feature = "cli",
+        arg(
+            long = "cull-joints",
+            help = "Network calls carry only the joints whose spatial window is non-zero at \
+                    their points (CPU; the same outputs up to float summation order)"
+        )
+    )]
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub cull_joints: bool,
 }
 
 /// Coarse samples per segment of the early-stop march: a ray stops at a segment's end, so
@@ -167,6 +183,7 @@ impl PassOptions {
             && !self.occupancy
             && !self.occupancy_fine
             && self.early_stop.is_none()
+            && !self.cull_joints
     }
 
     /// Whether some samples may skip the network (the culled route of
@@ -176,12 +193,12 @@ impl PassOptions {
     }
 
     /// The w^p threshold the window test uses: the culling threshold, or exact zeros when
-    /// only the occupancy grid or the early stop (whose skipped samples take the far-away
-    /// constant) asks for the test.
+    /// only the occupancy grid, the early stop (whose skipped samples take the far-away
+    /// constant) or the joint grouping asks for the test.
     pub fn window_threshold(&self) -> Option<f64> {
         match (
             self.culling.sample_threshold,
-            self.occupancy || self.early_stop.is_some(),
+            self.occupancy || self.early_stop.is_some() || self.cull_joints,
         ) {
             (Some(t), _) => Some(t),
             (None, true) => Some(0.0),
@@ -222,6 +239,13 @@ impl PassOptions {
                 ));
             }
         }
+        if self.cull_joints && !cfg.variant.spatial_window() {
+            return Some(format!(
+                "cull_joints: joints are left out where their spatial window is 0, which \
+                 variant `{}` does not use",
+                cfg.variant
+            ));
+        }
         if self.occupancy && !cfg.variant.spatial_window() {
             return Some(format!(
                 "occupancy: the grid is consulted for joints whose spatial window is above the \
@@ -257,6 +281,10 @@ pub struct PassStats {
     /// Samples skipped because they lie behind the early stop of their ray.
     #[serde(default)]
     pub stopped_early: u64,
+    /// Σ over the network calls of points × joints carried through the per-joint work (24
+    /// per point unless calls are grouped by joints, [`PassOptions::cull_joints`]).
+    #[serde(default)]
+    pub joint_rows: u64,
 }
 
 impl PassStats {
@@ -268,6 +296,7 @@ impl PassStats {
         self.fine_evaluated += o.fine_evaluated;
         self.skipped_empty += o.skipped_empty;
         self.stopped_early += o.stopped_early;
+        self.joint_rows += o.joint_rows;
     }
 
     /// Share of the samples that ran the network (far-away constants not counted).

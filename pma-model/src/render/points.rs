@@ -11,7 +11,10 @@
 //!   with zeros. Gradients reach the evaluated
 //!   samples and the constants, so training with culling at threshold 0 has parity's loss
 //!   and its gradients up to float summation order (docs/numerics.md, "Empty rays and
-//!   culling").
+//!   culling"). On the CPU the kept samples of a pose go out in calls of at most a chunk; a
+//!   GPU gets one padded call for all poses ([`PaddedPlan`]). With `cull_joints` a CPU
+//!   plan sorts the kept samples by the joints they need and each call carries only its
+//!   samples' joints ([`Network::eval_joints`]).
 //!
 //! Whatever the route, the result is raw [R,S,4] (rgb, density after noise and ReLU).
 
@@ -29,6 +32,7 @@ use crate::render::batch::{Mode, Poses};
 use crate::render::cull::{ray_fates, SampleFate, WindowTest};
 use crate::render::options::{PassOptions, SampleFill, EARLY_STOP_SEGMENT};
 use crate::render::raycast::RayBounds;
+use pma_data::skeleton::N_JOINTS;
 
 /// Points per network call in inference on the CPU: the largest per-point tensors are
 /// [n,24,128] f32, 48 MiB each at 4,096 points, a handful alive per worker; many chunks also
@@ -71,6 +75,8 @@ pub(crate) struct PointEval {
     skipped_empty: usize,
     /// Samples left out behind their ray's early stop.
     stopped_early: usize,
+    /// Σ over the network calls of points × joints carried.
+    joint_rows: usize,
 }
 
 enum Route {
@@ -123,7 +129,14 @@ impl PointEval {
             samples_evaluated: 0,
             skipped_empty: 0,
             stopped_early: 0,
+            joint_rows: 0,
         }
+    }
+
+    /// Σ over this pass's network calls of points × joints the call carried (24 per point
+    /// unless calls are grouped by joints, [`PassOptions::cull_joints`]).
+    pub fn joint_rows(&self) -> usize {
+        self.joint_rows
     }
 
     /// Points that went through the network so far in this pass (far-away constants
@@ -198,13 +211,14 @@ impl PointEval {
 
     /// Add what the culled route did since `before` (its [`CullCtx::counters`] then) to
     /// this pass.
-    fn count(&mut self, before: [usize; 4]) {
+    fn count(&mut self, before: [usize; 5]) {
         if let Route::Culled(c) = &self.route {
             let now = c.counters();
             self.evaluated += now[0] - before[0];
             self.samples_evaluated += now[1] - before[1];
             self.skipped_empty += now[2] - before[2];
             self.stopped_early += now[3] - before[3];
+            self.joint_rows += now[4] - before[4];
         }
     }
 
@@ -305,12 +319,14 @@ impl PointEval {
                 let (rgb, sigma) = dense(net, pose, pts, view, stage, trace)?;
                 self.evaluated += r * s;
                 self.samples_evaluated += r * s;
+                self.joint_rows += r * s * N_JOINTS;
                 (rgb, sigma, None)
             }
             Route::Chunked => {
                 let (rgb, sigma) = chunked(net, pose, pts, view)?;
                 self.evaluated += r * s;
                 self.samples_evaluated += r * s;
+                self.joint_rows += r * s * N_JOINTS;
                 (rgb, sigma, None)
             }
             Route::Culled(c) => {
@@ -480,6 +496,65 @@ pub(crate) struct CullCtx {
     stop_z: Vec<f32>,
     /// Samples left out behind their rays' early stops.
     stopped_early: usize,
+    /// With `cull_joints` on the CPU: the exact-zero window test that says which joints a
+    /// sample needs (calls are grouped by it).
+    joint_test: Option<WindowTest>,
+    /// Σ over the calls of points × joints carried.
+    joint_rows: usize,
+}
+
+const ALL_JOINTS: u32 = (1 << N_JOINTS) - 1;
+
+/// SMPL's joints limb by limb (left leg, right leg, spine, neck and head, left arm, right
+/// arm), each from the body outwards: samples sorted by their joints in this order lie limb
+/// by limb, so that consecutive samples need neighbouring joints.
+const CHAIN: [u32; N_JOINTS] = [
+    1, 4, 7, 10, 2, 5, 8, 11, 0, 3, 6, 9, 12, 15, 13, 16, 18, 20, 22, 14, 17, 19, 21, 23,
+];
+
+/// A joint mask with its bits moved to their joints' places in [`CHAIN`] (the sort key of
+/// the joint grouping).
+fn chain_key(mask: u32) -> u32 {
+    CHAIN
+        .iter()
+        .enumerate()
+        .filter(|&(_, &j)| mask >> j & 1 == 1)
+        .fold(0, |key, (place, _)| key | 1 << place)
+}
+
+/// The calls over samples sorted by [`chain_key`] with joint masks `masks`: (start, len,
+/// union of their masks). A call takes at most `chunk` samples and, once it holds
+/// [`MIN_JOINT_CALL`], no sample that would make it carry more than [`MAX_CALL_JOINTS`]
+/// joints: small calls pay the per-op overhead of the ~170 ops a call runs.
+fn joint_calls(masks: &[u32], chunk: usize) -> Vec<(usize, usize, u32)> {
+    let mut calls = Vec::new();
+    let (mut start, mut union) = (0, 0u32);
+    for (i, &m) in masks.iter().enumerate() {
+        let len = i - start;
+        let grown = union | m;
+        if len == chunk || (len >= MIN_JOINT_CALL && grown.count_ones() > MAX_CALL_JOINTS) {
+            calls.push((start, len, union));
+            (start, union) = (i, m);
+        } else {
+            union = grown;
+        }
+    }
+    calls.push((start, masks.len() - start, union));
+    calls
+}
+
+/// Fewest samples of a call that may be closed early to keep its joints few.
+const MIN_JOINT_CALL: usize = 1024;
+/// Joints a call should not exceed (once it holds [`MIN_JOINT_CALL`] samples).
+const MAX_CALL_JOINTS: u32 = 8;
+
+/// The row of each of n samples given the samples in row order (0 for samples not listed).
+fn rows_of(order: &[usize], n: usize) -> Vec<u32> {
+    let mut rows = vec![0u32; n];
+    for (row, &i) in order.iter().enumerate() {
+        rows[i] = row as u32;
+    }
+    rows
 }
 
 /// Whether a sample of this fate takes the far-away constant (or zeros) instead of running
@@ -513,6 +588,9 @@ struct Plan {
     pts: Tensor,
     view: Tensor,
     jobs: Vec<Job>,
+    /// The evaluated samples in the order of the calls' rows, when that is not sample order
+    /// (samples grouped by their joints).
+    order: Option<Vec<usize>>,
 }
 
 /// The culled stage as ONE network call over every pose (a GPU's plan): pose p's block of
@@ -540,6 +618,8 @@ struct Job {
     start: usize,
     len: usize,
     far_rays: Vec<usize>,
+    /// The joints the call carries (`None`: all).
+    joints: Option<Vec<u32>>,
 }
 
 impl CullCtx {
@@ -563,16 +643,17 @@ impl CullCtx {
                 ))
             }
         };
-        let test = match opts.window_threshold() {
-            Some(t) => Some(WindowTest::new(
-                net.bone_align(),
-                &host_f32(&poses.skts)?,
-                &host_f32(&pose.scales)?,
-                cfg.window_alpha,
-                cfg.window_beta,
-                t,
-            )?),
-            None => None,
+        let (skts, scales) = (host_f32(&poses.skts)?, host_f32(&pose.scales)?);
+        let window_test = |t: f64| {
+            let a = (cfg.window_alpha, cfg.window_beta);
+            WindowTest::new(net.bone_align(), &skts, &scales, a.0, a.1, t)
+        };
+        let test = opts.window_threshold().map(window_test).transpose()?;
+        // Joint groups are a CPU plan's: a GPU's one padded call per stage keeps all joints.
+        let cpu_plan = pose.g.device().is_cpu() && !crate::compute::account::emulates_cuda();
+        let joint_test = match opts.cull_joints && cpu_plan {
+            true => Some(window_test(0.0)?),
+            false => None,
         };
         Ok(Self {
             test,
@@ -588,17 +669,20 @@ impl CullCtx {
             last_fates: Vec::new(),
             stop_z: Vec::new(),
             stopped_early: 0,
+            joint_test,
+            joint_rows: 0,
         })
     }
 
-    /// (points evaluated, samples evaluated, samples skipped as empty, samples stopped early)
-    /// so far.
-    fn counters(&self) -> [usize; 4] {
+    /// (points evaluated, samples evaluated, samples skipped as empty, samples stopped early,
+    /// joint rows) so far.
+    fn counters(&self) -> [usize; 5] {
         [
             self.evaluated,
             self.samples_evaluated,
             self.skipped_empty,
             self.stopped_early,
+            self.joint_rows,
         ]
     }
 
@@ -678,9 +762,20 @@ impl CullCtx {
             }
             None => {
                 let plan = self.plan(n_poses, pts, view, &fates, &far_rays, chunk)?;
+                let eval_row = plan.order.as_ref().map(|order| rows_of(order, n));
                 let (rgbs, sigmas, evaluated) =
                     self.evaluate(net, pose, plan, mode.is_inference())?;
-                self.scatter(rgbs, sigmas, evaluated, &fates, s, network_fill, pts, None)?
+                let eval_row = eval_row.as_deref();
+                self.scatter(
+                    rgbs,
+                    sigmas,
+                    evaluated,
+                    &fates,
+                    s,
+                    network_fill,
+                    pts,
+                    eval_row,
+                )?
             }
         };
         let alive = if noisy && any_zero {
@@ -829,6 +924,7 @@ impl CullCtx {
                 .point_chunk
                 .min(kept.len().div_ceil(workers).max(MIN_MARCH_CHUNK));
             let plan = self.plan(pose.g.dim(0)?, pts, view, &segment, &far_rays, Some(chunk))?;
+            let kept = plan.order.clone().unwrap_or(kept);
             let (seg_rgbs, seg_sigmas, evaluated) = self.evaluate(net, pose, plan, true)?;
             for ray in 0..r {
                 segment[ray * s + start..ray * s + end].fill(SampleFate::RayCulled);
@@ -896,6 +992,10 @@ impl CullCtx {
         let (r, s, _) = pts.dims3()?;
         let k = r / n_poses;
         let n = r * s;
+        let host = match &self.joint_test {
+            Some(_) => Some(host_f32(pts)?),
+            None => None,
+        };
         // Rows of the source: i < n is sample i; n + q is the q-th far-away point.
         let mut src: Vec<u32> = Vec::new();
         let mut rays_of: Vec<u32> = Vec::new();
@@ -903,11 +1003,21 @@ impl CullCtx {
         let mut jobs = Vec::new();
         for p in 0..n_poses {
             let first = src.len();
-            src.extend(
-                (p * k * s..(p + 1) * k * s)
-                    .filter(|&i| fates[i] == SampleFate::Evaluate)
-                    .map(|i| i as u32),
-            );
+            let mut samples: Vec<usize> = (p * k * s..(p + 1) * k * s)
+                .filter(|&i| fates[i] == SampleFate::Evaluate)
+                .collect();
+            // Samples that need the same joints side by side, so that each call needs few.
+            let masks = match (&self.joint_test, &host) {
+                (Some(test), Some(host)) => {
+                    let masks = test.live_joints(host, r, s, &samples)?;
+                    let mut keyed: Vec<(u32, usize)> = masks.into_iter().zip(samples).collect();
+                    keyed.sort_by_key(|&(mask, _)| chain_key(mask));
+                    samples = keyed.iter().map(|&(_, i)| i).collect();
+                    Some(keyed.into_iter().map(|(mask, _)| mask).collect::<Vec<_>>())
+                }
+                _ => None,
+            };
+            src.extend(samples.iter().map(|&i| i as u32));
             let kept = src.len() - first;
             rays_of.extend(src[first..].iter().map(|&i| i / s as u32));
             let far_p: Vec<usize> = far_rays
@@ -919,17 +1029,30 @@ impl CullCtx {
                 continue;
             }
             let chunk = chunk.unwrap_or(kept.max(1)).max(1);
-            let n_calls = kept.div_ceil(chunk).max(1);
-            for c in 0..n_calls {
+            let calls = match &masks {
+                Some(m) => joint_calls(m, chunk),
+                None => (0..kept.div_ceil(chunk).max(1))
+                    .map(|c| (c * chunk, chunk.min(kept - c * chunk), ALL_JOINTS))
+                    .collect(),
+            };
+            let n_calls = calls.len();
+            for (c, (start, len, union)) in calls.into_iter().enumerate() {
+                let count = union.count_ones() as usize;
+                let joints = (count > 0 && count < N_JOINTS).then(|| {
+                    (0..N_JOINTS as u32)
+                        .filter(|j| union >> j & 1 == 1)
+                        .collect()
+                });
                 jobs.push(Job {
                     p,
-                    start: first + c * chunk,
-                    len: chunk.min(kept - c * chunk),
+                    start: first + start,
+                    len,
                     far_rays: if c + 1 == n_calls {
                         far_p.clone()
                     } else {
                         Vec::new()
                     },
+                    joints,
                 });
             }
             if !far_p.is_empty() {
@@ -942,8 +1065,17 @@ impl CullCtx {
                 rays_of.extend(far_p.iter().map(|&ray| ray as u32));
             }
         }
+        let order = self
+            .joint_test
+            .as_ref()
+            .map(|_| src.iter().map(|&i| i as usize).filter(|&i| i < n).collect());
         let (pts, view) = self.gather(pts, far_points, src, view, rays_of)?;
-        Ok(Plan { pts, view, jobs })
+        Ok(Plan {
+            pts,
+            view,
+            jobs,
+            order,
+        })
     }
 
     /// The rows `src` of the samples pts [R,S,3] followed by the points `far` (x, y, z
@@ -1084,6 +1216,7 @@ impl CullCtx {
             consts.sigma.push(sigma.clone());
         }
         self.evaluated += rows;
+        self.joint_rows += rows * N_JOINTS;
         self.samples_evaluated += plan.kept;
         Ok((rgb, sigma, rows, plan.eval_row))
     }
@@ -1097,17 +1230,20 @@ impl CullCtx {
         plan: Plan,
         inference: bool,
     ) -> Result<(Vec<Tensor>, Vec<Tensor>, usize)> {
-        let Plan { pts, view, jobs } = plan;
+        let Plan {
+            pts, view, jobs, ..
+        } = plan;
         let workers = crate::compute::parallel::workers_on(net.device());
         let outs = crate::compute::parallel::map_ordered(workers, jobs.len(), |i| {
             crate::interrupt::check()?;
             let job = &jobs[i];
             let rows = job.len + job.far_rays.len();
-            let (rgb, sigma_raw) = net.eval_points(
+            let (rgb, sigma_raw) = net.eval_joints(
                 pose,
-                job.p,
+                job.p..job.p + 1,
                 &pts.narrow(0, job.start, rows)?,
                 &view.narrow(0, job.start, rows)?,
+                job.joints.as_deref(),
                 None,
             )?;
             // In inference the chunk's graph goes at once (see `chunked`).
@@ -1136,6 +1272,7 @@ impl CullCtx {
                 far_done += far_len;
             }
             evaluated += job.len;
+            self.joint_rows += (job.len + far_len) * job.joints.as_ref().map_or(N_JOINTS, Vec::len);
         }
         self.evaluated += evaluated + far_done;
         self.samples_evaluated += evaluated;
@@ -1225,6 +1362,7 @@ impl CullCtx {
         let view_c = view.narrow(0, ray, 1)?;
         let (rgb, sigma) = net.eval_points(pose, p, &pts, &view_c, None)?;
         self.evaluated += 1;
+        self.joint_rows += N_JOINTS;
         let sigma0 = sigma
             .flatten_all()?
             .to_dtype(DType::F32)?
@@ -1359,6 +1497,8 @@ mod tests {
             last_fates: Vec::new(),
             stop_z: Vec::new(),
             stopped_early: 0,
+            joint_test: None,
+            joint_rows: 0,
         };
         let bits = |x: &[f32]| x.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
         let reference = per_call_rows(
@@ -1392,5 +1532,49 @@ mod tests {
             assert_eq!(bits(&got), bits(rows));
             assert_eq!(bits(&got_v), bits(v));
         }
+    }
+
+    #[test]
+    fn joint_calls_cover_the_samples_and_keep_their_joints_few() {
+        // Masks as sorted samples come: runs of neighbouring joints.
+        let masks: Vec<u32> = (0..5000u32).map(|i| 0b11 << (i / 400).min(22)).collect();
+        for chunk in [4096, 1500, 700] {
+            let calls = joint_calls(&masks, chunk);
+            let mut next = 0;
+            for &(start, len, union) in &calls {
+                assert_eq!(start, next, "calls are contiguous");
+                assert!(
+                    len > 0 && len <= chunk,
+                    "call of {len} samples (chunk {chunk})"
+                );
+                let want = masks[start..start + len].iter().fold(0, |a, b| a | b);
+                assert_eq!(union, want, "union of the call's masks");
+                // A call is only closed for its joints once it is big enough.
+                if start + len < masks.len() && len < chunk {
+                    assert!(len >= MIN_JOINT_CALL);
+                    assert!((union | masks[start + len]).count_ones() > MAX_CALL_JOINTS);
+                }
+                next = start + len;
+            }
+            assert_eq!(next, masks.len(), "every sample is in a call");
+            if chunk >= MIN_JOINT_CALL {
+                let widest = calls.iter().map(|c| c.2.count_ones()).max().unwrap();
+                assert!(widest <= MAX_CALL_JOINTS, "a call carries {widest} joints");
+            }
+        }
+        // chain_key keeps a mask's joints (one bit per joint) and orders limb by limb.
+        assert_eq!(chain_key(ALL_JOINTS), ALL_JOINTS);
+        assert!(
+            chain_key(1 << 1) < chain_key(1 << 2),
+            "left leg before right leg"
+        );
+        assert!(
+            chain_key(1 << 10) < chain_key(1 << 0),
+            "legs before the spine"
+        );
+        assert!(
+            chain_key(1 << 22) < chain_key(1 << 14),
+            "left arm before right arm"
+        );
     }
 }

@@ -351,7 +351,7 @@ impl VideoReport {
 }
 
 /// How far [`render_video`] is; both methods do nothing by default.
-pub trait VideoProgress {
+pub trait VideoProgress: Send {
     /// Frame `k` of `n` starts.
     fn frame(&mut self, _k: usize, _n: usize) {}
     /// `n` more rays were traced.
@@ -499,7 +499,9 @@ fn render_shot(
     opts: &ImageOptions,
     progress: &mut dyn VideoProgress,
 ) -> Result<RenderedImage> {
-    let mut renderer = |o: &Tensor, d: &Tensor, bg: &Tensor| -> Result<ChunkRender> {
+    // Chunks may run on several workers at once; each reports its rays when done.
+    let progress = std::sync::Mutex::new(progress);
+    let renderer = |o: &Tensor, d: &Tensor, bg: &Tensor| -> Result<ChunkRender> {
         let rays = Rays {
             origins: o.clone(),
             dirs: d.clone(),
@@ -507,7 +509,9 @@ fn render_shot(
             framecodes: vec![-1; o.dim(0)?],
         };
         let out = avatar.render_rays(&rays, &item.poses, &opts.pass)?;
-        progress.rays(o.dim(0)? as u64);
+        if let Ok(mut p) = progress.lock() {
+            p.rays(o.dim(0)? as u64);
+        }
         Ok(ChunkRender {
             rgb: out.fine.rgb,
             acc: out.fine.acc,
@@ -515,7 +519,7 @@ fn render_shot(
             stats: out.stats,
         })
     };
-    render_image(&mut renderer, camera, &item.kp3d, Some(background), opts)
+    render_image(&renderer, camera, &item.kp3d, Some(background), opts)
 }
 
 /// 8-bit RGB of a render (rounded, as the frames are shown).

@@ -140,6 +140,7 @@ impl TrainConfig {
             occupancy_fine: false,
             // Every sample of a training step takes part in its gradients.
             early_stop: None,
+            cull_joints: false,
         }
     }
 

@@ -168,32 +168,31 @@ fn render(avatar: &Avatar, cam: &Camera, normalise_input: bool) -> Vec<f32> {
     bones[0] = [std::f32::consts::PI, 0.0, 0.0]; // upright, head −y
     let (poses, kp3d) = avatar.pose_from_bones(&bones, [0.0; 3]).unwrap();
     let _ = rest;
-    let mut renderer =
-        |o: &Tensor, d: &Tensor, bg: &Tensor| -> pma_model::error::Result<ChunkRender> {
-            let d = if normalise_input {
-                d.broadcast_div(&d.sqr()?.sum_keepdim(1)?.sqrt()?)?
-            } else {
-                d.clone()
-            };
-            let rays = Rays {
-                origins: o.clone(),
-                dirs: d,
-                bgs: Some(bg.clone()),
-                framecodes: vec![-1; o.dim(0)?],
-            };
-            let out = avatar.render_rays(&rays, &poses, &Default::default())?;
-            Ok(ChunkRender {
-                rgb: out.fine.rgb,
-                acc: out.fine.acc,
-                disp: out.fine.disp,
-                stats: out.stats,
-            })
+    let renderer = |o: &Tensor, d: &Tensor, bg: &Tensor| -> pma_model::error::Result<ChunkRender> {
+        let d = if normalise_input {
+            d.broadcast_div(&d.sqr()?.sum_keepdim(1)?.sqrt()?)?
+        } else {
+            d.clone()
         };
+        let rays = Rays {
+            origins: o.clone(),
+            dirs: d,
+            bgs: Some(bg.clone()),
+            framecodes: vec![-1; o.dim(0)?],
+        };
+        let out = avatar.render_rays(&rays, &poses, &Default::default())?;
+        Ok(ChunkRender {
+            rgb: out.fine.rgb,
+            acc: out.fine.acc,
+            disp: out.fine.disp,
+            stats: out.stats,
+        })
+    };
     let opts = ImageOptions {
         chunk: 97,
         ..Default::default()
     };
-    render_image(&mut renderer, cam, &kp3d, None, &opts)
+    render_image(&renderer, cam, &kp3d, None, &opts)
         .unwrap()
         .rgb
 }

@@ -4,6 +4,7 @@
 
 use crate::common::*;
 use candle_core::{Device, Tensor};
+use pma_data::camera::Camera;
 use pma_model::network::config::Config;
 use pma_model::render::avatar::{Avatar, Mode, Outputs};
 use pma_model::render::cull::{SampleFate, WindowTest};
@@ -209,14 +210,21 @@ fn culled_rays_are_background_and_hitting_rays_are_unchanged() {
 /// take L = 1e-2 (at t = 1e-2 this init measures 7.8e-6 in total, i.e. L ≈ 3e-5 per sample;
 /// the bound leaves two orders of magnitude for other platforms) plus 1e-6 for the ulp-level
 /// effect of changed call sizes on gemm.
-#[test]
-fn small_sample_threshold_changes_the_render_by_a_bounded_amount() {
+/// An untrained cpu-small avatar with visible density, the synthetic figure's rest pose and
+/// a camera on it of `res`×`res` pixels. Untrained, the density head is ≤ 0 almost everywhere and every
+/// render is black; the dense golden case's override (σ weights ×50, bias 2) gives the
+/// network visible density.
+fn visible_avatar(
+    res: usize,
+) -> (
+    Avatar,
+    pma_model::render::avatar::Poses,
+    pma_data::skeleton::Joints,
+    Camera,
+) {
     let dev = Device::Cpu;
     let rest = pma_data::synth::rest_pose();
     let cfg = Config::cpu_small();
-    let samples = (cfg.n_samples + cfg.n_importance) as f64;
-    // Untrained, the density head is ≤ 0 almost everywhere and every render is black; the
-    // dense golden case's override (σ weights ×50, bias 2) gives the network visible density.
     let mut tensors = pma_model::network::init_tensors(&cfg, &rest, 3, &dev).unwrap();
     let w = (tensors["sigma_linear.weight"].clone() * 50.0).unwrap();
     tensors.insert("sigma_linear.weight".into(), w);
@@ -232,7 +240,16 @@ fn small_sample_threshold_changes_the_render_by_a_bounded_amount() {
         [0.0, 0.0, 1.0, 3.0],
         [0.0, 0.0, 0.0, 1.0],
     ];
-    let cam = pma_data::camera::Camera::new(40, 40, 40.0, 40.0, 20.0, 20.0, c2w).unwrap();
+    let f = res as f32;
+    let cam = Camera::new(res, res, f, f, f / 2.0, f / 2.0, c2w).unwrap();
+    (avatar, poses, kp3d, cam)
+}
+
+#[test]
+fn small_sample_threshold_changes_the_render_by_a_bounded_amount() {
+    let (avatar, poses, kp3d, cam) = visible_avatar(40);
+    let cfg = avatar.config();
+    let samples = (cfg.n_samples + cfg.n_importance) as f64;
     let parity = avatar
         .render_image(&poses, &kp3d, &cam, None, &ImageOptions::default())
         .unwrap();
@@ -260,4 +277,139 @@ fn small_sample_threshold_changes_the_render_by_a_bounded_amount() {
     }
     // The comparison can fail: at 1e-2 the culled samples do move the render.
     assert!(prev > 0.0, "culling at 1e-2 left the render bit-identical");
+}
+
+/// Network calls grouped by the joints their samples need (`cull_joints`) leave out only
+/// joints whose window is exactly 0 at every point of the call: the image is the one of the
+/// same pass without the grouping up to float summation order (1e-5: the first modulated
+/// layer's and f^m's sums skip exact zeros), the same samples run the network, and the calls
+/// carry far fewer joints (a count).
+#[test]
+fn calls_grouped_by_joints_render_the_same_image() {
+    // Enough pixels for several calls per pass.
+    let (avatar, poses, kp3d, cam) = visible_avatar(96);
+    for t in [0.0, 0.6] {
+        let render = |cull_joints: bool| {
+            let opts = ImageOptions {
+                pass: PassOptions {
+                    cull_joints,
+                    ..culling(true, Some(t))
+                },
+                ..Default::default()
+            };
+            avatar
+                .render_image(&poses, &kp3d, &cam, None, &opts)
+                .unwrap()
+        };
+        let (all, grouped) = (render(false), render(true));
+        let max = all
+            .rgb
+            .iter()
+            .zip(&grouped.rgb)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0f32, f32::max);
+        let (a, g) = (all.stats, grouped.stats);
+        println!(
+            "t {t}: max |Δrgb| {max:.2e}; joint rows {} of {} ({} network points)",
+            g.joint_rows, a.joint_rows, g.points_evaluated
+        );
+        assert!(
+            all.acc.iter().any(|&v| v > 0.1),
+            "t {t}: the image shows no body"
+        );
+        assert!(max <= 1e-5, "t {t}: grouping moved the image by {max}");
+        assert_eq!(
+            (a.coarse_evaluated, a.fine_evaluated),
+            (g.coarse_evaluated, g.fine_evaluated),
+            "t {t}: the grouping changed which samples ran"
+        );
+        assert_eq!(
+            a.joint_rows,
+            24 * a.points_evaluated,
+            "t {t}: ungrouped calls carry all joints"
+        );
+        assert!(
+            (g.joint_rows as f64) < 0.6 * a.joint_rows as f64,
+            "t {t}: grouped calls carry {} of {} joint rows",
+            g.joint_rows,
+            a.joint_rows
+        );
+    }
+}
+
+/// The network on a joint subset: exact (to 1e-5) when every left-out joint's window is 0 at
+/// every point, and visibly wrong when a joint with a non-zero window is left out, so the
+/// image test above would catch a grouping that dropped a needed joint.
+#[test]
+fn a_joint_subset_call_is_exact_only_without_live_joints() {
+    let (avatar, poses, _, _) = visible_avatar(40);
+    let net = avatar.network();
+    let pose = avatar.pose_features(&poses, None).unwrap();
+    // Points around the left knee (joint 4) of the rest pose.
+    let knee = avatar.rest_pose()[4];
+    let pts: Vec<f32> = (0..64)
+        .flat_map(|i| {
+            let f = i as f32 / 64.0;
+            [
+                knee[0] + 0.04 * (f * 7.0).sin(),
+                knee[1] + 0.1 * (f - 0.5),
+                knee[2] + 0.04 * (f * 5.0).cos(),
+            ]
+        })
+        .collect();
+    let n = pts.len() / 3;
+    let test = WindowTest::new(
+        &flat(&avatar.tensors()["pts_embedder.transforms"]),
+        &flat(&poses.skts),
+        &flat(&avatar.axis_scale().unwrap()),
+        2.0,
+        6,
+        0.0,
+    )
+    .unwrap();
+    let samples: Vec<usize> = (0..n).collect();
+    let union = test
+        .live_joints(&pts, n, 1, &samples)
+        .unwrap()
+        .iter()
+        .fold(0u32, |a, b| a | b);
+    let live: Vec<u32> = (0..24).filter(|j| union >> j & 1 == 1).collect();
+    assert!(live.contains(&4) && live.len() < 12, "live joints {live:?}");
+    let dev = Device::Cpu;
+    let pts = Tensor::from_vec(pts, (n, 3), &dev).unwrap();
+    let d = Tensor::from_vec([0f32, 0.0, -1.0].repeat(n), (n, 3), &dev).unwrap();
+    let view = avatar.view_features(&d, &vec![-1; n], false).unwrap();
+    let eval = |joints: Option<&[u32]>| {
+        let (rgb, sigma) = net
+            .eval_joints(&pose, 0..1, &pts, &view, joints, None)
+            .unwrap();
+        [flat(&rgb), flat(&sigma)].concat()
+    };
+    let diff = |a: &[f32], b: &[f32]| {
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0f32, f32::max)
+    };
+    let full = eval(None);
+    let exact = diff(&full, &eval(Some(&live)));
+    let without_knee: Vec<u32> = live.iter().copied().filter(|&j| j != 4).collect();
+    let wrong = diff(&full, &eval(Some(&without_knee)));
+    println!("live joints {live:?}: max |Δ| {exact:.2e} with them, {wrong:.2e} without the knee");
+    assert!(
+        exact <= 1e-5,
+        "subset of the live joints moved the outputs by {exact}"
+    );
+    assert!(
+        wrong > 1e-3,
+        "leaving out a live joint changed the outputs by only {wrong}"
+    );
+    // Bad subsets are refused.
+    for bad in [&[][..], &[5, 4][..], &[3, 24][..]] {
+        assert!(
+            net.eval_joints(&pose, 0..1, &pts, &view, Some(bad), None)
+                .is_err(),
+            "{bad:?}"
+        );
+    }
 }

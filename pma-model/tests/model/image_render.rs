@@ -6,7 +6,7 @@
 // would not match the `ChunkRenderer` signature.
 #![allow(clippy::result_large_err)]
 
-use std::cell::Cell;
+use std::sync::atomic::{AtomicUsize, Ordering::Relaxed};
 
 use candle_core::{Device, Tensor};
 use pma_data::camera::Camera;
@@ -64,13 +64,13 @@ fn colour(d: [f32; 3]) -> [f32; 3] {
 /// checks that directions are unnormalised (camera-space z = -1, here world z) and that all
 /// rays start at the camera.
 fn mock<'a>(
-    rays: &'a Cell<usize>,
-    calls: &'a Cell<usize>,
-) -> impl FnMut(&Tensor, &Tensor, &Tensor) -> Result<ChunkRender> + 'a {
+    rays: &'a AtomicUsize,
+    calls: &'a AtomicUsize,
+) -> impl Fn(&Tensor, &Tensor, &Tensor) -> Result<ChunkRender> + Sync + 'a {
     move |o: &Tensor, d: &Tensor, bg: &Tensor| {
         let n = d.dims()[0];
-        rays.set(rays.get() + n);
-        calls.set(calls.get() + 1);
+        rays.fetch_add(n, Relaxed);
+        calls.fetch_add(1, Relaxed);
         let (o, d, bg) = (
             o.to_vec2::<f32>()?,
             d.to_vec2::<f32>()?,
@@ -100,13 +100,13 @@ fn mock<'a>(
 }
 
 fn render(kp: &Joints, chunk: usize, bg: Option<&[f32]>) -> (RenderedImage, usize, usize) {
-    let (rays, calls) = (Cell::new(0), Cell::new(0));
+    let (rays, calls) = (AtomicUsize::new(0), AtomicUsize::new(0));
     let opts = ImageOptions {
         chunk,
         ..ImageOptions::default()
     };
-    let img = render_image(&mut mock(&rays, &calls), &camera(), kp, bg, &opts).unwrap();
-    (img, rays.get(), calls.get())
+    let img = render_image(&mock(&rays, &calls), &camera(), kp, bg, &opts).unwrap();
+    (img, rays.into_inner(), calls.into_inner())
 }
 
 #[test]
@@ -210,26 +210,26 @@ fn body_around_the_camera_renders_the_whole_frame() {
 fn bad_inputs_are_errors() {
     let kp = joints(0.0);
     let cam = camera();
-    let (rays, calls) = (Cell::new(0), Cell::new(0));
+    let (rays, calls) = (AtomicUsize::new(0), AtomicUsize::new(0));
     let opts = ImageOptions {
         chunk: 0,
         ..ImageOptions::default()
     };
-    assert!(render_image(&mut mock(&rays, &calls), &cam, &kp, None, &opts).is_err());
+    assert!(render_image(&mock(&rays, &calls), &cam, &kp, None, &opts).is_err());
     let opts = ImageOptions::default();
     let short = vec![0.0f32; W * H * 3 - 1];
-    let msg = render_image(&mut mock(&rays, &calls), &cam, &kp, Some(&short), &opts)
+    let msg = render_image(&mock(&rays, &calls), &cam, &kp, Some(&short), &opts)
         .unwrap_err()
         .to_string();
     assert!(msg.contains("background"), "{msg}");
     let mut nan = kp;
     nan[5][1] = f32::NAN;
-    let msg = render_image(&mut mock(&rays, &calls), &cam, &nan, None, &opts)
+    let msg = render_image(&mock(&rays, &calls), &cam, &nan, None, &opts)
         .unwrap_err()
         .to_string();
     assert!(msg.contains("joint 5"), "{msg}");
     // A renderer that returns the wrong number of values is caught, not scattered.
-    let mut wrong = |_: &Tensor, d: &Tensor, _: &Tensor| -> Result<ChunkRender> {
+    let wrong = |_: &Tensor, d: &Tensor, _: &Tensor| -> Result<ChunkRender> {
         let n = d.dims()[0];
         let dev = Device::Cpu;
         Ok(ChunkRender {
@@ -239,9 +239,9 @@ fn bad_inputs_are_errors() {
             stats: Default::default(),
         })
     };
-    let msg = render_image(&mut wrong, &cam, &kp, None, &opts)
+    let msg = render_image(&wrong, &cam, &kp, None, &opts)
         .unwrap_err()
         .to_string();
     assert!(msg.contains("chunk acc"), "{msg}");
-    assert_eq!(rays.get(), 0, "the renderer ran on invalid input");
+    assert_eq!(rays.load(Relaxed), 0, "the renderer ran on invalid input");
 }

@@ -778,7 +778,7 @@ fn window_matches_torch() {
         let g = win.project_pose(g_feat.as_tensor(), K).unwrap();
         fx.check_t(case, "out/win_layer_pose", &g);
         // All poses in one call: each pose's g applies to its block of points.
-        let out = win.forward(&g, e.as_tensor(), &w_p, K).unwrap();
+        let out = win.forward(&g, e.as_tensor(), &w_p, None, K).unwrap();
         let (w, f_m) = (out.w.clone(), aggregate(&out.w, &g).unwrap());
         fx.check_t(case, "out/win_maxpool", &out.pooled);
         fx.check_t(case, "out/win_logits", &out.logits);
@@ -862,7 +862,7 @@ fn modulator_matches_torch() {
             "out/gamma",
             &modulator.gamma(theta.as_tensor()).unwrap(),
         );
-        let s = modulator.forward(x_tilde.as_tensor(), &m, K).unwrap();
+        let s = modulator.forward(x_tilde.as_tensor(), &m, None, K).unwrap();
         fx.check_t(case, "out/S", &s);
         let loss = fx.loss(case, &[("S", &s)]);
         fx.check_t(case, "out/loss", &loss);

@@ -224,7 +224,9 @@ fn point_encoders_window_and_aggregation() {
     let w_p = rand_t(&mut s.rng, &[6, 24], 0.0, 1.0);
     let out_w = rand_t(&mut s.rng, &[6, cfg.win_hidden], -1.0, 1.0);
     let loss = || {
-        let w = win.forward(g.as_tensor(), e.as_tensor(), &w_p, K).unwrap();
+        let w = win
+            .forward(g.as_tensor(), e.as_tensor(), &w_p, None, K)
+            .unwrap();
         let f_m = aggregate(&w.w, g.as_tensor()).unwrap();
         (f_m * &out_w).unwrap().sum_all().unwrap()
     };
@@ -295,7 +297,7 @@ fn pose_extractor_and_modulator_at_huge_frequencies() {
                 phase: phase.clone(),
                 head: None,
             };
-            (modu.forward(&x, &m, K).unwrap() * &out_w)
+            (modu.forward(&x, &m, None, K).unwrap() * &out_w)
                 .unwrap()
                 .sum_all()
                 .unwrap()
