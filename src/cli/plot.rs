@@ -111,50 +111,95 @@ pub fn plot_psnr_vs_time(
 }
 
 #[cfg(feature = "train")]
-/// Error against time: one labelled point per option, x = seconds per image, y = held-out
-/// PSNR loss against parity (dB).
+/// Error against time: one numbered point per option, x = seconds per image (log scale: the
+/// options span an order of magnitude), y = held-out PSNR loss against parity (dB); the
+/// numbers are listed with the options' names beside the chart, so that options with close
+/// figures stay readable.
 pub fn plot_error_vs_time(
     title: &str,
     pts: &[(f64, f64, &str)],
     path: &Path,
 ) -> anyhow::Result<()> {
     register_font();
-    let x_max = pts.iter().map(|p| p.0).fold(0.0, f64::max).max(1e-3) * 1.15;
+    let finite: Vec<f64> = pts
+        .iter()
+        .map(|p| p.0)
+        .filter(|x| *x > 0.0 && x.is_finite())
+        .collect();
+    let x_lo = finite
+        .iter()
+        .copied()
+        .fold(f64::INFINITY, f64::min)
+        .min(1.0)
+        / 1.3;
+    let x_hi = finite.iter().copied().fold(0.0, f64::max).max(x_lo * 10.0) * 1.3;
+    let x_lo = if x_lo.is_finite() {
+        x_lo.max(1e-6)
+    } else {
+        1e-3
+    };
     let y_lo = pts.iter().map(|p| p.1).fold(0.0, f64::min) - 0.05;
     let y_hi = pts.iter().map(|p| p.1).fold(0.1, f64::max) * 1.2 + 0.05;
-    let (w, h) = (900u32, 540u32);
+    let (w, h) = (1320u32, 540u32);
     let mut buf = vec![0u8; (w * h * 3) as usize];
     {
         let e = |e: &dyn std::fmt::Display| anyhow::anyhow!("plot: {e}");
         let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
         root.fill(&WHITE).map_err(|x| e(&x))?;
-        let mut chart = ChartBuilder::on(&root)
+        let (left, right) = root.split_horizontally(740);
+        let mut chart = ChartBuilder::on(&left)
             .caption(title, ("sans-serif", 22))
             .margin(16)
             .x_label_area_size(44)
             .y_label_area_size(60)
-            .build_cartesian_2d(0.0..x_max, y_lo..y_hi)
+            .build_cartesian_2d((x_lo..x_hi).log_scale(), y_lo..y_hi)
             .map_err(|x| e(&x))?;
         chart
             .configure_mesh()
-            .x_desc("seconds per image")
+            .x_desc("seconds per image (log scale)")
+            .x_label_formatter(&|x| format!("{x:.2}"))
             .y_desc("held-out PSNR loss vs parity [dB]")
             .label_style(("sans-serif", 15))
             .draw()
             .map_err(|x| e(&x))?;
+        let shown: Vec<(usize, f64, f64)> = pts
+            .iter()
+            .enumerate()
+            .filter(|(_, p)| p.0 > 0.0 && p.0.is_finite() && p.1.is_finite())
+            .map(|(i, p)| (i + 1, p.0, p.1))
+            .collect();
         chart
             .draw_series(
-                pts.iter()
-                    .map(|p| Circle::new((p.0, p.1), 5, BLUE.filled())),
+                shown
+                    .iter()
+                    .map(|&(_, x, y)| Circle::new((x, y), 5, BLUE.filled())),
             )
             .map_err(|x| e(&x))?;
+        // Numbers above their points, staggered so that points at the same height do not
+        // print over each other.
         chart
-            .draw_series(
-                pts.iter().map(|p| {
-                    Text::new(p.2.to_string(), (p.0, p.1), ("sans-serif", 13).into_font())
-                }),
-            )
+            .draw_series(shown.iter().map(|&(k, x, y)| {
+                let up = 10 + 14 * (k as i32 % 3);
+                EmptyElement::at((x, y))
+                    + Text::new(k.to_string(), (-4, -up), ("sans-serif", 14).into_font())
+            }))
             .map_err(|x| e(&x))?;
+        for (i, p) in pts.iter().enumerate() {
+            let line = format!(
+                "{:>2}  {}  ({:.1} ms, {:+.3} dB)",
+                i + 1,
+                p.2,
+                p.0 * 1e3,
+                p.1
+            );
+            right
+                .draw(&Text::new(
+                    line,
+                    (8, 48 + 22 * i as i32),
+                    ("sans-serif", 14).into_font(),
+                ))
+                .map_err(|x| e(&x))?;
+        }
         root.present().map_err(|x| e(&x))?;
     }
     let img = image::RgbImage::from_raw(w, h, buf)

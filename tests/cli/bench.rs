@@ -110,6 +110,9 @@ fn quick_bench_writes_every_field() {
             pts(plain),
             "grouping changed the network points"
         );
+        let joints = |i: usize| options[i]["joints_per_point"].as_f64().unwrap();
+        assert_eq!(joints(plain), 24.0, "ungrouped calls carry every joint");
+        assert!(joints(grouped) > 0.0 && joints(grouped) <= 24.0);
         let d = (diff_vs_parity(grouped) - diff_vs_parity(plain)).abs();
         assert!(d < 1e-4, "grouping moved the render against parity by {d}");
     }

@@ -83,6 +83,10 @@ pub struct OptionResult {
     /// All samples the rendered rays stand for (rays × (Sc + Sf)) per second.
     pub samples_per_s: f64,
     pub network_points_per_image: u64,
+    /// Joints a network point carried through the per-joint work, on average (24 unless
+    /// the calls are grouped by joints).
+    #[serde(default)]
+    pub joints_per_point: f64,
     /// Achieved matmul GFLOP/s (network points × FLOPs per point / time).
     pub gflops: f64,
     /// Median ms per training step (the option's culling in training).
@@ -496,6 +500,8 @@ fn measure_inference(
             let img = render(avatar, pass)?;
             t_opt.push(t.elapsed().as_secs_f64());
             res.network_points_per_image = img.stats.points_evaluated;
+            res.joints_per_point =
+                img.stats.joint_rows as f64 / img.stats.points_evaluated.max(1) as f64;
             done += 1;
         }
     }
