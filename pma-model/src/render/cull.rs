@@ -93,8 +93,8 @@ pub struct WindowTest {
 }
 
 /// Joints as bits (bit j = joint j).
-type JointMask = u32;
-const ALL_JOINTS: JointMask = (1 << N_JOINTS) - 1;
+pub type JointMask = u32;
+pub(crate) const ALL_JOINTS: JointMask = (1 << N_JOINTS) - 1;
 
 impl WindowTest {
     /// align: [24,4,4] A_j (`pts_embedder.transforms`); skts: [P,24,4,4]; scales: [24,3]
@@ -467,7 +467,7 @@ impl WindowTest {
         n_rays: usize,
         s: usize,
         samples: &[usize],
-    ) -> Result<Vec<u32>> {
+    ) -> Result<Vec<JointMask>> {
         check_samples(pts, n_rays, s, self.n_poses())?;
         let per_pose = n_rays / self.n_poses();
         let mut out = Vec::with_capacity(samples.len());

@@ -29,7 +29,7 @@ use crate::network::occupancy::OccupancyGrid;
 use crate::network::trace::Trace;
 use crate::network::{Network, PoseFeatures};
 use crate::render::batch::{Mode, Poses};
-use crate::render::cull::{ray_fates, SampleFate, WindowTest};
+use crate::render::cull::{ray_fates, JointMask, SampleFate, WindowTest, ALL_JOINTS};
 use crate::render::options::{PassOptions, SampleFill, EARLY_STOP_SEGMENT};
 use crate::render::raycast::RayBounds;
 use pma_data::skeleton::N_JOINTS;
@@ -503,8 +503,6 @@ pub(crate) struct CullCtx {
     joint_rows: usize,
 }
 
-const ALL_JOINTS: u32 = (1 << N_JOINTS) - 1;
-
 /// SMPL's joints limb by limb (left leg, right leg, spine, neck and head, left arm, right
 /// arm), each from the body outwards: samples sorted by their joints in this order lie limb
 /// by limb, so that consecutive samples need neighbouring joints.
@@ -514,7 +512,7 @@ const CHAIN: [u32; N_JOINTS] = [
 
 /// A joint mask with its bits moved to their joints' places in [`CHAIN`] (the sort key of
 /// the joint grouping).
-fn chain_key(mask: u32) -> u32 {
+fn chain_key(mask: JointMask) -> u32 {
     CHAIN
         .iter()
         .enumerate()
@@ -526,9 +524,9 @@ fn chain_key(mask: u32) -> u32 {
 /// union of their masks). A call takes at most `chunk` samples and, once it holds
 /// [`MIN_JOINT_CALL`], no sample that would make it carry more than [`MAX_CALL_JOINTS`]
 /// joints: small calls pay the per-op overhead of the ~170 ops a call runs.
-fn joint_calls(masks: &[u32], chunk: usize) -> Vec<(usize, usize, u32)> {
+fn joint_calls(masks: &[JointMask], chunk: usize) -> Vec<(usize, usize, JointMask)> {
     let mut calls = Vec::new();
-    let (mut start, mut union) = (0, 0u32);
+    let (mut start, mut union): (usize, JointMask) = (0, 0);
     for (i, &m) in masks.iter().enumerate() {
         let len = i - start;
         let grown = union | m;
