@@ -491,6 +491,9 @@ pub(crate) struct CullCtx {
     skipped_empty: usize,
     /// The fates of the last [`Self::run`], [R·S] in sample order.
     last_fates: Vec<SampleFate>,
+    /// The host copy of the samples [R·S·3] the last [`Self::fates`] tested (when the pass
+    /// has a window test): the joint grouping's plan reads them again.
+    host_pts: Vec<f32>,
     /// Per ray, the depth z from which its samples are behind its early stop (infinite:
     /// not stopped); empty when the pass did not march.
     stop_z: Vec<f32>,
@@ -665,6 +668,7 @@ impl CullCtx {
             samples_evaluated: 0,
             skipped_empty: 0,
             last_fates: Vec::new(),
+            host_pts: Vec::new(),
             stop_z: Vec::new(),
             stopped_early: 0,
             joint_test,
@@ -796,13 +800,10 @@ impl CullCtx {
     fn fates(&mut self, pts: &Tensor) -> Result<Vec<SampleFate>> {
         let (r, s, _) = pts.dims3()?;
         let fates = match (&self.test, &self.ray_alive) {
-            (Some(t), alive) => t.fates(
-                &host_f32(pts)?,
-                r,
-                s,
-                alive.as_deref(),
-                self.grid.as_deref(),
-            )?,
+            (Some(t), alive) => {
+                self.host_pts = host_f32(pts)?;
+                t.fates(&self.host_pts, r, s, alive.as_deref(), self.grid.as_deref())?
+            }
             (None, Some(alive)) => ray_fates(r, s, alive)?,
             (None, None) => vec![SampleFate::Evaluate; r * s],
         };
@@ -990,8 +991,13 @@ impl CullCtx {
         let (r, s, _) = pts.dims3()?;
         let k = r / n_poses;
         let n = r * s;
+        // `run` and `march` plan the samples whose fates they just took: their host copy is
+        // the one the window test read (a pass with joint grouping always has that test).
         let host = match &self.joint_test {
-            Some(_) => Some(host_f32(pts)?),
+            Some(_) if self.host_pts.len() == n * 3 => {
+                Some(std::borrow::Cow::Borrowed(&self.host_pts))
+            }
+            Some(_) => Some(std::borrow::Cow::Owned(host_f32(pts)?)),
             None => None,
         };
         // Rows of the source: i < n is sample i; n + q is the q-th far-away point.
@@ -1008,10 +1014,19 @@ impl CullCtx {
             let masks = match (&self.joint_test, &host) {
                 (Some(test), Some(host)) => {
                     let masks = test.live_joints(host, r, s, &samples)?;
-                    let mut keyed: Vec<(u32, usize)> = masks.into_iter().zip(samples).collect();
-                    keyed.sort_by_key(|&(mask, _)| chain_key(mask));
-                    samples = keyed.iter().map(|&(_, i)| i).collect();
-                    Some(keyed.into_iter().map(|(mask, _)| mask).collect::<Vec<_>>())
+                    let mut keyed: Vec<(u32, JointMask, usize)> = masks
+                        .into_iter()
+                        .zip(samples)
+                        .map(|(mask, i)| (chain_key(mask), mask, i))
+                        .collect();
+                    keyed.sort_by_key(|&(key, _, _)| key);
+                    samples = keyed.iter().map(|&(_, _, i)| i).collect();
+                    Some(
+                        keyed
+                            .into_iter()
+                            .map(|(_, mask, _)| mask)
+                            .collect::<Vec<_>>(),
+                    )
                 }
                 _ => None,
             };
@@ -1493,6 +1508,7 @@ mod tests {
             samples_evaluated: 0,
             skipped_empty: 0,
             last_fates: Vec::new(),
+            host_pts: Vec::new(),
             stop_z: Vec::new(),
             stopped_early: 0,
             joint_test: None,
