@@ -17,9 +17,9 @@ use pma_data::interrupt::Interrupted;
 use pma_model::compute::numerics::Numerics;
 use pma_model::error::ModelError;
 use pma_model::eval::{quantize, score_image, PsnrRegion};
-use pma_model::render::avatar::{Avatar, Mode, Rays};
+use pma_model::render::avatar::{Avatar, Rays};
 use pma_model::render::camera_path::{load_avatar, look_at, ViewDirs};
-use pma_model::render::image::{render_image, ChunkRender, ImageOptions, RenderedImage};
+use pma_model::render::image::{render_image, ImageOptions, RenderedImage};
 use pma_model::render::{Culling, SampleFill};
 use serde::Serialize;
 
@@ -375,20 +375,9 @@ impl Renderer {
                     bgs: Some(bg.clone()),
                     framecodes: vec![-1; n],
                 };
-                let out = avatar.forward_with_pose(
-                    &batch,
-                    &item.poses,
-                    &pose,
-                    &mut Mode::Infer,
-                    &pass,
-                )?;
+                let out = avatar.render_chunk(&batch, &item.poses, &pose, &pass)?;
                 rays.fetch_add(n, std::sync::atomic::Ordering::Relaxed);
-                Ok(ChunkRender {
-                    rgb: out.fine.rgb,
-                    acc: out.fine.acc,
-                    disp: out.fine.disp,
-                    stats: out.stats,
-                })
+                Ok(out)
             };
             let opts = ImageOptions {
                 chunk,

@@ -1,4 +1,5 @@
-//! Per-stage timing of training steps, on when the environment has `PMA_PROFILE=1`.
+//! Per-stage timing of training steps and renders, on when the environment has
+//! `PMA_PROFILE=1`.
 //!
 //! GPU work is asynchronous: a host timer around a stage measures only the launches. Each
 //! [`mark`] therefore synchronises the device first, so the time between two marks is the
@@ -6,8 +7,9 @@
 //! down: the profile is for finding the expensive stage, not for it/s figures. Off (the
 //! default), a mark is one relaxed load.
 //!
-//! The per-step line goes straight to stderr ([`print_step`]): a diagnostic that must reach
-//! a log file even when the front end shows nothing (no terminal, `--quiet`).
+//! The per-step line goes straight to stderr ([`print_step`], and [`print_render`] once per
+//! render of several frames): a diagnostic that must reach a log file even when the front
+//! end shows nothing (no terminal, `--quiet`).
 //!
 //! Marks are attributed per thread: with several CPU workers running chunks at once the
 //! stages overlap, so the figures are meaningful with one worker (GPU runs, or
@@ -86,5 +88,13 @@ pub fn take_report() -> Option<String> {
 pub fn print_step(iter: u64) {
     if let Some(p) = take_report() {
         eprintln!("iteration {iter} profile (PMA_PROFILE=1): {p}");
+    }
+}
+
+/// Print the stages summed over a render of `frames` frames to stderr and reset (nothing
+/// when profiling is off). Each image chunk starts its own timeline.
+pub fn print_render(frames: usize) {
+    if let Some(p) = take_report() {
+        eprintln!("render of {frames} frame(s) profile (PMA_PROFILE=1): {p}");
     }
 }

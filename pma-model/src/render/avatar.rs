@@ -327,6 +327,7 @@ impl Avatar {
             skipped_empty: points.skipped_empty() as u64,
             stopped_early: points.stopped_early() as u64,
             joint_rows: points.joint_rows() as u64,
+            rays_culled: points.rays_culled() as u64,
         };
         Ok(Outputs {
             vol_scale: pose.scales.clone(),

@@ -28,9 +28,11 @@ use pma_data::skeleton::Joints;
 
 use crate::compute::host::host_f32_shaped;
 use crate::error::{ModelError, Result};
+use crate::network::PoseFeatures;
 use crate::render::avatar::{Avatar, Mode, Rays};
 use crate::render::batch::{Outputs, Poses};
 use crate::render::options::{PassOptions, PassStats};
+use crate::render::raycast::CoarseSamples;
 
 /// Rays per chunk of the reference render path.
 pub const DEFAULT_CHUNK: usize = 5120;
@@ -174,6 +176,8 @@ pub fn render_image<R: ChunkRenderer + ?Sized>(
     let workers = crate::compute::parallel::workers_on(&opts.device);
     let outs = crate::compute::parallel::map_ordered(workers, chunks.len(), |i| {
         crate::interrupt::check()?;
+        // A chunk is a timeline of its own for `PMA_PROFILE=1`.
+        crate::compute::profile::start(&opts.device);
         let chunk = chunks[i];
         let c = chunk.len();
         let mut o = Vec::with_capacity(3 * c);
@@ -252,14 +256,107 @@ impl Avatar {
                 bgs: Some(bg.clone()),
                 framecodes: vec![-1; o.dim(0)?],
             };
-            let out = self.forward_with_pose(&rays, poses, &pose, &mut Mode::Infer, &opts.pass)?;
-            Ok(ChunkRender {
-                rgb: out.fine.rgb,
-                acc: out.fine.acc,
-                disp: out.fine.disp,
-                stats: out.stats,
-            })
+            self.render_chunk(&rays, poses, &pose, &opts.pass)
         };
         render_image(&renderer, cam, kp3d, background, opts)
+    }
+
+    /// One chunk of rays of one pose (inference, `pose` from [`Self::pose_features`]): the
+    /// fine render's rgb, acc and disp, as [`Self::forward_with_pose`] gives them.
+    ///
+    /// With ray culling, the rays that cross no bone box skip everything after casting: all
+    /// their samples are culled (raw outputs 0), so they render as exactly the background
+    /// with acc and disp 0. Only the other rays are composited and resampled; their samples,
+    /// network calls and results are those of the whole chunk (culled rays add no sample to
+    /// a call, and compositing and resampling are per ray).
+    pub fn render_chunk(
+        &self,
+        rays: &Rays,
+        poses: &Poses,
+        pose: &PoseFeatures,
+        opts: &PassOptions,
+    ) -> Result<ChunkRender> {
+        let of = |out: Outputs| ChunkRender {
+            rgb: out.fine.rgb,
+            acc: out.fine.acc,
+            disp: out.fine.disp,
+            stats: out.stats,
+        };
+        // Rays of several poses come in equal blocks per pose, which dropping rays would break.
+        if !opts.culling.rays || poses.bones.len() != 1 {
+            return Ok(of(self.forward_with_pose(
+                rays,
+                poses,
+                pose,
+                &mut Mode::Infer,
+                opts,
+            )?));
+        }
+        crate::render::batch::check_batch(rays, poses)?;
+        let cast = crate::render::batch::cast_batch(rays, poses, self.dtype())?;
+        let (rays, poses) = cast.as_ref().map_or((rays, poses), |(r, p)| (r, p));
+        let coarse = self.cast(rays, poses, pose, opts)?;
+        crate::compute::profile::mark("cast", self.device());
+        let n = rays.origins.dim(0)?;
+        let alive: Vec<usize> = match &coarse.bounds {
+            Some(b) => (0..n).filter(|&r| b.ray_hits_body[r]).collect(),
+            None => (0..n).collect(),
+        };
+        if alive.len() == n {
+            return Ok(of(self.forward_cast(
+                rays,
+                poses,
+                pose,
+                coarse,
+                &mut Mode::Infer,
+                opts,
+            )?));
+        }
+        let dev = rays.origins.device();
+        let mut rgb = match &rays.bgs {
+            Some(bg) => host_f32_shaped("bgs", bg, &[n, 3])?,
+            None => vec![0f32; 3 * n],
+        };
+        let (mut acc, mut disp) = (vec![0f32; n], vec![0f32; n]);
+        let per_ray = (coarse.z.dim(1)? + self.ray_caster().n_importance()) as u64;
+        let dead = (n - alive.len()) as u64;
+        let mut stats = PassStats {
+            samples: per_ray * dead,
+            rays_culled: dead,
+            ..PassStats::default()
+        };
+        if let (false, Some(bounds)) = (alive.is_empty(), &coarse.bounds) {
+            let rows: Vec<u32> = alive.iter().map(|&r| r as u32).collect();
+            let idx = Tensor::from_vec(rows, alive.len(), dev)?;
+            let pick = |t: &Tensor| t.index_select(&idx, 0);
+            let sub = Rays {
+                origins: pick(&rays.origins)?,
+                dirs: pick(&rays.dirs)?,
+                bgs: rays.bgs.as_ref().map(pick).transpose()?,
+                framecodes: alive.iter().map(|&r| rays.framecodes[r]).collect(),
+            };
+            let samples = CoarseSamples {
+                bounds: Some(bounds.select(&alive)),
+                z: pick(&coarse.z)?,
+                pts: pick(&coarse.pts)?,
+            };
+            let out = self.forward_cast(&sub, poses, pose, samples, &mut Mode::Infer, opts)?;
+            let m = alive.len();
+            let sub_rgb = host_f32_shaped("chunk rgb", &out.fine.rgb, &[m, 3])?;
+            let sub_acc = host_f32_shaped("chunk acc", &out.fine.acc, &[m])?;
+            let sub_disp = host_f32_shaped("chunk disp", &out.fine.disp, &[m])?;
+            for (k, &r) in alive.iter().enumerate() {
+                rgb[3 * r..3 * r + 3].copy_from_slice(&sub_rgb[3 * k..3 * k + 3]);
+                acc[r] = sub_acc[k];
+                disp[r] = sub_disp[k];
+            }
+            stats.add(&out.stats);
+        }
+        Ok(ChunkRender {
+            rgb: Tensor::from_vec(rgb, (n, 3), dev)?,
+            acc: Tensor::from_vec(acc, n, dev)?,
+            disp: Tensor::from_vec(disp, n, dev)?,
+            stats,
+        })
     }
 }

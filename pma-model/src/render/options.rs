@@ -285,6 +285,9 @@ pub struct PassStats {
     /// per point unless calls are grouped by joints, [`PassOptions::cull_joints`]).
     #[serde(default)]
     pub joint_rows: u64,
+    /// Rays that cross no bone box (ray culling): every sample of theirs is culled.
+    #[serde(default)]
+    pub rays_culled: u64,
 }
 
 impl PassStats {
@@ -297,6 +300,7 @@ impl PassStats {
         self.skipped_empty += o.skipped_empty;
         self.stopped_early += o.stopped_early;
         self.joint_rows += o.joint_rows;
+        self.rays_culled += o.rays_culled;
     }
 
     /// Share of the samples that ran the network (far-away constants not counted).

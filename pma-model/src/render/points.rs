@@ -160,6 +160,17 @@ impl PointEval {
         self.stopped_early
     }
 
+    /// Rays of this pass that ray culling left without any sample to run.
+    pub fn rays_culled(&self) -> usize {
+        match &self.route {
+            Route::Culled(ctx) => ctx
+                .ray_alive
+                .as_ref()
+                .map_or(0, |alive| alive.iter().filter(|&&a| !a).count()),
+            _ => 0,
+        }
+    }
+
     /// The coarse pass with the early stop: like [`Self::run`] on pts [R,S,3] at z [R,S]
     /// along dirs [R,3], but front to back in segments, leaving out the samples of rays whose
     /// transmittance fell below `eps` (inference only). A pass on another route (traced)

@@ -486,6 +486,7 @@ pub fn render_video(
         }
         write_png(&img, &opts.out.join("strip.png"))?;
     }
+    crate::compute::profile::print_render(shots.len());
     Ok(Rendered { frames, gif })
 }
 
@@ -501,6 +502,7 @@ fn render_shot(
 ) -> Result<RenderedImage> {
     // Chunks may run on several workers at once; each reports its rays when done.
     let progress = std::sync::Mutex::new(progress);
+    let pose = avatar.pose_features(&item.poses, None)?;
     let renderer = |o: &Tensor, d: &Tensor, bg: &Tensor| -> Result<ChunkRender> {
         let rays = Rays {
             origins: o.clone(),
@@ -508,16 +510,11 @@ fn render_shot(
             bgs: Some(bg.clone()),
             framecodes: vec![-1; o.dim(0)?],
         };
-        let out = avatar.render_rays(&rays, &item.poses, &opts.pass)?;
+        let out = avatar.render_chunk(&rays, &item.poses, &pose, &opts.pass)?;
         if let Ok(mut p) = progress.lock() {
             p.rays(o.dim(0)? as u64);
         }
-        Ok(ChunkRender {
-            rgb: out.fine.rgb,
-            acc: out.fine.acc,
-            disp: out.fine.disp,
-            stats: out.stats,
-        })
+        Ok(out)
     };
     render_image(&renderer, camera, &item.kp3d, Some(background), opts)
 }

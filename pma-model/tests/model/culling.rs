@@ -8,7 +8,7 @@ use pma_data::camera::Camera;
 use pma_model::network::config::Config;
 use pma_model::render::avatar::{Avatar, Mode, Outputs};
 use pma_model::render::cull::{SampleFate, WindowTest};
-use pma_model::render::image::ImageOptions;
+use pma_model::render::image::{render_image, ChunkRender, ImageOptions};
 use pma_model::render::{Culling, PassOptions, SampleFill};
 
 fn culling(rays: bool, threshold: Option<f64>) -> PassOptions {
@@ -334,6 +334,76 @@ fn calls_grouped_by_joints_render_the_same_image() {
             g.joint_rows,
             a.joint_rows
         );
+    }
+}
+
+/// With ray culling an image chunk composites and resamples only the rays that cross a bone
+/// box (`Avatar::render_chunk`); the others are exactly the background with acc and disp 0.
+/// The image, and every count, equals that of the whole chunk's forward pass, bit for bit:
+/// culled rays add no sample to a network call and compositing is per ray.
+#[test]
+// The renderer closure returns the crate's error, which carries candle's (large) one.
+#[allow(clippy::result_large_err)]
+fn rays_that_cross_no_box_are_left_out_of_the_chunk_exactly() {
+    let (avatar, poses, kp3d, cam) = visible_avatar(64);
+    let (w, h) = (cam.width, cam.height);
+    // A background that differs per pixel, so a culled ray given another's would show.
+    let bg: Vec<f32> = (0..w * h)
+        .flat_map(|p| [(p % w) as f32 / w as f32, (p / w) as f32 / h as f32, 0.25])
+        .collect();
+    let early_joints = PassOptions {
+        early_stop: Some(0.01),
+        cull_joints: true,
+        ..culling(true, Some(0.6))
+    };
+    for pass in [culling(true, None), culling(true, Some(0.6)), early_joints] {
+        let opts = ImageOptions {
+            // Several chunks, some with rays of both kinds.
+            chunk: 700,
+            pass: pass.clone(),
+            ..Default::default()
+        };
+        let left_out = avatar
+            .render_image(&poses, &kp3d, &cam, Some(&bg), &opts)
+            .unwrap();
+        let pose = avatar.pose_features(&poses, None).unwrap();
+        let whole_chunk = |o: &Tensor, d: &Tensor, b: &Tensor| {
+            let rays = pma_model::render::avatar::Rays {
+                origins: o.clone(),
+                dirs: d.clone(),
+                bgs: Some(b.clone()),
+                framecodes: vec![-1; o.dim(0)?],
+            };
+            let out = avatar.forward_with_pose(&rays, &poses, &pose, &mut Mode::Infer, &pass)?;
+            Ok(ChunkRender {
+                rgb: out.fine.rgb,
+                acc: out.fine.acc,
+                disp: out.fine.disp,
+                stats: out.stats,
+            })
+        };
+        let whole = render_image(&whole_chunk, &cam, &kp3d, Some(&bg), &opts).unwrap();
+        let s = left_out.stats;
+        let rays = s.samples / (avatar.config().n_samples + avatar.config().n_importance) as u64;
+        println!("{pass:?}: {} of {rays} rays culled", s.rays_culled);
+        assert!(
+            s.rays_culled > 0 && s.rays_culled < rays,
+            "the image needs rays of both kinds: {} of {rays} culled",
+            s.rays_culled
+        );
+        assert!(
+            left_out.acc.iter().any(|&a| a > 0.1),
+            "the image shows no body"
+        );
+        assert_eq!(left_out.stats, whole.stats, "counts differ");
+        for (name, a, b) in [
+            ("rgb", &left_out.rgb, &whole.rgb),
+            ("acc", &left_out.acc, &whole.acc),
+            ("disp", &left_out.disp, &whole.disp),
+        ] {
+            let differ = a.iter().zip(b).filter(|(x, y)| x.to_bits() != y.to_bits());
+            assert_eq!(differ.count(), 0, "{name} differs from the whole chunk's");
+        }
     }
 }
 

@@ -6,7 +6,8 @@ use candle_core::{Device, Tensor, Var};
 use pma_data::skeleton::N_JOINTS;
 use pma_model::network::config::Config;
 use pma_model::render::raycast::{
-    box_near_far, cylinder_near_far, fill_cylinder_misses, merge_raw, RayCaster,
+    box_may_hit, box_near_far, box_near_far_robust, cylinder_near_far, fill_cylinder_misses,
+    merge_raw, RayCaster,
 };
 
 fn identity4() -> Vec<f32> {
@@ -103,6 +104,96 @@ fn box_bounds_scale_and_direction_length() {
     let (n, f) = box_near_far(&m, [0.5, 1.0, 2.0], [0.0, 0.0, 0.0], [0.0, 0.0, 1.0], 1.1).unwrap();
     // Along world z the box extends ±0.5·1.1 around z = 10.
     assert!(close(n, 9.45, 1e-5) && close(f, 10.55, 1e-5), "{n} {f}");
+}
+
+/// The cheap pre-test never rejects a ray either exact box test finds crossing, including
+/// rays aimed at corners and edges and rays that just graze past, for rotated, translated and
+/// stretched boxes; and it rejects most rays that pass well away (else it saves nothing).
+#[test]
+fn the_box_pre_test_passes_every_crossing_ray() {
+    use rand::{Rng, SeedableRng};
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+    let mut u = move || rng.gen::<f32>();
+    let bound = 1.1f64;
+    let (mut crossing, mut far_rejected, mut far_total) = (0, 0, 0);
+    for case in 0..20_000 {
+        // A rotation about a random axis (Rodrigues), a translation and per-axis scales.
+        let (ax, ang) = ([u() - 0.5, u() - 0.5, u() - 0.5], 6.3 * u());
+        let n = (ax[0] * ax[0] + ax[1] * ax[1] + ax[2] * ax[2])
+            .sqrt()
+            .max(1e-3);
+        let k = [ax[0] / n, ax[1] / n, ax[2] / n];
+        let (c, s) = (ang.cos(), ang.sin());
+        let mut m = vec![0f32; 16];
+        for i in 0..3 {
+            for j in 0..3 {
+                let cross = match (i, j) {
+                    (0, 1) => -k[2],
+                    (0, 2) => k[1],
+                    (1, 0) => k[2],
+                    (1, 2) => -k[0],
+                    (2, 0) => -k[1],
+                    (2, 1) => k[0],
+                    _ => 0.0,
+                };
+                m[4 * i + j] = c * f32::from(i == j) + s * cross + (1.0 - c) * k[i] * k[j];
+            }
+            m[4 * i + 3] = 2.0 * (u() - 0.5);
+        }
+        m[15] = 1.0;
+        let scale = [0.05 + 0.3 * u(), 0.05 + 0.3 * u(), 0.05 + 0.3 * u()];
+        // A target in box-normalised coordinates: a corner, an edge, a face, or outside.
+        let lim = bound as f32;
+        let pick = |v: f32| if v < 0.5 { -lim } else { lim };
+        let target_n = match case % 4 {
+            0 => [pick(u()), pick(u()), pick(u())],
+            1 => [pick(u()), pick(u()), lim * (2.0 * u() - 1.0)],
+            2 => [pick(u()), lim * (2.0 * u() - 1.0), lim * (2.0 * u() - 1.0)],
+            _ => [
+                4.0 * (u() - 0.5) * lim,
+                4.0 * (u() - 0.5) * lim,
+                4.0 * (u() - 0.5) * lim,
+            ],
+        };
+        // Back to the world: x = Rᵀ(s ⊙ x̂ − t).
+        let local = [
+            target_n[0] * scale[0] - m[3],
+            target_n[1] * scale[1] - m[7],
+            target_n[2] * scale[2] - m[11],
+        ];
+        let target: [f32; 3] =
+            std::array::from_fn(|j| (0..3).map(|i| m[4 * i + j] * local[i]).sum());
+        let o = [3.0 * (u() - 0.5), 3.0 * (u() - 0.5), 3.0 + 2.0 * u()];
+        // Unnormalised directions, as image rays have them.
+        let len = 0.5 + u();
+        let d = [
+            (target[0] - o[0]) * len,
+            (target[1] - o[1]) * len,
+            (target[2] - o[2]) * len,
+        ];
+        let may = box_may_hit(&m, scale, o, d, bound);
+        let hits = [
+            box_near_far(&m, scale, o, d, bound),
+            box_near_far_robust(&m, scale, o, d, bound),
+        ];
+        if hits.iter().any(Option::is_some) {
+            crossing += 1;
+            assert!(may, "case {case}: a crossing ray was rejected ({hits:?})");
+        }
+        if case % 4 == 3 && target_n.iter().any(|v| v.abs() > 1.9 * lim) {
+            far_total += 1;
+            far_rejected += usize::from(!may);
+        }
+    }
+    println!("{crossing} crossing rays; {far_rejected} of {far_total} far-off rays rejected");
+    assert!(
+        crossing > 10_000,
+        "too few crossing rays to mean anything: {crossing}"
+    );
+    assert!(
+        far_rejected * 2 > far_total,
+        "the pre-test rejects only {far_rejected} of {far_total} rays aimed well off the box"
+    );
 }
 
 #[test]

@@ -236,7 +236,9 @@ impl RayCaster {
                 for j in 0..N_JOINTS {
                     let s = [scales[3 * j], scales[3 * j + 1], scales[3 * j + 2]];
                     let w2b = &world_to_box[j * 16..j * 16 + 16];
-                    let hit = if self.robust_bounds {
+                    let hit = if !box_may_hit(w2b, s, o, d, self.bound) {
+                        None
+                    } else if self.robust_bounds {
                         box_near_far_robust(w2b, s, o, d, self.bound)
                     } else {
                         box_near_far(w2b, s, o, d, self.bound)
@@ -449,6 +451,42 @@ fn nan_mean(v: &[f32]) -> Option<f32> {
         .filter(|x| !x.is_nan())
         .fold((0f64, 0usize), |(s, c), &x| (s + x as f64, c + 1));
     (count > 0).then(|| (sum / count as f64) as f32)
+}
+
+/// A cheap test that passes every ray [`box_near_far`] or [`box_near_far_robust`] could
+/// find crossing the box (same arguments): both accept only face points inside the box, so a
+/// crossing ray passes within the box's circumradius (√3·bound in normalised units) of its
+/// centre. Most of an image's rays miss most boxes; this rejects them without the six face
+/// intersections. The 1 % margin is far above the f32 rounding of either computation, and
+/// non-finite values pass (the exact tests decide them).
+pub fn box_may_hit(
+    world_to_box: &[f32],
+    scale: [f32; 3],
+    o: [f32; 3],
+    d: [f32; 3],
+    bound: f64,
+) -> bool {
+    let m = world_to_box;
+    let rot = |v: [f32; 3], i: usize| m[4 * i] * v[0] + m[4 * i + 1] * v[1] + m[4 * i + 2] * v[2];
+    let inv = [1.0 / scale[0], 1.0 / scale[1], 1.0 / scale[2]];
+    let o_s = [
+        (rot(o, 0) + m[3]) * inv[0],
+        (rot(o, 1) + m[7]) * inv[1],
+        (rot(o, 2) + m[11]) * inv[2],
+    ];
+    let d_s = [rot(d, 0) * inv[0], rot(d, 1) * inv[1], rot(d, 2) * inv[2]];
+    // |o_s × d_s|² / |d_s|²: the squared distance from the centre to the ray's line.
+    let c = [
+        o_s[1] * d_s[2] - o_s[2] * d_s[1],
+        o_s[2] * d_s[0] - o_s[0] * d_s[2],
+        o_s[0] * d_s[1] - o_s[1] * d_s[0],
+    ];
+    let cross2 = c[0] * c[0] + c[1] * c[1] + c[2] * c[2];
+    let d2 = d_s[0] * d_s[0] + d_s[1] * d_s[1] + d_s[2] * d_s[2];
+    let lim = (bound + BOX_EPS) as f32;
+    let r2 = 3.0 * lim * lim * 1.01;
+    // NaN compares as not greater: such rays go to the exact tests.
+    cross2.partial_cmp(&(r2 * d2)) != Some(std::cmp::Ordering::Greater)
 }
 
 /// One ray against one part's box. world_to_box: [4,4] row-major `A_j·skt_j`;
