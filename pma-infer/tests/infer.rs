@@ -62,7 +62,7 @@ fn renders_one_png_and_rejects_bad_input() {
     ]);
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(
-        !out.status.success() && err.contains("no occupancy grid"),
+        out.status.code() == Some(2) && err.contains("no occupancy grid"),
         "{err}"
     );
     let gridded = tmp.path().join("grid.safetensors");
@@ -114,8 +114,57 @@ fn renders_one_png_and_rejects_bad_input() {
         .unwrap();
     assert!(worst <= 1, "early stop changed a pixel by {worst} levels");
 
+    // Calls grouped by the joints their samples need: the same image up to float summation
+    // order.
+    let png4 = tmp.path().join("joints.png");
+    let out = infer(&[
+        model.to_str().unwrap(),
+        png4.to_str().unwrap(),
+        "24",
+        "--cull-joints",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let grouped = image::open(&png4).unwrap().to_rgb8().into_raw();
+    let worst = grouped
+        .iter()
+        .zip(&full)
+        .map(|(a, b)| a.abs_diff(*b))
+        .max()
+        .unwrap();
+    assert!(
+        worst <= 1,
+        "joint grouping changed a pixel by {worst} levels"
+    );
+
+    // Refused input exits with 2, naming what was wrong.
+    let no_dir = tmp.path().join("missing").join("out.png");
     for (args, needle) in [
         (vec![model.to_str().unwrap()], "usage"),
+        (
+            vec![model.to_str().unwrap(), png.to_str().unwrap(), "--cull"],
+            "unknown flag \"--cull\"",
+        ),
+        (
+            vec![model.to_str().unwrap(), png.to_str().unwrap(), "--device"],
+            "--device needs a value",
+        ),
+        (
+            vec![
+                model.to_str().unwrap(),
+                png.to_str().unwrap(),
+                "--device",
+                "tpu",
+            ],
+            "unknown device",
+        ),
+        (
+            vec![model.to_str().unwrap(), no_dir.to_str().unwrap(), "24"],
+            "missing",
+        ),
         (
             vec![
                 model.to_str().unwrap(),
@@ -146,9 +195,11 @@ fn renders_one_png_and_rejects_bad_input() {
         let out = infer(&args);
         let err = String::from_utf8_lossy(&out.stderr);
         assert!(
-            !out.status.success() && err.contains(needle),
-            "{args:?}: {err}"
+            out.status.code() == Some(2) && err.contains(needle),
+            "{args:?}: exit {:?}, {err}",
+            out.status.code()
         );
+        assert_eq!(err.lines().count(), 1, "{args:?}: {err}");
         assert!(!err.contains("panicked"));
     }
 }
