@@ -236,12 +236,13 @@ impl RayCaster {
                 for j in 0..N_JOINTS {
                     let s = [scales[3 * j], scales[3 * j + 1], scales[3 * j + 2]];
                     let w2b = &world_to_box[j * 16..j * 16 + 16];
-                    let hit = if !box_may_hit(w2b, s, o, d, self.bound) {
+                    let ray = BoxRay::new(w2b, s, o, d);
+                    let hit = if !ray.may_hit(self.bound) {
                         None
                     } else if self.robust_bounds {
-                        box_near_far_robust(w2b, s, o, d, self.bound)
+                        ray.near_far_robust(self.bound)
                     } else {
-                        box_near_far(w2b, s, o, d, self.bound)
+                        ray.near_far(s, self.bound)
                     };
                     if let Some((t0, t1)) = hit {
                         box_hit[r * N_JOINTS + j] = true;
@@ -453,12 +454,125 @@ fn nan_mean(v: &[f32]) -> Option<f32> {
     (count > 0).then(|| (sum / count as f64) as f32)
 }
 
-/// A cheap test that passes every ray [`box_near_far`] or [`box_near_far_robust`] could
-/// find crossing the box (same arguments): both accept only face points inside the box, so a
-/// crossing ray passes within the box's circumradius (√3·bound in normalised units) of its
-/// centre. Most of an image's rays miss most boxes; this rejects them without the six face
-/// intersections. The 1 % margin is far above the f32 rounding of either computation, and
-/// non-finite values pass (the exact tests decide them).
+/// A world ray in one part's box frame: `t` (`A_j·skt_j` applied; the direction only
+/// rotated) and `s` (divided by the part's scale s_j, the normalised box units). Computed once
+/// per ray and box for [`BoxRay::may_hit`] and the exact crossing that follows it.
+#[derive(Clone, Copy, Debug)]
+pub struct BoxRay {
+    o_t: [f32; 3],
+    d_t: [f32; 3],
+    o_s: [f32; 3],
+    d_s: [f32; 3],
+}
+
+impl BoxRay {
+    /// world_to_box: [4,4] row-major `A_j·skt_j`; scale: s_j; o, d: the world ray.
+    pub fn new(world_to_box: &[f32], scale: [f32; 3], o: [f32; 3], d: [f32; 3]) -> Self {
+        let m = world_to_box;
+        let rot =
+            |v: [f32; 3], i: usize| m[4 * i] * v[0] + m[4 * i + 1] * v[1] + m[4 * i + 2] * v[2];
+        let o_t = [rot(o, 0) + m[3], rot(o, 1) + m[7], rot(o, 2) + m[11]];
+        let d_t = [rot(d, 0), rot(d, 1), rot(d, 2)];
+        let o_s = [o_t[0] / scale[0], o_t[1] / scale[1], o_t[2] / scale[2]];
+        let d_s = [d_t[0] / scale[0], d_t[1] / scale[1], d_t[2] / scale[2]];
+        Self { o_t, d_t, o_s, d_s }
+    }
+
+    /// A cheap test that passes every ray [`Self::near_far`] or [`Self::near_far_robust`]
+    /// could find crossing the box: both accept only face points inside the box, so a
+    /// crossing ray passes within the box's circumradius (√3·bound in normalised units) of
+    /// its centre. Most of an image's rays miss most boxes; this rejects them without the six
+    /// face intersections. The 1 % margin is far above f32 rounding, and non-finite values
+    /// pass (the exact tests decide them).
+    pub fn may_hit(&self, bound: f64) -> bool {
+        let (o_s, d_s) = (self.o_s, self.d_s);
+        // |o_s × d_s|² / |d_s|²: the squared distance from the centre to the ray's line.
+        let c = [
+            o_s[1] * d_s[2] - o_s[2] * d_s[1],
+            o_s[2] * d_s[0] - o_s[0] * d_s[2],
+            o_s[0] * d_s[1] - o_s[1] * d_s[0],
+        ];
+        let cross2 = c[0] * c[0] + c[1] * c[1] + c[2] * c[2];
+        let d2 = d_s[0] * d_s[0] + d_s[1] * d_s[1] + d_s[2] * d_s[2];
+        let lim = (bound + BOX_EPS) as f32;
+        let r2 = 3.0 * lim * lim * 1.01;
+        // NaN compares as not greater: such rays go to the exact tests.
+        cross2.partial_cmp(&(r2 * d2)) != Some(std::cmp::Ordering::Greater)
+    }
+
+    /// The (near, far) ray parameters of the crossing as the reference computes them
+    /// (scale: s_j; bound: half-size of the box in normalised units, 1.1), or `None` unless
+    /// exactly two of the six face hits are valid (misses, and grazing rays through an edge
+    /// or corner).
+    pub fn near_far(&self, scale: [f32; 3], bound: f64) -> Option<(f32, f32)> {
+        let Self { o_t, d_t, o_s, d_s } = *self;
+        // The reference compares float32 tensors with Python-float thresholds: both end up f32.
+        let face = bound as f32;
+        let lim = (bound + BOX_EPS) as f32;
+        let mut hits = [[0f32; 3]; 2];
+        let mut n_hits = 0;
+        for axis in 0..3 {
+            for plane in [-face, face] {
+                // Zero direction components give ±inf/NaN here; such points fail the range test.
+                let t = (plane - o_s[axis]) / d_s[axis];
+                let p = [
+                    o_s[0] + t * d_s[0],
+                    o_s[1] + t * d_s[1],
+                    o_s[2] + t * d_s[2],
+                ];
+                if p.iter().all(|&c| c >= -lim && c <= lim) {
+                    if n_hits < 2 {
+                        hits[n_hits] = p;
+                    }
+                    n_hits += 1;
+                }
+            }
+        }
+        if n_hits != 2 {
+            return None;
+        }
+        let d_len = norm3(d_t);
+        let dist = |p: [f32; 3]| {
+            norm3([
+                p[0] * scale[0] - o_t[0],
+                p[1] * scale[1] - o_t[1],
+                p[2] * scale[2] - o_t[2],
+            ]) / d_len
+        };
+        let (t0, t1) = (dist(hits[0]), dist(hits[1]));
+        Some((t0.min(t1), t0.max(t1)))
+    }
+
+    /// [`Self::near_far`] without the reference's blind spots (`quirks.robust_ray_bounds`): the
+    /// face hits are kept as signed ray parameters (the box frame is an affine image of the world
+    /// ray, so a face's `t` is the world ray parameter), every valid hit counts (rays through an
+    /// edge or corner validate 3–6 faces, which the reference drops), the part behind the camera
+    /// is cut off (near ≥ 0, so a camera inside a box samples from its origin), and boxes
+    /// entirely behind the camera are misses.
+    pub fn near_far_robust(&self, bound: f64) -> Option<(f32, f32)> {
+        let (o_s, d_s) = (self.o_s, self.d_s);
+        let face = bound as f32;
+        let lim = (bound + BOX_EPS) as f32;
+        let (mut t_min, mut t_max) = (f32::INFINITY, f32::NEG_INFINITY);
+        for axis in 0..3 {
+            for plane in [-face, face] {
+                let t = (plane - o_s[axis]) / d_s[axis];
+                let p = [
+                    o_s[0] + t * d_s[0],
+                    o_s[1] + t * d_s[1],
+                    o_s[2] + t * d_s[2],
+                ];
+                if t.is_finite() && p.iter().all(|&c| c >= -lim && c <= lim) {
+                    t_min = t_min.min(t);
+                    t_max = t_max.max(t);
+                }
+            }
+        }
+        (t_max > t_min && t_max > 0.0).then(|| (t_min.max(0.0), t_max))
+    }
+}
+
+/// [`BoxRay::may_hit`] for one ray against one part's box (arguments as [`BoxRay::new`]).
 pub fn box_may_hit(
     world_to_box: &[f32],
     scale: [f32; 3],
@@ -466,33 +580,10 @@ pub fn box_may_hit(
     d: [f32; 3],
     bound: f64,
 ) -> bool {
-    let m = world_to_box;
-    let rot = |v: [f32; 3], i: usize| m[4 * i] * v[0] + m[4 * i + 1] * v[1] + m[4 * i + 2] * v[2];
-    let inv = [1.0 / scale[0], 1.0 / scale[1], 1.0 / scale[2]];
-    let o_s = [
-        (rot(o, 0) + m[3]) * inv[0],
-        (rot(o, 1) + m[7]) * inv[1],
-        (rot(o, 2) + m[11]) * inv[2],
-    ];
-    let d_s = [rot(d, 0) * inv[0], rot(d, 1) * inv[1], rot(d, 2) * inv[2]];
-    // |o_s × d_s|² / |d_s|²: the squared distance from the centre to the ray's line.
-    let c = [
-        o_s[1] * d_s[2] - o_s[2] * d_s[1],
-        o_s[2] * d_s[0] - o_s[0] * d_s[2],
-        o_s[0] * d_s[1] - o_s[1] * d_s[0],
-    ];
-    let cross2 = c[0] * c[0] + c[1] * c[1] + c[2] * c[2];
-    let d2 = d_s[0] * d_s[0] + d_s[1] * d_s[1] + d_s[2] * d_s[2];
-    let lim = (bound + BOX_EPS) as f32;
-    let r2 = 3.0 * lim * lim * 1.01;
-    // NaN compares as not greater: such rays go to the exact tests.
-    cross2.partial_cmp(&(r2 * d2)) != Some(std::cmp::Ordering::Greater)
+    BoxRay::new(world_to_box, scale, o, d).may_hit(bound)
 }
 
-/// One ray against one part's box. world_to_box: [4,4] row-major `A_j·skt_j`;
-/// scale: s_j; o, d: the world ray; bound: half-size of the box in normalised units (1.1).
-/// Returns the (near, far) ray parameters of the crossing, or `None` unless exactly two of the
-/// six face hits are valid (misses, and grazing rays through an edge or corner).
+/// [`BoxRay::near_far`] for one ray against one part's box (arguments as [`BoxRay::new`]).
 pub fn box_near_far(
     world_to_box: &[f32],
     scale: [f32; 3],
@@ -500,55 +591,11 @@ pub fn box_near_far(
     d: [f32; 3],
     bound: f64,
 ) -> Option<(f32, f32)> {
-    let m = world_to_box;
-    let rot = |v: [f32; 3], i: usize| m[4 * i] * v[0] + m[4 * i + 1] * v[1] + m[4 * i + 2] * v[2];
-    let o_t = [rot(o, 0) + m[3], rot(o, 1) + m[7], rot(o, 2) + m[11]];
-    let d_t = [rot(d, 0), rot(d, 1), rot(d, 2)];
-    let o_s = [o_t[0] / scale[0], o_t[1] / scale[1], o_t[2] / scale[2]];
-    let d_s = [d_t[0] / scale[0], d_t[1] / scale[1], d_t[2] / scale[2]];
-    // The reference compares float32 tensors with Python-float thresholds: both end up f32.
-    let face = bound as f32;
-    let lim = (bound + BOX_EPS) as f32;
-    let mut hits = [[0f32; 3]; 2];
-    let mut n_hits = 0;
-    for axis in 0..3 {
-        for plane in [-face, face] {
-            // Zero direction components give ±inf/NaN here; such points fail the range test.
-            let t = (plane - o_s[axis]) / d_s[axis];
-            let p = [
-                o_s[0] + t * d_s[0],
-                o_s[1] + t * d_s[1],
-                o_s[2] + t * d_s[2],
-            ];
-            if p.iter().all(|&c| c >= -lim && c <= lim) {
-                if n_hits < 2 {
-                    hits[n_hits] = p;
-                }
-                n_hits += 1;
-            }
-        }
-    }
-    if n_hits != 2 {
-        return None;
-    }
-    let d_len = norm3(d_t);
-    let dist = |p: [f32; 3]| {
-        norm3([
-            p[0] * scale[0] - o_t[0],
-            p[1] * scale[1] - o_t[1],
-            p[2] * scale[2] - o_t[2],
-        ]) / d_len
-    };
-    let (t0, t1) = (dist(hits[0]), dist(hits[1]));
-    Some((t0.min(t1), t0.max(t1)))
+    BoxRay::new(world_to_box, scale, o, d).near_far(scale, bound)
 }
 
-/// [`box_near_far`] without the reference's blind spots (`quirks.robust_ray_bounds`): the
-/// face hits are kept as signed ray parameters (the box frame is an affine image of the world
-/// ray, so a face's `t` is the world ray parameter), every valid hit counts (rays through an
-/// edge or corner validate 3–6 faces, which the reference drops), the part behind the camera
-/// is cut off (near ≥ 0, so a camera inside a box samples from its origin), and boxes
-/// entirely behind the camera are misses.
+/// [`BoxRay::near_far_robust`] for one ray against one part's box (arguments as
+/// [`BoxRay::new`]).
 pub fn box_near_far_robust(
     world_to_box: &[f32],
     scale: [f32; 3],
@@ -556,30 +603,7 @@ pub fn box_near_far_robust(
     d: [f32; 3],
     bound: f64,
 ) -> Option<(f32, f32)> {
-    let m = world_to_box;
-    let rot = |v: [f32; 3], i: usize| m[4 * i] * v[0] + m[4 * i + 1] * v[1] + m[4 * i + 2] * v[2];
-    let o_t = [rot(o, 0) + m[3], rot(o, 1) + m[7], rot(o, 2) + m[11]];
-    let d_t = [rot(d, 0), rot(d, 1), rot(d, 2)];
-    let o_s = [o_t[0] / scale[0], o_t[1] / scale[1], o_t[2] / scale[2]];
-    let d_s = [d_t[0] / scale[0], d_t[1] / scale[1], d_t[2] / scale[2]];
-    let face = bound as f32;
-    let lim = (bound + BOX_EPS) as f32;
-    let (mut t_min, mut t_max) = (f32::INFINITY, f32::NEG_INFINITY);
-    for axis in 0..3 {
-        for plane in [-face, face] {
-            let t = (plane - o_s[axis]) / d_s[axis];
-            let p = [
-                o_s[0] + t * d_s[0],
-                o_s[1] + t * d_s[1],
-                o_s[2] + t * d_s[2],
-            ];
-            if t.is_finite() && p.iter().all(|&c| c >= -lim && c <= lim) {
-                t_min = t_min.min(t);
-                t_max = t_max.max(t);
-            }
-        }
-    }
-    (t_max > t_min && t_max > 0.0).then(|| (t_min.max(0.0), t_max))
+    BoxRay::new(world_to_box, scale, o, d).near_far_robust(bound)
 }
 
 /// Sample points: rays_o, rays_d: [R,3], z: [R,S] -> [R,S,3] with `o + d·z`.
