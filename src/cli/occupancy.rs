@@ -10,7 +10,7 @@ use pma_model::network::occupancy::OccupancyConfig;
 use pma_model::render::avatar::Avatar;
 use pma_model::tools::occupancy::{build, BuildOptions};
 
-use super::{progress, read_dataset};
+use super::{progress, read_dataset, refuse};
 
 #[derive(clap::Subcommand, Debug, Clone)]
 pub enum Command {
@@ -42,6 +42,15 @@ pub struct BuildArgs {
     /// Cells per axis of each joint's grid.
     #[arg(long, default_value_t = OccupancyConfig::default().resolution)]
     pub resolution: usize,
+    /// The grid covers x̄ ∈ [−extent, extent]³ of each joint's box frame; samples outside it
+    /// always run the network.
+    #[arg(long, default_value_t = OccupancyConfig::default().extent)]
+    pub extent: f64,
+    /// The smallest sample-culling threshold the grid will be used with: the grid spans only
+    /// where a joint's window can exceed it (at most `--extent`), so its cells are finer.
+    /// Renders at a lower threshold stay exact but leave less out.
+    #[arg(long, value_name = "T")]
+    pub cull_samples: Option<f64>,
     /// Density relu(σ) above which a cell is occupied.
     #[arg(long, default_value_t = OccupancyConfig::default().threshold)]
     pub threshold: f64,
@@ -82,14 +91,21 @@ fn run_build(mut args: BuildArgs) -> anyhow::Result<()> {
     )?;
     let config = OccupancyConfig {
         resolution: args.resolution,
+        extent: args.extent,
         threshold: args.threshold,
         dilation: args.dilation,
         ..Default::default()
     };
-    config.validate("occupancy (--resolution, --threshold, --dilation)")?;
+    config.validate("occupancy (--resolution, --extent, --threshold, --dilation)")?;
+    if let Some(t) = args.cull_samples {
+        if !(t.is_finite() && (0.0..1.0).contains(&t)) {
+            refuse!("--cull-samples: expected a threshold in [0, 1), found {t}");
+        }
+    }
     let avatar = Avatar::load(&args.model, &device)
         .with_context(|| format!("loading model {}", args.model.display()))?
         .with_numerics(super::numerics());
+    let config = config.covering(args.cull_samples, avatar.config());
     let data = read_dataset(&args.data, Profile::Render)?;
     let opts = BuildOptions {
         config,

@@ -114,6 +114,47 @@ fn grids_from_training_and_from_build_render_and_bad_ones_are_refused() {
         let flat = |t: &candle_core::Tensor| t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
         assert_eq!(flat(&t), flat(&b.tensors()[&name]), "{name}");
     }
+    assert_eq!(
+        grid.config().extent,
+        2.0,
+        "without --cull-samples: the whole window"
+    );
+    // `--cull-samples T`: the grid spans only where a window can exceed T; a threshold
+    // outside [0, 1) is refused naming the flag.
+    let build_for = |t: &str, out: &Path| {
+        pma(&[
+            "occupancy",
+            "build",
+            "--model",
+            s(&plain),
+            "--data",
+            s(&scene),
+            "--poses",
+            "1",
+            "--resolution",
+            "8",
+            "--cull-samples",
+            t,
+            "--out",
+            s(out),
+            "--quiet",
+        ])
+    };
+    let narrow = tmp.path().join("narrow.safetensors");
+    ok(build_for("0.6", &narrow));
+    let n = Avatar::load(&narrow, &Device::Cpu).unwrap();
+    let m = n.config();
+    let want = pma_model::network::occupancy::window_extent(0.6, m.window_alpha, m.window_beta);
+    assert_eq!(n.occupancy().unwrap().config().extent, want);
+    ok(render(
+        &narrow,
+        &scene_dir,
+        &tmp.path().join("v3"),
+        &["--occupancy", "--cull-samples", "0.6"],
+    ));
+    let out = build_for("1.5", &tmp.path().join("bad.safetensors"));
+    assert_eq!(out.status.code(), Some(2));
+    fails_with(out, "--cull-samples");
     ok(render(
         &built,
         &scene_dir,

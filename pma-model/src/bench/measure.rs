@@ -28,7 +28,7 @@ use serde::{Deserialize, Serialize};
 use super::{peak_rss_mib, reset_peak_rss, BenchError, BenchObserver, BenchOption, Result};
 use crate::compute::flops;
 use crate::eval::{dataset_pose, evaluate, read_dataset, EvalOptions};
-use crate::network::occupancy::OccupancyConfig;
+use crate::network::occupancy::{OccupancyConfig, OccupancyGrid};
 use crate::render::avatar::{Avatar, Poses};
 use crate::render::image::{body_box, ImageOptions, RenderedImage};
 use crate::render::PassOptions;
@@ -89,13 +89,14 @@ pub struct OptionResult {
     pub joints_per_point: f64,
     /// Achieved matmul GFLOP/s (network points × FLOPs per point / time).
     pub gflops: f64,
-    /// Median ms per training step (the option's culling in training).
+    /// Mean ms per training step over the budget (the option's culling and grid in training,
+    /// the grid's refreshes included).
     pub ms_per_step: f64,
     /// Achieved matmul GFLOP/s of a training step (evaluated points × FLOPs per point ×
-    /// `flops::TRAIN_FACTOR` / median step time).
+    /// `flops::TRAIN_FACTOR` / mean step time).
     #[serde(default)]
     pub train_gflops: f64,
-    /// Parity's median ms per step over this option's (training speed-up).
+    /// Parity's mean ms per step over this option's (training speed-up).
     #[serde(default)]
     pub step_speedup_vs_parity: f64,
     /// Share of a training step's samples that ran the network (far-away constants
@@ -176,17 +177,15 @@ pub fn measure(req: &BenchRequest, obs: &mut dyn BenchObserver) -> Result<BenchR
     // Loaded before the per-option peak-RSS resets, so no option's phase pays for it.
     crate::eval::lpips::Lpips::shared()?;
     let (avatar, model_desc) = bench_model(req, &scene, obs)?;
-    let mut avatar = match req.options.iter().any(|o| o.occupancy) && avatar.occupancy().is_none() {
-        true => grid_for(req, avatar, &scene, obs)?,
-        false => avatar,
-    };
+    let (mut avatar, grids) = grids_for(req, avatar, &scene, obs)?;
     let cfg = avatar.config().clone();
     let fpp = flops::per_point(&cfg);
     let (peak, peak_how) = flops::fp32_peak();
     let view = bench_view(req, &scene)?;
     let inactive = inactive_joint_fraction(&avatar, &view)?;
 
-    let mut results = measure_inference(req, &mut avatar, &scene, &view, fpp, rss_reset, obs)?;
+    let mut results =
+        measure_inference(req, &mut avatar, &grids, &scene, &view, fpp, rss_reset, obs)?;
     measure_training(req, &cfg, &scene, &mut results, rss_reset, obs)?;
     let (parity_rays, parity_step) = (results[0].rays_per_s, results[0].ms_per_step);
     for r in &mut results {
@@ -345,35 +344,81 @@ fn bench_model(
     ))
 }
 
-/// `avatar` with an occupancy grid built from the scene's training poses (for the
-/// rendering rows of the options with the grid).
-fn grid_for(
+/// The occupancy grids of the rendering rows: empty when no option uses one or the model
+/// brought its own (every row then uses that); otherwise one grid per span, built from the
+/// scene's training poses, spanning where the option's culling threshold lets the window
+/// through ([`OccupancyConfig::covering`]): the grid alone spans the whole window.
+struct Grids(Vec<(u64, Arc<OccupancyGrid>)>);
+
+impl Grids {
+    fn extent(req: &BenchRequest, avatar: &Avatar, opt: &BenchOption) -> f64 {
+        req.occupancy
+            .clone()
+            .covering(opt.culling.sample_threshold, avatar.config())
+            .extent
+    }
+
+    /// Give `avatar` the grid `opt` renders with.
+    fn select(&self, req: &BenchRequest, avatar: &mut Avatar, opt: &BenchOption) {
+        if self.0.is_empty() || !opt.occupancy {
+            return;
+        }
+        let key = Self::extent(req, avatar, opt).to_bits();
+        let grid = self
+            .0
+            .iter()
+            .find(|(k, _)| *k == key)
+            .map(|(_, g)| g.clone());
+        avatar.set_occupancy(grid);
+    }
+}
+
+fn grids_for(
     req: &BenchRequest,
-    avatar: Avatar,
+    mut avatar: Avatar,
     scene: &Scene,
     obs: &mut dyn BenchObserver,
-) -> Result<Avatar> {
+) -> Result<(Avatar, Grids)> {
     use crate::tools::occupancy::{build, BuildOptions};
-    let opts = BuildOptions {
-        config: req.occupancy.clone(),
-        poses: req.occupancy_poses.max(1),
-        ..Default::default()
-    };
-    obs.phase("building the occupancy grid (poses)", opts.poses as u64);
-    let t = Instant::now();
-    let (avatar, s) = build(avatar, &scene.train, &opts, &mut |d, _| {
-        obs.progress(d as u64, "")
-    })?;
-    obs.phase_end();
-    obs.note(&format!(
-        "built the occupancy grid of the rendered model in {:.1} s ({} poses, {} network \
-         points, {:.1} % of cells occupied)",
-        t.elapsed().as_secs_f64(),
-        s.poses,
-        s.points,
-        100.0 * s.occupied_fraction
-    ));
-    Ok(avatar)
+    let mut grids: Vec<(u64, Arc<OccupancyGrid>)> = Vec::new();
+    if avatar.occupancy().is_some() {
+        return Ok((avatar, Grids(grids)));
+    }
+    for opt in req.options.iter().filter(|o| o.occupancy) {
+        let extent = Grids::extent(req, &avatar, opt);
+        if grids.iter().any(|(k, _)| *k == extent.to_bits()) {
+            continue;
+        }
+        let opts = BuildOptions {
+            config: OccupancyConfig {
+                extent,
+                ..req.occupancy.clone()
+            },
+            poses: req.occupancy_poses.max(1),
+            ..Default::default()
+        };
+        obs.phase("building the occupancy grid (poses)", opts.poses as u64);
+        let t = Instant::now();
+        let (built, s) = build(avatar, &scene.train, &opts, &mut |d, _| {
+            obs.progress(d as u64, "")
+        })?;
+        avatar = built;
+        obs.phase_end();
+        obs.note(&format!(
+            "built an occupancy grid over |x̄| < {extent:.3} of the rendered model in {:.1} s \
+             ({} poses, {} network points, {:.1} % of cells occupied)",
+            t.elapsed().as_secs_f64(),
+            s.poses,
+            s.points,
+            100.0 * s.occupied_fraction
+        ));
+        let grid = avatar
+            .occupancy_shared()
+            .ok_or_else(|| BenchError::Setting("the grid build returned no grid".into()))?;
+        avatar.set_occupancy(None);
+        grids.push((extent.to_bits(), grid));
+    }
+    Ok((avatar, Grids(grids)))
 }
 
 /// The W×H view every option renders: the first held-out image's pose and camera,
@@ -424,9 +469,11 @@ fn bench_view(req: &BenchRequest, scene: &Scene) -> Result<View> {
 }
 
 /// Inference per option: render time, points, peak RSS, and the quality columns.
+#[allow(clippy::too_many_arguments)]
 fn measure_inference(
     req: &BenchRequest,
     avatar: &mut Avatar,
+    grids: &Grids,
     scene: &Scene,
     view: &View,
     flops_per_point: f64,
@@ -456,6 +503,7 @@ fn measure_inference(
     for opt in opts {
         obs.progress(done, &format!("render {}", opt.name));
         let pass = opt.apply(avatar);
+        grids.select(req, avatar, opt);
         if rss_reset {
             reset_peak_rss();
         }
@@ -496,6 +544,7 @@ fn measure_inference(
         for ((opt, t_opt), res) in opts.iter().zip(times.iter_mut()).zip(results.iter_mut()) {
             obs.progress(done, &format!("time {}", opt.name));
             let pass = opt.apply(avatar);
+            grids.select(req, avatar, opt);
             let t = Instant::now();
             let img = render(avatar, pass)?;
             t_opt.push(t.elapsed().as_secs_f64());
@@ -582,7 +631,9 @@ fn measure_training(
         if times.len() > 1 {
             times.remove(0); // warm-up
         }
-        res.ms_per_step = median(&mut times);
+        // The mean, not the median: steps/s over the budget, the grid's refreshes (one
+        // step in `refresh_every`) included.
+        res.ms_per_step = times.iter().sum::<f64>() / times.len().max(1) as f64;
         res.train_evaluated_fraction = fraction;
         res.train_gflops = results_gflops(cfg, &trainer, fraction, res.ms_per_step);
         res.peak_rss_mib = res.peak_rss_mib.max(peak_rss_mib().unwrap_or(f64::NAN));

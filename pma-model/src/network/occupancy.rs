@@ -10,6 +10,16 @@
 //! of a limb's box, small enough to keep (24·32³ f32 = 3 MiB in a checkpoint) and to refresh
 //! in a fraction of a training step's time. Twice the resolution would cost 8× both.
 //!
+//! **A grid for a culling threshold.** With sample culling at threshold t, a joint's grid is
+//! only asked where that joint's window is above t, which bounds every axis:
+//! |x̄_k| < (ln(1/t)/α)^(1/β) ([`window_extent`]; 0.797 at t = 0.6). A grid meant for t
+//! ([`OccupancyConfig::covering`]) spans only that cube, so the same cells are finer (at
+//! t = 0.6, 2.5× per axis) and none is spent where the window has already culled the
+//! sample. A point outside the span counts as occupied, so such a grid stays exact at a
+//! lower threshold: it only leaves less out there. Training with culling and the grid
+//! builds its grid for the run's threshold; `pma occupancy build --cull-samples T` and
+//! `pma bench` do the same.
+//!
 //! **Update rule** (Instant-NGP's and nerfacc's): a refresh evaluates the density
 //! relu(σ), without density noise, at one random point in each chosen cell, for a training
 //! pose, and sets `cell = max(decay · cell, σ)`. A cell is occupied when its value is above
@@ -40,7 +50,9 @@ pub const MAX_RESOLUTION: usize = 128;
 pub struct OccupancyConfig {
     /// Cells per axis of each joint's grid.
     pub resolution: usize,
-    /// The grid covers x̄ ∈ [−extent, extent]³ of each joint.
+    /// The grid covers x̄ ∈ [−extent, extent]³ of each joint. A training run with sample
+    /// culling narrows it to where its threshold lets the window through
+    /// ([`OccupancyConfig::covering`]).
     pub extent: f64,
     /// Density relu(σ) above which a cell is occupied.
     pub threshold: f64,
@@ -72,7 +84,33 @@ impl Default for OccupancyConfig {
     }
 }
 
+/// Half-width of the cube in x̄ outside which the window w^p = exp(−α Σ x̄_k^β) is at most
+/// `threshold` on any axis: (ln(1/t)/α)^(1/β); the whole domain (2) for t ≤ 0 or t so small
+/// that the cube reaches past it.
+pub fn window_extent(threshold: f64, alpha: f64, beta: u32) -> f64 {
+    const FULL: f64 = 2.0;
+    if !(threshold > 0.0 && threshold < 1.0 && alpha > 0.0 && beta > 0) {
+        return if threshold >= 1.0 { 0.0 } else { FULL };
+    }
+    ((1.0 / threshold).ln() / alpha)
+        .powf(1.0 / beta as f64)
+        .min(FULL)
+}
+
 impl OccupancyConfig {
+    /// The same grid spanning only where a joint's window can exceed the culling `threshold`
+    /// (`None`: no sample culling, the span is kept): extent = min(extent,
+    /// [`window_extent`]). The resolution is kept, so the cells get finer.
+    pub fn covering(mut self, threshold: Option<f64>, model: &crate::Config) -> Self {
+        if let Some(t) = threshold {
+            let e = window_extent(t, model.window_alpha, model.window_beta);
+            if e > 0.0 {
+                self.extent = self.extent.min(e);
+            }
+        }
+        self
+    }
+
     /// Refuse settings the grid cannot be built or used with; `what` names the source.
     pub fn validate(&self, what: &str) -> Result<()> {
         let bad = self.problems();
@@ -449,6 +487,64 @@ mod tests {
         assert_eq!(g.effective_threshold(), 0.5);
         assert!(g.update(0, 0, f32::NAN).is_err());
         assert!(g.update(0, 0, -1.0).is_err());
+    }
+
+    /// The window w^p = exp(−α Σ x̄_k^β) of `x`, in f64.
+    fn window(x: [f64; 3], alpha: f64, beta: u32) -> f64 {
+        (-alpha * x.iter().map(|v| v.powi(beta as i32)).sum::<f64>()).exp()
+    }
+
+    #[test]
+    fn the_window_extent_bounds_every_point_above_the_threshold_and_is_tight() {
+        let (alpha, beta) = (2.0, 6);
+        let mut seed = 0x2545_f491_4f6c_dd1d_u64;
+        let mut uniform = || {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            (seed >> 11) as f64 / (1u64 << 53) as f64
+        };
+        for t in [1e-6, 0.05, 0.3, 0.6, 0.9] {
+            let e = window_extent(t, alpha, beta);
+            assert!(e > 0.0 && e <= 2.0, "t {t}: {e}");
+            // On an axis the window crosses t at the extent.
+            assert!(window([e * (1.0 - 1e-9), 0.0, 0.0], alpha, beta) > t);
+            assert!(window([0.0, -e * (1.0 + 1e-9), 0.0], alpha, beta) < t);
+            let mut inside = 0;
+            for _ in 0..20_000 {
+                let x = [(); 3].map(|_| 4.0 * uniform() - 2.0);
+                if window(x, alpha, beta) > t {
+                    inside += 1;
+                    assert!(x.iter().all(|v| v.abs() < e), "t {t}: {x:?} past {e}");
+                }
+            }
+            assert!(inside > 0, "t {t}: no point above the threshold drawn");
+        }
+        assert_eq!(window_extent(0.0, alpha, beta), 2.0);
+        assert!((window_extent(0.6, alpha, beta) - 0.79654).abs() < 1e-5);
+    }
+
+    #[test]
+    fn a_grid_for_a_threshold_narrows_its_span_and_keeps_its_cells() {
+        let model = crate::Config::tiny();
+        let base = cfg(16, 1);
+        assert_eq!(base.clone().covering(None, &model), base);
+        assert_eq!(base.clone().covering(Some(0.0), &model).extent, 2.0);
+        let narrow = base.clone().covering(Some(0.6), &model);
+        let e = window_extent(0.6, model.window_alpha, model.window_beta);
+        assert_eq!(narrow.extent, e);
+        assert_eq!((narrow.resolution, narrow.dilation), (16, 1));
+        // Never wider than asked.
+        let small = OccupancyConfig {
+            extent: 0.5,
+            ..base.clone()
+        };
+        assert_eq!(small.clone().covering(Some(0.6), &model).extent, 0.5);
+        // Outside its span a narrowed grid counts every point occupied.
+        let mut g = OccupancyGrid::new(narrow).unwrap();
+        g.finish_refresh();
+        assert!(!g.occupied(0, [0.0, 0.0, 0.0]));
+        assert!(g.occupied(0, [e * 1.001, 0.0, 0.0]));
     }
 
     #[test]

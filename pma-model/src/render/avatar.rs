@@ -443,6 +443,16 @@ impl Avatar {
         self.occupancy.as_deref()
     }
 
+    /// The occupancy grid, shared (to lend it to another avatar).
+    pub fn occupancy_shared(&self) -> Option<Arc<OccupancyGrid>> {
+        self.occupancy.clone()
+    }
+
+    /// Replace the occupancy grid with a shared one (`None`: without one).
+    pub fn set_occupancy(&mut self, grid: Option<Arc<OccupancyGrid>>) {
+        self.occupancy = grid;
+    }
+
     /// Refresh the occupancy grid from the network's density for `poses` (whose pose
     /// features are `pose`): see [`crate::render::occupancy::refresh`]. The avatar must have a
     /// grid.

@@ -404,7 +404,12 @@ impl Trainer {
         }
         // A run with the grid starts one (or continues the one saved with its model).
         let avatar = match (&run.train.occupancy, avatar.occupancy()) {
-            (Some(cfg), None) => avatar.with_occupancy(Some(OccupancyGrid::new(cfg.clone())?)),
+            (Some(cfg), None) => {
+                let cfg = cfg
+                    .clone()
+                    .covering(run.train.culling.sample_threshold, &run.model);
+                avatar.with_occupancy(Some(OccupancyGrid::new(cfg)?))
+            }
             _ => avatar,
         };
         let vars = avatar.trainable();

@@ -222,3 +222,41 @@ fn resume_with_an_occupancy_grid_equals_uninterrupted_run() {
         "parameters differ after resume"
     );
 }
+
+/// A run with sample culling builds its grid only where the window can pass its threshold
+/// (finer cells, none spent on culled space); without culling the grid spans the whole
+/// window. Saved and resumed, the narrowed grid keeps its span.
+#[test]
+fn a_culling_run_builds_its_grid_over_the_windows_span() {
+    use pma_model::network::occupancy::{window_extent, OccupancyConfig};
+    use pma_model::render::Culling;
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tiny_scene(&tmp.path().join("scene"));
+    let mut run = tiny_run();
+    run.train.occupancy = Some(OccupancyConfig {
+        resolution: 8,
+        warmup_steps: 1,
+        refresh_every: 1,
+        ..Default::default()
+    });
+    let plain = Trainer::new(run.clone(), data.clone(), &Device::Cpu).unwrap();
+    assert_eq!(plain.avatar().occupancy().unwrap().config().extent, 2.0);
+    run.train.culling = Culling {
+        rays: true,
+        sample_threshold: Some(0.6),
+        ..Default::default()
+    };
+    let mut culled = Trainer::new(run.clone(), data.clone(), &Device::Cpu).unwrap();
+    let m = &run.model;
+    let want = window_extent(0.6, m.window_alpha, m.window_beta);
+    let cfg = culled.avatar().occupancy().unwrap().config().clone();
+    assert_eq!((cfg.extent, cfg.resolution), (want, 8));
+    for _ in 0..2 {
+        culled.step().unwrap();
+    }
+    let ckpt = tmp.path().join("run");
+    std::fs::create_dir_all(&ckpt).unwrap();
+    culled.save_checkpoint(&ckpt).unwrap();
+    let resumed = Trainer::resume(&ckpt, run, data, &Device::Cpu).unwrap();
+    assert!(resumed.avatar().occupancy() == culled.avatar().occupancy());
+}
