@@ -223,17 +223,16 @@ impl WindowTest {
         let (a, b) = (at(0), at(n - 1));
         let ab = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
         let len2 = dist2(a, b);
-        // Largest distance of a sample from the segment [a, b].
-        let mut stray = 0f64;
-        for k in 0..n {
+        // Largest distance of a sample from the segment [a, b] (one square root per ray).
+        let inv_len2 = if len2 > 0.0 { 1.0 / len2 } else { 0.0 };
+        let mut stray2 = 0f64;
+        for k in 1..n - 1 {
             let x = at(k);
-            let t = match len2 > 0.0 {
-                true => ((0..3).map(|i| (x[i] - a[i]) * ab[i]).sum::<f64>() / len2).clamp(0.0, 1.0),
-                false => 0.0,
-            };
+            let t = ((0..3).map(|i| (x[i] - a[i]) * ab[i]).sum::<f64>() * inv_len2).clamp(0.0, 1.0);
             let q = [a[0] + t * ab[0], a[1] + t * ab[1], a[2] + t * ab[2]];
-            stray = stray.max(dist2(x, q).sqrt());
+            stray2 = stray2.max(dist2(x, q));
         }
+        let stray = stray2.sqrt();
         let mut mask = 0;
         for j in 0..N_JOINTS {
             let m = &self.maps[p * N_JOINTS + j];
