@@ -50,6 +50,25 @@ fn render(model: &Path, scene_dir: &Path, out: &Path, extra: &[&str]) -> std::pr
     pma(&args)
 }
 
+/// `pma occupancy build` of `model` over `scene` at 8³ cells into `out`, with `extra` flags.
+fn build(model: &Path, scene: &Path, out: &Path, extra: &[&str]) -> std::process::Output {
+    let mut args = vec![
+        "occupancy",
+        "build",
+        "--model",
+        s(model),
+        "--data",
+        s(scene),
+        "--resolution",
+        "8",
+        "--out",
+        s(out),
+        "--quiet",
+    ];
+    args.extend_from_slice(extra);
+    pma(&args)
+}
+
 /// Overwrite the first value of the grid tensor of the checkpoint at `path` with NaN.
 fn poison_grid(path: &Path) {
     let mut bytes = std::fs::read(path).unwrap();
@@ -83,22 +102,7 @@ fn grids_from_training_and_from_build_render_and_bad_ones_are_refused() {
 
     // `pma occupancy build` adds one; the tensors are unchanged.
     let built = tmp.path().join("built.safetensors");
-    let stdout = ok(pma(&[
-        "occupancy",
-        "build",
-        "--model",
-        s(&plain),
-        "--data",
-        s(&scene),
-        "--poses",
-        "2",
-        "--resolution",
-        "8",
-        "--out",
-        s(&built),
-        "--quiet",
-    ]))
-    .stdout;
+    let stdout = ok(build(&plain, &scene, &built, &["--poses", "2"])).stdout;
     assert!(
         String::from_utf8_lossy(&stdout).contains("occupancy grid: 2 poses"),
         "{}",
@@ -121,25 +125,8 @@ fn grids_from_training_and_from_build_render_and_bad_ones_are_refused() {
     );
     // `--cull-samples T`: the grid spans only where a window can exceed T; a threshold
     // outside [0, 1) is refused naming the flag.
-    let build_for = |t: &str, out: &Path| {
-        pma(&[
-            "occupancy",
-            "build",
-            "--model",
-            s(&plain),
-            "--data",
-            s(&scene),
-            "--poses",
-            "1",
-            "--resolution",
-            "8",
-            "--cull-samples",
-            t,
-            "--out",
-            s(out),
-            "--quiet",
-        ])
-    };
+    let build_for =
+        |t: &str, out: &Path| build(&plain, &scene, out, &["--poses", "1", "--cull-samples", t]);
     let narrow = tmp.path().join("narrow.safetensors");
     ok(build_for("0.6", &narrow));
     let n = Avatar::load(&narrow, &Device::Cpu).unwrap();

@@ -505,29 +505,15 @@ impl BoxRay {
     /// exactly two of the six face hits are valid (misses, and grazing rays through an edge
     /// or corner).
     pub fn near_far(&self, scale: [f32; 3], bound: f64) -> Option<(f32, f32)> {
-        let Self { o_t, d_t, o_s, d_s } = *self;
-        // The reference compares float32 tensors with Python-float thresholds: both end up f32.
-        let face = bound as f32;
-        let lim = (bound + BOX_EPS) as f32;
+        let Self { o_t, d_t, .. } = *self;
         let mut hits = [[0f32; 3]; 2];
         let mut n_hits = 0;
-        for axis in 0..3 {
-            for plane in [-face, face] {
-                // Zero direction components give ±inf/NaN here; such points fail the range test.
-                let t = (plane - o_s[axis]) / d_s[axis];
-                let p = [
-                    o_s[0] + t * d_s[0],
-                    o_s[1] + t * d_s[1],
-                    o_s[2] + t * d_s[2],
-                ];
-                if p.iter().all(|&c| c >= -lim && c <= lim) {
-                    if n_hits < 2 {
-                        hits[n_hits] = p;
-                    }
-                    n_hits += 1;
-                }
+        self.face_hits(bound, |_, p| {
+            if n_hits < 2 {
+                hits[n_hits] = p;
             }
-        }
+            n_hits += 1;
+        });
         if n_hits != 2 {
             return None;
         }
@@ -550,25 +536,37 @@ impl BoxRay {
     /// is cut off (near ≥ 0, so a camera inside a box samples from its origin), and boxes
     /// entirely behind the camera are misses.
     pub fn near_far_robust(&self, bound: f64) -> Option<(f32, f32)> {
+        let (mut t_min, mut t_max) = (f32::INFINITY, f32::NEG_INFINITY);
+        self.face_hits(bound, |t, _| {
+            if t.is_finite() {
+                t_min = t_min.min(t);
+                t_max = t_max.max(t);
+            }
+        });
+        (t_max > t_min && t_max > 0.0).then(|| (t_min.max(0.0), t_max))
+    }
+
+    /// Each of the six face planes ±bound whose hit lies on the box (within `BOX_EPS`), in
+    /// the reference's order (x−, x+, y−, y+, z−, z+): `hit(t, point in the box frame)`.
+    fn face_hits(&self, bound: f64, mut hit: impl FnMut(f32, [f32; 3])) {
         let (o_s, d_s) = (self.o_s, self.d_s);
+        // The reference compares float32 tensors with Python-float thresholds: both end up f32.
         let face = bound as f32;
         let lim = (bound + BOX_EPS) as f32;
-        let (mut t_min, mut t_max) = (f32::INFINITY, f32::NEG_INFINITY);
         for axis in 0..3 {
             for plane in [-face, face] {
+                // Zero direction components give ±inf/NaN here; such points fail the range test.
                 let t = (plane - o_s[axis]) / d_s[axis];
                 let p = [
                     o_s[0] + t * d_s[0],
                     o_s[1] + t * d_s[1],
                     o_s[2] + t * d_s[2],
                 ];
-                if t.is_finite() && p.iter().all(|&c| c >= -lim && c <= lim) {
-                    t_min = t_min.min(t);
-                    t_max = t_max.max(t);
+                if p.iter().all(|&c| c >= -lim && c <= lim) {
+                    hit(t, p);
                 }
             }
         }
-        (t_max > t_min && t_max > 0.0).then(|| (t_min.max(0.0), t_max))
     }
 }
 
