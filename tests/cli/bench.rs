@@ -368,7 +368,8 @@ fn patterned_grid() -> pma_model::network::occupancy::OccupancyGrid {
                 .wrapping_mul(6364136223846793005)
                 .wrapping_add(1442695040888963407);
             let occupied = (state >> 40) % 10 < 3;
-            grid.update(j, c, if occupied { 1.0 } else { 0.0 }).unwrap();
+            grid.update_max(j, c, if occupied { 1.0 } else { 0.0 })
+                .unwrap();
         }
     }
     grid.finish_refresh();

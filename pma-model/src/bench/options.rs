@@ -58,6 +58,7 @@ impl BenchOption {
             occupancy_fine: self.occupancy_fine,
             early_stop: self.early_stop,
             cull_joints: self.cull_joints,
+            grid_feed: None,
         }
     }
 

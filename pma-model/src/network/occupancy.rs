@@ -20,16 +20,26 @@
 //! builds its grid for the run's threshold; `pma occupancy build --cull-samples T` and
 //! `pma bench` do the same.
 //!
-//! **Update rule** (Instant-NGP's and nerfacc's): a refresh evaluates the density
-//! relu(σ), without density noise, at one random point in each chosen cell, for a training
-//! pose, and sets `cell = max(decay · cell, σ)`. A cell is occupied when its value is above
-//! min(`threshold`, mean of all cell values) — Instant-NGP's rule: early in training, when
-//! the density is still small everywhere, the cells with more than the average stay
-//! occupied instead of the whole grid emptying and starving the body of gradients; occupancy is then dilated by `dilation` cells in every direction, so that a
-//! surface that moves inside its bone frame with the pose (skin near a joint, cloth) is not
-//! cut where the training poses did not put it. Cells keep the largest density seen over
-//! the poses they were evaluated for; the decay lets a cell empty again once the body has
-//! moved out of it. A grid that was never refreshed counts every cell as occupied.
+//! **Update rule.** A cell keeps the largest density relu(σ) (no noise) seen in it, and
+//! is occupied when that value is above min(`threshold`, mean of all cell values) —
+//! Instant-NGP's rule: early in training, when the density is still small everywhere, the
+//! cells with more than the average stay occupied instead of the whole grid emptying and
+//! starving the body of gradients; occupancy is then dilated by `dilation` cells in every
+//! direction, so that a surface that moves inside its bone frame with the pose (skin near a
+//! joint, cloth) is not cut where the training poses did not put it. A grid that was never
+//! refreshed counts every cell as occupied.
+//!
+//! In training the grid is built at the end of the warm-up (one random point per cell, for
+//! a pose of the batch) and then kept by three things, none of which costs a network point
+//! beyond the step's own but the last:
+//! * every sample a step evaluates raises the cells it lies in (of each joint whose window
+//!   is above the threshold there) to what the network found: `cell = max(cell, σ)`;
+//! * a share `probe_share` of the samples the grid would leave out run anyway (probes), so
+//!   a body that grows into empty cells is found by the rays that cross it;
+//! * every `refresh_every` steps every cell decays by `decay` (Instant-NGP's all-cell
+//!   decay: a cell no sample finds dense again empties), a share `refresh_share` of cells
+//!   (half at random, half among the occupied ones) is evaluated afresh, and the occupancy
+//!   is thresholded and dilated again.
 //!
 //! The grid only leaves work out ([`crate::render::cull`] asks it): a model renders the same
 //! way without it, and its checkpoint tensors are a separate, optional group
@@ -56,7 +66,7 @@ pub struct OccupancyConfig {
     pub extent: f64,
     /// Density relu(σ) above which a cell is occupied.
     pub threshold: f64,
-    /// Factor a cell's value is multiplied by each time it is evaluated again.
+    /// Factor every cell's value is multiplied by at each training refresh.
     pub decay: f64,
     /// Occupied cells mark their neighbours up to this many cells away occupied too.
     pub dilation: usize,
@@ -65,6 +75,9 @@ pub struct OccupancyConfig {
     /// Training: share of each joint's cells evaluated by a refresh (half at random, half
     /// among the occupied cells); the refresh that ends the warm-up evaluates every cell.
     pub refresh_share: f64,
+    /// Training: share of the samples a step would leave out as empty that run anyway
+    /// (probes), so that cells the body grows into are found by the rays that cross them.
+    pub probe_share: f64,
     /// Training: steps that run without the grid while it is being built.
     pub warmup_steps: u64,
 }
@@ -75,10 +88,11 @@ impl Default for OccupancyConfig {
             resolution: 32,
             extent: 2.0,
             threshold: 0.5,
-            decay: 0.95,
+            decay: 0.8,
             dilation: 1,
             refresh_every: 16,
-            refresh_share: 0.125,
+            refresh_share: 1.0 / 256.0,
+            probe_share: 0.05,
             warmup_steps: 200,
         }
     }
@@ -161,6 +175,12 @@ impl OccupancyConfig {
             bad.push(format!(
                 "refresh_share must be in (0, 1], found {}",
                 self.refresh_share
+            ));
+        }
+        if !(self.probe_share.is_finite() && (0.0..=1.0).contains(&self.probe_share)) {
+            bad.push(format!(
+                "probe_share must be in [0, 1], found {}",
+                self.probe_share
             ));
         }
         bad
@@ -316,23 +336,9 @@ impl OccupancyGrid {
         self.occupied[j * self.cfg.cells_per_joint() + c]
     }
 
-    /// One fresh density sample σ for cell c of joint j: `cell = max(decay·cell, σ)`. The
-    /// occupancy follows at [`Self::finish_refresh`]. Non-finite or negative σ is refused
-    /// (the caller passes relu(σ) of the network, without noise).
-    pub fn update(&mut self, j: usize, c: usize, sigma: f32) -> Result<()> {
-        if !(sigma.is_finite() && sigma >= 0.0) {
-            return Err(ModelError::Input(format!(
-                "occupancy: density {sigma} for joint {j} cell {c} (must be finite and >= 0)"
-            )));
-        }
-        let i = j * self.cfg.cells_per_joint() + c;
-        let v = &mut self.density[i];
-        *v = (*v * self.cfg.decay as f32).max(sigma);
-        Ok(())
-    }
-
-    /// One fresh density sample without the decay: `cell = max(cell, σ)` (building a grid for
-    /// a trained model from many poses).
+    /// One fresh density sample σ for cell c of joint j: `cell = max(cell, σ)` (the decay is
+    /// [`Self::decay_all`]'s). The occupancy follows at [`Self::finish_refresh`]. Non-finite
+    /// or negative σ is refused (callers pass relu(σ) of the network, without noise).
     pub fn update_max(&mut self, j: usize, c: usize, sigma: f32) -> Result<()> {
         if !(sigma.is_finite() && sigma >= 0.0) {
             return Err(ModelError::Input(format!(
@@ -342,6 +348,15 @@ impl OccupancyGrid {
         let i = j * self.cfg.cells_per_joint() + c;
         self.density[i] = self.density[i].max(sigma);
         Ok(())
+    }
+
+    /// Multiply every cell's value by the decay (a training refresh, before its updates):
+    /// a cell that no sample finds dense again empties.
+    pub fn decay_all(&mut self) {
+        let d = self.cfg.decay as f32;
+        for v in &mut self.density {
+            *v *= d;
+        }
     }
 
     /// After a refresh's updates: threshold and dilate again, count the refresh.
@@ -441,7 +456,7 @@ mod tests {
     fn decay_max_threshold_and_dilation() {
         let mut g = OccupancyGrid::new(cfg(8, 1)).unwrap();
         let c = g.cell_of([0.1, 0.1, 0.1]).unwrap();
-        g.update(5, c, 2.0).unwrap();
+        g.update_max(5, c, 2.0).unwrap();
         g.finish_refresh();
         assert!(g.cell_occupied(5, c));
         assert!(!g.cell_occupied(4, c), "other joints untouched");
@@ -459,7 +474,8 @@ mod tests {
         assert_eq!(g.occupied_fraction(), 27.0 / (24.0 * 512.0));
         // Alone, the cell is above the mean however far it decays: it stays occupied.
         for _ in 0..100 {
-            g.update(5, c, 0.0).unwrap();
+            g.decay_all();
+            g.update_max(5, c, 0.0).unwrap();
             g.finish_refresh();
         }
         assert!(g.cell_occupied(5, c) && g.effective_threshold() < 1e-5);
@@ -468,25 +484,26 @@ mod tests {
         let others = |g: &mut OccupancyGrid| {
             for j in (0..24).filter(|&j| j != 5) {
                 for cell in 0..512 {
-                    g.update(j, cell, 1.0).unwrap();
+                    g.update_max(j, cell, 1.0).unwrap();
                 }
             }
         };
         others(&mut g);
-        g.update(5, c, 2.0).unwrap();
+        g.update_max(5, c, 2.0).unwrap();
         g.finish_refresh();
         let mut n = 0;
         while g.cell_occupied(5, c) {
-            g.update(5, c, 0.1).unwrap();
+            g.decay_all();
+            g.update_max(5, c, 0.1).unwrap();
             others(&mut g);
             g.finish_refresh();
             n += 1;
         }
-        // 2·0.95^n <= 0.5 first at n = 28.
-        assert_eq!(n, 28);
+        // 2·0.8^n <= 0.5 first at n = 7 (the default decay).
+        assert_eq!(n, 7);
         assert_eq!(g.effective_threshold(), 0.5);
-        assert!(g.update(0, 0, f32::NAN).is_err());
-        assert!(g.update(0, 0, -1.0).is_err());
+        assert!(g.update_max(0, 0, f32::NAN).is_err());
+        assert!(g.update_max(0, 0, -1.0).is_err());
     }
 
     /// The window w^p = exp(−α Σ x̄_k^β) of `x`, in f64.

@@ -24,7 +24,7 @@ pub use crate::network::PoseFeatures;
 pub use crate::render::batch::{Mode, NoiseFn, Outputs, Poses, Rays};
 use crate::render::bones::BoneFrames;
 use crate::render::occupancy::{RefreshOptions, RefreshStats};
-pub use crate::render::options::{PassOptions, PassStats};
+pub use crate::render::options::{GridObservation, PassOptions, PassStats};
 use crate::render::points::PointEval;
 pub use crate::render::points::INFERENCE_POINT_CHUNK;
 use crate::render::raycast::{merge_raw, CoarseSamples, FineSamples, RayCaster};
@@ -259,7 +259,7 @@ impl Avatar {
             let render_coarse = raw2outputs(&raw_coarse, &coarse.z, &rays.dirs, rays.bgs.as_ref())?;
             prof("coarse render", self.device());
             let (coarse, fine) = ((coarse, raw_coarse, render_coarse), (fine, raw_fine));
-            return self.merge_and_render(rays, pose, coarse, fine, &points, coarse_evaluated);
+            return self.merge_and_render(rays, pose, coarse, fine, &mut points, coarse_evaluated);
         }
         // 3. Coarse pass and render.
         let tr = trace.as_deref_mut();
@@ -302,7 +302,7 @@ impl Avatar {
             t.put("view_features", &view);
         }
         let (coarse, fine) = ((coarse, raw_coarse, render_coarse), (fine, raw_fine));
-        self.merge_and_render(rays, pose, coarse, fine, &points, coarse_evaluated)
+        self.merge_and_render(rays, pose, coarse, fine, &mut points, coarse_evaluated)
     }
 
     /// Step 5: merge the fine outputs into the coarse ones (reused, noise included) and
@@ -313,7 +313,7 @@ impl Avatar {
         pose: &PoseFeatures,
         (coarse, raw_coarse, render_coarse): (CoarseSamples, Tensor, RenderOutputs),
         (fine, raw_fine): (FineSamples, Tensor),
-        points: &PointEval,
+        points: &mut PointEval,
         coarse_evaluated: usize,
     ) -> Result<Outputs> {
         let raw = merge_raw(&raw_coarse, &raw_fine, &fine.perm, self.net.numerics())?;
@@ -339,6 +339,7 @@ impl Avatar {
             coarse: render_coarse,
             fine: render_fine,
             stats,
+            observed: points.take_observed(),
         })
     }
 
@@ -469,6 +470,22 @@ impl Avatar {
         // Copied first only if a pass still holds the grid.
         let grid = Arc::make_mut(grid);
         crate::render::occupancy::refresh(&self.net, grid, poses, pose, opts, rng)
+    }
+
+    /// Take what a training step's evaluated samples saw ([`Outputs::observed`]) into the
+    /// occupancy grid: `cell = max(cell, σ)`. Their occupancy follows at the next refresh.
+    pub fn observe_occupancy(&mut self, seen: &[GridObservation]) -> Result<()> {
+        if seen.is_empty() {
+            return Ok(());
+        }
+        let grid = self.occupancy.as_mut().ok_or_else(|| {
+            ModelError::Input("occupancy: the model has no occupancy grid to feed".into())
+        })?;
+        let grid = Arc::make_mut(grid);
+        for o in seen {
+            grid.update_max(o.joint as usize, o.cell as usize, o.sigma)?;
+        }
+        Ok(())
     }
 
     /// All tensors (parameters and buffers) by reference name, for saving.

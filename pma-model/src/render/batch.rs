@@ -84,6 +84,9 @@ pub struct Outputs {
     pub bounds: Option<RayBounds>,
     /// What the pass evaluated and left out.
     pub stats: PassStats,
+    /// Training with the grid: the cells its evaluated samples saw
+    /// ([`crate::render::options::GridFeed`]); empty otherwise.
+    pub observed: Vec<crate::render::options::GridObservation>,
 }
 
 /// Shapes of a batch: R rays in P equal per-pose blocks.

@@ -13,7 +13,9 @@
 //!   skips the network too and gets what a culled sample gets: the network's far-away
 //!   constant ([`SampleFate::Empty`]). A sample in an occupied cell of any such joint is
 //!   always evaluated. This changes the render wherever the skipped density was not 0; the
-//!   grid's threshold bounds it.
+//!   grid's threshold bounds it. A training pass runs a share of these samples anyway
+//!   (probes, [`crate::render::options::GridFeed`]) and reports what its evaluated samples
+//!   found to the grid.
 //! * **Sample culling.** A sample whose spatial window w^p is ≤ t for every joint skips the
 //!   network. Where w^p = 0 for all joints the window product w = w^p·w^f is 0, so the max-pool,
 //!   f^m and every windowed point feature are 0, and the network's output is a global constant
@@ -39,6 +41,7 @@ use pma_data::skeleton::N_JOINTS;
 use crate::error::{ModelError, Result};
 use crate::network::occupancy::OccupancyGrid;
 use crate::render::bones::BoneFrames;
+use crate::render::options::GridObservation;
 
 /// `exp(−x)` is exactly 0 in f32 for x > 103.98 (half the smallest subnormal); culling at
 /// threshold 0 uses a cut a little above it so that the host test (f64, composed transform)
@@ -313,6 +316,42 @@ impl WindowTest {
         }
     }
 
+    /// What a training pass saw of the grid ([`crate::render::options::GridFeed`]): for each
+    /// evaluated sample of one ray (xs [S,3] of pose p, `evaluated[k]`, relu σ `sigma[k]`),
+    /// every joint whose window is above the threshold there, with the sample's cell in that
+    /// joint's grid (the joints the grid is asked about at that sample).
+    pub(crate) fn observe_ray(
+        &self,
+        p: usize,
+        xs: &[f32],
+        evaluated: &[bool],
+        sigma: &[f32],
+        grid: &OccupancyGrid,
+        out: &mut Vec<GridObservation>,
+    ) {
+        let joints = self.ray_joints(p, xs);
+        for ((x, &e), &sigma) in xs.chunks_exact(3).zip(evaluated).zip(sigma) {
+            if !e {
+                continue;
+            }
+            let mut left = joints;
+            while left != 0 {
+                let j = left.trailing_zeros() as usize;
+                left &= left - 1;
+                let (xb, ex) = self.x_bar(p, j, [x[0], x[1], x[2]]);
+                if ex < self.cut {
+                    if let Some(cell) = grid.cell_of(xb) {
+                        out.push(GridObservation {
+                            joint: j as u16,
+                            cell: cell as u32,
+                            sigma,
+                        });
+                    }
+                }
+            }
+        }
+    }
+
     /// The grid's density at a sample of pose p at x: the largest value the cells of x hold
     /// over the joints whose window is above the threshold (0 where there are none).
     pub fn grid_density(&self, p: usize, x: [f32; 3], grid: &OccupancyGrid) -> f32 {
@@ -577,7 +616,7 @@ mod tests {
         .unwrap();
         for j in 0..N_JOINTS {
             for c in 0..512 {
-                grid.update(j, c, if rnd() < share { 1.0 } else { 0.0 })
+                grid.update_max(j, c, if rnd() < share { 1.0 } else { 0.0 })
                     .unwrap();
             }
         }
@@ -787,7 +826,7 @@ mod tests {
                 } else {
                     0.0
                 };
-                grid.update(j, c, v).unwrap();
+                grid.update_max(j, c, v).unwrap();
             }
         }
         grid.finish_refresh();

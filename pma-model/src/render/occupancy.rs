@@ -34,8 +34,9 @@ pub enum CellChoice {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct RefreshOptions {
     pub cells: CellChoice,
-    /// Decay a cell's value before taking the maximum (training); without it a cell keeps the
-    /// largest density of every refresh (building a grid for a trained model).
+    /// Decay every cell's value before taking the maxima (training: Instant-NGP's rule, so
+    /// that a cell no sample finds dense again empties); without it a cell keeps the largest
+    /// density of every refresh (building a grid for a trained model).
     pub decay: bool,
 }
 
@@ -177,6 +178,9 @@ pub fn refresh_with<R: Rng>(
             points[p].push(inv.world(p, j, x_bar));
         }
     }
+    if opts.decay {
+        grid.decay_all();
+    }
     let mut cells = 0;
     for (p, (job, pts)) in jobs.iter().zip(&points).enumerate() {
         if job.is_empty() {
@@ -191,10 +195,7 @@ pub fn refresh_with<R: Rng>(
             ));
         }
         for (&(j, c), &s) in job.iter().zip(&sigma) {
-            match opts.decay {
-                true => grid.update(j, c, s)?,
-                false => grid.update_max(j, c, s)?,
-            }
+            grid.update_max(j, c, s)?;
         }
         cells += job.len();
     }

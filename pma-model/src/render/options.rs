@@ -157,6 +157,51 @@ pub struct PassOptions {
     )]
     #[serde(skip_serializing_if = "std::ops::Not::not")]
     pub cull_joints: bool,
+    /// Training with the grid: what the pass tells the grid (set per chunk by the trainer,
+    /// never by a user or a run file).
+    #[cfg_attr(feature = "cli", arg(skip))]
+    #[serde(skip)]
+    pub grid_feed: Option<GridFeed>,
+}
+
+/// How a training pass feeds the occupancy grid it consults: every sample it evaluates is
+/// recorded as an observation of the cells it lies in ([`GridObservation`]), and a share of
+/// the samples the grid would leave out run anyway (probes), so that cells the body grows
+/// into are found again by the rays that cross them.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GridFeed {
+    /// Share of the samples in empty cells that run anyway, in [0, 1].
+    pub probe_share: f64,
+    /// Which of them (a hash of the seed and the sample's place in the pass picks them, so a
+    /// step repeats bit for bit).
+    pub seed: u64,
+}
+
+impl GridFeed {
+    /// Whether the sample at `index` of the pass's call number `call` is a probe.
+    pub fn probes(&self, call: u64, index: u64) -> bool {
+        if self.probe_share <= 0.0 {
+            return false;
+        }
+        // splitmix64 of the seed, the call and the index: uniform in [0, 1).
+        let mut z = self
+            .seed
+            .wrapping_add(call.wrapping_mul(0xd1b5_4a32_d192_ed03))
+            .wrapping_add(index.wrapping_mul(0x9e37_79b9_7f4a_7c15));
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        z ^= z >> 31;
+        ((z >> 11) as f64) * (1.0 / (1u64 << 53) as f64) < self.probe_share
+    }
+}
+
+/// One cell a training pass saw: relu(σ) of the network (no noise) at a sample that lies in
+/// cell `cell` of joint `joint`'s grid, whose window is above the pass's threshold there.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GridObservation {
+    pub joint: u16,
+    pub cell: u32,
+    pub sigma: f32,
 }
 
 /// Coarse samples per segment of the early-stop march: a ray stops at a segment's end, so
@@ -246,6 +291,19 @@ impl PassOptions {
                 cfg.variant
             ));
         }
+        if let Some(feed) = &self.grid_feed {
+            if !self.occupancy {
+                return Some(
+                    "grid_feed: a pass feeds only the grid it consults (occupancy)".into(),
+                );
+            }
+            if !(0.0..=1.0).contains(&feed.probe_share) {
+                return Some(format!(
+                    "grid_feed: the probe share must be in [0, 1], found {}",
+                    feed.probe_share
+                ));
+            }
+        }
         if self.occupancy && !cfg.variant.spatial_window() {
             return Some(format!(
                 "occupancy: the grid is consulted for joints whose spatial window is above the \
@@ -306,5 +364,55 @@ impl PassStats {
     /// Share of the samples that ran the network (far-away constants not counted).
     pub fn evaluated_fraction(&self) -> f64 {
         (self.coarse_evaluated + self.fine_evaluated) as f64 / self.samples.max(1) as f64
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::GridFeed;
+
+    /// The probes are the share asked for, the same ones for the same seed, other ones for
+    /// another seed or call, none at 0 and all at 1.
+    #[test]
+    fn probes_take_their_share_and_repeat() {
+        let n = 100_000u64;
+        let count = |f: &GridFeed, call: u64| (0..n).filter(|&i| f.probes(call, i)).count();
+        let f = GridFeed {
+            probe_share: 0.05,
+            seed: 3,
+        };
+        let c = count(&f, 0) as f64 / n as f64;
+        assert!((c - 0.05).abs() < 0.004, "share {c}");
+        let same: Vec<bool> = (0..1000).map(|i| f.probes(1, i)).collect();
+        assert_eq!(same, (0..1000).map(|i| f.probes(1, i)).collect::<Vec<_>>());
+        let other_call: Vec<bool> = (0..1000).map(|i| f.probes(2, i)).collect();
+        assert_ne!(same, other_call);
+        let other_seed = GridFeed { seed: 4, ..f };
+        assert_ne!(
+            same,
+            (0..1000)
+                .map(|i| other_seed.probes(1, i))
+                .collect::<Vec<_>>()
+        );
+        assert_eq!(
+            count(
+                &GridFeed {
+                    probe_share: 0.0,
+                    ..f
+                },
+                0
+            ),
+            0
+        );
+        assert_eq!(
+            count(
+                &GridFeed {
+                    probe_share: 1.0,
+                    ..f
+                },
+                0
+            ),
+            n as usize
+        );
     }
 }

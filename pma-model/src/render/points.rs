@@ -30,7 +30,9 @@ use crate::network::trace::Trace;
 use crate::network::{Network, PoseFeatures};
 use crate::render::batch::{Mode, Poses};
 use crate::render::cull::{ray_fates, JointMask, SampleFate, WindowTest, ALL_JOINTS};
-use crate::render::options::{PassOptions, SampleFill, EARLY_STOP_SEGMENT};
+use crate::render::options::{
+    GridFeed, GridObservation, PassOptions, SampleFill, EARLY_STOP_SEGMENT,
+};
 use crate::render::raycast::RayBounds;
 use pma_data::skeleton::N_JOINTS;
 
@@ -158,6 +160,15 @@ impl PointEval {
     /// Samples left out so far behind their rays' early stops.
     pub fn stopped_early(&self) -> usize {
         self.stopped_early
+    }
+
+    /// What this pass's evaluated samples saw of the grid, taken out (empty unless the pass
+    /// feeds the grid, [`PassOptions::grid_feed`]).
+    pub fn take_observed(&mut self) -> Vec<GridObservation> {
+        match &mut self.route {
+            Route::Culled(ctx) => std::mem::take(&mut ctx.observed),
+            _ => Vec::new(),
+        }
     }
 
     /// Rays of this pass that ray culling left without any sample to run.
@@ -515,6 +526,12 @@ pub(crate) struct CullCtx {
     joint_test: Option<WindowTest>,
     /// Σ over the calls of points × joints carried.
     joint_rows: usize,
+    /// Training with the grid: how this pass feeds it.
+    feed: Option<GridFeed>,
+    /// Window tests run so far in this pass (each [`Self::fates`] call; picks the probes).
+    tests_run: u64,
+    /// What the evaluated samples of this pass saw of the grid (with `feed`).
+    observed: Vec<GridObservation>,
 }
 
 /// SMPL's joints limb by limb (left leg, right leg, spine, neck and head, left arm, right
@@ -687,6 +704,9 @@ impl CullCtx {
             stopped_early: 0,
             joint_test,
             joint_rows: 0,
+            feed: opts.grid_feed,
+            tests_run: 0,
+            observed: Vec::new(),
         })
     }
 
@@ -794,6 +814,7 @@ impl CullCtx {
                 )?
             }
         };
+        self.observe(&fates, &sigma_raw, r, s)?;
         let alive = if noisy && any_zero {
             let alive: Vec<f32> = fates
                 .iter()
@@ -821,8 +842,53 @@ impl CullCtx {
             (None, Some(alive)) => ray_fates(r, s, alive)?,
             (None, None) => vec![SampleFate::Evaluate; r * s],
         };
+        let mut fates = fates;
+        if let Some(feed) = &self.feed {
+            for (i, f) in fates.iter_mut().enumerate() {
+                if *f == SampleFate::Empty && feed.probes(self.tests_run, i as u64) {
+                    *f = SampleFate::Evaluate;
+                }
+            }
+        }
+        self.tests_run += 1;
         self.skipped_empty += fates.iter().filter(|f| **f == SampleFate::Empty).count();
         Ok(fates)
+    }
+
+    /// Record what the evaluated samples of pts [R,S,3] (their fates and relu of sigma_raw
+    /// [R·S,1]) saw of the grid, when this pass feeds it. Reads σ back to the host.
+    fn observe(
+        &mut self,
+        fates: &[SampleFate],
+        sigma_raw: &Tensor,
+        r: usize,
+        s: usize,
+    ) -> Result<()> {
+        let (Some(_), Some(test), Some(grid)) = (&self.feed, &self.test, &self.grid) else {
+            return Ok(());
+        };
+        // A non-finite density (a step the optimizer will skip) says nothing about a cell.
+        let sigma: Vec<f32> = host_f32(&sigma_raw.detach())?
+            .into_iter()
+            .map(|v| if v.is_finite() { v.max(0.0) } else { 0.0 })
+            .collect();
+        let per_pose = r / test.n_poses().max(1);
+        let evaluated: Vec<bool> = fates.iter().map(|f| *f == SampleFate::Evaluate).collect();
+        for ray in 0..r {
+            let span = ray * s..(ray + 1) * s;
+            if !evaluated[span.clone()].contains(&true) {
+                continue;
+            }
+            test.observe_ray(
+                ray / per_pose.max(1),
+                &self.host_pts[3 * span.start..3 * span.end],
+                &evaluated[span.clone()],
+                &sigma[span],
+                grid,
+                &mut self.observed,
+            );
+        }
+        Ok(())
     }
 
     /// Mark [`SampleFate::Behind`] the samples to evaluate of `rays` (at z [R·S], S per ray)
@@ -1527,6 +1593,9 @@ mod tests {
             stopped_early: 0,
             joint_test: None,
             joint_rows: 0,
+            feed: None,
+            tests_run: 0,
+            observed: Vec::new(),
         };
         let bits = |x: &[f32]| x.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
         let reference = per_call_rows(

@@ -141,6 +141,8 @@ impl TrainConfig {
             // Every sample of a training step takes part in its gradients.
             early_stop: None,
             cull_joints: false,
+            // The trainer gives each chunk its own feed (probes and observations).
+            grid_feed: None,
         }
     }
 

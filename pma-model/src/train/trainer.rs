@@ -30,8 +30,9 @@ use super::state::{Progress, RngState, TrainState};
 use super::TrainError;
 use crate::network::config::Config;
 use crate::network::occupancy::OccupancyGrid;
-use crate::render::avatar::{Avatar, Mode, PassOptions, PassStats, Rays};
+use crate::render::avatar::{Avatar, GridObservation, Mode, PassOptions, PassStats, Rays};
 use crate::render::occupancy::{CellChoice, RefreshOptions};
+use crate::render::options::GridFeed;
 use crate::render::raycast::CoarseSamples;
 use crate::train::presets::{RunConfig, TrainConfig};
 use pma_data::dataset::Dataset;
@@ -268,6 +269,15 @@ impl Optimization {
 /// feature). Forward and backward keep some 50 tensors of that size alive: a 512-ray chunk
 /// of the paper config peaked near 8 GiB, so the budget is 128 rays of it (about 2 GiB).
 pub const AUTO_CHUNK_POINT_JOINTS: usize = 128 * 72 * 24 * 128;
+
+/// The loss, the gradients (in parameter order), what the passes did, and what their
+/// evaluated samples saw of the occupancy grid, of a step or one of its chunks.
+type Gradients = (
+    StepLoss,
+    Vec<Option<Tensor>>,
+    PassStats,
+    Vec<GridObservation>,
+);
 
 /// Rays per chunk of a training step (see [`TrainConfig::chunk_rays`]). Automatic chunks are
 /// sized from the device ([`crate::compute::device::element_budget`]: a share of its free
@@ -635,13 +645,16 @@ impl Trainer {
         crate::compute::profile::start(&device);
         let chunk = self.chunk_size(batch.rays.origins.dim(0)?);
         let opts = self.run.train.pass_options(self.opt.iter);
-        let (loss, mut grads, stats) = self.gradients(batch, chunk, &opts)?;
+        let (loss, mut grads, stats, seen) = self.gradients(batch, chunk, &opts)?;
         if let Some(h) = hook {
             h(&mut grads);
         }
         self.opt.apply(&loss, grads)?;
         crate::compute::profile::mark("grad norm + Adam", &device);
         self.pass_totals.add(&stats);
+        // The densities the step saw are the model's before this update: recent enough for a
+        // grid that decays what no sample finds again.
+        self.avatar.observe_occupancy(&seen)?;
         self.refresh_occupancy(batch)?;
         Ok(())
     }
@@ -709,7 +722,7 @@ impl Trainer {
         batch: &TrainBatch,
         chunk: usize,
         opts: &PassOptions,
-    ) -> Result<(StepLoss, Vec<Option<Tensor>>, PassStats), TrainError> {
+    ) -> Result<Gradients, TrainError> {
         let r = batch.rays.origins.dim(0)?;
         let n_poses = batch.poses.bones.len();
         if n_poses == 0 || r % n_poses != 0 {
@@ -737,8 +750,17 @@ impl Trainer {
         };
         let weights = self.run.train.loss_weights();
         let params = &self.params;
-        type ChunkOut = (StepLoss, Vec<Option<Tensor>>, PassStats);
-        let run_chunk = |start: usize| -> Result<ChunkOut, TrainError> {
+        let feed = self.run.train.occupancy.as_ref().filter(|_| opts.occupancy);
+        let feed_seed = self.run.train.seed ^ self.opt.iter.wrapping_mul(0x9e37_79b9_7f4a_7c15);
+        let run_chunk = |start: usize| -> Result<Gradients, TrainError> {
+            // Each chunk feeds the grid with probes of its own.
+            let opts = &PassOptions {
+                grid_feed: feed.map(|o| GridFeed {
+                    probe_share: o.probe_share,
+                    seed: feed_seed ^ (start as u64).wrapping_mul(0xd6e8_feb8_6659_fd93),
+                }),
+                ..opts.clone()
+            };
             let len = per_pose.min(k - start);
             let ids = (len < k)
                 .then(|| -> candle_core::Result<_> {
@@ -794,11 +816,12 @@ impl Trainer {
                 .iter()
                 .map(|v| store.get(v.as_tensor()).map(|d| d.detach()))
                 .collect();
-            Ok((numbers, grads, out.stats))
+            Ok((numbers, grads, out.stats, out.observed))
         };
         let mut loss = StepLoss::zeros(&device)?;
         let mut grads: Vec<Option<Tensor>> = vec![None; params.len()];
         let mut stats = PassStats::default();
+        let mut seen = Vec::new();
         let starts: Vec<usize> = (0..k).step_by(per_pose).collect();
         // One wave of chunks per round of workers; sums are taken in chunk order, so the
         // result is the sequential loop's, bit for bit, whatever the worker count.
@@ -807,8 +830,9 @@ impl Trainer {
             crate::interrupt::check()?;
             let outs =
                 crate::compute::parallel::map_ordered(workers, wave.len(), |i| run_chunk(wave[i]))?;
-            for (part, chunk_grads, chunk_stats) in outs {
+            for (part, chunk_grads, chunk_stats, chunk_seen) in outs {
                 stats.add(&chunk_stats);
+                seen.extend(chunk_seen);
                 loss = StepLoss {
                     total: (loss.total + part.total)?,
                     fine: (loss.fine + part.fine)?,
@@ -829,7 +853,7 @@ impl Trainer {
         // With several workers this thread waits here for the others' chunks: that wait and
         // the sums are this stage's, not the optimizer's.
         crate::compute::profile::mark("chunk sums", &device);
-        Ok((loss, grads, stats))
+        Ok((loss, grads, stats, seen))
     }
 
     /// What a checkpoint holds besides the model (see [`super::checkpoint`], which writes

@@ -31,7 +31,7 @@ fn patterned_grid(share: f32) -> OccupancyGrid {
                 .wrapping_mul(6364136223846793005)
                 .wrapping_add(1442695040888963407);
             let u = (state >> 40) as f32 / (1u64 << 24) as f32;
-            grid.update(j, c, if u < share { 1.0 } else { 0.0 })
+            grid.update_max(j, c, if u < share { 1.0 } else { 0.0 })
                 .unwrap();
         }
     }
@@ -102,6 +102,111 @@ fn a_grid_with_every_cell_occupied_is_parity() {
     let out = case.forward_with(&occupancy_only(), None);
     assert_eq!(out.stats.skipped_empty, 0);
     assert_identical(&parity, &out, "full grid");
+}
+
+/// A pass that feeds the grid (training's `grid_feed`) reports, for every sample it
+/// evaluated, the cells it lies in with the density it found there; without probes it
+/// leaves out what the plain grid pass leaves out and renders the same; probes run a share
+/// of the samples the grid would leave out, and with every one probed the pass evaluates
+/// what culling at the same threshold evaluates.
+#[test]
+fn a_feeding_pass_reports_what_it_saw_and_probes_empty_cells() {
+    use pma_model::render::options::GridFeed;
+    let case = with_grid(
+        GoldenCase::load("golden/dense", true),
+        Some(patterned_grid(0.3)),
+    );
+    let feeding = |share: f64| PassOptions {
+        grid_feed: Some(GridFeed {
+            probe_share: share,
+            seed: 11,
+        }),
+        ..occupancy_only()
+    };
+    let plain = infer(&case, &occupancy_only()).unwrap();
+    assert!(plain.observed.is_empty());
+    assert!(plain.stats.skipped_empty > 0, "{:?}", plain.stats);
+
+    let fed = infer(&case, &feeding(0.0)).unwrap();
+    assert_identical(&plain, &fed, "feeding without probes");
+    assert_eq!(plain.stats, fed.stats);
+    let evaluated = (fed.stats.coarse_evaluated + fed.stats.fine_evaluated) as usize;
+    // An evaluated sample has a joint above the threshold whose cell is occupied: at least
+    // one observation each.
+    assert!(
+        fed.observed.len() >= evaluated,
+        "{} < {evaluated}",
+        fed.observed.len()
+    );
+    let cells = 16 * 16 * 16;
+    let seen_sigma: std::collections::HashSet<u32> = flat(&fed.raw)
+        .chunks(4)
+        .chain(flat(&fed.raw_coarse).chunks(4))
+        .map(|r| r[3].to_bits())
+        .collect();
+    for o in &fed.observed {
+        assert!(
+            (o.joint as usize) < 24 && (o.cell as usize) < cells,
+            "{o:?}"
+        );
+        assert!(o.sigma.is_finite() && o.sigma >= 0.0, "{o:?}");
+        assert!(
+            seen_sigma.contains(&o.sigma.to_bits()),
+            "observed density {} is no sample's relu(σ)",
+            o.sigma
+        );
+    }
+    assert!(fed.observed.iter().any(|o| o.sigma > 0.0));
+
+    // Fed to the grid, every observed cell holds at least what was seen in it, and cells
+    // whose value was below what a sample found rise.
+    let before = case.avatar.occupancy().unwrap().clone();
+    let mut avatar = Avatar::from_tensors(
+        case.avatar.config().clone(),
+        case.avatar.tensors(),
+        &Device::Cpu,
+    )
+    .unwrap()
+    .with_occupancy(Some(before.clone()));
+    avatar.observe_occupancy(&fed.observed).unwrap();
+    let after = avatar.occupancy().unwrap();
+    let at = |g: &OccupancyGrid, o: &pma_model::render::avatar::GridObservation| {
+        g.density()[o.joint as usize * cells + o.cell as usize]
+    };
+    assert!(fed.observed.iter().all(|o| at(after, o) >= o.sigma));
+    assert!(fed
+        .observed
+        .iter()
+        .any(|o| at(&before, o) < o.sigma && at(after, o) == o.sigma));
+    let pairs = before.density().iter().zip(after.density());
+    assert!(pairs.clone().all(|(a, b)| b >= a), "a fed cell went down");
+
+    let half = infer(&case, &feeding(0.5)).unwrap();
+    let left = half.stats.skipped_empty as f64 / plain.stats.skipped_empty as f64;
+    assert!(
+        (0.35..0.65).contains(&left),
+        "probes at 0.5 left {left} of the skips"
+    );
+    assert!(half.observed.len() > fed.observed.len());
+
+    let all = infer(&case, &feeding(1.0)).unwrap();
+    assert_eq!(all.stats.skipped_empty, 0);
+    let culled = infer(
+        &case,
+        &PassOptions::culled(Culling {
+            rays: false,
+            sample_threshold: Some(0.0),
+            sample_fill: SampleFill::Network,
+        }),
+    )
+    .unwrap();
+    assert_eq!(all.stats.coarse_evaluated, culled.stats.coarse_evaluated);
+    assert_eq!(all.stats.fine_evaluated, culled.stats.fine_evaluated);
+    let d = max_abs_diff(&flat(&all.raw), &flat(&culled.raw));
+    assert!(
+        d <= 1e-5,
+        "every empty sample probed differs from culling by {d}"
+    );
 }
 
 #[test]
@@ -298,6 +403,35 @@ mod trained {
         let skipped = render(&loaded, &occupancy_only());
         println!("probe with the grid: {:?}", skipped.stats);
         assert!(skipped.stats.points_evaluated <= without.stats.points_evaluated);
+    }
+
+    /// A training step after the warm-up feeds its pass: with every empty sample probed it
+    /// leaves none out, without probes it does (the same run otherwise).
+    #[test]
+    fn training_steps_probe_the_cells_their_grid_leaves_out() {
+        let skipped_with = |probe_share: f64| {
+            let dir = tempfile::tempdir().unwrap();
+            let data = tiny_scene(dir.path());
+            let mut run = tiny_run();
+            run.model.n_framecodes = data.n_images();
+            run.train.occupancy = Some(OccupancyConfig {
+                resolution: 16,
+                warmup_steps: 2,
+                threshold: 0.05,
+                probe_share,
+                ..Default::default()
+            });
+            let mut trainer = Trainer::new(run, data, &Device::Cpu).unwrap();
+            for _ in 0..4 {
+                trainer.step().unwrap();
+            }
+            trainer.pass_totals()
+        };
+        let (none, all) = (skipped_with(0.0), skipped_with(1.0));
+        println!("no probes: {none:?}\nall probed: {all:?}");
+        assert!(none.skipped_empty > 0, "{none:?}");
+        assert_eq!(all.skipped_empty, 0, "{all:?}");
+        assert!(all.coarse_evaluated > none.coarse_evaluated);
     }
 }
 
