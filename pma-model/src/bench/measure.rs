@@ -177,7 +177,14 @@ pub fn measure(req: &BenchRequest, obs: &mut dyn BenchObserver) -> Result<BenchR
     // Loaded before the per-option peak-RSS resets, so no option's phase pays for it.
     crate::eval::lpips::Lpips::shared()?;
     let (avatar, model_desc) = bench_model(req, &scene, obs)?;
-    let (mut avatar, grids) = grids_for(req, avatar, &scene, obs)?;
+    let (mut avatar, grids) = grids_for(
+        &req.occupancy,
+        req.occupancy_poses,
+        &req.options,
+        avatar,
+        &scene.train,
+        obs,
+    )?;
     let cfg = avatar.config().clone();
     let fpp = flops::per_point(&cfg);
     let (peak, peak_how) = flops::fp32_peak();
@@ -348,24 +355,27 @@ fn bench_model(
 /// brought its own (every row then uses that); otherwise one grid per span, built from the
 /// scene's training poses, spanning where the option's culling threshold lets the window
 /// through ([`OccupancyConfig::covering`]): the grid alone spans the whole window.
-struct Grids(Vec<(u64, Arc<OccupancyGrid>)>);
+pub(super) struct Grids {
+    grids: Vec<(u64, Arc<OccupancyGrid>)>,
+    config: OccupancyConfig,
+}
 
 impl Grids {
-    fn extent(req: &BenchRequest, avatar: &Avatar, opt: &BenchOption) -> f64 {
-        req.occupancy
+    fn extent(config: &OccupancyConfig, avatar: &Avatar, opt: &BenchOption) -> f64 {
+        config
             .clone()
             .covering(opt.culling.sample_threshold, avatar.config())
             .extent
     }
 
     /// Give `avatar` the grid `opt` renders with.
-    fn select(&self, req: &BenchRequest, avatar: &mut Avatar, opt: &BenchOption) {
-        if self.0.is_empty() || !opt.occupancy {
+    pub(super) fn select(&self, avatar: &mut Avatar, opt: &BenchOption) {
+        if self.grids.is_empty() || !opt.occupancy {
             return;
         }
-        let key = Self::extent(req, avatar, opt).to_bits();
+        let key = Self::extent(&self.config, avatar, opt).to_bits();
         let grid = self
-            .0
+            .grids
             .iter()
             .find(|(k, _)| *k == key)
             .map(|(_, g)| g.clone());
@@ -373,35 +383,38 @@ impl Grids {
     }
 }
 
-fn grids_for(
-    req: &BenchRequest,
+/// The grids of `options` (see [`Grids`]) built with `config` over `poses` training poses of
+/// `train`; each is announced through `obs` with its span and occupied share.
+pub(super) fn grids_for(
+    config: &OccupancyConfig,
+    poses: usize,
+    options: &[BenchOption],
     mut avatar: Avatar,
-    scene: &Scene,
+    train: &Arc<Dataset>,
     obs: &mut dyn BenchObserver,
 ) -> Result<(Avatar, Grids)> {
     use crate::tools::occupancy::{build, BuildOptions};
     let mut grids: Vec<(u64, Arc<OccupancyGrid>)> = Vec::new();
+    let config = config.clone();
     if avatar.occupancy().is_some() {
-        return Ok((avatar, Grids(grids)));
+        return Ok((avatar, Grids { grids, config }));
     }
-    for opt in req.options.iter().filter(|o| o.occupancy) {
-        let extent = Grids::extent(req, &avatar, opt);
+    for opt in options.iter().filter(|o| o.occupancy) {
+        let extent = Grids::extent(&config, &avatar, opt);
         if grids.iter().any(|(k, _)| *k == extent.to_bits()) {
             continue;
         }
         let opts = BuildOptions {
             config: OccupancyConfig {
                 extent,
-                ..req.occupancy.clone()
+                ..config.clone()
             },
-            poses: req.occupancy_poses.max(1),
+            poses: poses.max(1),
             ..Default::default()
         };
         obs.phase("building the occupancy grid (poses)", opts.poses as u64);
         let t = Instant::now();
-        let (built, s) = build(avatar, &scene.train, &opts, &mut |d, _| {
-            obs.progress(d as u64, "")
-        })?;
+        let (built, s) = build(avatar, train, &opts, &mut |d, _| obs.progress(d as u64, ""))?;
         avatar = built;
         obs.phase_end();
         obs.note(&format!(
@@ -418,7 +431,7 @@ fn grids_for(
         avatar.set_occupancy(None);
         grids.push((extent.to_bits(), grid));
     }
-    Ok((avatar, Grids(grids)))
+    Ok((avatar, Grids { grids, config }))
 }
 
 /// The W×H view every option renders: the first held-out image's pose and camera,
@@ -503,7 +516,7 @@ fn measure_inference(
     for opt in opts {
         obs.progress(done, &format!("render {}", opt.name));
         let pass = opt.apply(avatar);
-        grids.select(req, avatar, opt);
+        grids.select(avatar, opt);
         if rss_reset {
             reset_peak_rss();
         }
@@ -544,7 +557,7 @@ fn measure_inference(
         for ((opt, t_opt), res) in opts.iter().zip(times.iter_mut()).zip(results.iter_mut()) {
             obs.progress(done, &format!("time {}", opt.name));
             let pass = opt.apply(avatar);
-            grids.select(req, avatar, opt);
+            grids.select(avatar, opt);
             let t = Instant::now();
             let img = render(avatar, pass)?;
             t_opt.push(t.elapsed().as_secs_f64());

@@ -4,8 +4,10 @@
 //!
 //! The model is `--model`, or the preset trained in-process for a fixed number of steps (a
 //! step count, not a wall-clock budget, so the figures repeat). Its occupancy grid is the one
-//! saved with it, or one built as `pma occupancy build` builds it over the scene's training
-//! poses. Two sets of rays are counted:
+//! saved with it, or grids built as `pma occupancy build` builds them over the scene's
+//! training poses, one per span as `pma bench` builds them: the grid alone over the whole
+//! window, the culling row's over where its threshold lets a window through. Two sets of rays
+//! are counted:
 //!
 //! * **render**: the rays a render of held-out views traces (the pixels inside the body's
 //!   2-D box, at the dataset's resolution), as `pma render` / `pma eval` would;
@@ -18,14 +20,13 @@
 //! pass); far-away constants are not counted as samples.
 
 use std::path::PathBuf;
-use std::sync::Arc;
 
 use candle_core::Device;
 use pma_data::dataset::Dataset;
 use pma_data::synth::SynthConfig;
 use serde::{Deserialize, Serialize};
 
-use super::measure::{prepare_scene, Scene};
+use super::measure::{grids_for, prepare_scene, Scene};
 use super::{BenchError, BenchObserver, BenchOption, Result};
 use crate::eval::dataset_pose;
 use crate::network::occupancy::OccupancyConfig;
@@ -97,8 +98,10 @@ pub struct SharesReport {
     pub train_steps: Option<u64>,
     pub train_rays_per_step: Option<usize>,
     pub threshold: f64,
-    /// How the grid was made, its resolution and occupied share.
+    /// How the grids were made: the model's own for every row, or one per span (each with
+    /// its span and occupied share).
     pub grid: String,
+    /// Occupied share of the grid the `occupancy` row (the grid alone) uses.
     pub grid_occupied_fraction: f64,
     pub coarse_samples_per_ray: usize,
     pub fine_samples_per_ray: usize,
@@ -157,20 +160,55 @@ pub fn shares(req: &SharesRequest, obs: &mut dyn BenchObserver) -> Result<Shares
     }
     let scene = prepare_scene(&req.out, &req.scene, req.eval_images.max(1), obs)?;
     let (avatar, model, steps) = shares_model(req, &scene, obs)?;
-    let (avatar, grid) = match avatar.occupancy() {
-        Some(g) => {
-            let how = format!(
-                "saved with the model ({}^3 per joint, {} refreshes)",
-                g.config().resolution,
-                g.refreshes()
-            );
-            (avatar, how)
-        }
-        None => build_grid(req, avatar, &scene.train, obs)?,
-    };
-    let occupied = avatar.occupancy().map_or(1.0, |g| g.occupied_fraction());
-    let cfg = avatar.config().clone();
     let options = share_options(req.threshold);
+    let saved = avatar.occupancy().map(|g| {
+        let how = format!(
+            "saved with the model ({}^3 per joint, {} refreshes), for every row",
+            g.config().resolution,
+            g.refreshes()
+        );
+        (how, g.occupied_fraction())
+    });
+    let (mut avatar, grids) = grids_for(
+        &req.occupancy,
+        req.occupancy_poses,
+        &options,
+        avatar,
+        &scene.train,
+        obs,
+    )?;
+    let (grid, occupied) = match saved {
+        Some(s) => s,
+        None => {
+            // One grid per span, as the timing bench builds them: the grid alone over the
+            // whole window, the culling row's over where its threshold lets a window through.
+            let mut spans = Vec::new();
+            let mut whole = 1.0;
+            for o in options.iter().filter(|o| o.occupancy) {
+                grids.select(&mut avatar, o);
+                if let Some(g) = avatar.occupancy() {
+                    if o.culling.sample_threshold.is_none() {
+                        whole = g.occupied_fraction();
+                    }
+                    spans.push(format!(
+                        "{}: |x̄| < {:.3}, {:.1} % occupied",
+                        o.name,
+                        g.config().extent,
+                        100.0 * g.occupied_fraction()
+                    ));
+                }
+            }
+            let how = format!(
+                "built over {} training poses as `pma occupancy build` does ({}^3 per joint), \
+                 one per span ({})",
+                req.occupancy_poses.max(1),
+                req.occupancy.resolution,
+                spans.join("; ")
+            );
+            (how, whole)
+        }
+    };
+    let cfg = avatar.config().clone();
     for o in &options {
         o.pass()
             .validate(&cfg)
@@ -187,6 +225,7 @@ pub fn shares(req: &SharesRequest, obs: &mut dyn BenchObserver) -> Result<Shares
     );
     let mut render = Vec::new();
     for (k, o) in options.iter().enumerate() {
+        grids.select(&mut avatar, o);
         let mut stats = PassStats::default();
         for (i, &n) in images.iter().enumerate() {
             obs.progress((k * images.len() + i) as u64, &o.name);
@@ -216,6 +255,7 @@ pub fn shares(req: &SharesRequest, obs: &mut dyn BenchObserver) -> Result<Shares
     let mut training_batches = Vec::new();
     if !batches.is_empty() {
         for (k, o) in options.iter().enumerate() {
+            grids.select(&mut avatar, o);
             let mut stats = PassStats::default();
             for (i, b) in batches.iter().enumerate() {
                 obs.progress((k * batches.len() + i) as u64, &o.name);
@@ -328,28 +368,4 @@ fn shares_model(
         ),
         Some(req.train_steps),
     ))
-}
-
-/// The model with a grid built over `req.occupancy_poses` training poses.
-fn build_grid(
-    req: &SharesRequest,
-    avatar: Avatar,
-    train: &Arc<Dataset>,
-    obs: &mut dyn BenchObserver,
-) -> Result<(Avatar, String)> {
-    use crate::tools::occupancy::{build, BuildOptions};
-    let opts = BuildOptions {
-        config: req.occupancy.clone(),
-        poses: req.occupancy_poses.max(1),
-        ..Default::default()
-    };
-    obs.phase("building the occupancy grid (poses)", opts.poses as u64);
-    let (avatar, s) = build(avatar, train, &opts, &mut |d, _| obs.progress(d as u64, ""))?;
-    obs.phase_end();
-    let how = format!(
-        "built over {} training poses as `pma occupancy build` does ({}^3 per joint, {} network \
-         points)",
-        s.poses, opts.config.resolution, s.points
-    );
-    Ok((avatar, how))
 }
