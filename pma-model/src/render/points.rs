@@ -834,7 +834,7 @@ impl CullCtx {
     /// The fate of every sample of pts [R,S,3] by the window test, ray culling and the grid.
     fn fates(&mut self, pts: &Tensor) -> Result<Vec<SampleFate>> {
         let (r, s, _) = pts.dims3()?;
-        let fates = match (&self.test, &self.ray_alive) {
+        let mut fates = match (&self.test, &self.ray_alive) {
             (Some(t), alive) => {
                 self.host_pts = host_f32(pts)?;
                 t.fates(&self.host_pts, r, s, alive.as_deref(), self.grid.as_deref())?
@@ -842,7 +842,6 @@ impl CullCtx {
             (None, Some(alive)) => ray_fates(r, s, alive)?,
             (None, None) => vec![SampleFate::Evaluate; r * s],
         };
-        let mut fates = fates;
         if let Some(feed) = &self.feed {
             for (i, f) in fates.iter_mut().enumerate() {
                 if *f == SampleFate::Empty && feed.probes(self.tests_run, i as u64) {

@@ -346,23 +346,38 @@ mod trained {
     use pma_model::render::avatar::Mode;
     use pma_model::train::Trainer;
 
+    /// The tiny run on a tiny scene in `dir`, trained with a grid of `occupancy`.
+    fn grid_run(
+        dir: &std::path::Path,
+        occupancy: OccupancyConfig,
+    ) -> (
+        pma_model::train::RunConfig,
+        std::sync::Arc<pma_data::dataset::Dataset>,
+    ) {
+        let data = tiny_scene(dir);
+        let mut run = tiny_run();
+        run.model.n_framecodes = data.n_images();
+        run.train.occupancy = Some(occupancy);
+        (run, data)
+    }
+
     /// A model trained with the grid (refreshed during training, used by the steps after the
     /// warm-up) renders without it exactly as its tensors do without a grid, and its saved
     /// checkpoint carries the grid the trainer built.
     #[test]
     fn a_model_trained_with_the_grid_renders_without_it() {
         let dir = tempfile::tempdir().unwrap();
-        let data = tiny_scene(dir.path());
-        let mut run = tiny_run();
-        run.model.n_framecodes = data.n_images();
-        run.train.occupancy = Some(OccupancyConfig {
-            resolution: 16,
-            warmup_steps: 2,
-            refresh_every: 1,
-            refresh_share: 0.25,
-            threshold: 0.05,
-            ..Default::default()
-        });
+        let (run, data) = grid_run(
+            dir.path(),
+            OccupancyConfig {
+                resolution: 16,
+                warmup_steps: 2,
+                refresh_every: 1,
+                refresh_share: 0.25,
+                threshold: 0.05,
+                ..Default::default()
+            },
+        );
         let probe = first_batch(&data, &run);
         let mut trainer = Trainer::new(run, data.clone(), &Device::Cpu).unwrap();
         for _ in 0..6 {
@@ -411,16 +426,16 @@ mod trained {
     fn training_steps_probe_the_cells_their_grid_leaves_out() {
         let skipped_with = |probe_share: f64| {
             let dir = tempfile::tempdir().unwrap();
-            let data = tiny_scene(dir.path());
-            let mut run = tiny_run();
-            run.model.n_framecodes = data.n_images();
-            run.train.occupancy = Some(OccupancyConfig {
-                resolution: 16,
-                warmup_steps: 2,
-                threshold: 0.05,
-                probe_share,
-                ..Default::default()
-            });
+            let (run, data) = grid_run(
+                dir.path(),
+                OccupancyConfig {
+                    resolution: 16,
+                    warmup_steps: 2,
+                    threshold: 0.05,
+                    probe_share,
+                    ..Default::default()
+                },
+            );
             let mut trainer = Trainer::new(run, data, &Device::Cpu).unwrap();
             for _ in 0..4 {
                 trainer.step().unwrap();
