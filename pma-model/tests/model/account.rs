@@ -7,7 +7,7 @@
 
 use pma_model::compute::account::Route;
 use pma_model::train::account::{account_one_pass_extrapolated, account_step, StepAccount};
-use pma_model::train::{BatchSource, DatasetSource, Trainer};
+use pma_model::train::{BatchSource, DatasetSource, RunConfig, Trainer};
 
 use crate::train_support::{tiny_run, tiny_scene};
 
@@ -19,11 +19,21 @@ fn tiny(chunk_rays: usize) -> (tempfile::TempDir, Trainer, DatasetSource) {
 
 /// [`tiny`] with `rays` rays per step.
 fn tiny_with_rays(chunk_rays: usize, rays: usize) -> (tempfile::TempDir, Trainer, DatasetSource) {
+    tiny_with(chunk_rays, rays, |_| {})
+}
+
+/// [`tiny_with_rays`] with the run configuration changed by `tweak`.
+fn tiny_with(
+    chunk_rays: usize,
+    rays: usize,
+    tweak: impl FnOnce(&mut RunConfig),
+) -> (tempfile::TempDir, Trainer, DatasetSource) {
     let dir = tempfile::tempdir().unwrap();
     let data = tiny_scene(dir.path());
     let mut run = tiny_run();
     run.train.chunk_rays = chunk_rays;
     run.train.rays_per_step = rays;
+    tweak(&mut run);
     let t = &run.train;
     let dev = candle_core::Device::Cpu;
     let source = DatasetSource::new(
@@ -226,4 +236,68 @@ fn a_culled_pass_on_the_cuda_route_is_one_network_call_per_stage() {
         .map(|(a, b)| (a - b).abs())
         .fold(0f32, f32::max);
     assert!(worst <= 1e-5, "rgb differs by {worst}");
+}
+
+/// A step that leaves work out reads back on the host what its culling decides there (ray
+/// casting, each stage's fates, the importance sampler's inputs); a step that also trains the
+/// occupancy grid reads each network stage's σ once more, for the cells its samples saw.
+/// docs/gpu.md and docs/performance.md quote these counts.
+#[test]
+fn a_culled_step_reads_back_per_stage_and_the_grid_feed_once_more_per_network_stage() {
+    use pma_model::network::occupancy::OccupancyConfig;
+    use pma_model::render::{Culling, SampleFill};
+    let culled = |grid: bool| {
+        let (_dir, mut trainer, mut source) = tiny_with(0, 64, |run| {
+            run.train.culling = Culling {
+                rays: true,
+                sample_threshold: Some(0.6),
+                sample_fill: SampleFill::Network,
+            };
+            run.train.occupancy = grid.then(|| OccupancyConfig {
+                warmup_steps: 1,
+                ..OccupancyConfig::default()
+            });
+        });
+        if grid {
+            // The refresh that ends the warm-up step builds the grid.
+            trainer.advance(&source.next_batch().unwrap()).unwrap();
+            trainer.read_back().unwrap();
+            assert!(
+                trainer.avatar().occupancy().is_some(),
+                "no grid after the warm-up"
+            );
+        }
+        account_step(&mut trainer, &mut source, Route::Cuda).unwrap()
+    };
+    let (plain, fed) = (culled(false), culled(true));
+    let by_stage = |a: &StepAccount| -> Vec<(String, u64)> {
+        a.report
+            .stages
+            .iter()
+            .filter(|s| s.counts.syncs > 0)
+            .map(|s| (s.name.clone(), s.counts.syncs))
+            .collect()
+    };
+    let expect = |coarse: u64, fine: u64| -> Vec<(String, u64)> {
+        [
+            ("cast", 5),
+            ("coarse network", coarse),
+            ("resample", 4),
+            ("fine network", fine),
+        ]
+        .into_iter()
+        .map(|(n, k)| (n.to_string(), k))
+        .collect()
+    };
+    assert_eq!(by_stage(&plain), expect(3, 1), "{}", table(&plain));
+    assert_eq!(plain.report.total.syncs, 13);
+    assert_eq!(by_stage(&fed), expect(4, 2), "{}", table(&fed));
+    assert_eq!(fed.report.total.syncs, 15);
+    // The feed adds reads, not launches: the network calls are the same ones.
+    assert_eq!(
+        plain.report.total.ops,
+        fed.report.total.ops,
+        "{}",
+        table(&fed)
+    );
 }
