@@ -88,37 +88,10 @@ impl Field {
         k: Numerics,
         keep_pre: bool,
     ) -> Result<FieldOutputs> {
-        // Each ReLU layer is one op with its linear layer unless a pre-ReLU value is wanted
-        // or the trunk emulates bf16.
-        let linear_relu = |layer: &Linear, h: &Tensor, keep: bool| -> Result<(Tensor, _)> {
-            if !keep && !k.bf16_trunk {
-                return Ok((layer.forward_relu(h, k)?, None));
-            }
-            let pre = match k.bf16_trunk {
-                true => layer.forward_bf16(h, k)?,
-                false => layer.forward(h, k)?,
-            };
-            Ok((pre.relu()?, Some(pre)))
-        };
-        let mut h = s.clone();
-        let mut l0_pre = None;
-        for (i, layer) in self.pts_linears.iter().enumerate() {
-            let (out, pre) = linear_relu(layer, &h, keep_pre && i == 0)?;
-            if i == 0 {
-                l0_pre = pre;
-            }
-            h = out;
-            if self.skips.contains(&i) {
-                // The reference concatenates the input first, then the features.
-                h = Tensor::cat(&[s, &h], D::Minus1)?;
-            }
-        }
+        let (h, l0_pre) = self.trunk(s, k, keep_pre)?;
         let sigma_raw = self.sigma.forward(&h, k)?;
         let feature_linear = self.feature.forward(&h, k)?;
-        let view_in = Tensor::cat(&[&feature_linear, view], D::Minus1)?;
-        let (view_h, view_pre) = linear_relu(&self.view, &view_in, keep_pre)?;
-        let rgb_logits = self.rgb.forward(&view_h, k)?;
-        let rgb = candle_nn::ops::sigmoid(&rgb_logits)?.affine(1.002, -0.001)?;
+        let (view_pre, rgb_logits, rgb) = self.colour(&feature_linear, view, k, keep_pre)?;
         Ok(FieldOutputs {
             l0_pre,
             feature: h,
@@ -128,6 +101,78 @@ impl Field {
             rgb_logits,
             rgb,
         })
+    }
+
+    /// The heads of M points seen along R rays: s: [M,K·F], view: [R,SH+code], rows: [R]
+    /// (u32, the point of each ray). The trunk, the density and the feature layer run once
+    /// per point; the colour layers once per ray. Returns (rgb [R,3], sigma_raw [R,1]), row
+    /// for row what [`Self::forward`] gives for the points repeated once per ray.
+    pub fn forward_gathered(
+        &self,
+        s: &Tensor,
+        view: &Tensor,
+        rows: &Tensor,
+        k: Numerics,
+    ) -> Result<(Tensor, Tensor)> {
+        let (h, _) = self.trunk(s, k, false)?;
+        let sigma_raw = crate::compute::ops::select_rows(&self.sigma.forward(&h, k)?, rows, k)?;
+        let feature_linear =
+            crate::compute::ops::select_rows(&self.feature.forward(&h, k)?, rows, k)?;
+        let (_, _, rgb) = self.colour(&feature_linear, view, k, false)?;
+        Ok((rgb, sigma_raw))
+    }
+
+    /// Each ReLU layer is one op with its linear layer unless a pre-ReLU value is wanted
+    /// or the trunk emulates bf16.
+    fn linear_relu(
+        layer: &Linear,
+        h: &Tensor,
+        k: Numerics,
+        keep: bool,
+    ) -> Result<(Tensor, Option<Tensor>)> {
+        if !keep && !k.bf16_trunk {
+            return Ok((layer.forward_relu(h, k)?, None));
+        }
+        let pre = match k.bf16_trunk {
+            true => layer.forward_bf16(h, k)?,
+            false => layer.forward(h, k)?,
+        };
+        Ok((pre.relu()?, Some(pre)))
+    }
+
+    /// The density trunk on s -> (h after the last ReLU, the first layer's pre-ReLU value
+    /// when `keep_l0`).
+    fn trunk(&self, s: &Tensor, k: Numerics, keep_l0: bool) -> Result<(Tensor, Option<Tensor>)> {
+        let mut h = s.clone();
+        let mut l0_pre = None;
+        for (i, layer) in self.pts_linears.iter().enumerate() {
+            let (out, pre) = Self::linear_relu(layer, &h, k, keep_l0 && i == 0)?;
+            if i == 0 {
+                l0_pre = pre;
+            }
+            h = out;
+            if self.skips.contains(&i) {
+                // The reference concatenates the input first, then the features.
+                h = Tensor::cat(&[s, &h], D::Minus1)?;
+            }
+        }
+        Ok((h, l0_pre))
+    }
+
+    /// The colour head on feature_linear(h) and the view features -> (view layer pre-ReLU
+    /// when `keep_pre`, rgb logits, rgb = 1.002·sigmoid(logits) − 0.001).
+    fn colour(
+        &self,
+        feature_linear: &Tensor,
+        view: &Tensor,
+        k: Numerics,
+        keep_pre: bool,
+    ) -> Result<(Option<Tensor>, Tensor, Tensor)> {
+        let view_in = Tensor::cat(&[feature_linear, view], D::Minus1)?;
+        let (view_h, view_pre) = Self::linear_relu(&self.view, &view_in, k, keep_pre)?;
+        let rgb_logits = self.rgb.forward(&view_h, k)?;
+        let rgb = candle_nn::ops::sigmoid(&rgb_logits)?.affine(1.002, -0.001)?;
+        Ok((view_pre, rgb_logits, rgb))
     }
 }
 

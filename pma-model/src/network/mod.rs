@@ -65,6 +65,14 @@ pub struct PoseFeatures {
     pub scales: Tensor,
 }
 
+/// The view features the colour head of a network call sees.
+enum Heads<'a> {
+    /// One row per point.
+    PerPoint(&'a Tensor),
+    /// One row per ray, with the point of each ray (`rows`).
+    Gathered { view: &'a Tensor, rows: &'a Tensor },
+}
+
 /// The network's tensors and what every pass derives from them once.
 pub struct Network {
     cfg: Config,
@@ -296,6 +304,34 @@ impl Network {
         joints: Option<&[u32]>,
         trace: Option<(&mut Trace, &str)>,
     ) -> Result<(Tensor, Tensor)> {
+        self.eval_with(pose, poses, pts, Heads::PerPoint(view), joints, trace)
+    }
+
+    /// The network at one point per pose of `poses` (pts: [m,3], in pose order) seen along R
+    /// rays: view: [R,V], rows: [R] (u32, the point of each ray). Everything but the colour
+    /// layers runs once per point, so R rays that share a point (the culled route's far-away
+    /// point of a pose) cost one point and R colour heads. Returns (rgb [R,3], sigma_raw
+    /// [R,1]): what [`Self::eval_poses`] gives for each ray's point with its view.
+    pub fn eval_shared(
+        &self,
+        pose: &PoseFeatures,
+        poses: std::ops::Range<usize>,
+        pts: &Tensor,
+        view: &Tensor,
+        rows: &Tensor,
+    ) -> Result<(Tensor, Tensor)> {
+        self.eval_with(pose, poses, pts, Heads::Gathered { view, rows }, None, None)
+    }
+
+    fn eval_with(
+        &self,
+        pose: &PoseFeatures,
+        poses: std::ops::Range<usize>,
+        pts: &Tensor,
+        heads: Heads,
+        joints: Option<&[u32]>,
+        trace: Option<(&mut Trace, &str)>,
+    ) -> Result<(Tensor, Tensor)> {
         let n = pts.dim(0)?;
         let m = poses.len();
         let sub = match joints {
@@ -420,6 +456,12 @@ impl Network {
             ),
         };
         // NeRF density and colour heads.
+        let view = match heads {
+            Heads::PerPoint(view) => view,
+            Heads::Gathered { view, rows } => {
+                return net.field.forward_gathered(&s, view, rows, k);
+            }
+        };
         let out = net.field.forward(&s, view, k, trace.is_some())?;
         if let Some((tr, stage)) = trace {
             // Θ mapped to the frequencies γ the layers use, stacked per layer like Φ.

@@ -612,9 +612,21 @@ struct ConstRows {
     probed: bool,
 }
 
+impl ConstRows {
+    /// File the far-away rows rgb [m,3] and sigma_raw [m,1] of `rays` (in that order).
+    fn add(&mut self, rays: &[usize], rgb: Tensor, sigma_raw: Tensor) {
+        for (i, &ray) in rays.iter().enumerate() {
+            self.row_of_ray[ray] = (self.rows + i) as u32;
+        }
+        self.rows += rays.len();
+        self.rgb.push(rgb);
+        self.sigma.push(sigma_raw);
+    }
+}
+
 /// The network calls of one culled stage: every row they read, gathered once per pass
-/// (per pose, its kept samples in sample order, then its far-away points), and the calls
-/// as ranges of those rows.
+/// (per pose, its kept samples in sample order, then in inference its far-away points), the
+/// calls as ranges of those rows, and in training the far-away points' own call.
 struct Plan {
     /// [rows,3] points and the view features of their rays.
     pts: Tensor,
@@ -623,6 +635,26 @@ struct Plan {
     /// The evaluated samples in the order of the calls' rows, when that is not sample order
     /// (samples grouped by their joints).
     order: Option<Vec<usize>>,
+    far: Option<FarCall>,
+}
+
+/// Training: the far-away points of the rays that still need their constant, as one call
+/// ([`Network::eval_shared`]): one point per pose of the batch, so the call sees equal
+/// blocks, the trunk once per pose and the colour head once per ray (in a `cpu-small` step
+/// with culling about one point in ten was a ray's far-away point). Inference keeps them as rows of the pose's last call, one per ray: there the
+/// constant is bit for bit what parity computes at samples whose window is exactly 0 (a
+/// separate small call rounds differently in the last bit), which is what makes culling at
+/// threshold 0 exact.
+struct FarCall {
+    n_poses: usize,
+    /// [P,3]: pose p's far-away point (a pose none of whose rays needs one repeats another
+    /// pose's point; its row is computed and not read).
+    pts: Tensor,
+    /// The rays, in pose order.
+    rays: Vec<usize>,
+    /// [rays,V] view features and [rays] (u32) the pose of each ray.
+    view: Tensor,
+    rows: Tensor,
 }
 
 /// The culled stage as ONE network call over every pose (a GPU's plan): pose p's block of
@@ -643,8 +675,8 @@ struct PaddedPlan {
 }
 
 /// One network call of the culled route on rows `start..start + len + far_rays.len()` of
-/// the plan, all of pose p: `len` kept samples, then the far-away points of `far_rays` (the
-/// rays that still need their constant).
+/// the plan, all of pose p: `len` kept samples, then (in inference) the far-away points of
+/// `far_rays` (the rays that still need their constant).
 struct Job {
     p: usize,
     start: usize,
@@ -1049,9 +1081,10 @@ impl CullCtx {
         Ok((rgb, sigma_raw))
     }
 
-    /// The network calls: per pose, the kept samples in chunks of `chunk` (one chunk when
-    /// `None`: the graph is kept), the far-away points of `far_rays` at the back of the pose's
-    /// last call.
+    /// The network calls: per pose, the kept samples in chunks of `chunk`; the far-away
+    /// points of `far_rays` at the back of the pose's last call. `None`: training (the graph
+    /// is kept), one chunk per pose and the far-away points in a call of their own
+    /// ([`FarCall`]).
     ///
     /// All rows are gathered at once and each call reads a range of them, but every call
     /// gets the rows, in the order and number, of a gather per call: a point's output can
@@ -1079,6 +1112,7 @@ impl CullCtx {
             Some(_) => Some(std::borrow::Cow::Owned(host_f32(pts)?)),
             None => None,
         };
+        let far_apart = chunk.is_none();
         // Rows of the source: i < n is sample i; n + q is the q-th far-away point.
         let mut src: Vec<u32> = Vec::new();
         let mut rays_of: Vec<u32> = Vec::new();
@@ -1112,11 +1146,14 @@ impl CullCtx {
             src.extend(samples.iter().map(|&i| i as u32));
             let kept = src.len() - first;
             rays_of.extend(src[first..].iter().map(|&i| i / s as u32));
-            let far_p: Vec<usize> = far_rays
-                .iter()
-                .copied()
-                .filter(|&ray| ray / k == p)
-                .collect();
+            let far_p: Vec<usize> = match far_apart {
+                true => Vec::new(),
+                false => far_rays
+                    .iter()
+                    .copied()
+                    .filter(|&ray| ray / k == p)
+                    .collect(),
+            };
             if kept == 0 && far_p.is_empty() {
                 continue;
             }
@@ -1161,13 +1198,55 @@ impl CullCtx {
             .joint_test
             .as_ref()
             .map(|_| src.iter().map(|&i| i as usize).filter(|&i| i < n).collect());
+        let far = match far_apart {
+            true => self.far_call(n_poses, k, view, far_rays, pts.dtype())?,
+            false => None,
+        };
         let (pts, view) = self.gather(pts, far_points, src, view, rays_of)?;
         Ok(Plan {
             pts,
             view,
             jobs,
             order,
+            far,
         })
+    }
+
+    /// The [`FarCall`] of the rays `far_rays` (k rays per pose), or `None` without any.
+    fn far_call(
+        &self,
+        n_poses: usize,
+        k: usize,
+        view: &Tensor,
+        far_rays: &[usize],
+        dtype: DType,
+    ) -> Result<Option<FarCall>> {
+        let Some(&first) = far_rays.first() else {
+            return Ok(None);
+        };
+        let test = self
+            .test
+            .as_ref()
+            .ok_or_else(|| ModelError::Input("culling: constants need the window test".into()))?;
+        let mut rays = far_rays.to_vec();
+        rays.sort_unstable();
+        let needed = test.far_point(first / k)?;
+        let mut points = Vec::with_capacity(3 * n_poses);
+        for p in 0..n_poses {
+            let needs = rays.iter().any(|&ray| ray / k == p);
+            points.extend(if needs { test.far_point(p)? } else { needed });
+        }
+        let dev = view.device();
+        let m = rays.len();
+        let pose_of: Vec<u32> = rays.iter().map(|&ray| (ray / k) as u32).collect();
+        let ids: Vec<u32> = rays.iter().map(|&ray| ray as u32).collect();
+        Ok(Some(FarCall {
+            n_poses,
+            pts: Tensor::from_vec(points, (n_poses, 3), dev)?.to_dtype(dtype)?,
+            view: select_rows(view, &Tensor::from_vec(ids, m, dev)?, self.numerics)?,
+            rows: Tensor::from_vec(pose_of, m, dev)?,
+            rays,
+        }))
     }
 
     /// The rows `src` of the samples pts [R,S,3] followed by the points `far` (x, y, z
@@ -1313,8 +1392,9 @@ impl CullCtx {
         Ok((rgb, sigma, rows, plan.eval_row))
     }
 
-    /// Run the jobs on the workers; keep the kept samples' rows in order and file the
-    /// far-away rows under their rays. Returns (rgb rows, sigma rows, samples evaluated).
+    /// Run the jobs and the far-away call on the workers; keep the kept samples' rows in
+    /// order and file the far-away rows under their rays. Returns (rgb rows, sigma rows,
+    /// samples evaluated).
     fn evaluate(
         &mut self,
         net: &Network,
@@ -1323,21 +1403,31 @@ impl CullCtx {
         inference: bool,
     ) -> Result<(Vec<Tensor>, Vec<Tensor>, usize)> {
         let Plan {
-            pts, view, jobs, ..
+            pts,
+            view,
+            jobs,
+            far,
+            ..
         } = plan;
         let workers = crate::compute::parallel::workers_on(net.device());
-        let outs = crate::compute::parallel::map_ordered(workers, jobs.len(), |i| {
+        let calls = jobs.len() + usize::from(far.is_some());
+        let mut outs = crate::compute::parallel::map_ordered(workers, calls, |i| {
             crate::interrupt::check()?;
-            let job = &jobs[i];
-            let rows = job.len + job.far_rays.len();
-            let (rgb, sigma_raw) = net.eval_joints(
-                pose,
-                job.p..job.p + 1,
-                &pts.narrow(0, job.start, rows)?,
-                &view.narrow(0, job.start, rows)?,
-                job.joints.as_deref(),
-                None,
-            )?;
+            let (rgb, sigma_raw) = match (jobs.get(i), &far) {
+                (Some(job), _) => {
+                    let rows = job.len + job.far_rays.len();
+                    net.eval_joints(
+                        pose,
+                        job.p..job.p + 1,
+                        &pts.narrow(0, job.start, rows)?,
+                        &view.narrow(0, job.start, rows)?,
+                        job.joints.as_deref(),
+                        None,
+                    )?
+                }
+                (None, Some(f)) => net.eval_shared(pose, 0..f.n_poses, &f.pts, &f.view, &f.rows)?,
+                (None, None) => unreachable!("one call per job and one for the far-away points"),
+            };
             // In inference the chunk's graph goes at once (see `chunked`).
             Ok::<_, ModelError>(if inference {
                 (rgb.detach(), sigma_raw.detach())
@@ -1345,8 +1435,15 @@ impl CullCtx {
                 (rgb, sigma_raw)
             })
         })?;
+        let mut far_points = 0;
+        let far_out = far.as_ref().and_then(|_| outs.pop());
+        if let (Some(f), Some((rgb, sigma_raw))) = (far, far_out) {
+            self.consts.add(&f.rays, rgb, sigma_raw);
+            far_points = f.n_poses;
+            self.joint_rows += f.n_poses * N_JOINTS;
+        }
         let (mut rgbs, mut sigmas) = (Vec::new(), Vec::new());
-        let (mut evaluated, mut far_done) = (0usize, 0usize);
+        let mut evaluated = 0usize;
         for (job, (rgb, sigma_raw)) in jobs.into_iter().zip(outs) {
             if job.len > 0 {
                 rgbs.push(rgb.narrow(0, 0, job.len)?);
@@ -1354,19 +1451,17 @@ impl CullCtx {
             }
             let far_len = job.far_rays.len();
             if far_len > 0 {
-                let consts = &mut self.consts;
-                for (i, &ray) in job.far_rays.iter().enumerate() {
-                    consts.row_of_ray[ray] = (consts.rows + i) as u32;
-                }
-                consts.rows += far_len;
-                consts.rgb.push(rgb.narrow(0, job.len, far_len)?);
-                consts.sigma.push(sigma_raw.narrow(0, job.len, far_len)?);
-                far_done += far_len;
+                self.consts.add(
+                    &job.far_rays,
+                    rgb.narrow(0, job.len, far_len)?,
+                    sigma_raw.narrow(0, job.len, far_len)?,
+                );
+                far_points += far_len;
             }
             evaluated += job.len;
             self.joint_rows += (job.len + far_len) * job.joints.as_ref().map_or(N_JOINTS, Vec::len);
         }
-        self.evaluated += evaluated + far_done;
+        self.evaluated += evaluated + far_points;
         self.samples_evaluated += evaluated;
         Ok((rgbs, sigmas, evaluated))
     }
@@ -1529,7 +1624,8 @@ mod tests {
     }
 
     /// Gathering once per pass changes no network call: same pose, same rows bit for bit,
-    /// same size, with several calls per pose, far-away points and a threshold of 0.2.
+    /// same size, with several calls per pose, far-away points and a threshold of 0.2. In
+    /// training the far-away points are a call of their own.
     #[test]
     fn one_gather_per_pass_feeds_every_call_the_rows_of_a_gather_per_call() {
         let dev = Device::Cpu;
@@ -1627,6 +1723,46 @@ mod tests {
             let got_v: Vec<f32> = got_v.flatten_all().unwrap().to_vec1().unwrap();
             assert_eq!(bits(&got), bits(rows));
             assert_eq!(bits(&got_v), bits(v));
+        }
+        assert!(
+            plan.far.is_none(),
+            "inference keeps the far-away rows in its calls"
+        );
+
+        // Training (no chunk): one call per pose with its kept samples, and the far-away
+        // points in a call of their own, one point per pose and the view of each ray.
+        let plan = ctx
+            .plan(n_poses, &pts, &view, &fates, &far_rays, None)
+            .unwrap();
+        let k = r / n_poses;
+        assert_eq!(plan.jobs.len(), n_poses);
+        for (p, job) in plan.jobs.iter().enumerate() {
+            let kept: Vec<f32> = (p * k * s..(p + 1) * k * s)
+                .filter(|&i| fates[i] == SampleFate::Evaluate)
+                .flat_map(|i| host[3 * i..3 * i + 3].to_vec())
+                .collect();
+            assert!(job.far_rays.is_empty());
+            assert_eq!((job.p, job.len), (p, kept.len() / 3));
+            let got = plan.pts.narrow(0, job.start, job.len).unwrap();
+            let got: Vec<f32> = got.flatten_all().unwrap().to_vec1().unwrap();
+            assert_eq!(bits(&got), bits(&kept));
+        }
+        let far = plan.far.expect("far-away rays make a far-away call");
+        assert_eq!(far.n_poses, n_poses);
+        assert_eq!(far.rays, far_rays, "every far-away ray once, in pose order");
+        let pose_of: Vec<u32> = far.rows.to_vec1().unwrap();
+        let want: Vec<u32> = far_rays.iter().map(|&ray| (ray / k) as u32).collect();
+        assert_eq!(pose_of, want);
+        let got_v: Vec<f32> = far.view.flatten_all().unwrap().to_vec1().unwrap();
+        let want_v: Vec<f32> = far_rays
+            .iter()
+            .flat_map(|&ray| view_host[vdim * ray..vdim * (ray + 1)].to_vec())
+            .collect();
+        assert_eq!(bits(&got_v), bits(&want_v));
+        let got_p: Vec<f32> = far.pts.flatten_all().unwrap().to_vec1().unwrap();
+        for p in 0..n_poses {
+            let want = test.far_point(p).unwrap();
+            assert_eq!(bits(&got_p[3 * p..3 * p + 3]), bits(&want), "pose {p}");
         }
     }
 

@@ -1,9 +1,12 @@
 //! Culling in training (`[train.culling]` of the run config): at threshold 0 a training step —
-//! unchunked and in ray chunks — has parity mode's loss bit for bit and its gradients up to
-//! float summation order. Not bit for bit: the culled samples of a ray share one far-away
-//! row, so the weight gradients form aᵀ(Σᵢ δᵢ) over that row where parity forms Σᵢ aᵀδᵢ over
-//! one row per sample (docs/numerics.md, "Empty rays and culling"). The tolerance is the
-//! one of a chunked step (1e-6); measured: 1.1e-8.
+//! unchunked and in ray chunks — has parity mode's loss and gradients up to float rounding.
+//! Not bit for bit: the far-away constant the culled samples get is computed in a call of its
+//! own (one point per pose, the colour head per ray), whose products may round differently
+//! in the last bit from a row inside a larger call; and the culled samples of a ray share
+//! that row, so the weight gradients form aᵀ(Σᵢ δᵢ) over it where parity forms Σᵢ aᵀδᵢ over
+//! one row per sample (docs/numerics.md, "Empty rays and culling"). The tolerances are the
+//! one of a chunked step (1e-6, relative for the loss); measured: the loss bit-identical,
+//! gradients within 1.1e-8.
 #![cfg(feature = "train")]
 
 use std::sync::Arc;
@@ -106,10 +109,10 @@ fn threshold_zero_training_step_has_paritys_loss_and_gradients() {
         for (name, bad, n, max) in &diffs {
             println!("chunk {chunk}: {name}: {bad} of {n} differ, max |diff| {max:e}");
         }
-        assert_eq!(
-            culled.stats.loss.total.to_bits(),
-            parity.stats.loss.total.to_bits(),
-            "chunk {chunk}: loss differs"
+        let (lc, lp) = (culled.stats.loss.total, parity.stats.loss.total);
+        assert!(
+            (lc - lp).abs() <= 1e-6 * lp.abs().max(1.0),
+            "chunk {chunk}: loss {lc} vs {lp}"
         );
         let worst = diffs.iter().map(|d| d.3).fold(0f32, f32::max);
         assert!(
