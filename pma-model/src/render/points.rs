@@ -640,11 +640,11 @@ struct Plan {
 
 /// Training: the far-away points of the rays that still need their constant, as one call
 /// ([`Network::eval_shared`]): one point per pose of the batch, so the call sees equal
-/// blocks, the trunk once per pose and the colour head once per ray (in a `cpu-small` step
-/// with culling about one point in ten was a ray's far-away point). Inference keeps them as rows of the pose's last call, one per ray: there the
-/// constant is bit for bit what parity computes at samples whose window is exactly 0 (a
-/// separate small call rounds differently in the last bit), which is what makes culling at
-/// threshold 0 exact.
+/// blocks, the network once per pose and the colour head once per ray (in a `cpu-small`
+/// step with culling about one point in ten was a ray's far-away point). Inference keeps
+/// them as rows of the pose's last call, one per ray: there the constant is bit for bit what
+/// parity computes at samples whose window is exactly 0 (a separate small call rounds
+/// differently in the last bit), which is what makes culling at threshold 0 exact.
 struct FarCall {
     n_poses: usize,
     /// [P,3]: pose p's far-away point (a pose none of whose rays needs one repeats another
