@@ -45,11 +45,7 @@ pub(crate) fn assert_identical(a: &Outputs, b: &Outputs, what: &str) {
     for ((name, x), (_, y)) in tensors(a).into_iter().zip(tensors(b)) {
         assert_eq!(x.len(), y.len(), "{what}: {name} sizes differ");
         let bad = x.iter().zip(&y).filter(|(p, q)| p != q).count();
-        let max = x
-            .iter()
-            .zip(&y)
-            .map(|(p, q)| (p - q).abs())
-            .fold(0f32, f32::max);
+        let max = max_abs_diff(&x, &y);
         if bad > 0 {
             problems.push(format!(
                 "{name} differs in {bad} of {} values (max |diff| {max:e})",
@@ -64,11 +60,7 @@ pub(crate) fn assert_identical(a: &Outputs, b: &Outputs, what: &str) {
 pub(crate) fn assert_close(a: &Outputs, b: &Outputs, tol: f32, what: &str) {
     for ((name, x), (_, y)) in tensors(a).into_iter().zip(tensors(b)) {
         assert_eq!(x.len(), y.len(), "{what}: {name} sizes differ");
-        let max = x
-            .iter()
-            .zip(&y)
-            .map(|(p, q)| (p - q).abs())
-            .fold(0f32, f32::max);
+        let max = max_abs_diff(&x, &y);
         assert!(
             max <= tol,
             "{what}: {name} differs by {max:e} (tolerance {tol:e})"
@@ -548,11 +540,7 @@ fn a_shared_point_call_gives_each_ray_the_per_point_output() {
         .eval_poses(&pose, 0..n_poses, &repeated, &view, None)
         .unwrap();
     for (got, want, name) in [(&rgb, &want_rgb, "rgb"), (&sigma, &want_sigma, "sigma")] {
-        let worst = flat(got)
-            .iter()
-            .zip(flat(want))
-            .map(|(a, b)| (a - b).abs())
-            .fold(0f32, f32::max);
+        let worst = max_abs_diff(&flat(got), &flat(want));
         assert!(worst <= FAR_CALL_TOLERANCE, "{name} differs by {worst:e}");
     }
     // Rays of one pose share its density; views set their colours apart.
