@@ -459,6 +459,8 @@ impl Adam {
         let modeled = crate::compute::account::emulates_cuda() && dev.is_cpu();
         let (p, m, v) = if dev.is_cuda() || modeled {
             self.device_update(g, has, apply, coef, &scalars)?
+        } else if dev.is_cpu() {
+            self.host_update(g, has, apply, coef, &scalars)?
         } else {
             self.plain_update(g, has, apply, coef, &scalars)?
         };
@@ -474,8 +476,8 @@ impl Adam {
         Ok(())
     }
 
-    /// The update as tensor ops (the CPU's route): new (parameters, first moments, second
-    /// moments), flat.
+    /// The update as tensor ops (Metal's route, and the bits the CPU's and CUDA's match): new
+    /// (parameters, first moments, second moments), flat.
     fn plain_update(
         &self,
         g: &Tensor,
@@ -525,6 +527,82 @@ impl Adam {
             v = mask.where_cond(&v, &self.exp_avg_sq)?;
         }
         Ok((p, m, v))
+    }
+
+    /// [`Self::plain_update`] in one pass over the elements, for the CPU: the same f32
+    /// operations in the same order, so the same bits (an f64 factor `x * c` of a tensor op is
+    /// candle's affine, `x * (c as f32) + 0`, kept here for the sign of zeros). The tensor ops
+    /// take some twenty passes and a tensor per intermediate, which on a small model cost
+    /// more than the update's arithmetic, on the step's serial path.
+    fn host_update(
+        &self,
+        g: &Tensor,
+        has: &[bool],
+        apply: Option<&Tensor>,
+        coef: Option<&Tensor>,
+        sc: &Scalars,
+    ) -> Result<(Tensor, Tensor, Tensor), TrainError> {
+        let omb1 = (1.0 - sc.b1) as f32;
+        let b2 = sc.b2 as f32;
+        let omb2 = (1.0 - sc.b2) as f32;
+        let eps = sc.eps as f32;
+        let scalar_f32 = |t: &Tensor| -> candle_core::Result<f32> {
+            Ok(t.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()?[0])
+        };
+        let coef = coef.map(scalar_f32).transpose()?;
+        let ok = match apply {
+            Some(a) => a.to_dtype(DType::U8)?.flatten_all()?.to_vec1::<u8>()?[0] != 0,
+            None => true,
+        };
+        let step_size = sc.step_size.to_dtype(DType::F32)?.to_vec1::<f32>()?;
+        let inv_bias2 = sc
+            .bias2_sqrt
+            .recip()?
+            .to_dtype(DType::F32)?
+            .to_vec1::<f32>()?;
+        let g = g.detach().to_vec1::<f32>()?;
+        let m_old = self.exp_avg.to_vec1::<f32>()?;
+        let v_old = self.exp_avg_sq.to_vec1::<f32>()?;
+        let n = g.len();
+        let (mut p, mut m, mut v) = (
+            Vec::with_capacity(n),
+            Vec::with_capacity(n),
+            Vec::with_capacity(n),
+        );
+        for (i, slot) in self.slots.iter().enumerate() {
+            let p_old = slot.var.as_tensor().flatten_all()?.to_vec1::<f32>()?;
+            let span = slot.offset..slot.offset + slot.len;
+            if !(ok && has[i]) {
+                p.extend_from_slice(&p_old);
+                m.extend_from_slice(&m_old[span.clone()]);
+                v.extend_from_slice(&v_old[span]);
+                continue;
+            }
+            let (ss, ib) = (step_size[i], inv_bias2[i]);
+            for (((&po, &gi), &mo), &vo) in p_old
+                .iter()
+                .zip(&g[span.clone()])
+                .zip(&m_old[span.clone()])
+                .zip(&v_old[span])
+            {
+                let gi = match coef {
+                    Some(c) => gi * c,
+                    None => gi,
+                };
+                let mi = mo + ((gi - mo) * omb1 + 0.0);
+                let vi = (vo * b2 + 0.0) + ((gi * gi) * omb2 + 0.0);
+                let denom = (vi.sqrt() * ib) * 1.0 + eps;
+                p.push(po - (mi * ss) / denom);
+                m.push(mi);
+                v.push(vi);
+            }
+        }
+        let dev = &self.device;
+        Ok((
+            Tensor::from_vec(p, n, dev)?,
+            Tensor::from_vec(m, n, dev)?,
+            Tensor::from_vec(v, n, dev)?,
+        ))
     }
 
     /// Every parameter, flat in slot order.
@@ -940,6 +1018,86 @@ mod tests {
                 assert_eq!(bits(&st.exp_avg_sq), bits(&reference[k].2), "{name} v");
                 assert_eq!(st.step, reference[k].3, "{name} step");
             }
+        }
+    }
+
+    /// The CPU's one-pass update gives the bits of the tensor-op update for every case the
+    /// step has: gradients with signed zeros, tiny and large values, a clip factor, slots
+    /// without a gradient, and an update that does not apply.
+    #[test]
+    fn the_host_update_is_the_tensor_update_bit_for_bit() {
+        let shapes: [&[usize]; 3] = [&[3, 4], &[5], &[2, 2]];
+        let names = ["graph_net.w", "pts_linears.0.weight", "pts_linears.0.bias"];
+        let vars: Vec<(String, Var)> = names
+            .iter()
+            .zip(shapes)
+            .enumerate()
+            .map(|(k, (n, s))| {
+                let len: usize = s.iter().product();
+                let v: Vec<f32> = (0..len)
+                    .map(|i| ((i * 5 + k) % 9) as f32 * 0.3 - 1.2)
+                    .collect();
+                let t = Tensor::from_vec(v, s, &Device::Cpu).unwrap();
+                (n.to_string(), Var::from_tensor(&t).unwrap())
+            })
+            .collect();
+        let mut adam = Adam::reference(&vars, 1e-3, 5e-4, [0.9, 0.999], 1e-8).unwrap();
+        let n: usize = shapes.iter().map(|s| s.iter().product::<usize>()).sum();
+        let special = [0.0f32, -0.0, 1e-30, -3e-8, 7.5, -1e6, 2.0e-3, -0.25];
+        let grad = |step: usize| -> Tensor {
+            let v: Vec<f32> = (0..n)
+                .map(|i| special[(i + 3 * step) % special.len()] * (1.0 + step as f32 * 0.1))
+                .collect();
+            Tensor::from_vec(v, n, &Device::Cpu).unwrap()
+        };
+        // Moments that are not zero, from a few ordinary steps.
+        for step in 0..3 {
+            let all = vec![true; 3];
+            adam.step_masked(&grad(step), &all, None).unwrap();
+        }
+        let bits = |t: &Tensor| -> Vec<u32> {
+            t.to_vec1::<f32>()
+                .unwrap()
+                .iter()
+                .map(|x| x.to_bits())
+                .collect()
+        };
+        let dev = Device::Cpu;
+        let scalars = Scalars {
+            b1: 0.9,
+            b2: 0.999,
+            eps: 1e-8,
+            step_size: Tensor::new(&[1e-3 / (1.0 - 0.9f64.powi(4)), 5e-4, 5e-4 / 0.3], &dev)
+                .unwrap(),
+            bias2_sqrt: Tensor::new(&[0.063f64, 0.0447, 0.5], &dev).unwrap(),
+        };
+        let on = Tensor::new(1u8, &dev).unwrap();
+        let off = Tensor::new(0u8, &dev).unwrap();
+        let clip = Tensor::new(0.37f32, &dev).unwrap();
+        let cases: [(&[bool], Option<&Tensor>, Option<&Tensor>); 5] = [
+            (&[true, true, true], None, None),
+            (&[true, false, true], None, Some(&clip)),
+            (&[true, true, true], Some(&on), Some(&clip)),
+            (&[false, true, true], Some(&on), None),
+            (&[true, true, true], Some(&off), None),
+        ];
+        for (c, (has, apply, coef)) in cases.into_iter().enumerate() {
+            let g = grad(4 + c);
+            let host = adam.host_update(&g, has, apply, coef, &scalars).unwrap();
+            let plain = adam.plain_update(&g, has, apply, coef, &scalars).unwrap();
+            for (what, a, b) in [
+                ("p", &host.0, &plain.0),
+                ("m", &host.1, &plain.1),
+                ("v", &host.2, &plain.2),
+            ] {
+                assert_eq!(bits(a), bits(b), "case {c}: {what}");
+            }
+            let moved = bits(&host.0) != bits(&adam.flat_params().unwrap());
+            assert_eq!(
+                moved,
+                apply.is_none_or(|a| a.to_scalar::<u8>().unwrap() != 0),
+                "case {c}"
+            );
         }
     }
 }
