@@ -122,6 +122,13 @@ impl Field {
         Ok((rgb, sigma_raw))
     }
 
+    /// The density head alone on s: [N,K·F] -> sigma_raw [N,1], as [`Self::forward`]
+    /// computes it.
+    pub fn density(&self, s: &Tensor, k: Numerics) -> Result<Tensor> {
+        let (h, _) = self.trunk(s, k, false)?;
+        self.sigma.forward(&h, k)
+    }
+
     /// Each ReLU layer is one op with its linear layer unless a pre-ReLU value is wanted
     /// or the trunk emulates bf16.
     fn linear_relu(

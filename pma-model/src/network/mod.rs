@@ -71,6 +71,8 @@ enum Heads<'a> {
     PerPoint(&'a Tensor),
     /// One row per ray, with the point of each ray (`rows`).
     Gathered { view: &'a Tensor, rows: &'a Tensor },
+    /// No colour head: the call wants the density alone.
+    None,
 }
 
 /// The network's tensors and what every pass derives from them once.
@@ -323,6 +325,16 @@ impl Network {
         self.eval_with(pose, poses, pts, Heads::Gathered { view, rows }, None, None)
     }
 
+    /// The density alone at the points of pose p (pts: [n,3] world points): sigma_raw [n,1],
+    /// the bits [`Self::eval_points`] gives, without the colour layers (which are the cost
+    /// that density does not depend on: the occupancy grid's refreshes ask for σ only).
+    pub fn eval_density(&self, pose: &PoseFeatures, p: usize, pts: &Tensor) -> Result<Tensor> {
+        Ok(self
+            .eval_with(pose, p..p + 1, pts, Heads::None, None, None)?
+            .1)
+    }
+
+    /// The network at pts; returns (rgb, sigma_raw), with `Heads::None` (σ, σ).
     fn eval_with(
         &self,
         pose: &PoseFeatures,
@@ -460,6 +472,10 @@ impl Network {
             Heads::PerPoint(view) => view,
             Heads::Gathered { view, rows } => {
                 return net.field.forward_gathered(&s, view, rows, k);
+            }
+            Heads::None => {
+                let sigma = net.field.density(&s, k)?;
+                return Ok((sigma.clone(), sigma));
             }
         };
         let out = net.field.forward(&s, view, k, trace.is_some())?;

@@ -18,7 +18,11 @@ use crate::network::{Network, PoseFeatures};
 use crate::render::batch::Poses;
 use crate::render::bones::BoneFrames;
 use crate::render::cull::EXACT_ZERO_EXPONENT;
-use crate::render::points::INFERENCE_POINT_CHUNK;
+
+/// Points per network call of a refresh: small enough that a training refresh (a few hundred
+/// points per pose) gives every worker calls, large enough that a call's fixed cost is small
+/// against its points (a full build evaluates hundreds of thousands).
+const REFRESH_POINT_CHUNK: usize = 512;
 
 /// Which cells of each joint a refresh evaluates.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -127,8 +131,8 @@ fn invert3(a: &[[f64; 3]; 3]) -> Option<[[f64; 3]; 3]> {
 
 /// One refresh of `grid` for the poses of `frames` (host bone frames, [P]) with box
 /// half-extents `scales` [24·3]: the cells `opts` chooses, each for one pose drawn at random,
-/// at a random point inside the cell; `density(p, points)` returns relu(σ) at world points
-/// of pose p.
+/// at a random point inside the cell; `density(points)` takes the world points of every pose
+/// (`points[p]` for pose p) and returns relu(σ) at each, in the same layout.
 #[allow(clippy::too_many_arguments)]
 pub fn refresh_with<R: Rng>(
     grid: &mut OccupancyGrid,
@@ -138,7 +142,7 @@ pub fn refresh_with<R: Rng>(
     beta: u32,
     opts: RefreshOptions,
     rng: &mut R,
-    mut density: impl FnMut(usize, &[[f32; 3]]) -> Result<Vec<f32>>,
+    mut density: impl FnMut(&[Vec<[f32; 3]>]) -> Result<Vec<Vec<f32>>>,
 ) -> Result<RefreshStats> {
     let n_poses = frames.n_poses();
     let inv = FrameInverse::new(frames, scales)?;
@@ -181,12 +185,16 @@ pub fn refresh_with<R: Rng>(
     if opts.decay {
         grid.decay_all();
     }
+    let sigmas = density(&points)?;
+    if sigmas.len() != n_poses {
+        return Err(ModelError::shape(
+            "occupancy densities (poses)",
+            [n_poses],
+            [sigmas.len()],
+        ));
+    }
     let mut cells = 0;
-    for (p, (job, pts)) in jobs.iter().zip(&points).enumerate() {
-        if job.is_empty() {
-            continue;
-        }
-        let sigma = density(p, pts)?;
+    for ((job, pts), sigma) in jobs.iter().zip(&points).zip(&sigmas) {
         if sigma.len() != pts.len() {
             return Err(ModelError::shape(
                 "occupancy densities",
@@ -194,7 +202,7 @@ pub fn refresh_with<R: Rng>(
                 [sigma.len()],
             ));
         }
-        for (&(j, c), &s) in job.iter().zip(&sigma) {
+        for (&(j, c), &s) in job.iter().zip(sigma) {
             grid.update_max(j, c, s)?;
         }
         cells += job.len();
@@ -225,38 +233,46 @@ pub fn refresh<R: Rng>(
     let frames = BoneFrames::new(net.bone_align(), &host_f32(&poses.skts)?)?;
     let scales = host_f32(&pose.scales)?;
     let dev = net.device().clone();
-    // Density does not depend on the view: one view row (mean frame code) serves all points.
-    let view_row = net.view_features(
-        &Tensor::new(&[[0f32, 0.0, 1.0]], &dev)?.to_dtype(net.dtype())?,
-        &[-1],
-        false,
-    )?;
-    let density = |p: usize, pts: &[[f32; 3]]| -> Result<Vec<f32>> {
-        let chunk = INFERENCE_POINT_CHUNK;
-        let n = pts.len().div_ceil(chunk);
+    let density = |points: &[Vec<[f32; 3]>]| -> Result<Vec<Vec<f32>>> {
+        // Every pose's points in parts of a fixed size, all parts on the workers at once: a
+        // training refresh holds a few hundred points per pose, which would otherwise leave
+        // the other workers idle. The parts do not depend on the worker count.
+        let parts: Vec<(usize, std::ops::Range<usize>)> = points
+            .iter()
+            .enumerate()
+            .flat_map(|(p, pts)| {
+                (0..pts.len())
+                    .step_by(REFRESH_POINT_CHUNK)
+                    .map(move |a| (p, a..(a + REFRESH_POINT_CHUNK).min(pts.len())))
+            })
+            .collect();
         let workers = crate::compute::parallel::workers_on(&dev);
         // No interruption check: training refreshes after its step is applied, and a step
         // is undone only before that (callers that loop over refreshes check between them).
-        let outs = crate::compute::parallel::map_ordered(workers, n, |i| {
-            let part = &pts[i * chunk..((i + 1) * chunk).min(pts.len())];
+        let outs = crate::compute::parallel::map_ordered(workers, parts.len(), |i| {
+            let (p, range) = &parts[i];
+            let part = &points[*p][range.clone()];
             let t = Tensor::from_vec(
                 part.iter().flatten().copied().collect::<Vec<f32>>(),
                 (part.len(), 3),
                 &dev,
             )?
             .to_dtype(net.dtype())?;
-            let view = view_row.broadcast_as((part.len(), view_row.dim(1)?))?;
-            let (_, sigma) = net.eval_points(&pose, p, &t, &view, None)?;
+            let sigma = net.eval_density(&pose, *p, &t)?;
             Ok::<_, ModelError>(
                 sigma
-                    .detach()
                     .relu()?
                     .to_dtype(DType::F32)?
                     .flatten_all()?
                     .to_vec1::<f32>()?,
             )
         })?;
-        Ok(outs.concat())
+        let mut sigmas: Vec<Vec<f32>> =
+            points.iter().map(|p| Vec::with_capacity(p.len())).collect();
+        for ((p, _), out) in parts.iter().zip(outs) {
+            sigmas[*p].extend(out);
+        }
+        Ok(sigmas)
     };
     refresh_with(
         grid,
@@ -333,16 +349,20 @@ mod tests {
         let mut rng = ChaCha8Rng::seed_from_u64(1);
         // A ball of density 10 of radius r around the world origin.
         let ball = |r: f32| {
-            move |_p: usize, pts: &[[f32; 3]]| -> Result<Vec<f32>> {
+            move |pts: &[Vec<[f32; 3]>]| -> Result<Vec<Vec<f32>>> {
                 Ok(pts
                     .iter()
-                    .map(|x| {
-                        let d = (x[0] * x[0] + x[1] * x[1] + x[2] * x[2]).sqrt();
-                        if d < r {
-                            10.0
-                        } else {
-                            0.0
-                        }
+                    .map(|pose| {
+                        pose.iter()
+                            .map(|x| {
+                                let d = (x[0] * x[0] + x[1] * x[1] + x[2] * x[2]).sqrt();
+                                if d < r {
+                                    10.0
+                                } else {
+                                    0.0
+                                }
+                            })
+                            .collect()
                     })
                     .collect())
             }

@@ -549,3 +549,40 @@ fn a_shared_point_call_gives_each_ray_the_per_point_output() {
     let c = flat(&rgb);
     assert!(c[0..3] != c[3..6], "two views of one point got one colour");
 }
+
+/// The density-only call (the grid's refreshes) gives the bits of the full call's density,
+/// on the golden model, for every pose.
+#[test]
+fn a_density_only_call_gives_the_full_calls_density_bit_for_bit() {
+    let case = GoldenCase::load("golden", false);
+    let net = case.avatar.network();
+    let pose = case.avatar.pose_features(&case.poses, None).unwrap();
+    let dev = pose.g.device().clone();
+    let v = net.config().sh_degree * net.config().sh_degree
+        + if net.config().use_framecodes {
+            net.config().framecode_ch
+        } else {
+            0
+        };
+    let n = 40;
+    let pts: Vec<f32> = (0..n * 3)
+        .map(|i| ((i * 53 % 97) as f32 / 97.0 - 0.5) * 0.6)
+        .collect();
+    let pts = Tensor::from_vec(pts, (n, 3), &dev).unwrap();
+    let view = Tensor::ones((n, v), candle_core::DType::F32, &dev).unwrap();
+    for p in 0..pose.g.dim(0).unwrap() {
+        let (_, want) = net.eval_points(&pose, p, &pts, &view, None).unwrap();
+        let got = net.eval_density(&pose, p, &pts).unwrap();
+        assert_eq!(got.dims(), &[n, 1]);
+        let (got, want) = (flat(&got), flat(&want));
+        assert!(
+            want.iter().any(|&s| s != want[0]),
+            "a constant density tests nothing"
+        );
+        let same = got
+            .iter()
+            .zip(&want)
+            .all(|(a, b)| a.to_bits() == b.to_bits());
+        assert!(same, "pose {p}: {got:?} against {want:?}");
+    }
+}
