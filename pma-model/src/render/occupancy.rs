@@ -19,9 +19,10 @@ use crate::render::batch::Poses;
 use crate::render::bones::BoneFrames;
 use crate::render::cull::EXACT_ZERO_EXPONENT;
 
-/// Points per network call of a refresh: small enough that a training refresh (a few hundred
-/// points per pose) gives every worker calls, large enough that a call's fixed cost is small
-/// against its points (a full build evaluates hundreds of thousands).
+/// Points per network call of a refresh on the CPU's workers: small enough that a training
+/// refresh (a few hundred points per pose) gives every worker calls, large enough that a
+/// call's fixed cost is small against its points (a full build evaluates hundreds of
+/// thousands). A GPU takes the inference pass's calls, as large as its memory allows.
 const REFRESH_POINT_CHUNK: usize = 512;
 
 /// Which cells of each joint a refresh evaluates.
@@ -233,17 +234,21 @@ pub fn refresh<R: Rng>(
     let frames = BoneFrames::new(net.bone_align(), &host_f32(&poses.skts)?)?;
     let scales = host_f32(&pose.scales)?;
     let dev = net.device().clone();
+    let part = match dev.is_cpu() && !crate::compute::account::emulates_cuda() {
+        true => REFRESH_POINT_CHUNK,
+        false => crate::render::points::inference_point_chunk(&dev, cfg),
+    };
     let density = |points: &[Vec<[f32; 3]>]| -> Result<Vec<Vec<f32>>> {
-        // Every pose's points in parts of a fixed size, all parts on the workers at once: a
-        // training refresh holds a few hundred points per pose, which would otherwise leave
-        // the other workers idle. The parts do not depend on the worker count.
+        // Every pose's points in parts of a size fixed per device, all parts on the workers
+        // at once: a training refresh holds a few hundred points per pose, which would
+        // otherwise leave the other workers idle. The parts do not depend on the worker count.
         let parts: Vec<(usize, std::ops::Range<usize>)> = points
             .iter()
             .enumerate()
             .flat_map(|(p, pts)| {
                 (0..pts.len())
-                    .step_by(REFRESH_POINT_CHUNK)
-                    .map(move |a| (p, a..(a + REFRESH_POINT_CHUNK).min(pts.len())))
+                    .step_by(part)
+                    .map(move |a| (p, a..(a + part).min(pts.len())))
             })
             .collect();
         let workers = crate::compute::parallel::workers_on(&dev);
