@@ -1221,21 +1221,28 @@ impl CullCtx {
         far_rays: &[usize],
         dtype: DType,
     ) -> Result<Option<FarCall>> {
-        let Some(&first) = far_rays.first() else {
+        if far_rays.is_empty() {
             return Ok(None);
-        };
+        }
         let test = self
             .test
             .as_ref()
             .ok_or_else(|| ModelError::Input("culling: constants need the window test".into()))?;
         let mut rays = far_rays.to_vec();
         rays.sort_unstable();
-        let needed = test.far_point(first / k)?;
-        let mut points = Vec::with_capacity(3 * n_poses);
-        for p in 0..n_poses {
-            let needs = rays.iter().any(|&ray| ray / k == p);
-            points.extend(if needs { test.far_point(p)? } else { needed });
+        let mut own = vec![None; n_poses];
+        for &ray in &rays {
+            if own[ray / k].is_none() {
+                own[ray / k] = Some(test.far_point(ray / k)?);
+            }
         }
+        let filler = own
+            .iter()
+            .flatten()
+            .copied()
+            .next()
+            .expect("a ray needs a point");
+        let points: Vec<f32> = own.iter().flat_map(|o| o.unwrap_or(filler)).collect();
         let dev = view.device();
         let m = rays.len();
         let pose_of: Vec<u32> = rays.iter().map(|&ray| (ray / k) as u32).collect();
