@@ -242,10 +242,24 @@ impl WindowTest {
             // Margin for the stray samples plus a little for this test's own rounding.
             let half =
                 self.reach + self.stretch[p * N_JOINTS + j] * stray + 1e-6 * (1.0 + self.reach);
+            let rows: [(f64, f64); 3] = std::array::from_fn(|k| {
+                let r = &m[k];
+                (
+                    r[0] * a[0] + r[1] * a[1] + r[2] * a[2] + r[3],
+                    r[0] * ab[0] + r[1] * ab[1] + r[2] * ab[2],
+                )
+            });
+            // Most joints are out of reach along one axis at both ends of the segment: no
+            // divisions for those (the segment's x̄_k runs between its ends).
+            let beyond = |&(xa, dx): &(f64, f64)| {
+                let xb = xa + dx;
+                (xa > half && xb > half) || (xa < -half && xb < -half)
+            };
+            if rows.iter().any(beyond) {
+                continue;
+            }
             let (mut t0, mut t1) = (0f64, 1f64);
-            for r in m {
-                let xa = r[0] * a[0] + r[1] * a[1] + r[2] * a[2] + r[3];
-                let dx = r[0] * ab[0] + r[1] * ab[1] + r[2] * ab[2];
+            for &(xa, dx) in &rows {
                 if dx == 0.0 {
                     if xa.abs() > half {
                         t1 = -1.0;

@@ -6,8 +6,8 @@ use candle_core::{Device, Tensor, Var};
 use pma_data::skeleton::N_JOINTS;
 use pma_model::network::config::Config;
 use pma_model::render::raycast::{
-    box_may_hit, box_near_far, box_near_far_robust, cylinder_near_far, fill_cylinder_misses,
-    merge_raw, RayCaster,
+    box_may_hit, box_near_far, box_near_far_robust, box_sphere_may_hit, cylinder_near_far,
+    fill_cylinder_misses, merge_raw, RayCaster,
 };
 
 fn identity4() -> Vec<f32> {
@@ -106,9 +106,10 @@ fn box_bounds_scale_and_direction_length() {
     assert!(close(n, 9.45, 1e-5) && close(f, 10.55, 1e-5), "{n} {f}");
 }
 
-/// The cheap pre-test never rejects a ray either exact box test finds crossing, including
-/// rays aimed at corners and edges and rays that just graze past, for rotated, translated and
-/// stretched boxes; and it rejects most rays that pass well away (else it saves nothing).
+/// The cheap pre-tests (the box frame's sphere and the world-space sphere before it) never
+/// reject a ray either exact box test finds crossing, including rays aimed at corners and
+/// edges and rays that just graze past, for rotated, translated and stretched boxes; and they
+/// reject many rays that pass well away (else they save nothing).
 #[test]
 fn the_box_pre_test_passes_every_crossing_ray() {
     use rand::{Rng, SeedableRng};
@@ -116,6 +117,7 @@ fn the_box_pre_test_passes_every_crossing_ray() {
     let mut u = move || rng.gen::<f32>();
     let bound = 1.1f64;
     let (mut crossing, mut far_rejected, mut far_total) = (0, 0, 0);
+    let mut sphere_rejected = 0;
     for case in 0..20_000 {
         // A rotation about a random axis (Rodrigues), a translation and per-axis scales.
         let (ax, ang) = ([u() - 0.5, u() - 0.5, u() - 0.5], 6.3 * u());
@@ -172,6 +174,7 @@ fn the_box_pre_test_passes_every_crossing_ray() {
             (target[2] - o[2]) * len,
         ];
         let may = box_may_hit(&m, scale, o, d, bound);
+        let sphere = box_sphere_may_hit(&m, scale, o, d, bound);
         let hits = [
             box_near_far(&m, scale, o, d, bound),
             box_near_far_robust(&m, scale, o, d, bound),
@@ -179,13 +182,21 @@ fn the_box_pre_test_passes_every_crossing_ray() {
         if hits.iter().any(Option::is_some) {
             crossing += 1;
             assert!(may, "case {case}: a crossing ray was rejected ({hits:?})");
+            assert!(
+                sphere,
+                "case {case}: the world sphere rejected a crossing ray"
+            );
         }
         if case % 4 == 3 && target_n.iter().any(|v| v.abs() > 1.9 * lim) {
             far_total += 1;
             far_rejected += usize::from(!may);
+            sphere_rejected += usize::from(!sphere);
         }
     }
-    println!("{crossing} crossing rays; {far_rejected} of {far_total} far-off rays rejected");
+    println!(
+        "{crossing} crossing rays; {far_rejected} of {far_total} far-off rays rejected \
+         ({sphere_rejected} by the world sphere)"
+    );
     assert!(
         crossing > 10_000,
         "too few crossing rays to mean anything: {crossing}"
@@ -193,6 +204,10 @@ fn the_box_pre_test_passes_every_crossing_ray() {
     assert!(
         far_rejected * 2 > far_total,
         "the pre-test rejects only {far_rejected} of {far_total} rays aimed well off the box"
+    );
+    assert!(
+        sphere_rejected * 4 > far_total,
+        "the world sphere rejects only {sphere_rejected} of {far_total} rays aimed well off the box"
     );
 }
 

@@ -228,12 +228,20 @@ impl RayCaster {
             for j in 0..N_JOINTS {
                 world_to_box[j * 16..j * 16 + 16].copy_from_slice(&frames.world_to_box(p, j));
             }
+            let spheres: [Option<WorldSphere>; N_JOINTS] = std::array::from_fn(|j| {
+                let s = [scales[3 * j], scales[3 * j + 1], scales[3 * j + 2]];
+                WorldSphere::around(&world_to_box[j * 16..j * 16 + 16], s, self.bound)
+            });
             for r in p * per_pose..(p + 1) * per_pose {
                 let o = [rays_o[3 * r], rays_o[3 * r + 1], rays_o[3 * r + 2]];
                 let d = [rays_d[3 * r], rays_d[3 * r + 1], rays_d[3 * r + 2]];
+                let d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
                 let mut ray_near = f32::INFINITY;
                 let mut ray_far = f32::NEG_INFINITY;
                 for j in 0..N_JOINTS {
+                    if spheres[j].is_some_and(|b| b.missed_by(o, d, d2)) {
+                        continue;
+                    }
                     let s = [scales[3 * j], scales[3 * j + 1], scales[3 * j + 2]];
                     let w2b = &world_to_box[j * 16..j * 16 + 16];
                     let ray = BoxRay::new(w2b, s, o, d);
@@ -454,6 +462,67 @@ fn nan_mean(v: &[f32]) -> Option<f32> {
     (count > 0).then(|| (sum / count as f64) as f32)
 }
 
+/// A sphere in world space around one part's box (at `bound + BOX_EPS` in normalised units,
+/// with a 5 % margin): a ray whose line passes outside it cannot cross the box, which
+/// rejects most (ray, box) pairs of an image without mapping the ray into the box frame.
+#[derive(Clone, Copy, Debug)]
+struct WorldSphere {
+    centre: [f32; 3],
+    radius2: f32,
+}
+
+impl WorldSphere {
+    /// The sphere around the box of `world_to_box` ([4,4] row-major `A_j·skt_j`) and scale
+    /// s_j, or `None` when the map cannot be inverted (then no pair is rejected early).
+    fn around(world_to_box: &[f32], scale: [f32; 3], bound: f64) -> Option<Self> {
+        let m = |i: usize, k: usize| world_to_box[4 * i + k] as f64;
+        let det = m(0, 0) * (m(1, 1) * m(2, 2) - m(1, 2) * m(2, 1))
+            - m(0, 1) * (m(1, 0) * m(2, 2) - m(1, 2) * m(2, 0))
+            + m(0, 2) * (m(1, 0) * m(2, 1) - m(1, 1) * m(2, 0));
+        if !(det.is_finite() && det.abs() > 1e-12) {
+            return None;
+        }
+        // The inverse of the linear part (adjugate over the determinant).
+        let inv = |i: usize, k: usize| {
+            let (r0, r1) = ((k + 1) % 3, (k + 2) % 3);
+            let (c0, c1) = ((i + 1) % 3, (i + 2) % 3);
+            (m(r0, c0) * m(r1, c1) - m(r0, c1) * m(r1, c0)) / det
+        };
+        let to_world = |v: [f64; 3]| -> [f64; 3] {
+            std::array::from_fn(|i| (0..3).map(|k| inv(i, k) * v[k]).sum())
+        };
+        let centre = to_world([-m(0, 3), -m(1, 3), -m(2, 3)]);
+        let lim = bound + BOX_EPS;
+        let mut r2 = 0f64;
+        for corner in 0..8 {
+            let sign = |axis: usize| if corner >> axis & 1 == 1 { 1.0 } else { -1.0 };
+            let c = to_world(std::array::from_fn(|a| sign(a) * lim * scale[a] as f64));
+            r2 = r2.max(c.iter().map(|v| v * v).sum::<f64>());
+        }
+        let radius2 = (r2 * 1.05 * 1.05) as f32;
+        (centre.iter().all(|v| v.is_finite()) && radius2.is_finite()).then(|| Self {
+            centre: centre.map(|v| v as f32),
+            radius2,
+        })
+    }
+
+    /// Whether the line through o along d (d2 = |d|²) passes outside the sphere. Non-finite
+    /// rays are not rejected (the exact tests decide them).
+    fn missed_by(&self, o: [f32; 3], d: [f32; 3], d2: f32) -> bool {
+        let v = [
+            self.centre[0] - o[0],
+            self.centre[1] - o[1],
+            self.centre[2] - o[2],
+        ];
+        let c = [
+            v[1] * d[2] - v[2] * d[1],
+            v[2] * d[0] - v[0] * d[2],
+            v[0] * d[1] - v[1] * d[0],
+        ];
+        c[0] * c[0] + c[1] * c[1] + c[2] * c[2] > self.radius2 * d2
+    }
+}
+
 /// A world ray in one part's box frame: `t` (`A_j·skt_j` applied; the direction only
 /// rotated) and `s` (divided by the part's scale s_j, the normalised box units). Computed once
 /// per ray and box for [`BoxRay::may_hit`] and the exact crossing that follows it.
@@ -579,6 +648,19 @@ pub fn box_may_hit(
     bound: f64,
 ) -> bool {
     BoxRay::new(world_to_box, scale, o, d).may_hit(bound)
+}
+
+/// Whether the world-space sphere pre-test lets one ray through to the box tests of one part
+/// (arguments as [`BoxRay::new`]); `true` where the map has no sphere.
+pub fn box_sphere_may_hit(
+    world_to_box: &[f32],
+    scale: [f32; 3],
+    o: [f32; 3],
+    d: [f32; 3],
+    bound: f64,
+) -> bool {
+    let d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+    WorldSphere::around(world_to_box, scale, bound).is_none_or(|b| !b.missed_by(o, d, d2))
 }
 
 /// [`BoxRay::near_far`] for one ray against one part's box (arguments as [`BoxRay::new`]).
