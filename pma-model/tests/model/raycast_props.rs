@@ -166,6 +166,11 @@ fn the_box_pre_test_passes_every_crossing_ray() {
         let target: [f32; 3] =
             std::array::from_fn(|j| (0..3).map(|i| m[4 * i + j] * local[i]).sum());
         let o = [3.0 * (u() - 0.5), 3.0 * (u() - 0.5), 3.0 + 2.0 * u()];
+        // Every eighth camera 100× farther away, where f32 rounding in the pre-tests grows.
+        let o = match case % 8 == 5 {
+            true => o.map(|v| 100.0 * v),
+            false => o,
+        };
         // Unnormalised directions, as image rays have them.
         let len = 0.5 + u();
         let d = [

@@ -507,7 +507,9 @@ impl WorldSphere {
     }
 
     /// Whether the line through o along d (d2 = |d|²) passes outside the sphere. Non-finite
-    /// rays are not rejected (the exact tests decide them).
+    /// rays are not rejected (the exact tests decide them). The cross product's f32 rounding
+    /// grows with the distance to the centre (a few ulps of |v|²·|d|²), so the margin grows
+    /// with it (1e-5·|v|²) rather than relying on the 5 % alone.
     fn missed_by(&self, o: [f32; 3], d: [f32; 3], d2: f32) -> bool {
         let v = [
             self.centre[0] - o[0],
@@ -519,7 +521,8 @@ impl WorldSphere {
             v[2] * d[0] - v[0] * d[2],
             v[0] * d[1] - v[1] * d[0],
         ];
-        c[0] * c[0] + c[1] * c[1] + c[2] * c[2] > self.radius2 * d2
+        let v2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2];
+        c[0] * c[0] + c[1] * c[1] + c[2] * c[2] > (self.radius2 + 1e-5 * v2) * d2
     }
 }
 
