@@ -329,8 +329,21 @@ impl Network {
     /// the bits [`Self::eval_points`] gives, without the colour layers (which are the cost
     /// that density does not depend on: the occupancy grid's refreshes ask for σ only).
     pub fn eval_density(&self, pose: &PoseFeatures, p: usize, pts: &Tensor) -> Result<Tensor> {
+        self.eval_density_joints(pose, p, pts, None)
+    }
+
+    /// [`Self::eval_density`] carrying only the joints `joints` (see [`Self::eval_joints`]:
+    /// exact up to float summation order when every other joint's window is 0 at every
+    /// point).
+    pub fn eval_density_joints(
+        &self,
+        pose: &PoseFeatures,
+        p: usize,
+        pts: &Tensor,
+        joints: Option<&[u32]>,
+    ) -> Result<Tensor> {
         Ok(self
-            .eval_with(pose, p..p + 1, pts, Heads::None, None, None)?
+            .eval_with(pose, p..p + 1, pts, Heads::None, joints, None)?
             .1)
     }
 

@@ -331,6 +331,12 @@ impl OccupancyGrid {
         }
     }
 
+    /// Joint j's cells, occupied or not (flat cell index as in [`Self::cell_of`]).
+    pub fn joint_occupied(&self, j: usize) -> &[bool] {
+        let n = self.cfg.cells_per_joint();
+        &self.occupied[j * n..(j + 1) * n]
+    }
+
     /// Whether cell c of joint j is occupied.
     pub fn cell_occupied(&self, j: usize, c: usize) -> bool {
         self.occupied[j * self.cfg.cells_per_joint() + c]
@@ -394,31 +400,52 @@ impl OccupancyGrid {
 }
 
 /// Box dilation of one joint's cells (x fastest) by `d` cells: a maximum over ±d along each
-/// axis in turn, which is the cube of side 2d + 1. Each pass ORs whole shifted rows or planes
-/// into a copy, so the inner loops run over contiguous bytes (a refresh dilates every joint's
-/// grid: 24·32³ cells at the default resolution).
+/// axis in turn, which is the cube of side 2d + 1. Each row of x is one bit mask (the
+/// resolution is at most 128), so the x pass is shifts and the y and z passes OR whole rows:
+/// a refresh dilates every joint's grid (24·32³ cells at the default resolution) on the
+/// training step's serial path.
 fn dilate(occ: &mut [bool], r: usize, d: usize) {
-    if d == 0 {
+    if d == 0 || r == 0 {
         return;
     }
-    let mut src = occ.to_vec();
-    // Along x within each row, then y within each plane (rows of r), then z (planes of r²):
-    // the same pass with a different stride between neighbours and block length.
-    for (stride, block) in [(1, r), (r, r * r), (r * r, r * r * r)] {
-        src.copy_from_slice(occ);
-        for base in (0..occ.len()).step_by(block) {
+    debug_assert!(r <= 128 && occ.len() == r * r * r);
+    let full = if r >= 128 {
+        u128::MAX
+    } else {
+        (1u128 << r) - 1
+    };
+    let reach = d.min(r - 1);
+    let rows: Vec<u128> = occ
+        .chunks_exact(r)
+        .map(|row| {
+            let m = row
+                .iter()
+                .enumerate()
+                .fold(0u128, |m, (x, &o)| m | (u128::from(o) << x));
+            (1..=reach).fold(m, |acc, k| acc | (m << k) | (m >> k)) & full
+        })
+        .collect();
+    // Rows (z, y) at index z·r + y: the y pass ORs rows of one plane, the z pass rows of
+    // the same y in neighbouring planes.
+    let spread = |src: &[u128], stride: usize, block: usize| -> Vec<u128> {
+        let mut out = vec![0u128; src.len()];
+        for base in (0..src.len()).step_by(block) {
             let line = block / stride;
             for i in 0..line {
-                let lo = i.saturating_sub(d);
-                let hi = (i + d).min(line - 1);
-                let out = &mut occ[base + i * stride..base + (i + 1) * stride];
-                for k in lo..=hi {
-                    let from = &src[base + k * stride..base + (k + 1) * stride];
-                    for (o, f) in out.iter_mut().zip(from) {
-                        *o |= *f;
-                    }
+                let (lo, hi) = (i.saturating_sub(reach), (i + reach).min(line - 1));
+                for off in 0..stride {
+                    out[base + i * stride + off] =
+                        (lo..=hi).fold(0, |acc, k| acc | src[base + k * stride + off]);
                 }
             }
+        }
+        out
+    };
+    let rows = spread(&rows, 1, r);
+    let rows = spread(&rows, r, r * r);
+    for (row, m) in occ.chunks_exact_mut(r).zip(rows) {
+        for (x, o) in row.iter_mut().enumerate() {
+            *o = (m >> x) & 1 == 1;
         }
     }
 }
@@ -459,7 +486,16 @@ mod tests {
     fn dilation_is_the_cube_around_every_occupied_cell() {
         use rand::{Rng, SeedableRng};
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
-        for (r, d) in [(2, 1), (5, 1), (8, 2), (9, 3), (16, 1), (7, 0)] {
+        for (r, d) in [
+            (2, 1),
+            (5, 1),
+            (8, 2),
+            (9, 3),
+            (16, 1),
+            (7, 0),
+            (3, 5),
+            (1, 1),
+        ] {
             let cells: Vec<bool> = (0..r * r * r).map(|_| rng.gen_bool(0.03)).collect();
             let mut fast = cells.clone();
             dilate(&mut fast, r, d);
@@ -471,6 +507,34 @@ mod tests {
                     cells[o] && (0..3).all(|k| p[k].abs_diff(q[k]) <= d)
                 });
                 assert_eq!(got, want, "r {r} d {d} cell {p:?}");
+            }
+        }
+    }
+
+    /// Up to the largest resolution (a row is then a full 128-bit mask, and 127 leaves its
+    /// top bit): every cell is checked against the occupied cells of its own cube.
+    #[test]
+    fn dilation_holds_up_to_the_largest_resolution() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(12);
+        for (r, d) in [(127, 1), (MAX_RESOLUTION, 2), (64, 3)] {
+            let mut cells: Vec<bool> = (0..r * r * r).map(|_| rng.gen_bool(0.002)).collect();
+            // The corners and the faces' rows, where shifts fall off the mask.
+            for c in [0, r - 1, r * r - 1, r * r * r - 1, r * r * (r - 1)] {
+                cells[c] = true;
+            }
+            let mut fast = cells.clone();
+            dilate(&mut fast, r, d);
+            let at = |x: usize, y: usize, z: usize| (z * r + y) * r + x;
+            let span = |i: usize| i.saturating_sub(d)..=(i + d).min(r - 1);
+            for z in 0..r {
+                for y in 0..r {
+                    for x in 0..r {
+                        let want = span(z)
+                            .any(|zz| span(y).any(|yy| span(x).any(|xx| cells[at(xx, yy, zz)])));
+                        assert_eq!(fast[at(x, y, z)], want, "r {r} d {d} cell {x},{y},{z}");
+                    }
+                }
             }
         }
     }

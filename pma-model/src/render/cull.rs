@@ -282,6 +282,14 @@ impl WindowTest {
         self.x_bar(p, j, x).1
     }
 
+    /// The joints of pose p whose window is above the threshold at x (bit j); with
+    /// threshold 0, those whose window is not exactly 0 in f32.
+    pub fn point_joints(&self, p: usize, x: [f32; 3]) -> JointMask {
+        (0..N_JOINTS)
+            .filter(|&j| self.exponent(p, j, x) < self.cut)
+            .fold(0, |mask, j| mask | 1 << j)
+    }
+
     /// Largest spatial window over the joints of pose p at x (f64; for tests and reports).
     pub fn max_window(&self, p: usize, x: [f32; 3]) -> f64 {
         (0..N_JOINTS)

@@ -7,6 +7,8 @@
 //! `refresh_every` steps on the poses of the step's batch; `pma occupancy build` on the
 //! training poses of a dataset ([`build`]).
 
+use std::sync::atomic::{AtomicUsize, Ordering};
+
 use candle_core::{DType, Tensor};
 use pma_data::skeleton::N_JOINTS;
 use rand::Rng;
@@ -17,7 +19,8 @@ use crate::network::occupancy::OccupancyGrid;
 use crate::network::{Network, PoseFeatures};
 use crate::render::batch::Poses;
 use crate::render::bones::BoneFrames;
-use crate::render::cull::EXACT_ZERO_EXPONENT;
+use crate::render::cull::{JointMask, WindowTest, EXACT_ZERO_EXPONENT};
+use crate::render::points::{chain_key, joint_calls};
 
 /// Points per network call of a refresh on the CPU's workers: small enough that a training
 /// refresh (a few hundred points per pose) gives every worker calls, large enough that a
@@ -52,6 +55,9 @@ pub struct RefreshStats {
     pub cells: usize,
     /// Share of all cells occupied afterwards.
     pub occupied_fraction: f64,
+    /// Σ over the network calls of points × joints carried (24 per point without joint
+    /// grouping; 0 when the density was not the network's).
+    pub joint_rows: usize,
 }
 
 /// Cells of a joint's grid where its window can be non-zero in f32 (α·Σ x̄_k^β below the
@@ -59,21 +65,24 @@ pub struct RefreshStats {
 /// can ever be tested against.
 pub fn eligible_cells(grid: &OccupancyGrid, alpha: f64, beta: u32) -> Vec<usize> {
     let w = grid.cell_size();
+    let r = grid.config().resolution;
+    // The test is a sum of one term per axis, and a term depends on the cell's index along
+    // its axis only: r terms, each summed as the per-cell sum did (x, then y, then z).
+    let term: Vec<f64> = (0..r)
+        .map(|i| {
+            let a = grid.cell_corner(i)[0];
+            let b = a + w;
+            let m = if a <= 0.0 && b >= 0.0 {
+                0.0
+            } else {
+                a.abs().min(b.abs())
+            };
+            m.powi(beta as i32)
+        })
+        .collect();
     (0..grid.config().cells_per_joint())
         .filter(|&c| {
-            let lo = grid.cell_corner(c);
-            let sum: f64 = lo
-                .iter()
-                .map(|&a| {
-                    let b = a + w;
-                    let m = if a <= 0.0 && b >= 0.0 {
-                        0.0
-                    } else {
-                        a.abs().min(b.abs())
-                    };
-                    m.powi(beta as i32)
-                })
-                .sum();
+            let sum = 0.0 + term[c % r] + term[(c / r) % r] + term[c / (r * r)];
             alpha * sum < EXACT_ZERO_EXPONENT
         })
         .collect()
@@ -157,11 +166,8 @@ pub fn refresh_with<R: Rng>(
             CellChoice::All => eligible.clone(),
             CellChoice::Share(share) => {
                 let n = ((eligible.len() as f64 * share).ceil() as usize).max(1);
-                let occupied: Vec<usize> = eligible
-                    .iter()
-                    .copied()
-                    .filter(|&c| grid.cell_occupied(j, c))
-                    .collect();
+                let occ = grid.joint_occupied(j);
+                let occupied: Vec<usize> = eligible.iter().copied().filter(|&c| occ[c]).collect();
                 let mut v: Vec<usize> = (0..n.div_ceil(2))
                     .map(|_| eligible[rng.gen_range(0..eligible.len())])
                     .collect();
@@ -212,6 +218,7 @@ pub fn refresh_with<R: Rng>(
     Ok(RefreshStats {
         cells,
         occupied_fraction: grid.occupied_fraction(),
+        joint_rows: 0,
     })
 }
 
@@ -231,13 +238,30 @@ pub fn refresh<R: Rng>(
         skts: pose.skts.detach(),
         scales: pose.scales.detach(),
     };
-    let frames = BoneFrames::new(net.bone_align(), &host_f32(&poses.skts)?)?;
+    let skts = host_f32(&poses.skts)?;
+    let frames = BoneFrames::new(net.bone_align(), &skts)?;
     let scales = host_f32(&pose.scales)?;
     let dev = net.device().clone();
-    let part = match dev.is_cpu() && !crate::compute::account::emulates_cuda() {
+    let cpu_plan = dev.is_cpu() && !crate::compute::account::emulates_cuda();
+    let part = match cpu_plan {
         true => REFRESH_POINT_CHUNK,
         false => crate::render::points::inference_point_chunk(&dev, cfg),
     };
+    // On the CPU a part's points are sorted by the joints whose window is not exactly 0 at
+    // them and evaluated in calls that carry only those (the render's joint grouping): a
+    // cell's point lies in its joint's box, where a few of the 24 windows are non-zero.
+    let joint_test = match cpu_plan {
+        true => Some(WindowTest::new(
+            net.bone_align(),
+            &skts,
+            &scales,
+            cfg.window_alpha,
+            cfg.window_beta,
+            0.0,
+        )?),
+        false => None,
+    };
+    let joint_rows = AtomicUsize::new(0);
     let density = |points: &[Vec<[f32; 3]>]| -> Result<Vec<Vec<f32>>> {
         // Every pose's points in parts of a size fixed per device, all parts on the workers
         // at once: a training refresh holds a few hundred points per pose, which would
@@ -252,25 +276,50 @@ pub fn refresh<R: Rng>(
             })
             .collect();
         let workers = crate::compute::parallel::workers_on(&dev);
+        let sigma_at = |p: usize, pts: &[[f32; 3]], joints: Option<&[u32]>| -> Result<Vec<f32>> {
+            let t = Tensor::from_vec(
+                pts.iter().flatten().copied().collect::<Vec<f32>>(),
+                (pts.len(), 3),
+                &dev,
+            )?
+            .to_dtype(net.dtype())?;
+            let sigma = net.eval_density_joints(&pose, p, &t, joints)?;
+            Ok(sigma
+                .relu()?
+                .to_dtype(DType::F32)?
+                .flatten_all()?
+                .to_vec1::<f32>()?)
+        };
         // No interruption check: training refreshes after its step is applied, and a step
         // is undone only before that (callers that loop over refreshes check between them).
         let outs = crate::compute::parallel::map_ordered(workers, parts.len(), |i| {
             let (p, range) = &parts[i];
             let part = &points[*p][range.clone()];
-            let t = Tensor::from_vec(
-                part.iter().flatten().copied().collect::<Vec<f32>>(),
-                (part.len(), 3),
-                &dev,
-            )?
-            .to_dtype(net.dtype())?;
-            let sigma = net.eval_density(&pose, *p, &t)?;
-            Ok::<_, ModelError>(
-                sigma
-                    .relu()?
-                    .to_dtype(DType::F32)?
-                    .flatten_all()?
-                    .to_vec1::<f32>()?,
-            )
+            let Some(test) = &joint_test else {
+                joint_rows.fetch_add(part.len() * N_JOINTS, Ordering::Relaxed);
+                return sigma_at(*p, part, None);
+            };
+            let masks: Vec<JointMask> = part.iter().map(|&x| test.point_joints(*p, x)).collect();
+            let mut order: Vec<usize> = (0..part.len()).collect();
+            order.sort_by_key(|&i| chain_key(masks[i]));
+            let sorted: Vec<JointMask> = order.iter().map(|&i| masks[i]).collect();
+            let mut out = vec![0f32; part.len()];
+            for (start, len, union) in joint_calls(&sorted, part.len().max(1)) {
+                let idx = &order[start..start + len];
+                let count = union.count_ones() as usize;
+                let joints: Option<Vec<u32>> = (count > 0 && count < N_JOINTS).then(|| {
+                    (0..N_JOINTS as u32)
+                        .filter(|j| union >> j & 1 == 1)
+                        .collect()
+                });
+                let carried = joints.as_ref().map_or(N_JOINTS, Vec::len);
+                joint_rows.fetch_add(len * carried, Ordering::Relaxed);
+                let pts: Vec<[f32; 3]> = idx.iter().map(|&i| part[i]).collect();
+                for (&i, s) in idx.iter().zip(sigma_at(*p, &pts, joints.as_deref())?) {
+                    out[i] = s;
+                }
+            }
+            Ok::<_, ModelError>(out)
         })?;
         let mut sigmas: Vec<Vec<f32>> =
             points.iter().map(|p| Vec::with_capacity(p.len())).collect();
@@ -279,7 +328,7 @@ pub fn refresh<R: Rng>(
         }
         Ok(sigmas)
     };
-    refresh_with(
+    let stats = refresh_with(
         grid,
         &frames,
         &scales,
@@ -288,7 +337,11 @@ pub fn refresh<R: Rng>(
         opts,
         rng,
         density,
-    )
+    )?;
+    Ok(RefreshStats {
+        joint_rows: joint_rows.into_inner(),
+        ..stats
+    })
 }
 
 #[cfg(test)]

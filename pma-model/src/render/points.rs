@@ -543,7 +543,7 @@ const CHAIN: [u32; N_JOINTS] = [
 
 /// A joint mask with its bits moved to their joints' places in [`CHAIN`] (the sort key of
 /// the joint grouping).
-fn chain_key(mask: JointMask) -> u32 {
+pub(crate) fn chain_key(mask: JointMask) -> u32 {
     CHAIN
         .iter()
         .enumerate()
@@ -555,7 +555,7 @@ fn chain_key(mask: JointMask) -> u32 {
 /// union of their masks). A call takes at most `chunk` samples and, once it holds
 /// [`MIN_JOINT_CALL`], no sample that would make it carry more than [`MAX_CALL_JOINTS`]
 /// joints: much smaller calls pay the per-op overhead of the ~170 ops a call runs.
-fn joint_calls(masks: &[JointMask], chunk: usize) -> Vec<(usize, usize, JointMask)> {
+pub(crate) fn joint_calls(masks: &[JointMask], chunk: usize) -> Vec<(usize, usize, JointMask)> {
     let mut calls = Vec::new();
     let (mut start, mut union): (usize, JointMask) = (0, 0);
     for (i, &m) in masks.iter().enumerate() {

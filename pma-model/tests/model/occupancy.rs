@@ -8,7 +8,7 @@ use std::collections::HashMap;
 
 use crate::common::*;
 use crate::culling::{assert_close, assert_identical, FAR_CALL_TOLERANCE};
-use candle_core::Device;
+use candle_core::{Device, Tensor};
 use pma_model::error::ModelError;
 use pma_model::network::checkpoint::{self, OCCUPANCY_KEY, OCCUPANCY_TENSOR};
 use pma_model::network::occupancy::{OccupancyConfig, OccupancyGrid};
@@ -545,4 +545,92 @@ fn fine_samples_placed_from_the_grid() {
         panic!("a training pass placed its fine samples from the grid");
     };
     assert!(err.to_string().contains("rendering option"), "{err}");
+}
+
+/// A refresh on the CPU runs each point in a call that carries only the joints whose window
+/// is not exactly 0 there (the render's joint grouping): the grid is what calls with all 24
+/// joints give, up to float summation order, for far fewer joint rows. Leaving out a live
+/// joint would move a density by order 1.
+#[test]
+#[allow(clippy::result_large_err)] // the density callback returns the crate's Result
+fn a_refresh_carries_only_the_joints_its_points_need() {
+    use pma_model::compute::host::host_f32;
+    use pma_model::render::bones::BoneFrames;
+    use pma_model::render::occupancy::{refresh, refresh_with, CellChoice, RefreshOptions};
+    use rand::SeedableRng;
+
+    let case = GoldenCase::load("golden", false);
+    let net = case.avatar.network();
+    let pose = case.avatar.pose_features(&case.poses, None).unwrap();
+    let cfg = OccupancyConfig {
+        resolution: 4,
+        dilation: 0,
+        ..Default::default()
+    };
+    let opts = RefreshOptions {
+        cells: CellChoice::All,
+        decay: false,
+    };
+    let mut grouped = OccupancyGrid::new(cfg.clone()).unwrap();
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+    let stats = refresh(net, &mut grouped, &case.poses, &pose, opts, &mut rng).unwrap();
+
+    let mut full = OccupancyGrid::new(cfg).unwrap();
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+    let skts = host_f32(&case.poses.skts).unwrap();
+    let frames = BoneFrames::new(net.bone_align(), &skts).unwrap();
+    let scales = host_f32(&pose.scales).unwrap();
+    let dev = pose.g.device().clone();
+    let c = net.config();
+    refresh_with(
+        &mut full,
+        &frames,
+        &scales,
+        c.window_alpha,
+        c.window_beta,
+        opts,
+        &mut rng,
+        |points| {
+            points
+                .iter()
+                .enumerate()
+                .map(|(p, pts)| {
+                    if pts.is_empty() {
+                        return Ok(Vec::new());
+                    }
+                    let flat_pts: Vec<f32> = pts.iter().flatten().copied().collect();
+                    let t = Tensor::from_vec(flat_pts, (pts.len(), 3), &dev)?;
+                    Ok(flat(&net.eval_density(&pose, p, &t)?.relu()?))
+                })
+                .collect()
+        },
+    )
+    .unwrap();
+
+    let (a, b) = (grouped.density(), full.density());
+    assert!(
+        b.iter().filter(|&&v| v > 0.0).count() > b.len() / 10,
+        "too little density to compare"
+    );
+    // Float summation order only: the per-joint sums skip exact zeros.
+    let worst = a
+        .iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs() / y.abs().max(1.0))
+        .fold(0f32, f32::max);
+    assert!(
+        worst <= 1e-5,
+        "grouped refresh differs from all-joint calls by {worst}"
+    );
+    let all_rows = stats.cells * 24;
+    assert!(
+        stats.joint_rows > 0 && stats.joint_rows * 4 < all_rows * 3,
+        "joint rows {} of {all_rows}",
+        stats.joint_rows
+    );
+    eprintln!(
+        "{} points, {:.1} joints per point, worst relative difference {worst:e}",
+        stats.cells,
+        stats.joint_rows as f64 / stats.cells as f64
+    );
 }
