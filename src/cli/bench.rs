@@ -334,7 +334,7 @@ fn print_table(r: &BenchReport) {
             "x step",
             "tr GFLOP",
             "tr pts",
-            "RSS MiB",
+            "rdr MiB",
             "PSNR/par",
             "ΔPSNR dB",
             "held dB",
@@ -363,5 +363,8 @@ fn print_table(r: &BenchReport) {
                 o.budget_heldout_psnr
                     .map_or("-".to_string(), |v| format!("{v:.2}")),
             );
+    }
+    if let Some(mib) = r.training_peak_rss_mib {
+        println!("training (every option's trainer held, in turns): peak RSS {mib:.0} MiB");
     }
 }

@@ -121,6 +121,26 @@ fn quick_bench_writes_every_field() {
     assert_eq!(pts(7), pts(0));
     let diff = options[7]["max_abs_diff_vs_parity"].as_f64().unwrap();
     assert!(diff < 1e-3, "fast sine moved the render by {diff}");
+    // Options that differ from another only in how a render places, stops or groups its
+    // samples train alike: they are scored on that option's run, not a run of their own.
+    let steps = |i: usize| {
+        (
+            options[i]["budget_iterations"].as_u64(),
+            options[i]["ms_per_step"].as_f64(),
+        )
+    };
+    for (extended, base) in [(4, 3), (5, 3), (6, 3)] {
+        assert_eq!(
+            steps(extended),
+            steps(base),
+            "option {extended} trained apart"
+        );
+    }
+    assert!(steps(3).0.is_some_and(|n| n >= 2), "{:?}", steps(3));
+    if cfg!(target_os = "linux") {
+        let rss = json["training_peak_rss_mib"].as_f64();
+        assert!(rss.is_some_and(|v| v > 0.0), "training peak RSS: {rss:?}");
+    }
     assert!(dir.path().join("error_vs_time.png").is_file());
 }
 

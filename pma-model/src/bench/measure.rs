@@ -6,8 +6,8 @@
 //!
 //! Render timings go round-robin over the options (every option's first repeat, then every
 //! option's second, ...), so a machine whose speed drifts during the run shifts all options
-//! alike. Training is timed per option within its wall-clock budget, one option after the
-//! other.
+//! alike. Training is timed the same way: every option's trainer trains in turns of a few
+//! seconds until each has spent its wall-clock budget.
 //!
 //! FLOPs and the peak they are set against are [`crate::compute::flops`]'s: matmul FLOPs per
 //! network point (3× for a training step: forward, input and weight gradients) over
@@ -49,7 +49,8 @@ pub struct BenchRequest {
     pub scene: SynthConfig,
     /// Seconds of in-process training of the rendered model (without `model`).
     pub train_seconds: f64,
-    /// Training budget per option for the held-out columns (0: three timed steps only).
+    /// Training budget per option for the held-out columns (0: two steps only, the first a
+    /// warm-up).
     pub budget_seconds: f64,
     /// Rendered image size (square).
     pub res: usize,
@@ -103,7 +104,9 @@ pub struct OptionResult {
     /// included), over the option's training steps.
     #[serde(default)]
     pub train_evaluated_fraction: f64,
-    /// Peak RSS of this option's phases (VmHWM after a reset; process-wide if no reset).
+    /// Peak RSS of this option's render phase (VmHWM after a reset; process-wide if no
+    /// reset). The training phase holds every option's trainer at once: its peak is
+    /// [`BenchReport::training_peak_rss_mib`].
     pub peak_rss_mib: f64,
     /// PSNR of this option's W×H render against the parity render (inf = identical).
     pub psnr_vs_parity_render: f64,
@@ -138,6 +141,10 @@ pub struct BenchReport {
     /// the chunk (what skipping optional joints could leave out).
     pub inactive_joint_fraction: f64,
     pub options: Vec<OptionResult>,
+    /// Peak RSS of the training phase, every option's trainer held at once (they train in
+    /// turns); VmHWM after a reset, process-wide if no reset.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub training_peak_rss_mib: Option<f64>,
     /// Whole-process `pma forward` runs on a ray batch, if asked for.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub forward: Option<ForwardResult>,
@@ -193,7 +200,7 @@ pub fn measure(req: &BenchRequest, obs: &mut dyn BenchObserver) -> Result<BenchR
 
     let mut results =
         measure_inference(req, &mut avatar, &grids, &scene, &view, fpp, rss_reset, obs)?;
-    measure_training(req, &cfg, &scene, &mut results, rss_reset, obs)?;
+    let training_peak_rss_mib = measure_training(req, &cfg, &scene, &mut results, obs)?;
     let (parity_rays, parity_step) = (results[0].rays_per_s, results[0].ms_per_step);
     for r in &mut results {
         r.speedup_vs_parity = r.rays_per_s / parity_rays;
@@ -210,6 +217,7 @@ pub fn measure(req: &BenchRequest, obs: &mut dyn BenchObserver) -> Result<BenchR
         rss_reset_supported: rss_reset,
         inactive_joint_fraction: inactive,
         options: results,
+        training_peak_rss_mib,
         forward: None,
     })
 }
@@ -581,86 +589,129 @@ fn measure_inference(
     Ok(results)
 }
 
+/// Seconds each trainer runs before the next takes its turn (see [`measure_training`]).
+const TRAINING_TURN_SECONDS: f64 = 2.0;
+
+/// One training setting's run in [`measure_training`].
+struct TrainingRun {
+    trainer: Trainer,
+    /// Wall time of each step, ms.
+    times: Vec<f64>,
+    /// Seconds trained so far (the budget is spent on these).
+    trained: f64,
+}
+
+impl TrainingRun {
+    /// Whether the run has trained for `budget` seconds (at least two steps: the first is
+    /// a warm-up), or `max_steps` steps.
+    fn done(&self, budget: f64, max_steps: u64) -> bool {
+        (self.times.len() >= 2 && self.trained >= budget) || self.times.len() as u64 >= max_steps
+    }
+}
+
 /// Training per option: ms per step and held-out quality after the same wall-clock budget.
+///
+/// Every distinct training setting gets its own trainer from the same initialisation
+/// (options that differ only in how a render places, stops or groups its samples train
+/// alike and share one), and the trainers take turns of [`TRAINING_TURN_SECONDS`] until
+/// each has trained for the budget: a machine whose speed drifts during the bench slows
+/// every option alike, as the renders' round-robin does. The peak RSS of this phase is that
+/// of all trainers together, so the options' RSS figures are their renders'.
 fn measure_training(
     req: &BenchRequest,
     cfg: &crate::Config,
     scene: &Scene,
     results: &mut [OptionResult],
-    rss_reset: bool,
     obs: &mut dyn BenchObserver,
-) -> Result<()> {
+) -> Result<Option<f64>> {
     let dev = &req.device;
     let budget = req.budget_seconds.max(0.0);
-    obs.phase("training per option", req.options.len() as u64);
-    // The last option trained: its training settings, trainer and figures. An option that
-    // differs only in how rendering places, stops or groups its samples trains the same way, so it is
-    // scored on that run instead of a second one.
-    type Trained = (BenchOption, Trainer, f64, f64);
-    let mut previous: Option<Trained> = None;
-    for (k, (res, opt)) in results.iter_mut().zip(&req.options).enumerate() {
-        obs.progress(k as u64, &format!("train {}", opt.name));
-        let same_training = |o: &BenchOption| BenchOption {
-            name: String::new(),
-            occupancy_fine: false,
-            early_stop: None,
-            cull_joints: false,
-            ..o.clone()
-        };
-        if let Some((o, trainer, ms, fraction)) = &previous {
-            if same_training(o) == same_training(opt) {
-                res.ms_per_step = *ms;
-                res.train_evaluated_fraction = *fraction;
-                res.train_gflops = results_gflops(cfg, trainer, *fraction, *ms);
-                if budget > 0.0 {
-                    let (p, l) = heldout_scores(trainer.avatar(), scene, &opt.pass())?;
-                    res.budget_heldout_psnr = Some(p);
-                    res.budget_heldout_lpips = l;
-                    res.budget_iterations = Some(trainer.iteration());
-                }
-                continue;
-            }
-        }
+    let same_training = |o: &BenchOption| BenchOption {
+        name: String::new(),
+        occupancy_fine: false,
+        early_stop: None,
+        cull_joints: false,
+        ..o.clone()
+    };
+    // The run of each option, and per run the first option that needs it.
+    let mut settings: Vec<BenchOption> = Vec::new();
+    let run_of: Vec<usize> = req
+        .options
+        .iter()
+        .map(|opt| {
+            let key = same_training(opt);
+            settings.iter().position(|s| *s == key).unwrap_or_else(|| {
+                settings.push(key);
+                settings.len() - 1
+            })
+        })
+        .collect();
+    let mut runs = Vec::with_capacity(settings.len());
+    for k in 0..settings.len() {
+        let opt = &req.options[run_of.iter().position(|&r| r == k).unwrap_or(0)];
         let mut run = RunConfig::from_preset(req.preset);
         run.model = cfg.clone();
         run.numerics = req.numerics;
         opt.configure(&mut run, &req.occupancy);
-        if rss_reset {
-            reset_peak_rss();
+        runs.push(TrainingRun {
+            trainer: Trainer::new(run, scene.train.clone(), dev)?,
+            times: Vec::new(),
+            trained: 0.0,
+        });
+    }
+    let max_steps = if budget > 0.0 { u64::MAX } else { 2 };
+    reset_peak_rss();
+    obs.phase(
+        "training, options in turns (s)",
+        (budget * runs.len() as f64).ceil() as u64,
+    );
+    let mut spent = 0.0;
+    while runs.iter().any(|r| !r.done(budget, max_steps)) {
+        for (k, run) in runs.iter_mut().enumerate() {
+            let (before, turn) = (run.trained.min(budget), Instant::now());
+            while !run.done(budget, max_steps)
+                && turn.elapsed().as_secs_f64() < TRAINING_TURN_SECONDS
+            {
+                let t = Instant::now();
+                run.trainer.step()?;
+                let dt = t.elapsed().as_secs_f64();
+                run.times.push(dt * 1e3);
+                run.trained += dt;
+            }
+            spent += run.trained.min(budget) - before;
+            let name = &req.options[run_of.iter().position(|&r| r == k).unwrap_or(0)].name;
+            obs.progress(spent as u64, &format!("train {name}"));
         }
-        let (seconds, max_steps) = if budget > 0.0 {
-            (budget, u64::MAX)
-        } else {
-            (0.0, 3)
-        };
-        let (trainer, mut times, fraction) = train_for(
-            run,
-            scene.train.clone(),
-            seconds,
-            max_steps,
-            dev,
-            &mut |_| {},
-        )?;
-        if times.len() > 1 {
-            times.remove(0); // warm-up
-        }
-        // The mean, not the median: steps/s over the budget, the grid's refreshes (one
-        // step in `refresh_every`) included.
-        res.ms_per_step = times.iter().sum::<f64>() / times.len().max(1) as f64;
-        res.train_evaluated_fraction = fraction;
-        res.train_gflops = results_gflops(cfg, &trainer, fraction, res.ms_per_step);
-        res.peak_rss_mib = res.peak_rss_mib.max(peak_rss_mib().unwrap_or(f64::NAN));
-        if budget > 0.0 {
-            let pass = opt.pass();
-            let (p, l) = heldout_scores(trainer.avatar(), scene, &pass)?;
-            res.budget_heldout_psnr = Some(p);
-            res.budget_heldout_lpips = l;
-            res.budget_iterations = Some(trainer.iteration());
-        }
-        previous = Some((opt.clone(), trainer, res.ms_per_step, fraction));
     }
     obs.phase_end();
-    Ok(())
+    let phase_peak = peak_rss_mib();
+    let samples_per_step = |t: &Trainer| {
+        (t.run_config().train.rays_per_step * (cfg.n_samples + cfg.n_importance)) as f64
+    };
+    for ((res, opt), &k) in results.iter_mut().zip(&req.options).zip(&run_of) {
+        let run = &runs[k];
+        let steps = run.times.len();
+        // The mean, not the median: steps/s over the budget, the grid's refreshes (one
+        // step in `refresh_every`) included; the first step is a warm-up.
+        let timed = &run.times[steps.min(1)..];
+        res.ms_per_step = timed.iter().sum::<f64>() / timed.len().max(1) as f64;
+        let points = run.trainer.pass_totals().points_evaluated as f64;
+        res.train_evaluated_fraction =
+            points / (samples_per_step(&run.trainer) * steps.max(1) as f64);
+        res.train_gflops = results_gflops(
+            cfg,
+            &run.trainer,
+            res.train_evaluated_fraction,
+            res.ms_per_step,
+        );
+        if budget > 0.0 {
+            let (p, l) = heldout_scores(run.trainer.avatar(), scene, &opt.pass())?;
+            res.budget_heldout_psnr = Some(p);
+            res.budget_heldout_lpips = l;
+            res.budget_iterations = Some(run.trainer.iteration());
+        }
+    }
+    Ok(phase_peak)
 }
 
 /// Training GFLOP/s of a step at `ms` ms that ran the network on `fraction` of its samples.
