@@ -38,7 +38,8 @@ pub struct Args {
     /// Seconds of in-process training of the model that is rendered (without --model).
     #[arg(long, default_value_t = 60.0)]
     pub train_seconds: f64,
-    /// Wall-clock training budget per option for the held-out-PSNR comparison (0 = skip).
+    /// Wall-clock training budget per option for the held-out-PSNR comparison; the options
+    /// train in turns of 2 s until each has spent it (0 = two steps each, no held-out score).
     #[arg(long, default_value_t = 20.0)]
     pub budget_seconds: f64,
     /// Rendered image size (square).
