@@ -264,33 +264,24 @@ pub(crate) fn prepare_scene(
     })
 }
 
-/// Train `run` for `seconds` (at least 2 steps, at most `max_steps`); returns the trainer,
-/// the step times (ms) and the share of the steps' samples that ran the network. `elapsed`
-/// hears the seconds spent after every step.
+/// Train `run` for `seconds` (at least 2 steps); `elapsed` hears the seconds spent after
+/// every step.
 fn train_for(
     run: RunConfig,
     data: Arc<Dataset>,
     seconds: f64,
-    max_steps: u64,
     dev: &Device,
     elapsed: &mut dyn FnMut(f64),
-) -> Result<(Trainer, Vec<f64>, f64)> {
-    let samples_per_step =
-        (run.train.rays_per_step * (run.model.n_samples + run.model.n_importance)) as f64;
+) -> Result<Trainer> {
     let mut trainer = Trainer::new(run, data, dev)?;
     let start = Instant::now();
-    let mut times = Vec::new();
-    while (times.len() < 2 || start.elapsed().as_secs_f64() < seconds)
-        && (times.len() as u64) < max_steps
-    {
-        let t = Instant::now();
+    let mut steps = 0;
+    while steps < 2 || start.elapsed().as_secs_f64() < seconds {
         trainer.step()?;
-        times.push(t.elapsed().as_secs_f64() * 1e3);
+        steps += 1;
         elapsed(start.elapsed().as_secs_f64());
     }
-    let points = trainer.pass_totals().points_evaluated as f64;
-    let fraction = points / (samples_per_step * times.len().max(1) as f64);
-    Ok((trainer, times, fraction))
+    Ok(trainer)
 }
 
 /// Mean held-out PSNR and LPIPS of `avatar` on the scene's held-out images, by
@@ -336,11 +327,10 @@ fn bench_model(
     obs.phase("training the bench model (s)", req.train_seconds as u64);
     let mut run = RunConfig::from_preset(req.preset);
     run.numerics = req.numerics;
-    let (trainer, _, _) = train_for(
+    let trainer = train_for(
         run,
         scene.train.clone(),
         req.train_seconds,
-        u64::MAX,
         &req.device,
         &mut |s| obs.progress(s.min(req.train_seconds) as u64, ""),
     )?;
@@ -633,22 +623,24 @@ fn measure_training(
         cull_joints: false,
         ..o.clone()
     };
-    // The run of each option, and per run the first option that needs it.
-    let mut settings: Vec<BenchOption> = Vec::new();
+    // The run of each option; per run its training setting and the first option with it.
+    let mut settings: Vec<(BenchOption, &BenchOption)> = Vec::new();
     let run_of: Vec<usize> = req
         .options
         .iter()
         .map(|opt| {
             let key = same_training(opt);
-            settings.iter().position(|s| *s == key).unwrap_or_else(|| {
-                settings.push(key);
-                settings.len() - 1
-            })
+            settings
+                .iter()
+                .position(|(s, _)| *s == key)
+                .unwrap_or_else(|| {
+                    settings.push((key, opt));
+                    settings.len() - 1
+                })
         })
         .collect();
     let mut runs = Vec::with_capacity(settings.len());
-    for k in 0..settings.len() {
-        let opt = &req.options[run_of.iter().position(|&r| r == k).unwrap_or(0)];
+    for (_, opt) in &settings {
         let mut run = RunConfig::from_preset(req.preset);
         run.model = cfg.clone();
         run.numerics = req.numerics;
@@ -679,8 +671,7 @@ fn measure_training(
                 run.trained += dt;
             }
             spent += run.trained.min(budget) - before;
-            let name = &req.options[run_of.iter().position(|&r| r == k).unwrap_or(0)].name;
-            obs.progress(spent as u64, &format!("train {name}"));
+            obs.progress(spent as u64, &format!("train {}", settings[k].1.name));
         }
     }
     obs.phase_end();

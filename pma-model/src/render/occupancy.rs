@@ -20,7 +20,7 @@ use crate::network::{Network, PoseFeatures};
 use crate::render::batch::Poses;
 use crate::render::bones::BoneFrames;
 use crate::render::cull::{JointMask, WindowTest, EXACT_ZERO_EXPONENT};
-use crate::render::points::{chain_key, joint_calls};
+use crate::render::points::{call_joints, chain_key, joint_calls};
 
 /// Points per network call of a refresh on the CPU's workers: small enough that a training
 /// refresh (a few hundred points per pose) gives every worker calls, large enough that a
@@ -306,12 +306,7 @@ pub fn refresh<R: Rng>(
             let mut out = vec![0f32; part.len()];
             for (start, len, union) in joint_calls(&sorted, part.len().max(1)) {
                 let idx = &order[start..start + len];
-                let count = union.count_ones() as usize;
-                let joints: Option<Vec<u32>> = (count > 0 && count < N_JOINTS).then(|| {
-                    (0..N_JOINTS as u32)
-                        .filter(|j| union >> j & 1 == 1)
-                        .collect()
-                });
+                let joints = call_joints(union);
                 let carried = joints.as_ref().map_or(N_JOINTS, Vec::len);
                 joint_rows.fetch_add(len * carried, Ordering::Relaxed);
                 let pts: Vec<[f32; 3]> = idx.iter().map(|&i| part[i]).collect();

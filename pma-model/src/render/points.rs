@@ -572,6 +572,17 @@ pub(crate) fn joint_calls(masks: &[JointMask], chunk: usize) -> Vec<(usize, usiz
     calls
 }
 
+/// The joints a call with union mask `union` carries: `None` (all 24) for a full or an
+/// empty mask.
+pub(crate) fn call_joints(union: JointMask) -> Option<Vec<u32>> {
+    let count = union.count_ones() as usize;
+    (count > 0 && count < N_JOINTS).then(|| {
+        (0..N_JOINTS as u32)
+            .filter(|j| union >> j & 1 == 1)
+            .collect()
+    })
+}
+
 /// Fewest samples of a call that may be closed early to keep its joints few. A `cpu-small`
 /// point costs no more in a call of 256 than of 4,096 (example `joint_cost --points`; 64
 /// costs ~1.3× more), and the smaller floor lets calls carry fewer joints: 256 with
@@ -1166,12 +1177,7 @@ impl CullCtx {
             };
             let n_calls = calls.len();
             for (c, (start, len, union)) in calls.into_iter().enumerate() {
-                let count = union.count_ones() as usize;
-                let joints = (count > 0 && count < N_JOINTS).then(|| {
-                    (0..N_JOINTS as u32)
-                        .filter(|j| union >> j & 1 == 1)
-                        .collect()
-                });
+                let joints = call_joints(union);
                 jobs.push(Job {
                     p,
                     start: first + start,
