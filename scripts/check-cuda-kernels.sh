@@ -1,5 +1,5 @@
 #!/bin/bash
-# Compile every CUDA kernel source of pma (pma-model/src/**/kernels/*.cu) to PTX with nvcc,
+# Compile every CUDA kernel source of pma (pma-model/src/compute/ops/*/*.cu) to PTX with nvcc,
 # so a kernel that no longer compiles is caught without a GPU. At run time the same sources
 # go through NVRTC, which accepts the same dialect (no #include).
 #
@@ -25,6 +25,6 @@ while IFS= read -r cu; do
   done
   echo "ok   $cu (compute_$ARCH)"
   n=$((n + 1))
-done < <(find pma-model/src -path '*/kernels/*.cu' | sort)
+done < <(find pma-model/src -name '*.cu' | sort)
 [ "$n" -gt 0 ] || { echo "check-cuda-kernels: no kernel sources found" >&2; exit 1; }
 echo "check-cuda-kernels: $n file(s) compiled"

@@ -39,6 +39,11 @@ struct Cli {
     /// Not parity: docs/numerics.md gives its measured PSNR cost. Off by default.
     #[arg(long, global = true)]
     bf16_trunk: bool,
+    /// Run every op on candle's generic ops instead of pma's kernels (fused CPU ops, CUDA
+    /// kernels, row gathers, the flat Adam update): the same numbers up to float rounding,
+    /// slower. A kernel that fails on a device is switched off on its own (`pma doctor`).
+    #[arg(long, global = true)]
+    generic_kernels: bool,
     #[command(subcommand)]
     command: Command,
 }
@@ -92,6 +97,7 @@ fn main() -> ExitCode {
         // Before any candle op: candle sizes its thread pool once.
         pma_model::compute::parallel::configure_cpu(cli.workers);
         cli::set_numerics(cli.fast_sine, cli.deterministic, cli.bf16_trunk);
+        pma_model::compute::kernel::health::set_generic(cli.generic_kernels);
         run(cli.command)
     });
     match result {

@@ -18,11 +18,17 @@ use crate::error::Result;
 
 /// `sin(x)`: the vectorised kernel (`fast`, f32 CPU tensors) or, in parity mode, libm's bits
 /// at vector speed ([`crate::compute::libm_sine`]); other devices and dtypes take candle's
-/// `sin`, as does a CPU run accounted as CUDA ([`crate::compute::account`]).
+/// `sin`, as do a CPU run accounted as CUDA ([`crate::compute::account`]) and parity mode
+/// under `--generic-kernels`.
 pub fn sin(x: &Tensor, fast: bool) -> Result<Tensor> {
-    if x.device().is_cpu() && x.dtype() == DType::F32 && !crate::compute::account::emulates_cuda() {
+    let libm_op = !fast && crate::compute::kernel::health::generic();
+    if x.device().is_cpu()
+        && x.dtype() == DType::F32
+        && !crate::compute::account::emulates_cuda()
+        && !libm_op
+    {
         let x = x.contiguous()?;
-        let cos = crate::compute::ops::Kept::new(x.track_op());
+        let cos = crate::compute::kernel::storage::Kept::new(x.track_op());
         Ok(x.apply_op1(Sine { fast, cos })?)
     } else {
         Ok(x.sin()?)
@@ -137,7 +143,7 @@ pub fn sin_or_cos(x: &[f32], shift: u64) -> Vec<f32> {
 /// computed by [`Cosine`].
 struct Sine {
     fast: bool,
-    cos: crate::compute::ops::Kept<Vec<f32>>,
+    cos: crate::compute::kernel::storage::Kept<Vec<f32>>,
 }
 struct Cosine {
     fast: bool,
@@ -149,7 +155,7 @@ impl CustomOp1 for Sine {
     }
 
     fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> candle_core::Result<(CpuStorage, Shape)> {
-        let x = crate::compute::ops::f32_slice(s, l, "sine")?;
+        let x = crate::compute::kernel::storage::f32_slice(s, l, "sine")?;
         let sin = if self.cos.wanted() {
             let (sin, cos) = trig_pair(x, self.fast);
             self.cos.put(cos);
@@ -184,7 +190,7 @@ impl CustomOp1 for Cosine {
     }
 
     fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> candle_core::Result<(CpuStorage, Shape)> {
-        let x = crate::compute::ops::f32_slice(s, l, "sine")?;
+        let x = crate::compute::kernel::storage::f32_slice(s, l, "sine")?;
         Ok((CpuStorage::F32(trig(x, 1, self.fast)), l.shape().clone()))
     }
 }
@@ -280,7 +286,7 @@ mod tests {
         let x = Var::from_vec(xs.clone(), 1001, &dev).unwrap();
         // The op itself. With the cosine kept by the forward and without it (recomputed by the backward).
         for keep in [false, true] {
-            let cos = crate::compute::ops::Kept::new(keep);
+            let cos = crate::compute::kernel::storage::Kept::new(keep);
             let y = x.as_tensor().apply_op1(Sine { fast: true, cos }).unwrap();
             let g = y.sum_all().unwrap().backward().unwrap();
             let y = y.to_vec1::<f32>().unwrap();

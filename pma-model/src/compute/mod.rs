@@ -7,13 +7,10 @@
 //! | module | what |
 //! | --- | --- |
 //! | [`numerics`] | a network's numeric choices: fused kernels, fast sine, row ops, TF32 |
-//! | [`fused`] | fused kernels: the window max-pool, the FiLM-sine stack, bias adds |
-//! | [`linear_act`] | a linear layer and its ReLU or sine as one op on a GPU's route |
-//! | [`sine_linear`] | the point encoders' SIREN layer as one op on a GPU's route |
-//! | [`cuda`] | the fused ops' CUDA kernels (`cuda/kernels/*.cu`, NVRTC at run time) |
+//! | [`ops`] | pma's custom ops, one folder each: linear layers, window pool, FiLM-sine, point encoder, row gathers, Adam |
+//! | [`kernel`] | what the ops stand on: routes, device memory, launches (CUDA and the emulated grid), kernel health, checks |
 //! | [`libm_sine`] | glibc's sinf/cosf recipe, lane-wise (bit-identical, vectorised) |
 //! | [`fast_sine`] | the sine op; the optional polynomial sine (`--fast-sine`, not parity) |
-//! | [`ops`] | row gathers with a parallel backward on CUDA (`ops/kernels/*.cu`) |
 //! | [`parallel`] | data-parallel CPU workers |
 //! | [`host`] | the one device → host copy |
 //! | [`device`] | `--device` strings to candle devices, CUDA memory-pool settings |
@@ -22,16 +19,13 @@
 //! | [`account`] | what a step launches and waits for on a GPU, counted on any device; a cost model |
 
 pub mod account;
-pub mod cuda;
 pub mod device;
 pub mod fast_sine;
 pub mod flops;
-pub mod fused;
 pub mod host;
+pub mod kernel;
 pub mod libm_sine;
-pub mod linear_act;
 pub mod numerics;
 pub mod ops;
 pub mod parallel;
 pub mod profile;
-pub mod sine_linear;

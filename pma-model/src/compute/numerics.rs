@@ -19,10 +19,10 @@ pub struct Numerics {
     /// The vectorised polynomial sine on the CPU (`--fast-sine`): last-bit differences from
     /// libm, so not parity. CUDA always takes its own `sinf`.
     pub fast_sine: bool,
-    /// Fused kernels (on the CPU: [`crate::compute::fused`], bit-identical to the plain ops; on
-    /// CUDA: [`crate::compute::cuda`]'s kernels). Off: candle's plain ops everywhere.
+    /// pma's fused ops ([`crate::compute::ops`]: on the CPU bit-identical to candle's ops, on
+    /// CUDA their kernels). Off: candle's ops everywhere.
     pub fused: bool,
-    /// pma's row gathers ([`crate::compute::ops`]), whose backward is parallel on CUDA. Off:
+    /// pma's row gathers ([`crate::compute::ops::rows`]), whose backward is parallel on CUDA. Off:
     /// candle's `index_select` and `gather`.
     pub row_ops: bool,
     /// TF32 tensor cores for the forward matrix products of the network's layers ([`matmul`];

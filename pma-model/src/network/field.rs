@@ -115,9 +115,10 @@ impl Field {
         k: Numerics,
     ) -> Result<(Tensor, Tensor)> {
         let (h, _) = self.trunk(s, k, false)?;
-        let sigma_raw = crate::compute::ops::select_rows(&self.sigma.forward(&h, k)?, rows, k)?;
+        let sigma_raw =
+            crate::compute::ops::rows::select_rows(&self.sigma.forward(&h, k)?, rows, k)?;
         let feature_linear =
-            crate::compute::ops::select_rows(&self.feature.forward(&h, k)?, rows, k)?;
+            crate::compute::ops::rows::select_rows(&self.feature.forward(&h, k)?, rows, k)?;
         let (_, _, rgb) = self.colour(&feature_linear, view, k, false)?;
         Ok((rgb, sigma_raw))
     }
@@ -236,6 +237,6 @@ impl FrameCodes {
             .collect();
         let ids = Tensor::from_vec(ids, r, self.weight.device())?;
         // A row gather whose gradient is parallel on CUDA (bit-identical on the CPU).
-        crate::compute::ops::select_rows(&self.weight, &ids, k)
+        crate::compute::ops::rows::select_rows(&self.weight, &ids, k)
     }
 }

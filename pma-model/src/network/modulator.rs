@@ -200,7 +200,7 @@ impl Modulator {
         let layer = |l: usize| if l == 0 { &first } else { &self.layers[l] };
         if let Some(o) = &m.head {
             let n = self.layers.len();
-            let head = crate::compute::fused::FilmHead::new(o, n, self.gamma_affine(), k);
+            let head = crate::compute::ops::film_sine::FilmHead::new(o, n, self.gamma_affine(), k);
             let outs = head.stack(x_tilde, |l, h| layer(l).forward(h, k))?;
             return Ok(Tensor::cat(&outs, 1)?);
         }

@@ -30,7 +30,7 @@ impl Linear {
         let dims = x.dims().to_vec();
         let in_dim = *dims.last().unwrap_or(&0);
         let rows = x.elem_count() / in_dim.max(1);
-        let y = crate::compute::fused::linear(
+        let y = crate::compute::ops::linear::linear(
             &x.reshape((rows, in_dim))?,
             &self.weight,
             &self.bias,
@@ -45,9 +45,9 @@ impl Linear {
 }
 
 impl Linear {
-    /// `max(x Wᵀ + b, 0)`: x: [rows, in] -> [rows, out] ([`crate::compute::linear_act`]).
+    /// `max(x Wᵀ + b, 0)`: x: [rows, in] -> [rows, out] ([`crate::compute::ops::linear`]).
     pub fn forward_relu(&self, x: &Tensor, k: Numerics) -> Result<Tensor> {
-        crate::compute::linear_act::linear_relu(x, &self.weight, &self.bias, k)
+        crate::compute::ops::linear::linear_relu(x, &self.weight, &self.bias, k)
     }
 
     /// [`Self::forward`] as a bf16 tensor-core product computes it: input, weight and output
@@ -97,7 +97,7 @@ impl SineLayer {
 
     /// `scale ⊙ forward(x)`, each output row times its scale: x: [..., in], scale: [...]
     /// -> [..., out]. One op on a GPU's route for a narrow x
-    /// ([`crate::compute::sine_linear`]).
+    /// ([`crate::compute::ops::sine_linear`]).
     pub fn forward_scaled(
         &self,
         x: &Tensor,
@@ -116,10 +116,12 @@ impl SineLayer {
         let rows = x.elem_count() / in_dim.max(1);
         let scale = scale.map(|s| s.reshape(rows)).transpose()?;
         let x2 = x.reshape((rows, in_dim))?;
-        let y = match (scale, in_dim > crate::compute::sine_linear::MAX_IN) {
+        let y = match (scale, in_dim > crate::compute::ops::sine_linear::MAX_IN) {
             // A wide input (the pose extractor): cuBLAS's product, then bias and sine.
-            (None, true) => crate::compute::linear_act::linear_sine(&x2, &w, &b, k)?,
-            (scale, _) => crate::compute::sine_linear::sine_linear(&x2, &w, &b, scale.as_ref(), k)?,
+            (None, true) => crate::compute::ops::linear::linear_sine(&x2, &w, &b, k)?,
+            (scale, _) => {
+                crate::compute::ops::sine_linear::sine_linear(&x2, &w, &b, scale.as_ref(), k)?
+            }
         };
         let mut out_dims = dims;
         *out_dims

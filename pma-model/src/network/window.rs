@@ -106,7 +106,7 @@ impl WinFun {
         })?;
         let (n, j, ce) = e.dims3()?;
         let g_b = g.broadcast_add(&f.layer_point.bias)?;
-        let pooled = crate::compute::fused::window_pool_of(
+        let pooled = crate::compute::ops::window_pool::window_pool_of(
             &e.reshape((n * j, ce))?,
             &f.layer_point.weight,
             &g_b,

@@ -23,7 +23,7 @@ use std::sync::Arc;
 use candle_core::{DType, Tensor};
 
 use crate::compute::host::host_f32;
-use crate::compute::ops::select_rows;
+use crate::compute::ops::rows::select_rows;
 use crate::error::{ModelError, Result};
 use crate::network::occupancy::OccupancyGrid;
 use crate::network::trace::Trace;

@@ -83,16 +83,6 @@ struct Slot {
     len: usize,
 }
 
-/// What one update needs besides the gradients: betas, eps, and per slot the step size
-/// `lr / (1 − b1^t)` and `sqrt(1 − b2^t)` (f64 on the device).
-struct Scalars {
-    b1: f64,
-    b2: f64,
-    eps: f64,
-    step_size: Tensor,
-    bias2_sqrt: Tensor,
-}
-
 /// `1 − b1^t` and `sqrt(1 − b2^t)` for t = 0..len, in f64 on the device (index t).
 struct BiasTables {
     len: usize,
@@ -410,8 +400,8 @@ impl Adam {
     }
 
     /// [`Self::step_masked`] of `g · coef` (`coef` an f32 scalar on the device: the
-    /// global-norm clip factor). On CUDA the whole update, clip and mask included, is one
-    /// kernel ([`crate::compute::cuda`], `adam.cu`, the same bits as the tensor ops).
+    /// global-norm clip factor): [`crate::compute::ops::adam`], one pass on the CPU, one
+    /// kernel on a device, the same bits as the tensor ops.
     pub fn step_clipped(
         &mut self,
         g: &Tensor,
@@ -449,21 +439,26 @@ impl Adam {
         let bias2_sqrt = tables.bias2_sqrt.index_select(&t_idx, 0)?;
         let lr: Vec<f64> = self.slots.iter().map(|s| self.groups[s.group].lr).collect();
         let step_size = Tensor::from_vec(lr, n_slots, &dev)?.div(&bias1)?;
-        let scalars = Scalars {
+        let params: Vec<Tensor> = self
+            .slots
+            .iter()
+            .map(|s| s.var.as_tensor().detach())
+            .collect();
+        let (p, m, v) = crate::compute::ops::adam::update(&crate::compute::ops::adam::Update {
+            g,
+            params: &params,
+            m: &self.exp_avg,
+            v: &self.exp_avg_sq,
+            slot_of: &self.slot_of,
+            has,
+            apply,
+            coef,
+            step_size: &step_size,
+            bias2_sqrt: &bias2_sqrt,
             b1,
             b2,
             eps,
-            step_size,
-            bias2_sqrt,
-        };
-        let modeled = crate::compute::account::emulates_cuda() && dev.is_cpu();
-        let (p, m, v) = if dev.is_cuda() || modeled {
-            self.device_update(g, has, apply, coef, &scalars)?
-        } else if dev.is_cpu() {
-            self.host_update(g, has, apply, coef, &scalars)?
-        } else {
-            self.plain_update(g, has, apply, coef, &scalars)?
-        };
+        })?;
         for slot in &self.slots {
             slot.var.set(
                 &p.narrow(0, slot.offset, slot.len)?
@@ -474,211 +469,6 @@ impl Adam {
         self.exp_avg_sq = v;
         self.steps = t;
         Ok(())
-    }
-
-    /// The update as tensor ops (Metal's route, and the bits the CPU's and CUDA's match): new
-    /// (parameters, first moments, second moments), flat.
-    fn plain_update(
-        &self,
-        g: &Tensor,
-        has: &[bool],
-        apply: Option<&Tensor>,
-        coef: Option<&Tensor>,
-        sc: &Scalars,
-    ) -> Result<(Tensor, Tensor, Tensor), TrainError> {
-        let (b1, b2, eps) = (sc.b1, sc.b2, sc.eps);
-        let n_slots = self.slots.len();
-        let g = match coef {
-            Some(c) => g.broadcast_mul(c)?,
-            None => g.clone(),
-        };
-        // Per element: the f32 factors a per-parameter update would multiply by.
-        let per_elem = |v: Tensor| -> candle_core::Result<Tensor> {
-            v.to_dtype(DType::F32)?.index_select(&self.slot_of, 0)
-        };
-        let step_size = per_elem(sc.step_size.clone())?;
-        let inv_bias2 = per_elem(sc.bias2_sqrt.recip()?)?;
-        let g = g.detach();
-        let m = (&self.exp_avg + ((&g - &self.exp_avg)? * (1.0 - b1))?)?;
-        let v = ((&self.exp_avg_sq * b2)? + (g.sqr()? * (1.0 - b2))?)?;
-        let denom = (v.sqrt()?.mul(&inv_bias2)? + eps)?;
-        let update = (m.mul(&step_size)? / denom)?;
-        let p_old = self.flat_params()?;
-        let mut p = (&p_old - update)?;
-        let (mut m, mut v) = (m, v);
-        // Where the update does not apply, everything keeps its old value.
-        let all = has.iter().all(|&h| h);
-        let mask = match (apply, all) {
-            (None, true) => None,
-            (Some(a), true) => Some(a.broadcast_as(p.shape())?),
-            (a, false) => {
-                let has_u8: Vec<u8> = has.iter().map(|&h| h as u8).collect();
-                let slot_has = Tensor::from_vec(has_u8, n_slots, &self.device)?;
-                let mut mask = slot_has.index_select(&self.slot_of, 0)?;
-                if let Some(a) = a {
-                    mask = mask.broadcast_mul(&a.to_dtype(DType::U8)?)?;
-                }
-                Some(mask)
-            }
-        };
-        if let Some(mask) = &mask {
-            p = mask.where_cond(&p, &p_old)?;
-            m = mask.where_cond(&m, &self.exp_avg)?;
-            v = mask.where_cond(&v, &self.exp_avg_sq)?;
-        }
-        Ok((p, m, v))
-    }
-
-    /// [`Self::plain_update`] in one pass over the elements, for the CPU: the same f32
-    /// operations in the same order, so the same bits (an f64 factor `x * c` of a tensor op is
-    /// candle's affine, `x * (c as f32) + 0`, kept here for the sign of zeros). The tensor ops
-    /// take some twenty passes and a tensor per intermediate, which on a small model cost
-    /// more than the update's arithmetic, on the step's serial path.
-    fn host_update(
-        &self,
-        g: &Tensor,
-        has: &[bool],
-        apply: Option<&Tensor>,
-        coef: Option<&Tensor>,
-        sc: &Scalars,
-    ) -> Result<(Tensor, Tensor, Tensor), TrainError> {
-        let omb1 = (1.0 - sc.b1) as f32;
-        let b2 = sc.b2 as f32;
-        let omb2 = (1.0 - sc.b2) as f32;
-        let eps = sc.eps as f32;
-        let scalar_f32 = |t: &Tensor| -> candle_core::Result<f32> {
-            Ok(t.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()?[0])
-        };
-        let coef = coef.map(scalar_f32).transpose()?;
-        let ok = match apply {
-            Some(a) => a.to_dtype(DType::U8)?.flatten_all()?.to_vec1::<u8>()?[0] != 0,
-            None => true,
-        };
-        let step_size = sc.step_size.to_dtype(DType::F32)?.to_vec1::<f32>()?;
-        let inv_bias2 = sc
-            .bias2_sqrt
-            .recip()?
-            .to_dtype(DType::F32)?
-            .to_vec1::<f32>()?;
-        let g = g.detach().to_vec1::<f32>()?;
-        let m_old = self.exp_avg.to_vec1::<f32>()?;
-        let v_old = self.exp_avg_sq.to_vec1::<f32>()?;
-        let n = g.len();
-        let (mut p, mut m, mut v) = (
-            Vec::with_capacity(n),
-            Vec::with_capacity(n),
-            Vec::with_capacity(n),
-        );
-        for (i, slot) in self.slots.iter().enumerate() {
-            let p_old = slot.var.as_tensor().flatten_all()?.to_vec1::<f32>()?;
-            let span = slot.offset..slot.offset + slot.len;
-            if !(ok && has[i]) {
-                p.extend_from_slice(&p_old);
-                m.extend_from_slice(&m_old[span.clone()]);
-                v.extend_from_slice(&v_old[span]);
-                continue;
-            }
-            let (ss, ib) = (step_size[i], inv_bias2[i]);
-            for (((&po, &gi), &mo), &vo) in p_old
-                .iter()
-                .zip(&g[span.clone()])
-                .zip(&m_old[span.clone()])
-                .zip(&v_old[span])
-            {
-                let gi = match coef {
-                    Some(c) => gi * c,
-                    None => gi,
-                };
-                let mi = mo + ((gi - mo) * omb1 + 0.0);
-                let vi = (vo * b2 + 0.0) + ((gi * gi) * omb2 + 0.0);
-                let denom = (vi.sqrt() * ib) * 1.0 + eps;
-                p.push(po - (mi * ss) / denom);
-                m.push(mi);
-                v.push(vi);
-            }
-        }
-        let dev = &self.device;
-        Ok((
-            Tensor::from_vec(p, n, dev)?,
-            Tensor::from_vec(m, n, dev)?,
-            Tensor::from_vec(v, n, dev)?,
-        ))
-    }
-
-    /// Every parameter, flat in slot order.
-    fn flat_params(&self) -> candle_core::Result<Tensor> {
-        let params: Vec<Tensor> = self
-            .slots
-            .iter()
-            .map(|s| s.var.as_tensor().detach().flatten_all())
-            .collect::<candle_core::Result<_>>()?;
-        Tensor::cat(&params, 0)
-    }
-
-    /// The update as one kernel (`adam.cu`): on CUDA, or counted as that kernel in a CPU run
-    /// accounted as CUDA (computed by [`Self::plain_update`], which gives the same bits).
-    fn device_update(
-        &self,
-        g: &Tensor,
-        has: &[bool],
-        apply: Option<&Tensor>,
-        coef: Option<&Tensor>,
-        sc: &Scalars,
-    ) -> Result<(Tensor, Tensor, Tensor), TrainError> {
-        let dev = &self.device;
-        let has_u8: Vec<u8> = has.iter().map(|&h| h as u8).collect();
-        let ok = match apply {
-            Some(a) => a.to_dtype(DType::U8)?.reshape(1)?,
-            None => Tensor::new(&[1u8], dev)?,
-        };
-        let p_old = self.flat_params()?;
-        let coef = coef
-            .map(|c| c.to_dtype(DType::F32)?.reshape(1))
-            .transpose()?;
-        let step_size = sc.step_size.to_dtype(DType::F32)?;
-        let inv_bias2 = sc.bias2_sqrt.recip()?.to_dtype(DType::F32)?;
-        let has_t = Tensor::from_vec(has_u8, has.len(), dev)?;
-        #[cfg(feature = "cuda")]
-        if dev.is_cuda() {
-            return Ok(crate::compute::cuda::adam(
-                &g.detach().contiguous()?,
-                &p_old,
-                &self.exp_avg,
-                &self.exp_avg_sq,
-                &self.slot_of,
-                &step_size,
-                &inv_bias2,
-                &has_t,
-                &ok,
-                coef.as_ref(),
-                crate::compute::cuda::AdamScalars {
-                    one_minus_b1: (1.0 - sc.b1) as f32,
-                    b2: sc.b2 as f32,
-                    one_minus_b2: (1.0 - sc.b2) as f32,
-                    eps: sc.eps as f32,
-                },
-            )?);
-        }
-        drop((p_old, step_size, inv_bias2, has_t, ok));
-        let (p, m, v) = candle_core::account::uncounted(|| -> Result<_, TrainError> {
-            let (p, m, v) = self.plain_update(g, has, apply, coef.as_ref(), sc)?;
-            Ok((
-                p.to_vec1::<f32>()?,
-                m.to_vec1::<f32>()?,
-                v.to_vec1::<f32>()?,
-            ))
-        })?;
-        let n = p.len() as u64;
-        let slots = has.len() as u64;
-        // adam.cu reads g, p, m, v, the slot of every element, per slot the step size,
-        // 1/sqrt(1 − b2^t) and the has-gradient flag, the ok flag and the clip factor.
-        let read = 4 * 4 * n + 4 * n + 9 * slots + 1 + 4;
-        let (p, m, v) = (
-            crate::compute::account::emit(g, "pma-adam", p, 1, (read, 3 * 4 * n))?,
-            crate::compute::account::emit(g, "pma-wrap", m, 0, (0, 0))?,
-            crate::compute::account::emit(g, "pma-wrap", v, 0, (0, 0))?,
-        );
-        Ok((p, m, v))
     }
 
     /// Bias-correction tables covering step counts 0..len (grown by doubling).
@@ -834,7 +624,7 @@ mod tests {
     /// CPU route's bits and count the update as `adam.cu`'s one launch, with none of the
     /// plain update's element-wise ops.
     #[test]
-    fn update_counted_as_cuda_keeps_the_cpu_bits() {
+    fn update_on_the_emulated_kernel_keeps_the_cpu_bits() {
         use crate::compute::account::{Account, Route};
         let dev = Device::Cpu;
         let shapes: [&[usize]; 3] = [&[3, 4], &[5], &[2, 2]];
@@ -1018,86 +808,6 @@ mod tests {
                 assert_eq!(bits(&st.exp_avg_sq), bits(&reference[k].2), "{name} v");
                 assert_eq!(st.step, reference[k].3, "{name} step");
             }
-        }
-    }
-
-    /// The CPU's one-pass update gives the bits of the tensor-op update for every case the
-    /// step has: gradients with signed zeros, tiny and large values, a clip factor, slots
-    /// without a gradient, and an update that does not apply.
-    #[test]
-    fn the_host_update_is_the_tensor_update_bit_for_bit() {
-        let shapes: [&[usize]; 3] = [&[3, 4], &[5], &[2, 2]];
-        let names = ["graph_net.w", "pts_linears.0.weight", "pts_linears.0.bias"];
-        let vars: Vec<(String, Var)> = names
-            .iter()
-            .zip(shapes)
-            .enumerate()
-            .map(|(k, (n, s))| {
-                let len: usize = s.iter().product();
-                let v: Vec<f32> = (0..len)
-                    .map(|i| ((i * 5 + k) % 9) as f32 * 0.3 - 1.2)
-                    .collect();
-                let t = Tensor::from_vec(v, s, &Device::Cpu).unwrap();
-                (n.to_string(), Var::from_tensor(&t).unwrap())
-            })
-            .collect();
-        let mut adam = Adam::reference(&vars, 1e-3, 5e-4, [0.9, 0.999], 1e-8).unwrap();
-        let n: usize = shapes.iter().map(|s| s.iter().product::<usize>()).sum();
-        let special = [0.0f32, -0.0, 1e-30, -3e-8, 7.5, -1e6, 2.0e-3, -0.25];
-        let grad = |step: usize| -> Tensor {
-            let v: Vec<f32> = (0..n)
-                .map(|i| special[(i + 3 * step) % special.len()] * (1.0 + step as f32 * 0.1))
-                .collect();
-            Tensor::from_vec(v, n, &Device::Cpu).unwrap()
-        };
-        // Moments that are not zero, from a few ordinary steps.
-        for step in 0..3 {
-            let all = vec![true; 3];
-            adam.step_masked(&grad(step), &all, None).unwrap();
-        }
-        let bits = |t: &Tensor| -> Vec<u32> {
-            t.to_vec1::<f32>()
-                .unwrap()
-                .iter()
-                .map(|x| x.to_bits())
-                .collect()
-        };
-        let dev = Device::Cpu;
-        let scalars = Scalars {
-            b1: 0.9,
-            b2: 0.999,
-            eps: 1e-8,
-            step_size: Tensor::new(&[1e-3 / (1.0 - 0.9f64.powi(4)), 5e-4, 5e-4 / 0.3], &dev)
-                .unwrap(),
-            bias2_sqrt: Tensor::new(&[0.063f64, 0.0447, 0.5], &dev).unwrap(),
-        };
-        let on = Tensor::new(1u8, &dev).unwrap();
-        let off = Tensor::new(0u8, &dev).unwrap();
-        let clip = Tensor::new(0.37f32, &dev).unwrap();
-        let cases: [(&[bool], Option<&Tensor>, Option<&Tensor>); 5] = [
-            (&[true, true, true], None, None),
-            (&[true, false, true], None, Some(&clip)),
-            (&[true, true, true], Some(&on), Some(&clip)),
-            (&[false, true, true], Some(&on), None),
-            (&[true, true, true], Some(&off), None),
-        ];
-        for (c, (has, apply, coef)) in cases.into_iter().enumerate() {
-            let g = grad(4 + c);
-            let host = adam.host_update(&g, has, apply, coef, &scalars).unwrap();
-            let plain = adam.plain_update(&g, has, apply, coef, &scalars).unwrap();
-            for (what, a, b) in [
-                ("p", &host.0, &plain.0),
-                ("m", &host.1, &plain.1),
-                ("v", &host.2, &plain.2),
-            ] {
-                assert_eq!(bits(a), bits(b), "case {c}: {what}");
-            }
-            let moved = bits(&host.0) != bits(&adam.flat_params().unwrap());
-            assert_eq!(
-                moved,
-                apply.is_none_or(|a| a.to_scalar::<u8>().unwrap() != 0),
-                "case {c}"
-            );
         }
     }
 }

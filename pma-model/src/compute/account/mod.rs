@@ -20,7 +20,7 @@ use std::sync::{Arc, Mutex};
 use std::thread::ThreadId;
 
 use candle_core::account::{self as hook, Event, Sink};
-use candle_core::{Device, Tensor};
+use candle_core::Device;
 use serde::{Deserialize, Serialize};
 
 use crate::error::{ModelError, Result};
@@ -648,54 +648,6 @@ pub fn measure<T, E: From<ModelError>>(
     Ok((out, account.finish()))
 }
 
-/// A CPU tensor holding `data`, made by a custom op on `like` that counts as `name` with
-/// `launches` launches and `bytes` (read, written): how a CPU run accounted as CUDA hands
-/// over a result it computed uncounted ([`candle_core::account::uncounted`]) as the output
-/// of the kernel that computes it on a GPU (its storage then counts as live memory too).
-pub fn emit(
-    like: &Tensor,
-    name: &'static str,
-    data: Vec<f32>,
-    launches: u32,
-    bytes: (u64, u64),
-) -> candle_core::Result<Tensor> {
-    like.apply_op1_no_bwd(&Emit {
-        name,
-        data: Mutex::new(Some(data)),
-        launches,
-        bytes,
-    })
-}
-
-struct Emit {
-    name: &'static str,
-    data: Mutex<Option<Vec<f32>>>,
-    launches: u32,
-    bytes: (u64, u64),
-}
-
-impl candle_core::CustomOp1 for Emit {
-    fn name(&self) -> &'static str {
-        self.name
-    }
-
-    fn cpu_fwd(
-        &self,
-        _: &candle_core::CpuStorage,
-        _: &candle_core::Layout,
-    ) -> candle_core::Result<(candle_core::CpuStorage, candle_core::Shape)> {
-        hook::report_launches(self.launches, 0);
-        hook::report_bytes(self.bytes.0, self.bytes.1);
-        let data = self.data.lock().unwrap_or_else(|e| e.into_inner()).take();
-        let data = data.ok_or_else(|| candle_core::Error::Msg("emit: used twice".into()))?;
-        let n = data.len();
-        Ok((
-            candle_core::CpuStorage::F32(data),
-            candle_core::Shape::from(n),
-        ))
-    }
-}
-
 /// This thread's accounted run, captured to be joined on worker threads.
 pub struct Handoff(Option<(Sink, Arc<Tally>, Route)>);
 
@@ -866,8 +818,8 @@ mod tests {
             measure(&dev, route, || {
                 let k = crate::compute::numerics::Numerics::PARITY;
                 crate::compute::fast_sine::sin(&x, k.fast_sine)?;
-                crate::compute::fused::add_bias(&x, &b, k)?;
-                crate::compute::ops::select_rows(&x, &ids, k)?;
+                crate::compute::ops::linear::add_bias(&x, &b, k)?;
+                crate::compute::ops::rows::select_rows(&x, &ids, k)?;
                 Ok(crate::compute::parallel::workers_on(&dev))
             })
             .unwrap()

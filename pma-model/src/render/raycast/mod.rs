@@ -763,7 +763,7 @@ pub fn merge_raw(
     let cat = Tensor::cat(&[raw_coarse, raw_fine], 1)?;
     // candle's gather backward (scatter_add) loops over the samples serially on CUDA; the
     // row op's does not, and is bit-identical on the CPU.
-    crate::compute::ops::gather_rows(&cat, perm, k)
+    crate::compute::ops::rows::gather_rows(&cat, perm, k)
 }
 
 /// `torch.linspace(0, 1, n)` in float32: the step is rounded once and the second half is

@@ -1,0 +1,229 @@
+//! Row gathers whose gradient does not run serially on a GPU.
+//!
+//! candle's CUDA `index_add` and `scatter_add` (the backward passes of `index_select` and
+//! `gather`) give one thread per column and loop over every index in that thread, without
+//! atomics: the frame-code lookup's gradient is 128 threads walking all rays of a chunk, the
+//! merge of coarse and fine samples 4 threads per ray walking its 72 samples (see
+//! docs/gpu.md, "Training graph audit"). [`gather_rows`] and [`select_rows`] compute the
+//! same values with one op whose backward has one thread per (index, column) and adds with
+//! `atomicAdd` on CUDA (`rows.cu`).
+//!
+//! On the CPU the op runs the same f32 additions in the same order as candle's kernels
+//! (rows in index order, each accumulated from zero), so forward values and gradients are
+//! bit-identical to candle's ops (`tests`). On CUDA, rows that share an index (all rays of
+//! an image share its frame code) are summed in no fixed order: the gradient can differ
+//! from run to run by float rounding, unless [`Numerics::deterministic`] asks for the
+//! ordered kernel. Other dtypes and devices take candle's ops.
+
+mod check;
+mod cpu;
+mod device;
+
+use candle_core::{CpuStorage, CustomOp2, DType, Layout, Shape, Tensor};
+
+use crate::compute::kernel::mem::Src;
+use crate::compute::kernel::{self, Exec, Module, Route};
+use crate::compute::numerics::Numerics;
+use crate::error::{ModelError, Result};
+
+extern "C" {
+    fn pma_emu_rows(
+        name: *const std::ffi::c_char,
+        blocks: u32,
+        threads: u32,
+        params: *mut *mut std::ffi::c_void,
+    ) -> std::ffi::c_int;
+}
+
+/// `rows.cu`.
+pub static MODULE: Module = Module {
+    name: "rows",
+    file: "compute/ops/rows/rows.cu",
+    source: include_str!("rows.cu"),
+    emulate: pma_emu_rows,
+    check: check::check,
+};
+
+/// `x.index_select(ids, 0)`: x [N,C], ids [M] (u32) -> [M,C].
+pub fn select_rows(x: &Tensor, ids: &Tensor, k: Numerics) -> Result<Tensor> {
+    let (n, c) = x.dims2()?;
+    let m = ids.dims1()?;
+    if matches!(kernel::route(k.row_ops, &MODULE, &[x]), Route::Generic) {
+        return Ok(x.index_select(&ids.to_dtype(DType::U32)?, 0)?);
+    }
+    let out = gather_rows(&x.reshape((1, n, c))?, &ids.reshape((1, m))?, k)?;
+    Ok(out.reshape((m, c))?)
+}
+
+/// Rows of x picked along dim 1, the same index for every column: x [B,N,C], ids [B,M]
+/// (u32, < N) -> out [B,M,C] with `out[b,m,:] = x[b, ids[b,m], :]` (candle's
+/// `x.gather(ids broadcast to [B,M,C], 1)`).
+pub fn gather_rows(x: &Tensor, ids: &Tensor, k: Numerics) -> Result<Tensor> {
+    let (b, _n, c) = x.dims3()?;
+    let (bi, m) = ids.dims2()?;
+    if bi != b {
+        return Err(ModelError::shape("row ids", format!("[{b},M]"), ids.dims()));
+    }
+    let ids = ids.to_dtype(DType::U32)?;
+    let generic = || -> Result<Tensor> {
+        let idx = ids.unsqueeze(2)?.broadcast_as((b, m, c))?.contiguous()?;
+        Ok(x.gather(&idx, 1)?)
+    };
+    let exec = match kernel::route(k.row_ops, &MODULE, &[x]) {
+        Route::Generic => return generic(),
+        Route::Cpu => None,
+        Route::Device(e) => Some(e),
+    };
+    kernel::or_generic(
+        &MODULE,
+        || {
+            let op = GatherRows {
+                exec: exec.clone(),
+                deterministic: k.deterministic,
+            };
+            Ok(x.contiguous()?.apply_op2(&ids.detach().contiguous()?, op)?)
+        },
+        generic,
+    )
+}
+
+/// For step accounting: on a device each row op is a memset of its zeroed output and one
+/// kernel; the CPU forward reports the same.
+fn report_launches() {
+    candle_core::account::report_launches(2, 0);
+}
+
+/// (B, N, M, C) of values [B,N,C] (a gather's input) or [B,M,C] (a scatter's gradient)
+/// against ids [B,M], checked; N or M is the values' middle dimension.
+fn dims_bmc(l_vals: &Layout, l_ids: &Layout, what: &str) -> candle_core::Result<[usize; 4]> {
+    let (b, n, c) = l_vals.shape().dims3()?;
+    let (bi, m) = l_ids.shape().dims2()?;
+    if bi != b {
+        candle_core::bail!("{what}: values [{b},{n},{c}] but ids [{bi},{m}]")
+    }
+    Ok([b, n, m, c])
+}
+
+/// Forward: x [B,N,C], ids [B,M] -> [B,M,C].
+struct GatherRows {
+    /// The device kernels' executor, or `None` on the CPU's route.
+    exec: Option<Exec>,
+    /// Sum the backward's rows in index order, without atomics ([`Numerics::deterministic`]).
+    deterministic: bool,
+}
+
+impl CustomOp2 for GatherRows {
+    fn name(&self) -> &'static str {
+        "pma-gather-rows"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let [b, n, m, c] = dims_bmc(l1, l2, "gather rows")?;
+        report_launches();
+        let out = match &self.exec {
+            Some(exec) => device::gather(
+                exec,
+                Src::cpu(s1, l1, "x")?,
+                Src::cpu(s2, l2, "ids")?,
+                [b, n, m, c],
+            )?
+            .into_cpu()?,
+            None => cpu::gather(s1, l1, s2, l2, [b, n, m, c])?,
+        };
+        Ok((out, Shape::from((b, m, c))))
+    }
+
+    #[cfg(feature = "cuda")]
+    fn cuda_fwd(
+        &self,
+        s1: &candle_core::CudaStorage,
+        l1: &Layout,
+        s2: &candle_core::CudaStorage,
+        l2: &Layout,
+    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
+        let [b, n, m, c] = dims_bmc(l1, l2, "gather rows")?;
+        report_launches();
+        let exec = Exec::Cuda(s1.device().clone());
+        let out = device::gather(
+            &exec,
+            Src::cuda(s1, l1, "x")?,
+            Src::cuda(s2, l2, "ids")?,
+            [b, n, m, c],
+        )?;
+        Ok((out.into_cuda(s1)?, Shape::from((b, m, c))))
+    }
+
+    fn bwd(
+        &self,
+        x: &Tensor,
+        ids: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>)> {
+        let op = ScatterAddRows {
+            exec: self.exec.clone(),
+            n: x.dim(1)?,
+            deterministic: self.deterministic,
+        };
+        Ok((Some(grad.contiguous()?.apply_op2_no_bwd(ids, &op)?), None))
+    }
+}
+
+/// Backward: grad [B,M,C], ids [B,M] -> grad_x [B,N,C], rows summed from zero.
+struct ScatterAddRows {
+    exec: Option<Exec>,
+    n: usize,
+    /// The device kernel sums in index order (the CPU always does).
+    deterministic: bool,
+}
+
+impl CustomOp2 for ScatterAddRows {
+    fn name(&self) -> &'static str {
+        "pma-scatter-add-rows"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let [b, m, _, c] = dims_bmc(l1, l2, "scatter-add rows")?;
+        report_launches();
+        let dims = [b, self.n, m, c];
+        let out = match &self.exec {
+            Some(exec) => {
+                let (g, ids) = (Src::cpu(s1, l1, "grad")?, Src::cpu(s2, l2, "ids")?);
+                device::scatter_add(exec, g, ids, dims, self.deterministic)?.into_cpu()?
+            }
+            None => cpu::scatter_add(s1, l1, s2, l2, dims)?,
+        };
+        Ok((out, Shape::from((b, self.n, c))))
+    }
+
+    #[cfg(feature = "cuda")]
+    fn cuda_fwd(
+        &self,
+        s1: &candle_core::CudaStorage,
+        l1: &Layout,
+        s2: &candle_core::CudaStorage,
+        l2: &Layout,
+    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
+        let [b, m, _, c] = dims_bmc(l1, l2, "scatter-add rows")?;
+        report_launches();
+        let exec = Exec::Cuda(s1.device().clone());
+        let (g, ids) = (Src::cuda(s1, l1, "grad")?, Src::cuda(s2, l2, "ids")?);
+        let out = device::scatter_add(&exec, g, ids, [b, self.n, m, c], self.deterministic)?;
+        Ok((out.into_cuda(s1)?, Shape::from((b, self.n, c))))
+    }
+}
+
+#[cfg(test)]
+mod tests;
