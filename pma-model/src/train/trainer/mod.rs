@@ -9,8 +9,9 @@
 //! Nothing is read back to the host inside a step: the loss, the gradient norm, the skip
 //! decision (a non-finite loss or norm) and the clip factor stay on the device, the update is
 //! masked there, and the numbers of the steps since the last read-back reach the host together
-//! in one copy ([`Trainer::read_back`], every [`crate::train::TrainConfig::read_every`] steps). Skipped
-//! steps are counted, and a streak of them stops the run, when their numbers arrive.
+//! in one copy ([`Trainer::read_back`], every [`crate::train::TrainConfig::read_every`]
+//! steps). Skipped steps are counted, and a streak of them stops the run, when their numbers
+//! arrive.
 //!
 //! Everything random in training comes from seeded ChaCha generators whose positions are
 //! saved in the train state, and candle's CPU kernels are deterministic, so a run resumed
@@ -218,7 +219,8 @@ impl Trainer {
         &self.names
     }
 
-    /// Steps between read-backs ([`crate::train::TrainConfig::read_every`], `0` resolved for the device).
+    /// Steps between read-backs ([`crate::train::TrainConfig::read_every`], `0` resolved for
+    /// the device).
     pub fn read_every(&self) -> u64 {
         match self.run.train.read_every {
             0 if crate::compute::account::cpu_route(self.avatar.device()) => 1,
