@@ -12,7 +12,13 @@ a sibling is not part of the architecture.
 Prints every strongly connected component of more than one file with the edges inside it,
 and exits 1 when there is any (0 otherwise).
 
+With `--arrows FOLDER` (a source folder, e.g. `pma-model/src/render`) it prints instead the
+arrows between the files of that folder, `a.rs -> b.rs` (a names an item b defines), the
+modules outside the folder each file takes from, and the cycles among the folder's files;
+it exits 1 when there is such a cycle.
+
     python3 scripts/import-cycles.py [ROOT]
+    python3 scripts/import-cycles.py --arrows FOLDER [ROOT]
 """
 
 import os
@@ -218,8 +224,57 @@ def sccs(edges):
     return out
 
 
+def arrows(root, folder):
+    """Print the arrows inside `folder` (relative to `root`); 1 when they hold a cycle."""
+    folder = os.path.normpath(folder)
+    for crate, src in CRATES.items():
+        if folder == src or folder.startswith(src + os.sep):
+            break
+    else:
+        print(f"{folder}: not inside a crate's source folder ({', '.join(CRATES.values())})")
+        return 2
+    mods, edges = graph(root, crate, src)
+    prefix = tuple(os.path.relpath(folder, src).split(os.sep))
+    inside = {k for k in mods if k[: len(prefix)] == prefix}
+    if not inside:
+        print(f"{folder}: no source files")
+        return 2
+
+    def name(k):
+        return os.path.relpath(mods[k], os.path.join(root, folder))
+
+    def outside(k):
+        # The module outside the folder, named down to the folder's own depth.
+        return "::".join(k[: len(prefix)] or ("crate root",))
+
+    count = 0
+    print(f"arrows inside {folder} (a -> b: a uses what b defines)")
+    for a in sorted(inside, key=name):
+        for b in sorted(edges[a] & inside, key=name):
+            print(f"    {name(a)} -> {name(b)}")
+            count += 1
+    print(f"{count} arrow(s) between {len(inside)} file(s)")
+    print(f"taken from outside {folder}")
+    for a in sorted(inside, key=name):
+        out = sorted({outside(b) for b in edges[a] - inside})
+        if out:
+            print(f"    {name(a)}: {', '.join(out)}")
+    sub = {k: edges[k] & inside for k in inside}
+    cycles = [c for c in sccs(sub) if len(c) > 1]
+    for comp in cycles:
+        print("cycle: " + " <-> ".join(sorted(name(c) for c in comp)))
+    print(f"{len(cycles)} cycle(s) inside {folder}")
+    return 1 if cycles else 0
+
+
 def main():
-    root = sys.argv[1] if len(sys.argv) > 1 else "."
+    args = sys.argv[1:]
+    if args[:1] == ["--arrows"]:
+        if len(args) < 2:
+            print("--arrows needs a folder, e.g. pma-model/src/render")
+            return 2
+        return arrows(args[2] if len(args) > 2 else ".", args[1])
+    root = args[0] if args else "."
     found = 0
     for crate, src in CRATES.items():
         if not os.path.isdir(os.path.join(root, src)):

@@ -30,9 +30,10 @@ pub struct Args {
     #[arg(long)]
     pub config: Option<PathBuf>,
     /// Preset when no `--config` is given: `default` (the paper's sizes, for GPUs),
-    /// `cpu-small` (a 2-core CPU learns in minutes) or `tiny` (tests).
-    #[arg(long, default_value = "default")]
-    pub preset: String,
+    /// `cpu-small` (a 2-core CPU learns in minutes) or `tiny` (tests). Without it: `default`
+    /// on a GPU, `cpu-small` on the CPU.
+    #[arg(long)]
+    pub preset: Option<String>,
     /// Total iterations of the run (a resumed run continues up to this count).
     #[arg(long)]
     pub iters: Option<u64>,
@@ -87,10 +88,16 @@ pub const PLOT_FILE: &str = "psnr_vs_time.png";
 
 pub fn run(args: Args) -> anyhow::Result<()> {
     super::check_minutes("--minutes", args.minutes)?;
-    let mut run = match &args.config {
-        Some(path) => Some(RunConfig::from_toml_file(path)?),
-        None if args.resume => None,
-        None => Some(RunConfig::from_preset(args.preset.parse::<Preset>()?)),
+    let device = super::device_tf32(&args.device, args.tf32)?;
+    let mut run = match (&args.config, &args.preset) {
+        (Some(path), _) => Some(RunConfig::from_toml_file(path)?),
+        (None, _) if args.resume => None,
+        (None, Some(name)) => Some(RunConfig::from_preset(name.parse::<Preset>()?)),
+        (None, None) => {
+            let preset = Preset::for_device(&device);
+            println!("{}", chosen_preset_line(preset));
+            Some(RunConfig::from_preset(preset))
+        }
     };
     if let (Some(seed), Some(run)) = (args.seed, run.as_mut()) {
         run.train.seed = seed;
@@ -146,7 +153,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         minutes: args.minutes,
         eval_data,
         chunk_rays: args.chunk_rays,
-        device: super::device_tf32(&args.device, args.tf32)?,
+        device,
         numerics: super::numerics(),
     };
     let outcome = train(
@@ -163,6 +170,20 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         outcome.model.display()
     );
     Ok(())
+}
+
+/// The first log line of a run whose preset was chosen by device.
+fn chosen_preset_line(preset: Preset) -> String {
+    match preset {
+        Preset::CpuSmall => format!(
+            "preset {preset} (chosen for the CPU; --preset {} for the paper's network)",
+            Preset::Paper
+        ),
+        _ => format!(
+            "preset {preset} (chosen for the GPU; --preset {} for a 2-core CPU's network)",
+            Preset::CpuSmall
+        ),
+    }
 }
 
 /// `check` with the run directory `out` as an output: the files a run writes at its top

@@ -167,6 +167,40 @@ fn bad_input_gives_clear_errors() {
     );
 }
 
+/// Without `--preset` a CPU run trains `cpu-small`, not the paper's GPU network, and its
+/// first log line says so and why; a named preset is used as named, without that line.
+#[test]
+fn a_run_without_preset_gets_the_cpu_preset_and_says_why() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tiny_scene(&tmp.path().join("scene"), 2);
+    let run = |dir: &str, extra: &[&str]| {
+        let out = tmp.path().join(dir);
+        let args = [
+            "train",
+            "--data",
+            data.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--iters",
+            "1",
+            "--quiet",
+        ];
+        let o = ok(pma(&[&args[..], extra].concat()));
+        let config = std::fs::read_to_string(out.join("config.toml")).unwrap();
+        (String::from_utf8_lossy(&o.stdout).into_owned(), config)
+    };
+    let (stdout, config) = run("chosen", &[]);
+    assert_eq!(
+        stdout.lines().next(),
+        Some("preset cpu-small (chosen for the CPU; --preset default for the paper's network)"),
+        "{stdout}"
+    );
+    assert!(config.contains("\npreset = \"cpu-small\"\n"), "{config}");
+    let (stdout, config) = run("named", &["--preset", "tiny"]);
+    assert!(!stdout.contains("chosen"), "{stdout}");
+    assert!(config.contains("\npreset = \"tiny\"\n"), "{config}");
+}
+
 #[test]
 fn existing_run_is_not_overwritten_without_resume() {
     let tmp = tempfile::tempdir().unwrap();

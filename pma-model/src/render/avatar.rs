@@ -27,8 +27,8 @@ use crate::render::occupancy::{RefreshOptions, RefreshStats};
 pub use crate::render::options::{GridObservation, PassOptions, PassStats};
 use crate::render::points::PointEval;
 pub use crate::render::points::INFERENCE_POINT_CHUNK;
-use crate::render::raycast::{merge_raw, CoarseSamples, FineSamples, RayCaster};
-use crate::render::volume::{raw2outputs, RenderOutputs};
+use crate::render::raycast::{merge_raw, CoarseSamples, RayCaster};
+use crate::render::volume::raw2outputs;
 
 /// A network, the ray caster of its bone boxes, and the optional occupancy grid saved with
 /// it.
@@ -163,6 +163,17 @@ impl Avatar {
         pose: &PoseFeatures,
         opts: &PassOptions,
     ) -> Result<CoarseSamples> {
+        self.cast_on(rays, poses, pose, self.casts_on_host(&rays.origins, opts))
+    }
+
+    /// [`Self::cast`] on the host or not, as decided for the pass.
+    fn cast_on(
+        &self,
+        rays: &Rays,
+        poses: &Poses,
+        pose: &PoseFeatures,
+        on_host: bool,
+    ) -> Result<CoarseSamples> {
         check_pose_count(poses, pose)?;
         let args = (
             &rays.origins,
@@ -171,7 +182,7 @@ impl Avatar {
             &poses.skts,
             &pose.scales.detach(),
         );
-        if self.casts_on_host(&rays.origins, opts) {
+        if on_host {
             self.caster.cast(args.0, args.1, args.2, args.3, args.4)
         } else {
             self.caster
@@ -199,7 +210,8 @@ impl Avatar {
                 self.dtype()
             )));
         }
-        self.render(rays, poses, pose, coarse, mode, opts, None)
+        let on_host = self.casts_on_host(&rays.origins, opts);
+        self.render(rays, poses, pose, coarse, mode, opts, on_host, None)
     }
 
     /// Steps 2–5 of the forward pass.
@@ -212,9 +224,10 @@ impl Avatar {
         opts: &PassOptions,
         trace: Option<&mut Trace>,
     ) -> Result<Outputs> {
-        let coarse = self.cast(rays, poses, pose, opts)?;
+        let on_host = self.casts_on_host(&rays.origins, opts);
+        let coarse = self.cast_on(rays, poses, pose, on_host)?;
         crate::compute::profile::mark("cast", self.device());
-        self.render(rays, poses, pose, coarse, mode, opts, trace)
+        self.render(rays, poses, pose, coarse, mode, opts, on_host, trace)
     }
 
     /// Whether ray casting and importance sampling run on the host for rays like `t`.
@@ -222,7 +235,13 @@ impl Avatar {
         crate::compute::account::cpu_route(t.device()) || opts.leaves_out_work()
     }
 
-    /// Steps 3–5: the coarse pass and render, importance sampling, the fine pass and render.
+    /// Steps 3–5, one way: the coarse samples through the network and rendered; importance
+    /// samples from that render; the fine samples through the network; the merged render.
+    /// What is decided before the pass runs: where sampling runs (`on_host`, as for the
+    /// cast: [`Self::casts_on_host`]), how the samples reach the network ([`PointEval`]'s
+    /// route) and where the fine samples come from. With `occupancy_fine` the grid places
+    /// them (inference): the coarse samples then wait and go through the network with the
+    /// fine ones in one round.
     #[allow(clippy::too_many_arguments)]
     fn render(
         &self,
@@ -232,62 +251,67 @@ impl Avatar {
         coarse: CoarseSamples,
         mode: &mut Mode,
         opts: &PassOptions,
+        on_host: bool,
         mut trace: Option<&mut Trace>,
     ) -> Result<Outputs> {
-        let prof = crate::compute::profile::mark;
+        let prof = |stage| crate::compute::profile::mark(stage, self.device());
+        let fine_from_grid = opts.occupancy_fine && trace.is_none();
+        let composite =
+            |raw: &Tensor, z: &Tensor| raw2outputs(raw, z, &rays.dirs, rays.bgs.as_ref());
         let (view, d_root) = self.ray_view_features(rays, poses, mode.is_training())?;
         let mut points = PointEval::new(
             &self.net,
+            pose,
+            &view,
             mode,
             poses,
-            pose,
             coarse.bounds.as_ref(),
             trace.is_some(),
             opts,
             self.occupancy.as_ref(),
         )?;
-        if opts.occupancy_fine && trace.is_none() {
-            // 3–4 with the fine samples placed from the grid: one network round for both.
-            let weights = points.grid_weights(&coarse.pts, &coarse.z, &rays.dirs)?;
-            let fine = self
-                .caster
-                .resample(&rays.origins, &rays.dirs, &coarse.z, &weights)?;
-            prof("resample", self.device());
-            let (raw_coarse, raw_fine, coarse_evaluated) =
-                points.run_together(&self.net, pose, &coarse.pts, &fine.pts, &view, mode)?;
-            prof("coarse + fine network", self.device());
-            let render_coarse = raw2outputs(&raw_coarse, &coarse.z, &rays.dirs, rays.bgs.as_ref())?;
-            prof("coarse render", self.device());
-            let (coarse, fine) = ((coarse, raw_coarse, render_coarse), (fine, raw_fine));
-            return self.merge_and_render(rays, pose, coarse, fine, &mut points, coarse_evaluated);
-        }
-        // 3. Coarse pass and render.
-        let tr = trace.as_deref_mut();
-        let raw_coarse = match opts.early_stop {
-            Some(eps) => {
-                let samples = (&coarse.pts, &coarse.z, &rays.dirs);
-                points.march(&self.net, pose, samples, &view, mode, eps, tr)?
+        // 3. The coarse samples through the network and rendered (unless they wait for the
+        //    fine samples).
+        let coarse_done = match fine_from_grid {
+            true => None,
+            false => {
+                let raw = points.coarse(&coarse, &rays.dirs, mode, trace.as_deref_mut())?;
+                prof("coarse network");
+                let render = composite(&raw, &coarse.z)?;
+                prof("coarse render");
+                Some((raw, render))
             }
-            None => points.run(&self.net, pose, &coarse.pts, &view, mode, "coarse", tr)?,
         };
-        let coarse_evaluated = points.samples_evaluated();
-        prof("coarse network", self.device());
-        let render_coarse = raw2outputs(&raw_coarse, &coarse.z, &rays.dirs, rays.bgs.as_ref())?;
-        prof("coarse render", self.device());
-        // 4. Importance samples from the coarse weights, then the fine pass on those only.
-        let weights = render_coarse.weights.detach();
-        let fine = if self.casts_on_host(&rays.origins, opts) {
-            self.caster
-                .resample(&rays.origins, &rays.dirs, &coarse.z, &weights)?
-        } else {
-            self.caster
-                .resample_tensors(&rays.origins, &rays.dirs, &coarse.z, &weights)?
+        // 4. Importance samples from the coarse render's weights, or from the grid's.
+        let weights = match &coarse_done {
+            Some((_, render)) => render.weights.detach(),
+            None => points.grid_weights(&coarse, &rays.dirs)?,
         };
-        prof("resample", self.device());
-        let tr = trace.as_deref_mut();
-        let raw_fine = points.run_fine(&self.net, pose, &fine.pts, &fine.z, &view, mode, tr)?;
-        prof("fine network", self.device());
-        // 5. Merge with the coarse outputs (reused, noise included) and render again.
+        let fine = match on_host {
+            true => self
+                .caster
+                .resample(&rays.origins, &rays.dirs, &coarse.z, &weights)?,
+            false => {
+                self.caster
+                    .resample_tensors(&rays.origins, &rays.dirs, &coarse.z, &weights)?
+            }
+        };
+        prof("resample");
+        // 5. The fine samples through the network (with the coarse ones that waited).
+        let (raw_coarse, render_coarse, raw_fine) = match coarse_done {
+            Some((raw, render)) => {
+                let raw_fine = points.fine(&fine, mode, trace.as_deref_mut())?;
+                prof("fine network");
+                (raw, render, raw_fine)
+            }
+            None => {
+                let (raw, raw_fine) = points.coarse_and_fine(&coarse, &fine, mode)?;
+                prof("coarse + fine network");
+                let render = composite(&raw, &coarse.z)?;
+                prof("coarse render");
+                (raw, render, raw_fine)
+            }
+        };
         if let Some(t) = trace {
             let r = rays.origins.dim(0)?;
             for (stage, samples) in [("coarse", coarse.z.dim(1)?), ("fine", fine.z.dim(1)?)] {
@@ -301,34 +325,12 @@ impl Avatar {
             t.put("raycast/sorted_idxs", &fine.perm);
             t.put("view_features", &view);
         }
-        let (coarse, fine) = ((coarse, raw_coarse, render_coarse), (fine, raw_fine));
-        self.merge_and_render(rays, pose, coarse, fine, &mut points, coarse_evaluated)
-    }
-
-    /// Step 5: merge the fine outputs into the coarse ones (reused, noise included) and
-    /// render again.
-    fn merge_and_render(
-        &self,
-        rays: &Rays,
-        pose: &PoseFeatures,
-        (coarse, raw_coarse, render_coarse): (CoarseSamples, Tensor, RenderOutputs),
-        (fine, raw_fine): (FineSamples, Tensor),
-        points: &mut PointEval,
-        coarse_evaluated: usize,
-    ) -> Result<Outputs> {
+        // 6. Merge the fine outputs into the coarse ones (reused, noise included) and render
+        //    again.
         let raw = merge_raw(&raw_coarse, &raw_fine, &fine.perm, self.net.numerics())?;
-        let render_fine = raw2outputs(&raw, &fine.z_all, &rays.dirs, rays.bgs.as_ref())?;
-        crate::compute::profile::mark("merge + fine render", self.device());
-        let stats = PassStats {
-            samples: (raw.dim(0)? * raw.dim(1)?) as u64,
-            points_evaluated: points.evaluated() as u64,
-            coarse_evaluated: coarse_evaluated as u64,
-            fine_evaluated: (points.samples_evaluated() - coarse_evaluated) as u64,
-            skipped_empty: points.skipped_empty() as u64,
-            stopped_early: points.stopped_early() as u64,
-            joint_rows: points.joint_rows() as u64,
-            rays_culled: points.rays_culled() as u64,
-        };
+        let render_fine = composite(&raw, &fine.z_all)?;
+        prof("merge + fine render");
+        let (stats, observed) = points.finish(raw.dim(0)? * raw.dim(1)?);
         Ok(Outputs {
             vol_scale: pose.scales.clone(),
             bounds: coarse.bounds,
@@ -339,7 +341,7 @@ impl Avatar {
             coarse: render_coarse,
             fine: render_fine,
             stats,
-            observed: points.take_observed(),
+            observed,
         })
     }
 

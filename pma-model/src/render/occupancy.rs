@@ -20,7 +20,7 @@ use crate::network::{Network, PoseFeatures};
 use crate::render::batch::Poses;
 use crate::render::bones::BoneFrames;
 use crate::render::cull::{JointMask, WindowTest, EXACT_ZERO_EXPONENT};
-use crate::render::points::{call_joints, chain_key, joint_calls};
+use crate::render::points::joints::{call_joints, chain_key, joint_calls};
 
 /// Points per network call of a refresh on the CPU's workers: small enough that a training
 /// refresh (a few hundred points per pose) gives every worker calls, large enough that a

@@ -300,6 +300,16 @@ pub enum Preset {
 impl Preset {
     pub const ALL: [Preset; 3] = [Preset::Paper, Preset::CpuSmall, Preset::Tiny];
 
+    /// The preset a run on `device` gets when none is named: the paper's network on a GPU,
+    /// `cpu-small` on the CPU (where the paper's network makes about one step every few
+    /// seconds).
+    pub fn for_device(device: &candle_core::Device) -> Self {
+        match device.is_cpu() {
+            true => Preset::CpuSmall,
+            false => Preset::Paper,
+        }
+    }
+
     pub fn name(self) -> &'static str {
         match self {
             Preset::Paper => "default",

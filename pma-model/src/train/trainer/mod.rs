@@ -1,0 +1,440 @@
+//! One training iteration of the reference (`Trainer.train_batch`; see `docs/reference.md`,
+//! "Training schedule and Adam"):
+//! forward, loss, backward, global-norm clip, Adam, then the learning rates for the next step.
+//!
+//! [`Optimization`] is the model-agnostic half (clip, skip, Adam, schedule, counters);
+//! [`Trainer`] adds the avatar, a [`BatchSource`] (the pma-data ray sampler in real runs) and
+//! the density-noise generator.
+//!
+//! Nothing is read back to the host inside a step: the loss, the gradient norm, the skip
+//! decision (a non-finite loss or norm) and the clip factor stay on the device, the update is
+//! masked there, and the numbers of the steps since the last read-back reach the host together
+//! in one copy ([`Trainer::read_back`], every [`crate::train::TrainConfig::read_every`]
+//! steps). Skipped steps are counted, and a streak of them stops the run, when their numbers
+//! arrive.
+//!
+//! Everything random in training comes from seeded ChaCha generators whose positions are
+//! saved in the train state, and candle's CPU kernels are deterministic, so a run resumed
+//! from a checkpoint continues bit for bit like one that never stopped.
+//!
+//! * this file: the [`Trainer`] (construction, the step, the occupancy refresh, the state a
+//!   checkpoint saves and restores);
+//! * `chunks`: a step's rays in chunks (chunk size, rows, density noise, gradient sums);
+//! * `optimization`: the numbers of a step, clip, skip, Adam, schedule and read-back.
+
+mod chunks;
+mod optimization;
+
+pub use chunks::{chunk_rays, AUTO_CHUNK_POINT_JOINTS};
+pub use optimization::{LossParts, Optimization, SkipReason, StepLoss, StepStats};
+
+use std::path::Path;
+use std::sync::Arc;
+
+use candle_core::{Device, Tensor, Var};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+
+use super::adam::Adam;
+use super::batch::{BatchSource, TrainBatch};
+use super::source::DatasetSource;
+use super::state::{Progress, RngState, TrainState};
+use super::TrainError;
+use crate::network::occupancy::OccupancyGrid;
+use crate::render::avatar::{Avatar, PassStats};
+use crate::render::occupancy::{CellChoice, RefreshOptions};
+use crate::train::presets::RunConfig;
+use pma_data::dataset::Dataset;
+
+pub use crate::network::run_dir::{MODEL_FILE, STATE_FILE};
+
+/// Gradient hook: sees (and may change) the gradients of a step before clipping, aligned
+/// with [`Trainer::param_names`].
+pub type GradHook<'a> = &'a mut dyn FnMut(&mut [Option<Tensor>]);
+
+/// The training loop's state: avatar, optimizer, batch source, noise generator.
+pub struct Trainer {
+    run: RunConfig,
+    avatar: Avatar,
+    /// Parameters aligned with `opt.adam.param_names()`.
+    params: Vec<Var>,
+    names: Vec<String>,
+    opt: Optimization,
+    source: Box<dyn BatchSource>,
+    noise_rng: ChaCha8Rng,
+    /// Rays per chunk, fixed at the first step (free device memory changes once the
+    /// allocator holds a step's tensors, and the chunking sets the summation order).
+    chunk: Option<usize>,
+    /// What the passes of the steps so far evaluated and left out (host counts).
+    pass_totals: PassStats,
+    /// Network points spent refreshing the occupancy grid so far.
+    refresh_points: u64,
+}
+
+/// The density-noise stream is seeded from the run seed on its own ChaCha stream, so it
+/// never overlaps the sampler's or the initialisation's draws.
+const NOISE_STREAM: u64 = 0x6e_6f69_7365;
+
+/// The occupancy refreshes draw their cells and points from the run seed on this stream,
+/// re-seeded from the iteration, so a resumed run refreshes exactly like an uninterrupted
+/// one without saving a generator.
+const OCCUPANCY_STREAM: u64 = 0x6f_6363_7570;
+
+/// Read-back interval of `read_every = 0` on devices other than the CPU (an estimate: a
+/// read-back drains the device's queue once, tens of microseconds, against steps of tens of
+/// milliseconds or more; on the CPU nothing is queued and every step is read).
+pub const AUTO_READ_EVERY_DEVICE: u64 = 10;
+
+impl Trainer {
+    /// Train `avatar` on batches from `source`. `run.model` must be the avatar's config.
+    pub fn with_source(
+        run: RunConfig,
+        avatar: Avatar,
+        source: Box<dyn BatchSource>,
+    ) -> Result<Self, TrainError> {
+        run.train.validate()?;
+        if avatar.config() != &run.model {
+            return Err(TrainError::Config(
+                "the avatar's config differs from the run's model config".to_string(),
+            ));
+        }
+        // A run with the grid starts one (or continues the one saved with its model).
+        let avatar = match (&run.train.occupancy, avatar.occupancy()) {
+            (Some(cfg), None) => {
+                let cfg = cfg
+                    .clone()
+                    .covering(run.train.culling.sample_threshold, &run.model);
+                avatar.with_occupancy(Some(OccupancyGrid::new(cfg)?))
+            }
+            _ => avatar,
+        };
+        let vars = avatar.trainable();
+        let t = &run.train;
+        let adam = Adam::reference(&vars, t.lr_freq, t.lr, t.betas, t.eps)?;
+        let names: Vec<String> = adam.param_names().map(str::to_string).collect();
+        let by_name: std::collections::HashMap<&str, &Var> =
+            vars.iter().map(|(n, v)| (n.as_str(), v)).collect();
+        let params = names.iter().map(|n| by_name[n.as_str()].clone()).collect();
+        let mut noise_rng = ChaCha8Rng::seed_from_u64(t.seed);
+        noise_rng.set_stream(NOISE_STREAM);
+        let opt = Optimization::new(adam, run.train.clone());
+        Ok(Self {
+            run,
+            avatar,
+            params,
+            names,
+            opt,
+            source,
+            noise_rng,
+            chunk: None,
+            pass_totals: PassStats::default(),
+            refresh_points: 0,
+        })
+    }
+
+    /// A fresh run on `data` (train profile): the avatar is initialised from the dataset's
+    /// rest pose with one frame code per training image, and batches come from
+    /// [`DatasetSource`]. `run.model.n_framecodes` is set to the number of images.
+    pub fn new(
+        mut run: RunConfig,
+        data: Arc<Dataset>,
+        device: &Device,
+    ) -> Result<Self, TrainError> {
+        run.model.n_framecodes = data.n_images();
+        run.validate()?;
+        let rest = data.rest_pose.ok_or_else(|| {
+            TrainError::Config(format!(
+                "{}: no rest_pose (required for training)",
+                data.source
+            ))
+        })?;
+        let source = Self::dataset_source(&run, data, device)?;
+        let avatar = Avatar::new(run.model.clone(), &rest, run.train.seed, device)?
+            .with_numerics(run.numerics);
+        Self::with_source(run, avatar, source)
+    }
+
+    /// Continue the run in `dir` on the same `data` (see [`Self::resume_with_source`]).
+    pub fn resume(
+        dir: &Path,
+        mut run: RunConfig,
+        data: Arc<Dataset>,
+        device: &Device,
+    ) -> Result<Self, TrainError> {
+        run.model.n_framecodes = data.n_images();
+        let source = Self::dataset_source(&run, data, device)?;
+        Self::resume_with_source(dir, run, source, device)
+    }
+
+    fn dataset_source(
+        run: &RunConfig,
+        data: Arc<Dataset>,
+        device: &Device,
+    ) -> Result<Box<dyn BatchSource>, TrainError> {
+        let t = &run.train;
+        Ok(Box::new(DatasetSource::new(
+            data,
+            t.rays_per_step,
+            t.images_per_step,
+            t.perturb_bg,
+            t.seed,
+            device,
+        )?))
+    }
+
+    pub fn run_config(&self) -> &RunConfig {
+        &self.run
+    }
+
+    pub fn avatar(&self) -> &Avatar {
+        &self.avatar
+    }
+
+    /// Completed iterations.
+    pub fn iteration(&self) -> u64 {
+        self.opt.iter
+    }
+
+    /// Skip counters as of the last read-back.
+    pub fn progress(&self) -> &Progress {
+        &self.opt.progress
+    }
+
+    /// Record the run's wall-clock time (saved with the next checkpoint).
+    pub fn set_wall_s(&mut self, wall_s: f64) {
+        self.opt.progress.wall_s = wall_s;
+    }
+
+    /// Rates of the next step per group (freq, other).
+    pub fn lrs(&self) -> Vec<f64> {
+        self.opt.lrs()
+    }
+
+    pub fn optimizer(&self) -> &Adam {
+        &self.opt.adam
+    }
+
+    /// Trainable parameter names in optimizer order (the order of gradients in a [`GradHook`]).
+    pub fn param_names(&self) -> &[String] {
+        &self.names
+    }
+
+    /// Steps between read-backs ([`crate::train::TrainConfig::read_every`], `0` resolved for
+    /// the device).
+    pub fn read_every(&self) -> u64 {
+        match self.run.train.read_every {
+            0 if crate::compute::account::cpu_route(self.avatar.device()) => 1,
+            0 => AUTO_READ_EVERY_DEVICE,
+            k => k,
+        }
+    }
+
+    /// Steps done whose numbers have not been read back.
+    pub fn pending(&self) -> usize {
+        self.opt.pending()
+    }
+
+    /// What the passes of this trainer's steps evaluated and left out, summed (host counts,
+    /// known at once).
+    pub fn pass_totals(&self) -> PassStats {
+        self.pass_totals
+    }
+
+    /// Network points this trainer spent refreshing its occupancy grid.
+    pub fn refresh_points(&self) -> u64 {
+        self.refresh_points
+    }
+
+    /// One iteration on the next batch of the source. Every [`Self::read_every`] iterations
+    /// the numbers of the steps since the last read-back come back (oldest first); otherwise
+    /// the result is empty. Errors of those steps (a streak of skipped steps:
+    /// [`TrainError::Diverged`]) surface here too.
+    ///
+    /// A step cut short by an interruption (see [`crate::interrupt`]) is undone: it stops
+    /// before the optimizer, so only the batch source and the noise generator have moved, and
+    /// both are put back. The trainer is then exactly as after the last complete step, and a
+    /// checkpoint of it resumes bit for bit.
+    pub fn step(&mut self) -> Result<Vec<StepStats>, TrainError> {
+        self.step_undoable(None)?;
+        if self.opt.iter % self.read_every() == 0 {
+            self.read_back()
+        } else {
+            Ok(Vec::new())
+        }
+    }
+
+    /// One iteration, then a read-back: this step's numbers (tests, tools that inspect every
+    /// step; on a GPU each call waits for the device).
+    pub fn step_read(&mut self) -> Result<StepStats, TrainError> {
+        self.step_undoable(None)?;
+        self.last_read()
+    }
+
+    /// [`Self::step_read`] with a gradient hook (e.g. to inject a fault in tests).
+    pub fn step_hooked(&mut self, hook: GradHook) -> Result<StepStats, TrainError> {
+        self.step_undoable(Some(hook))?;
+        self.last_read()
+    }
+
+    /// The numbers of every step done since the last read-back, oldest first (one copy).
+    pub fn read_back(&mut self) -> Result<Vec<StepStats>, TrainError> {
+        self.opt.read_back()
+    }
+
+    /// Read back and return the last step's numbers.
+    fn last_read(&mut self) -> Result<StepStats, TrainError> {
+        self.read_back()?
+            .pop()
+            .ok_or_else(|| TrainError::Config("no step to read back".into()))
+    }
+
+    fn step_undoable(&mut self, hook: Option<GradHook>) -> Result<(), TrainError> {
+        let noise = self.noise_rng.clone();
+        let source = self.source.state();
+        let result = self
+            .source
+            .next_batch()
+            .and_then(|batch| self.advance_hooked(&batch, hook));
+        match result {
+            Err(e) if e.is_interrupted() => {
+                self.noise_rng = noise;
+                self.source.restore(&source)?;
+                Err(e)
+            }
+            r => r,
+        }
+    }
+
+    /// One iteration on `batch`, then a read-back: this step's numbers.
+    pub fn step_on(
+        &mut self,
+        batch: &TrainBatch,
+        hook: Option<GradHook>,
+    ) -> Result<StepStats, TrainError> {
+        self.advance_hooked(batch, hook)?;
+        self.last_read()
+    }
+
+    /// One iteration on `batch` without a read-back (its numbers wait for
+    /// [`Self::read_back`]).
+    pub fn advance(&mut self, batch: &TrainBatch) -> Result<(), TrainError> {
+        self.advance_hooked(batch, None)
+    }
+
+    /// One iteration on `batch`: forward (training mode, density noise), loss, backward,
+    /// `hook`, clip, Adam, schedule, without reading anything back.
+    fn advance_hooked(
+        &mut self,
+        batch: &TrainBatch,
+        hook: Option<GradHook>,
+    ) -> Result<(), TrainError> {
+        let device = self.avatar.device().clone();
+        crate::compute::profile::start(&device);
+        let chunk = self.chunk_size(batch.rays.origins.dim(0)?);
+        let opts = self.run.train.pass_options(self.opt.iter);
+        let (loss, mut grads, stats, seen) = self.gradients(batch, chunk, &opts)?;
+        if let Some(h) = hook {
+            h(&mut grads);
+        }
+        self.opt.apply(&loss, grads)?;
+        crate::compute::profile::mark("grad norm + Adam", &device);
+        self.pass_totals.add(&stats);
+        // The densities the step saw are the model's before this update: recent enough for a
+        // grid that decays what no sample finds again.
+        self.avatar.observe_occupancy(&seen)?;
+        self.refresh_occupancy(batch)?;
+        Ok(())
+    }
+
+    /// After step `iter` (completed iterations): refresh the occupancy grid on the batch's
+    /// poses with the updated weights when it is due. The refresh that ends the warm-up (and
+    /// any before the grid's first) evaluates every cell; later ones every `refresh_every`
+    /// steps a share of them. It makes no interruption check: the step is already applied.
+    fn refresh_occupancy(&mut self, batch: &TrainBatch) -> Result<(), TrainError> {
+        let Some(cfg) = self.run.train.occupancy.clone() else {
+            return Ok(());
+        };
+        let iter = self.opt.iter;
+        let built = self.avatar.occupancy().is_some_and(|g| g.is_built());
+        let cells = match (iter >= cfg.warmup_steps, built) {
+            (false, _) => return Ok(()),
+            (true, false) => CellChoice::All,
+            (true, true) if (iter - cfg.warmup_steps) % cfg.refresh_every == 0 => {
+                CellChoice::Share(cfg.refresh_share)
+            }
+            (true, true) => return Ok(()),
+        };
+        let mut rng = ChaCha8Rng::seed_from_u64(
+            self.run.train.seed ^ iter.wrapping_mul(0x9e37_79b9_7f4a_7c15),
+        );
+        rng.set_stream(OCCUPANCY_STREAM);
+        let pose = self.avatar.pose_features(&batch.poses, None)?;
+        let opts = RefreshOptions { cells, decay: true };
+        let stats = self
+            .avatar
+            .refresh_occupancy(&batch.poses, &pose, opts, &mut rng)?;
+        self.refresh_points += stats.cells as u64;
+        crate::compute::profile::mark("occupancy refresh", self.avatar.device());
+        Ok(())
+    }
+
+    /// What a checkpoint holds besides the model (see [`super::checkpoint`], which writes
+    /// and reads run directories): optimizer moments, iteration, random streams, sampler
+    /// position, counters and the run configuration. `model_fingerprint` ties it to the
+    /// model file written with it.
+    pub(crate) fn train_state(&self, model_fingerprint: String) -> Result<TrainState, TrainError> {
+        if self.opt.pending() > 0 {
+            return Err(TrainError::Config(format!(
+                "checkpoint: {} step(s) not read back yet (call read_back first)",
+                self.opt.pending()
+            )));
+        }
+        Ok(TrainState {
+            global_iter: self.opt.iter,
+            groups: self.opt.adam.groups().to_vec(),
+            params: self
+                .opt
+                .adam
+                .states()?
+                .into_iter()
+                .map(|(n, s)| (n.to_string(), s))
+                .collect(),
+            rng: Some(RngState::capture(&self.noise_rng)),
+            sampler: Some(self.source.state()),
+            progress: Some(self.opt.progress.clone()),
+            run_config: Some(
+                serde_json::to_value(&self.run)
+                    .map_err(|e| TrainError::Config(format!("run config: {e}")))?,
+            ),
+            model_fingerprint: Some(model_fingerprint),
+        })
+    }
+
+    /// Continue from `state` (read from the checkpoint whose model this trainer's avatar
+    /// was loaded from): optimizer moments and steps, iteration, rates, counters, the noise
+    /// generator and the batch source's position.
+    pub(crate) fn restore(&mut self, state: TrainState) -> Result<(), TrainError> {
+        let lrs: Vec<f64> = state.groups.iter().map(|g| g.lr).collect();
+        let saved_names: Vec<&String> = state.groups.iter().flat_map(|g| &g.params).collect();
+        if saved_names.len() != self.names.len()
+            || saved_names.iter().zip(&self.names).any(|(a, b)| *a != b)
+        {
+            return Err(TrainError::State(vec![
+                "the optimizer's parameter groups differ from the model's".into(),
+            ]));
+        }
+        self.opt.adam.load_states(state.params, &lrs)?;
+        self.opt.iter = state.global_iter;
+        // Rates follow from the iteration; recomputing avoids trusting JSON float parsing.
+        let c = &self.run.train;
+        self.opt
+            .adam
+            .apply_schedule(state.global_iter, c.lr_decay, c.lr_decay_steps, c.lr_floor);
+        self.opt.progress = state.progress.unwrap_or_default();
+        if let Some(r) = &state.rng {
+            self.noise_rng = r.restore()?;
+        }
+        self.source
+            .restore(state.sampler.as_ref().unwrap_or(&serde_json::Value::Null))
+    }
+}
