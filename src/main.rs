@@ -81,6 +81,10 @@ enum Command {
     /// Parity mode against each culling option: speed, memory and error side by side.
     #[cfg(feature = "train")]
     Bench(cli::bench::Args),
+    /// A device's self-test before a long run: every kernel against candle's ops, the
+    /// official code's golden case, a training burst (exit 0 when every check passes).
+    #[cfg(feature = "train")]
+    Doctor(cli::doctor::Args),
     /// Drive an avatar through extreme poses, frequencies, scales, densities and ray geometry.
     CheckStability(cli::check_stability::Args),
     /// Look at an avatar or a training run in the browser, posed and turned by hand.
@@ -132,6 +136,8 @@ fn run(command: Command) -> anyhow::Result<()> {
         #[cfg(feature = "train")]
         Command::Ablate(a) => cli::ablate::run(a),
         Command::Render(a) => cli::render::run(a),
+        #[cfg(feature = "train")]
+        Command::Doctor(a) => cli::doctor::run(a),
         Command::Mesh(a) => cli::mesh::run(a),
         Command::Occupancy(a) => cli::occupancy::run(a),
         #[cfg(feature = "train")]

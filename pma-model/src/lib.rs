@@ -3,7 +3,7 @@
 //! The folders are the layers of the model, each depending only on those below it:
 //!
 //! ```text
-//! bench/                       what `pma bench` measures              (feature `train`)
+//! bench/  doctor/              what `pma bench` measures, a device's self-test (feature `train`)
 //! train/  eval/  tools/        training, scoring, meshes and probes   (use a whole Avatar)
 //!        render/               rays → samples → network → pixels      (the Avatar)
 //!        network/              the network on points                  (everything with weights)
@@ -19,6 +19,7 @@
 //! | [`tools`] | meshes, stability probes, retargeting, render planning (poses, cameras, frames, GIF) |
 //! | [`train`] (feature `train`) | presets, loss, Adam, one step, the training run |
 //! | [`bench`] (feature `train`) | speed, memory and quality of each speed option against parity; step accounting |
+//! | [`doctor`] (feature `train`) | a device's self-test: kernels, the golden case, a training burst |
 //! | [`error`] | the crate's error type |
 //!
 //! The skeleton (SMPL joints, forward kinematics, bone alignment) lives in `pma_data`.
@@ -34,6 +35,8 @@ pub mod tools;
 
 #[cfg(feature = "train")]
 pub mod bench;
+#[cfg(feature = "train")]
+pub mod doctor;
 #[cfg(feature = "train")]
 pub mod train;
 

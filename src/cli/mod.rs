@@ -10,6 +10,8 @@ pub mod check_stability;
 pub mod convert;
 #[cfg(feature = "train")]
 pub mod demo;
+#[cfg(feature = "train")]
+pub mod doctor;
 pub mod eval;
 pub mod forward;
 pub mod inspect;

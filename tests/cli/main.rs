@@ -10,6 +10,7 @@ mod check_stability;
 mod convert;
 mod demo;
 mod devices;
+mod doctor;
 mod eval;
 mod exit_codes;
 mod faults;

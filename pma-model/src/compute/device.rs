@@ -169,6 +169,118 @@ pub fn element_budget(device: &Device) -> Option<usize> {
     free_memory(device).map(|free| (free as f64 * DEVICE_MEMORY_SHARE) as usize / BYTES_PER_ELEMENT)
 }
 
+/// Whether an error (its whole message, causes included) is a device running out of
+/// memory: a CUDA allocation that failed, or the fault `PMA_FAULT_OOM_RAYS` injects.
+pub fn is_out_of_memory(message: &str) -> bool {
+    message.contains("CUDA_ERROR_OUT_OF_MEMORY") || message.contains("out of device memory")
+}
+
+/// The injected allocation failure of `PMA_FAULT_OOM_RAYS=N` (tests and drills): a training
+/// chunk of more than N rays fails as a device running out of memory would.
+pub fn injected_oom(rays: usize) -> candle_core::Result<()> {
+    static LIMIT: std::sync::OnceLock<Option<usize>> = std::sync::OnceLock::new();
+    let limit = LIMIT.get_or_init(|| {
+        std::env::var("PMA_FAULT_OOM_RAYS")
+            .ok()?
+            .trim()
+            .parse()
+            .ok()
+    });
+    match *limit {
+        Some(n) if rays > n => candle_core::bail!(
+            "out of device memory (injected by PMA_FAULT_OOM_RAYS={n}) for a chunk of {rays} rays"
+        ),
+        _ => Ok(()),
+    }
+}
+
+/// What a device is, for a report (`pma doctor`).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct DeviceInfo {
+    /// `cpu`, `cuda:N` or `metal:N`.
+    pub spec: String,
+    /// The GPU's name, or the CPU's model (from /proc/cpuinfo where there is one).
+    pub name: String,
+    pub memory_total_bytes: Option<u64>,
+    pub memory_free_bytes: Option<u64>,
+    /// The CUDA driver's version (e.g. `13.0`).
+    pub driver: Option<String>,
+    /// The NVRTC library's version, which compiles pma's kernels at run time.
+    pub nvrtc: Option<String>,
+    /// CPU cores this process may use.
+    pub cores: usize,
+}
+
+/// Describe `device` (what the driver and the OS tell; missing items stay `None`).
+pub fn describe(device: &Device) -> DeviceInfo {
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let mut info = DeviceInfo {
+        spec: match device.location() {
+            candle_core::DeviceLocation::Cpu => "cpu".into(),
+            candle_core::DeviceLocation::Cuda { gpu_id } => format!("cuda:{gpu_id}"),
+            candle_core::DeviceLocation::Metal { gpu_id } => format!("metal:{gpu_id}"),
+        },
+        name: cpu_model().unwrap_or_else(|| std::env::consts::ARCH.to_string()),
+        memory_total_bytes: host_memory_kib("MemTotal:").map(|k| k * 1024),
+        memory_free_bytes: host_memory_kib("MemAvailable:").map(|k| k * 1024),
+        driver: None,
+        nvrtc: None,
+        cores,
+    };
+    describe_cuda(device, &mut info);
+    info
+}
+
+fn cpu_model() -> Option<String> {
+    let text = std::fs::read_to_string("/proc/cpuinfo").ok()?;
+    let line = text.lines().find(|l| l.starts_with("model name"))?;
+    Some(line.split_once(':')?.1.trim().to_string())
+}
+
+fn host_memory_kib(key: &str) -> Option<u64> {
+    let text = std::fs::read_to_string("/proc/meminfo").ok()?;
+    let line = text.lines().find(|l| l.starts_with(key))?;
+    line[key.len()..]
+        .trim()
+        .trim_end_matches("kB")
+        .trim()
+        .parse()
+        .ok()
+}
+
+#[cfg(feature = "cuda")]
+fn describe_cuda(device: &Device, info: &mut DeviceInfo) {
+    use candle_core::cuda_backend::cudarc::driver::{result, sys};
+    use candle_core::cuda_backend::cudarc::nvrtc;
+    let Device::Cuda(cuda) = device else {
+        return;
+    };
+    let cu = cuda.cuda_stream().context().cu_device();
+    if let Ok(name) = result::device::get_name(cu) {
+        info.name = name;
+    }
+    // SAFETY: `cu` comes from a live context.
+    info.memory_total_bytes = unsafe { result::device::total_mem(cu) }
+        .ok()
+        .map(|b| b as u64);
+    info.memory_free_bytes = cuda_free_memory(device).map(|b| b as u64);
+    let mut v: std::ffi::c_int = 0;
+    // SAFETY: the driver writes one int.
+    if unsafe { sys::cuDriverGetVersion(&mut v) } == sys::CUresult::CUDA_SUCCESS {
+        info.driver = Some(format!("{}.{}", v / 1000, (v % 1000) / 10));
+    }
+    let (mut major, mut minor): (std::ffi::c_int, std::ffi::c_int) = (0, 0);
+    // SAFETY: NVRTC writes two ints.
+    if unsafe { nvrtc::sys::nvrtcVersion(&mut major, &mut minor) }
+        == nvrtc::sys::nvrtcResult::NVRTC_SUCCESS
+    {
+        info.nvrtc = Some(format!("{major}.{minor}"));
+    }
+}
+
+#[cfg(not(feature = "cuda"))]
+fn describe_cuda(_device: &Device, _info: &mut DeviceInfo) {}
+
 /// Why `--tf32` was refused.
 #[derive(Debug, thiserror::Error)]
 #[error("--tf32 needs a CUDA device (this run is on {device}): TF32 is a mode of the GPU's tensor cores, the CPU always computes in full f32")]

@@ -368,6 +368,9 @@ impl<'a> Session<'a> {
                 }
                 Err(e) => return Err(e),
             };
+            for line in self.trainer.take_notes() {
+                self.observer.warning(&line);
+            }
             let it = self.trainer.iteration();
             self.trainer.set_wall_s(self.wall());
             crate::compute::profile::print_step(it);

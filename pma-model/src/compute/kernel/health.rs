@@ -17,7 +17,7 @@
 //! kernels write zeros, which the first-use check catches).
 
 use std::collections::HashMap;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Mutex;
 
 use super::mem::Exec;
@@ -53,6 +53,8 @@ struct Registry {
 
 static REGISTRY: Mutex<Option<Registry>> = Mutex::new(None);
 static GENERIC: AtomicBool = AtomicBool::new(false);
+/// Modules switched off so far in this process (a trainer retries a step that saw one).
+static SWITCHED_OFF: AtomicU64 = AtomicU64::new(0);
 
 /// Where a switch-off warning goes: stderr unless a front end installs its own line writer.
 static WARN: Mutex<Option<WarningWriter>> = Mutex::new(None);
@@ -161,6 +163,7 @@ pub fn switch_off(module: &'static Module, why: &str) {
         !was_off
     });
     if first {
+        SWITCHED_OFF.fetch_add(1, Ordering::Relaxed);
         let line = format!(
             "warning: kernel {} switched off for this run ({why}); its ops run on candle's generic ops",
             module.name
@@ -170,6 +173,11 @@ pub fn switch_off(module: &'static Module, why: &str) {
             None => eprintln!("{line}"),
         }
     }
+}
+
+/// How many modules have been switched off in this process so far.
+pub fn switched_off() -> u64 {
+    SWITCHED_OFF.load(Ordering::Relaxed)
 }
 
 /// A failed compile or launch of `kernel`: `module` is switched off and the error says so.
@@ -246,6 +254,33 @@ pub fn before_launch(module: &'static Module, exec: &Exec) -> Result<bool, Strin
         )),
         Some(Fault::Wrong) => Ok(true),
         _ => Ok(false),
+    }
+}
+
+/// Before a CPU op of `module` runs (a forward or a backward): the injected `compile` and
+/// `launch` faults, which switch `module` off and fail the op as a device kernel would.
+/// (`wrong` has no effect on the CPU's code, which no first-use check covers.)
+pub fn cpu_launch(module: &'static Module) -> candle_core::Result<()> {
+    let Some(fault) = injected(module) else {
+        return Ok(());
+    };
+    let n = with(|r| {
+        let n = r.launches.entry(module.name).or_insert(0);
+        *n += 1;
+        *n
+    });
+    match fault {
+        Fault::Compile => Err(failed(
+            module,
+            "cpu",
+            "injected compile fault (PMA_KERNEL_FAULT)".into(),
+        )),
+        Fault::Launch(from) if n >= from => Err(failed(
+            module,
+            "cpu",
+            format!("injected launch fault at launch {n} (PMA_KERNEL_FAULT)"),
+        )),
+        _ => Ok(()),
     }
 }
 

@@ -194,6 +194,7 @@ impl Trainer {
                     Ok((rows, Tensor::from_vec(idx, n, &device)?))
                 })
                 .transpose()?;
+            crate::compute::device::injected_oom(len * n_poses)?;
             let rows = Rows { ids, batch };
             let rays = rows.rays()?;
             let target = rows.take(&batch.target)?;

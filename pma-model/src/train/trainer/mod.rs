@@ -69,6 +69,20 @@ pub struct Trainer {
     pass_totals: PassStats,
     /// Network points spent refreshing the occupancy grid so far.
     refresh_points: u64,
+    /// Lines for the user ([`Self::take_notes`]).
+    notes: Vec<String>,
+}
+
+/// An error's message and its causes, on one line.
+fn chain(e: &dyn std::error::Error) -> String {
+    let mut line = e.to_string();
+    let mut source = e.source();
+    while let Some(s) = source {
+        line.push_str(": ");
+        line.push_str(&s.to_string());
+        source = s.source();
+    }
+    line
 }
 
 /// The density-noise stream is seeded from the run seed on its own ChaCha stream, so it
@@ -129,6 +143,7 @@ impl Trainer {
             chunk: None,
             pass_totals: PassStats::default(),
             refresh_points: 0,
+            notes: Vec::new(),
         })
     }
 
@@ -330,9 +345,8 @@ impl Trainer {
     ) -> Result<(), TrainError> {
         let device = self.avatar.device().clone();
         crate::compute::profile::start(&device);
-        let chunk = self.chunk_size(batch.rays.origins.dim(0)?);
         let opts = self.run.train.pass_options(self.opt.iter);
-        let (loss, mut grads, stats, seen) = self.gradients(batch, chunk, &opts)?;
+        let (loss, mut grads, stats, seen) = self.gradients_retried(batch, &opts)?;
         if let Some(h) = hook {
             h(&mut grads);
         }
@@ -344,6 +358,58 @@ impl Trainer {
         self.avatar.observe_occupancy(&seen)?;
         self.refresh_occupancy(batch)?;
         Ok(())
+    }
+
+    /// The step's gradients, the same step again where it failed for a reason a retry
+    /// fixes: a kernel that failed while it ran (switched off now: the step runs on the
+    /// generic ops), or a device out of memory (the chunk is halved, for this step and the
+    /// rest of the run; one note says so). The retry draws the same density noise, so it is
+    /// the same step; a smaller chunk changes only the order of float summation.
+    fn gradients_retried(
+        &mut self,
+        batch: &TrainBatch,
+        opts: &crate::render::avatar::PassOptions,
+    ) -> Result<chunks::Gradients, TrainError> {
+        let noise = self.noise_rng.clone();
+        let rays = batch.rays.origins.dim(0)?;
+        let mut chunk = self.chunk_size(rays).min(rays);
+        let first = chunk;
+        loop {
+            let off = crate::compute::kernel::health::switched_off();
+            let e = match self.gradients(batch, chunk, opts) {
+                Ok(g) => {
+                    if chunk < first {
+                        self.notes.push(format!(
+                            "out of device memory at {first} rays per chunk: step {} retried at {chunk} rays per chunk, which the run keeps",
+                            self.opt.iter + 1
+                        ));
+                    }
+                    return Ok(g);
+                }
+                Err(e) if e.is_interrupted() => return Err(e),
+                Err(e) => e,
+            };
+            if crate::compute::kernel::health::switched_off() > off {
+                // The kernel's own warning named it; the step runs again without it.
+            } else if chunk > 1 && crate::compute::device::is_out_of_memory(&chain(&e)) {
+                chunk /= 2;
+                self.chunk = Some(chunk);
+            } else {
+                return Err(e);
+            }
+            self.noise_rng = noise.clone();
+        }
+    }
+
+    /// Rays per chunk of this run's steps (fixed at the first step; 0 before it).
+    pub fn chunk_rays(&self) -> usize {
+        self.chunk.unwrap_or(0)
+    }
+
+    /// Lines for the user from the steps so far (a chunk halved after an out-of-memory
+    /// error), oldest first; each is returned once.
+    pub fn take_notes(&mut self) -> Vec<String> {
+        std::mem::take(&mut self.notes)
     }
 
     /// After step `iter` (completed iterations): refresh the occupancy grid on the batch's

@@ -9,6 +9,7 @@ use super::Update;
 use crate::error::Result;
 
 pub(super) fn update(u: &Update) -> Result<(Tensor, Tensor, Tensor)> {
+    crate::compute::kernel::health::cpu_launch(&super::MODULE)?;
     let omb1 = (1.0 - u.b1) as f32;
     let b2 = u.b2 as f32;
     let omb2 = (1.0 - u.b2) as f32;

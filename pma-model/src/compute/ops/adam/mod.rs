@@ -73,7 +73,7 @@ pub struct Update<'a> {
 /// The new (parameters, first moments, second moments), flat [N].
 pub fn update(u: &Update) -> Result<(Tensor, Tensor, Tensor)> {
     match kernel::route(true, &MODULE, &[u.g]) {
-        Route::Cpu => cpu::update(u),
+        Route::Cpu => kernel::or_generic(&MODULE, || cpu::update(u), || generic(u)),
         Route::Device(exec) => {
             kernel::or_generic(&MODULE, || device::update(&exec, u), || generic(u))
         }

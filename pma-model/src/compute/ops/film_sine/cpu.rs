@@ -87,6 +87,7 @@ pub(super) fn forward(
     f: usize,
     cos: &Kept<Vec<f32>>,
 ) -> candle_core::Result<CpuStorage> {
+    crate::compute::kernel::health::cpu_launch(&super::MODULE)?;
     let (pre, o) = (
         f32_slice(s1, l1, "film sine: pre")?,
         f32_slice(s2, l2, "film sine: o")?,
@@ -112,6 +113,7 @@ pub(super) fn backward(
     cos: Option<Vec<f32>>,
     head: Option<Vec<f32>>,
 ) -> candle_core::Result<(Tensor, Vec<f32>)> {
+    crate::compute::kernel::health::cpu_launch(&super::MODULE)?;
     let (n, f) = pre.dims2()?;
     let w = 2 * layer.n_layers * f;
     let mut g_o = head.unwrap_or_else(|| vec![0f32; n * w]);

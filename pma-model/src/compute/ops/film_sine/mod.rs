@@ -231,7 +231,7 @@ impl CustomOp2 for FilmSine {
         let (n, f) = self.check(l1, l2)?;
         candle_core::account::report_launches(1, 0);
         Self::report_fwd(n, f, false);
-        let exec = Exec::Cuda(s1.device().clone());
+        let exec = Exec::Cuda(s1.device.clone());
         let (pre, o) = (Src::cuda(s1, l1, "pre")?, Src::cuda(s2, l2, "o")?);
         let out = device::forward(&exec, pre, o, self.layer.dims(n, f))?.into_cuda(s1)?;
         Ok((out, l1.shape().clone()))

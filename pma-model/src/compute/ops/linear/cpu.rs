@@ -100,6 +100,9 @@ impl CustomOp3 for Linear {
         s3: &CpuStorage,
         l3: &Layout,
     ) -> candle_core::Result<(CpuStorage, Shape)> {
+        if self.cpu_route {
+            crate::compute::kernel::health::cpu_launch(&super::MODULE)?;
+        }
         let d = linear_dims(l1, l2, l3)?;
         let (rows, out) = (d.0, d.2);
         report_linear(true, d, "add", 1);
@@ -171,6 +174,7 @@ impl CustomOp2 for BiasAdd {
         s2: &CpuStorage,
         l2: &Layout,
     ) -> candle_core::Result<(CpuStorage, Shape)> {
+        crate::compute::kernel::health::cpu_launch(&super::MODULE)?;
         let (y, b) = (
             f32_slice(s1, l1, "bias add: y")?,
             f32_slice(s2, l2, "bias add: b")?,

@@ -76,24 +76,37 @@ pub fn linear(x: &Tensor, w: &Tensor, b: &Tensor, k: Numerics) -> Result<Tensor>
         && b.rank() == 1
         && x.dim(1)? == w.dim(1)?
         && b.dim(0)? == w.dim(0)?;
-    let route = f32_route(&[x, w, b]).filter(|_| k.fused && fits && !kernel::health::generic());
+    let generic = || add_bias(&crate::compute::numerics::matmul(x, &w.t()?, k)?, b, k);
+    let route = f32_route(&[x, w, b])
+        .filter(|_| k.fused && fits && !kernel::health::forced_generic(&MODULE));
     let Some(cpu_route) = route else {
-        return add_bias(&crate::compute::numerics::matmul(x, &w.t()?, k)?, b, k);
+        return generic();
     };
-    let (x, w, b) = (x.contiguous()?, w.contiguous()?, b.contiguous()?);
-    Ok(candle_core::cuda::with_gemm_reduced_precision_f32(
-        k.tf32,
-        || x.apply_op3(&w, &b, cpu::Linear { cpu_route }),
-    )?)
+    kernel::or_generic(
+        &MODULE,
+        || {
+            let (x, w, b) = (x.contiguous()?, w.contiguous()?, b.contiguous()?);
+            Ok(candle_core::cuda::with_gemm_reduced_precision_f32(
+                k.tf32,
+                || x.apply_op3(&w, &b, cpu::Linear { cpu_route }),
+            )?)
+        },
+        generic,
+    )
 }
 
 /// `y + b` broadcast over rows: y: [rows,out], b: [out] -> [rows,out].
 pub fn add_bias(y: &Tensor, b: &Tensor, k: Numerics) -> Result<Tensor> {
-    let cpu_route = f32_route(&[y, b]) == Some(true) && !kernel::health::generic();
+    let generic = || Ok(y.broadcast_add(b)?);
+    let cpu_route = f32_route(&[y, b]) == Some(true) && !kernel::health::forced_generic(&MODULE);
     if !(k.fused && cpu_route) || y.rank() != 2 || b.rank() != 1 {
-        return Ok(y.broadcast_add(b)?);
+        return generic();
     }
-    Ok(y.contiguous()?.apply_op2(&b.contiguous()?, cpu::BiasAdd)?)
+    kernel::or_generic(
+        &MODULE,
+        || Ok(y.contiguous()?.apply_op2(&b.contiguous()?, cpu::BiasAdd)?),
+        generic,
+    )
 }
 
 /// `max(x Wᵀ + b, 0)`: x [rows,in], W [out,in] (PyTorch's layout), b [out] -> [rows,out].

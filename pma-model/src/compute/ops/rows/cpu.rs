@@ -13,6 +13,7 @@ pub(super) fn gather(
     l2: &Layout,
     [b, n, m, c]: [usize; 4],
 ) -> candle_core::Result<CpuStorage> {
+    crate::compute::kernel::health::cpu_launch(&super::MODULE)?;
     let x: &[f32] = slice(s1, l1, "gather rows: x")?;
     let ids: &[u32] = slice(s2, l2, "gather rows: ids")?;
     let mut out = Vec::with_capacity(b * m * c);
@@ -36,6 +37,7 @@ pub(super) fn scatter_add(
     l2: &Layout,
     [b, n, m, c]: [usize; 4],
 ) -> candle_core::Result<CpuStorage> {
+    crate::compute::kernel::health::cpu_launch(&super::MODULE)?;
     let g: &[f32] = slice(s1, l1, "scatter-add rows: grad")?;
     let ids: &[u32] = slice(s2, l2, "scatter-add rows: ids")?;
     let mut dst = vec![0f32; b * n * c];

@@ -149,7 +149,7 @@ impl CustomOp2 for GatherRows {
     ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
         let [b, n, m, c] = dims_bmc(l1, l2, "gather rows")?;
         report_launches();
-        let exec = Exec::Cuda(s1.device().clone());
+        let exec = Exec::Cuda(s1.device.clone());
         let out = device::gather(
             &exec,
             Src::cuda(s1, l1, "x")?,
@@ -218,7 +218,7 @@ impl CustomOp2 for ScatterAddRows {
     ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
         let [b, m, _, c] = dims_bmc(l1, l2, "scatter-add rows")?;
         report_launches();
-        let exec = Exec::Cuda(s1.device().clone());
+        let exec = Exec::Cuda(s1.device.clone());
         let (g, ids) = (Src::cuda(s1, l1, "grad")?, Src::cuda(s2, l2, "ids")?);
         let out = device::scatter_add(&exec, g, ids, [b, self.n, m, c], self.deterministic)?;
         Ok((out.into_cuda(s1)?, Shape::from((b, self.n, c))))

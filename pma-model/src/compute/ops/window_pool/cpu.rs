@@ -37,6 +37,7 @@ pub(super) fn forward(
     l3: &Layout,
     arg: &Kept<Vec<u32>>,
 ) -> candle_core::Result<CpuStorage> {
+    crate::compute::kernel::health::cpu_launch(&super::MODULE)?;
     let [n, j, h, per_pose] = super::dims(l1, l2, l3)?;
     let q = f32_slice(s1, l1, "window pool: q")?;
     let g = f32_slice(s2, l2, "window pool: g")?;
@@ -99,6 +100,7 @@ pub(super) fn backward(
     w_p: &Tensor,
     grad: &Tensor,
 ) -> candle_core::Result<(Tensor, Tensor)> {
+    crate::compute::kernel::health::cpu_launch(&super::MODULE)?;
     let (n, j, h) = q.dims()?;
     let poses = g.dim(0)?;
     let per_pose = n / poses;

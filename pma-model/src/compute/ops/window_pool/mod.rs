@@ -244,7 +244,7 @@ impl CustomOp3 for WindowPool {
         l3: &Layout,
     ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
         let d = dims(l1, l2, l3)?;
-        let exec = Exec::Cuda(s1.device().clone());
+        let exec = Exec::Cuda(s1.device.clone());
         candle_core::account::report_launches(1, 0);
         let srcs = [
             Src::cuda(s1, l1, "q")?,
@@ -365,7 +365,7 @@ impl CustomOp3 for WindowPoolOf {
             candle_core::bail!("window pool: the window is not on the GPU")
         };
         let d = dims(&lq, l3, wl)?;
-        let exec = Exec::Cuda(s1.device().clone());
+        let exec = Exec::Cuda(s1.device.clone());
         let srcs = [
             Src::cuda(&q, &lq, "q")?,
             Src::cuda(s3, l3, "g")?,
