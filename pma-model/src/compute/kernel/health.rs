@@ -119,40 +119,26 @@ pub fn state(module: &'static Module) -> State {
     })
 }
 
-/// Whether `module`'s kernels may run on `exec` now: on its first use there, its check runs
-/// first (once per process; a failing or erroring check switches it off).
-pub fn ready(module: &'static Module, exec: &Exec) -> bool {
-    let first = with(|r| match r.states.get(module.name) {
+/// Mark `module` as being checked before its first use on a device: `true` for the caller
+/// that is to run the check (the first), `false` once it is checked or being checked.
+pub fn begin_check(module: &'static Module) -> bool {
+    with(|r| match r.states.get(module.name) {
         None | Some(State::Unchecked) => {
             r.states.insert(module.name, State::Checking);
             true
         }
         _ => false,
-    });
-    if first {
-        let device = exec.device();
-        // The check's own ops are not part of any accounted run.
-        let result =
-            candle_core::account::uncounted(|| (module.check)(&device, super::Size::Quick));
-        match result {
-            Ok(cases) => match cases.iter().find(|c| !c.passed()) {
-                None => with(|r| {
-                    if r.states.get(module.name) == Some(&State::Checking) {
-                        r.states.insert(module.name, State::On);
-                    }
-                }),
-                Some(c) => switch_off(
-                    module,
-                    &format!(
-                        "its first-use check found {} off by {:e} (tolerance {:e})",
-                        c.what, c.max_err, c.tol
-                    ),
-                ),
-            },
-            Err(e) => switch_off(module, &format!("its first-use check failed: {e}")),
+    })
+}
+
+/// The first-use check of `module` passed: it is on (unless something switched it off
+/// meanwhile).
+pub fn checked(module: &'static Module) {
+    with(|r| {
+        if r.states.get(module.name) == Some(&State::Checking) {
+            r.states.insert(module.name, State::On);
         }
-    }
-    usable(module)
+    })
 }
 
 /// Switch `module` off for the process, warning once with `why`.

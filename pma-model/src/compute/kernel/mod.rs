@@ -80,10 +80,35 @@ pub fn route(on: bool, module: &'static Module, ts: &[&Tensor]) -> Route {
             _ => return Route::Generic,
         }
     };
-    match health::ready(module, &exec) {
+    match ready(module, &exec) {
         true => Route::Device(exec),
         false => Route::Generic,
     }
+}
+
+/// Whether `module`'s kernels may run on `exec` now: before their first use on a device,
+/// their quick check runs (once per process; a failing or erroring check switches the
+/// module off).
+fn ready(module: &'static Module, exec: &Exec) -> bool {
+    if health::begin_check(module) {
+        let device = exec.device();
+        // The check's own ops are not part of any accounted run.
+        let result = candle_core::account::uncounted(|| (module.check)(&device, Size::Quick));
+        match result {
+            Ok(cases) => match cases.iter().find(|c| !c.passed()) {
+                None => health::checked(module),
+                Some(c) => health::switch_off(
+                    module,
+                    &format!(
+                        "its first-use check found {} off by {:e} (tolerance {:e})",
+                        c.what, c.max_err, c.tol
+                    ),
+                ),
+            },
+            Err(e) => health::switch_off(module, &format!("its first-use check failed: {e}")),
+        }
+    }
+    health::usable(module)
 }
 
 /// `fused()` on `module`'s kernels, or `generic()` when a kernel failed while it ran (the
