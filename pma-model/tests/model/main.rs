@@ -10,6 +10,7 @@ mod train_support;
 mod account;
 mod camera_path;
 mod checkpoint;
+mod cuda_coverage;
 mod culling;
 mod early_stop;
 mod golden;
