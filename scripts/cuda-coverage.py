@@ -86,18 +86,25 @@ def registry_crate(name):
     return os.path.join(hits[0], "src"), version
 
 
-def block(text, start):
-    """The brace-matched block that opens at the first `{` at or after `start`."""
-    i = text.index("{", start)
+def matched(text, i, open_, close):
+    """(i, end) of the bracket pair that opens at `text[i]`; the text's end if unclosed."""
     depth = 0
     for j in range(i, len(text)):
-        if text[j] == "{":
+        if text[j] == open_:
             depth += 1
-        elif text[j] == "}":
+        elif text[j] == close:
             depth -= 1
             if depth == 0:
                 return i, j + 1
-    fail("unbalanced braces")
+    return i, len(text)
+
+
+def block(text, start):
+    """The brace-matched block that opens at the first `{` at or after `start`."""
+    i, j = matched(text, text.index("{", start), "{", "}")
+    if j == len(text) and not text.endswith("}"):
+        fail("unbalanced braces")
+    return i, j
 
 
 def find(text, pattern, what, start=0):
@@ -184,23 +191,11 @@ def kernels(src_dir):
                 found.setdefault(k, (where, guard))
             for m in re.finditer(r"\b([A-Z][A-Z0-9_]*)\s*\(", code):
                 if m.group(1) in macros:
-                    i, j = paren_span(code, m.end() - 1)
+                    i, j = matched(code, m.end() - 1, "(", ")")
                     args = split_args(code[i + 1 : j - 1])
                     for k in expand(m.group(1), args, macros, 0):
                         found.setdefault(k, (where, guard))
     return found
-
-
-def paren_span(s, i):
-    depth = 0
-    for j in range(i, len(s)):
-        if s[j] == "(":
-            depth += 1
-        elif s[j] == ")":
-            depth -= 1
-            if depth == 0:
-                return i, j + 1
-    return i, len(s)
 
 
 def direct_kernels(code):
@@ -219,7 +214,7 @@ def expand(name, args, macros, depth):
     out = direct_kernels(text)
     for m in re.finditer(r"\b([A-Z][A-Z0-9_]*)\s*\(", text):
         if m.group(1) in macros and m.group(1) != name:
-            i, j = paren_span(text, m.end() - 1)
+            i, j = matched(text, m.end() - 1, "(", ")")
             out += expand(m.group(1), split_args(text[i + 1 : j - 1]), macros, depth + 1)
     return out
 
@@ -402,23 +397,23 @@ def candle_rows(t, kern):
             where, guard = kern[k.group(1)]
             t.add("candle", "copy-strided", "", [f"{d}:s"], d, empty_ok, k.group(1),
                   f"{where}; {at}", guard)
-    i, j = fn_body(text, "copy2d", text.index("impl BackendStorage for CudaStorage"))
-    body = text[i:j]
-    empty_ok = "if d1 == 0 || d2 == 0" in body
-    for s, k in re.findall(r"\(S::(\w+)\(s\), S::\1\(d\)\)\s*=>\s*\([^\n]*\"(copy2d_\w+)\"\)", body):
-        if k in kern:
-            where, guard = kern[k]
-            at = f"{rel(BACKEND)}:{line_of(text, i + body.index(k))}"
-            t.add("candle", "copy2d", "", [f"{names[s]}:cs"], names[s], empty_ok, k,
-                  f"{where}; {at}", guard)
-    i, j = fn_body(text, "const_set", text.index("impl BackendStorage for CudaStorage"))
-    body = text[i:j]
-    for s, k in re.findall(r"S::(\w+)\(s\) => \(slice_ptr\(s, src_o\), \"(const_set_\w+)\"\)", body):
-        if k in kern:
-            where, guard = kern[k]
-            at = f"{rel(BACKEND)}:{line_of(text, i + body.index(k))}"
-            t.add("candle", "const-set", "", [f"{names[s]}:cs"], names[s], False, k,
-                  f"{where}; {at}", guard)
+    # copy2d (nothing for no rows or columns) and const_set: a kernel per dtype arm.
+    arms = (
+        ("copy2d", "copy2d", r"\(S::(\w+)\(s\), S::\1\(d\)\)\s*=>\s*\([^\n]*\"(copy2d_\w+)\"\)",
+         "if d1 == 0 || d2 == 0"),
+        ("const_set", "const-set", r"S::(\w+)\(s\) => \(slice_ptr\(s, src_o\), \"(const_set_\w+)\"\)",
+         None),
+    )
+    for fn, op, arm, guard_text in arms:
+        i, j = fn_body(text, fn, text.index("impl BackendStorage for CudaStorage"))
+        body = text[i:j]
+        empty_ok = guard_text is not None and guard_text in body
+        for s, k in re.findall(arm, body):
+            if k in kern:
+                where, guard = kern[k]
+                at = f"{rel(BACKEND)}:{line_of(text, i + body.index(k))}"
+                t.add("candle", op, "", [f"{names[s]}:cs"], names[s], empty_ok, k,
+                      f"{where}; {at}", guard)
     # A clone copies the whole storage (no kernel).
     at = b.at(r"impl Map1 for Clone", "Clone")
     for d in dtypes:

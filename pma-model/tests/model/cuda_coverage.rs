@@ -1,19 +1,19 @@
 //! What candle's CUDA backend must implement for pma's CUDA route: every distinct op
-//! signature (op, input dtypes and layouts, output dtype, kernel variant, empty grid) that
-//! `tiny` training steps, inference passes, occupancy refreshes and culled passes issue when
-//! accounted as CUDA on the CPU (`pma_model::compute::account::Issued`), each found in the
-//! table that `scripts/cuda-coverage.py` derives from the vendored candle-core's CUDA backend
-//! and candle-kernels' sources (`fixtures/cuda-coverage.tsv`; docs/gpu.md, "What candle's
-//! CUDA backend must implement"). A new op, dtype or layout in the route fails here until the
-//! backend implements it (a hunk of vendor/candle-core/candle-core.patch) or the route stops
-//! issuing it.
-//!
-//! Only the bf16 trunk (`--bf16-trunk`) may need a kernel that exists from some compute
-//! capability on (its casts: sm_80); everything else runs on any GPU candle supports.
+//! signature (op, input dtypes and layouts, output dtype, kernel variant, empty grid;
+//! `pma_model::compute::account::Issued`) that `tiny` issues accounted as CUDA on the CPU in
+//! training steps (one pass and chunked; parity numerics, the generic kernels, the bf16
+//! trunk, the ablation variants), inference passes, occupancy refreshes, culled passes and a
+//! checkpoint's save and resume, each found in the table that `scripts/cuda-coverage.py`
+//! derives from the vendored candle-core's CUDA backend and candle-kernels' sources
+//! (`fixtures/cuda-coverage.tsv`; docs/gpu.md, "What candle's CUDA backend must implement").
+//! A new op, dtype or layout in the route fails here until the backend implements it (a hunk
+//! of vendor/candle-core/candle-core.patch) or the route stops issuing it. Only the bf16
+//! trunk (`--bf16-trunk`) may need a kernel that exists from some compute capability on (its
+//! casts: sm_80); everything else runs on any GPU candle supports.
 //!
 //! `PMA_CUDA_COVERAGE_OUT=FILE` writes the issued signatures, one per line with the passes
 //! that issued them, for `scripts/cuda-coverage.py --issued FILE`. The ignored test
-//! `the_default_networks_route_issues_what_the_tiny_one_does` (7 min in the dev profile)
+//! `the_default_networks_route_issues_what_the_tiny_one_does` (9 min in the dev profile)
 //! checks that `tiny` takes the route's every branch: the same passes with the `default`
 //! preset's network issue the same signatures.
 
@@ -27,7 +27,7 @@ use candle_core::{DType, Device, Tensor};
 use pma_data::dataset::Dataset;
 use pma_model::compute::account::{Account, Issued, Report, Route};
 use pma_model::compute::numerics::Numerics;
-use pma_model::network::config::Config;
+use pma_model::network::config::{Config, Variant};
 use pma_model::network::occupancy::{OccupancyConfig, OccupancyGrid};
 use pma_model::render::avatar::{Avatar, Mode};
 use pma_model::render::occupancy::{refresh, CellChoice, RefreshOptions};
@@ -36,7 +36,7 @@ use pma_model::train::{BatchSource, DatasetSource, RunConfig, TrainBatch, Traine
 use rand::SeedableRng;
 
 use crate::common::fixtures;
-use crate::train_support::{tiny_run, tiny_scene};
+use crate::train_support::{dataset_source, tiny_run, tiny_scene};
 
 /// One row of the table: a signature the backend implements.
 #[derive(Debug)]
@@ -146,16 +146,7 @@ fn trainer(
     run.model = model.clone();
     tweak(&mut run);
     let ((trainer, source), made) = accounted(None, || {
-        let t = &run.train;
-        let source = DatasetSource::new(
-            data.clone(),
-            t.rays_per_step,
-            t.images_per_step,
-            t.perturb_bg,
-            t.seed,
-            &Device::Cpu,
-        )
-        .unwrap();
+        let source = dataset_source(data, &run);
         (
             Trainer::new(run, data.clone(), &Device::Cpu).unwrap(),
             source,
@@ -245,6 +236,21 @@ fn passes(model: &Config) -> BTreeMap<&'static str, Vec<Issued>> {
         let batch = source.next_batch().unwrap();
         for r in inference(one.avatar(), &batch, &PassOptions::parity()) {
             add(infer, r);
+        }
+    }
+
+    // The ablation variants (`pma ablate`): making each, a step, an inference pass.
+    for variant in Variant::ALL.into_iter().filter(|v| !v.is_full()) {
+        let model = Config {
+            variant,
+            ..model.clone()
+        };
+        let (mut t, mut source, made) = trainer(&data, &model, |_| {});
+        add("variants", made);
+        add("variants", step(&mut t, &mut source));
+        let batch = source.next_batch().unwrap();
+        for r in inference(t.avatar(), &batch, &PassOptions::parity()) {
+            add("variants", r);
         }
     }
 
@@ -489,7 +495,7 @@ fn the_cuda_route_issues_only_what_candles_cuda_backend_implements() {
 }
 
 /// `tiny`'s network takes every branch of the route that the `default` preset's does: the
-/// same passes issue the same signatures. Ignored (7 minutes in the dev profile); run with
+/// same passes issue the same signatures. Ignored (9 minutes in the dev profile); run with
 /// `cargo test -p pma-model --features train --test model cuda_coverage -- --ignored`.
 #[test]
 #[ignore]
