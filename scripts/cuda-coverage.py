@@ -526,15 +526,15 @@ def covers(row, sig):
 
 
 def parse_issued(line):
-    """`[custom ]op[/variant] dtype:l,... -> dtype[ (empty)]` (the test's text)."""
-    m = re.match(r"(custom )?([\w-]+)(?:/(\w+))? (\S*) -> (\w+)( \(empty\))?$", line)
+    """`[custom ]op[/variant][ dtype:l,...] -> dtype[ (empty)]` (the test's text)."""
+    m = re.match(r"(custom )?([\w-]+)(?:/(\w+))?(?: (\S+))? -> (\w+)( \(empty\))?$", line)
     if not m:
         fail(f"not a signature: {line!r}")
     return {
         "kind": "custom" if m.group(1) else "candle",
         "op": m.group(2),
         "variant": m.group(3) or "",
-        "inputs": [x.split(":") for x in m.group(4).split(",") if x],
+        "inputs": [x.split(":") for x in (m.group(4) or "").split(",") if x],
         "output": m.group(5),
         "empty": bool(m.group(6)),
     }
@@ -562,7 +562,8 @@ def main(argv):
             row = next((r for r in rows if covers(r, sig)), None)
             if row is None:
                 missing += 1
-            where = f"{row[7]} ({row[6]})  {row[8]}" if row else "NOT IMPLEMENTED"
+            arch = f" ({row[6]})" if row and row[6] != "-" else ""
+            where = f"{row[7]}{arch}  {row[8]}" if row else "NOT IMPLEMENTED"
             print(f"{sig_text}\t{passes}\t{where}")
         return 1 if missing else 0
     tmp = TABLE + ".tmp"

@@ -143,8 +143,9 @@ pub struct Issued {
     pub sig: hook::Sig,
 }
 
-/// `[custom ]op[/variant] dtype:layout,... -> dtype[ (empty)]`, layouts by
-/// [`hook::Lay::letter`]: `matmul f32:n,f32:t -> f32`, `reduce-sum/small f32:s -> f32`.
+/// `[custom ]op[/variant][ dtype:layout,...] -> dtype[ (empty)]`, layouts by
+/// [`hook::Lay::letter`]: `matmul f32:n,f32:t -> f32`, `reduce-sum/small f32:s -> f32`,
+/// `zeros -> f32`.
 impl std::fmt::Display for Issued {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         let s = &self.sig;
@@ -161,7 +162,10 @@ impl std::fmt::Display for Issued {
             .flatten()
             .map(|(d, l)| format!("{}:{}", d.as_str(), l.letter()))
             .collect();
-        write!(f, " {} -> {}", inputs.join(","), s.output.as_str())?;
+        if !inputs.is_empty() {
+            write!(f, " {}", inputs.join(","))?;
+        }
+        write!(f, " -> {}", s.output.as_str())?;
         if s.empty {
             f.write_str(" (empty)")?;
         }
