@@ -351,7 +351,7 @@ fn passes(model: &Config) -> BTreeMap<&'static str, Vec<Issued>> {
     let away = missing_rays(&batch);
     for opts in &options {
         for r in inference(avatar, &away, opts) {
-            add("culled, every ray misses", r);
+            add("culled (every ray misses)", r);
         }
     }
     let opts = PassOptions::culled(culling(SampleFill::Network));
@@ -360,7 +360,7 @@ fn passes(model: &Config) -> BTreeMap<&'static str, Vec<Issued>> {
             .forward(&away.rays, &away.poses, &mut Mode::Train(None), &opts, None)
             .unwrap()
     });
-    add("culled, every ray misses", r);
+    add("culled (every ray misses)", r);
     out
 }
 
