@@ -10,6 +10,7 @@ mod train_support;
 mod account;
 mod camera_path;
 mod checkpoint;
+mod cuda_coverage;
 mod cuda_route;
 mod culling;
 mod early_stop;

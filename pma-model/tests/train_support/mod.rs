@@ -69,9 +69,8 @@ pub fn adam_bits(t: &Trainer) -> Vec<(String, u64, Vec<u32>, Vec<u32>)> {
         .collect()
 }
 
-/// The first training batch `run`'s sampler draws from `data`.
-pub fn first_batch(data: &Arc<Dataset>, run: &RunConfig) -> pma_model::train::TrainBatch {
-    use pma_model::train::BatchSource;
+/// `run`'s batch sampler on `data`, on the CPU.
+pub fn dataset_source(data: &Arc<Dataset>, run: &RunConfig) -> pma_model::train::DatasetSource {
     let t = &run.train;
     pma_model::train::DatasetSource::new(
         data.clone(),
@@ -82,6 +81,10 @@ pub fn first_batch(data: &Arc<Dataset>, run: &RunConfig) -> pma_model::train::Tr
         &candle_core::Device::Cpu,
     )
     .unwrap()
-    .next_batch()
-    .unwrap()
+}
+
+/// The first training batch `run`'s sampler draws from `data`.
+pub fn first_batch(data: &Arc<Dataset>, run: &RunConfig) -> pma_model::train::TrainBatch {
+    use pma_model::train::BatchSource;
+    dataset_source(data, run).next_batch().unwrap()
 }

@@ -8,6 +8,10 @@
 //! `to_device` onto a device). When no thread has a sink, each hook is one relaxed atomic
 //! load.
 //!
+//! Each storage operation's event also carries its [`Sig`]: the dtypes and layouts candle's
+//! CUDA backend picks its kernel by, so that a run's distinct signatures can be checked
+//! against what that backend implements.
+//!
 //! On a real device, operations on CPU storage are host work and are not counted. A sink
 //! made with `host_as_device` counts CPU storage as if it were the device instead: every
 //! operation, every copy out of a tensor into host memory (`to_vec*`, `to_scalar`) and every
@@ -55,10 +59,72 @@ pub struct Op {
     pub flops: u64,
 }
 
+/// How candle's CUDA backend sees an input's layout.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum Lay {
+    /// Row-major from its start offset: the kernels' fast path, and the only layout the
+    /// indexing kernels take for everything but `index_select`'s indices (`index_select`'s
+    /// and `gather`'s source, `gather`'s indices, and the destination, indices and source of
+    /// `index_add`, `scatter` and `scatter_add`).
+    Contiguous,
+    /// Anything else: element-wise kernels index it through the uploaded dims and strides.
+    /// A matmul operand is `Strided` when cuBLAS can read it neither as stored nor
+    /// transposed (the backend refuses it).
+    Strided,
+    /// A matmul operand cuBLAS reads as stored (`CUBLAS_OP_N`).
+    Normal,
+    /// A matmul operand cuBLAS reads transposed (`CUBLAS_OP_T`).
+    Transposed,
+}
+
+impl Lay {
+    /// One letter per layout (`c`, `s`, `n`, `t`).
+    pub fn letter(self) -> char {
+        match self {
+            Lay::Contiguous => 'c',
+            Lay::Strided => 's',
+            Lay::Normal => 'n',
+            Lay::Transposed => 't',
+        }
+    }
+}
+
+/// What candle's CUDA backend picks an operation's kernel by: each input's dtype and layout,
+/// the output's dtype, a kernel variant and whether there is any element.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct Sig {
+    /// A custom op (`apply_op*`, `inplace_op`): its own kernels, not the backend's.
+    pub custom: bool,
+    /// The inputs in the backend method's order (`where_cond`: condition, then the two
+    /// branches; `index_add`, `scatter`: destination, indices, source); unused slots `None`.
+    pub inputs: [Option<(DType, Lay)>; 3],
+    pub output: DType,
+    /// A kernel the backend picks by size: `"small"` for a sum of at most 32 elements per
+    /// output (`fast_sum_small_*`); empty otherwise.
+    pub variant: &'static str,
+    /// The operation's kernel would run no thread (an empty grid): an empty output, or for
+    /// `index_add` and `scatter*` no row of the source outside the indexed dim.
+    pub empty: bool,
+}
+
+impl Sig {
+    fn new(inputs: &[(DType, Lay)], output: DType, elements: usize) -> Self {
+        Self {
+            custom: false,
+            inputs: std::array::from_fn(|i| inputs.get(i).copied()),
+            output,
+            variant: "",
+            empty: elements == 0,
+        }
+    }
+}
+
 /// What an [`Observer`] is told.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Event {
-    Op(Op),
+    /// A storage operation, with its signature (none for an op [`record`]ed beside a custom
+    /// op: a kernel of that op, not a backend call).
+    Op(Op, Option<Sig>),
     /// A device → host copy: on a GPU the host waits for the stream (a sync).
     Read {
         bytes: u64,
@@ -249,7 +315,7 @@ pub fn uncounted<T>(f: impl FnOnce() -> T) -> T {
 /// computes another way on this device, see [`uncounted`]).
 pub fn record(cpu: bool, op: Op) {
     if on() {
-        emit(cpu, || Event::Op(op));
+        emit(cpu, || Event::Op(op, None));
     }
 }
 
@@ -323,9 +389,12 @@ fn emit(cpu: bool, event: impl FnOnce() -> Event) {
 
 /// Count an operation on storage of the CPU (`cpu`) or of a device.
 #[inline]
-pub(crate) fn op(cpu: bool, op: impl FnOnce() -> Op) {
+pub(crate) fn op(cpu: bool, op: impl FnOnce() -> (Op, Sig)) {
     if on() {
-        emit(cpu, || Event::Op(op()));
+        emit(cpu, || {
+            let (op, sig) = op();
+            Event::Op(op, Some(sig))
+        });
     }
 }
 
@@ -374,13 +443,21 @@ pub(crate) fn custom<T>(
         )
     });
     let flops = REPORTED_FLOPS.with(|r| r.replace(0));
-    op(cpu, || Op {
-        name,
-        launches,
-        param_uploads,
-        bytes_read,
-        bytes_written,
-        flops,
+    op(cpu, || {
+        let ins: Vec<(DType, Lay)> = inputs.iter().map(|(l, d)| (*d, lay(l))).collect();
+        let sig = Sig {
+            custom: true,
+            ..Sig::new(&ins, dtype, shape.elem_count())
+        };
+        let op = Op {
+            name,
+            launches,
+            param_uploads,
+            bytes_read,
+            bytes_written,
+            flops,
+        };
+        (op, sig)
     });
     Ok((t, shape))
 }
@@ -404,17 +481,55 @@ fn strided(l: &Layout) -> u32 {
     u32::from(!l.is_contiguous())
 }
 
+/// [`Lay::Contiguous`] or [`Lay::Strided`].
+fn lay(l: &Layout) -> Lay {
+    match l.is_contiguous() {
+        true => Lay::Contiguous,
+        false => Lay::Strided,
+    }
+}
+
+/// How cuBLAS reads a matmul operand of `rows` × `cols` (its last two dims) batched over
+/// the dims before them, as the backend's GEMM setup decides: [`Lay::Normal`] when its rows
+/// are consecutive (row stride `cols`, unit column stride), [`Lay::Transposed`] when its
+/// columns are (unit row stride, column stride `rows`), a single row or column counting as
+/// either; the batch needs one stride (any stride for one batch dim; for two, the outer a
+/// multiple of the inner or one of them of size 1). Anything else is [`Lay::Strided`],
+/// which the backend refuses.
+fn gemm_lay(l: &Layout, rows: usize, cols: usize) -> Lay {
+    let (dims, stride) = (l.dims(), l.stride());
+    let r = stride.len();
+    if r < 2 {
+        return Lay::Strided;
+    }
+    let (row_s, col_s) = (stride[r - 2], stride[r - 1]);
+    let batch_ok = match (&dims[..r - 2], &stride[..r - 2]) {
+        ([], []) | ([_], [_]) => true,
+        ([d0, d1], [s0, s1]) => *s0 == s1 * d1 || *d0 == 1 || *d1 == 1,
+        _ => false,
+    };
+    let normal = (col_s == 1 || cols == 1) && (row_s == cols || rows == 1);
+    let transposed = (col_s == rows || cols == 1) && (row_s == 1 || rows == 1);
+    match (batch_ok, normal, transposed) {
+        (true, true, _) => Lay::Normal,
+        (true, false, true) => Lay::Transposed,
+        _ => Lay::Strided,
+    }
+}
+
 /// A one-input element-wise kernel (unary, affine, powf, elu, casts): dims and strides are
 /// uploaded for a strided input.
-pub(crate) fn map(name: &'static str, l: &Layout, input: DType, output: DType) -> Op {
-    Op {
+pub(crate) fn map(name: &'static str, l: &Layout, input: DType, output: DType) -> (Op, Sig) {
+    let n = l.shape().elem_count();
+    let op = Op {
         name,
         launches: 1,
         param_uploads: strided(l),
         bytes_read: bytes(l, input),
-        bytes_written: (l.shape().elem_count() * output.size_in_bytes()) as u64,
+        bytes_written: (n * output.size_in_bytes()) as u64,
         flops: 0,
-    }
+    };
+    (op, Sig::new(&[(input, lay(l))], output, n))
 }
 
 /// A two-input element-wise kernel (binary ops, comparisons): one upload when either input
@@ -425,122 +540,169 @@ pub(crate) fn map2(
     rhs: &Layout,
     input: DType,
     output: DType,
-) -> Op {
-    Op {
+) -> (Op, Sig) {
+    let n = lhs.shape().elem_count();
+    let op = Op {
         name,
         launches: 1,
         param_uploads: u32::from(!lhs.is_contiguous() || !rhs.is_contiguous()),
         bytes_read: bytes(lhs, input) + bytes(rhs, input),
-        bytes_written: (lhs.shape().elem_count() * output.size_in_bytes()) as u64,
+        bytes_written: (n * output.size_in_bytes()) as u64,
         flops: 0,
-    }
+    };
+    let sig = Sig::new(&[(input, lay(lhs)), (input, lay(rhs))], output, n);
+    (op, sig)
 }
 
 /// `const_set`: a fill kernel, dims and strides uploaded when strided.
-pub(crate) fn fill(l: &Layout, dtype: DType) -> Op {
-    Op {
+pub(crate) fn fill(l: &Layout, dtype: DType) -> (Op, Sig) {
+    let n = l.shape().elem_count();
+    let op = Op {
         name: "const-set",
         launches: 1,
         param_uploads: strided(l),
         bytes_read: 0,
-        bytes_written: (l.shape().elem_count() * dtype.size_in_bytes()) as u64,
+        bytes_written: (n * dtype.size_in_bytes()) as u64,
         flops: 0,
-    }
+    };
+    (op, Sig::new(&[(dtype, lay(l))], dtype, n))
 }
 
-/// A reduction over `dims`: the fast reduce kernels always upload dims and strides.
-pub(crate) fn reduce(name: &'static str, l: &Layout, dims: &[usize], dtype: DType) -> Op {
+/// A reduction over `dims`: the fast reduce kernels always upload dims and strides; a sum
+/// of at most 32 elements per output takes the small-sum kernel.
+pub(crate) fn reduce(name: &'static str, l: &Layout, dims: &[usize], dtype: DType) -> (Op, Sig) {
     let reduced: usize = dims.iter().map(|&d| l.dims()[d]).product();
     let out = l.shape().elem_count() / reduced.max(1);
-    let out_size = if name.starts_with("reduce-arg") {
-        DType::U32.size_in_bytes()
-    } else {
-        dtype.size_in_bytes()
+    let out_dtype = match name.starts_with("reduce-arg") {
+        true => DType::U32,
+        false => dtype,
     };
-    Op {
+    let op = Op {
         name,
         launches: 1,
         param_uploads: 1,
         bytes_read: bytes(l, dtype),
-        bytes_written: (out * out_size) as u64,
+        bytes_written: (out * out_dtype.size_in_bytes()) as u64,
         flops: 0,
-    }
+    };
+    let sig = Sig {
+        variant: match name == "reduce-sum" && reduced <= 32 {
+            true => "small",
+            false => "",
+        },
+        ..Sig::new(&[(dtype, lay(l))], out_dtype, out)
+    };
+    (op, sig)
 }
 
 /// `where_cond`: always uploads dims and the three stride sets.
-pub(crate) fn where_cond(cond: &Layout, c: DType, t: &Layout, f: &Layout, dtype: DType) -> Op {
-    Op {
+pub(crate) fn where_cond(
+    cond: &Layout,
+    c: DType,
+    t: &Layout,
+    f: &Layout,
+    dtype: DType,
+) -> (Op, Sig) {
+    let n = cond.shape().elem_count();
+    let op = Op {
         name: "where",
         launches: 1,
         param_uploads: 1,
         bytes_read: bytes(cond, c) + bytes(t, dtype) + bytes(f, dtype),
-        bytes_written: (cond.shape().elem_count() * dtype.size_in_bytes()) as u64,
+        bytes_written: (n * dtype.size_in_bytes()) as u64,
         flops: 0,
-    }
+    };
+    let sig = Sig::new(&[(c, lay(cond)), (dtype, lay(t)), (dtype, lay(f))], dtype, n);
+    (op, sig)
 }
 
-/// `gather` along a dim: one thread per output element, no upload.
-pub(crate) fn gather(ids: &Layout, id: DType, dtype: DType) -> Op {
+/// `gather` from `src` along a dim: one thread per output element, no upload.
+pub(crate) fn gather(src: &Layout, ids: &Layout, id: DType, dtype: DType) -> (Op, Sig) {
     let out = ids.shape().elem_count();
-    Op {
+    let op = Op {
         name: "gather",
         launches: 1,
         param_uploads: 0,
         bytes_read: bytes(ids, id) + (out * dtype.size_in_bytes()) as u64,
         bytes_written: (out * dtype.size_in_bytes()) as u64,
         flops: 0,
-    }
+    };
+    (op, Sig::new(&[(dtype, lay(src)), (id, lay(ids))], dtype, out))
 }
 
 /// `index_select` of `src` rows by `ids` along `dim`: uploads the ids' dims and strides.
-pub(crate) fn index_select(src: &Layout, ids: &Layout, id: DType, dim: usize, dtype: DType) -> Op {
-    let d = src.dims();
-    let rest: usize = d[..dim].iter().product::<usize>() * d[dim + 1..].iter().product::<usize>();
-    let out = ids.shape().elem_count() * rest;
-    Op {
+pub(crate) fn index_select(
+    src: &Layout,
+    ids: &Layout,
+    id: DType,
+    dim: usize,
+    dtype: DType,
+) -> (Op, Sig) {
+    let out = ids.shape().elem_count() * outside(src, dim);
+    let op = Op {
         name: "index-select",
         launches: 1,
         param_uploads: 1,
         bytes_read: bytes(ids, id) + (out * dtype.size_in_bytes()) as u64,
         bytes_written: (out * dtype.size_in_bytes()) as u64,
         flops: 0,
-    }
+    };
+    (op, Sig::new(&[(dtype, lay(src)), (id, lay(ids))], dtype, out))
 }
 
-/// `index_add` into a copy of `dst`: the copy (a memcpy, or a strided copy with its upload)
-/// then the adding kernel.
-pub(crate) fn index_add(dst: &Layout, ids: &Layout, id: DType, src: &Layout, dtype: DType) -> Op {
+/// The elements of `l` outside dim `dim`: the threads of the `index_add` and `scatter`
+/// kernels.
+fn outside(l: &Layout, dim: usize) -> usize {
+    let d = l.dims();
+    d[..dim].iter().product::<usize>() * d[dim + 1..].iter().product::<usize>()
+}
+
+/// `index_add` into a copy of `dst` along `dim`: the copy (a memcpy, or a strided copy with
+/// its upload) then the adding kernel.
+pub(crate) fn index_add(
+    dst: &Layout,
+    ids: &Layout,
+    id: DType,
+    src: &Layout,
+    dim: usize,
+    dtype: DType,
+) -> (Op, Sig) {
     let s = dtype.size_in_bytes() as u64;
     let n_dst = dst.shape().elem_count() as u64;
     let n_src = src.shape().elem_count() as u64;
-    Op {
+    let op = Op {
         name: "index-add",
         launches: 2,
         param_uploads: strided(dst),
         bytes_read: n_dst * s + bytes(ids, id) + bytes(src, dtype) + n_src * s,
         bytes_written: n_dst * s + n_src * s,
         flops: 0,
-    }
+    };
+    let ins = [(dtype, lay(dst)), (id, lay(ids)), (dtype, lay(src))];
+    (op, Sig::new(&ins, dtype, outside(src, dim)))
 }
 
-/// `scatter`/`scatter_add` in place: one launch, no upload.
+/// `scatter`/`scatter_add` of `src` into `dst` in place along `dim`: one launch, no upload.
 pub(crate) fn scatter(
     name: &'static str,
+    dst: &Layout,
     ids: &Layout,
     id: DType,
-    src: &Layout,
+    (src, dim): (&Layout, usize),
     dtype: DType,
-) -> Op {
-    let n = src.shape().elem_count() as u64;
+) -> (Op, Sig) {
+    let n = src.shape().elem_count();
     let s = dtype.size_in_bytes() as u64;
-    Op {
+    let op = Op {
         name,
         launches: 1,
         param_uploads: 0,
-        bytes_read: bytes(ids, id) + bytes(src, dtype) + n * s,
-        bytes_written: n * s,
+        bytes_read: bytes(ids, id) + bytes(src, dtype) + n as u64 * s,
+        bytes_written: n as u64 * s,
         flops: 0,
-    }
+    };
+    let ins = [(dtype, lay(dst)), (id, lay(ids)), (dtype, lay(src))];
+    (op, Sig::new(&ins, dtype, outside(src, dim)))
 }
 
 /// A batched matmul (one cuBLAS call): 2·b·m·n·k FLOPs.
@@ -549,81 +711,99 @@ pub(crate) fn matmul(
     lhs: &Layout,
     rhs: &Layout,
     dtype: DType,
-) -> Op {
-    Op {
+) -> (Op, Sig) {
+    let op = Op {
         name: "matmul",
         launches: 1,
         param_uploads: 0,
         bytes_read: bytes(lhs, dtype) + bytes(rhs, dtype),
         bytes_written: (b * m * n * dtype.size_in_bytes()) as u64,
         flops: 2 * (b * m * n * k) as u64,
-    }
+    };
+    let ins = [(dtype, gemm_lay(lhs, m, k)), (dtype, gemm_lay(rhs, k, n))];
+    (op, Sig::new(&ins, dtype, b * m * n))
 }
 
 /// `copy_strided_src`: a device memcpy for a contiguous source, else a strided copy kernel
 /// with its upload. Nothing for an empty source.
-pub(crate) fn copy(src: &Layout, dtype: DType) -> Op {
-    let n = (src.shape().elem_count() * dtype.size_in_bytes()) as u64;
+pub(crate) fn copy(src: &Layout, dtype: DType) -> (Op, Sig) {
+    let elements = src.shape().elem_count();
+    let n = (elements * dtype.size_in_bytes()) as u64;
     let contiguous = src.is_contiguous();
-    Op {
+    let op = Op {
         name: if contiguous { "copy" } else { "copy-strided" },
         launches: u32::from(n != 0),
         param_uploads: u32::from(n != 0 && !contiguous),
         bytes_read: n,
         bytes_written: n,
         flops: 0,
-    }
+    };
+    (op, Sig::new(&[(dtype, lay(src))], dtype, elements))
 }
 
-/// `copy2d` (cat and slice assignment): one kernel unless empty.
-pub(crate) fn copy2d(d1: usize, d2: usize, dtype: DType) -> Op {
+/// `copy2d` (cat and slice assignment) of `d1` rows of `d2` elements, `src_s` apart: one
+/// kernel unless empty.
+pub(crate) fn copy2d(d1: usize, d2: usize, src_s: usize, dtype: DType) -> (Op, Sig) {
     let n = (d1 * d2 * dtype.size_in_bytes()) as u64;
-    Op {
+    let op = Op {
         name: "copy2d",
         launches: u32::from(n != 0),
         param_uploads: 0,
         bytes_read: n,
         bytes_written: n,
         flops: 0,
-    }
+    };
+    let src = match src_s == d2 || d1 <= 1 {
+        true => Lay::Contiguous,
+        false => Lay::Strided,
+    };
+    (op, Sig::new(&[(dtype, src)], dtype, d1 * d2))
 }
 
 /// A fresh buffer filled on the device: zeros (a memset), or random values.
-pub(crate) fn fresh(name: &'static str, shape: &Shape, dtype: DType) -> Op {
-    Op {
+pub(crate) fn fresh(name: &'static str, shape: &Shape, dtype: DType) -> (Op, Sig) {
+    let n = shape.elem_count();
+    let op = Op {
         name,
         launches: 1,
         param_uploads: 0,
         bytes_read: 0,
-        bytes_written: (shape.elem_count() * dtype.size_in_bytes()) as u64,
+        bytes_written: (n * dtype.size_in_bytes()) as u64,
         flops: 0,
-    }
+    };
+    (op, Sig::new(&[], dtype, n))
 }
 
 /// A copy of a whole layout's storage (`Tensor::copy`).
-pub(crate) fn clone(l: &Layout, dtype: DType) -> Op {
-    let n = (l.shape().elem_count() * dtype.size_in_bytes()) as u64;
-    Op {
+pub(crate) fn clone(l: &Layout, dtype: DType) -> (Op, Sig) {
+    let elements = l.shape().elem_count();
+    let n = (elements * dtype.size_in_bytes()) as u64;
+    let op = Op {
         name: "clone",
         launches: 1,
         param_uploads: 0,
         bytes_read: n,
         bytes_written: n,
         flops: 0,
-    }
+    };
+    (op, Sig::new(&[(dtype, lay(l))], dtype, elements))
 }
 
 /// Convolutions, pooling, upsampling: one kernel with its dims/strides upload; input bytes
 /// only (pma uses none of them).
-pub(crate) fn other(name: &'static str, inputs: &[(&Layout, DType)]) -> Op {
-    Op {
+pub(crate) fn other(name: &'static str, inputs: &[(&Layout, DType)]) -> (Op, Sig) {
+    let op = Op {
         name,
         launches: 1,
         param_uploads: 1,
         bytes_read: inputs.iter().map(|(l, d)| bytes(l, *d)).sum(),
         bytes_written: 0,
         flops: 0,
-    }
+    };
+    let ins: Vec<(DType, Lay)> = inputs.iter().map(|(l, d)| (*d, lay(l))).collect();
+    let dtype = inputs.first().map_or(DType::F32, |(_, d)| *d);
+    let elements = inputs.first().map_or(0, |(l, _)| l.shape().elem_count());
+    (op, Sig::new(&ins, dtype, elements))
 }
 
 /// Bytes of a layout's elements (reads and uploads of whole tensors).

@@ -789,7 +789,7 @@ impl Storage {
     ) -> Result<Self> {
         self.same_device(indexes, "index-add")?;
         account::op(self.on_cpu(), || {
-            account::gather(indexes_l, indexes.dtype(), self.dtype())
+            account::gather(l, indexes_l, indexes.dtype(), self.dtype())
         });
         match (self, indexes) {
             (Self::Cpu(s), Self::Cpu(indexes)) => {
@@ -822,9 +822,10 @@ impl Storage {
         account::op(self.on_cpu(), || {
             account::scatter(
                 "scatter",
+                l,
                 indexes_l,
                 indexes.dtype(),
-                source_l,
+                (source_l, d),
                 self.dtype(),
             )
         });
@@ -857,9 +858,10 @@ impl Storage {
         account::op(self.on_cpu(), || {
             account::scatter(
                 "scatter-add",
+                l,
                 indexes_l,
                 indexes.dtype(),
-                source_l,
+                (source_l, d),
                 self.dtype(),
             )
         });
@@ -890,7 +892,7 @@ impl Storage {
         self.same_device(indexes, "index-add")?;
         self.same_device(source, "index-add")?;
         account::op(self.on_cpu(), || {
-            account::index_add(l, indexes_l, indexes.dtype(), source_l, self.dtype())
+            account::index_add(l, indexes_l, indexes.dtype(), source_l, d, self.dtype())
         });
         match (self, indexes, source) {
             (Self::Cpu(s), Self::Cpu(indexes), Self::Cpu(source)) => {
@@ -1010,7 +1012,9 @@ impl Storage {
         src_o: usize,
         dst_o: usize,
     ) -> Result<()> {
-        account::op(self.on_cpu(), || account::copy2d(d1, d2, self.dtype()));
+        account::op(self.on_cpu(), || {
+            account::copy2d(d1, d2, src_s, self.dtype())
+        });
         match (self, dst) {
             (Self::Cpu(src), Self::Cpu(dst)) => src.copy2d(dst, d1, d2, src_s, dst_s, src_o, dst_o),
             (Self::Cuda(src), Self::Cuda(dst)) => {

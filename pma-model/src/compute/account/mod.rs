@@ -7,6 +7,9 @@
 //! (a sync on a GPU) and each explicit upload. This module turns those events into
 //! [`Counts`] per stage (the stage names of [`crate::compute::profile`]'s marks) and per op
 //! name, and ([`cost`]) into an estimated step time on a named GPU ([`Gpu`], [`estimate`]).
+//! It also keeps the distinct signatures of the run's ops ([`Issued`]): what candle's CUDA
+//! backend must implement for the run (docs/gpu.md, "What candle's CUDA backend must
+//! implement").
 //!
 //! While an [`Account`] is open on a CPU run with [`Route::Cuda`], pma takes the route a
 //! CUDA device would take: no fused CPU kernels, candle's own sine where CUDA uses it, one
@@ -15,7 +18,7 @@
 //! threads keep theirs. Outside an accounted run the check costs one relaxed atomic load.
 
 use std::cell::RefCell;
-use std::collections::{BTreeMap, HashMap};
+use std::collections::{BTreeMap, HashMap, HashSet};
 use std::sync::{Arc, Mutex};
 use std::thread::ThreadId;
 
@@ -86,7 +89,7 @@ impl Counts {
     /// Add one event.
     pub fn add(&mut self, e: &Event) {
         match *e {
-            Event::Op(op) => {
+            Event::Op(op, _) => {
                 self.ops += 1;
                 self.launches += u64::from(op.launches);
                 self.param_uploads += u64::from(op.param_uploads);
@@ -130,6 +133,46 @@ impl Counts {
     }
 }
 
+/// One distinct operation of an accounted run as candle's CUDA backend picks its kernel:
+/// the op's name and its signature (input dtypes and layouts, output dtype, kernel variant,
+/// empty grid). Custom ops are pma's own; the kernels they [`record`](hook::record) beside
+/// themselves have none.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct Issued {
+    pub op: &'static str,
+    pub sig: hook::Sig,
+}
+
+/// `[custom ]op[/variant][ dtype:layout,...] -> dtype[ (empty)]`, layouts by
+/// [`hook::Lay::letter`]: `matmul f32:n,f32:t -> f32`, `reduce-sum/small f32:s -> f32`,
+/// `zeros -> f32`.
+impl std::fmt::Display for Issued {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let s = &self.sig;
+        if s.custom {
+            f.write_str("custom ")?;
+        }
+        f.write_str(self.op)?;
+        if !s.variant.is_empty() {
+            write!(f, "/{}", s.variant)?;
+        }
+        let inputs: Vec<String> = s
+            .inputs
+            .iter()
+            .flatten()
+            .map(|(d, l)| format!("{}:{}", d.as_str(), l.letter()))
+            .collect();
+        if !inputs.is_empty() {
+            write!(f, " {}", inputs.join(","))?;
+        }
+        write!(f, " -> {}", s.output.as_str())?;
+        if s.empty {
+            f.write_str(" (empty)")?;
+        }
+        Ok(())
+    }
+}
+
 /// One op as the cost model sees it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Cost {
@@ -170,6 +213,17 @@ pub struct Report {
     /// The live bytes after every allocation of the run, in order (for [`Self::extrapolate`]).
     #[serde(skip)]
     pub live_trace: Vec<u64>,
+    /// The run's distinct op signatures, in the order of their text.
+    #[serde(skip)]
+    pub issued: Vec<Issued>,
+}
+
+/// `issued` without repeats, in the order of their text.
+fn distinct(issued: impl IntoIterator<Item = Issued>) -> Vec<Issued> {
+    let set: HashSet<Issued> = issued.into_iter().collect();
+    let mut v: Vec<(String, Issued)> = set.into_iter().map(|i| (i.to_string(), i)).collect();
+    v.sort_by(|a, b| a.0.cmp(&b.0));
+    v.into_iter().map(|(_, i)| i).collect()
 }
 
 impl Report {
@@ -309,6 +363,9 @@ impl Report {
             ops,
             peak_live_bytes: live_trace.iter().copied().max().unwrap_or(0),
             live_trace,
+            // What sizes decide (a small sum's kernel, an empty grid) can differ between
+            // sizes: every signature of the three runs.
+            issued: distinct([a, b, c].iter().flat_map(|r| r.issued.iter().copied())),
         })
     }
 }
@@ -453,6 +510,7 @@ struct TallyInner {
     /// Per thread, what happened since its last mark.
     pending: HashMap<ThreadId, (Counts, Vec<Cost>)>,
     stages: Vec<Stage>,
+    issued: HashSet<Issued>,
 }
 
 impl TallyInner {
@@ -481,7 +539,7 @@ impl hook::Observer for Tally {
         t.total.add(e);
         let pending = t.pending.entry(thread).or_default();
         pending.0.add(e);
-        if let Event::Op(op) = e {
+        if let Event::Op(op, sig) = e {
             pending.1.push(Cost {
                 op: op.name,
                 launches: op.launches,
@@ -489,6 +547,12 @@ impl hook::Observer for Tally {
                 flops: op.flops,
             });
             t.ops.entry(op.name).or_default().add(e);
+            if let Some(sig) = sig {
+                t.issued.insert(Issued {
+                    op: op.name,
+                    sig: *sig,
+                });
+            }
         }
     }
 }
@@ -633,6 +697,7 @@ impl Account {
             ops,
             peak_live_bytes: self.sink.peak_live_bytes(),
             live_trace: self.sink.live_trace(),
+            issued: distinct(t.issued.drain()),
         }
     }
 }
@@ -895,6 +960,61 @@ mod tests {
             r.peak_live_bytes <= activations + 3 * act + weights + 4096,
             "peak {} for {activations} of activations",
             r.peak_live_bytes
+        );
+    }
+
+    /// Each op's signature as candle's CUDA backend picks its kernel: dtypes, layouts (a
+    /// matmul operand read as stored or transposed, over a broadcast batch, or in a batch
+    /// layout cuBLAS cannot take; a strided view), the small-sum kernel, an empty grid, a
+    /// custom op.
+    #[test]
+    fn signatures_name_dtypes_layouts_variants_and_empty_grids() {
+        let dev = Device::Cpu;
+        let x = Tensor::ones((3, 5), DType::F32, &dev).unwrap();
+        let w = Tensor::ones((4, 5), DType::F32, &dev).unwrap();
+        let wide = Tensor::ones((2, 64), DType::F32, &dev).unwrap();
+        let adj = Tensor::ones((24, 24), DType::F32, &dev).unwrap();
+        let feats = Tensor::ones((2, 24, 8), DType::F32, &dev).unwrap();
+        // [2,3,24,24] whose two batch dims are swapped: no single batch stride.
+        let swapped = Tensor::ones((3, 2, 24, 24), DType::F32, &dev)
+            .unwrap()
+            .transpose(0, 1)
+            .unwrap();
+        let per = Tensor::ones((2, 3, 24, 8), DType::F32, &dev).unwrap();
+        let ids = Tensor::new(&[2u32, 0], &dev).unwrap();
+        let none = Tensor::zeros((0, 3), DType::F32, &dev).unwrap();
+        let (_, r) = measure(&dev, Route::Cuda, || {
+            x.matmul(&w.t()?)?;
+            adj.unsqueeze(0)?
+                .broadcast_as((2, 24, 24))?
+                .matmul(&feats)?;
+            // The CPU may or may not take it; the signature is counted before it runs.
+            let _ = swapped.matmul(&per);
+            x.t()?.exp()?;
+            x.sum(1)?;
+            wide.sum(1)?;
+            x.index_select(&ids, 0)?;
+            none.ge(&none)?;
+            x.to_dtype(DType::F64)?;
+            candle_nn::ops::sigmoid(&x)?;
+            Ok(())
+        })
+        .unwrap();
+        let got: Vec<String> = r.issued.iter().map(|i| i.to_string()).collect();
+        assert_eq!(
+            got,
+            [
+                "cmp-ge f32:c,f32:c -> u8 (empty)",
+                "custom sigmoid f32:c -> f32",
+                "exp f32:s -> f32",
+                "index-select f32:c,u32:c -> f32",
+                "matmul f32:n,f32:n -> f32",
+                "matmul f32:n,f32:t -> f32",
+                "matmul f32:s,f32:n -> f32",
+                "reduce-sum f32:c -> f32",
+                "reduce-sum/small f32:c -> f32",
+                "to-dtype f32:c -> f64",
+            ]
         );
     }
 
