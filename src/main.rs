@@ -1,7 +1,8 @@
 //! `pma`: Pose Modulated Avatars from video, on candle.
 //!
 //! The binary only parses arguments and calls the libraries (`pma-data`,
-//! `pma-model`, `pma-convert`); each subcommand lives in `src/cli/<name>.rs`.
+//! `pma-model`, `pma-convert`); each subcommand lives in `src/cli/<name>.rs` (or
+//! `src/cli/<name>/` when it has subcommands or parts of its own).
 
 use std::process::ExitCode;
 

@@ -2,7 +2,7 @@
 //! the file and the key, and says what was expected and what was found, so a
 //! bad dataset can be fixed from the message alone.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 /// Result alias for the data layer.
 pub type Result<T, E = DataError> = std::result::Result<T, E>;
@@ -76,11 +76,13 @@ pub fn one_line(msg: &str) -> String {
     out
 }
 
+/// A file that could not be read or written: the one file error of every pma error type
+/// (data, model, training, evaluation), which each wraps as it is.
 #[derive(Debug, thiserror::Error)]
-pub enum DataError {
-    /// Reading an input failed (see [`input_io_kind`]).
+pub enum FileError {
+    /// Reading an input failed: refused input or a failure (see [`input_io_kind`]).
     #[error("{path}: {source}")]
-    Io {
+    Read {
         path: PathBuf,
         #[source]
         source: std::io::Error,
@@ -93,6 +95,47 @@ pub enum DataError {
         #[source]
         source: std::io::Error,
     },
+}
+
+impl FileError {
+    pub fn read(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
+        Self::Read {
+            path: path.into(),
+            source,
+        }
+    }
+
+    pub fn write(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
+        Self::Write {
+            path: path.into(),
+            source,
+        }
+    }
+
+    /// A `map_err` for reading `path`.
+    pub fn reading(path: &Path) -> impl FnOnce(std::io::Error) -> Self + '_ {
+        move |source| Self::read(path, source)
+    }
+
+    /// A `map_err` for writing `path`.
+    pub fn writing(path: &Path) -> impl FnOnce(std::io::Error) -> Self + '_ {
+        move |source| Self::write(path, source)
+    }
+}
+
+impl ExitKind for FileError {
+    fn kind(&self) -> ErrorKind {
+        match self {
+            FileError::Read { source, .. } => input_io_kind(source),
+            FileError::Write { .. } => ErrorKind::Failure,
+        }
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum DataError {
+    #[error(transparent)]
+    File(#[from] FileError),
 
     /// The container itself is unreadable (not a zip, truncated member, bad npy header).
     #[error("{file}: {key}: {msg}")]
@@ -206,8 +249,7 @@ pub enum DataError {
 impl ExitKind for DataError {
     fn kind(&self) -> ErrorKind {
         match self {
-            DataError::Io { source, .. } => input_io_kind(source),
-            DataError::Write { .. } => ErrorKind::Failure,
+            DataError::File(f) => f.kind(),
             DataError::Interrupted(_) => ErrorKind::Interrupted,
             _ => ErrorKind::Refused,
         }
@@ -216,17 +258,11 @@ impl ExitKind for DataError {
 
 impl DataError {
     pub(crate) fn write(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
-        DataError::Write {
-            path: path.into(),
-            source,
-        }
+        FileError::write(path, source).into()
     }
 
     pub(crate) fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
-        DataError::Io {
-            path: path.into(),
-            source,
-        }
+        FileError::read(path, source).into()
     }
 
     pub(crate) fn arg(
@@ -239,5 +275,33 @@ impl DataError {
             expected: expected.into(),
             found: found.to_string(),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::error::Error as _;
+    use std::io;
+
+    /// The file error reads as the data layer's own read and write errors did ("PATH: ERROR",
+    /// "writing PATH: ERROR"), keeps the I/O error as its source, and its kind follows the
+    /// I/O error on a read and is a failure on a write, also wrapped in a [`DataError`].
+    #[test]
+    fn file_errors_name_the_file_and_keep_their_kind() {
+        let missing = || io::Error::new(io::ErrorKind::NotFound, "No such file");
+        let full = || io::Error::new(io::ErrorKind::StorageFull, "disk full");
+        let read = DataError::io("/d/train.npz", missing());
+        assert_eq!(read.to_string(), "/d/train.npz: No such file");
+        assert_eq!(read.kind(), ErrorKind::Refused);
+        let source = read.source().and_then(|s| s.downcast_ref::<io::Error>());
+        assert_eq!(source.map(io::Error::kind), Some(io::ErrorKind::NotFound));
+        let broken = FileError::read("/d/x", io::Error::other("device error"));
+        assert_eq!(broken.kind(), ErrorKind::Failure);
+        let write = DataError::write("/out/a.npz", full());
+        assert_eq!(write.to_string(), "writing /out/a.npz: disk full");
+        assert_eq!(write.kind(), ErrorKind::Failure);
+        let writing = FileError::writing(Path::new("/out/b.npz"))(full());
+        assert_eq!(writing.to_string(), "writing /out/b.npz: disk full");
     }
 }

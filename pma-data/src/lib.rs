@@ -18,4 +18,4 @@ pub mod sampler;
 pub mod skeleton;
 pub mod synth;
 
-pub use error::{DataError, ErrorKind, ExitKind};
+pub use error::{DataError, ErrorKind, ExitKind, FileError};

@@ -47,7 +47,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         })
         .collect();
     let pts = Tensor::from_vec(pts, (n, 3), &dev)?;
-    let view = avatar.view_features(&Tensor::new(&[[0f32, 0.0, 1.0]], &dev)?, &[-1], false)?;
+    let view =
+        avatar
+            .network()
+            .view_features(&Tensor::new(&[[0f32, 0.0, 1.0]], &dev)?, &[-1], false)?;
     let view = view.broadcast_as((n, view.dim(1)?))?.contiguous()?;
     let net = avatar.network();
     println!("{preset}, {n} points per call, 1 thread; medians of 9 calls");

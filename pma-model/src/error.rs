@@ -5,23 +5,13 @@
 
 use std::path::PathBuf;
 
+use pma_data::FileError;
+
 #[derive(Debug, thiserror::Error)]
 pub enum ModelError {
-    /// Reading an input failed.
-    #[error("{path}: {source}")]
-    Io {
-        path: PathBuf,
-        #[source]
-        source: std::io::Error,
-    },
-
-    /// Writing an output failed (a full disk, no permission).
-    #[error("writing {path}: {source}")]
-    Write {
-        path: PathBuf,
-        #[source]
-        source: std::io::Error,
-    },
+    /// Reading an input or writing an output failed.
+    #[error(transparent)]
+    File(#[from] FileError),
 
     /// A checkpoint is unusable; `problems` lists every issue found (missing, unexpected and
     /// mis-shaped tensors, bad metadata), not just the first. The message is one line: the
@@ -98,8 +88,8 @@ impl pma_data::ExitKind for ModelError {
     fn kind(&self) -> pma_data::ErrorKind {
         use pma_data::ErrorKind;
         match self {
-            ModelError::Io { source, .. } => pma_data::error::input_io_kind(source),
-            ModelError::Write { .. } | ModelError::Candle(_) => ErrorKind::Failure,
+            ModelError::File(f) => f.kind(),
+            ModelError::Candle(_) => ErrorKind::Failure,
             ModelError::Checkpoint { .. }
             | ModelError::Safetensors { .. }
             | ModelError::Config(_)
@@ -133,3 +123,30 @@ impl ModelError {
 }
 
 pub type Result<T> = std::result::Result<T, ModelError>;
+
+/// `From` each source error for an error type that keeps them boxed (so that its results
+/// stay small): `boxed_from!(TrainError: Model(ModelError), Data(DataError))` wraps a
+/// `ModelError` as `TrainError::Model(Box::new(e))`, and so on.
+macro_rules! boxed_from {
+    ($target:ty: $($variant:ident($t:ty)),* $(,)?) => {
+        $(impl From<$t> for $target {
+            fn from(e: $t) -> Self {
+                Self::$variant(Box::new(e))
+            }
+        })*
+    };
+}
+pub(crate) use boxed_from;
+
+/// `From<Interrupted>` for an error type that wraps a [`ModelError`], which says what an
+/// interruption is.
+macro_rules! interrupted_as_model {
+    ($target:ty) => {
+        impl From<pma_data::interrupt::Interrupted> for $target {
+            fn from(e: pma_data::interrupt::Interrupted) -> Self {
+                crate::error::ModelError::from(e).into()
+            }
+        }
+    };
+}
+pub(crate) use interrupted_as_model;

@@ -167,6 +167,12 @@ fn bad_input_gives_clear_errors() {
     );
 }
 
+/// `pma train --data DATA --out OUT`.
+fn train_args<'a>(data: &'a Path, out: &'a Path) -> [&'a str; 5] {
+    let s = |p: &'a Path| p.to_str().unwrap();
+    ["train", "--data", s(data), "--out", s(out)]
+}
+
 /// Without `--preset` a CPU run trains `cpu-small`, not the paper's GPU network, and its
 /// first log line says so and why; a named preset is used as named, without that line.
 #[test]
@@ -175,17 +181,10 @@ fn a_run_without_preset_gets_the_cpu_preset_and_says_why() {
     let data = tiny_scene(&tmp.path().join("scene"), 2);
     let run = |dir: &str, extra: &[&str]| {
         let out = tmp.path().join(dir);
-        let args = [
-            "train",
-            "--data",
-            data.to_str().unwrap(),
-            "--out",
-            out.to_str().unwrap(),
-            "--iters",
-            "1",
-            "--quiet",
-        ];
-        let o = ok(pma(&[&args[..], extra].concat()));
+        let args = train_args(&data, &out);
+        let o = ok(pma(
+            &[&args[..], &["--iters", "1", "--quiet"], extra].concat()
+        ));
         let config = std::fs::read_to_string(out.join("config.toml")).unwrap();
         (String::from_utf8_lossy(&o.stdout).into_owned(), config)
     };
@@ -206,15 +205,7 @@ fn existing_run_is_not_overwritten_without_resume() {
     let tmp = tempfile::tempdir().unwrap();
     let data = tiny_scene(&tmp.path().join("scene"), 2);
     let out = tmp.path().join("run");
-    let args = [
-        "train",
-        "--data",
-        data.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-        "--preset",
-        "tiny",
-    ];
+    let args = [&train_args(&data, &out)[..], &["--preset", "tiny"]].concat();
     ok(pma(&[&args[..], &["--iters", "1", "--quiet"]].concat()));
     fails_with(
         pma(&[&args[..], &["--iters", "2", "--quiet"]].concat()),

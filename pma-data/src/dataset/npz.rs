@@ -469,7 +469,7 @@ impl MemberData<'_> {
 /// Writer of deterministic npz archives: members in call order, fixed
 /// timestamps (1980-01-01) and permissions, so equal inputs give equal bytes.
 ///
-/// A failed write (a full disk) is [`DataError::Write`] naming the file; the archive is
+/// A failed write (a full disk) is [`FileError::Write`](crate::FileError::Write) naming the file; the archive is
 /// then abandoned quietly (see [`crate::fsio::Latch`]).
 pub struct NpzWriter<W: Write + io::Seek> {
     zip: zip::ZipWriter<Latch<W>>,

@@ -79,16 +79,8 @@ impl pma_data::ExitKind for BenchError {
     }
 }
 
-macro_rules! boxed_from {
-    ($($variant:ident($t:ty)),* $(,)?) => {
-        $(impl From<$t> for BenchError {
-            fn from(e: $t) -> Self {
-                Self::$variant(Box::new(e))
-            }
-        })*
-    };
-}
-boxed_from!(
+crate::error::boxed_from!(
+    BenchError:
     Train(TrainError),
     Eval(EvalError),
     Model(ModelError),
@@ -96,11 +88,7 @@ boxed_from!(
     Candle(candle_core::Error),
 );
 
-impl From<pma_data::interrupt::Interrupted> for BenchError {
-    fn from(e: pma_data::interrupt::Interrupted) -> Self {
-        Self::Model(Box::new(e.into()))
-    }
-}
+crate::error::interrupted_as_model!(BenchError);
 
 pub type Result<T> = std::result::Result<T, BenchError>;
 

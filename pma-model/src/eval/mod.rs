@@ -73,12 +73,8 @@ pub enum EvalError {
     NothingScored { source_name: String, split: String },
 
     /// Writing one of the evaluation's files failed.
-    #[error("writing {}: {source}", path.display())]
-    Io {
-        path: PathBuf,
-        #[source]
-        source: std::io::Error,
-    },
+    #[error(transparent)]
+    File(#[from] pma_data::FileError),
 
     #[error("encoding {}: {source}", path.display())]
     Png {
@@ -119,9 +115,8 @@ impl pma_data::ExitKind for EvalError {
             | EvalError::Incomplete { .. }
             | EvalError::NothingScored { .. } => ErrorKind::Refused,
             // The evaluation's own files (PNGs) could not be written.
-            EvalError::Io { .. } | EvalError::Png { .. } | EvalError::Candle(_) => {
-                ErrorKind::Failure
-            }
+            EvalError::Png { .. } | EvalError::Candle(_) => ErrorKind::Failure,
+            EvalError::File(f) => f.kind(),
             EvalError::Read { source, .. } => source.kind(),
             EvalError::Model(m) => m.kind(),
             EvalError::Data(d) => d.kind(),
@@ -156,29 +151,14 @@ impl EvalError {
     }
 }
 
-impl From<pma_data::interrupt::Interrupted> for EvalError {
-    fn from(e: pma_data::interrupt::Interrupted) -> Self {
-        Self::Model(Box::new(e.into()))
-    }
-}
+crate::error::interrupted_as_model!(EvalError);
 
-impl From<crate::error::ModelError> for EvalError {
-    fn from(e: crate::error::ModelError) -> Self {
-        Self::Model(Box::new(e))
-    }
-}
-
-impl From<pma_data::DataError> for EvalError {
-    fn from(e: pma_data::DataError) -> Self {
-        Self::Data(Box::new(e))
-    }
-}
-
-impl From<candle_core::Error> for EvalError {
-    fn from(e: candle_core::Error) -> Self {
-        Self::Candle(Box::new(e))
-    }
-}
+crate::error::boxed_from!(
+    EvalError:
+    Model(crate::error::ModelError),
+    Data(pma_data::DataError),
+    Candle(candle_core::Error),
+);
 
 pub type Result<T> = std::result::Result<T, EvalError>;
 

@@ -64,8 +64,6 @@ pub fn write_png(img: &::image::RgbImage, path: &Path) -> Result<()> {
         path: path.to_path_buf(),
         source,
     })?;
-    pma_data::fsio::write_atomic(path, &bytes).map_err(|source| EvalError::Io {
-        path: path.to_path_buf(),
-        source,
-    })
+    pma_data::fsio::write_atomic(path, &bytes)
+        .map_err(|e| pma_data::FileError::write(path, e).into())
 }

@@ -42,6 +42,7 @@ use serde::{Deserialize, Serialize};
 use crate::error::{ModelError, Result};
 use crate::network::config::Config;
 use crate::network::occupancy::{OccupancyGrid, OccupancyMeta};
+use pma_data::FileError;
 
 /// The optional occupancy group's tensor and metadata key (see the module docs).
 pub const OCCUPANCY_TENSOR: &str = "occupancy.density";
@@ -168,10 +169,7 @@ pub fn save_with(
     occupancy: Option<&OccupancyGrid>,
 ) -> Result<()> {
     let bytes = to_bytes_with(path, tensors, cfg, occupancy)?;
-    pma_data::fsio::write_atomic(path, &bytes).map_err(|source| ModelError::Write {
-        path: path.to_path_buf(),
-        source,
-    })
+    pma_data::fsio::write_atomic(path, &bytes).map_err(|e| FileError::write(path, e).into())
 }
 
 /// The bytes [`save`] writes (`path` names the file in errors), for writers that commit
@@ -429,10 +427,8 @@ fn read_occupancy(
 /// A checkpoint file's bytes: a regular file of at most [`MAX_CHECKPOINT_BYTES`], read up
 /// to its real size.
 fn read_checkpoint_file(path: &Path) -> Result<Vec<u8>> {
-    pma_data::fsio::read_input(path, MAX_CHECKPOINT_BYTES).map_err(|source| ModelError::Io {
-        path: path.to_path_buf(),
-        source,
-    })
+    pma_data::fsio::read_input(path, MAX_CHECKPOINT_BYTES)
+        .map_err(|e| FileError::read(path, e).into())
 }
 
 /// One problem per tensor that holds NaN or infinite values (f32 tensors; the layout check

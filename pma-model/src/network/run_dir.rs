@@ -33,6 +33,7 @@ use candle_core::Device;
 
 use super::checkpoint::{self, Checkpoint, LoadOptions};
 use crate::error::{ModelError, Result};
+use pma_data::FileError;
 
 /// The model file of a checkpoint, and the run's published model.
 pub const MODEL_FILE: &str = "model.safetensors";
@@ -137,11 +138,7 @@ pub fn newest_checkpoint(run: &Path) -> std::io::Result<Option<CheckpointDir>> {
 /// assembled by hand). The file may be removed once two newer checkpoints are complete;
 /// a reader that then gets "not found" asks again ([`load_newest`] does).
 pub fn newest_model(run: &Path) -> Result<PathBuf> {
-    let io = |source| ModelError::Io {
-        path: run.to_path_buf(),
-        source,
-    };
-    if let Some(c) = newest_checkpoint(run).map_err(io)? {
+    if let Some(c) = newest_checkpoint(run).map_err(FileError::reading(run))? {
         return Ok(c.model());
     }
     let flat = run.join(MODEL_FILE);
@@ -174,7 +171,7 @@ pub fn load_newest(
     loop {
         let path = resolve_model(run)?;
         match checkpoint::load_with(&path, device, opts) {
-            Err(ModelError::Io { source, .. })
+            Err(ModelError::File(FileError::Read { source, .. }))
                 if source.kind() == std::io::ErrorKind::NotFound && tries < 3 && path != run =>
             {
                 tries += 1;

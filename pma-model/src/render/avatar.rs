@@ -26,7 +26,6 @@ use crate::render::bones::BoneFrames;
 use crate::render::occupancy::{RefreshOptions, RefreshStats};
 pub use crate::render::options::{GridObservation, PassOptions, PassStats};
 use crate::render::points::PointEval;
-pub use crate::render::points::INFERENCE_POINT_CHUNK;
 use crate::render::raycast::{merge_raw, CoarseSamples, RayCaster};
 use crate::render::volume::raw2outputs;
 
@@ -346,7 +345,7 @@ impl Avatar {
     }
 
     /// View features of a ray batch: the directions in each pose's root frame, then
-    /// [`Self::view_features`]. Returns ([R,V], d_root [R,3]).
+    /// [`Network::view_features`]. Returns ([R,V], d_root [R,3]).
     fn ray_view_features(
         &self,
         rays: &Rays,
@@ -375,28 +374,6 @@ impl Avatar {
     /// Step 1 of [`Self::forward`] for every pose of `poses` ([`Network::pose_features`]).
     pub fn pose_features(&self, poses: &Poses, trace: Option<&mut Trace>) -> Result<PoseFeatures> {
         self.net.pose_features(&poses.bones, &poses.skts, trace)
-    }
-
-    /// The network on the points of pose p ([`Network::eval_points`]).
-    pub fn eval_points(
-        &self,
-        pose: &PoseFeatures,
-        p: usize,
-        pts: &Tensor,
-        view: &Tensor,
-        trace: Option<(&mut Trace, &str)>,
-    ) -> Result<(Tensor, Tensor)> {
-        self.net.eval_points(pose, p, pts, view, trace)
-    }
-
-    /// View features of directions already in the root frame ([`Network::view_features`]).
-    pub fn view_features(
-        &self,
-        d_root: &Tensor,
-        framecodes: &[i64],
-        training: bool,
-    ) -> Result<Tensor> {
-        self.net.view_features(d_root, framecodes, training)
     }
 
     // ---- accessors ----------------------------------------------------------------------

@@ -88,12 +88,8 @@ pub enum BatchFileError {
         source: Box<candle_core::Error>,
     },
 
-    #[error("writing {}: {source}", path.display())]
-    Write {
-        path: PathBuf,
-        #[source]
-        source: std::io::Error,
-    },
+    #[error(transparent)]
+    File(#[from] pma_data::FileError),
 
     // Boxed: the wrapped errors are large.
     #[error(transparent)]
@@ -106,29 +102,19 @@ pub enum BatchFileError {
     Candle(Box<candle_core::Error>),
 }
 
-impl From<pma_data::DataError> for BatchFileError {
-    fn from(e: pma_data::DataError) -> Self {
-        Self::Data(Box::new(e))
-    }
-}
-
-impl From<ModelError> for BatchFileError {
-    fn from(e: ModelError) -> Self {
-        Self::Model(Box::new(e))
-    }
-}
-
-impl From<candle_core::Error> for BatchFileError {
-    fn from(e: candle_core::Error) -> Self {
-        Self::Candle(Box::new(e))
-    }
-}
+crate::error::boxed_from!(
+    BatchFileError:
+    Data(pma_data::DataError),
+    Model(ModelError),
+    Candle(candle_core::Error),
+);
 
 impl pma_data::ExitKind for BatchFileError {
     fn kind(&self) -> pma_data::ErrorKind {
         use pma_data::ErrorKind;
         match self {
-            Self::Write { .. } | Self::Candle(_) => ErrorKind::Failure,
+            Self::Candle(_) => ErrorKind::Failure,
+            Self::File(e) => e.kind(),
             Self::Data(e) => e.kind(),
             Self::Model(e) => e.kind(),
             _ => ErrorKind::Refused,
@@ -385,10 +371,7 @@ pub fn write_outputs(out: &Outputs, path: &Path) -> Result<()> {
         ("raw_merged", &out.raw),
         ("vol_scale", &out.vol_scale),
     ];
-    let write = |source| BatchFileError::Write {
-        path: path.to_path_buf(),
-        source,
-    };
+    let write = |source| BatchFileError::from(pma_data::FileError::write(path, source));
     let file = AtomicFile::create(path).map_err(write)?;
     let mut w = NpzWriter::new(
         BufWriter::new(file.owned_writer().map_err(write)?),

@@ -6,7 +6,7 @@
 //! composite `A_j · skt_j` is what ray casting clips rays against, what culling evaluates the
 //! spatial window with, and what mesh extraction and the stability probes test points
 //! against; it is composed here, once, for all of them. The network itself applies the two
-//! steps separately (see `Avatar::eval_points`), because folding them changes the rounding.
+//! steps separately (see `Network::eval_points`), because folding them changes the rounding.
 
 use candle_core::Tensor;
 use pma_data::skeleton::N_JOINTS;

@@ -420,21 +420,12 @@ mod tests {
                     .collect())
             }
         };
-        let all = RefreshOptions {
-            cells: CellChoice::All,
-            decay: true,
+        // A refresh of `cells` of `grid` over a ball of radius r (window α 2, β 6).
+        let mut refresh = |grid: &mut OccupancyGrid, cells: CellChoice, r: f32| {
+            let opts = RefreshOptions { cells, decay: true };
+            refresh_with(grid, &frames, &scales, 2.0, 6, opts, &mut rng, ball(r)).unwrap()
         };
-        let s = refresh_with(
-            &mut grid,
-            &frames,
-            &scales,
-            2.0,
-            6,
-            all,
-            &mut rng,
-            ball(0.05),
-        )
-        .unwrap();
+        let s = refresh(&mut grid, CellChoice::All, 0.05);
         assert!(s.cells > 0 && s.occupied_fraction < 0.2, "{s:?}");
         // A point at 0.25 from the origin: empty for every joint now.
         let probe = [0.25f64, 0.0, 0.0];
@@ -449,21 +440,7 @@ mod tests {
         // the probe's cells again (they revisit every cell at random), a full one at once.
         let mut found = false;
         for _ in 0..40 {
-            let share = RefreshOptions {
-                cells: CellChoice::Share(0.25),
-                decay: true,
-            };
-            refresh_with(
-                &mut grid,
-                &frames,
-                &scales,
-                2.0,
-                6,
-                share,
-                &mut rng,
-                ball(0.4),
-            )
-            .unwrap();
+            refresh(&mut grid, CellChoice::Share(0.25), 0.4);
             if (0..N_JOINTS).all(|j| grid.occupied(j, x_bar(j))) {
                 found = true;
                 break;
@@ -471,29 +448,9 @@ mod tests {
         }
         assert!(found, "the grown body was not found");
         let mut fresh = OccupancyGrid::new(grid.config().clone()).unwrap();
-        refresh_with(
-            &mut fresh,
-            &frames,
-            &scales,
-            2.0,
-            6,
-            all,
-            &mut rng,
-            ball(0.05),
-        )
-        .unwrap();
+        refresh(&mut fresh, CellChoice::All, 0.05);
         assert!((0..N_JOINTS).all(|j| !fresh.occupied(j, x_bar(j))));
-        refresh_with(
-            &mut fresh,
-            &frames,
-            &scales,
-            2.0,
-            6,
-            all,
-            &mut rng,
-            ball(0.4),
-        )
-        .unwrap();
+        refresh(&mut fresh, CellChoice::All, 0.4);
         assert!((0..N_JOINTS).all(|j| fresh.occupied(j, x_bar(j))));
     }
 }

@@ -23,7 +23,7 @@ use std::path::{Path, PathBuf};
 use candle_core::Device;
 
 use super::batch::BatchSource;
-use super::error::{write_atomic, write_err, TrainError};
+use super::error::{read_err, write_atomic, write_err, TrainError};
 use super::log::TrainLog;
 use super::presets::RunConfig;
 use super::state::{fingerprint, TrainState};
@@ -52,10 +52,7 @@ pub struct ResumePoint {
 
 /// The newest complete checkpoint of `run` (see [`ResumePoint`]).
 pub fn resume_point(run: &Path) -> Result<ResumePoint, TrainError> {
-    let newest = run_dir::newest_checkpoint(run).map_err(|source| TrainError::Io {
-        path: run.to_path_buf(),
-        source,
-    })?;
+    let newest = run_dir::newest_checkpoint(run).map_err(read_err(run))?;
     if let Some(c) = newest {
         let config = if c.config().is_file() {
             c.config()
@@ -132,10 +129,7 @@ pub fn save(
     log: Option<&TrainLog>,
 ) -> Result<CheckpointDir, TrainError> {
     let iteration = trainer.iteration();
-    let existing = run_dir::checkpoints(run).map_err(|source| TrainError::Io {
-        path: run.to_path_buf(),
-        source,
-    })?;
+    let existing = run_dir::checkpoints(run).map_err(read_err(run))?;
     let seq = existing
         .iter()
         .filter(|c| c.iteration == iteration)
@@ -185,10 +179,7 @@ fn fill(dir: &Path, trainer: &Trainer, log: Option<&TrainLog>) -> Result<(), Tra
 }
 
 fn read_back(path: &Path) -> Result<Vec<u8>, TrainError> {
-    pma_data::fsio::read_input(path, MAX_CHECKPOINT_BYTES).map_err(|source| TrainError::Io {
-        path: path.to_path_buf(),
-        source,
-    })
+    pma_data::fsio::read_input(path, MAX_CHECKPOINT_BYTES).map_err(read_err(path))
 }
 
 /// Replace `RUN/model.safetensors` with the checkpoint's model: a hard link (a copy where
@@ -214,10 +205,7 @@ fn publish_model(run: &Path, ckpt: &CheckpointDir) -> Result<(), TrainError> {
 /// Remove the complete checkpoints older than the newest [`KEEP`], and a top-level train
 /// state of an older layout (it belongs to a model no longer published).
 fn prune(run: &Path, newest: &CheckpointDir) -> Result<(), TrainError> {
-    let all = run_dir::checkpoints(run).map_err(|source| TrainError::Io {
-        path: run.to_path_buf(),
-        source,
-    })?;
+    let all = run_dir::checkpoints(run).map_err(read_err(run))?;
     let keep_from = all.len().saturating_sub(KEEP);
     for c in &all[..keep_from] {
         if c.path != newest.path {
@@ -242,10 +230,7 @@ pub(crate) fn write_config(run: &RunConfig, path: &Path) -> Result<(), TrainErro
 
 /// Remove every checkpoint of `run` (a fresh run replacing an old one).
 pub fn remove_all(run: &Path) -> Result<(), TrainError> {
-    for c in run_dir::checkpoints(run).map_err(|source| TrainError::Io {
-        path: run.to_path_buf(),
-        source,
-    })? {
+    for c in run_dir::checkpoints(run).map_err(read_err(run))? {
         std::fs::remove_dir_all(&c.path).map_err(write_err(&c.path))?;
     }
     for f in [STATE_FILE, MODEL_FILE] {

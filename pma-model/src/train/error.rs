@@ -2,27 +2,17 @@
 
 use std::path::{Path, PathBuf};
 
+use pma_data::FileError;
+
 /// A [`super::TrainObserver`]'s own failure (e.g. the plot it writes at a checkpoint).
 pub type ObserverError = Box<dyn std::error::Error + Send + Sync>;
 
 #[derive(Debug, thiserror::Error)]
 pub enum TrainError {
-    /// Reading an input (dataset, config, checkpoint, log) failed.
-    #[error("{path}: {source}")]
-    Io {
-        path: PathBuf,
-        #[source]
-        source: std::io::Error,
-    },
-
-    /// Writing the run directory failed (a full disk, no permission); the last complete
-    /// checkpoint is intact.
-    #[error("writing {path}: {source}")]
-    Write {
-        path: PathBuf,
-        #[source]
-        source: std::io::Error,
-    },
+    /// Reading an input (dataset, config, checkpoint, log) or writing the run directory
+    /// failed; after a failed write the last complete checkpoint is intact.
+    #[error(transparent)]
+    File(#[from] FileError),
 
     /// Another process holds the run directory's lock.
     #[error("{} is in use by another pma train ({}); one writer per run directory", dir.display(), holder(*pid))]
@@ -95,17 +85,16 @@ impl pma_data::ExitKind for TrainError {
     fn kind(&self) -> pma_data::ErrorKind {
         use pma_data::ErrorKind;
         match self {
-            TrainError::Io { source, .. } => pma_data::error::input_io_kind(source),
+            TrainError::File(f) => f.kind(),
             TrainError::Config(_)
             | TrainError::State(_)
             | TrainError::StateFile { .. }
             | TrainError::Resume { .. }
             | TrainError::RunExists(_)
             | TrainError::Locked { .. } => ErrorKind::Refused,
-            TrainError::Write { .. }
-            | TrainError::Diverged { .. }
-            | TrainError::Observer(_)
-            | TrainError::Candle(_) => ErrorKind::Failure,
+            TrainError::Diverged { .. } | TrainError::Observer(_) | TrainError::Candle(_) => {
+                ErrorKind::Failure
+            }
             TrainError::Stopped { source, .. } => source.kind(),
             TrainError::Model(m) => m.kind(),
             TrainError::Data(d) => d.kind(),
@@ -121,48 +110,27 @@ impl TrainError {
     }
 }
 
-impl From<pma_data::interrupt::Interrupted> for TrainError {
-    fn from(e: pma_data::interrupt::Interrupted) -> Self {
-        TrainError::Model(Box::new(e.into()))
-    }
-}
+crate::error::interrupted_as_model!(TrainError);
 
-impl From<crate::eval::EvalError> for TrainError {
-    fn from(e: crate::eval::EvalError) -> Self {
-        TrainError::Eval(Box::new(e))
-    }
-}
-
-impl From<crate::error::ModelError> for TrainError {
-    fn from(e: crate::error::ModelError) -> Self {
-        TrainError::Model(Box::new(e))
-    }
-}
-
-impl From<pma_data::DataError> for TrainError {
-    fn from(e: pma_data::DataError) -> Self {
-        TrainError::Data(Box::new(e))
-    }
-}
-
-impl From<candle_core::Error> for TrainError {
-    fn from(e: candle_core::Error) -> Self {
-        TrainError::Candle(Box::new(e))
-    }
-}
+crate::error::boxed_from!(
+    TrainError:
+    Eval(crate::eval::EvalError),
+    Model(crate::error::ModelError),
+    Data(pma_data::DataError),
+    Candle(candle_core::Error),
+);
 
 /// Write `bytes` to `path` atomically (see `pma_data::fsio`).
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), TrainError> {
-    pma_data::fsio::write_atomic(path, bytes).map_err(|source| TrainError::Write {
-        path: path.to_path_buf(),
-        source,
-    })
+    pma_data::fsio::write_atomic(path, bytes).map_err(write_err(path))
 }
 
-/// A [`TrainError::Write`] maker for `path`.
+/// A `map_err` for writing `path`.
 pub(crate) fn write_err(path: &Path) -> impl FnOnce(std::io::Error) -> TrainError + '_ {
-    move |source| TrainError::Write {
-        path: path.to_path_buf(),
-        source,
-    }
+    move |source| FileError::write(path, source).into()
+}
+
+/// A `map_err` for reading `path`.
+pub(crate) fn read_err(path: &Path) -> impl FnOnce(std::io::Error) -> TrainError + '_ {
+    move |source| FileError::read(path, source).into()
 }

@@ -33,10 +33,7 @@ impl RunLock {
     /// naming the holder's PID.
     pub fn acquire(dir: &Path) -> Result<Self, TrainError> {
         let path = dir.join(LOCK_FILE);
-        let write_err = |source| TrainError::Write {
-            path: path.clone(),
-            source,
-        };
+        let write_err = |source| TrainError::from(pma_data::FileError::write(&path, source));
         // Not truncated on open: the holder's PID stays readable until we own the lock.
         let mut file = std::fs::OpenOptions::new()
             .read(true)

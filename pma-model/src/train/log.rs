@@ -43,12 +43,7 @@ impl TrainLog {
         let text = match pma_data::fsio::read_input_to_string(path, 256 << 20) {
             Ok(t) => t,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Self::default()),
-            Err(source) => {
-                return Err(TrainError::Io {
-                    path: path.to_path_buf(),
-                    source,
-                })
-            }
+            Err(source) => return Err(super::error::read_err(path)(source)),
         };
         Self::parse(&text).map_err(|msg| TrainError::Config(format!("{}: {msg}", path.display())))
     }

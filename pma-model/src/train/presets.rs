@@ -428,13 +428,8 @@ impl RunConfig {
     }
 
     pub fn from_toml_file(path: &Path) -> Result<Self, TrainError> {
-        let text =
-            pma_data::fsio::read_input_to_string(path, MAX_CONFIG_BYTES).map_err(|source| {
-                TrainError::Io {
-                    path: path.to_path_buf(),
-                    source,
-                }
-            })?;
+        let text = pma_data::fsio::read_input_to_string(path, MAX_CONFIG_BYTES)
+            .map_err(super::error::read_err(path))?;
         Self::from_toml_str(&text).map_err(|e| match e {
             TrainError::Config(msg) => TrainError::Config(format!("{}: {msg}", path.display())),
             other => other,

@@ -176,10 +176,8 @@ impl TrainState {
     pub fn load(path: &Path, device: &Device) -> Result<Self, TrainError> {
         // Moments are twice the model's parameters.
         let limit = 2 * crate::network::checkpoint::MAX_CHECKPOINT_BYTES;
-        let bytes = pma_data::fsio::read_input(path, limit).map_err(|source| TrainError::Io {
-            path: path.to_path_buf(),
-            source,
-        })?;
+        let bytes =
+            pma_data::fsio::read_input(path, limit).map_err(super::error::read_err(path))?;
         Self::from_bytes(&bytes, device).map_err(|e| match e {
             TrainError::State(problems) => TrainError::StateFile {
                 path: path.to_path_buf(),

@@ -219,7 +219,10 @@ fn missing_file_is_an_io_error_naming_it() {
         &Device::Cpu,
     )
     .unwrap_err();
-    assert!(matches!(err, ModelError::Io { .. }));
+    assert!(matches!(
+        err,
+        ModelError::File(pma_data::FileError::Read { .. })
+    ));
     assert!(err
         .to_string()
         .contains("/nonexistent/dir/model.safetensors"));

@@ -464,7 +464,10 @@ fn a_joint_subset_call_is_exact_only_without_live_joints() {
     let dev = Device::Cpu;
     let pts = Tensor::from_vec(pts, (n, 3), &dev).unwrap();
     let d = Tensor::from_vec([0f32, 0.0, -1.0].repeat(n), (n, 3), &dev).unwrap();
-    let view = avatar.view_features(&d, &vec![-1; n], false).unwrap();
+    let view = avatar
+        .network()
+        .view_features(&d, &vec![-1; n], false)
+        .unwrap();
     let eval = |joints: Option<&[u32]>| {
         let (rgb, sigma) = net
             .eval_joints(&pose, 0..1, &pts, &view, joints, None)

@@ -695,6 +695,7 @@ fn bone_aligned_embedding_through_the_avatar() {
     let view = Tensor::zeros((r * s, view_dim), DType::F32, &Device::Cpu).unwrap();
     let mut trace = Trace::default();
     avatar
+        .network()
         .eval_points(
             &pose,
             0,

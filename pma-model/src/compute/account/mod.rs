@@ -477,10 +477,7 @@ pub struct Recorded {
 impl Recorded {
     /// Read a recorded run (JSON); errors name the file.
     pub fn read(path: &std::path::Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path).map_err(|source| ModelError::Io {
-            path: path.to_path_buf(),
-            source,
-        })?;
+        let text = std::fs::read_to_string(path).map_err(pma_data::FileError::reading(path))?;
         serde_json::from_str(&text).map_err(|e| {
             ModelError::Input(format!(
                 "{}: not a recorded account (expected `what`, `rays`, `counts` and `costs`                  as count_official.py writes them): {e}",

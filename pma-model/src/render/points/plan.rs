@@ -345,15 +345,8 @@ impl Planner<'_> {
     /// [`PaddedPlan`] for `stage`, or `None` when no sample needs the network or the call
     /// would exceed its `chunk` points (then per-pose calls, [`Self::plan`]).
     pub fn plan_padded(&self, stage: Stage) -> Result<Option<PaddedPlan>> {
-        let Stage {
-            n_poses,
-            pts,
-            view,
-            fates,
-            far_rays,
-            chunk,
-        } = stage;
-        let (r, s, _) = pts.dims3()?;
+        let (n_poses, fates, far_rays) = (stage.n_poses, stage.fates, stage.far_rays);
+        let (r, s, _) = stage.pts.dims3()?;
         let k = r / n_poses;
         let n = r * s;
         let kept: Vec<usize> = (0..n_poses)
@@ -372,7 +365,7 @@ impl Planner<'_> {
             .map(|p| kept[p] + far_of[p].len())
             .max()
             .unwrap_or(0);
-        if block == 0 || chunk.is_some_and(|c| n_poses * block > c) {
+        if block == 0 || stage.chunk.is_some_and(|c| n_poses * block > c) {
             return Ok(None);
         }
         let far_point: Vec<[f32; 3]> = match far_rays.is_empty() {
@@ -411,7 +404,7 @@ impl Planner<'_> {
                 (first / s) as u32,
             );
         }
-        let (pts, view) = self.gather(pts, far_point.concat(), src, view, rays_of)?;
+        let (pts, view) = self.gather(stage.pts, far_point.concat(), src, stage.view, rays_of)?;
         Ok(Some(PaddedPlan {
             pts,
             view,

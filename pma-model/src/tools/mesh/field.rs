@@ -7,8 +7,9 @@ use pma_data::skeleton::N_JOINTS;
 
 use crate::compute::host::host_f32;
 use crate::error::{ModelError, Result};
-use crate::render::avatar::{Avatar, PoseFeatures, Poses, INFERENCE_POINT_CHUNK};
+use crate::render::avatar::{Avatar, PoseFeatures, Poses};
 use crate::render::cull::{SampleFate, WindowTest};
+use crate::render::points::INFERENCE_POINT_CHUNK;
 
 /// One part's box in world space: `x_aligned = rot·x + trans`, inside iff every
 /// `|x_aligned[k]| <= half[k]`.
@@ -158,7 +159,9 @@ impl<'a> AvatarField<'a> {
             })
             .collect();
         let d = Tensor::from_vec(d, (dirs.len(), 3), self.device())?;
-        self.avatar.view_features(&d, &vec![-1; dirs.len()], false)
+        self.avatar
+            .network()
+            .view_features(&d, &vec![-1; dirs.len()], false)
     }
 
     /// (rgb, density) of the network at `pts` seen along `dirs`, in chunks on the CPU
@@ -176,9 +179,10 @@ impl<'a> AvatarField<'a> {
                 (p.len(), 3),
                 self.device(),
             )?;
-            let (c, s) = self
-                .avatar
-                .eval_points(&self.pose, 0, &t, &self.view(d)?, None)?;
+            let (c, s) =
+                self.avatar
+                    .network()
+                    .eval_points(&self.pose, 0, &t, &self.view(d)?, None)?;
             let c = c.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()?;
             let s = s
                 .relu()?

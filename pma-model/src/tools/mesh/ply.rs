@@ -5,13 +5,7 @@ use std::path::Path;
 
 use super::*;
 use crate::error::{ModelError, Result};
-
-fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> ModelError + '_ {
-    move |source| ModelError::Io {
-        path: path.to_path_buf(),
-        source,
-    }
-}
+use pma_data::FileError;
 
 fn to_u8(c: f32) -> u8 {
     (c.clamp(0.0, 1.0) * 255.0).round() as u8
@@ -20,12 +14,8 @@ fn to_u8(c: f32) -> u8 {
 /// Write `mesh` as a binary little-endian PLY (vertices `x y z nx ny nz [red green blue]`,
 /// faces `vertex_indices`), atomically (temporary file + rename).
 pub fn write_ply(mesh: &Mesh, path: &Path) -> Result<()> {
-    pma_data::fsio::write_atomic_with(path, |w| write_ply_to(mesh, w)).map_err(|source| {
-        ModelError::Write {
-            path: path.to_path_buf(),
-            source,
-        }
-    })
+    pma_data::fsio::write_atomic_with(path, |w| write_ply_to(mesh, w))
+        .map_err(|e| FileError::write(path, e).into())
 }
 
 fn write_ply_to(mesh: &Mesh, w: &mut impl Write) -> std::io::Result<()> {
@@ -67,13 +57,13 @@ fn write_ply_to(mesh: &Mesh, w: &mut impl Write) -> std::io::Result<()> {
 /// properties are allowed; `red green blue` become colours) and triangle faces.
 pub fn read_ply(path: &Path) -> Result<Mesh> {
     let bad = |msg: String| ModelError::Input(format!("{}: {msg}", path.display()));
-    let file = pma_data::fsio::open_input(path).map_err(io_err(path))?;
+    let file = pma_data::fsio::open_input(path).map_err(FileError::reading(path))?;
     let mut r = BufReader::new(file);
     let mut line = String::new();
     let mut header = Vec::new();
     loop {
         line.clear();
-        if r.read_line(&mut line).map_err(io_err(path))? == 0 {
+        if r.read_line(&mut line).map_err(FileError::reading(path))? == 0 {
             return Err(bad("no end_header".into()));
         }
         let l = line.trim_end().to_string();
