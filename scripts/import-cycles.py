@@ -25,6 +25,8 @@ CRATES = {
     "pma_model": "pma-model/src",
     "pma_convert": "pma-convert/src",
     "pma_infer": "pma-infer/src",
+    "pma_view": "pma-view/src",
+    "pma_cuda_emu": "pma-cuda-emu/src",
 }
 
 

@@ -31,6 +31,7 @@
 //! hyper -p hyper-util -p tokio -p http-body-util`, load average 11); in a scratch crate with
 //! the same profile, hyper + tokio took 27 s and tiny_http 9 s (load average 2.5).
 
+pub mod pass;
 pub mod query;
 pub mod renderer;
 pub mod run_log;
@@ -49,7 +50,8 @@ use pma_model::render::camera_path::ViewDirs;
 use pma_model::tools::retarget::RootScale;
 use serde::Serialize;
 
-use crate::renderer::{ModelSource, Renderer, Switch, SWITCHES};
+use crate::pass::{Switch, SWITCHES};
+use crate::renderer::{ModelSource, Renderer};
 use crate::scene::{Scene, ViewCam};
 use crate::server::Shared;
 
