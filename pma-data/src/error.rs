@@ -76,6 +76,17 @@ pub fn one_line(msg: &str) -> String {
     out
 }
 
+/// `x` as a message shows it: plain while that is short, in scientific notation for very
+/// large or very small magnitudes (`1e300`, not three hundred digits).
+pub fn short_number(x: f64) -> String {
+    let a = x.abs();
+    if x.is_finite() && a != 0.0 && !(1e-4..1e9).contains(&a) {
+        format!("{x:e}")
+    } else {
+        format!("{x}")
+    }
+}
+
 #[derive(Debug, thiserror::Error)]
 pub enum DataError {
     /// Reading an input failed (see [`input_io_kind`]).
