@@ -38,15 +38,18 @@ pub enum ModelSource {
 impl ModelSource {
     /// A directory is a run directory, anything else a model file.
     pub fn new(path: &Path) -> Result<ModelSource, ViewError> {
-        if path.is_dir() {
-            Ok(ModelSource::Run(path.to_path_buf()))
-        } else if path.is_file() {
-            Ok(ModelSource::File(path.to_path_buf()))
-        } else {
-            Err(ViewError::Input(format!(
-                "{}: no such model file or run directory",
-                path.display()
-            )))
+        let refuse = |what: String| Err(ViewError::Input(format!("{}: {what}", path.display())));
+        match std::fs::metadata(path) {
+            Ok(m) if m.is_dir() => Ok(ModelSource::Run(path.to_path_buf())),
+            Ok(m) if m.is_file() => Ok(ModelSource::File(path.to_path_buf())),
+            Ok(m) => refuse(format!(
+                "{}, expected a model file or a run directory",
+                pma_data::fsio::file_type_name(&m.file_type())
+            )),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+                refuse("no such model file or run directory".into())
+            }
+            Err(e) => refuse(e.to_string()),
         }
     }
 
@@ -182,8 +185,11 @@ impl Renderer {
         chunk: usize,
         numerics: Numerics,
     ) -> Result<Renderer, ViewError> {
-        if chunk == 0 {
-            return Err(ViewError::Input("--chunk must be >= 1".into()));
+        let max = pma_model::render::MAX_CHUNK_RAYS;
+        if !(1..=max).contains(&chunk) {
+            return Err(ViewError::Input(format!(
+                "--chunk {chunk} must be in 1..={max}"
+            )));
         }
         let file = source.model_file();
         if let (Some(dir), false) = (source.run_dir(), file.exists()) {
@@ -252,6 +258,13 @@ impl Renderer {
                 req.pose,
                 scene.pose_count()
             )));
+        }
+        if req.pass.occupancy && self.avatar.occupancy().is_none() {
+            return Err(RenderFail::Bad(
+                "occupancy=1: the model has no occupancy grid (pma train --occupancy or \
+                 pma occupancy build adds one)"
+                    .into(),
+            ));
         }
         let cam = camera(scene, req)?;
         let image = match req.cam {
