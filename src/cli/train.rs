@@ -87,6 +87,14 @@ pub const PLOT_FILE: &str = "psnr_vs_time.png";
 
 pub fn run(args: Args) -> anyhow::Result<()> {
     super::check_minutes("--minutes", args.minutes)?;
+    for (flag, v, max) in [
+        ("--iters", args.iters, pma_model::train::presets::MAX_ITERS),
+        ("--seed", args.seed, pma_model::train::presets::MAX_SEED),
+    ] {
+        if let Some(v) = v.filter(|&v| v > max) {
+            refuse!("{flag} {v}: at most {max}");
+        }
+    }
     let mut run = match &args.config {
         Some(path) => Some(RunConfig::from_toml_file(path)?),
         None if args.resume => None,
