@@ -107,6 +107,17 @@ fn run(args: &[String], env: &[(&str, &str)]) -> Output {
     pma_env(&args.iter().map(String::as_str).collect::<Vec<_>>(), env)
 }
 
+/// `pma train --data DATA --out OUT EXTRA...` (see [`train_cmd`]), ended within 60 s.
+fn train_within(data: &Path, out: &Path, extra: &[&str]) -> Output {
+    let args = train_cmd(data, out, extra);
+    pma_within(&args.iter().map(String::as_str).collect::<Vec<_>>(), 60)
+}
+
+/// [`train_within`] refused: exit 2, one line holding every needle.
+fn train_refused(data: &Path, out: &Path, extra: &[&str], needles: &[&str]) {
+    refused(train_within(data, out, extra), needles);
+}
+
 fn spawn(args: &[String]) -> std::process::Child {
     Command::new(env!("CARGO_BIN_EXE_pma"))
         .args(args)
@@ -547,19 +558,10 @@ fn outputs_never_overwrite_inputs() {
     std::fs::create_dir_all(&fresh).unwrap();
     let user_cfg = fresh.join("config.toml");
     std::fs::write(&user_cfg, "preset = \"tiny\"\n").unwrap();
-    refused(
-        pma_env(
-            &[
-                "train",
-                "--data",
-                s(&data),
-                "--out",
-                s(&fresh),
-                "--config",
-                s(&user_cfg),
-            ],
-            &[],
-        ),
+    train_refused(
+        &data,
+        &fresh,
+        &["--config", s(&user_cfg)],
         &["would overwrite the input --config"],
     );
     assert_eq!(std::fs::read(&user_cfg).unwrap(), b"preset = \"tiny\"\n");
@@ -605,8 +607,7 @@ fn fifos_devices_and_directories_are_refused_at_once() {
     let scene = dir.join("scene");
     let o = dir.join("o");
     std::fs::create_dir_all(&o).unwrap();
-    let (r1, r2, r3) = (o.join("r1"), o.join("r2"), o.join("r3"));
-    let cases: Vec<Vec<&str>> = vec![
+    let cases: Vec<Vec<String>> = vec![
         vec!["inspect", s(&npz)],
         vec!["inspect", s(&scene)],
         vec!["eval", "--model", s(&st), "--data", s(&scene)],
@@ -622,36 +623,17 @@ fn fifos_devices_and_directories_are_refused_at_once() {
         ],
         vec!["convert", "motion", s(&npz), "-o", "/tmp/never.npz"],
         vec!["metrics", s(&png), s(&png)],
-        vec![
-            "train",
-            "--data",
-            s(&npz),
-            "--out",
-            s(&r1),
-            "--preset",
-            "tiny",
-        ],
-        vec![
-            "train",
-            "--data",
-            s(&data),
-            "--out",
-            s(&r2),
-            "--config",
-            s(&toml),
-        ],
-        vec![
-            "train",
-            "--data",
-            s(&data),
-            "--out",
-            s(&r3),
-            "--config",
-            "/dev/zero",
-        ],
-    ];
+    ]
+    .into_iter()
+    .map(|v| v.into_iter().map(String::from).collect())
+    .chain([
+        train_cmd(&npz, &o.join("r1"), &["--preset", "tiny"]),
+        train_cmd(&data, &o.join("r2"), &["--config", s(&toml)]),
+        train_cmd(&data, &o.join("r3"), &["--config", "/dev/zero"]),
+    ])
+    .collect();
     for args in cases {
-        let out = pma_within(&args, 60);
+        let out = pma_within(&args.iter().map(String::as_str).collect::<Vec<_>>(), 60);
         let err = stderr(&out);
         assert_eq!(out.status.code(), Some(2), "{args:?}: {err}");
         assert_eq!(err.trim_end().lines().count(), 1, "{args:?}: {err}");
@@ -690,19 +672,13 @@ fn unbounded_sizes_and_flags_are_refused_before_allocating() {
     ] {
         let cfg = dir.join(format!("{key}.toml"));
         std::fs::write(&cfg, format!("preset = \"tiny\"\n{body}")).unwrap();
-        let out = pma_within(
-            &[
-                "train",
-                "--data",
-                s(&data),
-                "--out",
-                s(&dir.join(format!("r_{key}"))),
-                "--config",
-                s(&cfg),
-            ],
-            60,
+        let out = dir.join(format!("r_{key}"));
+        train_refused(
+            &data,
+            &out,
+            &["--config", s(&cfg)],
+            &[key, "over the limit"],
         );
-        refused(out, &[key, "over the limit"]);
     }
     let motion = dir.join("motion.npz");
     std::fs::copy(&data, &motion).unwrap();
@@ -737,45 +713,6 @@ fn unbounded_sizes_and_flags_are_refused_before_allocating() {
         (vec!["--workers", "20000", "inspect", s(&data)], "--workers"),
         (
             vec![
-                "train",
-                "--data",
-                s(&data),
-                "--out",
-                s(&r),
-                "--preset",
-                "tiny",
-                "--minutes=1e300",
-            ],
-            "--minutes",
-        ),
-        (
-            vec![
-                "train",
-                "--data",
-                s(&data),
-                "--out",
-                s(&r),
-                "--preset",
-                "tiny",
-                "--minutes=-1",
-            ],
-            "--minutes",
-        ),
-        (
-            vec![
-                "train",
-                "--data",
-                s(&data),
-                "--out",
-                s(&r),
-                "--preset",
-                "tiny",
-                "--minutes=nan",
-            ],
-            "--minutes",
-        ),
-        (
-            vec![
                 "eval",
                 "--model",
                 s(&model),
@@ -788,6 +725,26 @@ fn unbounded_sizes_and_flags_are_refused_before_allocating() {
         ),
     ] {
         refused(pma_within(&args, 60), &[needle]);
+    }
+    // Flags of a run: the value named as given, short (1e300, not 300 digits).
+    for (flag, needles) in [
+        ("--minutes=1e300", ["--minutes 1e300", "(0, 1000000]"]),
+        ("--minutes=-1", ["--minutes -1", "(0, 1000000]"]),
+        ("--minutes=nan", ["--minutes NaN", "(0, 1000000]"]),
+        (
+            "--iters=18446744073709551615",
+            ["--iters 18446744073709551615", "at most 1000000000000"],
+        ),
+        (
+            "--seed=18446744073709551615",
+            ["--seed 18446744073709551615", "at most 9223372036854775807"],
+        ),
+    ] {
+        let out = train_within(&data, &r, &["--preset", "tiny", flag]);
+        let err = stderr(&out);
+        assert!(err.len() < 200, "{flag}: {err}");
+        refused(out, &needles);
+        assert!(!r.exists(), "{flag}: the refused run left {}", r.display());
     }
 }
 
@@ -936,6 +893,252 @@ fn failed_npz_writes_exit_1_with_one_line() {
     );
     exits(&out, 1, &["No space left on device", "m.npz"]);
     assert!(!motion.exists());
+    // A converted `.h5` goes through a scratch file: its failure names the output too.
+    let h5 = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/convert/perfcap.h5");
+    for budget in ["0", "100", "3000"] {
+        let out_npz = dir.join(format!("h{budget}.npz"));
+        let out = pma_env(
+            &["convert", "dataset", s(&h5), "-o", s(&out_npz)],
+            &[("PMA_FSIO_FAIL_AFTER", budget)],
+        );
+        exits(&out, 1, &["No space left on device", s(&out_npz)]);
+        assert!(!stderr(&out).contains(".pma-"), "{}", stderr(&out));
+        assert!(!out_npz.exists());
+    }
+}
+
+/// A FIFO where a dataset or a model is expected is named as one, with what was expected,
+/// by `eval`, `render` and `view` alike: given itself, or as a scene directory's split file.
+#[cfg(unix)]
+#[test]
+fn fifos_are_named_as_fifos_with_what_was_expected() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    let data = tiny_scene(&dir.join("scene"), 2);
+    let model = tiny_model(dir, &data);
+    let fifo = |p: &Path| {
+        let c = std::ffi::CString::new(s(p)).unwrap();
+        // SAFETY: a plain libc call with a valid NUL-terminated path.
+        assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o600) }, 0);
+    };
+    let npz = dir.join("f.npz");
+    fifo(&npz);
+    let scene = dir.join("fifo_scene");
+    std::fs::create_dir(&scene).unwrap();
+    for split in ["train", "novel_view"] {
+        fifo(&scene.join(format!("{split}.npz")));
+    }
+    let st = dir.join("f.safetensors");
+    fifo(&st);
+    let r = dir.join("r");
+    let m = s(&model);
+    for (args, needles) in [
+        (
+            vec!["eval", "--model", m, "--data", s(&npz)],
+            vec!["f.npz: a FIFO", "expected a pma-npz file or a directory"],
+        ),
+        (
+            vec!["render", "--model", m, "--data", s(&npz), "--out", s(&r)],
+            vec!["f.npz: a FIFO", "expected a pma-npz file or a directory"],
+        ),
+        (
+            vec!["view", m, "--data", s(&npz), "--port", "0"],
+            vec!["f.npz: a FIFO", "expected a pma-npz file or a directory"],
+        ),
+        (
+            vec!["eval", "--model", m, "--data", s(&scene)],
+            vec!["novel_view.npz: a FIFO", "expected the novel_view split's"],
+        ),
+        (
+            vec!["view", m, "--data", s(&scene), "--port", "0"],
+            vec!["train.npz: a FIFO", "expected the train split's"],
+        ),
+        (
+            vec!["view", s(&st), "--port", "0"],
+            vec![
+                "f.safetensors: a FIFO",
+                "expected a model file or a run directory",
+            ],
+        ),
+    ] {
+        let out = pma_within(&args, 60);
+        let err = stderr(&out);
+        refused(out, &needles);
+        for wrong in ["does not exist", "directory without", "no such"] {
+            assert!(!err.contains(wrong), "{args:?}: {err}");
+        }
+    }
+    assert!(!r.exists(), "the refused render left {}", r.display());
+}
+
+/// A command that fails removes what it created and nothing that was there before: a
+/// refused `train` its lock file and the run directory it made; a failed `synth`, `render`
+/// or `eval` the output directories it made and left empty.
+#[test]
+fn failed_commands_remove_what_they_created_and_nothing_else() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    let data = tiny_scene(&dir.join("scene"), 2);
+    let model = tiny_model(dir, &data);
+    // Refused after the lock is taken: the run's settings are checked under it.
+    let refuse_train = |out: &Path| {
+        train_refused(
+            &data,
+            out,
+            &["--preset", "tiny", "--chunk-rays", "100000000"],
+            &["chunk_rays", "over the limit"],
+        )
+    };
+    let made = dir.join("new").join("run");
+    refuse_train(&made);
+    assert!(
+        !dir.join("new").exists(),
+        "a refused train left its directory"
+    );
+    let empty = dir.join("empty");
+    std::fs::create_dir(&empty).unwrap();
+    refuse_train(&empty);
+    assert!(empty.is_dir(), "a directory that was there went");
+    assert_eq!(
+        std::fs::read_dir(&empty).unwrap().count(),
+        0,
+        "left the lock"
+    );
+    // A lock file that was there before (a run's) stays.
+    let run_dir = model.parent().unwrap();
+    let lock = run_dir.join(pma_model::network::run_dir::LOCK_FILE);
+    assert!(lock.is_file());
+    let out = train_within(&data, run_dir, &["--resume", "--chunk-rays", "100000000"]);
+    refused(out, &["chunk_rays"]);
+    assert!(
+        lock.is_file(),
+        "a refused resume removed the run's lock file"
+    );
+
+    let full = [("PMA_FSIO_FAIL_AFTER", "100")];
+    let scene = dir.join("scene");
+    let kept = dir.join("kept");
+    std::fs::create_dir(&kept).unwrap();
+    std::fs::write(kept.join("mine.txt"), b"mine").unwrap();
+    for out_dir in [dir.join("a").join("b"), kept.join("sub"), empty.clone()] {
+        let o = s(&out_dir);
+        for args in [
+            vec!["synth", "--out", o, "--res", "24", "--quiet"],
+            vec![
+                "render",
+                "--model",
+                s(&model),
+                "--data",
+                s(&scene),
+                "--out",
+                o,
+            ],
+            vec![
+                "eval",
+                "--model",
+                s(&model),
+                "--data",
+                s(&scene),
+                "--out",
+                o,
+            ],
+        ] {
+            exits(&pma_env(&args, &full), 1, &["No space left on device"]);
+            let left = dir.join("a").exists() || kept.join("sub").exists();
+            assert!(!left, "{args:?} left the directory it made");
+            assert!(
+                empty.is_dir(),
+                "{args:?} removed a directory that was there"
+            );
+        }
+    }
+    assert_eq!(std::fs::read(kept.join("mine.txt")).unwrap(), b"mine");
+}
+
+/// The newest checkpoint's model or train state truncated or corrupted after its commit (a
+/// disk error): `--resume` continues from the previous complete checkpoint, with one warning
+/// naming the one skipped and why, and ends where a run that never failed ends; with no
+/// checkpoint that reads back, it is refused.
+#[test]
+fn resume_falls_back_to_the_newest_checkpoint_that_reads_back() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tiny_scene(&tmp.path().join("scene"), 2);
+    let cfg = ck1(tmp.path());
+    let straight = tmp.path().join("straight");
+    ok(run(
+        &train_cmd(&data, &straight, &["--config", s(&cfg), "--iters", "6"]),
+        &[],
+    ));
+    let want = std::fs::read(straight.join("model.safetensors")).unwrap();
+    let checkpoints = |run: &Path| pma_model::network::run_dir::checkpoints(run).unwrap();
+    let truncate = |p: &Path| {
+        let f = std::fs::OpenOptions::new().write(true).open(p).unwrap();
+        let len = f.metadata().unwrap().len();
+        f.set_len(len / 2).unwrap();
+    };
+    let corrupt = |p: &Path| {
+        let mut bytes = std::fs::read(p).unwrap();
+        let k = bytes.len() - 5;
+        bytes[k] ^= 0xff;
+        std::fs::write(p, bytes).unwrap();
+    };
+    let damages: [(&str, &dyn Fn(&Path), &str); 3] = [
+        ("model.safetensors", &truncate, "does not belong to"),
+        ("model.safetensors", &corrupt, "does not belong to"),
+        (
+            "train_state.safetensors",
+            &truncate,
+            "train_state.safetensors",
+        ),
+    ];
+    for (k, (file, damage, why)) in damages.into_iter().enumerate() {
+        let out = tmp.path().join(format!("run{k}"));
+        ok(run(
+            &train_cmd(&data, &out, &["--config", s(&cfg), "--iters", "3"]),
+            &[],
+        ));
+        let all = checkpoints(&out);
+        assert_eq!(all.len(), 2, "the run keeps two checkpoints");
+        let (older, newest) = (&all[0], &all[1]);
+        damage(&newest.path.join(file));
+        let resumed = run(&train_cmd(&data, &out, &["--resume", "--iters", "6"]), &[]);
+        let err = stderr(&resumed);
+        assert!(resumed.status.success(), "{file}: {err}");
+        let warnings: Vec<&str> = err.lines().filter(|l| l.starts_with("warning:")).collect();
+        assert_eq!(warnings.len(), 1, "{err}");
+        let skipped = format!("{}: skipped", newest.path.display());
+        let from = format!("resuming from {}", older.path.display());
+        for needle in [skipped.as_str(), why, from.as_str()] {
+            assert!(
+                warnings[0].contains(needle),
+                "lacks {needle:?}: {}",
+                warnings[0]
+            );
+        }
+        assert_eq!(
+            std::fs::read(out.join("model.safetensors")).unwrap(),
+            want,
+            "{file}: the resumed run differs from the straight one"
+        );
+    }
+    // Both checkpoints unreadable: refused, naming both.
+    let out = tmp.path().join("both");
+    ok(run(
+        &train_cmd(&data, &out, &["--config", s(&cfg), "--iters", "3"]),
+        &[],
+    ));
+    let all = checkpoints(&out);
+    truncate(&all[1].model());
+    truncate(&all[0].state());
+    let resumed = run(&train_cmd(&data, &out, &["--resume", "--iters", "6"]), &[]);
+    let names: Vec<String> = all
+        .iter()
+        .map(|c| c.path.file_name().unwrap().to_string_lossy().into_owned())
+        .collect();
+    refused(
+        resumed,
+        &["no complete checkpoint reads back", &names[0], &names[1]],
+    );
 }
 
 /// Case 4: `convert checkpoint --with-optimizer` on a full disk writes both files or none.
@@ -1087,39 +1290,20 @@ fn every_refusal_is_one_line() {
     exits(&out, 2, &["bad_header.npz"]);
     let cfg = dir.join("broken.toml");
     std::fs::write(&cfg, "preset = \"tiny\"\n[train\nlr = 1\n").unwrap();
-    refused(
-        pma_within(
-            &[
-                "train",
-                "--data",
-                s(&data),
-                "--out",
-                s(&dir.join("r")),
-                "--config",
-                s(&cfg),
-            ],
-            60,
-        ),
+    train_refused(
+        &data,
+        &dir.join("r"),
+        &["--config", s(&cfg)],
         &["broken.toml", "line 2"],
     );
     // A train state that is not one.
     let run_dir = model.parent().unwrap();
     let state = newest(run_dir).join("train_state.safetensors");
     std::fs::copy(&model, &state).unwrap();
-    refused(
-        pma_within(
-            &[
-                "train",
-                "--data",
-                s(&data),
-                "--out",
-                s(run_dir),
-                "--resume",
-                "--iters",
-                "3",
-            ],
-            60,
-        ),
+    train_refused(
+        &data,
+        run_dir,
+        &["--resume", "--iters", "3"],
         &["train_state.safetensors"],
     );
 }
