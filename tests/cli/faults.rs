@@ -10,6 +10,8 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
+#[cfg(unix)]
+use crate::run::mkfifo;
 use crate::run::{ok, tiny_scene};
 use crate::train::newest;
 
@@ -118,6 +120,30 @@ fn train_refused(data: &Path, out: &Path, extra: &[&str], needles: &[&str]) {
     refused(train_within(data, out, extra), needles);
 }
 
+/// A fresh run in `out` with the `cfg` from [`ck1`], up to `iters`; it must succeed.
+fn train_ck1(data: &Path, cfg: &Path, out: &Path, iters: &str) {
+    ok(run(
+        &train_cmd(data, out, &["--config", s(cfg), "--iters", iters]),
+        &[],
+    ));
+}
+
+/// `--resume` of the run in `out` up to `iters`, with `env`.
+fn resume(data: &Path, out: &Path, iters: &str, env: &[(&str, &str)]) -> Output {
+    run(&train_cmd(data, out, &["--resume", "--iters", iters]), env)
+}
+
+/// In `tmp`: a tiny scene, the [`ck1`] config, and the model of a run straight to `iters`,
+/// which a resumed run must end with byte for byte.
+fn straight_run(tmp: &Path, iters: &str) -> (PathBuf, PathBuf, Vec<u8>) {
+    let data = tiny_scene(&tmp.join("scene"), 2);
+    let cfg = ck1(tmp);
+    let straight = tmp.join("straight");
+    train_ck1(&data, &cfg, &straight, iters);
+    let want = std::fs::read(straight.join("model.safetensors")).unwrap();
+    (data, cfg, want)
+}
+
 fn spawn(args: &[String]) -> std::process::Child {
     Command::new(env!("CARGO_BIN_EXE_pma"))
         .args(args)
@@ -187,6 +213,15 @@ fn tiny_model(dir: &Path, data: &Path) -> PathBuf {
     run_dir.join("model.safetensors")
 }
 
+/// A temporary directory with a tiny scene (`scene/`) and a model trained on it
+/// ([`tiny_model`]): the training split's path and the model's.
+fn scene_and_model() -> (tempfile::TempDir, PathBuf, PathBuf) {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tiny_scene(&tmp.path().join("scene"), 2);
+    let model = tiny_model(tmp.path(), &data);
+    (tmp, data, model)
+}
+
 /// Copies a safetensors file, editing its metadata and its data bytes.
 fn rewrite_safetensors(
     from: &Path,
@@ -230,14 +265,7 @@ fn with_config(from: &Path, to: &Path, edit: impl FnOnce(&mut serde_json::Value)
 #[test]
 fn checkpoints_survive_a_full_disk() {
     let tmp = tempfile::tempdir().unwrap();
-    let data = tiny_scene(&tmp.path().join("scene"), 2);
-    let cfg = ck1(tmp.path());
-    let straight = tmp.path().join("straight");
-    ok(run(
-        &train_cmd(&data, &straight, &["--config", s(&cfg), "--iters", "6"]),
-        &[],
-    ));
-    let want = std::fs::read(straight.join("model.safetensors")).unwrap();
+    let (data, cfg, want) = straight_run(tmp.path(), "6");
     // Budgets from nothing to more than one checkpoint: every cut lands somewhere else in
     // the model, the state, the config, the log, the plot or the published model.
     let budgets = [
@@ -246,22 +274,18 @@ fn checkpoints_survive_a_full_disk() {
     let mut failed = 0;
     for (k, budget) in budgets.iter().enumerate() {
         let out = tmp.path().join(format!("run{k}"));
-        ok(run(
-            &train_cmd(&data, &out, &["--config", s(&cfg), "--iters", "3"]),
-            &[],
-        ));
-        let full = run(
-            &train_cmd(&data, &out, &["--resume", "--iters", "6"]),
+        train_ck1(&data, &cfg, &out, "3");
+        let full = resume(
+            &data,
+            &out,
+            "6",
             &[("PMA_FSIO_FAIL_AFTER", &budget.to_string())],
         );
         if !full.status.success() {
             failed += 1;
             exits(&full, 1, &["No space left on device"]);
         }
-        ok(run(
-            &train_cmd(&data, &out, &["--resume", "--iters", "6"]),
-            &[],
-        ));
+        ok(resume(&data, &out, "6", &[]));
         assert_eq!(
             std::fs::read(out.join("model.safetensors")).unwrap(),
             want,
@@ -294,10 +318,7 @@ fn tmpfs_full_disk(tmp: &Path, data: &Path, cfg: &Path, want: &[u8]) {
     }
     let _guard = Unmount(&mnt);
     let out = mnt.join("run");
-    ok(run(
-        &train_cmd(data, &out, &["--config", s(cfg), "--iters", "3"]),
-        &[],
-    ));
+    train_ck1(data, cfg, &out, "3");
     // Fill the disk up to ~150 KB free.
     let free = || {
         let o = Command::new("df")
@@ -314,13 +335,10 @@ fn tmpfs_full_disk(tmp: &Path, data: &Path, cfg: &Path, want: &[u8]) {
     };
     let filler = mnt.join("filler");
     std::fs::write(&filler, vec![0u8; free().saturating_sub(150_000) as usize]).unwrap();
-    let full = run(&train_cmd(data, &out, &["--resume", "--iters", "6"]), &[]);
+    let full = resume(data, &out, "6", &[]);
     exits(&full, 1, &["No space left on device"]);
     std::fs::remove_file(&filler).unwrap();
-    ok(run(
-        &train_cmd(data, &out, &["--resume", "--iters", "6"]),
-        &[],
-    ));
+    ok(resume(data, &out, "6", &[]));
     assert_eq!(std::fs::read(out.join("model.safetensors")).unwrap(), want);
     eprintln!("tmpfs: full disk at ~150 KB free: exit 1, then resumed bit for bit");
 }
@@ -337,10 +355,7 @@ fn kill_9_while_checkpointing_never_leaves_a_run_unresumable() {
     let cfg = ck1(tmp.path());
     let straight = tmp.path().join("straight");
     let t0 = Instant::now();
-    ok(run(
-        &train_cmd(&data, &straight, &["--config", s(&cfg), "--iters", ITERS]),
-        &[],
-    ));
+    train_ck1(&data, &cfg, &straight, ITERS);
     let run_ms = t0.elapsed().as_millis() as u64;
     let want = std::fs::read(straight.join("model.safetensors")).unwrap();
     let mut rng = Rng::from_time();
@@ -405,10 +420,7 @@ fn kill_9_while_checkpointing_never_leaves_a_run_unresumable() {
             .unwrap()
             .is_some();
         let again = if has_ckpt {
-            run(
-                &train_cmd(&data, &out, &["--resume", "--iters", ITERS]),
-                &[],
-            )
+            resume(&data, &out, ITERS, &[])
         } else {
             before_first += 1;
             run(
@@ -478,10 +490,8 @@ fn one_trainer_per_run_directory() {
 /// path, a hard link); the input is left as it was.
 #[test]
 fn outputs_never_overwrite_inputs() {
-    let tmp = tempfile::tempdir().unwrap();
+    let (tmp, data, model) = scene_and_model();
     let dir = tmp.path();
-    let data = tiny_scene(&dir.join("scene"), 2);
-    let model = tiny_model(dir, &data);
     let before = std::fs::read(&model).unwrap();
     let other_spelling = model.parent().unwrap().join(".").join("model.safetensors");
     let link = dir.join("link.safetensors");
@@ -592,9 +602,7 @@ fn fifos_devices_and_directories_are_refused_at_once() {
     let data = tiny_scene(&dir.join("scene"), 2);
     let fifo = |name: &str| {
         let p = dir.join(name);
-        let c = std::ffi::CString::new(s(&p)).unwrap();
-        // SAFETY: a plain libc call with a valid NUL-terminated path.
-        assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o600) }, 0);
+        mkfifo(&p);
         p
     };
     let (npz, st, th, png, toml) = (
@@ -647,10 +655,8 @@ fn fifos_devices_and_directories_are_refused_at_once() {
 /// Cases 5 and 7: sizes from files and flags are bounded before anything is allocated.
 #[test]
 fn unbounded_sizes_and_flags_are_refused_before_allocating() {
-    let tmp = tempfile::tempdir().unwrap();
+    let (tmp, data, model) = scene_and_model();
     let dir = tmp.path();
-    let data = tiny_scene(&dir.join("scene"), 2);
-    let model = tiny_model(dir, &data);
     let deep = dir.join("deep.safetensors");
     with_config(&model, &deep, |c| {
         c["trunk_depth"] = 1_000_000_000u64.into()
@@ -912,24 +918,17 @@ fn failed_npz_writes_exit_1_with_one_line() {
 #[cfg(unix)]
 #[test]
 fn fifos_are_named_as_fifos_with_what_was_expected() {
-    let tmp = tempfile::tempdir().unwrap();
+    let (tmp, _, model) = scene_and_model();
     let dir = tmp.path();
-    let data = tiny_scene(&dir.join("scene"), 2);
-    let model = tiny_model(dir, &data);
-    let fifo = |p: &Path| {
-        let c = std::ffi::CString::new(s(p)).unwrap();
-        // SAFETY: a plain libc call with a valid NUL-terminated path.
-        assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o600) }, 0);
-    };
     let npz = dir.join("f.npz");
-    fifo(&npz);
+    mkfifo(&npz);
     let scene = dir.join("fifo_scene");
     std::fs::create_dir(&scene).unwrap();
     for split in ["train", "novel_view"] {
-        fifo(&scene.join(format!("{split}.npz")));
+        mkfifo(&scene.join(format!("{split}.npz")));
     }
     let st = dir.join("f.safetensors");
-    fifo(&st);
+    mkfifo(&st);
     let r = dir.join("r");
     let m = s(&model);
     for (args, needles) in [
@@ -976,10 +975,8 @@ fn fifos_are_named_as_fifos_with_what_was_expected() {
 /// or `eval` the output directories it made and left empty.
 #[test]
 fn failed_commands_remove_what_they_created_and_nothing_else() {
-    let tmp = tempfile::tempdir().unwrap();
+    let (tmp, data, model) = scene_and_model();
     let dir = tmp.path();
-    let data = tiny_scene(&dir.join("scene"), 2);
-    let model = tiny_model(dir, &data);
     // Refused after the lock is taken: the run's settings are checked under it.
     let refuse_train = |out: &Path| {
         train_refused(
@@ -1017,6 +1014,7 @@ fn failed_commands_remove_what_they_created_and_nothing_else() {
 
     let full = [("PMA_FSIO_FAIL_AFTER", "100")];
     let scene = dir.join("scene");
+    let (m, sc) = (s(&model), s(&scene));
     let kept = dir.join("kept");
     std::fs::create_dir(&kept).unwrap();
     std::fs::write(kept.join("mine.txt"), b"mine").unwrap();
@@ -1024,24 +1022,8 @@ fn failed_commands_remove_what_they_created_and_nothing_else() {
         let o = s(&out_dir);
         for args in [
             vec!["synth", "--out", o, "--res", "24", "--quiet"],
-            vec![
-                "render",
-                "--model",
-                s(&model),
-                "--data",
-                s(&scene),
-                "--out",
-                o,
-            ],
-            vec![
-                "eval",
-                "--model",
-                s(&model),
-                "--data",
-                s(&scene),
-                "--out",
-                o,
-            ],
+            vec!["render", "--model", m, "--data", sc, "--out", o],
+            vec!["eval", "--model", m, "--data", sc, "--out", o],
         ] {
             exits(&pma_env(&args, &full), 1, &["No space left on device"]);
             let left = dir.join("a").exists() || kept.join("sub").exists();
@@ -1062,14 +1044,7 @@ fn failed_commands_remove_what_they_created_and_nothing_else() {
 #[test]
 fn resume_falls_back_to_the_newest_checkpoint_that_reads_back() {
     let tmp = tempfile::tempdir().unwrap();
-    let data = tiny_scene(&tmp.path().join("scene"), 2);
-    let cfg = ck1(tmp.path());
-    let straight = tmp.path().join("straight");
-    ok(run(
-        &train_cmd(&data, &straight, &["--config", s(&cfg), "--iters", "6"]),
-        &[],
-    ));
-    let want = std::fs::read(straight.join("model.safetensors")).unwrap();
+    let (data, cfg, want) = straight_run(tmp.path(), "6");
     let checkpoints = |run: &Path| pma_model::network::run_dir::checkpoints(run).unwrap();
     let truncate = |p: &Path| {
         let f = std::fs::OpenOptions::new().write(true).open(p).unwrap();
@@ -1093,15 +1068,12 @@ fn resume_falls_back_to_the_newest_checkpoint_that_reads_back() {
     ];
     for (k, (file, damage, why)) in damages.into_iter().enumerate() {
         let out = tmp.path().join(format!("run{k}"));
-        ok(run(
-            &train_cmd(&data, &out, &["--config", s(&cfg), "--iters", "3"]),
-            &[],
-        ));
+        train_ck1(&data, &cfg, &out, "3");
         let all = checkpoints(&out);
         assert_eq!(all.len(), 2, "the run keeps two checkpoints");
         let (older, newest) = (&all[0], &all[1]);
         damage(&newest.path.join(file));
-        let resumed = run(&train_cmd(&data, &out, &["--resume", "--iters", "6"]), &[]);
+        let resumed = resume(&data, &out, "6", &[]);
         let err = stderr(&resumed);
         assert!(resumed.status.success(), "{file}: {err}");
         let warnings: Vec<&str> = err.lines().filter(|l| l.starts_with("warning:")).collect();
@@ -1123,14 +1095,11 @@ fn resume_falls_back_to_the_newest_checkpoint_that_reads_back() {
     }
     // Both checkpoints unreadable: refused, naming both.
     let out = tmp.path().join("both");
-    ok(run(
-        &train_cmd(&data, &out, &["--config", s(&cfg), "--iters", "3"]),
-        &[],
-    ));
+    train_ck1(&data, &cfg, &out, "3");
     let all = checkpoints(&out);
     truncate(&all[1].model());
     truncate(&all[0].state());
-    let resumed = run(&train_cmd(&data, &out, &["--resume", "--iters", "6"]), &[]);
+    let resumed = resume(&data, &out, "6", &[]);
     let names: Vec<String> = all
         .iter()
         .map(|c| c.path.file_name().unwrap().to_string_lossy().into_owned())
@@ -1192,10 +1161,8 @@ fn converted_checkpoint_pairs_are_all_or_nothing() {
 /// input (2).
 #[test]
 fn output_paths_are_checked_before_work() {
-    let tmp = tempfile::tempdir().unwrap();
+    let (tmp, data, model) = scene_and_model();
     let dir = tmp.path();
-    let data = tiny_scene(&dir.join("scene"), 2);
-    let model = tiny_model(dir, &data);
     let missing = dir.join("missing").join("a.ply");
     let th = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/convert/tiny_views.th");
     for args in [
@@ -1255,10 +1222,8 @@ fn output_paths_are_checked_before_work() {
 /// an unusable train state.
 #[test]
 fn every_refusal_is_one_line() {
-    let tmp = tempfile::tempdir().unwrap();
+    let (tmp, data, model) = scene_and_model();
     let dir = tmp.path();
-    let data = tiny_scene(&dir.join("scene"), 2);
-    let model = tiny_model(dir, &data);
     let wide = dir.join("wide.safetensors");
     with_config(&model, &wide, |c| {
         let w = c["trunk_width"].as_u64().unwrap();
@@ -1312,10 +1277,8 @@ fn every_refusal_is_one_line() {
 /// shows them.
 #[test]
 fn non_finite_weights_are_refused_and_shown_by_inspect() {
-    let tmp = tempfile::tempdir().unwrap();
+    let (tmp, data, model) = scene_and_model();
     let dir = tmp.path();
-    let data = tiny_scene(&dir.join("scene"), 2);
-    let model = tiny_model(dir, &data);
     let nan = dir.join("nan.safetensors");
     rewrite_safetensors(
         &model,
@@ -1355,10 +1318,8 @@ fn non_finite_weights_are_refused_and_shown_by_inspect() {
 /// (`pma_model::network::run_dir::newest_model`), with `eval`'s files beside it.
 #[test]
 fn a_run_directory_stands_for_its_newest_model() {
-    let tmp = tempfile::tempdir().unwrap();
+    let (tmp, data, model) = scene_and_model();
     let dir = tmp.path();
-    let data = tiny_scene(&dir.join("scene"), 2);
-    let model = tiny_model(dir, &data);
     let run_dir = model.parent().unwrap();
     ok(pma_within(
         &[

@@ -85,3 +85,11 @@ pub fn assert_default_modes(dir: &std::path::Path) {
     }
     assert!(files > 0, "no files under {}", dir.display());
 }
+
+/// Make a FIFO at `path` (no writer: opening it for reading would block).
+#[cfg(unix)]
+pub fn mkfifo(path: &std::path::Path) {
+    let c = std::ffi::CString::new(path.to_str().unwrap()).unwrap();
+    // SAFETY: a plain libc call with a valid NUL-terminated path.
+    assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o600) }, 0);
+}

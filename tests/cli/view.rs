@@ -239,6 +239,20 @@ fn lit(a: &image::RgbaImage) -> usize {
         .count()
 }
 
+/// The centre of the render canvas on the page (CSS pixels), where a drag starts.
+fn render_centre(b: &mut Browser) -> (f64, f64) {
+    let r = b
+        .eval("(() => { const r = document.getElementById('render').getBoundingClientRect(); return [r.x, r.y, r.width, r.height]; })()")
+        .unwrap();
+    let r: Vec<f64> = r
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_f64().unwrap())
+        .collect();
+    (r[0] + r[2] / 2.0, r[1] + r[3] / 2.0)
+}
+
 fn stats(b: &mut Browser) -> Value {
     b.eval("pmaView.lastFullStats").unwrap()
 }
@@ -322,16 +336,7 @@ fn browser_scrubs_poses_turns_the_camera_and_follows_a_run() {
 
     // Orbit by dragging on the render: a free camera, so no ground truth.
     let frames = b.eval("pmaView.fullFrames").unwrap().as_u64().unwrap();
-    let r = b
-        .eval("(() => { const r = document.getElementById('render').getBoundingClientRect(); return [r.x, r.y, r.width, r.height]; })()")
-        .unwrap();
-    let r: Vec<f64> = r
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|v| v.as_f64().unwrap())
-        .collect();
-    let mid = (r[0] + r[2] / 2.0, r[1] + r[3] / 2.0);
+    let mid = render_centre(&mut b);
     b.drag(mid, (mid.0 + 150.0, mid.1 + 20.0), 6).unwrap();
     b.wait_for(
         &format!(
@@ -819,9 +824,7 @@ fn a_fifo_in_the_run_directory_blocks_no_request() {
     std::fs::create_dir(&run).unwrap();
     let model = tiny_model(tmp.path());
     std::fs::copy(&model, run.join("model.safetensors")).unwrap();
-    let log = std::ffi::CString::new(s(&run.join("log.csv"))).unwrap();
-    // SAFETY: a plain libc call with a valid NUL-terminated path.
-    assert_eq!(unsafe { libc::mkfifo(log.as_ptr(), 0o600) }, 0);
+    crate::run::mkfifo(&run.join("log.csv"));
     let view = Viewer::start(&[s(&run)]);
     let threads = || {
         let status = std::fs::read_to_string(format!("/proc/{}/status", view.child.id())).unwrap();
@@ -979,16 +982,7 @@ fn screenshot_for_docs() {
     }
     if std::env::var("PMA_VIEW_DRAG").as_deref() == Ok("1") {
         let n = b.eval("pmaView.fullFrames").unwrap();
-        let r = b
-            .eval("(() => { const r = document.getElementById('render').getBoundingClientRect(); return [r.x, r.y, r.width, r.height]; })()")
-            .unwrap();
-        let r: Vec<f64> = r
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|v| v.as_f64().unwrap())
-            .collect();
-        let mid = (r[0] + r[2] / 2.0, r[1] + r[3] / 2.0);
+        let mid = render_centre(&mut b);
         b.drag(mid, (mid.0 + 90.0, mid.1 + 15.0), 8).unwrap();
         b.wait_for(
             &format!("pmaView.fullFrames > {n} && pmaView.settled()"),
