@@ -12,7 +12,7 @@ use std::time::{Duration, Instant};
 
 #[cfg(unix)]
 use crate::run::mkfifo;
-use crate::run::{ok, tiny_scene};
+use crate::run::{ok, pma_within, tiny_scene};
 use crate::train::newest;
 
 fn s(p: &Path) -> &str {
@@ -26,32 +26,6 @@ fn pma_env(args: &[&str], env: &[(&str, &str)]) -> Output {
         c.env(k, v);
     }
     c.output().expect("running pma")
-}
-
-/// Runs pma, failing the test if it has not ended within `secs` (a hang).
-fn pma_within(args: &[&str], secs: u64) -> Output {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_pma"))
-        .args(args)
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let deadline = Instant::now() + Duration::from_secs(secs);
-    loop {
-        if child.try_wait().unwrap().is_some() {
-            return child.wait_with_output().unwrap();
-        }
-        if Instant::now() > deadline {
-            let _ = child.kill();
-            let out = child.wait_with_output().unwrap();
-            panic!(
-                "pma {args:?} still running after {secs} s (a hang): {}",
-                String::from_utf8_lossy(&out.stderr)
-            );
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    }
 }
 
 fn stderr(out: &Output) -> String {
@@ -1277,7 +1251,7 @@ fn every_refusal_is_one_line() {
 /// shows them.
 #[test]
 fn non_finite_weights_are_refused_and_shown_by_inspect() {
-    let (tmp, data, model) = scene_and_model();
+    let (tmp, _, model) = scene_and_model();
     let dir = tmp.path();
     let nan = dir.join("nan.safetensors");
     rewrite_safetensors(
@@ -1318,7 +1292,7 @@ fn non_finite_weights_are_refused_and_shown_by_inspect() {
 /// (`pma_model::network::run_dir::newest_model`), with `eval`'s files beside it.
 #[test]
 fn a_run_directory_stands_for_its_newest_model() {
-    let (tmp, data, model) = scene_and_model();
+    let (tmp, _, model) = scene_and_model();
     let dir = tmp.path();
     let run_dir = model.parent().unwrap();
     ok(pma_within(

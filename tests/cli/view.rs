@@ -19,7 +19,7 @@ use pma_model::Config;
 use serde_json::Value;
 
 use crate::cdp::{self, Browser};
-use crate::run::{fails_with, ok, pma, tiny_scene};
+use crate::run::{fails_with, ok, pma, pma_within, tiny_scene};
 
 /// Generous bound on anything the page waits for in a debug build on a loaded machine (a
 /// hang guard, not a timing check).
@@ -935,7 +935,8 @@ fn refuses_bad_input_before_serving() {
     assert_eq!(out.status.code(), Some(2), "{out:?}");
     fails_with(out, "the run has no checkpoint yet");
     for chunk in ["0", "1048577", "1000000000000"] {
-        let out = pma(&["view", s(&model), "--chunk", chunk]);
+        // Within a minute: a server that took the value would serve until stopped.
+        let out = pma_within(&["view", s(&model), "--chunk", chunk, "--port", "0"], 60);
         assert_eq!(out.status.code(), Some(2), "{out:?}");
         fails_with(out, &format!("--chunk {chunk} must be in 1..=1048576"));
     }
