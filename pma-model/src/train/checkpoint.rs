@@ -71,8 +71,8 @@ impl ResumePoint {
 
     /// Whether every file of this point reads back: the train state loads, the model is the
     /// one it was saved with (its fingerprint; a model without one must load), and the
-    /// config and the log parse. A file truncated or corrupted after the commit (a disk
-    /// error) fails here; the reason is one line naming the file.
+    /// config and the log, where there are, parse. A file truncated or corrupted after the
+    /// commit (a disk error) fails here; the reason is one line naming the file.
     pub fn verify(&self) -> Result<(), String> {
         let line = |e: TrainError| pma_data::error::one_line(&e.to_string());
         let state = TrainState::load(&self.state, &Device::Cpu).map_err(line)?;
@@ -82,7 +82,9 @@ impl ResumePoint {
         } else {
             Avatar::load(&self.model, &Device::Cpu).map_err(|e| line(e.into()))?;
         }
-        RunConfig::from_toml_file(&self.config).map_err(line)?;
+        if self.config.is_file() {
+            RunConfig::from_toml_file(&self.config).map_err(line)?;
+        }
         if let Some(log) = &self.log {
             TrainLog::read(log).map_err(line)?;
         }

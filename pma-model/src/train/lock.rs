@@ -144,6 +144,20 @@ mod tests {
     }
 
     #[test]
+    fn a_file_opened_before_its_removal_is_not_the_run_lock() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join(LOCK_FILE);
+        let held = RunLock::acquire(dir.path()).unwrap();
+        // A second trainer opened the file just before the first one removed it.
+        let stale = File::open(&path).unwrap();
+        assert!(is_at(&stale, &path));
+        held.remove();
+        assert!(!is_at(&stale, &path));
+        let next = RunLock::acquire(dir.path()).unwrap();
+        assert!(is_at(&next.file, &path) && !is_at(&stale, &path));
+    }
+
+    #[test]
     fn a_lock_that_created_its_file_removes_it_and_one_that_found_it_does_not() {
         let dir = tempfile::tempdir().unwrap();
         let file = dir.path().join(LOCK_FILE);
