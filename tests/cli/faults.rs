@@ -1011,6 +1011,24 @@ fn failed_commands_remove_what_they_created_and_nothing_else() {
     assert_eq!(std::fs::read(kept.join("mine.txt")).unwrap(), b"mine");
 }
 
+/// A way to damage a file.
+type Damage = fn(&Path);
+
+/// Cut `path` to half its length, as a disk error after the commit might.
+fn truncate(path: &Path) {
+    let f = std::fs::OpenOptions::new().write(true).open(path).unwrap();
+    let len = f.metadata().unwrap().len();
+    f.set_len(len / 2).unwrap();
+}
+
+/// Flip one byte near the end of `path` (in a checkpoint, tensor data).
+fn flip_a_byte(path: &Path) {
+    let mut bytes = std::fs::read(path).unwrap();
+    let k = bytes.len() - 5;
+    bytes[k] ^= 0xff;
+    std::fs::write(path, bytes).unwrap();
+}
+
 /// The newest checkpoint's model or train state truncated or corrupted after its commit (a
 /// disk error): `--resume` continues from the previous complete checkpoint, with one warning
 /// naming the one skipped and why, and ends where a run that never failed ends; with no
@@ -1020,23 +1038,12 @@ fn resume_falls_back_to_the_newest_checkpoint_that_reads_back() {
     let tmp = tempfile::tempdir().unwrap();
     let (data, cfg, want) = straight_run(tmp.path(), "6");
     let checkpoints = |run: &Path| pma_model::network::run_dir::checkpoints(run).unwrap();
-    let truncate = |p: &Path| {
-        let f = std::fs::OpenOptions::new().write(true).open(p).unwrap();
-        let len = f.metadata().unwrap().len();
-        f.set_len(len / 2).unwrap();
-    };
-    let corrupt = |p: &Path| {
-        let mut bytes = std::fs::read(p).unwrap();
-        let k = bytes.len() - 5;
-        bytes[k] ^= 0xff;
-        std::fs::write(p, bytes).unwrap();
-    };
-    let damages: [(&str, &dyn Fn(&Path), &str); 3] = [
-        ("model.safetensors", &truncate, "does not belong to"),
-        ("model.safetensors", &corrupt, "does not belong to"),
+    let damages: [(&str, Damage, &str); 3] = [
+        ("model.safetensors", truncate, "does not belong to"),
+        ("model.safetensors", flip_a_byte, "does not belong to"),
         (
             "train_state.safetensors",
-            &truncate,
+            truncate,
             "train_state.safetensors",
         ),
     ];
