@@ -19,8 +19,10 @@
 //! [`verified_resume_point`], the newest complete checkpoint whose files read back.
 
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use candle_core::Device;
+use pma_data::dataset::Dataset;
 
 use super::batch::BatchSource;
 use super::error::{write_atomic, write_err, TrainError};
@@ -365,6 +367,20 @@ impl Trainer {
     ) -> Result<Self, TrainError> {
         let point = verified_resume_point(dir)?;
         Self::resume_from(dir, &point, run, source, device)
+    }
+
+    /// Continue the run in `dir` from `point` (see [`verified_resume_point`]) on the same
+    /// `data` it was trained on.
+    pub fn resume_at(
+        dir: &Path,
+        point: &ResumePoint,
+        mut run: RunConfig,
+        data: Arc<Dataset>,
+        device: &Device,
+    ) -> Result<Self, TrainError> {
+        run.model.n_framecodes = data.n_images();
+        let source = Self::dataset_source(&run, data, device)?;
+        Self::resume_from(dir, point, run, source, device)
     }
 
     /// [`Self::resume_with_source`] from a given [`ResumePoint`] of the run in `dir`.

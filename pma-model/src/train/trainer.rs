@@ -471,28 +471,16 @@ impl Trainer {
     /// Continue the run in `dir` on the same `data` (see [`Self::resume_with_source`]).
     pub fn resume(
         dir: &Path,
-        run: RunConfig,
-        data: Arc<Dataset>,
-        device: &Device,
-    ) -> Result<Self, TrainError> {
-        let point = super::checkpoint::verified_resume_point(dir)?;
-        Self::resume_at(dir, &point, run, data, device)
-    }
-
-    /// [`Self::resume`] from a given resume point of the run in `dir`.
-    pub fn resume_at(
-        dir: &Path,
-        point: &super::checkpoint::ResumePoint,
         mut run: RunConfig,
         data: Arc<Dataset>,
         device: &Device,
     ) -> Result<Self, TrainError> {
         run.model.n_framecodes = data.n_images();
         let source = Self::dataset_source(&run, data, device)?;
-        Self::resume_from(dir, point, run, source, device)
+        Self::resume_with_source(dir, run, source, device)
     }
 
-    fn dataset_source(
+    pub(super) fn dataset_source(
         run: &RunConfig,
         data: Arc<Dataset>,
         device: &Device,
