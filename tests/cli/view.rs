@@ -181,6 +181,11 @@ fn send(port: u16, raw: &[u8]) -> TcpStream {
 fn read_answer(mut sock: TcpStream) -> Answer {
     let mut buf = Vec::new();
     let _ = sock.read_to_end(&mut buf);
+    read_answer_of(buf)
+}
+
+/// The answer in the bytes a server sent.
+fn read_answer_of(buf: Vec<u8>) -> Answer {
     let split = buf
         .windows(4)
         .position(|w| w == b"\r\n\r\n")
@@ -636,9 +641,13 @@ fn start_cam(info: &Value) -> String {
     )
 }
 
-/// A GET of `target` that gives up after `wait` (a hang shows as no answer).
+/// A GET of `target` that gives up after `wait` to connect and as long to read (a hang
+/// shows as no answer).
 fn get_within(port: u16, target: &str, wait: Duration) -> Answer {
-    let mut sock = TcpStream::connect(("127.0.0.1", port)).unwrap();
+    let addr = std::net::SocketAddr::from(([127, 0, 0, 1], port));
+    let Ok(mut sock) = TcpStream::connect_timeout(&addr, wait) else {
+        return read_answer_of(Vec::new());
+    };
     sock.set_read_timeout(Some(wait)).unwrap();
     let raw =
         format!("GET {target} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nConnection: close\r\n\r\n");
@@ -721,6 +730,9 @@ fn hold(
             last_byte = Instant::now();
         }
         for (kind, sock) in socks.iter_mut() {
+            if stop.load(Ordering::SeqCst) {
+                break;
+            }
             let open = match sock {
                 Some(s) => {
                     still_open(s)
