@@ -31,6 +31,7 @@ CRATES = {
     "pma_model": "pma-model/src",
     "pma_convert": "pma-convert/src",
     "pma_infer": "pma-infer/src",
+    "pma_view": "pma-view/src",
 }
 
 

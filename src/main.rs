@@ -108,6 +108,8 @@ fn main() -> ExitCode {
     match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
+            // Output directories this command made and left empty go with it.
+            pma_data::fsio::remove_empty_created_dirs();
             let code = cli::exit_code(&e);
             let line = if pma_data::ErrorKind::Interrupted == cli::error_kind(&e) {
                 cli::interrupted_report(&e)

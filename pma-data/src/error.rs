@@ -76,6 +76,17 @@ pub fn one_line(msg: &str) -> String {
     out
 }
 
+/// `x` as a message shows it: plain while that is short, in scientific notation for very
+/// large or very small magnitudes (`1e300`, not three hundred digits).
+pub fn short_number(x: f64) -> String {
+    let a = x.abs();
+    if x.is_finite() && a != 0.0 && !(1e-4..1e9).contains(&a) {
+        format!("{x:e}")
+    } else {
+        format!("{x}")
+    }
+}
+
 /// A file that could not be read or written: the one file error of every pma error type
 /// (data, model, training, evaluation), which each wraps as it is.
 #[derive(Debug, thiserror::Error)]

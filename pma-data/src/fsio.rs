@@ -57,10 +57,7 @@ pub struct AtomicFile {
 impl AtomicFile {
     pub fn create(path: &Path) -> io::Result<Self> {
         Ok(Self {
-            tmp: tempfile::Builder::new()
-                .prefix(".pma-")
-                .suffix(".tmp")
-                .tempfile_in(parent_dir(path))?,
+            tmp: scratch_beside(path)?,
             path: path.to_path_buf(),
         })
     }
@@ -102,6 +99,28 @@ impl AtomicFile {
     }
 }
 
+/// A scratch file beside `path` (`.pma-*.tmp` in its directory, removed when dropped), for
+/// a writer that builds an output from an intermediate file. An error creating it names no
+/// temporary: the caller names `path`.
+pub fn scratch_beside(path: &Path) -> io::Result<tempfile::NamedTempFile> {
+    tempfile::Builder::new()
+        .prefix(".pma-")
+        .suffix(".tmp")
+        .tempfile_in(parent_dir(path))
+        .map_err(without_temp_path)
+}
+
+/// `tempfile`'s error without the temporary's name it appends (`... at path
+/// ".pma-XXXX.tmp"`; its error type keeps the cause private): callers name the output,
+/// which is what the user asked for.
+fn without_temp_path(e: io::Error) -> io::Error {
+    let text = e.to_string();
+    match text.rsplit_once(" at path ") {
+        Some((cause, _)) if e.get_ref().is_some() => io::Error::new(e.kind(), cause.to_string()),
+        _ => e,
+    }
+}
+
 /// Commit several files as one step as far as a failure can tell: every file is synced
 /// before the first rename, so a full disk or a write error leaves none of them (the
 /// temporaries are removed). The renames follow in order, then the directories are synced;
@@ -123,6 +142,63 @@ pub fn commit_all(files: Vec<AtomicFile>) -> io::Result<()> {
         sync_dir(&d)?;
     }
     Ok(())
+}
+
+/// Directories created for outputs, outermost first, to remove again those left empty.
+#[derive(Debug, Default)]
+pub struct CreatedDirs(std::sync::Mutex<Vec<PathBuf>>);
+
+impl CreatedDirs {
+    pub const fn new() -> Self {
+        Self(std::sync::Mutex::new(Vec::new()))
+    }
+
+    fn list(&self) -> std::sync::MutexGuard<'_, Vec<PathBuf>> {
+        self.0.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// `std::fs::create_dir_all`, remembering each directory it creates.
+    pub fn create_all(&self, dir: &Path) -> io::Result<()> {
+        let mut missing = Vec::new();
+        let mut d = Some(dir);
+        while let Some(p) = d.filter(|p| !p.as_os_str().is_empty()) {
+            if std::fs::symlink_metadata(p).is_ok() {
+                break;
+            }
+            missing.push(p.to_path_buf());
+            d = p.parent();
+        }
+        std::fs::create_dir_all(dir)?;
+        self.list().extend(missing.into_iter().rev());
+        Ok(())
+    }
+
+    /// Remove the directories created here that are still empty, innermost first, and
+    /// return them. A directory holding anything stays, and so does every directory that
+    /// was there before.
+    pub fn remove_empty(&self) -> Vec<PathBuf> {
+        let dirs = std::mem::take(&mut *self.list());
+        dirs.into_iter()
+            .rev()
+            .filter(|d| std::fs::remove_dir(d).is_ok())
+            .collect()
+    }
+}
+
+/// The output directories this process created.
+static CREATED_DIRS: CreatedDirs = CreatedDirs::new();
+
+/// `std::fs::create_dir_all` for an output directory, remembering each directory it
+/// creates: a command that then fails removes the ones still empty
+/// ([`remove_empty_created_dirs`]) instead of leaving them behind.
+pub fn create_dir_all(dir: &Path) -> io::Result<()> {
+    CREATED_DIRS.create_all(dir)
+}
+
+/// Remove the directories [`create_dir_all`] created in this process that are still empty
+/// (see [`CreatedDirs::remove_empty`]); for a command that failed.
+pub fn remove_empty_created_dirs() -> Vec<PathBuf> {
+    CREATED_DIRS.remove_empty()
 }
 
 /// Make the entries of `dir` (files created, renamed or removed in it) durable.
@@ -366,8 +442,8 @@ impl crate::error::ExitKind for PathError {
     }
 }
 
-/// What a non-regular file is, for messages.
-fn file_type_name(ft: &std::fs::FileType) -> &'static str {
+/// What a file is, for messages ("a FIFO", "a character device", "a directory").
+pub fn file_type_name(ft: &std::fs::FileType) -> &'static str {
     #[cfg(unix)]
     {
         use std::os::unix::fs::FileTypeExt;
@@ -775,6 +851,46 @@ fn umask() -> u32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_temporary_that_cannot_be_created_is_not_named() {
+        let tmp = tempfile::tempdir().unwrap();
+        let out = tmp.path().join("missing").join("out.npz");
+        for e in [
+            AtomicFile::create(&out).err().unwrap(),
+            scratch_beside(&out).err().unwrap(),
+        ] {
+            assert_eq!(e.kind(), io::ErrorKind::NotFound);
+            let text = e.to_string();
+            assert!(!text.contains(".pma-") && !text.contains(".tmp"), "{text}");
+            assert!(text.contains("No such file or directory"), "{text}");
+        }
+    }
+
+    #[test]
+    fn created_dirs_left_empty_go_and_nothing_else_does() {
+        let tmp = tempfile::tempdir().unwrap();
+        let before = tmp.path().join("before");
+        std::fs::create_dir(&before).unwrap();
+        let created = CreatedDirs::new();
+        // Three levels below a directory that existed: all three are new.
+        let deep = before.join("a").join("b").join("c");
+        created.create_all(&deep).unwrap();
+        // One that gets a file stays, with its parents.
+        let kept = tmp.path().join("kept").join("x");
+        created.create_all(&kept).unwrap();
+        std::fs::write(kept.join("f"), b"1").unwrap();
+        // Creating an existing directory again adds nothing.
+        created.create_all(&before).unwrap();
+        let removed = created.remove_empty();
+        assert_eq!(
+            removed,
+            [deep.clone(), before.join("a").join("b"), before.join("a")]
+        );
+        assert!(before.is_dir() && !before.join("a").exists());
+        assert!(kept.join("f").is_file());
+        assert!(created.remove_empty().is_empty(), "the list is spent");
+    }
 
     #[test]
     fn writes_whole_file_with_umask_mode() {

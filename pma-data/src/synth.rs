@@ -596,7 +596,7 @@ pub fn generate(
     progress: &mut dyn FnMut(usize, usize),
 ) -> Result<SynthSummary, SynthError> {
     let plan = plan(cfg)?;
-    std::fs::create_dir_all(out).map_err(io_err(out))?;
+    crate::fsio::create_dir_all(out).map_err(io_err(out))?;
     let total: usize = plan.splits.iter().map(SplitPlan::n_images).sum();
     let mut done = 0;
     progress(0, total);

@@ -17,10 +17,11 @@
 //! # The HTTP crate
 //! The server is `hyper` 1 (HTTP/1 only) on a single-threaded `tokio` runtime. It is the
 //! most widely used and actively maintained HTTP implementation in Rust, and it bounds what
-//! a client can make the server hold: the request head (`max_buf_size`, answered 431), the
-//! number of headers and the time to send them (a slow client cannot pin a connection). The
-//! accept loop wakes every 100 ms, so Ctrl-C stops the server within a fraction of a
-//! second. `tiny_http` (0.12, the newest release) would build faster, but it reads request
+//! a client can make the server hold: the request head (`max_buf_size`, answered 431) and
+//! the number of headers. Which connections stay open, and for how long, is the accept
+//! loop's ([`conns`]): idle and slow clients are closed first, so they cannot keep the page
+//! out. The accept loop wakes every 100 ms, so Ctrl-C stops the server within a fraction of
+//! a second. `tiny_http` (0.12, the newest release) would build faster, but it reads request
 //! header lines of any length into memory and sets no read timeout; `axum` would add a
 //! router and `tower` that a handful of fixed routes do not need. Rendering runs on a
 //! thread of its own, outside the runtime.
@@ -31,6 +32,8 @@
 //! hyper -p hyper-util -p tokio -p http-body-util`, load average 11); in a scratch crate with
 //! the same profile, hyper + tokio took 27 s and tiny_http 9 s (load average 2.5).
 
+pub mod conns;
+pub mod pass;
 pub mod query;
 pub mod renderer;
 pub mod run_log;
@@ -49,7 +52,8 @@ use pma_model::render::camera_path::ViewDirs;
 use pma_model::tools::retarget::RootScale;
 use serde::Serialize;
 
-use crate::renderer::{ModelSource, Renderer, Switch, SWITCHES};
+use crate::pass::{Switch, SWITCHES};
+use crate::renderer::{ModelSource, Renderer};
 use crate::scene::{Scene, ViewCam};
 use crate::server::Shared;
 

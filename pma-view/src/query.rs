@@ -3,7 +3,7 @@
 
 use std::collections::HashMap;
 
-use crate::renderer::PassOptions;
+use crate::pass::PassOptions;
 
 /// Largest render side in pixels.
 pub const MAX_SIDE: usize = 1024;

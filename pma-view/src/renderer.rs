@@ -1,8 +1,8 @@
 //! The avatar behind the server and how one frame is rendered.
 //!
 //! [`Renderer`] owns the avatar and is used by one thread only; the page's per-pass switches
-//! ([`PassOptions`]) become the pass options of each frame's render. It reloads the model
-//! when its file changes (a training run writing a new checkpoint).
+//! ([`crate::pass::PassOptions`]) become the pass options of each frame's render. It
+//! reloads the model when its file changes (a training run writing a new checkpoint).
 //!
 //! A frame is one call of `pma_model::render::image::render_image`, the renderer every
 //! command uses, with a chunk renderer that first asks whether the frame is still wanted:
@@ -20,104 +20,11 @@ use pma_model::eval::{quantize, score_image, PsnrRegion};
 use pma_model::render::avatar::{Avatar, Rays};
 use pma_model::render::camera_path::{load_avatar, look_at, ViewDirs};
 use pma_model::render::image::{render_image, ImageOptions, RenderedImage};
-use pma_model::render::{Culling, SampleFill};
 use serde::Serialize;
 
 use crate::query::{CamSpec, RenderRequest};
 use crate::scene::Scene;
 use crate::ViewError;
-
-/// The per-pass switches of the page (docs/numerics.md, "Empty rays and culling").
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct PassOptions {
-    /// Rays that cross no enlarged bone box get the background without running the network
-    /// (approximate: their samples have a small window, not zero).
-    pub cull_rays: bool,
-    /// Samples outside every joint's window (w^p = 0 exactly) get the network's far-away
-    /// output instead of running it (exact: the image does not change).
-    pub cull_samples: bool,
-    /// Samples in cells the model's occupancy grid marks empty get the far-away output too
-    /// (approximate; needs a model with a grid).
-    pub occupancy: bool,
-    /// A ray's samples behind the depth where its transmittance falls below
-    /// [`EARLY_STOP`] skip the network (approximate).
-    pub early_stop: bool,
-    /// Network calls carry only the joints whose window is non-zero at their samples
-    /// (exact up to float summation order).
-    pub cull_joints: bool,
-}
-
-/// The transmittance at which the page's early-stop switch stops a ray.
-pub const EARLY_STOP: f64 = 1e-2;
-
-/// A switch as the page lists it (`GET /api/info`); its `id` is the render request's
-/// parameter. A new per-pass option is one more entry here, one more field of
-/// [`PassOptions`] and its parameter in `query::render_request`.
-#[derive(Debug, Clone, Serialize)]
-pub struct Switch {
-    pub id: &'static str,
-    pub label: &'static str,
-    pub help: &'static str,
-    pub on: bool,
-}
-
-pub const SWITCHES: &[Switch] = &[
-    Switch {
-        id: "cull_rays",
-        label: "cull empty rays",
-        help: "rays that cross no bone box get the background without the network \
-               (approximate)",
-        on: true,
-    },
-    Switch {
-        id: "cull_samples",
-        label: "cull empty samples",
-        help: "samples outside every joint's window skip the network (exact: the image \
-               does not change)",
-        on: true,
-    },
-    Switch {
-        id: "occupancy",
-        label: "skip empty cells",
-        help: "samples in cells the model's occupancy grid marks empty skip the network \
-               (approximate; the model needs a grid: pma train --occupancy or \
-               pma occupancy build)",
-        on: false,
-    },
-    Switch {
-        id: "early_stop",
-        label: "stop behind the surface",
-        help: "a ray's samples behind the depth where its transmittance falls below 0.01 \
-               skip the network (approximate)",
-        on: false,
-    },
-    Switch {
-        id: "cull_joints",
-        label: "group by joints",
-        help: "network calls carry only the joints whose window is non-zero at their \
-               samples (exact up to float rounding; with a culling switch on)",
-        on: true,
-    },
-];
-
-impl PassOptions {
-    /// The avatar's pass options for these switches.
-    fn model_options(&self) -> pma_model::render::PassOptions {
-        pma_model::render::PassOptions {
-            culling: Culling {
-                rays: self.cull_rays,
-                sample_threshold: self.cull_samples.then_some(0.0),
-                sample_fill: SampleFill::Network,
-            },
-            occupancy: self.occupancy,
-            early_stop: self.early_stop.then_some(EARLY_STOP),
-            // Grouping alone would switch the culled route on: only with another switch.
-            cull_joints: self.cull_joints
-                && (self.cull_rays || self.cull_samples || self.occupancy || self.early_stop),
-            ..Default::default()
-        }
-    }
-}
 
 /// What `pma view` was pointed at.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -131,15 +38,18 @@ pub enum ModelSource {
 impl ModelSource {
     /// A directory is a run directory, anything else a model file.
     pub fn new(path: &Path) -> Result<ModelSource, ViewError> {
-        if path.is_dir() {
-            Ok(ModelSource::Run(path.to_path_buf()))
-        } else if path.is_file() {
-            Ok(ModelSource::File(path.to_path_buf()))
-        } else {
-            Err(ViewError::Input(format!(
-                "{}: no such model file or run directory",
-                path.display()
-            )))
+        let refuse = |what: String| Err(ViewError::Input(format!("{}: {what}", path.display())));
+        match std::fs::metadata(path) {
+            Ok(m) if m.is_dir() => Ok(ModelSource::Run(path.to_path_buf())),
+            Ok(m) if m.is_file() => Ok(ModelSource::File(path.to_path_buf())),
+            Ok(m) => refuse(format!(
+                "{}, expected a model file or a run directory",
+                pma_data::fsio::file_type_name(&m.file_type())
+            )),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+                refuse("no such model file or run directory".into())
+            }
+            Err(e) => refuse(e.to_string()),
         }
     }
 
@@ -275,8 +185,11 @@ impl Renderer {
         chunk: usize,
         numerics: Numerics,
     ) -> Result<Renderer, ViewError> {
-        if chunk == 0 {
-            return Err(ViewError::Input("--chunk must be >= 1".into()));
+        let max = pma_model::render::MAX_CHUNK_RAYS;
+        if !(1..=max).contains(&chunk) {
+            return Err(ViewError::Input(format!(
+                "--chunk {chunk} must be in 1..={max}"
+            )));
         }
         let file = source.model_file();
         if let (Some(dir), false) = (source.run_dir(), file.exists()) {
@@ -345,6 +258,13 @@ impl Renderer {
                 req.pose,
                 scene.pose_count()
             )));
+        }
+        if req.pass.occupancy && self.avatar.occupancy().is_none() {
+            return Err(RenderFail::Bad(
+                "occupancy=1: the model has no occupancy grid (pma train --occupancy or \
+                 pma occupancy build adds one)"
+                    .into(),
+            ));
         }
         let cam = camera(scene, req)?;
         let image = match req.cam {

@@ -58,9 +58,11 @@ pub fn status(dir: &Path) -> RunStatus {
     st
 }
 
+/// The log's text, `None` before the run wrote one. Opened with `fsio::open_input`: a FIFO or
+/// a device in its place is an error, never a read that blocks.
 fn read_log(path: &Path) -> std::io::Result<Option<String>> {
     use std::io::Read as _;
-    let f = match std::fs::File::open(path) {
+    let f = match pma_data::fsio::open_input(path) {
         Ok(f) => f,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
         Err(e) => return Err(e),

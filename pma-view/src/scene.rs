@@ -213,6 +213,11 @@ impl Scene {
         Ok((gt, mask, ds.height(), ds.width()))
     }
 
+    /// Images of the dataset (0 without one).
+    pub fn image_count(&self) -> usize {
+        self.data.as_ref().map_or(0, |ds| ds.n_images())
+    }
+
     /// Whether `n` is an image with ground truth.
     pub fn has_image(&self, n: usize) -> bool {
         self.images.values().any(|&m| m == n)

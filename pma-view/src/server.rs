@@ -12,25 +12,29 @@
 //!
 //! Every render request takes the next generation number; the render thread drops queued
 //! requests that are not the newest and stops a frame in flight at its next chunk when a
-//! newer request arrives (answered `409`). Limits: 16 KiB of request head, 64 headers,
-//! 10 s to send a head, no request bodies (`413`), 64 connections at once; render sides
-//! up to [`crate::query::MAX_SIDE`]. Bound to a loopback address, requests must name it in
-//! `Host` (`403` otherwise), which keeps other web pages from reaching the server through
-//! DNS rebinding.
+//! newer request arrives (answered `409`). Limits: 16 KiB of request head, 64 headers, no
+//! request bodies (`413`), render sides up to [`crate::query::MAX_SIDE`]; connections are
+//! limited in number and time as [`crate::conns`] describes. Files are read with
+//! `pma_data::fsio::open_input`, so a FIFO or a device in a run directory is an error in the
+//! answer, never a stuck thread; at most [`MAX_BLOCKING_THREADS`] threads read files. A
+//! client error is a 4xx answer; a 5xx means the server failed. Bound to a loopback address,
+//! requests must name it in `Host` (`403` otherwise), which keeps other web pages from
+//! reaching the server through DNS rebinding.
 
 use std::convert::Infallible;
 use std::net::SocketAddr;
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::mpsc;
 use std::sync::Arc;
 use std::time::Duration;
 
-use http_body_util::Full;
 use hyper::body::{Bytes, Incoming};
 use hyper::header::{HeaderValue, CONTENT_TYPE};
 use hyper::{Method, Request, Response, StatusCode};
 use hyper_util::rt::{TokioIo, TokioTimer};
+
+use crate::conns::{self, Answer, Connections};
 use serde::Serialize;
 
 use crate::query::{self, BadRequest, RenderRequest};
@@ -42,11 +46,12 @@ use crate::ViewError;
 /// Request head limit (request line and headers), bytes.
 pub const MAX_HEAD_BYTES: usize = 16 * 1024;
 pub const MAX_HEADERS: usize = 64;
-pub const MAX_CONNECTIONS: usize = 64;
-/// Time a client has to send a request head.
-pub const HEAD_TIMEOUT: Duration = Duration::from_secs(10);
+/// Threads that read files for `/api/run` and `/api/gt` (further requests wait for one).
+pub const MAX_BLOCKING_THREADS: usize = 4;
 /// How often the accept loop and the render thread look at the stop flags.
 pub const POLL: Duration = Duration::from_millis(100);
+/// How often the accept loop looks again while every connection is answering.
+const ROOM_POLL: Duration = Duration::from_millis(10);
 
 const INDEX_HTML: &str = include_str!("../assets/index.html");
 const VIEW_JS: &str = include_str!("../assets/view.js");
@@ -131,6 +136,7 @@ pub(crate) fn serve(
     };
     let rt = tokio::runtime::Builder::new_current_thread()
         .enable_all()
+        .max_blocking_threads(MAX_BLOCKING_THREADS)
         .build()
         .map_err(|e| io("starting the server runtime", e))?;
     listener
@@ -139,11 +145,17 @@ pub(crate) fn serve(
     let result = rt.block_on(async {
         let listener =
             tokio::net::TcpListener::from_std(listener).map_err(|e| io("listening", e))?;
-        let open = Arc::new(AtomicUsize::new(0));
+        let conns = Connections::new();
         while !shared.stopped() {
-            let (stream, _) = match tokio::time::timeout(POLL, listener.accept()).await {
+            conns.sweep();
+            if !conns.has_room() {
+                // Every connection is answering: new ones wait in the listen backlog.
+                tokio::time::sleep(ROOM_POLL).await;
+                continue;
+            }
+            let stream = match tokio::time::timeout(POLL, listener.accept()).await {
                 Err(_) => continue,
-                Ok(Ok(s)) => s,
+                Ok(Ok((s, _))) => s,
                 // Out of file descriptors or a connection reset before accept: wait a
                 // little rather than spin.
                 Ok(Err(_)) => {
@@ -151,25 +163,37 @@ pub(crate) fn serve(
                     continue;
                 }
             };
-            if open.load(Ordering::SeqCst) >= MAX_CONNECTIONS {
-                continue;
-            }
-            open.fetch_add(1, Ordering::SeqCst);
-            let (shared, jobs, open) = (shared.clone(), jobs.clone(), open.clone());
+            conns.make_room();
+            let slot = conns.open();
+            let io = TokioIo::new(conns.watch(stream, slot.clone()));
+            let (shared, jobs, conns) = (shared.clone(), jobs.clone(), conns.clone());
             tokio::spawn(async move {
-                let service = hyper::service::service_fn(move |req| {
-                    let (shared, jobs) = (shared.clone(), jobs.clone());
-                    async move { Ok::<_, Infallible>(handle(req, &shared, &jobs).await) }
-                });
-                let _ = hyper::server::conn::http1::Builder::new()
+                let service = {
+                    let (conns, slot) = (conns.clone(), slot.clone());
+                    hyper::service::service_fn(move |req| {
+                        let answering = conns.answering(&slot);
+                        let (shared, jobs) = (shared.clone(), jobs.clone());
+                        async move {
+                            let resp = handle(req, &shared, &jobs).await;
+                            Ok::<_, Infallible>(resp.map(|body| Answer::new(body, answering)))
+                        }
+                    })
+                };
+                let conn = hyper::server::conn::http1::Builder::new()
                     .max_buf_size(MAX_HEAD_BYTES)
                     .max_headers(MAX_HEADERS)
                     .timer(TokioTimer::new())
-                    .header_read_timeout(HEAD_TIMEOUT)
-                    .serve_connection(TokioIo::new(stream), service)
-                    .await;
-                open.fetch_sub(1, Ordering::SeqCst);
+                    // A backstop only: the accept loop closes idle and slow connections
+                    // sooner (see `conns`).
+                    .header_read_timeout(conns::IDLE_TIMEOUT + conns::HEAD_TIMEOUT)
+                    .serve_connection(io, service);
+                conns::until_closed(conn, &slot).await;
+                conns.remove(&slot);
             });
+            // Let the new connection read what it sent with its opening before the next
+            // accept: a request that came with it is then answering, which no newer
+            // connection can close.
+            tokio::task::yield_now().await;
         }
         Ok(())
     });
@@ -178,10 +202,10 @@ pub(crate) fn serve(
     result
 }
 
-type Resp = Response<Full<Bytes>>;
+type Resp = Response<Bytes>;
 
 fn response(status: StatusCode, mime: &'static str, body: impl Into<Bytes>) -> Resp {
-    let mut r = Response::new(Full::new(body.into()));
+    let mut r = Response::new(body.into());
     *r.status_mut() = status;
     let h = r.headers_mut();
     h.insert(CONTENT_TYPE, HeaderValue::from_static(mime));
@@ -337,8 +361,15 @@ async fn render(query: &str, shared: &Arc<Shared>, jobs: &mpsc::Sender<Job>) -> 
 }
 
 async fn ground_truth(query: &str, shared: &Arc<Shared>) -> Resp {
+    let images = shared.scene.image_count();
+    if images == 0 {
+        return error(
+            StatusCode::BAD_REQUEST,
+            "no ground truth: the viewer was started without --data",
+        );
+    }
     let n = match query::pairs(query, &["image"]).and_then(|q| {
-        query::index(&q, "image", usize::MAX, "images")?
+        query::index(&q, "image", images, "dataset images")?
             .ok_or_else(|| BadRequest("image is missing".into()))
     }) {
         Ok(n) if shared.scene.has_image(n) => n,

@@ -99,7 +99,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             .input_opt("--data", args.data.as_deref())
             .output_dir("--out", &args.out, ["ablation.json", "ablation.md"]),
     )?;
-    std::fs::create_dir_all(&args.out)
+    pma_data::fsio::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
     let train_data = match &args.data {
         Some(p) => p.clone(),

@@ -160,7 +160,7 @@ pub struct Args {
 pub fn run(mut args: Args) -> anyhow::Result<()> {
     check_args(&mut args)?;
     let dev = super::device_tf32(&args.device, args.tf32)?;
-    std::fs::create_dir_all(&args.out)
+    pma_data::fsio::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
     if args.forward_only {
         return forward_only(&args);

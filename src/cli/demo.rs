@@ -112,7 +112,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         ["summary.json", PLOT_FILE],
     ))?;
     let out = args.out.clone();
-    std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+    pma_data::fsio::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
     let scene = make_scene(args.res, args.frames, args.quiet, &out.join("scene"))?;
     let (outcome, it_per_s) = train_scene(&args, preset, &scene, &out.join("run"), &device)?;
     println!("[3/4] evaluating");
@@ -234,7 +234,8 @@ fn evaluate_splits(
     let renders = out.join("renders");
     let avatar = Avatar::load(model, device)?.with_numerics(super::numerics());
     let baseline = mean_foreground_colour(&read_dataset(&scene.join("train.npz"), Profile::Eval)?)?;
-    std::fs::create_dir_all(&renders).with_context(|| format!("creating {}", renders.display()))?;
+    pma_data::fsio::create_dir_all(&renders)
+        .with_context(|| format!("creating {}", renders.display()))?;
     let opts = EvalOptions {
         png_dir: Some(renders.clone()),
         pngs: args.pngs,

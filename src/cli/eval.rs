@@ -122,7 +122,7 @@ pub fn run(mut args: Args) -> anyhow::Result<()> {
             .input_opt("--train-data", baseline_path.as_deref())
             .output_dir("--out", &out, pngs),
     )?;
-    std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+    pma_data::fsio::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
     let baseline = match baseline_path {
         Some(p) => Some(mean_foreground_colour(&read_dataset(&p, Profile::Eval)?)?),
         None => None,

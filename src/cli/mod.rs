@@ -216,7 +216,10 @@ pub fn check_minutes(flag: &str, minutes: Option<f64>) -> anyhow::Result<()> {
     const MAX: f64 = 1e6;
     if let Some(m) = minutes {
         if !(m.is_finite() && m > 0.0 && m <= MAX) {
-            refuse!("{flag} {m}: expected a finite number of minutes in (0, {MAX}]");
+            refuse!(
+                "{flag} {}: expected a finite number of minutes in (0, {MAX}]",
+                pma_data::error::short_number(m)
+            );
         }
     }
     Ok(())

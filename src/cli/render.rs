@@ -181,7 +181,7 @@ pub fn run(mut args: Args) -> anyhow::Result<()> {
             .input_opt("--poses", args.poses.as_deref())
             .output_dir("--out", &args.out, files),
     )?;
-    std::fs::create_dir_all(&args.out)
+    pma_data::fsio::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
     let opts = VideoOptions {
         out: args.out.clone(),

@@ -88,6 +88,14 @@ pub const PLOT_FILE: &str = "psnr_vs_time.png";
 
 pub fn run(args: Args) -> anyhow::Result<()> {
     super::check_minutes("--minutes", args.minutes)?;
+    for (flag, v, max) in [
+        ("--iters", args.iters, pma_model::train::presets::MAX_ITERS),
+        ("--seed", args.seed, pma_model::train::presets::MAX_SEED),
+    ] {
+        if let Some(v) = v.filter(|&v| v > max) {
+            refuse!("{flag} {v}: at most {max}");
+        }
+    }
     let device = super::device_tf32(&args.device, args.tf32)?;
     let mut run = match (&args.config, &args.preset) {
         (Some(path), _) => Some(RunConfig::from_toml_file(path)?),

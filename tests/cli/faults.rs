@@ -10,7 +10,9 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
-use crate::run::{ok, tiny_scene};
+#[cfg(unix)]
+use crate::run::mkfifo;
+use crate::run::{ok, pma_within, tiny_scene};
 use crate::train::newest;
 
 fn s(p: &Path) -> &str {
@@ -24,32 +26,6 @@ fn pma_env(args: &[&str], env: &[(&str, &str)]) -> Output {
         c.env(k, v);
     }
     c.output().expect("running pma")
-}
-
-/// Runs pma, failing the test if it has not ended within `secs` (a hang).
-fn pma_within(args: &[&str], secs: u64) -> Output {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_pma"))
-        .args(args)
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let deadline = Instant::now() + Duration::from_secs(secs);
-    loop {
-        if child.try_wait().unwrap().is_some() {
-            return child.wait_with_output().unwrap();
-        }
-        if Instant::now() > deadline {
-            let _ = child.kill();
-            let out = child.wait_with_output().unwrap();
-            panic!(
-                "pma {args:?} still running after {secs} s (a hang): {}",
-                String::from_utf8_lossy(&out.stderr)
-            );
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    }
 }
 
 fn stderr(out: &Output) -> String {
@@ -105,6 +81,41 @@ fn train_cmd(data: &Path, out: &Path, extra: &[&str]) -> Vec<String> {
 
 fn run(args: &[String], env: &[(&str, &str)]) -> Output {
     pma_env(&args.iter().map(String::as_str).collect::<Vec<_>>(), env)
+}
+
+/// `pma train --data DATA --out OUT EXTRA...` (see [`train_cmd`]), ended within 60 s.
+fn train_within(data: &Path, out: &Path, extra: &[&str]) -> Output {
+    let args = train_cmd(data, out, extra);
+    pma_within(&args.iter().map(String::as_str).collect::<Vec<_>>(), 60)
+}
+
+/// [`train_within`] refused: exit 2, one line holding every needle.
+fn train_refused(data: &Path, out: &Path, extra: &[&str], needles: &[&str]) {
+    refused(train_within(data, out, extra), needles);
+}
+
+/// A fresh run in `out` with the `cfg` from [`ck1`], up to `iters`; it must succeed.
+fn train_ck1(data: &Path, cfg: &Path, out: &Path, iters: &str) {
+    ok(run(
+        &train_cmd(data, out, &["--config", s(cfg), "--iters", iters]),
+        &[],
+    ));
+}
+
+/// `--resume` of the run in `out` up to `iters`, with `env`.
+fn resume(data: &Path, out: &Path, iters: &str, env: &[(&str, &str)]) -> Output {
+    run(&train_cmd(data, out, &["--resume", "--iters", iters]), env)
+}
+
+/// In `tmp`: a tiny scene, the [`ck1`] config, and the model of a run straight to `iters`,
+/// which a resumed run must end with byte for byte.
+fn straight_run(tmp: &Path, iters: &str) -> (PathBuf, PathBuf, Vec<u8>) {
+    let data = tiny_scene(&tmp.join("scene"), 2);
+    let cfg = ck1(tmp);
+    let straight = tmp.join("straight");
+    train_ck1(&data, &cfg, &straight, iters);
+    let want = std::fs::read(straight.join("model.safetensors")).unwrap();
+    (data, cfg, want)
 }
 
 fn spawn(args: &[String]) -> std::process::Child {
@@ -176,6 +187,15 @@ fn tiny_model(dir: &Path, data: &Path) -> PathBuf {
     run_dir.join("model.safetensors")
 }
 
+/// A temporary directory with a tiny scene (`scene/`) and a model trained on it
+/// ([`tiny_model`]): the training split's path and the model's.
+fn scene_and_model() -> (tempfile::TempDir, PathBuf, PathBuf) {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tiny_scene(&tmp.path().join("scene"), 2);
+    let model = tiny_model(tmp.path(), &data);
+    (tmp, data, model)
+}
+
 /// Copies a safetensors file, editing its metadata and its data bytes.
 fn rewrite_safetensors(
     from: &Path,
@@ -219,14 +239,7 @@ fn with_config(from: &Path, to: &Path, edit: impl FnOnce(&mut serde_json::Value)
 #[test]
 fn checkpoints_survive_a_full_disk() {
     let tmp = tempfile::tempdir().unwrap();
-    let data = tiny_scene(&tmp.path().join("scene"), 2);
-    let cfg = ck1(tmp.path());
-    let straight = tmp.path().join("straight");
-    ok(run(
-        &train_cmd(&data, &straight, &["--config", s(&cfg), "--iters", "6"]),
-        &[],
-    ));
-    let want = std::fs::read(straight.join("model.safetensors")).unwrap();
+    let (data, cfg, want) = straight_run(tmp.path(), "6");
     // Budgets from nothing to more than one checkpoint: every cut lands somewhere else in
     // the model, the state, the config, the log, the plot or the published model.
     let budgets = [
@@ -235,22 +248,18 @@ fn checkpoints_survive_a_full_disk() {
     let mut failed = 0;
     for (k, budget) in budgets.iter().enumerate() {
         let out = tmp.path().join(format!("run{k}"));
-        ok(run(
-            &train_cmd(&data, &out, &["--config", s(&cfg), "--iters", "3"]),
-            &[],
-        ));
-        let full = run(
-            &train_cmd(&data, &out, &["--resume", "--iters", "6"]),
+        train_ck1(&data, &cfg, &out, "3");
+        let full = resume(
+            &data,
+            &out,
+            "6",
             &[("PMA_FSIO_FAIL_AFTER", &budget.to_string())],
         );
         if !full.status.success() {
             failed += 1;
             exits(&full, 1, &["No space left on device"]);
         }
-        ok(run(
-            &train_cmd(&data, &out, &["--resume", "--iters", "6"]),
-            &[],
-        ));
+        ok(resume(&data, &out, "6", &[]));
         assert_eq!(
             std::fs::read(out.join("model.safetensors")).unwrap(),
             want,
@@ -283,10 +292,7 @@ fn tmpfs_full_disk(tmp: &Path, data: &Path, cfg: &Path, want: &[u8]) {
     }
     let _guard = Unmount(&mnt);
     let out = mnt.join("run");
-    ok(run(
-        &train_cmd(data, &out, &["--config", s(cfg), "--iters", "3"]),
-        &[],
-    ));
+    train_ck1(data, cfg, &out, "3");
     // Fill the disk up to ~150 KB free.
     let free = || {
         let o = Command::new("df")
@@ -303,13 +309,10 @@ fn tmpfs_full_disk(tmp: &Path, data: &Path, cfg: &Path, want: &[u8]) {
     };
     let filler = mnt.join("filler");
     std::fs::write(&filler, vec![0u8; free().saturating_sub(150_000) as usize]).unwrap();
-    let full = run(&train_cmd(data, &out, &["--resume", "--iters", "6"]), &[]);
+    let full = resume(data, &out, "6", &[]);
     exits(&full, 1, &["No space left on device"]);
     std::fs::remove_file(&filler).unwrap();
-    ok(run(
-        &train_cmd(data, &out, &["--resume", "--iters", "6"]),
-        &[],
-    ));
+    ok(resume(data, &out, "6", &[]));
     assert_eq!(std::fs::read(out.join("model.safetensors")).unwrap(), want);
     eprintln!("tmpfs: full disk at ~150 KB free: exit 1, then resumed bit for bit");
 }
@@ -326,10 +329,7 @@ fn kill_9_while_checkpointing_never_leaves_a_run_unresumable() {
     let cfg = ck1(tmp.path());
     let straight = tmp.path().join("straight");
     let t0 = Instant::now();
-    ok(run(
-        &train_cmd(&data, &straight, &["--config", s(&cfg), "--iters", ITERS]),
-        &[],
-    ));
+    train_ck1(&data, &cfg, &straight, ITERS);
     let run_ms = t0.elapsed().as_millis() as u64;
     let want = std::fs::read(straight.join("model.safetensors")).unwrap();
     let mut rng = Rng::from_time();
@@ -394,10 +394,7 @@ fn kill_9_while_checkpointing_never_leaves_a_run_unresumable() {
             .unwrap()
             .is_some();
         let again = if has_ckpt {
-            run(
-                &train_cmd(&data, &out, &["--resume", "--iters", ITERS]),
-                &[],
-            )
+            resume(&data, &out, ITERS, &[])
         } else {
             before_first += 1;
             run(
@@ -467,10 +464,8 @@ fn one_trainer_per_run_directory() {
 /// path, a hard link); the input is left as it was.
 #[test]
 fn outputs_never_overwrite_inputs() {
-    let tmp = tempfile::tempdir().unwrap();
+    let (tmp, data, model) = scene_and_model();
     let dir = tmp.path();
-    let data = tiny_scene(&dir.join("scene"), 2);
-    let model = tiny_model(dir, &data);
     let before = std::fs::read(&model).unwrap();
     let other_spelling = model.parent().unwrap().join(".").join("model.safetensors");
     let link = dir.join("link.safetensors");
@@ -547,19 +542,10 @@ fn outputs_never_overwrite_inputs() {
     std::fs::create_dir_all(&fresh).unwrap();
     let user_cfg = fresh.join("config.toml");
     std::fs::write(&user_cfg, "preset = \"tiny\"\n").unwrap();
-    refused(
-        pma_env(
-            &[
-                "train",
-                "--data",
-                s(&data),
-                "--out",
-                s(&fresh),
-                "--config",
-                s(&user_cfg),
-            ],
-            &[],
-        ),
+    train_refused(
+        &data,
+        &fresh,
+        &["--config", s(&user_cfg)],
         &["would overwrite the input --config"],
     );
     assert_eq!(std::fs::read(&user_cfg).unwrap(), b"preset = \"tiny\"\n");
@@ -590,9 +576,7 @@ fn fifos_devices_and_directories_are_refused_at_once() {
     let data = tiny_scene(&dir.join("scene"), 2);
     let fifo = |name: &str| {
         let p = dir.join(name);
-        let c = std::ffi::CString::new(s(&p)).unwrap();
-        // SAFETY: a plain libc call with a valid NUL-terminated path.
-        assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o600) }, 0);
+        mkfifo(&p);
         p
     };
     let (npz, st, th, png, toml) = (
@@ -605,8 +589,7 @@ fn fifos_devices_and_directories_are_refused_at_once() {
     let scene = dir.join("scene");
     let o = dir.join("o");
     std::fs::create_dir_all(&o).unwrap();
-    let (r1, r2, r3) = (o.join("r1"), o.join("r2"), o.join("r3"));
-    let cases: Vec<Vec<&str>> = vec![
+    let cases: Vec<Vec<String>> = vec![
         vec!["inspect", s(&npz)],
         vec!["inspect", s(&scene)],
         vec!["eval", "--model", s(&st), "--data", s(&scene)],
@@ -622,36 +605,17 @@ fn fifos_devices_and_directories_are_refused_at_once() {
         ],
         vec!["convert", "motion", s(&npz), "-o", "/tmp/never.npz"],
         vec!["metrics", s(&png), s(&png)],
-        vec![
-            "train",
-            "--data",
-            s(&npz),
-            "--out",
-            s(&r1),
-            "--preset",
-            "tiny",
-        ],
-        vec![
-            "train",
-            "--data",
-            s(&data),
-            "--out",
-            s(&r2),
-            "--config",
-            s(&toml),
-        ],
-        vec![
-            "train",
-            "--data",
-            s(&data),
-            "--out",
-            s(&r3),
-            "--config",
-            "/dev/zero",
-        ],
-    ];
+    ]
+    .into_iter()
+    .map(|v| v.into_iter().map(String::from).collect())
+    .chain([
+        train_cmd(&npz, &o.join("r1"), &["--preset", "tiny"]),
+        train_cmd(&data, &o.join("r2"), &["--config", s(&toml)]),
+        train_cmd(&data, &o.join("r3"), &["--config", "/dev/zero"]),
+    ])
+    .collect();
     for args in cases {
-        let out = pma_within(&args, 60);
+        let out = pma_within(&args.iter().map(String::as_str).collect::<Vec<_>>(), 60);
         let err = stderr(&out);
         assert_eq!(out.status.code(), Some(2), "{args:?}: {err}");
         assert_eq!(err.trim_end().lines().count(), 1, "{args:?}: {err}");
@@ -665,10 +629,8 @@ fn fifos_devices_and_directories_are_refused_at_once() {
 /// Cases 5 and 7: sizes from files and flags are bounded before anything is allocated.
 #[test]
 fn unbounded_sizes_and_flags_are_refused_before_allocating() {
-    let tmp = tempfile::tempdir().unwrap();
+    let (tmp, data, model) = scene_and_model();
     let dir = tmp.path();
-    let data = tiny_scene(&dir.join("scene"), 2);
-    let model = tiny_model(dir, &data);
     let deep = dir.join("deep.safetensors");
     with_config(&model, &deep, |c| {
         c["trunk_depth"] = 1_000_000_000u64.into()
@@ -690,19 +652,13 @@ fn unbounded_sizes_and_flags_are_refused_before_allocating() {
     ] {
         let cfg = dir.join(format!("{key}.toml"));
         std::fs::write(&cfg, format!("preset = \"tiny\"\n{body}")).unwrap();
-        let out = pma_within(
-            &[
-                "train",
-                "--data",
-                s(&data),
-                "--out",
-                s(&dir.join(format!("r_{key}"))),
-                "--config",
-                s(&cfg),
-            ],
-            60,
+        let out = dir.join(format!("r_{key}"));
+        train_refused(
+            &data,
+            &out,
+            &["--config", s(&cfg)],
+            &[key, "over the limit"],
         );
-        refused(out, &[key, "over the limit"]);
     }
     let motion = dir.join("motion.npz");
     std::fs::copy(&data, &motion).unwrap();
@@ -737,45 +693,6 @@ fn unbounded_sizes_and_flags_are_refused_before_allocating() {
         (vec!["--workers", "20000", "inspect", s(&data)], "--workers"),
         (
             vec![
-                "train",
-                "--data",
-                s(&data),
-                "--out",
-                s(&r),
-                "--preset",
-                "tiny",
-                "--minutes=1e300",
-            ],
-            "--minutes",
-        ),
-        (
-            vec![
-                "train",
-                "--data",
-                s(&data),
-                "--out",
-                s(&r),
-                "--preset",
-                "tiny",
-                "--minutes=-1",
-            ],
-            "--minutes",
-        ),
-        (
-            vec![
-                "train",
-                "--data",
-                s(&data),
-                "--out",
-                s(&r),
-                "--preset",
-                "tiny",
-                "--minutes=nan",
-            ],
-            "--minutes",
-        ),
-        (
-            vec![
                 "eval",
                 "--model",
                 s(&model),
@@ -788,6 +705,26 @@ fn unbounded_sizes_and_flags_are_refused_before_allocating() {
         ),
     ] {
         refused(pma_within(&args, 60), &[needle]);
+    }
+    // Flags of a run: the value named as given, short (1e300, not 300 digits).
+    for (flag, needles) in [
+        ("--minutes=1e300", ["--minutes 1e300", "(0, 1000000]"]),
+        ("--minutes=-1", ["--minutes -1", "(0, 1000000]"]),
+        ("--minutes=nan", ["--minutes NaN", "(0, 1000000]"]),
+        (
+            "--iters=18446744073709551615",
+            ["--iters 18446744073709551615", "at most 1000000000000"],
+        ),
+        (
+            "--seed=18446744073709551615",
+            ["--seed 18446744073709551615", "at most 9223372036854775807"],
+        ),
+    ] {
+        let out = train_within(&data, &r, &["--preset", "tiny", flag]);
+        let err = stderr(&out);
+        assert!(err.len() < 200, "{flag}: {err}");
+        refused(out, &needles);
+        assert!(!r.exists(), "{flag}: the refused run left {}", r.display());
     }
 }
 
@@ -936,6 +873,222 @@ fn failed_npz_writes_exit_1_with_one_line() {
     );
     exits(&out, 1, &["No space left on device", "m.npz"]);
     assert!(!motion.exists());
+    // A converted `.h5` goes through a scratch file: its failure names the output too.
+    let h5 = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/convert/perfcap.h5");
+    for budget in ["0", "100", "3000"] {
+        let out_npz = dir.join(format!("h{budget}.npz"));
+        let out = pma_env(
+            &["convert", "dataset", s(&h5), "-o", s(&out_npz)],
+            &[("PMA_FSIO_FAIL_AFTER", budget)],
+        );
+        exits(&out, 1, &["No space left on device", s(&out_npz)]);
+        assert!(!stderr(&out).contains(".pma-"), "{}", stderr(&out));
+        assert!(!out_npz.exists());
+    }
+}
+
+/// A FIFO where a dataset or a model is expected is named as one, with what was expected,
+/// by `eval`, `render` and `view` alike: given itself, or as a scene directory's split file.
+#[cfg(unix)]
+#[test]
+fn fifos_are_named_as_fifos_with_what_was_expected() {
+    let (tmp, _, model) = scene_and_model();
+    let dir = tmp.path();
+    let npz = dir.join("f.npz");
+    mkfifo(&npz);
+    let scene = dir.join("fifo_scene");
+    std::fs::create_dir(&scene).unwrap();
+    for split in ["train", "novel_view"] {
+        mkfifo(&scene.join(format!("{split}.npz")));
+    }
+    let st = dir.join("f.safetensors");
+    mkfifo(&st);
+    let r = dir.join("r");
+    let m = s(&model);
+    for (args, needles) in [
+        (
+            vec!["eval", "--model", m, "--data", s(&npz)],
+            vec!["f.npz: a FIFO", "expected a pma-npz file or a directory"],
+        ),
+        (
+            vec!["render", "--model", m, "--data", s(&npz), "--out", s(&r)],
+            vec!["f.npz: a FIFO", "expected a pma-npz file or a directory"],
+        ),
+        (
+            vec!["view", m, "--data", s(&npz), "--port", "0"],
+            vec!["f.npz: a FIFO", "expected a pma-npz file or a directory"],
+        ),
+        (
+            vec!["eval", "--model", m, "--data", s(&scene)],
+            vec!["novel_view.npz: a FIFO", "expected the novel_view split's"],
+        ),
+        (
+            vec!["view", m, "--data", s(&scene), "--port", "0"],
+            vec!["train.npz: a FIFO", "expected the train split's"],
+        ),
+        (
+            vec!["view", s(&st), "--port", "0"],
+            vec![
+                "f.safetensors: a FIFO",
+                "expected a model file or a run directory",
+            ],
+        ),
+    ] {
+        let out = pma_within(&args, 60);
+        let err = stderr(&out);
+        refused(out, &needles);
+        for wrong in ["does not exist", "directory without", "no such"] {
+            assert!(!err.contains(wrong), "{args:?}: {err}");
+        }
+    }
+    assert!(!r.exists(), "the refused render left {}", r.display());
+}
+
+/// A command that fails removes what it created and nothing that was there before: a
+/// refused `train` its lock file and the run directory it made; a failed `synth`, `render`
+/// or `eval` the output directories it made and left empty.
+#[test]
+fn failed_commands_remove_what_they_created_and_nothing_else() {
+    let (tmp, data, model) = scene_and_model();
+    let dir = tmp.path();
+    // Refused after the lock is taken: the run's settings are checked under it.
+    let refuse_train = |out: &Path| {
+        train_refused(
+            &data,
+            out,
+            &["--preset", "tiny", "--chunk-rays", "100000000"],
+            &["chunk_rays", "over the limit"],
+        )
+    };
+    let made = dir.join("new").join("run");
+    refuse_train(&made);
+    assert!(
+        !dir.join("new").exists(),
+        "a refused train left its directory"
+    );
+    let empty = dir.join("empty");
+    std::fs::create_dir(&empty).unwrap();
+    refuse_train(&empty);
+    assert!(empty.is_dir(), "a directory that was there went");
+    assert_eq!(
+        std::fs::read_dir(&empty).unwrap().count(),
+        0,
+        "left the lock"
+    );
+    // A lock file that was there before (a run's) stays.
+    let run_dir = model.parent().unwrap();
+    let lock = run_dir.join(pma_model::network::run_dir::LOCK_FILE);
+    assert!(lock.is_file());
+    let out = train_within(&data, run_dir, &["--resume", "--chunk-rays", "100000000"]);
+    refused(out, &["chunk_rays"]);
+    assert!(
+        lock.is_file(),
+        "a refused resume removed the run's lock file"
+    );
+
+    let full = [("PMA_FSIO_FAIL_AFTER", "100")];
+    let scene = dir.join("scene");
+    let (m, sc) = (s(&model), s(&scene));
+    let kept = dir.join("kept");
+    std::fs::create_dir(&kept).unwrap();
+    std::fs::write(kept.join("mine.txt"), b"mine").unwrap();
+    for out_dir in [dir.join("a").join("b"), kept.join("sub"), empty.clone()] {
+        let o = s(&out_dir);
+        for args in [
+            vec!["synth", "--out", o, "--res", "24", "--quiet"],
+            vec!["render", "--model", m, "--data", sc, "--out", o],
+            vec!["eval", "--model", m, "--data", sc, "--out", o],
+        ] {
+            exits(&pma_env(&args, &full), 1, &["No space left on device"]);
+            let left = dir.join("a").exists() || kept.join("sub").exists();
+            assert!(!left, "{args:?} left the directory it made");
+            assert!(
+                empty.is_dir(),
+                "{args:?} removed a directory that was there"
+            );
+        }
+    }
+    assert_eq!(std::fs::read(kept.join("mine.txt")).unwrap(), b"mine");
+}
+
+/// A way to damage a file.
+type Damage = fn(&Path);
+
+/// Cut `path` to half its length, as a disk error after the commit might.
+fn truncate(path: &Path) {
+    let f = std::fs::OpenOptions::new().write(true).open(path).unwrap();
+    let len = f.metadata().unwrap().len();
+    f.set_len(len / 2).unwrap();
+}
+
+/// Flip one byte near the end of `path` (in a checkpoint, tensor data).
+fn flip_a_byte(path: &Path) {
+    let mut bytes = std::fs::read(path).unwrap();
+    let k = bytes.len() - 5;
+    bytes[k] ^= 0xff;
+    std::fs::write(path, bytes).unwrap();
+}
+
+/// The newest checkpoint's model or train state truncated or corrupted after its commit (a
+/// disk error): `--resume` continues from the previous complete checkpoint, with one warning
+/// naming the one skipped and why, and ends where a run that never failed ends; with no
+/// checkpoint that reads back, it is refused.
+#[test]
+fn resume_falls_back_to_the_newest_checkpoint_that_reads_back() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (data, cfg, want) = straight_run(tmp.path(), "6");
+    let checkpoints = |run: &Path| pma_model::network::run_dir::checkpoints(run).unwrap();
+    let damages: [(&str, Damage, &str); 3] = [
+        ("model.safetensors", truncate, "does not belong to"),
+        ("model.safetensors", flip_a_byte, "does not belong to"),
+        (
+            "train_state.safetensors",
+            truncate,
+            "train_state.safetensors",
+        ),
+    ];
+    for (k, (file, damage, why)) in damages.into_iter().enumerate() {
+        let out = tmp.path().join(format!("run{k}"));
+        train_ck1(&data, &cfg, &out, "3");
+        let all = checkpoints(&out);
+        assert_eq!(all.len(), 2, "the run keeps two checkpoints");
+        let (older, newest) = (&all[0], &all[1]);
+        damage(&newest.path.join(file));
+        let resumed = resume(&data, &out, "6", &[]);
+        let err = stderr(&resumed);
+        assert!(resumed.status.success(), "{file}: {err}");
+        let warnings: Vec<&str> = err.lines().filter(|l| l.starts_with("warning:")).collect();
+        assert_eq!(warnings.len(), 1, "{err}");
+        let skipped = format!("{}: skipped", newest.path.display());
+        let from = format!("resuming from {}", older.path.display());
+        for needle in [skipped.as_str(), why, from.as_str()] {
+            assert!(
+                warnings[0].contains(needle),
+                "lacks {needle:?}: {}",
+                warnings[0]
+            );
+        }
+        assert_eq!(
+            std::fs::read(out.join("model.safetensors")).unwrap(),
+            want,
+            "{file}: the resumed run differs from the straight one"
+        );
+    }
+    // Both checkpoints unreadable: refused, naming both.
+    let out = tmp.path().join("both");
+    train_ck1(&data, &cfg, &out, "3");
+    let all = checkpoints(&out);
+    truncate(&all[1].model());
+    truncate(&all[0].state());
+    let resumed = resume(&data, &out, "6", &[]);
+    let names: Vec<String> = all
+        .iter()
+        .map(|c| c.path.file_name().unwrap().to_string_lossy().into_owned())
+        .collect();
+    refused(
+        resumed,
+        &["no complete checkpoint reads back", &names[0], &names[1]],
+    );
 }
 
 /// Case 4: `convert checkpoint --with-optimizer` on a full disk writes both files or none.
@@ -989,10 +1142,8 @@ fn converted_checkpoint_pairs_are_all_or_nothing() {
 /// input (2).
 #[test]
 fn output_paths_are_checked_before_work() {
-    let tmp = tempfile::tempdir().unwrap();
+    let (tmp, data, model) = scene_and_model();
     let dir = tmp.path();
-    let data = tiny_scene(&dir.join("scene"), 2);
-    let model = tiny_model(dir, &data);
     let missing = dir.join("missing").join("a.ply");
     let th = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/convert/tiny_views.th");
     for args in [
@@ -1052,10 +1203,8 @@ fn output_paths_are_checked_before_work() {
 /// an unusable train state.
 #[test]
 fn every_refusal_is_one_line() {
-    let tmp = tempfile::tempdir().unwrap();
+    let (tmp, data, model) = scene_and_model();
     let dir = tmp.path();
-    let data = tiny_scene(&dir.join("scene"), 2);
-    let model = tiny_model(dir, &data);
     let wide = dir.join("wide.safetensors");
     with_config(&model, &wide, |c| {
         let w = c["trunk_width"].as_u64().unwrap();
@@ -1087,39 +1236,20 @@ fn every_refusal_is_one_line() {
     exits(&out, 2, &["bad_header.npz"]);
     let cfg = dir.join("broken.toml");
     std::fs::write(&cfg, "preset = \"tiny\"\n[train\nlr = 1\n").unwrap();
-    refused(
-        pma_within(
-            &[
-                "train",
-                "--data",
-                s(&data),
-                "--out",
-                s(&dir.join("r")),
-                "--config",
-                s(&cfg),
-            ],
-            60,
-        ),
+    train_refused(
+        &data,
+        &dir.join("r"),
+        &["--config", s(&cfg)],
         &["broken.toml", "line 2"],
     );
     // A train state that is not one.
     let run_dir = model.parent().unwrap();
     let state = newest(run_dir).join("train_state.safetensors");
     std::fs::copy(&model, &state).unwrap();
-    refused(
-        pma_within(
-            &[
-                "train",
-                "--data",
-                s(&data),
-                "--out",
-                s(run_dir),
-                "--resume",
-                "--iters",
-                "3",
-            ],
-            60,
-        ),
+    train_refused(
+        &data,
+        run_dir,
+        &["--resume", "--iters", "3"],
         &["train_state.safetensors"],
     );
 }
@@ -1128,10 +1258,8 @@ fn every_refusal_is_one_line() {
 /// shows them.
 #[test]
 fn non_finite_weights_are_refused_and_shown_by_inspect() {
-    let tmp = tempfile::tempdir().unwrap();
+    let (tmp, _, model) = scene_and_model();
     let dir = tmp.path();
-    let data = tiny_scene(&dir.join("scene"), 2);
-    let model = tiny_model(dir, &data);
     let nan = dir.join("nan.safetensors");
     rewrite_safetensors(
         &model,
@@ -1171,10 +1299,8 @@ fn non_finite_weights_are_refused_and_shown_by_inspect() {
 /// (`pma_model::network::run_dir::newest_model`), with `eval`'s files beside it.
 #[test]
 fn a_run_directory_stands_for_its_newest_model() {
-    let tmp = tempfile::tempdir().unwrap();
+    let (tmp, _, model) = scene_and_model();
     let dir = tmp.path();
-    let data = tiny_scene(&dir.join("scene"), 2);
-    let model = tiny_model(dir, &data);
     let run_dir = model.parent().unwrap();
     ok(pma_within(
         &[

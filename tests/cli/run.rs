@@ -9,6 +9,34 @@ pub fn pma(args: &[&str]) -> Output {
         .expect("running pma")
 }
 
+/// Runs pma, failing the test if it has not ended within `secs` (a hang).
+pub fn pma_within(args: &[&str], secs: u64) -> Output {
+    use std::process::Stdio;
+    use std::time::{Duration, Instant};
+    let mut child = Command::new(env!("CARGO_BIN_EXE_pma"))
+        .args(args)
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let deadline = Instant::now() + Duration::from_secs(secs);
+    loop {
+        if child.try_wait().unwrap().is_some() {
+            return child.wait_with_output().unwrap();
+        }
+        if Instant::now() > deadline {
+            let _ = child.kill();
+            let out = child.wait_with_output().unwrap();
+            panic!(
+                "pma {args:?} still running after {secs} s (a hang): {}",
+                String::from_utf8_lossy(&out.stderr)
+            );
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
 /// The run succeeded; otherwise fail with its exit status, stdout and stderr.
 pub fn ok(out: Output) -> Output {
     assert!(
@@ -84,4 +112,12 @@ pub fn assert_default_modes(dir: &std::path::Path) {
         }
     }
     assert!(files > 0, "no files under {}", dir.display());
+}
+
+/// Make a FIFO at `path` (no writer: opening it for reading would block).
+#[cfg(unix)]
+pub fn mkfifo(path: &std::path::Path) {
+    let c = std::ffi::CString::new(path.to_str().unwrap()).unwrap();
+    // SAFETY: a plain libc call with a valid NUL-terminated path.
+    assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o600) }, 0);
 }

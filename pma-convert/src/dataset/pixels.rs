@@ -10,7 +10,7 @@ use std::{
 use npyz::{DType, TypeStr, WriterBuilder};
 use pma_data::{
     dataset::{Compression, Dataset, Profile, Warning, WriteOptions},
-    fsio::{parent_dir, AtomicFile, Latch, Writer},
+    fsio::{AtomicFile, Latch, Writer},
 };
 
 use super::{DatasetOptions, DatasetReport, Layout, Progress};
@@ -189,13 +189,16 @@ pub(crate) fn write_archive(
     compression: Compression,
     pixels: impl FnOnce(&mut ArchiveZip<'_>) -> Result<()>,
 ) -> Result<()> {
-    let dir = parent_dir(output);
-    let scene = tempfile::Builder::new()
-        .prefix(".pma-")
-        .suffix(".tmp")
-        .tempfile_in(dir)
-        .map_err(|e| ConvertError::write(dir, e))?;
-    ds.write(scene.path(), &WriteOptions { compression })?;
+    // The scene members go through a scratch file; a failure there is writing `output`.
+    let scene =
+        pma_data::fsio::scratch_beside(output).map_err(|e| ConvertError::write(output, e))?;
+    ds.write(scene.path(), &WriteOptions { compression })
+        .map_err(|e| match e {
+            pma_data::DataError::File(pma_data::FileError::Write { source, .. }) => {
+                ConvertError::write(output, source)
+            }
+            e => e.into(),
+        })?;
     let scene_zip = zip::ZipArchive::new(
         File::open(scene.path()).map_err(|e| ConvertError::write(scene.path(), e))?,
     )
@@ -203,7 +206,7 @@ pub(crate) fn write_archive(
         path: scene.path().to_path_buf(),
         cause,
     })?;
-    let out = AtomicFile::create(output).map_err(|e| ConvertError::write(dir, e))?;
+    let out = AtomicFile::create(output).map_err(|e| ConvertError::write(output, e))?;
     let latch = Latch::new(BufWriter::new(out.writer()));
     let watch = latch.watch();
     let mut zip = zip::ZipWriter::new(latch);

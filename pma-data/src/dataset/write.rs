@@ -7,7 +7,7 @@ use std::path::Path;
 use super::npz::{MemberData, NpzWriter};
 use super::Dataset;
 use crate::error::{DataError, Result};
-use crate::fsio::{parent_dir, AtomicFile};
+use crate::fsio::AtomicFile;
 
 /// How members are stored.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -38,7 +38,7 @@ pub(crate) fn write_npz(
     opts: &WriteOptions,
     which: Members,
 ) -> Result<()> {
-    let tmp = AtomicFile::create(path).map_err(|e| DataError::write(parent_dir(path), e))?;
+    let tmp = AtomicFile::create(path).map_err(|e| DataError::write(path, e))?;
     {
         let buf = BufWriter::new(tmp.writer());
         let mut w = NpzWriter::new(

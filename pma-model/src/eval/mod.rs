@@ -52,6 +52,11 @@ pub enum EvalError {
     #[error("dataset {} does not exist", .0.display())]
     NoData(PathBuf),
 
+    /// The dataset path is there but is not a file or directory that can hold one (a FIFO,
+    /// a device), or cannot be looked at.
+    #[error("dataset {}: {what}", path.display())]
+    NotData { path: PathBuf, what: String },
+
     /// A directory given as the dataset lacks the split's file.
     #[error("{} is a directory without {split}.npz (pass the npz file itself?)", dir.display())]
     NoSplitFile { dir: PathBuf, split: String },
@@ -110,6 +115,7 @@ impl pma_data::ExitKind for EvalError {
             EvalError::UnknownSplit(_)
             | EvalError::UnknownRegion(_)
             | EvalError::NoData(_)
+            | EvalError::NotData { .. }
             | EvalError::NoSplitFile { .. }
             | EvalError::SplitNotInFile { .. }
             | EvalError::Incomplete { .. }
@@ -133,6 +139,7 @@ impl EvalError {
             Self::UnknownSplit(_)
                 | Self::UnknownRegion(_)
                 | Self::NoData(_)
+                | Self::NotData { .. }
                 | Self::NoSplitFile { .. }
                 | Self::SplitNotInFile { .. }
         )

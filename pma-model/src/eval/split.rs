@@ -43,23 +43,53 @@ impl Split {
 }
 
 /// The file to read for `split` of `data` (a file, or a directory holding `<split>.npz`).
+/// A path that is neither (a FIFO, a device) is refused saying what it is.
 pub fn resolve_split(data: &Path, split: &str) -> Result<(PathBuf, Split)> {
-    if data.is_dir() {
-        let split = Split::whole_file(split)?;
-        let path = data.join(format!("{}.npz", split.name));
-        if !path.is_file() {
-            return Err(EvalError::NoSplitFile {
-                dir: data.to_path_buf(),
-                split: split.name,
-            });
+    let not_data = |path: &Path, what: String| EvalError::NotData {
+        path: path.to_path_buf(),
+        what,
+    };
+    let kind = |m: &std::fs::Metadata| pma_data::fsio::file_type_name(&m.file_type());
+    match std::fs::metadata(data) {
+        Ok(m) if m.is_dir() => {
+            let split = Split::whole_file(split)?;
+            let path = data.join(format!("{}.npz", split.name));
+            match std::fs::metadata(&path) {
+                Ok(m) if m.is_file() => Ok((path, split)),
+                Ok(m) => Err(not_data(
+                    &path,
+                    format!(
+                        "{}, expected the {} split's pma-npz file",
+                        kind(&m),
+                        split.name
+                    ),
+                )),
+                Err(e) if e.kind() == std::io::ErrorKind::NotFound => Err(EvalError::NoSplitFile {
+                    dir: data.to_path_buf(),
+                    split: split.name,
+                }),
+                Err(e) => Err(not_data(&path, e.to_string())),
+            }
         }
-        return Ok((path, split));
+        m => {
+            let split = Split::named(split)?;
+            match m {
+                Ok(m) if m.is_file() => Ok((data.to_path_buf(), split)),
+                Ok(m) => Err(not_data(
+                    data,
+                    format!(
+                        "{}, expected a pma-npz file or a directory holding {}.npz",
+                        kind(&m),
+                        split.name
+                    ),
+                )),
+                Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+                    Err(EvalError::NoData(data.to_path_buf()))
+                }
+                Err(e) => Err(not_data(data, e.to_string())),
+            }
+        }
     }
-    let split = Split::named(split)?;
-    if !data.is_file() {
-        return Err(EvalError::NoData(data.to_path_buf()));
-    }
-    Ok((data.to_path_buf(), split))
 }
 
 /// A split read by [`read_split`].

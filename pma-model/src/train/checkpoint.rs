@@ -16,11 +16,13 @@
 //! A crash or a failed write (a full disk) at any point leaves the previous complete
 //! checkpoint in place; [`clean_stale`] removes what a crash left behind (`*.tmp`
 //! directories and the atomic writer's `.pma-*.tmp` files), and `--resume` starts from
-//! [`resume_point`], the newest complete checkpoint.
+//! [`verified_resume_point`], the newest complete checkpoint whose files read back.
 
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use candle_core::Device;
+use pma_data::dataset::Dataset;
 
 use super::batch::BatchSource;
 use super::error::{read_err, write_atomic, write_err, TrainError};
@@ -48,24 +50,63 @@ pub struct ResumePoint {
     pub config: PathBuf,
     /// The log up to its iteration (`None`: the run's `log.csv`, cut at the iteration).
     pub log: Option<PathBuf>,
+    /// Newer checkpoints passed over by [`verified_resume_point`], newest first, each with
+    /// why it does not verify.
+    pub skipped: Vec<(PathBuf, String)>,
 }
 
-/// The newest complete checkpoint of `run` (see [`ResumePoint`]).
-pub fn resume_point(run: &Path) -> Result<ResumePoint, TrainError> {
-    let newest = run_dir::newest_checkpoint(run).map_err(read_err(run))?;
-    if let Some(c) = newest {
+impl ResumePoint {
+    fn of_checkpoint(run: &Path, c: &CheckpointDir) -> ResumePoint {
         let config = if c.config().is_file() {
             c.config()
         } else {
             run.join(CONFIG_FILE)
         };
-        return Ok(ResumePoint {
+        ResumePoint {
             model: c.model(),
             state: c.state(),
             config,
             log: c.log().is_file().then(|| c.log()),
-        });
+            skipped: Vec::new(),
+        }
     }
+
+    /// Whether every file of this point reads back: the train state loads, the model is the
+    /// one it was saved with (its fingerprint; a model without one must load), and the
+    /// config and the log, where there are, parse. A file truncated or corrupted after the
+    /// commit (a disk error) fails here; the reason is one line naming the file.
+    pub fn verify(&self) -> Result<(), String> {
+        let line = |e: TrainError| pma_data::error::one_line(&e.to_string());
+        let state = TrainState::load(&self.state, &Device::Cpu).map_err(line)?;
+        let bytes = read_back(&self.model).map_err(line)?;
+        if state.model_fingerprint.is_some() {
+            check_model(self, &state, &bytes)?;
+        } else {
+            Avatar::load(&self.model, &Device::Cpu).map_err(|e| line(e.into()))?;
+        }
+        if self.config.is_file() {
+            RunConfig::from_toml_file(&self.config).map_err(line)?;
+        }
+        if let Some(log) = &self.log {
+            TrainLog::read(log).map_err(line)?;
+        }
+        Ok(())
+    }
+}
+
+/// The newest complete checkpoint of `run` (see [`ResumePoint`]), by its files' presence
+/// alone: cheap, and what a reader without the run's lock may ask.
+/// [`verified_resume_point`] is where a resumed run starts.
+pub fn resume_point(run: &Path) -> Result<ResumePoint, TrainError> {
+    let newest = run_dir::newest_checkpoint(run).map_err(read_err(run))?;
+    if let Some(c) = newest {
+        return Ok(ResumePoint::of_checkpoint(run, &c));
+    }
+    flat_point(run)
+}
+
+/// A run directory with a model and train state at its top and no checkpoint directory.
+fn flat_point(run: &Path) -> Result<ResumePoint, TrainError> {
     let (model, state) = (run.join(MODEL_FILE), run.join(STATE_FILE));
     if model.is_file() && state.is_file() {
         return Ok(ResumePoint {
@@ -73,6 +114,7 @@ pub fn resume_point(run: &Path) -> Result<ResumePoint, TrainError> {
             state,
             config: run.join(CONFIG_FILE),
             log: None,
+            skipped: Vec::new(),
         });
     }
     Err(TrainError::Resume {
@@ -81,6 +123,52 @@ pub fn resume_point(run: &Path) -> Result<ResumePoint, TrainError> {
             "no complete checkpoint to continue (a {CKPT_PREFIX}*/ directory, or {MODEL_FILE}, {STATE_FILE} and {CONFIG_FILE} in it)"
         ),
     })
+}
+
+/// Where a resumed run of `run` starts: the newest complete checkpoint that
+/// [verifies](ResumePoint::verify). A newer one that does not (its model or train state
+/// truncated or corrupted after its commit) is passed over and listed in
+/// [`ResumePoint::skipped`]; the previous checkpoint is kept for exactly this. When none
+/// verifies, the run is refused with each one's reason. Call it holding the run's lock.
+pub fn verified_resume_point(run: &Path) -> Result<ResumePoint, TrainError> {
+    let all = run_dir::checkpoints(run).map_err(pma_data::FileError::reading(run))?;
+    let refuse = |reason: String| TrainError::Resume {
+        dir: run.to_path_buf(),
+        reason,
+    };
+    if all.is_empty() {
+        let point = flat_point(run)?;
+        point.verify().map_err(refuse)?;
+        return Ok(point);
+    }
+    let mut skipped = Vec::new();
+    for c in all.iter().rev() {
+        let point = ResumePoint::of_checkpoint(run, c);
+        match point.verify() {
+            Ok(()) => return Ok(ResumePoint { skipped, ..point }),
+            Err(why) => skipped.push((c.path.clone(), why)),
+        }
+    }
+    let reasons: Vec<String> = skipped
+        .iter()
+        .map(|(dir, why)| format!("{} ({why})", dir.display()))
+        .collect();
+    Err(refuse(format!(
+        "no complete checkpoint reads back: {}",
+        reasons.join("; ")
+    )))
+}
+
+/// Refuse a model whose bytes are not the ones `state` was saved with.
+fn check_model(point: &ResumePoint, state: &TrainState, bytes: &[u8]) -> Result<(), String> {
+    match &state.model_fingerprint {
+        Some(fp) if *fp != fingerprint(bytes) => Err(format!(
+            "{} does not belong to {} (truncated, corrupt, or from another checkpoint)",
+            point.model.display(),
+            point.state.display()
+        )),
+        _ => Ok(()),
+    }
 }
 
 /// Whether `run` holds a run (a complete checkpoint, or a train state of an older layout).
@@ -249,18 +337,32 @@ impl Trainer {
         save(dir, self, None).map(|_| ())
     }
 
-    /// Continue the run saved in `dir` (its newest complete checkpoint, [`resume_point`])
-    /// with batches from `source` (built exactly as for the original run; its position is
-    /// restored from the state). `run` may differ from the saved configuration only as
-    /// [`RunConfig::check_resume`] allows.
+    /// Continue the run saved in `dir` (its newest complete checkpoint that verifies,
+    /// [`verified_resume_point`]) with batches from `source` (built exactly as for the
+    /// original run; its position is restored from the state). `run` may differ from the
+    /// saved configuration only as [`RunConfig::check_resume`] allows.
     pub fn resume_with_source(
         dir: &Path,
         run: RunConfig,
         source: Box<dyn BatchSource>,
         device: &Device,
     ) -> Result<Self, TrainError> {
-        let point = resume_point(dir)?;
+        let point = verified_resume_point(dir)?;
         Self::resume_from(dir, &point, run, source, device)
+    }
+
+    /// Continue the run in `dir` from `point` (see [`verified_resume_point`]) on the same
+    /// `data` it was trained on.
+    pub fn resume_at(
+        dir: &Path,
+        point: &ResumePoint,
+        mut run: RunConfig,
+        data: Arc<Dataset>,
+        device: &Device,
+    ) -> Result<Self, TrainError> {
+        run.model.n_framecodes = data.n_images();
+        let source = Self::dataset_source(&run, data, device)?;
+        Self::resume_from(dir, point, run, source, device)
     }
 
     /// [`Self::resume_with_source`] from a given [`ResumePoint`] of the run in `dir`.
@@ -281,16 +383,7 @@ impl Trainer {
                 .map_err(|e| fail(format!("the saved run config is unreadable: {e}")))?;
             saved.check_resume(&run).map_err(fail)?;
         }
-        let bytes = read_back(&point.model)?;
-        if let Some(fp) = &state.model_fingerprint {
-            if *fp != fingerprint(&bytes) {
-                return Err(fail(format!(
-                    "{} does not belong to {} (a model from another checkpoint)",
-                    point.model.display(),
-                    point.state.display()
-                )));
-            }
-        }
+        check_model(point, &state, &read_back(&point.model)?).map_err(fail)?;
         let avatar = Avatar::load(&point.model, device)?.with_numerics(run.numerics);
         let mut trainer = Self::with_source(run, avatar, source)?;
         trainer.restore(state)?;

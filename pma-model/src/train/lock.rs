@@ -26,6 +26,8 @@ use crate::network::run_dir::LOCK_FILE;
 pub struct RunLock {
     file: File,
     path: PathBuf,
+    /// This lock created the file (it was not there before).
+    created: bool,
 }
 
 impl RunLock {
@@ -34,37 +36,81 @@ impl RunLock {
     pub fn acquire(dir: &Path) -> Result<Self, TrainError> {
         let path = dir.join(LOCK_FILE);
         let write_err = |source| TrainError::from(pma_data::FileError::write(&path, source));
-        // Not truncated on open: the holder's PID stays readable until we own the lock.
-        let mut file = std::fs::OpenOptions::new()
-            .read(true)
-            .write(true)
-            .create(true)
-            .truncate(false)
-            .open(&path)
-            .map_err(write_err)?;
-        // Called through the trait: `std`'s newer inherent `File::try_lock` would shadow it.
-        match FileExt::try_lock(&file) {
-            Ok(()) => {}
-            Err(TryLockError::WouldBlock) => {
-                let mut text = String::new();
-                let _ = file.read_to_string(&mut text);
-                return Err(TrainError::Locked {
-                    dir: dir.to_path_buf(),
-                    pid: text.trim().parse().ok(),
-                });
+        loop {
+            // Not truncated on open: the holder's PID stays readable until we own the lock.
+            let mut open = std::fs::OpenOptions::new();
+            open.read(true).write(true);
+            let (mut file, created) = match open.clone().create_new(true).open(&path) {
+                Ok(f) => (f, true),
+                Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => match open.open(&path) {
+                    Ok(f) => (f, false),
+                    // Removed since (a refused run that had created it): try again.
+                    Err(e) if e.kind() == std::io::ErrorKind::NotFound => continue,
+                    Err(e) => return Err(write_err(e)),
+                },
+                Err(e) => return Err(write_err(e)),
+            };
+            // Called through the trait: `std`'s newer inherent `File::try_lock` would shadow it.
+            match FileExt::try_lock(&file) {
+                Ok(()) => {}
+                Err(TryLockError::WouldBlock) => {
+                    let mut text = String::new();
+                    let _ = file.read_to_string(&mut text);
+                    return Err(TrainError::Locked {
+                        dir: dir.to_path_buf(),
+                        pid: text.trim().parse().ok(),
+                    });
+                }
+                Err(TryLockError::Error(e)) => return Err(write_err(e)),
             }
-            Err(TryLockError::Error(e)) => return Err(write_err(e)),
+            // The file locked must still be the one at the path: a holder that removes the
+            // file it created ([`Self::remove`]) may have done so between our open and our
+            // lock, and a lock on a removed file guards nothing.
+            if !is_at(&file, &path) {
+                continue;
+            }
+            file.set_len(0).map_err(write_err)?;
+            file.seek(SeekFrom::Start(0)).map_err(write_err)?;
+            writeln!(file, "{}", std::process::id()).map_err(write_err)?;
+            file.flush().map_err(write_err)?;
+            return Ok(Self {
+                file,
+                path,
+                created,
+            });
         }
-        file.set_len(0).map_err(write_err)?;
-        file.seek(SeekFrom::Start(0)).map_err(write_err)?;
-        writeln!(file, "{}", std::process::id()).map_err(write_err)?;
-        file.flush().map_err(write_err)?;
-        Ok(Self { file, path })
     }
 
     /// The lock file.
     pub fn path(&self) -> &Path {
         &self.path
+    }
+
+    /// Release the lock, removing its file if this lock created it: for a session refused
+    /// before it wrote anything, which leaves the directory as it found it. The file goes
+    /// while still locked; a process that opened it meanwhile sees it gone once it holds
+    /// the lock and takes the new one ([`Self::acquire`]).
+    pub fn remove(self) {
+        if self.created {
+            let _ = std::fs::remove_file(&self.path);
+        }
+    }
+}
+
+/// Whether `file` is the file now at `path` (same device and inode).
+fn is_at(file: &File, path: &Path) -> bool {
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::MetadataExt;
+        match (file.metadata(), std::fs::metadata(path)) {
+            (Ok(a), Ok(b)) => a.dev() == b.dev() && a.ino() == b.ino(),
+            _ => false,
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = file;
+        path.exists()
     }
 }
 
@@ -92,5 +138,31 @@ mod tests {
         }
         drop(held);
         RunLock::acquire(dir.path()).unwrap();
+    }
+
+    #[test]
+    fn a_file_opened_before_its_removal_is_not_the_run_lock() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join(LOCK_FILE);
+        let held = RunLock::acquire(dir.path()).unwrap();
+        // A second trainer opened the file just before the first one removed it.
+        let stale = File::open(&path).unwrap();
+        assert!(is_at(&stale, &path));
+        held.remove();
+        assert!(!is_at(&stale, &path));
+        let next = RunLock::acquire(dir.path()).unwrap();
+        assert!(is_at(&next.file, &path) && !is_at(&stale, &path));
+    }
+
+    #[test]
+    fn a_lock_that_created_its_file_removes_it_and_one_that_found_it_does_not() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join(LOCK_FILE);
+        RunLock::acquire(dir.path()).unwrap().remove();
+        assert!(!file.exists(), "created by the lock: removed");
+        drop(RunLock::acquire(dir.path()).unwrap());
+        assert!(file.exists(), "dropped: kept");
+        RunLock::acquire(dir.path()).unwrap().remove();
+        assert!(file.exists(), "found by the lock: kept");
     }
 }

@@ -13,6 +13,11 @@ use crate::render::options::{Culling, PassOptions};
 /// Limit of the rays of a training step and of a render chunk (the paper's step: 3,072).
 pub const MAX_RAYS: usize = crate::render::MAX_CHUNK_RAYS;
 
+/// The most iterations a run may ask for (10¹²: years at any speed pma reaches).
+pub const MAX_ITERS: u64 = 1_000_000_000_000;
+/// The largest seed: the run's TOML keeps it, and TOML integers are signed 64-bit.
+pub const MAX_SEED: u64 = i64::MAX as u64;
+
 /// The largest run TOML read (1 MiB; a complete resolved config is ~2 KB).
 pub const MAX_CONFIG_BYTES: u64 = 1 << 20;
 
@@ -201,6 +206,14 @@ impl TrainConfig {
             ("chunk_rays", self.chunk_rays, MAX_RAYS),
             ("render_chunk", self.render_chunk, MAX_RAYS),
             ("eval_images", self.eval_images, 100_000),
+        ] {
+            if v > max {
+                bad.push(format!("{name} = {v} is over the limit of {max}"));
+            }
+        }
+        for (name, v, max) in [
+            ("iters", self.iters, MAX_ITERS),
+            ("seed", self.seed, MAX_SEED),
         ] {
             if v > max {
                 bad.push(format!("{name} = {v} is over the limit of {max}"));

@@ -166,13 +166,30 @@ pub fn train_run(
     if let Some(m) = req.minutes {
         if !(m.is_finite() && m > 0.0 && m <= MAX_MINUTES) {
             return Err(TrainError::Config(format!(
-                "minutes must be finite and in (0, {MAX_MINUTES}], found {m}"
+                "minutes must be finite and in (0, {MAX_MINUTES}], found {}",
+                pma_data::error::short_number(m)
             )));
         }
     }
-    std::fs::create_dir_all(&req.out).map_err(write_err(&req.out))?;
+    pma_data::fsio::create_dir_all(&req.out).map_err(write_err(&req.out))?;
     // Held until the session ends: one writer per run directory.
-    let _lock = RunLock::acquire(&req.out)?;
+    let lock = RunLock::acquire(&req.out)?;
+    match start(req, observer) {
+        Ok(mut session) => session.run(),
+        Err(e) => {
+            // Refused before writing anything: the lock file goes if this run made it.
+            lock.remove();
+            Err(e)
+        }
+    }
+}
+
+/// Everything before the first step, holding the run's lock: the resume point, the
+/// configuration, the data and the trainer.
+fn start<'a>(
+    req: &TrainRequest,
+    observer: &'a mut dyn TrainObserver,
+) -> Result<Session<'a>, TrainError> {
     let point = if req.resume {
         let removed = checkpoint::clean_stale(&req.out)?;
         if !removed.is_empty() {
@@ -181,7 +198,15 @@ pub fn train_run(
                 removed.len()
             ));
         }
-        Some(checkpoint::resume_point(&req.out)?)
+        let point = checkpoint::verified_resume_point(&req.out)?;
+        for (dir, why) in &point.skipped {
+            observer.warning(&format!(
+                "{}: skipped, it does not read back ({why}); resuming from {}",
+                dir.display(),
+                pma_data::fsio::parent_dir(&point.model).display()
+            ));
+        }
+        Some(point)
     } else {
         None
     };
@@ -208,8 +233,8 @@ pub fn train_run(
     if !req.resume {
         checkpoint::clean_stale(&req.out)?;
     }
-    let trainer = if req.resume {
-        Trainer::resume(&req.out, run.clone(), data, &req.device)?
+    let trainer = if let Some(point) = &point {
+        Trainer::resume_at(&req.out, point, run.clone(), data, &req.device)?
     } else {
         let t = Trainer::new(run.clone(), data, &req.device)?;
         // Written after construction: the trainer sets the frame-code count from the data.
@@ -227,7 +252,7 @@ pub fn train_run(
     if req.resume {
         session.saved = Some(resumed_at);
     }
-    session.run()
+    Ok(session)
 }
 
 fn read_warned(

@@ -149,6 +149,47 @@ fn checkpoints_are_directories_and_the_newest_complete_one_wins() {
     assert_eq!(resumed.iteration(), 3);
 }
 
+/// A newest checkpoint whose model was truncated after its commit is passed over: the run
+/// resumes from the one before, which is listed with why the newest was skipped; with no
+/// checkpoint that reads back, resuming is refused.
+#[test]
+fn resume_passes_over_a_checkpoint_that_does_not_read_back() {
+    use pma_model::network::run_dir::checkpoints;
+    use pma_model::train::checkpoint::verified_resume_point;
+
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tiny_scene(&tmp.path().join("scene"));
+    let run = tmp.path().join("run");
+    std::fs::create_dir_all(&run).unwrap();
+    let mut t = tiny_trainer(&data);
+    for _ in 0..2 {
+        t.step().unwrap();
+        t.save_checkpoint(&run).unwrap();
+    }
+    let all = checkpoints(&run).unwrap();
+    let (older, newest) = (&all[0], &all[1]);
+    let bytes = std::fs::read(newest.model()).unwrap();
+    std::fs::write(newest.model(), &bytes[..bytes.len() / 2]).unwrap();
+    let point = verified_resume_point(&run).unwrap();
+    assert_eq!(point.model, older.model());
+    assert_eq!(point.skipped.len(), 1);
+    assert_eq!(point.skipped[0].0, newest.path);
+    assert!(
+        point.skipped[0].1.contains("does not belong to"),
+        "{:?}",
+        point.skipped
+    );
+    let resumed = Trainer::resume(&run, tiny_run(), data.clone(), &Device::Cpu).unwrap();
+    assert_eq!(resumed.iteration(), older.iteration);
+
+    let state = std::fs::read(older.state()).unwrap();
+    std::fs::write(older.state(), &state[..state.len() / 2]).unwrap();
+    let err = verified_resume_point(&run).err().unwrap();
+    assert!(matches!(err, TrainError::Resume { .. }), "{err}");
+    let text = err.to_string();
+    assert!(text.contains("no complete checkpoint reads back"), "{text}");
+}
+
 /// The numbers of a step reach the host every `read_every` steps; when they do changes
 /// nothing in the run: the same weights, moments and numbers, bit for bit. A checkpoint
 /// waits for the numbers (its skip counters come from them).

@@ -181,7 +181,7 @@ impl Trainer {
         Self::resume_with_source(dir, run, source, device)
     }
 
-    fn dataset_source(
+    pub(in crate::train) fn dataset_source(
         run: &RunConfig,
         data: Arc<Dataset>,
         device: &Device,
