@@ -4,46 +4,15 @@
 use std::path::{Path, PathBuf};
 use std::process::Output;
 
-use crate::run::{fails_with, ok, pma, tiny_scene};
-use candle_core::Device;
+use crate::run::{
+    aist_motion, fails_with, ok, pma, read_json, read_motion, s, tiny_scene, train_tiny,
+    untrained_tiny,
+};
 use image::AnimationDecoder;
-use pma_model::render::avatar::Avatar;
-use pma_model::Config;
 
-/// An untrained tiny avatar on the synthetic scene's rest pose.
-fn tiny_model(dir: &Path) -> PathBuf {
-    let path = dir.join("tiny.safetensors");
-    Avatar::new(
-        Config::tiny(),
-        &pma_data::synth::rest_pose(),
-        1,
-        &Device::Cpu,
-    )
-    .unwrap()
-    .save(&path)
-    .unwrap();
-    path
-}
-
-/// 12 frames of the embedded AIST++ dance at 15 fps, via `pma convert motion`.
+/// 12 frames of the embedded AIST++ dance at 15 fps.
 fn motion(dir: &Path) -> PathBuf {
-    let out = dir.join("dance.npz");
-    let src = concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/pma-data/assets/motion/aist_demo.npz"
-    );
-    ok(pma(&[
-        "convert",
-        "motion",
-        src,
-        "-o",
-        out.to_str().unwrap(),
-        "--frames",
-        "0:48",
-        "--fps",
-        "15",
-    ]));
-    out
+    aist_motion(&dir.join("dance.npz"), &["--frames", "0:48", "--fps", "15"])
 }
 
 fn png_size(path: &Path) -> (u32, u32) {
@@ -60,11 +29,7 @@ fn gif_frames(path: &Path) -> Vec<image::Frame> {
 }
 
 fn report(dir: &Path) -> serde_json::Value {
-    serde_json::from_str(&std::fs::read_to_string(dir.join("render.json")).unwrap()).unwrap()
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
+    read_json(&dir.join("render.json"))
 }
 
 #[test]
@@ -72,24 +37,12 @@ fn dataset_views_of_a_trained_model() {
     let tmp = tempfile::tempdir().unwrap();
     let scene = tmp.path().join("scene");
     tiny_scene(&scene, 1);
-    let run = tmp.path().join("run");
-    ok(pma(&[
-        "train",
-        "--data",
-        s(&scene.join("train.npz")),
-        "--out",
-        s(&run),
-        "--preset",
-        "tiny",
-        "--iters",
-        "2",
-        "--quiet",
-    ]));
+    let model = train_tiny(&scene.join("train.npz"), &tmp.path().join("run"), "2");
     let out = tmp.path().join("views");
     let stdout = ok(pma(&[
         "render",
         "--model",
-        s(&run.join("model.safetensors")),
+        s(&model),
         "--data",
         s(&scene),
         "--split",
@@ -134,7 +87,7 @@ fn dataset_views_of_a_trained_model() {
 #[test]
 fn retargeted_dance_on_an_orbit_at_a_chosen_size() {
     let tmp = tempfile::tempdir().unwrap();
-    let model = tiny_model(tmp.path());
+    let model = untrained_tiny(tmp.path());
     let dance = motion(tmp.path());
     let out = tmp.path().join("orbit");
     ok(pma(&[
@@ -181,11 +134,7 @@ fn retargeted_dance_on_an_orbit_at_a_chosen_size() {
     let (a, c) = (origin(0), origin(2));
     assert!((a[1] - c[1]).abs() < 0.05, "same height: {a:?} {c:?}");
     // Opposite sides of the dancer, who barely moves between frames 2 and 4.
-    let ds = pma_data::dataset::Dataset::read(
-        &dance,
-        &pma_data::dataset::ReadOptions::new(pma_data::dataset::Profile::Motion),
-    )
-    .unwrap();
+    let ds = read_motion(&dance);
     let root = ds.root_locs.as_ref().unwrap().row(2).to_vec();
     let mid = [(a[0] + c[0]) / 2.0, (a[2] + c[2]) / 2.0];
     assert!(
@@ -202,7 +151,7 @@ fn retargeted_dance_on_an_orbit_at_a_chosen_size() {
 #[test]
 fn follow_camera_moves_with_the_root_only() {
     let tmp = tempfile::tempdir().unwrap();
-    let model = tiny_model(tmp.path());
+    let model = untrained_tiny(tmp.path());
     let dance = motion(tmp.path());
     let out = tmp.path().join("follow");
     ok(pma(&[
@@ -224,11 +173,7 @@ fn follow_camera_moves_with_the_root_only() {
     ]));
     let rep = report(&out);
     assert_eq!(rep["camera"], "follow");
-    let ds = pma_data::dataset::Dataset::read(
-        &dance,
-        &pma_data::dataset::ReadOptions::new(pma_data::dataset::Profile::Motion),
-    )
-    .unwrap();
+    let ds = read_motion(&dance);
     let roots = ds.root_locs.unwrap();
     let frames = rep["frames"].as_array().unwrap();
     let o = |k: usize, c: usize| frames[k]["camera_origin"][c].as_f64().unwrap();
@@ -250,7 +195,7 @@ fn bullet_time_freezes_one_pose_and_turns_the_camera() {
     let tmp = tempfile::tempdir().unwrap();
     let scene = tmp.path().join("scene");
     tiny_scene(&scene, 1);
-    let model = tiny_model(tmp.path());
+    let model = untrained_tiny(tmp.path());
     let out = tmp.path().join("bullet");
     ok(pma(&[
         "render",
@@ -301,7 +246,7 @@ fn bad_input_gives_clear_errors() {
     let tmp = tempfile::tempdir().unwrap();
     let scene = tmp.path().join("scene");
     tiny_scene(&scene, 1);
-    let model = tiny_model(tmp.path());
+    let model = untrained_tiny(tmp.path());
     let out = tmp.path().join("o");
     let base = |extra: &[&str]| -> Output {
         let mut a = vec!["render", "--model", s(&model), "--out", s(&out), "--quiet"];

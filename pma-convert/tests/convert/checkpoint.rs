@@ -1,7 +1,7 @@
 //! `pma convert checkpoint`: the golden reference checkpoint and the Adam
 //! fixtures of fixtures/convert/gen_torch_fixtures.py.
 
-use std::path::{Path, PathBuf};
+use crate::support::{f32s, root};
 
 use candle_core::Device;
 use pma_convert::{
@@ -17,19 +17,6 @@ use pma_model::{
     Config,
 };
 use safetensors::SafeTensors;
-
-fn root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .parent()
-        .unwrap()
-        .to_path_buf()
-}
-
-fn f32s(b: &[u8]) -> Vec<f32> {
-    b.chunks_exact(4)
-        .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
-        .collect()
-}
 
 /// The generator's `pattern(seed, n, scale)`: `scale * (((k + seed) % 17) - 8)` rounded to f32.
 fn pattern(seed: usize, n: usize, scale: f64) -> Vec<f32> {

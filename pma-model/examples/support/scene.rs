@@ -9,14 +9,7 @@ use pma_data::dataset::{Dataset, Profile, ReadOptions};
 
 /// 4 cameras × 4 walk frames at 96×96: 16 training images, as many as the paper's step uses.
 pub fn scene(dir: &Path) -> Result<Arc<Dataset>, Box<dyn std::error::Error>> {
-    let cfg = pma_data::synth::SynthConfig {
-        train_cams: 4,
-        test_cams: 1,
-        frames: 4,
-        novel_pose_walk: 1,
-        novel_pose_dance: 1,
-        ..Default::default()
-    };
+    let cfg = pma_data::synth::SynthConfig::small(96, 4, 4);
     pma_data::synth::generate(&cfg, dir, &mut |_, _| {})?;
     Ok(Arc::new(Dataset::read(
         dir.join("train.npz"),

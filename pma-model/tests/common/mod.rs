@@ -27,6 +27,25 @@ pub fn fixtures() -> PathBuf {
     }
 }
 
+/// The tensors of `rel` under fixtures/golden/, on the CPU.
+pub fn load_golden(rel: &str) -> HashMap<String, Tensor> {
+    let path = fixtures().join("golden").join(rel);
+    candle_core::safetensors::load(&path, &Device::Cpu)
+        .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+}
+
+/// The values of `key` in `g`, flattened, as `T`.
+pub fn golden_values<T: candle_core::WithDType>(g: &HashMap<String, Tensor>, key: &str) -> Vec<T> {
+    g.get(key)
+        .unwrap_or_else(|| panic!("golden key {key} missing"))
+        .flatten_all()
+        .unwrap()
+        .to_dtype(T::DTYPE)
+        .unwrap()
+        .to_vec1()
+        .unwrap()
+}
+
 pub struct Golden(pub HashMap<String, Tensor>);
 
 impl Golden {
@@ -73,6 +92,21 @@ pub fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
     a.iter()
         .zip(b)
         .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max)
+}
+
+/// The largest |a_i − b_i| of two equally long slices, NaN anywhere counting as infinite.
+pub fn max_abs_err(a: &[f32], b: &[f32]) -> f32 {
+    assert_eq!(a.len(), b.len(), "length mismatch");
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| {
+            if x.is_nan() || y.is_nan() {
+                f32::INFINITY
+            } else {
+                (x - y).abs()
+            }
+        })
         .fold(0.0, f32::max)
 }
 
