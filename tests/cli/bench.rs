@@ -6,6 +6,9 @@ use std::process::Output;
 
 use crate::run::{exits_2_with, fails_with, ok, pma, read_json, s};
 
+/// `pma bench --account --quiet --preset tiny`, the start of every accounting run here.
+const ACCOUNT_TINY: [&str; 5] = ["bench", "--account", "--quiet", "--preset", "tiny"];
+
 #[test]
 fn quick_bench_writes_every_field() {
     let dir = tempfile::tempdir().unwrap();
@@ -224,18 +227,10 @@ fn account_writes_the_step_counts() {
     .unwrap();
     let out = dir.path().to_str().unwrap();
     let stdout = ok(pma(&[
-        "bench",
-        "--account",
-        "--quiet",
-        "--preset",
-        "tiny",
-        "--rays",
-        "32",
-        "--official-json",
-        off.to_str().unwrap(),
-        "--out",
-        out,
-    ]))
+        &ACCOUNT_TINY[..],
+        &["--rays", "32", "--official-json", s(&off), "--out", out],
+    ]
+    .concat()))
     .stdout;
     let text = String::from_utf8_lossy(&stdout);
     assert!(text.contains("official (32 rays)"), "{text}");
@@ -278,15 +273,7 @@ fn account_writes_the_step_counts() {
 #[test]
 fn account_refuses_bad_flags() {
     let dir = tempfile::tempdir().unwrap();
-    let base = [
-        "bench",
-        "--account",
-        "--quiet",
-        "--preset",
-        "tiny",
-        "--out",
-        s(dir.path()),
-    ];
+    let base = [&ACCOUNT_TINY[..], &["--out", s(dir.path())]].concat();
     let refusals: &[(&[&str], &str)] = &[
         (&["--account-as", "gpu"], "--account-as"),
         (&["--rays", "31"], "--rays 31"),
@@ -486,20 +473,13 @@ fn account_with_the_occupancy_grid() {
     let dir = tempfile::tempdir().unwrap();
     let account_printed = |name: &str, extra: &[&str]| -> (serde_json::Value, String) {
         let out = dir.path().join(name);
-        let mut a = vec![
-            "--workers",
-            "1",
-            "bench",
-            "--account",
-            "--quiet",
-            "--preset",
-            "tiny",
-            "--rays",
-            "32",
-            "--out",
-            out.to_str().unwrap(),
-        ];
-        a.extend_from_slice(extra);
+        let a = [
+            &["--workers", "1"][..],
+            &ACCOUNT_TINY,
+            &["--rays", "32", "--out", s(&out)],
+            extra,
+        ]
+        .concat();
         let stdout = ok(pma(&a)).stdout;
         (
             read_json(&out.join("account.json")),
@@ -537,19 +517,16 @@ fn account_with_the_occupancy_grid() {
     // Fewer samples through the network: fewer matmul FLOPs in the step.
     assert!(u(&grid, "flops_per_step") < u(&plain, "flops_per_step"));
 
-    let o = pma(&[
-        "bench",
-        "--account",
-        "--quiet",
-        "--preset",
-        "tiny",
+    let x = dir.path().join("x");
+    let flags = [
         "--rays",
         "96",
         "--extrapolate-from",
         "32",
         "--occupancy",
         "--out",
-        dir.path().join("x").to_str().unwrap(),
-    ]);
+        s(&x),
+    ];
+    let o = pma(&[&ACCOUNT_TINY[..], &flags].concat());
     exits_2_with(o, "--occupancy");
 }

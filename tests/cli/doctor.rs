@@ -174,6 +174,13 @@ fn max_relative_diff(a: &Path, b: &Path) -> f32 {
         .fold(0f32, f32::max)
 }
 
+/// The one line of `text` that `pick` picks; the test fails on none or several.
+fn only_line<'a>(text: &'a str, pick: impl Fn(&str) -> bool) -> &'a str {
+    let picked: Vec<&str> = text.lines().filter(|l| pick(l)).collect();
+    assert_eq!(picked.len(), 1, "{text}");
+    picked[0]
+}
+
 /// 50 `tiny` steps with the window pool's kernel failing from its 7th launch on (a
 /// backward mid-step) and with every kernel off (`--generic-kernels`): both runs go on to
 /// the end, the first with one warning line naming the kernel, and end within 1e-5
@@ -193,13 +200,9 @@ fn a_failing_kernel_steps_aside_and_the_run_goes_on() {
         &[],
         &[("PMA_KERNEL_FAULT", "window_pool=launch@7")],
     );
-    let warnings: Vec<&str> = stderr
-        .lines()
-        .filter(|l| l.starts_with("warning: kernel"))
-        .collect();
-    assert_eq!(warnings.len(), 1, "{stderr}");
+    let warning = only_line(&stderr, |l| l.starts_with("warning: kernel"));
     assert!(
-        warnings[0].contains("window_pool") && warnings[0].contains("launch 7"),
+        warning.contains("window_pool") && warning.contains("launch 7"),
         "{stderr}"
     );
     let (generic, _) = run("generic", &["--generic-kernels"], &[]);
@@ -223,13 +226,9 @@ fn out_of_memory_halves_the_chunk_and_retries_the_same_step() {
     };
     let (asked, _) = run("asked", "16", &[]);
     let (halved, stderr) = run("halved", "64", &[("PMA_FAULT_OOM_RAYS", "20")]);
-    let notes: Vec<&str> = stderr
-        .lines()
-        .filter(|l| l.contains("out of device memory"))
-        .collect();
-    assert_eq!(notes.len(), 1, "{stderr}");
+    let note = only_line(&stderr, |l| l.contains("out of device memory"));
     assert!(
-        notes[0].contains("at 64 rays per chunk") && notes[0].contains("retried at 16"),
+        note.contains("at 64 rays per chunk") && note.contains("retried at 16"),
         "{stderr}"
     );
     assert_eq!(max_relative_diff(&asked, &halved), 0.0);

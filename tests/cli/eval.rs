@@ -1,31 +1,28 @@
 //! `pma eval` end to end: table on stdout, eval.json with the documented shape, side-by-side
 //! PNGs, and clear errors for a bad split or a missing model.
 
-use crate::run::{ok, pma, read_json, s, tiny_scene, train_tiny};
+use crate::run::{ok, pma, pma_eval, read_json, s, trained_scene};
 
 #[test]
 fn eval_writes_table_json_and_pngs() {
     let tmp = tempfile::tempdir().unwrap();
-    let scene = tmp.path().join("scene");
-    tiny_scene(&scene, 2);
-    let model = train_tiny(&scene.join("train.npz"), &tmp.path().join("run"), "2");
+    let (scene, model) = trained_scene(tmp.path(), 2, "2");
     let out_dir = tmp.path().join("eval");
     let freq_png = tmp.path().join("freq.png");
-    let out = ok(pma(&[
-        "eval",
-        "--model",
-        s(&model),
-        "--data",
-        s(&scene),
-        "--split",
-        "novel_pose",
-        "--out",
-        s(&out_dir),
-        "--pngs",
-        "2",
-        "--freq-png",
-        s(&freq_png),
-    ]));
+    let out = ok(pma_eval(
+        &model,
+        &scene,
+        &[
+            "--split",
+            "novel_pose",
+            "--out",
+            s(&out_dir),
+            "--pngs",
+            "2",
+            "--freq-png",
+            s(&freq_png),
+        ],
+    ));
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(
         stdout.contains("PSNR") && stdout.contains("mean"),
@@ -116,18 +113,9 @@ fn eval_rejects_bad_split_and_missing_model() {
     assert!(String::from_utf8_lossy(&out.stderr).contains("/nonexistent/m.safetensors"));
 
     // A real model, so that the split is what gets refused.
-    let scene = tmp.path().join("scene");
-    let train = tiny_scene(&scene, 2);
-    let model = train_tiny(&train, &tmp.path().join("run"), "1");
-    let out = pma(&[
-        "eval",
-        "--model",
-        s(&model),
-        "--data",
-        s(&scene),
-        "--split",
-        "holdout",
-    ]);
+    let (scene, model) = trained_scene(tmp.path(), 2, "1");
+    let train = scene.join("train.npz");
+    let out = pma_eval(&model, &scene, &["--split", "holdout"]);
     assert!(!out.status.success());
     assert_eq!(
         out.status.code(),
@@ -140,17 +128,7 @@ fn eval_rejects_bad_split_and_missing_model() {
     // train.npz has no eval_tag: it does not hold the novel-pose images, and must not be
     // scored as if it did.
     let e = tmp.path().join("e");
-    let out = pma(&[
-        "eval",
-        "--model",
-        s(&model),
-        "--data",
-        s(&train),
-        "--split",
-        "novel_pose",
-        "--out",
-        s(&e),
-    ]);
+    let out = pma_eval(&model, &train, &["--split", "novel_pose", "--out", s(&e)]);
     let err = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(2), "{err}");
     assert!(

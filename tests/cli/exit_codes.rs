@@ -4,7 +4,7 @@
 use std::path::Path;
 
 use crate::convert::rewrite_npz;
-use crate::run::{pma, refused, s, tiny_scene};
+use crate::run::{pma, pma_eval, refused, s, tiny_scene};
 
 #[test]
 fn refused_input_exits_2_in_every_command() {
@@ -76,15 +76,7 @@ fn refused_input_exits_2_in_every_command() {
     );
     let model = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/golden/model.safetensors");
     refused(
-        &pma(&[
-            "eval",
-            "--model",
-            s(&model),
-            "--data",
-            s(&scene),
-            "--split",
-            "novel_vew",
-        ]),
+        &pma_eval(&model, &scene, &["--split", "novel_vew"]),
         &["novel_vew"],
     );
     refused(

@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use std::process::Output;
 
 use crate::run::{
-    aist_motion, fails_with, ok, pma, read_json, read_motion, s, tiny_scene, train_tiny,
+    aist_motion, fails_with, ok, pma, read_json, read_motion, s, tiny_scene, trained_scene,
     untrained_tiny,
 };
 use image::AnimationDecoder;
@@ -28,6 +28,16 @@ fn gif_frames(path: &Path) -> Vec<image::Frame> {
         .unwrap()
 }
 
+/// `pma render --model MODEL EXTRA... --out OUT --quiet`.
+fn render(model: &Path, out: &Path, extra: &[&str]) -> Output {
+    pma(&[
+        &["render", "--model", s(model)],
+        extra,
+        &["--out", s(out), "--quiet"],
+    ]
+    .concat())
+}
+
 fn report(dir: &Path) -> serde_json::Value {
     read_json(&dir.join("render.json"))
 }
@@ -35,24 +45,20 @@ fn report(dir: &Path) -> serde_json::Value {
 #[test]
 fn dataset_views_of_a_trained_model() {
     let tmp = tempfile::tempdir().unwrap();
-    let scene = tmp.path().join("scene");
-    tiny_scene(&scene, 1);
-    let model = train_tiny(&scene.join("train.npz"), &tmp.path().join("run"), "2");
+    let (scene, model) = trained_scene(tmp.path(), 1, "2");
     let out = tmp.path().join("views");
-    let stdout = ok(pma(&[
-        "render",
-        "--model",
-        s(&model),
-        "--data",
-        s(&scene),
-        "--split",
-        "novel_view",
-        "--frames",
-        "0:2",
-        "--out",
-        s(&out),
-        "--quiet",
-    ]))
+    let stdout = ok(render(
+        &model,
+        &out,
+        &[
+            "--data",
+            s(&scene),
+            "--split",
+            "novel_view",
+            "--frames",
+            "0:2",
+        ],
+    ))
     .stdout;
     assert!(String::from_utf8_lossy(&stdout).contains("rendered 2 frame(s) of 24x24"));
     for k in 0..2 {
@@ -90,26 +96,24 @@ fn retargeted_dance_on_an_orbit_at_a_chosen_size() {
     let model = untrained_tiny(tmp.path());
     let dance = motion(tmp.path());
     let out = tmp.path().join("orbit");
-    ok(pma(&[
-        "render",
-        "--model",
-        s(&model),
-        "--poses",
-        s(&dance),
-        "--res",
-        "32x20",
-        "--frames",
-        "2:6",
-        "--views",
-        "4",
-        "--background",
-        "white",
-        "--strip",
-        "2",
-        "--out",
-        s(&out),
-        "--quiet",
-    ]));
+    ok(render(
+        &model,
+        &out,
+        &[
+            "--poses",
+            s(&dance),
+            "--res",
+            "32x20",
+            "--frames",
+            "2:6",
+            "--views",
+            "4",
+            "--background",
+            "white",
+            "--strip",
+            "2",
+        ],
+    ));
     for k in 0..4 {
         assert_eq!(png_size(&out.join(format!("frame_{k:04}.png"))), (32, 20));
     }
@@ -154,23 +158,21 @@ fn follow_camera_moves_with_the_root_only() {
     let model = untrained_tiny(tmp.path());
     let dance = motion(tmp.path());
     let out = tmp.path().join("follow");
-    ok(pma(&[
-        "render",
-        "--model",
-        s(&model),
-        "--poses",
-        s(&dance),
-        "--camera",
-        "follow",
-        "--res",
-        "16x16",
-        "--frames",
-        "0:12",
-        "--no-gif",
-        "--out",
-        s(&out),
-        "--quiet",
-    ]));
+    ok(render(
+        &model,
+        &out,
+        &[
+            "--poses",
+            s(&dance),
+            "--camera",
+            "follow",
+            "--res",
+            "16x16",
+            "--frames",
+            "0:12",
+            "--no-gif",
+        ],
+    ));
     let rep = report(&out);
     assert_eq!(rep["camera"], "follow");
     let ds = read_motion(&dance);
@@ -197,26 +199,24 @@ fn bullet_time_freezes_one_pose_and_turns_the_camera() {
     tiny_scene(&scene, 1);
     let model = untrained_tiny(tmp.path());
     let out = tmp.path().join("bullet");
-    ok(pma(&[
-        "render",
-        "--model",
-        s(&model),
-        "--data",
-        s(&scene),
-        "--split",
-        "novel_pose",
-        "--camera",
-        "bullet",
-        "--views",
-        "3",
-        "--frames",
-        "1:2",
-        "--no-gif",
-        "--reference-dirs",
-        "--out",
-        s(&out),
-        "--quiet",
-    ]));
+    ok(render(
+        &model,
+        &out,
+        &[
+            "--data",
+            s(&scene),
+            "--split",
+            "novel_pose",
+            "--camera",
+            "bullet",
+            "--views",
+            "3",
+            "--frames",
+            "1:2",
+            "--no-gif",
+            "--reference-dirs",
+        ],
+    ));
     assert!(!out.join("render.gif").exists());
     let rep = report(&out);
     assert_eq!(rep["camera"], "bullet");
@@ -248,11 +248,7 @@ fn bad_input_gives_clear_errors() {
     tiny_scene(&scene, 1);
     let model = untrained_tiny(tmp.path());
     let out = tmp.path().join("o");
-    let base = |extra: &[&str]| -> Output {
-        let mut a = vec!["render", "--model", s(&model), "--out", s(&out), "--quiet"];
-        a.extend_from_slice(extra);
-        pma(&a)
-    };
+    let base = |extra: &[&str]| -> Output { render(&model, &out, extra) };
     fails_with(base(&[]), "pass --data DS and/or --poses");
     fails_with(base(&["--data", s(&scene), "--res", "0x5"]), "expected WxH");
     fails_with(

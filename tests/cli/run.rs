@@ -22,6 +22,11 @@ pub fn s(p: &Path) -> &str {
     p.to_str().unwrap()
 }
 
+/// `pma eval --model MODEL --data DATA EXTRA...`.
+pub fn pma_eval(model: &Path, data: &Path, extra: &[&str]) -> Output {
+    pma(&[&["eval", "--model", s(model), "--data", s(data)], extra].concat())
+}
+
 /// Runs pma, failing the test if it has not ended within `secs` (a hang).
 pub fn pma_within(args: &[&str], secs: u64) -> Output {
     use std::process::Stdio;
@@ -238,6 +243,15 @@ pub fn tiny_scene(dir: &Path, novel_view_stride: usize) -> PathBuf {
     };
     pma_data::synth::generate(&cfg, dir, &mut |_, _| {}).expect("synth");
     dir.join("train.npz")
+}
+
+/// A [`tiny_scene`] in `dir/scene` and a `tiny` model trained `iters` iterations on it in
+/// `dir/run`: the scene directory and the model's path.
+pub fn trained_scene(dir: &Path, novel_view_stride: usize, iters: &str) -> (PathBuf, PathBuf) {
+    let scene = dir.join("scene");
+    let train = tiny_scene(&scene, novel_view_stride);
+    let model = train_tiny(&train, &dir.join("run"), iters);
+    (scene, model)
 }
 
 /// Every file under `dir` (recursively) has the mode `File::create` gives: 0666 less the
