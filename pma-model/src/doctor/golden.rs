@@ -8,7 +8,7 @@ use candle_core::{Device, Tensor};
 
 use super::Check;
 use crate::network::checkpoint;
-use crate::render::avatar::{Avatar, Mode, PassOptions, Poses, Rays, Trace};
+use crate::render::avatar::{Avatar, Mode, Outputs, PassOptions, Poses, Rays, Trace};
 use crate::train::batch::{FixedBatch, TrainBatch};
 use crate::train::presets::{RunConfig, TrainConfig};
 use crate::train::{Preset, Trainer};
@@ -106,6 +106,25 @@ impl Golden {
         cfg.density_noise_std = 0.0;
         Avatar::from_tensors(cfg, self.model.tensors.clone(), device)
     }
+
+    /// [`Golden::avatar`]'s training-mode pass over the golden batch in parity mode;
+    /// `trace` collects the network's stages.
+    fn forward(
+        &self,
+        device: &Device,
+        trace: Option<&mut Trace>,
+    ) -> crate::error::Result<(Avatar, TrainBatch, Outputs)> {
+        let avatar = self.avatar(device)?;
+        let batch = self.batch()?;
+        let out = avatar.forward(
+            &batch.rays,
+            &batch.poses,
+            &mut Mode::Train(None),
+            &PassOptions::parity(),
+            trace,
+        )?;
+        Ok((avatar, batch, out))
+    }
 }
 
 /// √Σ v².
@@ -167,16 +186,8 @@ pub fn forward(
     device: &Device,
     section: &'static str,
 ) -> crate::error::Result<Vec<Check>> {
-    let avatar = g.avatar(device)?;
-    let batch = g.batch()?;
     let mut trace = Trace::default();
-    let out = avatar.forward(
-        &batch.rays,
-        &batch.poses,
-        &mut Mode::Train(None),
-        &PassOptions::parity(),
-        Some(&mut trace),
-    )?;
+    let (_, _, out) = g.forward(device, Some(&mut trace))?;
     let mut rows = Vec::new();
     let mut cmp = |what: &str, ours: &Tensor, key: &str| -> crate::error::Result<()> {
         rows.push(row(
@@ -220,15 +231,7 @@ pub fn gradients(
     device: &Device,
     section: &'static str,
 ) -> crate::error::Result<Vec<Check>> {
-    let avatar = g.avatar(device)?;
-    let batch = g.batch()?;
-    let out = avatar.forward(
-        &batch.rays,
-        &batch.poses,
-        &mut Mode::Train(None),
-        &Default::default(),
-        None,
-    )?;
+    let (avatar, batch, out) = g.forward(device, None)?;
     let loss = crate::train::loss::l1(&out.fine.rgb, &batch.target)?;
     let store = loss.backward()?;
     let grads: HashMap<String, Tensor> = avatar

@@ -78,11 +78,16 @@ impl Golden {
 }
 
 pub fn flat(t: &Tensor) -> Vec<f32> {
-    t.to_dtype(DType::F32)
+    flat_as(t)
+}
+
+/// Every value of `t`, converted to `T`, in row-major order.
+pub fn flat_as<T: candle_core::WithDType>(t: &Tensor) -> Vec<T> {
+    t.to_dtype(T::DTYPE)
         .unwrap()
         .flatten_all()
         .unwrap()
-        .to_vec1::<f32>()
+        .to_vec1::<T>()
         .unwrap()
 }
 
@@ -112,22 +117,22 @@ pub fn max_abs_err(a: &[f32], b: &[f32]) -> f32 {
 
 /// Rows `ray*S + s` of the subset rays from a [R*S, ...] tensor.
 pub fn subset_rows(t: &Tensor, rays: &[usize], s: usize) -> Tensor {
-    let idx: Vec<u32> = rays
-        .iter()
-        .flat_map(|&r| (0..s).map(move |k| (r * s + k) as u32))
-        .collect();
-    let idx = Tensor::from_vec(idx.clone(), idx.len(), t.device()).unwrap();
-    t.contiguous().unwrap().index_select(&idx, 0).unwrap()
+    subset_samples(t, rays, s, 0)
 }
 
 /// Same along dim 1 of a [K, R*S, F] tensor.
 pub fn subset_rows_dim1(t: &Tensor, rays: &[usize], s: usize) -> Tensor {
+    subset_samples(t, rays, s, 1)
+}
+
+/// Indices `ray*S + s` of the subset rays' samples, selected along `dim`.
+fn subset_samples(t: &Tensor, rays: &[usize], s: usize, dim: usize) -> Tensor {
     let idx: Vec<u32> = rays
         .iter()
         .flat_map(|&r| (0..s).map(move |k| (r * s + k) as u32))
         .collect();
     let idx = Tensor::from_vec(idx.clone(), idx.len(), t.device()).unwrap();
-    t.contiguous().unwrap().index_select(&idx, 1).unwrap()
+    t.contiguous().unwrap().index_select(&idx, dim).unwrap()
 }
 
 /// Per-ray features [R,F] repeated for each of the S samples of the subset rays.

@@ -136,20 +136,38 @@ fn dense_case_matches_reference() {
     check_case("dense/");
 }
 
+/// A golden batch's rays, the transforms and cylinders of its one pose, and the coarse
+/// axis scales, as the tensor entry points take them.
+struct RayInputs {
+    rays_o: Tensor,
+    rays_d: Tensor,
+    skts: Tensor,
+    cyls: Tensor,
+    scales: Tensor,
+}
+
+impl RayInputs {
+    fn of(g: &HashMap<String, Tensor>) -> Self {
+        Self {
+            rays_o: g["input/rays_o"].clone(),
+            rays_d: g["input/rays_d"].clone(),
+            skts: g["input/skts"].narrow(0, 0, 1).unwrap(),
+            cyls: g["input/cyls"].narrow(0, 0, 1).unwrap(),
+            scales: g["coarse/axis_scale"].clone(),
+        }
+    }
+}
+
 #[test]
 fn tensor_entry_points_match_host_code() {
     let g = load_golden("dense/golden.safetensors");
     let model = load_golden("model.safetensors");
     let cfg = Config::paper();
     let caster = RayCaster::from_tensor(&cfg, model.get("raycast.transforms").unwrap()).unwrap();
-    let rays_o = g["input/rays_o"].clone();
-    let rays_d = g["input/rays_d"].clone();
-    let n_rays = rays_o.dims()[0];
-    let skts = g["input/skts"].narrow(0, 0, 1).unwrap();
-    let cyls = g["input/cyls"].narrow(0, 0, 1).unwrap();
-    let scales = g["coarse/axis_scale"].clone();
+    let r = RayInputs::of(&g);
+    let n_rays = r.rays_o.dims()[0];
     let coarse = caster
-        .cast(&rays_o, &rays_d, &cyls, &skts, &scales)
+        .cast(&r.rays_o, &r.rays_d, &r.cyls, &r.skts, &r.scales)
         .unwrap();
     assert_eq!(coarse.z.dims(), [n_rays, cfg.n_samples]);
     assert_eq!(coarse.pts.dims(), [n_rays, cfg.n_samples, 3]);
@@ -158,8 +176,8 @@ fn tensor_entry_points_match_host_code() {
 
     let fine = caster
         .resample(
-            &rays_o,
-            &rays_d,
+            &r.rays_o,
+            &r.rays_d,
             &g["raycast/z_vals_coarse"],
             &g["render_coarse/weights"],
         )
@@ -202,14 +220,10 @@ fn device_path_matches_reference() {
     let m = cfg.n_samples + cfg.n_importance;
     for case in ["", "dense/"] {
         let g = load_golden(&format!("{case}golden.safetensors"));
-        let rays_o = g["input/rays_o"].clone();
-        let rays_d = g["input/rays_d"].clone();
-        let n_rays = rays_o.dims()[0];
-        let skts = g["input/skts"].narrow(0, 0, 1).unwrap();
-        let cyls = g["input/cyls"].narrow(0, 0, 1).unwrap();
-        let scales = g["coarse/axis_scale"].clone();
+        let r = RayInputs::of(&g);
+        let n_rays = r.rays_o.dims()[0];
         let (near, far) = caster
-            .near_far_tensors(&rays_o, &rays_d, &cyls, &skts, &scales)
+            .near_far_tensors(&r.rays_o, &r.rays_d, &r.cyls, &r.skts, &r.scales)
             .unwrap();
         assert_close(
             &format!("{case}device near"),
@@ -222,7 +236,7 @@ fn device_path_matches_reference() {
             &f32s(&g, "raycast/far"),
         );
         let coarse = caster
-            .cast_tensors(&rays_o, &rays_d, &cyls, &skts, &scales)
+            .cast_tensors(&r.rays_o, &r.rays_d, &r.cyls, &r.skts, &r.scales)
             .unwrap();
         assert_close(
             &format!("{case}device pts_coarse"),
@@ -231,8 +245,8 @@ fn device_path_matches_reference() {
         );
         let fine = caster
             .resample_tensors(
-                &rays_o,
-                &rays_d,
+                &r.rays_o,
+                &r.rays_d,
                 &g["raycast/z_vals_coarse"],
                 &g["render_coarse/weights"],
             )

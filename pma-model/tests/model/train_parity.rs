@@ -7,22 +7,29 @@
 use std::collections::HashMap;
 use std::path::PathBuf;
 
-use candle_core::{DType, Device, Tensor};
+use candle_core::{Device, Tensor};
 use pma_model::doctor::golden::Golden;
 use pma_model::render::avatar::Avatar;
 use pma_model::train::{FixedBatch, RunConfig, TrainConfig, Trainer};
+
+use crate::common::flat_as;
 
 fn golden_dir() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../fixtures/golden")
 }
 
 fn flat64(t: &Tensor) -> Vec<f64> {
-    t.to_dtype(DType::F64)
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .to_vec1::<f64>()
-        .unwrap()
+    flat_as(t)
+}
+
+/// The trainer's trainable parameters by name.
+fn parameters(trainer: &Trainer) -> HashMap<String, Vec<f64>> {
+    trainer
+        .avatar()
+        .trainable()
+        .into_iter()
+        .map(|(n, v)| (n, flat64(v.as_tensor())))
+        .collect()
 }
 
 fn scalar(t: &HashMap<String, Tensor>, k: &str) -> f64 {
@@ -70,12 +77,7 @@ fn one_step_on_the_golden_batch_matches_the_reference() {
         numerics: Default::default(),
     };
     let mut trainer = Trainer::with_source(run, avatar, Box::new(FixedBatch(batch))).unwrap();
-    let before: HashMap<String, Vec<f64>> = trainer
-        .avatar()
-        .trainable()
-        .into_iter()
-        .map(|(n, v)| (n, flat64(v.as_tensor())))
-        .collect();
+    let before = parameters(&trainer);
 
     let stats = trainer.step_read().unwrap();
     assert_eq!(stats.skipped, None);
@@ -127,12 +129,7 @@ fn one_step_on_the_golden_batch_matches_the_reference() {
         scalar(&want, "train_step/lr2"),
     );
 
-    let after: HashMap<String, Vec<f64>> = trainer
-        .avatar()
-        .trainable()
-        .into_iter()
-        .map(|(n, v)| (n, flat64(v.as_tensor())))
-        .collect();
+    let after = parameters(&trainer);
     assert_eq!(after.len(), ref_names.len());
 
     // The target is 1e-5 relative everywhere. The parameter values meet it. An update norm
