@@ -5,10 +5,9 @@
 //! moments are the old ones decayed plus one gradient (m' = β₁m + (1−β₁)g,
 //! v' = β₂v + (1−β₂)g²), which fails if the moments were not loaded.
 
-use crate::support::root;
+use crate::support::{convert_fixture, root};
 
 use candle_core::{Device, Tensor};
-use pma_convert::checkpoint::{convert_checkpoint, CheckpointOptions};
 use pma_model::{
     doctor::golden::Golden,
     network::checkpoint,
@@ -31,14 +30,7 @@ fn flat(t: &Tensor) -> Vec<f32> {
 fn training_resumes_from_a_converted_reference_checkpoint() {
     let dir = tempfile::tempdir().unwrap();
     let model = dir.path().join("model.safetensors");
-    let rep = convert_checkpoint(
-        &root().join("fixtures/convert/ckpt_adam.th"),
-        &model,
-        &CheckpointOptions {
-            with_optimizer: true,
-        },
-    )
-    .unwrap();
+    let rep = convert_fixture("convert/ckpt_adam.th", &model, true).unwrap();
     std::fs::rename(rep.train_state.unwrap(), dir.path().join(STATE_FILE)).unwrap();
 
     let ck = checkpoint::load(&model, &Device::Cpu).unwrap();

@@ -1,6 +1,9 @@
-//! Paths of the repository's fixtures and the raw-bytes reader the tests share.
+//! Paths of the repository's fixtures, their checkpoint conversion and the raw-bytes reader
+//! the tests share.
 
 use std::path::{Path, PathBuf};
+
+use pma_convert::checkpoint::{convert_checkpoint, CheckpointOptions, CheckpointReport};
 
 /// The repository root.
 pub fn root() -> PathBuf {
@@ -13,6 +16,20 @@ pub fn root() -> PathBuf {
 /// `fixtures/convert/<name>`.
 pub fn fixture(name: &str) -> PathBuf {
     root().join("fixtures/convert").join(name)
+}
+
+/// `fixtures/<rel>`, a reference checkpoint, converted to `out` (with its Adam state when
+/// `with_optimizer`).
+pub fn convert_fixture(
+    rel: &str,
+    out: &Path,
+    with_optimizer: bool,
+) -> pma_convert::Result<CheckpointReport> {
+    convert_checkpoint(
+        &root().join("fixtures").join(rel),
+        out,
+        &CheckpointOptions { with_optimizer },
+    )
 }
 
 /// Little-endian f32 values of raw tensor bytes.
