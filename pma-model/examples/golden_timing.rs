@@ -35,14 +35,14 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         v.sort_by(|a, b| a.partial_cmp(b).unwrap());
         v[v.len() / 2]
     };
-    let forward = || {
-        avatar.forward(
+    let forward = || -> Result<_, Box<dyn std::error::Error>> {
+        Ok(avatar.forward(
             &rays,
             &poses,
             &mut Mode::Train(None),
             &Default::default(),
             None,
-        )
+        )?)
     };
     let (mut fwd, mut bwd) = (Vec::new(), Vec::new());
     for i in 0..7 {

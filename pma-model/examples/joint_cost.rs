@@ -56,8 +56,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     for k in [24usize, 12, 8, 6, 4, 2, 1] {
         let joints: Vec<u32> = (0..k as u32).collect();
         let secs = scene::median_seconds(9, || {
-            net.eval_joints(&pose, 0..1, &pts, &view, Some(&joints), None)
-                .map(drop)
+            net.eval_joints(&pose, 0..1, &pts, &view, Some(&joints), None)?;
+            Ok(())
         })?;
         let us = secs * 1e6 / n as f64;
         let of_all = *all.get_or_insert(us);

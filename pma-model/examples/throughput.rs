@@ -60,7 +60,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     if train_rays > 0 {
         run.train.rays_per_step = train_rays;
         let mut trainer = Trainer::new(run.clone(), data.clone(), &Device::Cpu)?;
-        let m = scene::median_seconds(repeats, || trainer.step().map(drop))?;
+        let m = scene::median_seconds(repeats, || {
+            trainer.step()?;
+            Ok(())
+        })?;
         let sps = train_rays as f64 * samples / m;
         println!(
             "training  {train_rays:>5} rays: median {m:.3} s/step, {sps:.0} samples/s, {}",
@@ -81,9 +84,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let mut src = DatasetSource::new(data, infer_rays, 16, false, 0, &Device::Cpu)?;
         let batch = src.next_batch()?;
         let m = scene::median_seconds(repeats, || {
-            avatar
-                .render_rays(&batch.rays, &batch.poses, &Default::default())
-                .map(drop)
+            avatar.render_rays(&batch.rays, &batch.poses, &Default::default())?;
+            Ok(())
         })?;
         let sps = infer_rays as f64 * samples / m;
         println!(

@@ -175,7 +175,7 @@ fn max_relative_diff(a: &Path, b: &Path) -> f32 {
 }
 
 /// The one line of `text` that `pick` picks; the test fails on none or several.
-fn only_line<'a>(text: &'a str, pick: impl Fn(&str) -> bool) -> &'a str {
+fn only_line(text: &str, pick: impl Fn(&str) -> bool) -> &str {
     let picked: Vec<&str> = text.lines().filter(|l| pick(l)).collect();
     assert_eq!(picked.len(), 1, "{text}");
     picked[0]

@@ -18,20 +18,25 @@ fn golden() -> Vec<u8> {
 }
 
 fn f32s(st: &SafeTensors, key: &str) -> Vec<f32> {
-    let t = st.tensor(key).unwrap();
-    assert_eq!(t.dtype(), safetensors::Dtype::F32, "{key}");
-    t.data()
-        .chunks_exact(4)
-        .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
-        .collect()
+    values(st, key, safetensors::Dtype::F32, f32::from_le_bytes)
 }
 
 fn i64s(st: &SafeTensors, key: &str) -> Vec<i64> {
+    values(st, key, safetensors::Dtype::I64, i64::from_le_bytes)
+}
+
+/// The values of `key`, which must be of `dtype`, each read from its `N` little-endian bytes.
+fn values<T, const N: usize>(
+    st: &SafeTensors,
+    key: &str,
+    dtype: safetensors::Dtype,
+    from_le: fn([u8; N]) -> T,
+) -> Vec<T> {
     let t = st.tensor(key).unwrap();
-    assert_eq!(t.dtype(), safetensors::Dtype::I64, "{key}");
+    assert_eq!(t.dtype(), dtype, "{key}");
     t.data()
-        .chunks_exact(8)
-        .map(|c| i64::from_le_bytes(c.try_into().unwrap()))
+        .chunks_exact(N)
+        .map(|c| from_le(c.try_into().unwrap()))
         .collect()
 }
 

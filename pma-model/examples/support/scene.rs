@@ -31,7 +31,10 @@ pub fn median(mut v: Vec<f64>) -> f64 {
 }
 
 /// Median wall seconds of `f` over `runs` calls, after one untimed warm-up call.
-pub fn median_seconds<E>(runs: usize, mut f: impl FnMut() -> Result<(), E>) -> Result<f64, E> {
+pub fn median_seconds(
+    runs: usize,
+    mut f: impl FnMut() -> Result<(), Box<dyn std::error::Error>>,
+) -> Result<f64, Box<dyn std::error::Error>> {
     f()?;
     let mut times = Vec::with_capacity(runs);
     for _ in 0..runs {
