@@ -95,12 +95,14 @@ fn print_table(r: &DoctorReport) {
     };
     println!("device   {} ({})", d.spec, d.name);
     println!(
-        "memory   {} total, {} free; {} cores; CUDA driver {}; NVRTC {}",
+        "memory   {} total, {} free; {} cores; CUDA driver {}; NVRTC {}; compute capability {}",
         gib(d.memory_total_bytes),
         gib(d.memory_free_bytes),
         d.cores,
         d.driver.as_deref().unwrap_or("-"),
-        d.nvrtc.as_deref().unwrap_or("-")
+        d.nvrtc.as_deref().unwrap_or("-"),
+        d.compute_capability
+            .map_or("-".into(), |(major, minor)| format!("{major}.{minor}"))
     );
     println!("golden   {}", r.golden);
     println!();

@@ -116,6 +116,7 @@ fn library_kind(e: &(dyn std::error::Error + 'static)) -> Option<ErrorKind> {
         pma_model::tools::video::VideoError,
         pma_model::compute::device::DeviceError,
         pma_model::compute::device::Tf32Error,
+        pma_model::compute::device::Bf16Error,
         pma_convert::ConvertError,
     );
     #[cfg(feature = "train")]
@@ -255,12 +256,15 @@ pub fn device(spec: &str) -> anyhow::Result<candle_core::Device> {
     Ok(pma_model::compute::device::parse_device(spec)?)
 }
 
-/// [`device`], checking `--tf32` (CUDA only: refused elsewhere), which [`numerics`] then
-/// carries to every avatar the command builds.
+/// [`device`], checking `--tf32` (CUDA only: refused elsewhere) and `--bf16-trunk` (refused on
+/// a GPU without bf16 casts), which [`numerics`] then carries to every avatar the command
+/// builds.
 pub fn device_tf32(spec: &str, tf32: bool) -> anyhow::Result<candle_core::Device> {
     let dev = device(spec)?;
     pma_model::compute::device::check_tf32(tf32, &dev)?;
-    NUMERICS.lock().unwrap_or_else(|e| e.into_inner()).tf32 = tf32;
+    let mut numerics = NUMERICS.lock().unwrap_or_else(|e| e.into_inner());
+    pma_model::compute::device::check_bf16_trunk(numerics.bf16_trunk, &dev)?;
+    numerics.tf32 = tf32;
     Ok(dev)
 }
 

@@ -44,6 +44,12 @@ impl pma_data::ExitKind for Tf32Error {
     }
 }
 
+impl pma_data::ExitKind for Bf16Error {
+    fn kind(&self) -> pma_data::ErrorKind {
+        pma_data::ErrorKind::Refused
+    }
+}
+
 /// Parse `cpu`, `cuda`, `cuda:N`, `metal` or `metal:N` (case-insensitive) and open it.
 pub fn parse_device(spec: &str) -> Result<Device, DeviceError> {
     let s = spec.trim().to_ascii_lowercase();
@@ -210,6 +216,8 @@ pub struct DeviceInfo {
     pub driver: Option<String>,
     /// The NVRTC library's version, which compiles pma's kernels at run time.
     pub nvrtc: Option<String>,
+    /// A GPU's compute capability (major, minor).
+    pub compute_capability: Option<(u32, u32)>,
     /// CPU cores this process may use.
     pub cores: usize,
 }
@@ -228,6 +236,7 @@ pub fn describe(device: &Device) -> DeviceInfo {
         memory_free_bytes: host_memory_kib("MemAvailable:").map(|k| k * 1024),
         driver: None,
         nvrtc: None,
+        compute_capability: None,
         cores,
     };
     describe_cuda(device, &mut info);
@@ -267,6 +276,15 @@ fn describe_cuda(device: &Device, info: &mut DeviceInfo) {
         .ok()
         .map(|b| b as u64);
     info.memory_free_bytes = cuda_free_memory(device).map(|b| b as u64);
+    use sys::CUdevice_attribute::{
+        CU_DEVICE_ATTRIBUTE_COMPUTE_CAPABILITY_MAJOR as MAJOR,
+        CU_DEVICE_ATTRIBUTE_COMPUTE_CAPABILITY_MINOR as MINOR,
+    };
+    // SAFETY: `cu` comes from a live context.
+    let attribute = |a| unsafe { result::device::get_attribute(cu, a) }.ok();
+    if let (Some(major), Some(minor)) = (attribute(MAJOR), attribute(MINOR)) {
+        info.compute_capability = Some((major as u32, minor as u32));
+    }
     let mut v: std::ffi::c_int = 0;
     // SAFETY: the driver writes one int.
     if unsafe { sys::cuDriverGetVersion(&mut v) } == sys::CUresult::CUDA_SUCCESS {
@@ -307,6 +325,40 @@ pub fn check_tf32(on: bool, device: &Device) -> Result<(), Tf32Error> {
     Ok(())
 }
 
+/// The least compute capability with candle's f32 ↔ bf16 casts (candle-kernels defines them
+/// for sm_80 and later: docs/gpu.md, "What candle's CUDA backend must implement").
+pub const BF16_MIN_CAPABILITY: (u32, u32) = (8, 0);
+
+/// Why `--bf16-trunk` was refused.
+#[derive(Debug, thiserror::Error)]
+#[error("--bf16-trunk needs a GPU of compute capability {}.{} or later for its bf16 casts ({spec} is {}.{}); run without it", BF16_MIN_CAPABILITY.0, BF16_MIN_CAPABILITY.1, .capability.0, .capability.1)]
+pub struct Bf16Error {
+    pub spec: String,
+    pub capability: (u32, u32),
+}
+
+/// Whether the bf16 trunk ([`crate::compute::numerics::Numerics::bf16_trunk`]) can run on
+/// `device`: refused on a GPU whose compute capability is known and under
+/// [`BF16_MIN_CAPABILITY`], which would otherwise stop at the first cast of a run. The CPU
+/// emulates it.
+pub fn check_bf16_trunk(on: bool, device: &Device) -> Result<(), Bf16Error> {
+    if !on || !device.is_cuda() {
+        return Ok(());
+    }
+    let info = describe(device);
+    bf16_capability(&info.spec, info.compute_capability)
+}
+
+fn bf16_capability(spec: &str, capability: Option<(u32, u32)>) -> Result<(), Bf16Error> {
+    match capability {
+        Some(c) if c < BF16_MIN_CAPABILITY => Err(Bf16Error {
+            spec: spec.to_string(),
+            capability: c,
+        }),
+        _ => Ok(()),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -321,6 +373,17 @@ mod tests {
                 "{bad}"
             );
         }
+    }
+
+    #[test]
+    fn bf16_trunk_is_refused_under_sm_80() {
+        let e = bf16_capability("cuda:0", Some((7, 5))).unwrap_err().to_string();
+        assert!(e.contains("--bf16-trunk needs a GPU of compute capability 8.0"), "{e}");
+        assert!(e.contains("cuda:0 is 7.5"), "{e}");
+        assert!(bf16_capability("cuda:0", Some((8, 0))).is_ok());
+        assert!(bf16_capability("cuda:0", Some((9, 0))).is_ok());
+        assert!(bf16_capability("cuda:0", None).is_ok());
+        assert!(check_bf16_trunk(true, &Device::Cpu).is_ok());
     }
 
     #[test]
