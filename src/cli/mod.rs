@@ -240,6 +240,17 @@ pub fn device_tf32(spec: &str, tf32: bool) -> anyhow::Result<candle_core::Device
     Ok(dev)
 }
 
+/// [`device_tf32`] for a list of devices (`cpu,cpu`, `cuda:0,1,2,3`): one per rank of a
+/// data-parallel group.
+pub fn devices_tf32(spec: &str, tf32: bool) -> anyhow::Result<Vec<candle_core::Device>> {
+    let devs = pma_model::compute::device::parse_devices(spec)?;
+    for dev in &devs {
+        pma_model::compute::device::check_tf32(tf32, dev)?;
+    }
+    NUMERICS.lock().unwrap_or_else(|e| e.into_inner()).tf32 = tf32;
+    Ok(devs)
+}
+
 /// The numeric choices of this command line (`--fast-sine`, `--tf32`): one command runs per
 /// process, and every avatar and trainer it builds gets them.
 static NUMERICS: std::sync::Mutex<Numerics> = std::sync::Mutex::new(Numerics::PARITY);

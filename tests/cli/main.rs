@@ -13,6 +13,7 @@ mod devices;
 mod doctor;
 mod eval;
 mod exit_codes;
+mod data_parallel;
 mod faults;
 mod forward;
 mod inspect;

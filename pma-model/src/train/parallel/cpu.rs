@@ -40,6 +40,8 @@ struct State {
     result: Option<Result<HostBuf, GroupError>>,
     /// The first failure; every later exchange fails with it.
     broken: Option<GroupError>,
+    /// Why each rank left, once its handle dropped.
+    left: Vec<Option<&'static str>>,
 }
 
 /// `size` handles of one new CPU group, rank order; an exchange waits at most `timeout` for
@@ -50,6 +52,7 @@ pub fn group(size: usize, timeout: Duration) -> Vec<CpuComm> {
         timeout,
         state: Mutex::new(State {
             bufs: vec![None; size],
+            left: vec![None; size],
             ..Default::default()
         }),
         woken: Condvar::new(),
@@ -124,6 +127,16 @@ impl Communicator for CpuComm {
             if let Some(e) = &state.broken {
                 return Err(e.clone());
             }
+            // A rank that left cannot bring its buffer: this round never completes.
+            let gone = (0..size).find(|&r| state.bufs[r].is_none() && state.left[r].is_some());
+            if let Some(r) = gone {
+                let e = GroupError::Left {
+                    rank: r,
+                    size,
+                    why: state.left[r].unwrap_or("it stopped").to_string(),
+                };
+                return Err(self.fail(&mut state, e));
+            }
             let now = Instant::now();
             if now >= deadline {
                 let e = GroupError::Timeout {
@@ -161,17 +174,11 @@ impl Drop for CpuComm {
             "it stopped"
         };
         let mut state = self.lock();
-        // Leaving only matters to a round this rank has not joined; a rank that leaves at
-        // the end of a run, when no one waits for it, breaks nothing.
-        if state.broken.is_none() {
-            let e = GroupError::Left {
-                rank: self.rank,
-                size: self.shared.size,
-                why: why.to_string(),
-            };
-            state.broken = Some(e);
-            self.shared.woken.notify_all();
-        }
+        // Leaving only matters to a round this rank would have to join: a rank that leaves
+        // at the end of a run, when no one waits for it, breaks nothing (the others may
+        // still read back what the group exchanged).
+        state.left[self.rank] = Some(why);
+        self.shared.woken.notify_all();
     }
 }
 
@@ -312,6 +319,17 @@ mod tests {
         );
         assert!(start.elapsed() < Duration::from_secs(5));
         assert_eq!(silent.health(), Err(e));
+
+        // A rank that leaves after the last exchange breaks nothing for the others.
+        let out = run(group(2, Duration::from_secs(30)), |c| {
+            let sum = c.host(Kind::Sum, HostBuf::F32(vec![1.0]))?;
+            if c.rank() == 0 {
+                std::thread::sleep(Duration::from_millis(200));
+                c.health()?;
+            }
+            Ok(sum)
+        });
+        assert_eq!(out, vec![Ok(HostBuf::F32(vec![2.0])); 2]);
     }
 
     #[test]

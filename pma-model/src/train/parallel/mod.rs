@@ -46,6 +46,8 @@ pub use run::{
 
 use candle_core::{DType, Tensor};
 
+use crate::compute::account::Collective;
+
 use crate::train::TrainError;
 
 /// One rank's membership of a data-parallel group, as a trainer holds it.
@@ -168,6 +170,25 @@ impl GroupStop {
             _ => self,
         }
     }
+}
+
+/// The exchanges of one rank's step in a group of `size` (none for one rank), for a model
+/// of `params` trainable tensors of `elems` elements in all: the flat f32 gradient, then the
+/// f64 step numbers ([`step_numbers`]: the loss terms, the votes, a flag per tensor).
+/// Summed by the engine's all-reduce, or with `ordered` gathered and summed in rank order.
+/// What an accounted group step counts, and what the scaling estimate prices.
+pub fn step_collectives(size: usize, elems: usize, params: usize, ordered: bool) -> Vec<Collective> {
+    if size < 2 {
+        return Vec::new();
+    }
+    let numbers = crate::train::trainer::LOSS_TERMS + VOTE_SLOTS + params;
+    [elems as u64 * 4, numbers as u64 * 8]
+        .into_iter()
+        .map(|bytes| match ordered {
+            false => Collective::AllReduce { bytes },
+            true => Collective::AllGather { bytes },
+        })
+        .collect()
 }
 
 /// The per-step numbers a group exchanges besides the gradient: the loss terms (f64), the

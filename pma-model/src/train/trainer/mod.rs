@@ -27,6 +27,7 @@ mod optimization;
 
 pub use chunks::{chunk_rays, AUTO_CHUNK_POINT_JOINTS};
 pub use optimization::{LossParts, Optimization, SkipReason, StepLoss, StepStats};
+pub(crate) use optimization::LOSS_TERMS;
 
 use std::path::Path;
 use std::sync::Arc;

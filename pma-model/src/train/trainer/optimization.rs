@@ -98,7 +98,7 @@ impl StepLoss {
 }
 
 /// The loss terms of [`StepLoss::stacked`].
-const LOSS_TERMS: usize = 5;
+pub(crate) const LOSS_TERMS: usize = 5;
 
 /// A step whose numbers are still on the device: [total, fine, coarse, scale, mse, norm],
 /// and in a data-parallel group the summed votes and has-a-gradient flags after them.
