@@ -83,6 +83,12 @@ fn checkpoint_iter(run: &Path) -> u64 {
         .iteration
 }
 
+/// The run's lock was released (its file stays, emptied of the holder's PID).
+fn assert_unlocked(run: &Path) {
+    let held = std::fs::read_to_string(run.join(LOCK_FILE)).unwrap_or_default();
+    assert!(held.is_empty(), "{} still names a holder: {held}", run.display());
+}
+
 #[test]
 fn two_cpu_ranks_train_and_resume_as_one_device() {
     let tmp = tempfile::tempdir().unwrap();
@@ -103,7 +109,7 @@ fn two_cpu_ranks_train_and_resume_as_one_device() {
     assert_same_model(&one, &two);
     // One writer: the run directory of the group is a one-device run's.
     assert!(two.join("log.csv").is_file() && two.join("config.toml").is_file());
-    assert!(!two.join(LOCK_FILE).exists());
+    assert_unlocked(&two);
 
     ok(run(&train(
         &data,
@@ -159,7 +165,7 @@ fn ctrl_c_stops_both_ranks_at_one_step_and_the_run_resumes() {
         stderr.contains(&format!("interrupted at iteration {stopped}")),
         "{stderr}"
     );
-    assert!(!out.join(LOCK_FILE).exists(), "the group's lock stayed");
+    assert_unlocked(&out);
     let target = (stopped + 2).to_string();
     ok(run(&train(&data, &out, "cpu,cpu", &["--resume", "--iters", &target])));
     assert_eq!(checkpoint_iter(&out), stopped + 2);
