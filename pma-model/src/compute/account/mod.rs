@@ -88,7 +88,8 @@ pub struct Counts {
     pub flops: u64,
     /// Collectives among data-parallel ranks ([`record_collective`]): all-reduces and the
     /// bytes each rank contributes to them (its buffer), all-gathers and theirs. Each also
-    /// counts as one op and one launch; their link time is [`cost::collective_s`]'s.
+    /// counts as one op and one launch; their link time is
+    /// [`cost::Topology::collective_s`]'s.
     #[serde(default)]
     pub all_reduces: u64,
     #[serde(default)]
