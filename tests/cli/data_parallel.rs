@@ -86,7 +86,11 @@ fn checkpoint_iter(run: &Path) -> u64 {
 /// The run's lock was released (its file stays, emptied of the holder's PID).
 fn assert_unlocked(run: &Path) {
     let held = std::fs::read_to_string(run.join(LOCK_FILE)).unwrap_or_default();
-    assert!(held.is_empty(), "{} still names a holder: {held}", run.display());
+    assert!(
+        held.is_empty(),
+        "{} still names a holder: {held}",
+        run.display()
+    );
 }
 
 #[test]
@@ -117,7 +121,12 @@ fn two_cpu_ranks_train_and_resume_as_one_device() {
         "cpu,cpu",
         &["--preset", "tiny", "--iters", "3"],
     )));
-    ok(run(&train(&data, &resumed, "cpu,cpu", &["--resume", "--iters", "6"])));
+    ok(run(&train(
+        &data,
+        &resumed,
+        "cpu,cpu",
+        &["--resume", "--iters", "6"],
+    )));
     assert_same_model(&one, &resumed);
 }
 
@@ -167,7 +176,12 @@ fn ctrl_c_stops_both_ranks_at_one_step_and_the_run_resumes() {
     );
     assert_unlocked(&out);
     let target = (stopped + 2).to_string();
-    ok(run(&train(&data, &out, "cpu,cpu", &["--resume", "--iters", &target])));
+    ok(run(&train(
+        &data,
+        &out,
+        "cpu,cpu",
+        &["--resume", "--iters", &target],
+    )));
     assert_eq!(checkpoint_iter(&out), stopped + 2);
 
     // The same iterations without an interruption give the same model.
@@ -206,7 +220,12 @@ fn a_failing_rank_stops_the_group_with_a_clear_error_and_the_run_resumes() {
     assert!(start.elapsed() < Duration::from_secs(120));
     // The last complete checkpoint is intact, and the group resumes from it.
     assert_eq!(checkpoint_iter(&out), 3);
-    ok(run(&train(&data, &out, "cpu,cpu", &["--resume", "--iters", "8"])));
+    ok(run(&train(
+        &data,
+        &out,
+        "cpu,cpu",
+        &["--resume", "--iters", "8"],
+    )));
     ok(run(&train(
         &data,
         &straight,
@@ -230,14 +249,25 @@ fn bad_device_lists_are_refused() {
         ("cuda:0,1", "needs a binary built"),
     ] {
         let out = pma_within(
-            &["train", "--data", d, "--out", o, "--device", device, "--quiet"],
+            &[
+                "train", "--data", d, "--out", o, "--device", device, "--quiet",
+            ],
             60,
         );
         assert_eq!(out.status.code(), Some(2), "{device}");
         fails_with(out, needle);
     }
     fails_with(
-        pma(&["train", "--data", d, "--out", o, "--group-timeout", "5", "--quiet"]),
+        pma(&[
+            "train",
+            "--data",
+            d,
+            "--out",
+            o,
+            "--group-timeout",
+            "5",
+            "--quiet",
+        ]),
         "--group-timeout needs several devices",
     );
     // Two ranks cannot split a pose's rays that number fewer than them.

@@ -57,7 +57,9 @@ fn cast_s(r: &Report, gpu: &Gpu) -> f64 {
     r.stages
         .iter()
         .find(|st| st.name == "cast")
-        .map_or(0.0, |st| estimate(st.costs.iter(), &st.counts, gpu, false).est_s)
+        .map_or(0.0, |st| {
+            estimate(st.costs.iter(), &st.counts, gpu, false).est_s
+        })
 }
 
 /// The estimated scaling rows for each count of `gpus` (each must divide the step's rays

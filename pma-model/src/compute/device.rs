@@ -35,9 +35,7 @@ impl pma_data::ExitKind for DeviceError {
         match self {
             DeviceError::Unknown(_)
             | DeviceError::Repeated { .. }
-            | DeviceError::NotCompiled { .. } => {
-                pma_data::ErrorKind::Refused
-            }
+            | DeviceError::NotCompiled { .. } => pma_data::ErrorKind::Refused,
             // A device that exists in the build but cannot be opened (no GPU, a driver error).
             DeviceError::Open { .. } => pma_data::ErrorKind::Failure,
         }

@@ -290,9 +290,19 @@ impl Prepared {
 
     /// A trainer on `device`: resumed from the resume point, or fresh (the writer then
     /// writes the run's configuration: the trainer sets the frame-code count from the data).
-    pub(crate) fn trainer(&self, req: &TrainRequest, device: &Device) -> Result<Trainer, TrainError> {
+    pub(crate) fn trainer(
+        &self,
+        req: &TrainRequest,
+        device: &Device,
+    ) -> Result<Trainer, TrainError> {
         if let Some(point) = &self.point {
-            return Trainer::resume_at(&req.out, point, self.run.clone(), self.data.clone(), device);
+            return Trainer::resume_at(
+                &req.out,
+                point,
+                self.run.clone(),
+                self.data.clone(),
+                device,
+            );
         }
         let t = Trainer::new(self.run.clone(), self.data.clone(), device)?;
         if self.role == Role::Writer {

@@ -89,7 +89,13 @@ fn ranks_train_as_one_device_on_the_union_batch() {
         for deterministic in [true, false] {
             let tag = format!("{size}-{deterministic}");
             let one = dir.path().join(format!("one-{tag}"));
-            trained(&train_run(&request(&data_path, one.clone(), rays / size, deterministic), &mut Silent).unwrap());
+            trained(
+                &train_run(
+                    &request(&data_path, one.clone(), rays / size, deterministic),
+                    &mut Silent,
+                )
+                .unwrap(),
+            );
             let group = dir.path().join(format!("group-{tag}"));
             let req = request(&data_path, group.clone(), 0, deterministic);
             trained(&train_group(&req, &devices, &opts, &mut Silent).unwrap());
@@ -231,5 +237,8 @@ fn launched_ranks_meet_at_the_rendezvous_and_train_as_the_group() {
     }
     let (d, at) = max_diff(&params(&group), &params(&launched));
     assert_eq!(d, 0.0, "{at} differs by {d:e}");
-    assert!(!rendezvous.exists(), "rank 0 leaves no rendezvous file behind");
+    assert!(
+        !rendezvous.exists(),
+        "rank 0 leaves no rendezvous file behind"
+    );
 }

@@ -57,7 +57,9 @@ pub fn run(args: &Args, dev: &Device) -> anyhow::Result<()> {
         };
     }
     if !args.gpus.is_empty() && args.gpus.first() != Some(&1) {
-        refuse!("--gpus: the first count must be 1 (the one-GPU step the others are compared with)");
+        refuse!(
+            "--gpus: the first count must be 1 (the one-GPU step the others are compared with)"
+        );
     }
     let device_memory = match args.device_memory_gb {
         None => None,

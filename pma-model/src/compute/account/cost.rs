@@ -220,8 +220,7 @@ impl Topology {
         let reduce = c.all_reduces as f64
             * (COLLECTIVE_BASE_S + steps(2.0 * (n - 1.0), 2.0 * (nodes - 1.0)))
             + 2.0 * (n - 1.0) / n * c.all_reduce_bytes as f64 / slowest;
-        let gather = c.all_gathers as f64
-            * (COLLECTIVE_BASE_S + steps(n - 1.0, nodes - 1.0))
+        let gather = c.all_gathers as f64 * (COLLECTIVE_BASE_S + steps(n - 1.0, nodes - 1.0))
             + (n - 1.0) * c.all_gather_bytes as f64 / slowest;
         reduce + gather
     }

@@ -67,10 +67,7 @@ pub fn group(size: usize, timeout: Duration) -> Vec<CpuComm> {
 
 impl CpuComm {
     fn lock(&self) -> MutexGuard<'_, State> {
-        self.shared
-            .state
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
+        self.shared.state.lock().unwrap_or_else(|e| e.into_inner())
     }
 
     /// Mark the group broken by `e` (the first failure wins) and wake every waiting rank.
@@ -112,7 +109,11 @@ impl Communicator for CpuComm {
         state.bufs[self.rank] = Some(buf);
         let round = state.round;
         if state.bufs.iter().all(Option::is_some) {
-            let bufs: Vec<HostBuf> = state.bufs.iter_mut().map(|b| b.take().expect("all in")).collect();
+            let bufs: Vec<HostBuf> = state
+                .bufs
+                .iter_mut()
+                .map(|b| b.take().expect("all in"))
+                .collect();
             let result = combine(kind, bufs);
             if let Err(e) = &result {
                 self.fail(&mut state, e.clone());
@@ -155,7 +156,10 @@ impl Communicator for CpuComm {
         }
         // The next round cannot complete before this rank arrives again, so the result is
         // still this round's.
-        state.result.clone().expect("a completed round has a result")
+        state
+            .result
+            .clone()
+            .expect("a completed round has a result")
     }
 
     fn health(&self) -> Result<(), GroupError> {
@@ -185,9 +189,9 @@ impl Drop for CpuComm {
 /// The result of a round: the sum in ring order, or the buffers in rank order.
 fn combine(kind: Kind, bufs: Vec<HostBuf>) -> Result<HostBuf, GroupError> {
     let n = bufs[0].len();
-    let same = bufs.iter().all(|b| {
-        b.len() == n && std::mem::discriminant(b) == std::mem::discriminant(&bufs[0])
-    });
+    let same = bufs
+        .iter()
+        .all(|b| b.len() == n && std::mem::discriminant(b) == std::mem::discriminant(&bufs[0]));
     if !same {
         let lens: Vec<usize> = bufs.iter().map(HostBuf::len).collect();
         return Err(GroupError::Disagree(format!(
@@ -249,10 +253,7 @@ fn ring_sum<T: Copy + std::ops::Add<Output = T>>(
 mod tests {
     use super::*;
 
-    fn run<T: Send>(
-        comms: Vec<CpuComm>,
-        f: impl Fn(&CpuComm) -> T + Sync,
-    ) -> Vec<T> {
+    fn run<T: Send>(comms: Vec<CpuComm>, f: impl Fn(&CpuComm) -> T + Sync) -> Vec<T> {
         std::thread::scope(|s| {
             let handles: Vec<_> = comms
                 .into_iter()
@@ -304,7 +305,9 @@ mod tests {
         // Rank 2's handle dropped when its thread ended without exchanging.
         for r in &out[..2] {
             match r {
-                Err(GroupError::Left { rank: 2, size: 3, .. }) => {}
+                Err(GroupError::Left {
+                    rank: 2, size: 3, ..
+                }) => {}
                 other => panic!("{other:?}"),
             }
         }
@@ -312,9 +315,18 @@ mod tests {
         let start = Instant::now();
         let mut comms = group(2, Duration::from_millis(200));
         let silent = comms.pop().unwrap();
-        let e = comms[0].host(Kind::Sum, HostBuf::F32(vec![1.0])).unwrap_err();
+        let e = comms[0]
+            .host(Kind::Sum, HostBuf::F32(vec![1.0]))
+            .unwrap_err();
         assert!(
-            matches!(e, GroupError::Timeout { rank: 0, size: 2, .. }),
+            matches!(
+                e,
+                GroupError::Timeout {
+                    rank: 0,
+                    size: 2,
+                    ..
+                }
+            ),
             "{e}"
         );
         assert!(start.elapsed() < Duration::from_secs(5));

@@ -108,7 +108,13 @@ impl Launch {
         };
         let safe: String = job
             .chars()
-            .map(|c| if c.is_ascii_alphanumeric() || c == '-' || c == '.' { c } else { '_' })
+            .map(|c| {
+                if c.is_ascii_alphanumeric() || c == '-' || c == '.' {
+                    c
+                } else {
+                    '_'
+                }
+            })
             .collect();
         Ok(out.join(format!(".rendezvous-{safe}")))
     }
@@ -176,7 +182,10 @@ fn parse(path: &Path, text: &str) -> Result<Posted, TrainError> {
         .strip_prefix("size ")
         .and_then(|s| s.parse().ok())
         .ok_or_else(bad)?;
-    let hex = lines.next().and_then(|l| l.strip_prefix("id ")).ok_or_else(bad)?;
+    let hex = lines
+        .next()
+        .and_then(|l| l.strip_prefix("id "))
+        .ok_or_else(bad)?;
     if hex.len() % 2 != 0 {
         return Err(bad());
     }
@@ -211,7 +220,10 @@ mod tests {
             ("MASTER_PORT", "29500"),
         ]))
         .unwrap();
-        assert_eq!((t.rank, t.size, t.local_rank, t.launcher), (3, 16, 3, "torchrun"));
+        assert_eq!(
+            (t.rank, t.size, t.local_rank, t.launcher),
+            (3, 16, 3, "torchrun")
+        );
         assert_eq!(t.job.as_deref(), Some("node1-29500"));
         let s = Launch::from_env(env(&[
             ("SLURM_PROCID", "9"),
@@ -221,7 +233,10 @@ mod tests {
             ("SLURM_STEP_ID", "0"),
         ]))
         .unwrap();
-        assert_eq!((s.rank, s.size, s.local_rank, s.launcher), (9, 16, 1, "Slurm"));
+        assert_eq!(
+            (s.rank, s.size, s.local_rank, s.launcher),
+            (9, 16, 1, "Slurm")
+        );
         let dir = Path::new("/runs/a");
         assert_eq!(
             s.default_rendezvous(dir).unwrap(),
@@ -232,7 +247,10 @@ mod tests {
             ("OMPI_COMM_WORLD_SIZE", "2"),
         ]))
         .unwrap();
-        assert_eq!((m.rank, m.size, m.local_rank, m.launcher), (0, 2, 0, "Open MPI"));
+        assert_eq!(
+            (m.rank, m.size, m.local_rank, m.launcher),
+            (0, 2, 0, "Open MPI")
+        );
         assert!(m.default_rendezvous(dir).is_err(), "no job named");
     }
 

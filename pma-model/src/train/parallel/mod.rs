@@ -37,9 +37,9 @@ pub mod nccl;
 mod run;
 
 pub use comm::{Communicator, GroupError, Kind};
+pub(crate) use run::injected_failure;
 #[cfg(feature = "nccl")]
 pub use run::NcclEngine;
-pub(crate) use run::injected_failure;
 pub use run::{
     cpu_engine, train_group, train_launched, Engine, GroupOptions, DEFAULT_GROUP_TIMEOUT,
 };
@@ -177,7 +177,12 @@ impl GroupStop {
 /// f64 step numbers ([`step_numbers`]: the loss terms, the votes, a flag per tensor).
 /// Summed by the engine's all-reduce, or with `ordered` gathered and summed in rank order.
 /// What an accounted group step counts, and what the scaling estimate prices.
-pub fn step_collectives(size: usize, elems: usize, params: usize, ordered: bool) -> Vec<Collective> {
+pub fn step_collectives(
+    size: usize,
+    elems: usize,
+    params: usize,
+    ordered: bool,
+) -> Vec<Collective> {
     if size < 2 {
         return Vec::new();
     }
@@ -193,11 +198,7 @@ pub fn step_collectives(size: usize, elems: usize, params: usize, ordered: bool)
 
 /// The per-step numbers a group exchanges besides the gradient: the loss terms (f64), the
 /// votes and the has-a-gradient flags, one buffer.
-pub(crate) fn step_numbers(
-    loss: &Tensor,
-    vote: Vote,
-    has: &[bool],
-) -> Result<Tensor, TrainError> {
+pub(crate) fn step_numbers(loss: &Tensor, vote: Vote, has: &[bool]) -> Result<Tensor, TrainError> {
     let mut host: Vec<f64> = vote.counts().to_vec();
     host.extend(has.iter().map(|&h| f64::from(u8::from(h))));
     let n = host.len();

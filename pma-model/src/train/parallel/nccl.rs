@@ -256,12 +256,7 @@ impl Communicator for NcclComm {
         "NCCL"
     }
 
-    fn cuda(
-        &self,
-        kind: Kind,
-        s: &CudaStorage,
-        l: &Layout,
-    ) -> candle_core::Result<CudaStorage> {
+    fn cuda(&self, kind: Kind, s: &CudaStorage, l: &Layout) -> candle_core::Result<CudaStorage> {
         let n = l.shape().elem_count();
         let start = l.start_offset();
         let out = match kind {

@@ -161,7 +161,9 @@ pub(crate) fn injected_failure(rank: usize, iter: u64) -> Result<(), TrainError>
 /// The checks of [`crate::train::train_run`] on a request, before anything is written.
 fn check_request(req: &TrainRequest, size: usize) -> Result<(), TrainError> {
     if size == 0 {
-        return Err(TrainError::Config("a group needs at least one device".into()));
+        return Err(TrainError::Config(
+            "a group needs at least one device".into(),
+        ));
     }
     if let Some(m) = req.minutes {
         let max = crate::train::MAX_MINUTES;
@@ -274,7 +276,9 @@ pub fn train_group(
                     }
                     .into())
                 }),
-                Err(e) => Err(GroupError::Engine(format!("cannot start rank {}: {e}", i + 1)).into()),
+                Err(e) => {
+                    Err(GroupError::Engine(format!("cannot start rank {}: {e}", i + 1)).into())
+                }
             });
         }
         results
@@ -347,7 +351,16 @@ pub fn train_launched(
         },
     )?;
     let _posted = RemoveOnDrop(rendezvous.to_path_buf());
-    rank_run(0, size, &req.device, engine, &id, req, &mut prepared, observer)
+    rank_run(
+        0,
+        size,
+        &req.device,
+        engine,
+        &id,
+        req,
+        &mut prepared,
+        observer,
+    )
 }
 
 /// Removes the rendezvous file when rank 0's run ends (every rank has read it by then: the
@@ -364,6 +377,9 @@ impl Drop for RemoveOnDrop {
 /// [`train_launched`]).
 pub fn cpu_engine(size: usize, opts: &GroupOptions) -> impl Engine {
     CpuEngine(std::sync::Mutex::new(
-        cpu::group(size, opts.timeout).into_iter().map(Some).collect(),
+        cpu::group(size, opts.timeout)
+            .into_iter()
+            .map(Some)
+            .collect(),
     ))
 }

@@ -26,8 +26,8 @@ mod chunks;
 mod optimization;
 
 pub use chunks::{chunk_rays, AUTO_CHUNK_POINT_JOINTS};
-pub use optimization::{LossParts, Optimization, SkipReason, StepLoss, StepStats};
 pub(crate) use optimization::LOSS_TERMS;
+pub use optimization::{LossParts, Optimization, SkipReason, StepLoss, StepStats};
 
 use std::path::Path;
 use std::sync::Arc;
