@@ -92,9 +92,12 @@ pub struct AccountReport {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub left_out: Option<LeftOutAccount>,
     pub official: Option<Official>,
-    /// Estimated data-parallel steps (`--gpus`): every figure an estimate.
+    /// Estimated data-parallel steps (`--gpus`), the step's batch split over the GPUs, then
+    /// a batch per GPU: every figure an estimate.
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub scaling: Vec<ScalingRow>,
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub scaling_batch_per_gpu: Vec<ScalingRow>,
     pub cost_model: CostModel,
 }
 
@@ -189,7 +192,7 @@ pub fn account(
         trainer.read_back()?;
     }
     let before = trainer.pass_totals();
-    let mut scaling_rows = Vec::new();
+    let (mut scaling_rows, mut per_gpu_rows) = (Vec::new(), Vec::new());
     let (step, chunks, wall_s, extrapolated_from, read_back) = match req.extrapolate_from {
         None => {
             let a = account_step(&mut trainer, &mut source, req.route)?;
@@ -210,14 +213,20 @@ pub fn account(
                     params: trainable.len(),
                     elems: trainable.iter().map(|(_, v)| v.elem_count()).sum(),
                 };
-                scaling_rows = scaling::scaling(
-                    &e,
-                    model,
-                    &req.gpus,
-                    &GPUS[0],
-                    &account::NVLINK4,
-                    &account::INFINIBAND_NDR,
-                )?;
+                for (batch, rows) in [
+                    (scaling::Batch::Split, &mut scaling_rows),
+                    (scaling::Batch::PerRank, &mut per_gpu_rows),
+                ] {
+                    *rows = scaling::scaling(
+                        &e,
+                        model,
+                        &req.gpus,
+                        batch,
+                        &GPUS[0],
+                        &account::NVLINK4,
+                        &account::INFINIBAND_NDR,
+                    )?;
+                }
             }
             (e.report, 1, e.wall_s, Some(e.from), e.read_back)
         }
@@ -284,6 +293,7 @@ pub fn account(
             recorded: r,
         }),
         scaling: scaling_rows,
+        scaling_batch_per_gpu: per_gpu_rows,
         cost_model: CostModel {
             formula: "estimate: per op max(bytes / bandwidth, FLOPs / peak) + launches x launch \
                       overhead; per upload (explicit or dims/strides) one launch overhead; per \

@@ -27,6 +27,8 @@ pub struct ScalingRow {
     pub gpu: &'static str,
     pub intra: &'static str,
     pub inter: &'static str,
+    /// Rays of a step of the whole group, and of each rank's share.
+    pub global_rays: usize,
     pub rays_per_rank: usize,
     /// Per rank and step: the collectives and the bytes each rank contributes.
     pub all_reduces: u64,
@@ -39,7 +41,8 @@ pub struct ScalingRow {
     /// The collectives over the links.
     pub est_link_s: f64,
     pub est_step_s: f64,
-    /// One GPU's estimated step time over this group's.
+    /// The group's rays per second over one GPU's (for the same global batch: one GPU's step
+    /// time over the group's).
     pub est_speedup: f64,
     /// `est_speedup / gpus`.
     pub est_efficiency: f64,
@@ -62,13 +65,23 @@ fn cast_s(r: &Report, gpu: &Gpu) -> f64 {
         })
 }
 
-/// The estimated scaling rows for each count of `gpus` (each must divide the step's rays
-/// into multiples of the rays accounted), on `gpu` with `intra` within a node and `inter`
-/// between nodes of [`GPUS_PER_NODE`].
+/// How a group's batch relates to one GPU's.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+pub enum Batch {
+    /// The same global batch split over the ranks: the run one GPU trains (strong scaling).
+    Split,
+    /// Each rank a whole batch: a global batch N times larger, another run (weak scaling).
+    PerRank,
+}
+
+/// The estimated scaling rows for each count of `gpus` (with [`Batch::Split`] each must
+/// divide the step's rays into multiples of the rays accounted), on `gpu` with `intra`
+/// within a node and `inter` between nodes of [`GPUS_PER_NODE`]. The first count must be 1.
 pub fn scaling(
     e: &Extrapolated,
     model: Model,
     gpus: &[usize],
+    batch: Batch,
     gpu: &Gpu,
     intra: &'static Link,
     inter: &'static Link,
@@ -77,13 +90,16 @@ pub fn scaling(
     let mut rows: Vec<ScalingRow> = Vec::with_capacity(gpus.len());
     let mut one = None;
     for &n in gpus {
-        if n == 0 || e.rays % n != 0 {
+        if n == 0 || (batch == Batch::Split && e.rays % n != 0) {
             return Err(TrainError::Config(format!(
                 "{n} GPUs cannot split a step of {} rays evenly",
                 e.rays
             )));
         }
-        let rays = e.rays / n;
+        let (rays, global) = match batch {
+            Batch::Split => (e.rays / n, e.rays),
+            Batch::PerRank => (e.rays, e.rays * n),
+        };
         let rank = e.at(rays)?;
         let topo = Topology::of(n, GPUS_PER_NODE, intra, inter);
         let mut coll = Counts::default();
@@ -96,13 +112,14 @@ pub fn scaling(
         let link = topo.collective_s(&coll);
         let step = compute + link;
         let base = *one.get_or_insert(if n == 1 { step } else { f64::NAN });
-        let speedup = base / step;
+        let speedup = (global as f64 / step) / (e.rays as f64 / base);
         rows.push(ScalingRow {
             gpus: n,
             nodes: topo.nodes,
             gpu: gpu.name,
             intra: intra.name,
             inter: inter.name,
+            global_rays: global,
             rays_per_rank: rays,
             all_reduces: coll.all_reduces,
             all_reduce_bytes: coll.all_reduce_bytes,

@@ -285,7 +285,7 @@ fn print_tables(f: &AccountReport) {
     );
 }
 
-/// The estimated data-parallel table (`--gpus`).
+/// The estimated data-parallel tables (`--gpus`).
 fn print_scaling(f: &AccountReport) {
     let Some(first) = f.scaling.first() else {
         return;
@@ -295,34 +295,48 @@ fn print_scaling(f: &AccountReport) {
          nodes; FP32 matmuls): nothing here is measured",
         first.gpu, first.intra, first.inter
     );
-    println!(
-        "{:>5} {:>5} {:>10} {:>12} {:>15} {:>9} {:>14} {:>11} {:>12} {:>11} {:>11}",
-        "GPUs",
-        "nodes",
-        "rays/rank",
-        "all-reduces",
-        "MB/rank/step",
-        "launches",
-        "est compute ms",
-        "est link ms",
-        "est step ms",
-        "est speedup",
-        "est effic."
-    );
-    for r in &f.scaling {
+    for (title, rows) in [
+        (
+            "the step's batch split over the GPUs (the run one GPU trains)",
+            &f.scaling,
+        ),
+        (
+            "a whole batch per GPU (a global batch N times larger: another run)",
+            &f.scaling_batch_per_gpu,
+        ),
+    ] {
+        println!("{title}:");
         println!(
-            "{:>5} {:>5} {:>10} {:>12} {:>15.2} {:>9} {:>14.2} {:>11.3} {:>12.2} {:>11.2} {:>10.0}%",
-            r.gpus,
-            r.nodes,
-            r.rays_per_rank,
-            r.all_reduces,
-            r.all_reduce_bytes as f64 / 1e6,
-            r.launches,
-            r.est_compute_s * 1e3,
-            r.est_link_s * 1e3,
-            r.est_step_s * 1e3,
-            r.est_speedup,
-            r.est_efficiency * 100.0
+            "{:>5} {:>5} {:>11} {:>10} {:>12} {:>13} {:>9} {:>14} {:>11} {:>12} {:>11} {:>11}",
+            "GPUs",
+            "nodes",
+            "global rays",
+            "rays/rank",
+            "all-reduces",
+            "MB/rank/step",
+            "launches",
+            "est compute ms",
+            "est link ms",
+            "est step ms",
+            "est speedup",
+            "est effic."
         );
+        for r in rows {
+            println!(
+                "{:>5} {:>5} {:>11} {:>10} {:>12} {:>13.2} {:>9} {:>14.2} {:>11.3} {:>12.2} {:>11.2} {:>10.0}%",
+                r.gpus,
+                r.nodes,
+                r.global_rays,
+                r.rays_per_rank,
+                r.all_reduces,
+                r.all_reduce_bytes as f64 / 1e6,
+                r.launches,
+                r.est_compute_s * 1e3,
+                r.est_link_s * 1e3,
+                r.est_step_s * 1e3,
+                r.est_speedup,
+                r.est_efficiency * 100.0
+            );
+        }
     }
 }

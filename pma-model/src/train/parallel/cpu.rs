@@ -333,7 +333,7 @@ mod tests {
         assert_eq!(silent.health(), Err(e));
 
         // A rank that leaves after the last exchange breaks nothing for the others.
-        let out = run(group(2, Duration::from_secs(30)), |c| {
+        let out: Vec<Result<HostBuf, GroupError>> = run(group(2, Duration::from_secs(30)), |c| {
             let sum = c.host(Kind::Sum, HostBuf::F32(vec![1.0]))?;
             if c.rank() == 0 {
                 std::thread::sleep(Duration::from_millis(200));

@@ -179,11 +179,9 @@ fn check_request(req: &TrainRequest, size: usize) -> Result<(), TrainError> {
 
 /// One rank's session: join the group, build the trainer, train.
 fn rank_run(
-    rank: usize,
-    size: usize,
+    (rank, size): (usize, usize),
     device: &Device,
-    engine: &dyn Engine,
-    id: &[u8],
+    (engine, id): (&dyn Engine, &[u8]),
     req: &TrainRequest,
     prepared: &mut Prepared,
     observer: &mut dyn TrainObserver,
@@ -252,16 +250,21 @@ pub fn train_group(
                 std::thread::Builder::new()
                     .name(format!("rank-{rank}"))
                     .spawn_scoped(s, move || {
-                        rank_run(rank, size, device, engine, id, req, &mut mine, &mut Silent)
+                        rank_run(
+                            (rank, size),
+                            device,
+                            (engine, id),
+                            req,
+                            &mut mine,
+                            &mut Silent,
+                        )
                     })
             })
             .collect();
         let mut results = vec![rank_run(
-            0,
-            size,
+            (0, size),
             &devices[0],
-            engine.as_ref(),
-            &id,
+            (engine.as_ref(), &id),
             req,
             &mut prepared,
             observer,
@@ -318,11 +321,9 @@ pub fn train_launched(
         };
         let mut prepared = prepare(req, &mut Silent, Role::Follower)?;
         return rank_run(
-            rank,
-            size,
+            (rank, size),
             &req.device,
-            engine,
-            &id,
+            (engine, &id),
             req,
             &mut prepared,
             observer,
@@ -352,11 +353,9 @@ pub fn train_launched(
     )?;
     let _posted = RemoveOnDrop(rendezvous.to_path_buf());
     rank_run(
-        0,
-        size,
+        (0, size),
         &req.device,
-        engine,
-        &id,
+        (engine, &id),
         req,
         &mut prepared,
         observer,
