@@ -6,7 +6,7 @@
 //! extrapolation from the same three one-pass steps as the full step), plus the ray casting
 //! of the rest of the batch (every rank casts the whole batch; the difference of the `cast`
 //! stage between the full step and the rank's step is added), then exchanges the flat
-//! gradient and the step's numbers ([`crate::train::parallel::step_collectives`]) as rings
+//! gradient and the step's numbers ([`crate::train::parallel::group::step_collectives`]) as rings
 //! over the topology, after its backward and before its update (no overlap assumed).
 
 use serde::Serialize;
@@ -103,7 +103,9 @@ pub fn scaling(
         let rank = e.at(rays)?;
         let topo = Topology::of(n, GPUS_PER_NODE, intra, inter);
         let mut coll = Counts::default();
-        for c in crate::train::parallel::step_collectives(n, model.elems, model.params, false) {
+        for c in
+            crate::train::parallel::group::step_collectives(n, model.elems, model.params, false)
+        {
             coll.add_collective(c);
         }
         let compute = rank.estimate(gpu, false).est_s

@@ -58,7 +58,7 @@ pub enum TrainError {
 
     /// A data-parallel group cannot go on (a rank left, hangs or disagrees).
     #[error(transparent)]
-    Group(#[from] super::parallel::GroupError),
+    Group(#[from] super::parallel::error::GroupError),
 
     /// One rank of a data-parallel group failed; the others stopped with it.
     #[error("rank {rank} of {size}: {source}")]

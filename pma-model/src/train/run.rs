@@ -31,7 +31,7 @@ use super::checkpoint::{self, ResumePoint};
 use super::error::{write_err, ObserverError, TrainError};
 use super::lock::RunLock;
 use super::log::{LogRow, TrainLog};
-use super::parallel::Vote;
+use super::parallel::group::Vote;
 use super::trainer::{StepStats, Trainer, MODEL_FILE};
 use crate::eval::{evaluate, held_out_images, read_dataset, spread, EvalOptions};
 use crate::train::presets::{Preset, RunConfig};

@@ -14,7 +14,8 @@
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
-use super::comm::{Communicator, GroupError, HostBuf, Kind};
+use super::comm::{Communicator, HostBuf, Kind};
+use super::error::GroupError;
 
 /// One rank's handle of a CPU group (see the module docs).
 pub struct CpuComm {

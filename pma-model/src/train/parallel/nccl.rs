@@ -17,7 +17,8 @@ use candle_core::cuda_backend::cudarc::driver::{CudaEvent, CudaStream, DevicePtr
 use candle_core::cuda_backend::cudarc::nccl::{result, sys};
 use candle_core::{CudaStorage, DType, Device, Layout};
 
-use super::comm::{Communicator, GroupError, Kind};
+use super::comm::{Communicator, Kind};
+use super::error::GroupError;
 
 /// NCCL's unique id of a group: rank 0 makes it, every rank joins with it.
 #[derive(Clone, Copy)]

@@ -20,8 +20,10 @@ use std::time::Duration;
 use candle_core::Device;
 
 use super::comm::Communicator;
+use super::cpu;
+use super::error::GroupError;
+use super::group::Group;
 use super::launch::{self, Launch, Posted};
-use super::{cpu, Group, GroupError};
 use crate::train::lock::RunLock;
 use crate::train::run::{prepare, Prepared, Role};
 use crate::train::{Silent, TrainError, TrainObserver, TrainOutcome, TrainRequest};
@@ -138,24 +140,6 @@ fn engine_for(devices: &[Device], opts: &GroupOptions) -> Result<Box<dyn Engine>
     Err(TrainError::Config(format!(
         "the devices of a group must all be CPUs or all CUDA devices, not {devices:?}"
     )))
-}
-
-/// The fault `PMA_FAULT_RANK_FAILS=R@I` (tests and drills): rank R fails before iteration I,
-/// as a rank whose device or process broke would.
-pub(crate) fn injected_failure(rank: usize, iter: u64) -> Result<(), TrainError> {
-    static FAULT: std::sync::OnceLock<Option<(usize, u64)>> = std::sync::OnceLock::new();
-    let fault = FAULT.get_or_init(|| {
-        let v = std::env::var("PMA_FAULT_RANK_FAILS").ok()?;
-        let (r, i) = v.trim().split_once('@')?;
-        Some((r.parse().ok()?, i.parse().ok()?))
-    });
-    match *fault {
-        Some((r, i)) if r == rank && i == iter => Err(GroupError::Engine(format!(
-            "rank {rank} failed before iteration {iter} (injected by PMA_FAULT_RANK_FAILS={r}@{i})"
-        ))
-        .into()),
-        _ => Ok(()),
-    }
 }
 
 /// The checks of [`crate::train::train_run`] on a request, before anything is written.

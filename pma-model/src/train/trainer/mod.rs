@@ -26,7 +26,6 @@ mod chunks;
 mod optimization;
 
 pub use chunks::{chunk_rays, AUTO_CHUNK_POINT_JOINTS};
-pub(crate) use optimization::LOSS_TERMS;
 pub use optimization::{LossParts, Optimization, SkipReason, StepLoss, StepStats};
 
 use std::path::Path;
@@ -38,7 +37,7 @@ use rand_chacha::ChaCha8Rng;
 
 use super::adam::Adam;
 use super::batch::{BatchSource, TrainBatch};
-use super::parallel::{Group, GroupStop, Vote};
+use super::parallel::group::{injected_failure, Group, GroupStop, Vote};
 use super::source::DatasetSource;
 use super::state::{Progress, RngState, TrainState};
 use super::TrainError;
@@ -357,7 +356,7 @@ impl Trainer {
         hook: Option<GradHook>,
     ) -> Result<(), TrainError> {
         if let Some(g) = &self.group {
-            super::parallel::injected_failure(g.rank(), self.opt.iter + 1)?;
+            injected_failure(g.rank(), self.opt.iter + 1)?;
         }
         let device = self.avatar.device().clone();
         crate::compute::profile::start(&device);

@@ -5,7 +5,8 @@
 use candle_core::{DType, Device, Tensor};
 
 use crate::train::adam::Adam;
-use crate::train::parallel::{Group, GroupError, GroupStop, Vote, VOTE_SLOTS};
+use crate::train::parallel::error::GroupError;
+use crate::train::parallel::group::{step_numbers, Group, GroupStop, Vote, LOSS_TERMS, VOTE_SLOTS};
 use crate::train::presets::TrainConfig;
 use crate::train::state::Progress;
 use crate::train::TrainError;
@@ -97,9 +98,6 @@ impl StepLoss {
     }
 }
 
-/// The loss terms of [`StepLoss::stacked`].
-pub(crate) const LOSS_TERMS: usize = 5;
-
 /// A step whose numbers are still on the device: [total, fine, coarse, scale, mse, norm],
 /// and in a data-parallel group the summed votes and has-a-gradient flags after them.
 struct Pending {
@@ -179,7 +177,7 @@ impl Optimization {
         let mut tail = None;
         if let Some((group, vote)) = group {
             g = group.sum(&g)?;
-            let all = group.sum(&crate::train::parallel::step_numbers(&numbers, vote, &has)?)?;
+            let all = group.sum(&step_numbers(&numbers, vote, &has)?)?;
             numbers = all.narrow(0, 0, LOSS_TERMS)?;
             tail = Some(all.narrow(0, LOSS_TERMS, all.dim(0)? - LOSS_TERMS)?);
         }
