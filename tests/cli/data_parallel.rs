@@ -270,6 +270,29 @@ fn bad_device_lists_are_refused() {
         ]),
         "--group-timeout needs several devices",
     );
+    // --distributed needs a launcher's variables, then a CUDA device for its local rank.
+    let launcher_vars = [
+        "RANK",
+        "WORLD_SIZE",
+        "LOCAL_RANK",
+        "SLURM_PROCID",
+        "SLURM_NTASKS",
+    ];
+    let mut bare = Command::new(env!("CARGO_BIN_EXE_pma"));
+    bare.args(["train", "--data", d, "--out", o, "--distributed", "--quiet"]);
+    for v in launcher_vars {
+        bare.env_remove(v);
+    }
+    let out = bare.output().unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    fails_with(out, "no launcher's rank and size");
+    let mut ranked = Command::new(env!("CARGO_BIN_EXE_pma"));
+    ranked
+        .args(["train", "--data", d, "--out", o, "--distributed", "--quiet"])
+        .envs([("RANK", "1"), ("WORLD_SIZE", "2"), ("LOCAL_RANK", "1")]);
+    let out = ranked.output().unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    fails_with(out, "cuda:1");
     // Two ranks cannot split a pose's rays that number fewer than them.
     let cfg = tmp.path().join("one-ray.toml");
     std::fs::write(
