@@ -1,52 +1,40 @@
 //! `pma demo` end to end on a tiny budget: synthesises the scene, trains, evaluates both
 //! held-out splits and writes summary.json in the shape other tools read.
 
-use std::process::Command;
+use crate::run::{ok, pma, read_json, s};
 
 #[test]
 fn demo_writes_summary_renders_and_plot() {
     let tmp = tempfile::tempdir().unwrap();
     let out_dir = tmp.path().join("demo");
-    let out = Command::new(env!("CARGO_BIN_EXE_pma"))
-        .args([
-            "demo",
-            "--out",
-            out_dir.to_str().unwrap(),
-            "--preset",
-            "tiny",
-            "--iters",
-            "3",
-            "--minutes",
-            "5",
-        ])
-        .args([
-            "--res",
-            "24",
-            "--frames",
-            "2",
-            "--max-eval-images",
-            "2",
-            "--pngs",
-            "1",
-            "--quiet",
-            "--device",
-            "cpu",
-        ])
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "demo failed:\n{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    ok(pma(&[
+        "demo",
+        "--out",
+        s(&out_dir),
+        "--preset",
+        "tiny",
+        "--iters",
+        "3",
+        "--minutes",
+        "5",
+        "--res",
+        "24",
+        "--frames",
+        "2",
+        "--max-eval-images",
+        "2",
+        "--pngs",
+        "1",
+        "--quiet",
+        "--device",
+        "cpu",
+    ]));
 
     // Scene, run, evaluations, renders and plots: one mode rule for all of them.
     #[cfg(unix)]
     crate::run::assert_default_modes(&out_dir);
 
-    let summary: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out_dir.join("summary.json")).unwrap())
-            .unwrap();
+    let summary = read_json(&out_dir.join("summary.json"));
     assert_eq!(summary["iterations"], 3);
     assert!(summary["wall_s"].as_f64().unwrap() > 0.0);
     for key in ["model", "data"] {
