@@ -12,7 +12,7 @@ use std::path::Path;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use crate::run::{fails_with, ok, pma, pma_within, tiny_scene};
+use crate::run::{exits_2_with, kill, ok, pma, pma_within, tiny_scene, wait_for};
 use candle_core::Device;
 use pma_model::network::run_dir::LOCK_FILE;
 
@@ -148,17 +148,9 @@ fn ctrl_c_stops_both_ranks_at_one_step_and_the_run_resumes() {
         .spawn()
         .unwrap();
     // The first log row (iteration 5) means steps finished on both ranks.
-    let deadline = Instant::now() + Duration::from_secs(300);
-    while !out.join("log.csv").exists() {
-        assert!(Instant::now() < deadline, "no log row in 300 s");
-        std::thread::sleep(Duration::from_millis(50));
-    }
+    wait_for("a log row", 300, || out.join("log.csv").exists());
     let sent = Instant::now();
-    let status = Command::new("kill")
-        .args(["-INT", &child.id().to_string()])
-        .status()
-        .unwrap();
-    assert!(status.success());
+    kill(child.id(), "-INT");
     let output = child.wait_with_output().unwrap();
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert_eq!(output.status.code(), Some(130), "{stderr}");
@@ -254,10 +246,9 @@ fn bad_device_lists_are_refused() {
             ],
             60,
         );
-        assert_eq!(out.status.code(), Some(2), "{device}");
-        fails_with(out, needle);
+        exits_2_with(out, needle);
     }
-    fails_with(
+    exits_2_with(
         pma(&[
             "train",
             "--data",
@@ -283,16 +274,12 @@ fn bad_device_lists_are_refused() {
     for v in launcher_vars {
         bare.env_remove(v);
     }
-    let out = bare.output().unwrap();
-    assert_eq!(out.status.code(), Some(2));
-    fails_with(out, "no launcher's rank and size");
+    exits_2_with(bare.output().unwrap(), "no launcher's rank and size");
     let mut ranked = Command::new(env!("CARGO_BIN_EXE_pma"));
     ranked
         .args(["train", "--data", d, "--out", o, "--distributed", "--quiet"])
         .envs([("RANK", "1"), ("WORLD_SIZE", "2"), ("LOCAL_RANK", "1")]);
-    let out = ranked.output().unwrap();
-    assert_eq!(out.status.code(), Some(2));
-    fails_with(out, "cuda:1");
+    exits_2_with(ranked.output().unwrap(), "cuda:1");
     // Two ranks cannot split a pose's rays that number fewer than them.
     let cfg = tmp.path().join("one-ray.toml");
     std::fs::write(
@@ -314,6 +301,5 @@ fn bad_device_lists_are_refused() {
         "1",
         "--quiet",
     ]);
-    assert_eq!(out.status.code(), Some(2));
-    fails_with(out, "cannot be split over 2 devices");
+    exits_2_with(out, "cannot be split over 2 devices");
 }
