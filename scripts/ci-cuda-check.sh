@@ -3,8 +3,10 @@
 # headers come from NVIDIA's wheels (scripts/cuda-toolchain-from-wheels.sh), then
 #
 #   1. pma's own kernels compile with nvcc, warnings as errors (scripts/check-cuda-kernels.sh);
-#   2. clippy type-checks and lints every crate and test with `cuda` on (-D warnings); its
-#      build scripts compile candle's CUDA kernels, so a candle/CUDA mismatch shows here too.
+#   2. clippy type-checks and lints every crate and test with `cuda` and `nccl` on (-D
+#      warnings; cudarc carries NCCL's bindings and nothing is linked, so no NCCL library
+#      or header is needed); its build scripts compile candle's CUDA kernels, so a
+#      candle/CUDA mismatch shows here too.
 #
 # Nothing is linked: a full CUDA build takes far longer than CI's budget on 2 cores
 # (scripts/check-cuda-build.sh does it). Prints the time of each step.
@@ -44,7 +46,8 @@ fi
 echo "== pma's kernels (nvcc --ptx -Werror, compute_$CUDA_COMPUTE_CAP)"
 t scripts/check-cuda-kernels.sh "$CUDA_COMPUTE_CAP"
 
-echo "== clippy --features cuda (every crate and test; candle's kernels compiled by nvcc)"
+echo "== clippy --features cuda,nccl (every crate and test; candle's kernels compiled by nvcc)"
 t cargo clippy --locked --workspace --all-targets \
-  --features pma/cuda,pma-model/cuda,pma-model/train,pma-infer/cuda -- -D warnings
+  --features pma/cuda,pma/nccl,pma-model/cuda,pma-model/nccl,pma-model/train,pma-infer/cuda \
+  -- -D warnings
 echo "== cuda check ok"

@@ -10,11 +10,16 @@
 //! The flag is process-wide because a signal is: a library user that wants to cancel one job
 //! of several runs each in its own process. Once raised it stays raised ([`reset`] is for
 //! front ends that handle the interruption and carry on).
+//!
+//! Work that others wait for must not stop halfway: a rank of a data-parallel group that left
+//! a step would leave its peers waiting for its gradients. While a [`Hold`] lives, [`check`]
+//! passes; the holder polls [`requested`] at points where the whole group can agree to stop.
 
-use std::sync::atomic::{AtomicBool, AtomicI32, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicI32, AtomicUsize, Ordering};
 
 static REQUESTED: AtomicBool = AtomicBool::new(false);
 static SIGNAL: AtomicI32 = AtomicI32::new(0);
+static HOLDS: AtomicUsize = AtomicUsize::new(0);
 
 /// SIGINT's number, the signal [`request`] stands for.
 pub const SIGINT: i32 = 2;
@@ -47,12 +52,29 @@ pub fn reset() {
     SIGNAL.store(0, Ordering::SeqCst);
 }
 
-/// `Err(Interrupted)` once an interruption is requested.
+/// `Err(Interrupted)` once an interruption is requested, unless a [`Hold`] lives.
 pub fn check() -> Result<(), Interrupted> {
-    if requested() {
+    if requested() && HOLDS.load(Ordering::SeqCst) == 0 {
         Err(Interrupted)
     } else {
         Ok(())
+    }
+}
+
+/// While it lives, [`check`] passes in every thread of the process (a request is kept, and
+/// [`requested`] still reports it): see the module's docs.
+#[must_use = "checks pass only while the hold lives"]
+pub struct Hold(());
+
+/// Hold [`check`] until the returned guard drops.
+pub fn hold() -> Hold {
+    HOLDS.fetch_add(1, Ordering::SeqCst);
+    Hold(())
+}
+
+impl Drop for Hold {
+    fn drop(&mut self) {
+        HOLDS.fetch_sub(1, Ordering::SeqCst);
     }
 }
 

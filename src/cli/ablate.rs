@@ -170,7 +170,7 @@ fn run_variant(
         numerics: super::numerics(),
     };
     let title = format!("pma ablate `{v}`: held-out PSNR vs wall-clock time");
-    let outcome = train(&req, args.quiet, &title)?;
+    let outcome = train(&req, &super::train::Ranks::One, args.quiet, &title)?;
     let train_s = (outcome.session_s - outcome.eval_s).max(1e-9);
     let ms_per_step = 1e3 * train_s / outcome.session_iterations.max(1) as f64;
     let log = TrainLog::read(&run_dir.join(LOG_FILE))?;

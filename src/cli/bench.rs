@@ -135,6 +135,12 @@ pub struct Args {
     /// says what the step left out.
     #[arg(long, value_name = "T", requires = "account")]
     pub account_cull: Option<f64>,
+    /// Estimate data-parallel training on these numbers of GPUs (e.g. `1,2,4,8,16`): each
+    /// rank's one-pass step of its share of `--rays` plus the gradient all-reduce over NVLink
+    /// within 8-GPU nodes and InfiniBand between them (datasheet figures). Every figure is
+    /// an estimate. Needs `--extrapolate-from`; the counts must include 1.
+    #[arg(long, value_delimiter = ',', requires = "extrapolate_from")]
+    pub gpus: Vec<usize>,
     /// Counts instead of timings: the share of samples that run the network in the coarse
     /// and the fine pass with ray culling, w^p culling, the occupancy grid and all combined,
     /// on held-out renders and training batches; writes `shares.json`. The model is

@@ -210,6 +210,7 @@ fn train_scene(
     };
     let outcome = train(
         &req,
+        &super::train::Ranks::One,
         args.quiet,
         "pma demo: held-out (novel view) PSNR vs wall-clock time",
     )?;

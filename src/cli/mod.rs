@@ -268,6 +268,19 @@ pub fn device_tf32(spec: &str, tf32: bool) -> anyhow::Result<candle_core::Device
     Ok(dev)
 }
 
+/// [`device_tf32`] for a list of devices (`cpu,cpu`, `cuda:0,1,2,3`): one per rank of a
+/// data-parallel group.
+pub fn devices_tf32(spec: &str, tf32: bool) -> anyhow::Result<Vec<candle_core::Device>> {
+    let devs = pma_model::compute::device::parse_devices(spec)?;
+    let mut numerics = NUMERICS.lock().unwrap_or_else(|e| e.into_inner());
+    for dev in &devs {
+        pma_model::compute::device::check_tf32(tf32, dev)?;
+        pma_model::compute::device::check_bf16_trunk(numerics.bf16_trunk, dev)?;
+    }
+    numerics.tf32 = tf32;
+    Ok(devs)
+}
+
 /// `--device` and `--tf32`, for the commands that compute on a device of the user's choice.
 #[derive(clap::Args, Debug, Clone)]
 pub struct DeviceArgs {

@@ -9,6 +9,10 @@ use std::time::Duration;
 
 use anyhow::Context as _;
 use pma_model::interrupt::Interrupted;
+use pma_model::train::parallel::launch::Launch;
+#[cfg(feature = "nccl")]
+use pma_model::train::parallel::train_launched;
+use pma_model::train::parallel::{train_group, GroupOptions, DEFAULT_GROUP_TIMEOUT};
 use pma_model::train::{
     train_run, ObserverError, Preset, RunConfig, StepReport, TrainLog, TrainObserver, TrainOutcome,
     TrainRequest, CONFIG_FILE, LOG_FILE,
@@ -74,9 +78,25 @@ pub struct Args {
     #[arg(long)]
     pub quiet: bool,
     /// Compute device: cpu, cuda, cuda:N, metal (cuda/metal need a binary built with that
-    /// feature).
+    /// feature). A list trains data-parallel, one rank per device, in this process:
+    /// `cuda:0,1,2,3` (NCCL: a binary built with `--features nccl`) or `cpu,cpu` (CPU ranks
+    /// as threads, the test double of the GPU group; see docs/multi-gpu.md).
     #[arg(long, default_value = "cpu")]
     pub device: String,
+    /// Seconds a rank of a data-parallel group waits for the others at an exchange before
+    /// the run stops with an error (a rank hangs or died).
+    #[arg(long, value_name = "SECONDS")]
+    pub group_timeout: Option<u64>,
+    /// Train as one rank of a group of processes started by a launcher (Slurm's `srun`,
+    /// `mpirun`, `torchrun`), which says the rank, the group's size and the local rank in its
+    /// environment; the process takes GPU `cuda:LOCAL_RANK`. Needs a binary built with
+    /// `--features nccl` (docs/multi-gpu.md).
+    #[arg(long)]
+    pub distributed: bool,
+    /// Where rank 0 of `--distributed` posts the group's NCCL id for the others: a new path
+    /// per job on a filesystem every rank sees (default: `.rendezvous-<job id>` in `--out`).
+    #[arg(long, requires = "distributed", value_name = "FILE")]
+    pub rendezvous: Option<PathBuf>,
     /// TF32 matrix products on CUDA: faster, changes results (see docs/numerics.md, "Low
     /// precision"); refused on other devices.
     #[arg(long)]
@@ -96,7 +116,51 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             refuse!("{flag} {v}: at most {max}");
         }
     }
-    let device = super::device_tf32(&args.device, args.tf32)?;
+    let launch = match args.distributed {
+        true => Some(Launch::from_env(|k| std::env::var(k).ok())?),
+        false => None,
+    };
+    let devices = match &launch {
+        Some(l) => {
+            if args.device != "cpu" {
+                refuse!("--distributed takes GPU cuda:LOCAL_RANK from the launcher; drop --device");
+            }
+            super::devices_tf32(&format!("cuda:{}", l.local_rank), args.tf32)?
+        }
+        None => super::devices_tf32(&args.device, args.tf32)?,
+    };
+    let device = devices[0].clone();
+    if let Some(t) = args.group_timeout {
+        if devices.len() < 2 && launch.is_none() {
+            refuse!(
+                "--group-timeout needs several devices (--device cpu,cpu or cuda:0,1,...) or \
+                 --distributed"
+            );
+        }
+        if !(1..=MAX_GROUP_TIMEOUT_S).contains(&t) {
+            refuse!("--group-timeout {t}: expected 1 to {MAX_GROUP_TIMEOUT_S} seconds");
+        }
+    }
+    let opts = GroupOptions {
+        timeout: args
+            .group_timeout
+            .map_or(DEFAULT_GROUP_TIMEOUT, Duration::from_secs),
+    };
+    let ranks = match launch {
+        Some(launch) => {
+            let rendezvous = match &args.rendezvous {
+                Some(p) => p.clone(),
+                None => launch.default_rendezvous(&args.out)?,
+            };
+            Ranks::Launched {
+                launch,
+                rendezvous,
+                opts,
+            }
+        }
+        None if devices.len() > 1 => Ranks::Threads { devices, opts },
+        None => Ranks::One,
+    };
     let mut run = match (&args.config, &args.preset) {
         (Some(path), _) => Some(RunConfig::from_toml_file(path)?),
         (None, _) if args.resume => None,
@@ -166,6 +230,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     };
     let outcome = train(
         &req,
+        &ranks,
         args.quiet,
         "pma train: held-out PSNR vs wall-clock time",
     )?;
@@ -209,16 +274,48 @@ fn run_dir_paths(
     check.output_dir("--out", out, files)
 }
 
-/// Run `req` with a progress bar (unless `quiet`) and the plot titled `title`. A run
-/// stopped by Ctrl-C is an [`Interrupted`] error (exit status 130) that says where
-/// `--resume` continues.
-pub fn train(req: &TrainRequest, quiet: bool, title: &str) -> anyhow::Result<TrainOutcome> {
+/// Who trains a run: this process on one device, a group of threads (one rank per device),
+/// or this process as one rank of a launched group.
+pub enum Ranks {
+    One,
+    Threads {
+        devices: Vec<candle_core::Device>,
+        opts: GroupOptions,
+    },
+    Launched {
+        launch: Launch,
+        rendezvous: PathBuf,
+        opts: GroupOptions,
+    },
+}
+
+/// The longest `--group-timeout` (a day).
+const MAX_GROUP_TIMEOUT_S: u64 = 86_400;
+
+/// Run `req` on `ranks` with a progress bar (unless `quiet`, or a rank other than 0 of a
+/// launched group) and the plot titled `title`. A run stopped by Ctrl-C is an
+/// [`Interrupted`] error (exit status 130) that says where `--resume` continues.
+pub fn train(
+    req: &TrainRequest,
+    ranks: &Ranks,
+    quiet: bool,
+    title: &str,
+) -> anyhow::Result<TrainOutcome> {
+    let follower = matches!(ranks, Ranks::Launched { launch, .. } if launch.rank != 0);
     let mut view = Terminal {
-        quiet,
+        quiet: quiet || follower,
         title,
         bar: indicatif::ProgressBar::hidden(),
     };
-    let result = train_run(req, &mut view);
+    let result = match ranks {
+        Ranks::One => train_run(req, &mut view),
+        Ranks::Threads { devices, opts } => train_group(req, devices, opts, &mut view),
+        Ranks::Launched {
+            launch,
+            rendezvous,
+            opts,
+        } => launched(req, launch, rendezvous, opts, &mut view),
+    };
     view.bar.finish_and_clear();
     let outcome = result?;
     if outcome.interrupted {
@@ -230,6 +327,36 @@ pub fn train(req: &TrainRequest, quiet: bool, title: &str) -> anyhow::Result<Tra
         )));
     }
     Ok(outcome)
+}
+
+/// One rank of a launched group: NCCL's group.
+#[cfg(feature = "nccl")]
+fn launched(
+    req: &TrainRequest,
+    launch: &Launch,
+    rendezvous: &Path,
+    opts: &GroupOptions,
+    view: &mut Terminal,
+) -> Result<TrainOutcome, pma_model::train::TrainError> {
+    let engine = pma_model::train::parallel::NcclEngine {
+        timeout: opts.timeout,
+    };
+    train_launched(req, launch, rendezvous, &engine, opts, view)
+}
+
+#[cfg(not(feature = "nccl"))]
+fn launched(
+    _: &TrainRequest,
+    _: &Launch,
+    _: &Path,
+    _: &GroupOptions,
+    _: &mut Terminal,
+) -> Result<TrainOutcome, pma_model::train::TrainError> {
+    Err(pma_model::train::TrainError::Config(
+        "--distributed needs a binary built with `--features nccl` (NCCL runs the group's \
+         exchanges)"
+            .into(),
+    ))
 }
 
 /// The training run as the terminal shows it.

@@ -8,6 +8,7 @@ mod ablate;
 mod bench;
 mod check_stability;
 mod convert;
+mod data_parallel;
 mod demo;
 mod devices;
 mod doctor;

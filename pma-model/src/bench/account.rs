@@ -10,6 +10,7 @@ use candle_core::Device;
 use pma_data::dataset::{Dataset, Profile};
 use serde::Serialize;
 
+use super::scaling::{self, ScalingRow};
 use super::{BenchError, BenchObserver, Result};
 use crate::compute::account::{self, GpuEstimate, Recorded, Route, Summary, GPUS};
 use crate::compute::account::{LAUNCH_S, SYNC_S};
@@ -40,6 +41,9 @@ pub struct AccountRequest {
     /// first, unaccounted, and the refresh that ends its warm-up builds the grid, so the
     /// accounted step is a plain step that consults it (no refresh in it).
     pub occupancy: Option<crate::network::occupancy::OccupancyConfig>,
+    /// Estimate data-parallel steps on these numbers of GPUs ([`super::scaling`]); needs
+    /// `extrapolate_from`.
+    pub gpus: Vec<usize>,
 }
 
 /// `account.json`.
@@ -88,6 +92,12 @@ pub struct AccountReport {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub left_out: Option<LeftOutAccount>,
     pub official: Option<Official>,
+    /// Estimated data-parallel steps (`--gpus`), the step's batch split over the GPUs, then
+    /// a batch per GPU: every figure an estimate.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub scaling: Vec<ScalingRow>,
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub scaling_batch_per_gpu: Vec<ScalingRow>,
     pub cost_model: CostModel,
 }
 
@@ -140,6 +150,13 @@ pub fn account(
             ..cfg.clone()
         });
     }
+    if !req.gpus.is_empty() && req.extrapolate_from.is_none() {
+        return Err(BenchError::Setting(
+            "--gpus: the scaling estimate takes one-pass steps by extrapolation (add \
+             --extrapolate-from N and --chunk-rays >= --rays)"
+                .into(),
+        ));
+    }
     let data = account_scene(&req.scene_dir, run.train.images_per_step, obs)?;
     let t = &run.train;
     let (rays, chunk_rays) = (t.rays_per_step, t.chunk_rays);
@@ -175,6 +192,7 @@ pub fn account(
         trainer.read_back()?;
     }
     let before = trainer.pass_totals();
+    let (mut scaling_rows, mut per_gpu_rows) = (Vec::new(), Vec::new());
     let (step, chunks, wall_s, extrapolated_from, read_back) = match req.extrapolate_from {
         None => {
             let a = account_step(&mut trainer, &mut source, req.route)?;
@@ -188,6 +206,27 @@ pub fn account(
                      extrapolated linearly (they were exactly affine)",
                     e.from
                 ));
+            }
+            if !req.gpus.is_empty() {
+                let trainable = trainer.avatar().trainable();
+                let model = scaling::Model {
+                    params: trainable.len(),
+                    elems: trainable.iter().map(|(_, v)| v.elem_count()).sum(),
+                };
+                for (batch, rows) in [
+                    (scaling::Batch::Split, &mut scaling_rows),
+                    (scaling::Batch::PerRank, &mut per_gpu_rows),
+                ] {
+                    *rows = scaling::scaling(
+                        &e,
+                        model,
+                        &req.gpus,
+                        batch,
+                        &GPUS[0],
+                        &account::NVLINK4,
+                        &account::INFINIBAND_NDR,
+                    )?;
+                }
             }
             (e.report, 1, e.wall_s, Some(e.from), e.read_back)
         }
@@ -253,6 +292,8 @@ pub fn account(
             est: r.estimates(),
             recorded: r,
         }),
+        scaling: scaling_rows,
+        scaling_batch_per_gpu: per_gpu_rows,
         cost_model: CostModel {
             formula: "estimate: per op max(bytes / bandwidth, FLOPs / peak) + launches x launch \
                       overhead; per upload (explicit or dims/strides) one launch overhead; per \

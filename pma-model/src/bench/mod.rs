@@ -14,6 +14,7 @@
 pub mod account;
 pub mod measure;
 pub mod options;
+pub mod scaling;
 pub mod shares;
 
 pub use account::{account, AccountReport, AccountRequest};

@@ -11,6 +11,10 @@ pub enum DeviceError {
     #[error("unknown device `{0}`: expected cpu, cuda, cuda:N, metal or metal:N")]
     Unknown(String),
 
+    /// A device list names one GPU twice.
+    #[error("device list `{spec}`: `{name}` appears twice (each rank needs its own GPU)")]
+    Repeated { spec: String, name: String },
+
     /// The binary was built without the backend; say which cargo feature brings it, since
     /// that is the only fix.
     #[error("device `{spec}` needs a binary built with `--features {feature}` (this one was not)")]
@@ -29,9 +33,9 @@ pub enum DeviceError {
 impl pma_data::ExitKind for DeviceError {
     fn kind(&self) -> pma_data::ErrorKind {
         match self {
-            DeviceError::Unknown(_) | DeviceError::NotCompiled { .. } => {
-                pma_data::ErrorKind::Refused
-            }
+            DeviceError::Unknown(_)
+            | DeviceError::Repeated { .. }
+            | DeviceError::NotCompiled { .. } => pma_data::ErrorKind::Refused,
             // A device that exists in the build but cannot be opened (no GPU, a driver error).
             DeviceError::Open { .. } => pma_data::ErrorKind::Failure,
         }
@@ -95,6 +99,35 @@ pub fn parse_device(spec: &str) -> Result<Device, DeviceError> {
         }
         _ => Err(DeviceError::Unknown(spec.to_string())),
     }
+}
+
+/// Parse a list of devices for a data-parallel group: `cpu,cpu`, `cuda:0,1,2,3` (a bare
+/// ordinal after `cuda:N` or `metal:N` is another device of that kind) or any comma-separated
+/// list of [`parse_device`]'s forms. One entry is one device. Refused: an empty entry, or
+/// the same GPU twice (two ranks cannot share one).
+pub fn parse_devices(spec: &str) -> Result<Vec<Device>, DeviceError> {
+    let mut kind: Option<String> = None;
+    let mut names = Vec::new();
+    for part in spec.split(',') {
+        let part = part.trim().to_ascii_lowercase();
+        let name = match (&kind, part.parse::<usize>()) {
+            (Some(k), Ok(n)) => format!("{k}:{n}"),
+            _ if part == "cuda" || part == "metal" => format!("{part}:0"),
+            _ => part.clone(),
+        };
+        if name.is_empty() || part.parse::<usize>().is_ok() && kind.is_none() {
+            return Err(DeviceError::Unknown(spec.to_string()));
+        }
+        kind = name.split_once(':').map(|(k, _)| k.to_string());
+        if name != "cpu" && names.contains(&name) {
+            return Err(DeviceError::Repeated {
+                spec: spec.to_string(),
+                name,
+            });
+        }
+        names.push(name);
+    }
+    names.iter().map(|n| parse_device(n)).collect()
 }
 
 /// Keep freed GPU memory in the stream-ordered pool instead of handing it back to the driver.
@@ -384,6 +417,30 @@ mod tests {
         assert!(bf16_capability("cuda:0", Some((9, 0))).is_ok());
         assert!(bf16_capability("cuda:0", None).is_ok());
         assert!(check_bf16_trunk(true, &Device::Cpu).is_ok());
+    }
+
+    #[test]
+    fn device_lists() {
+        let cpus = parse_devices("cpu, CPU").unwrap();
+        assert_eq!(cpus.len(), 2);
+        assert!(cpus.iter().all(Device::is_cpu));
+        assert_eq!(parse_devices("cpu").unwrap().len(), 1);
+        for bad in ["", "cpu,", ",cpu", "0,1", "cpu,1", "cpu,tpu"] {
+            assert!(
+                matches!(parse_devices(bad), Err(DeviceError::Unknown(_))),
+                "{bad}"
+            );
+        }
+        for twice in ["cuda:0,0", "cuda,cuda:0", "metal:1,metal:1"] {
+            assert!(
+                matches!(parse_devices(twice), Err(DeviceError::Repeated { .. })),
+                "{twice}"
+            );
+        }
+        if !candle_core::utils::cuda_is_available() {
+            let e = parse_devices("cuda:0,1").unwrap_err();
+            assert!(e.to_string().contains("cuda:0"), "{e}");
+        }
     }
 
     #[test]

@@ -75,6 +75,22 @@ pub struct Extrapolated {
     pub read_back: Counts,
     /// Wall time of the three accounted steps on this machine.
     pub wall_s: f64,
+    /// The three accounted steps, for [`Self::at`].
+    pub base: [Report; 3],
+}
+
+impl Extrapolated {
+    /// The one-pass step of `rays` rays (a multiple of `from[0]`) from the same three steps.
+    pub fn at(&self, rays: usize) -> Result<Report, TrainError> {
+        let from = self.from[0];
+        if rays == 0 || rays % from != 0 {
+            return Err(TrainError::Config(format!(
+                "extrapolating to {rays} rays needs a multiple of the {from} rays accounted"
+            )));
+        }
+        let [a, b, c] = &self.base;
+        Ok(Report::extrapolate([a, b, c], (rays / from - 1) as u64)?)
+    }
 }
 
 /// Account the one-pass step of `run` (its `rays_per_step`, which must be a multiple of
@@ -136,7 +152,10 @@ pub fn account_one_pass_extrapolated(
         reports.push(a.report);
         read_back = a.read_back;
     }
-    let [a, b, c] = [&reports[0], &reports[1], &reports[2]];
+    let base: [Report; 3] = reports
+        .try_into()
+        .map_err(|_| TrainError::Config("three accounted steps expected".into()))?;
+    let [a, b, c] = [&base[0], &base[1], &base[2]];
     let report = Report::extrapolate([a, b, c], (rays / from[0] - 1) as u64)?;
     let same = |f: fn(&crate::compute::account::Counts) -> u64| {
         f(&a.total) == f(&b.total) && f(&b.total) == f(&c.total)
@@ -153,5 +172,6 @@ pub fn account_one_pass_extrapolated(
         counts_constant,
         read_back,
         wall_s: start.elapsed().as_secs_f64(),
+        base,
     })
 }

@@ -56,6 +56,19 @@ pub enum TrainError {
         source: Box<TrainError>,
     },
 
+    /// A data-parallel group cannot go on (a rank left, hangs or disagrees).
+    #[error(transparent)]
+    Group(#[from] super::parallel::error::GroupError),
+
+    /// One rank of a data-parallel group failed; the others stopped with it.
+    #[error("rank {rank} of {size}: {source}")]
+    Rank {
+        rank: usize,
+        size: usize,
+        #[source]
+        source: Box<TrainError>,
+    },
+
     /// A [`TrainObserver`]'s own work failed (e.g. the plot it writes at a checkpoint).
     #[error(transparent)]
     Observer(ObserverError),
@@ -92,10 +105,11 @@ impl pma_data::ExitKind for TrainError {
             | TrainError::Resume { .. }
             | TrainError::RunExists(_)
             | TrainError::Locked { .. } => ErrorKind::Refused,
-            TrainError::Diverged { .. } | TrainError::Observer(_) | TrainError::Candle(_) => {
-                ErrorKind::Failure
-            }
-            TrainError::Stopped { source, .. } => source.kind(),
+            TrainError::Diverged { .. }
+            | TrainError::Observer(_)
+            | TrainError::Candle(_)
+            | TrainError::Group(_) => ErrorKind::Failure,
+            TrainError::Stopped { source, .. } | TrainError::Rank { source, .. } => source.kind(),
             TrainError::Model(m) => m.kind(),
             TrainError::Data(d) => d.kind(),
             TrainError::Eval(e) => e.kind(),

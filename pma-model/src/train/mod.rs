@@ -14,6 +14,8 @@
 //!   starting point, the one rule of what a resumed run may change
 //!   ([`RunConfig::check_resume`]).
 //! * [`lock`]: one writer per run directory.
+//! * [`parallel`]: data-parallel training on a group of devices (NCCL on GPUs, threads on
+//!   the CPU as its test double).
 //! * [`run`]: a whole training run (run directory, loop, held-out evaluation schedule,
 //!   checkpoints, interruption), reporting to a [`TrainObserver`].
 //!
@@ -27,6 +29,7 @@ mod error;
 pub mod lock;
 pub mod log;
 pub mod loss;
+pub mod parallel;
 pub mod presets;
 pub mod run;
 pub mod source;

@@ -31,6 +31,7 @@ use super::checkpoint::{self, ResumePoint};
 use super::error::{write_err, ObserverError, TrainError};
 use super::lock::RunLock;
 use super::log::{LogRow, TrainLog};
+use super::parallel::group::Vote;
 use super::trainer::{StepStats, Trainer, MODEL_FILE};
 use crate::eval::{evaluate, held_out_images, read_dataset, spread, EvalOptions};
 use crate::train::presets::{Preset, RunConfig};
@@ -149,7 +150,7 @@ impl Interval {
 }
 
 /// The held-out data a run scores itself on, and the images it scores.
-struct HeldOut {
+pub(crate) struct HeldOut {
     data: Dataset,
     images: Vec<usize>,
     opts: EvalOptions,
@@ -190,13 +191,46 @@ fn start<'a>(
     req: &TrainRequest,
     observer: &'a mut dyn TrainObserver,
 ) -> Result<Session<'a>, TrainError> {
+    let mut prepared = prepare(req, observer, Role::Writer)?;
+    let trainer = prepared.trainer(req, &req.device)?;
+    prepared.session(req, trainer, observer)
+}
+
+/// Who a session is in a data-parallel group: the one writer (rank 0, or a run on one
+/// device), or a rank that trains along and writes nothing.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Role {
+    Writer,
+    Follower,
+}
+
+/// What a session starts from, before its trainer exists.
+pub(crate) struct Prepared {
+    role: Role,
+    point: Option<ResumePoint>,
+    pub(crate) run: RunConfig,
+    pub(crate) data: Arc<Dataset>,
+    held_out: Option<HeldOut>,
+}
+
+/// The resume point, the configuration, the data and the held-out data of `req`. The
+/// writer also clears what an interrupted checkpoint left and refuses to replace a run
+/// (it holds the lock); a follower only reads, after the writer prepared.
+pub(crate) fn prepare(
+    req: &TrainRequest,
+    observer: &mut dyn TrainObserver,
+    role: Role,
+) -> Result<Prepared, TrainError> {
+    let writer = role == Role::Writer;
     let point = if req.resume {
-        let removed = checkpoint::clean_stale(&req.out)?;
-        if !removed.is_empty() {
-            observer.note(&format!(
-                "removed {} temporary file(s) of an interrupted checkpoint",
-                removed.len()
-            ));
+        if writer {
+            let removed = checkpoint::clean_stale(&req.out)?;
+            if !removed.is_empty() {
+                observer.note(&format!(
+                    "removed {} temporary file(s) of an interrupted checkpoint",
+                    removed.len()
+                ));
+            }
         }
         let point = checkpoint::verified_resume_point(&req.out)?;
         for (dir, why) in &point.skipped {
@@ -211,15 +245,15 @@ fn start<'a>(
         None
     };
     let run = resolve_run(req, point.as_ref())?;
-    if !req.resume && checkpoint::holds_run(&req.out) {
+    if writer && !req.resume && checkpoint::holds_run(&req.out) {
         if !req.overwrite {
             return Err(TrainError::RunExists(req.out.clone()));
         }
         checkpoint::remove_all(&req.out)?;
     }
     let data = Arc::new(read_warned(&req.data, Profile::Train, observer)?);
-    let held_out = match &req.eval_data {
-        Some(p) => {
+    let held_out = match (&req.eval_data, role) {
+        (Some(p), Role::Writer) => {
             let data = read_warned(p, Profile::Eval, observer)?;
             let images = spread(&held_out_images(&data), run.train.eval_images.max(1));
             Some(HeldOut {
@@ -228,31 +262,77 @@ fn start<'a>(
                 opts: EvalOptions::quick(run.train.render_chunk),
             })
         }
-        None => None,
+        _ => None,
     };
-    if !req.resume {
+    if writer && !req.resume {
         checkpoint::clean_stale(&req.out)?;
     }
-    let trainer = if let Some(point) = &point {
-        Trainer::resume_at(&req.out, point, run.clone(), data, &req.device)?
-    } else {
-        let t = Trainer::new(run.clone(), data, &req.device)?;
-        // Written after construction: the trainer sets the frame-code count from the data.
-        checkpoint::write_config(t.run_config(), &req.out.join(CONFIG_FILE))?;
-        t
-    };
-    let mut log = match point.as_ref() {
-        Some(ResumePoint { log: Some(p), .. }) => TrainLog::read(p)?,
-        Some(_) => TrainLog::read(&req.out.join(LOG_FILE))?,
-        None => TrainLog::default(),
-    };
-    log.truncate_after(trainer.iteration());
-    let resumed_at = (trainer.iteration(), log.rows.len());
-    let mut session = Session::new(req, run, trainer, log, held_out, observer);
-    if req.resume {
-        session.saved = Some(resumed_at);
+    Ok(Prepared {
+        role,
+        point,
+        run,
+        data,
+        held_out,
+    })
+}
+
+impl Prepared {
+    /// The same preparation for another rank of the group: it writes nothing.
+    pub(crate) fn follower(&self) -> Self {
+        Self {
+            role: Role::Follower,
+            point: self.point.clone(),
+            run: self.run.clone(),
+            data: self.data.clone(),
+            held_out: None,
+        }
     }
-    Ok(session)
+
+    /// A trainer on `device`: resumed from the resume point, or fresh (the writer then
+    /// writes the run's configuration: the trainer sets the frame-code count from the data).
+    pub(crate) fn trainer(
+        &self,
+        req: &TrainRequest,
+        device: &Device,
+    ) -> Result<Trainer, TrainError> {
+        if let Some(point) = &self.point {
+            return Trainer::resume_at(
+                &req.out,
+                point,
+                self.run.clone(),
+                self.data.clone(),
+                device,
+            );
+        }
+        let t = Trainer::new(self.run.clone(), self.data.clone(), device)?;
+        if self.role == Role::Writer {
+            checkpoint::write_config(t.run_config(), &req.out.join(CONFIG_FILE))?;
+        }
+        Ok(t)
+    }
+
+    /// The session of `trainer`, with the log the run has so far.
+    pub(crate) fn session<'a>(
+        &mut self,
+        req: &TrainRequest,
+        trainer: Trainer,
+        observer: &'a mut dyn TrainObserver,
+    ) -> Result<Session<'a>, TrainError> {
+        let mut log = match self.point.as_ref() {
+            Some(ResumePoint { log: Some(p), .. }) => TrainLog::read(p)?,
+            Some(_) => TrainLog::read(&req.out.join(LOG_FILE))?,
+            None => TrainLog::default(),
+        };
+        log.truncate_after(trainer.iteration());
+        let resumed_at = (trainer.iteration(), log.rows.len());
+        let held_out = self.held_out.take();
+        let mut session = Session::new(req, self.run.clone(), trainer, log, held_out, observer);
+        session.writer = self.role == Role::Writer;
+        if req.resume {
+            session.saved = Some(resumed_at);
+        }
+        Ok(session)
+    }
 }
 
 fn read_warned(
@@ -308,7 +388,7 @@ fn resolve_run(req: &TrainRequest, point: Option<&ResumePoint>) -> Result<RunCon
 }
 
 /// One invocation's state while the loop runs.
-struct Session<'a> {
+pub(crate) struct Session<'a> {
     out: PathBuf,
     run: RunConfig,
     trainer: Trainer,
@@ -325,6 +405,9 @@ struct Session<'a> {
     /// (iteration, log rows) of the checkpoint on disk, if this session knows it: a
     /// checkpoint of the same state is not written twice.
     saved: Option<(u64, usize)>,
+    /// This session writes the run directory (log, evaluations, checkpoints); the other
+    /// ranks of a data-parallel group train along and write nothing.
+    writer: bool,
 }
 
 impl<'a> Session<'a> {
@@ -353,10 +436,11 @@ impl<'a> Session<'a> {
             interval: Interval::default(),
             ema: None,
             saved: None,
+            writer: true,
         }
     }
 
-    fn run(&mut self) -> Result<TrainOutcome, TrainError> {
+    pub(crate) fn run(&mut self) -> Result<TrainOutcome, TrainError> {
         let target = self.run.train.iters;
         self.observer.start(self.start_iter, target);
         let mut interrupted = false;
@@ -374,12 +458,35 @@ impl<'a> Session<'a> {
         let mut last_logged = self.trainer.iteration();
         let mut failure = None;
         while !interrupted && self.trainer.iteration() < target {
-            if crate::interrupt::requested() {
-                interrupted = true;
-                break;
-            }
-            if self.budget.is_some_and(|b| self.clock.elapsed() >= b) {
-                break;
+            let spent = self.budget.is_some_and(|b| self.clock.elapsed() >= b);
+            if self.trainer.group().is_some() {
+                // A group stops only where every rank stops: after the step whose numbers
+                // brought a vote to stop, as they all read it back at the same iteration.
+                if let Some(stop) = self.trainer.group_stop() {
+                    if let Some(sig) = stop.signal {
+                        if !crate::interrupt::requested() {
+                            crate::interrupt::request_by(sig);
+                        }
+                        interrupted = true;
+                    }
+                    break;
+                }
+                let signal = match crate::interrupt::requested() {
+                    true => crate::interrupt::signal().max(1),
+                    false => 0,
+                };
+                self.trainer.set_vote(Vote {
+                    signal,
+                    budget: spent,
+                });
+            } else {
+                if crate::interrupt::requested() {
+                    interrupted = true;
+                    break;
+                }
+                if spent {
+                    break;
+                }
             }
             let mut stats = match self.trainer.step() {
                 Ok(s) => s,
@@ -529,6 +636,9 @@ impl<'a> Session<'a> {
 
     /// Log, evaluate and checkpoint as scheduled after step `it`; true if a row was logged.
     fn after_step(&mut self, it: u64) -> Result<bool, TrainError> {
+        if !self.writer {
+            return Ok(false);
+        }
         let cfg = &self.run.train;
         let (log_every, ckpt_every) = (cfg.log_every, cfg.ckpt_every);
         let eval_due = cfg.eval_every > 0 && it % cfg.eval_every == 0;
@@ -568,6 +678,12 @@ impl<'a> Session<'a> {
         interrupted: bool,
     ) -> Result<TrainOutcome, TrainError> {
         let it = self.trainer.iteration();
+        if !self.writer {
+            return match failure {
+                Some(e) => Err(e),
+                None => Ok(self.outcome(interrupted)),
+            };
+        }
         let evaluated_here = self
             .log
             .rows
@@ -598,7 +714,12 @@ impl<'a> Session<'a> {
                 source: Box::new(e),
             });
         }
-        Ok(TrainOutcome {
+        Ok(self.outcome(interrupted))
+    }
+
+    fn outcome(&self, interrupted: bool) -> TrainOutcome {
+        let it = self.trainer.iteration();
+        TrainOutcome {
             iterations: it,
             session_iterations: it - self.start_iter,
             wall_s: self.wall(),
@@ -607,6 +728,6 @@ impl<'a> Session<'a> {
             skipped: self.trainer.progress().skipped,
             interrupted,
             model: self.out.join(MODEL_FILE),
-        })
+        }
     }
 }

@@ -39,6 +39,7 @@ mod stability_render;
 mod stability_train;
 mod train_chunked;
 mod train_culling;
+mod train_data_parallel;
 mod train_nan_skip;
 mod train_parity;
 mod variants;

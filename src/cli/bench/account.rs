@@ -56,6 +56,11 @@ pub fn run(args: &Args, dev: &Device) -> anyhow::Result<()> {
             sample_fill: pma_model::render::SampleFill::Network,
         };
     }
+    if !args.gpus.is_empty() && args.gpus.first() != Some(&1) {
+        refuse!(
+            "--gpus: the first count must be 1 (the one-GPU step the others are compared with)"
+        );
+    }
     let device_memory = match args.device_memory_gb {
         None => None,
         Some(gb) if gb.is_finite() && gb > 0.0 && gb <= 1e6 => Some((gb * 1e9) as usize),
@@ -73,6 +78,7 @@ pub fn run(args: &Args, dev: &Device) -> anyhow::Result<()> {
         occupancy: args
             .occupancy
             .then(pma_model::network::occupancy::OccupancyConfig::default),
+        gpus: args.gpus.clone(),
     };
     let report = pma_model::bench::account(req, dev, &mut Phases::new(args.quiet))?;
     print_tables(&report);
@@ -270,10 +276,67 @@ fn print_tables(f: &AccountReport) {
         let kinds: BTreeMap<&String, &u64> = o.recorded.syncs_by_kind.iter().collect();
         println!("official syncs by kind: {kinds:?}");
     }
+    print_scaling(f);
     println!(
         "estimates: per op max(bytes / memory bandwidth, FLOPs / FP32 peak) + {:.0} us per \
          launch or upload, {:.0} us per sync (assumed); datasheet figures in account.json",
         LAUNCH_S * 1e6,
         SYNC_S * 1e6
     );
+}
+
+/// The estimated data-parallel tables (`--gpus`).
+fn print_scaling(f: &AccountReport) {
+    let Some(first) = f.scaling.first() else {
+        return;
+    };
+    println!(
+        "\ndata-parallel training, ESTIMATED on {} GPUs ({} within a node of 8, {} between \
+         nodes; FP32 matmuls): nothing here is measured",
+        first.gpu, first.intra, first.inter
+    );
+    for (title, rows) in [
+        (
+            "the step's batch split over the GPUs (the run one GPU trains)",
+            &f.scaling,
+        ),
+        (
+            "a whole batch per GPU (a global batch N times larger: another run)",
+            &f.scaling_batch_per_gpu,
+        ),
+    ] {
+        println!("{title}:");
+        println!(
+            "{:>5} {:>5} {:>11} {:>10} {:>12} {:>13} {:>9} {:>14} {:>11} {:>12} {:>11} {:>11}",
+            "GPUs",
+            "nodes",
+            "global rays",
+            "rays/rank",
+            "all-reduces",
+            "MB/rank/step",
+            "launches",
+            "est compute ms",
+            "est link ms",
+            "est step ms",
+            "est speedup",
+            "est effic."
+        );
+        for r in rows {
+            println!(
+                "{:>5} {:>5} {:>11} {:>10} {:>12} {:>13.2} {:>9} {:>14.2} {:>11.3} {:>12.2} {:>11.2} {:>10.0}%",
+                r.gpus,
+                r.nodes,
+                r.global_rays,
+                r.rays_per_rank,
+                r.all_reduces,
+                r.all_reduce_bytes as f64 / 1e6,
+                r.launches,
+                r.est_compute_s * 1e3,
+                r.est_link_s * 1e3,
+                r.est_step_s * 1e3,
+                r.est_speedup,
+                r.est_efficiency * 100.0
+            );
+        }
+    }
 }

@@ -29,7 +29,10 @@ use serde::{Deserialize, Serialize};
 use crate::error::{ModelError, Result};
 
 pub mod cost;
-pub use cost::{estimate, estimates, gpu, Estimate, Gpu, GpuEstimate, GPUS, LAUNCH_S, SYNC_S};
+pub use cost::{
+    estimate, estimates, gpu, Estimate, Gpu, GpuEstimate, Link, Topology, GPUS, INFINIBAND_NDR,
+    LAUNCH_S, NVLINK4, PCIE4, PCIE5, SYNC_S,
+};
 
 /// The backend whose route an accounted run takes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
@@ -83,6 +86,27 @@ pub struct Counts {
     pub bytes_written: u64,
     /// Matmul FLOPs.
     pub flops: u64,
+    /// Collectives among data-parallel ranks ([`record_collective`]): all-reduces and the
+    /// bytes each rank contributes to them (its buffer), all-gathers and theirs. Each also
+    /// counts as one op and one launch; their link time is
+    /// [`cost::Topology::collective_s`]'s.
+    #[serde(default)]
+    pub all_reduces: u64,
+    #[serde(default)]
+    pub all_reduce_bytes: u64,
+    #[serde(default)]
+    pub all_gathers: u64,
+    #[serde(default)]
+    pub all_gather_bytes: u64,
+}
+
+/// A collective among the ranks of a data-parallel group, as [`record_collective`] counts it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Collective {
+    /// Every rank ends with the sum of every rank's buffer of this many bytes.
+    AllReduce { bytes: u64 },
+    /// Every rank ends with every rank's buffer of this many bytes, in rank order.
+    AllGather { bytes: u64 },
 }
 
 impl Counts {
@@ -108,6 +132,20 @@ impl Counts {
         }
     }
 
+    /// Add one collective (its op and launch come as an [`Event::Op`]).
+    pub fn add_collective(&mut self, c: Collective) {
+        match c {
+            Collective::AllReduce { bytes } => {
+                self.all_reduces += 1;
+                self.all_reduce_bytes += bytes;
+            }
+            Collective::AllGather { bytes } => {
+                self.all_gathers += 1;
+                self.all_gather_bytes += bytes;
+            }
+        }
+    }
+
     /// Add another set of counts.
     pub fn merge(&mut self, o: &Counts) {
         self.ops += o.ops;
@@ -120,6 +158,10 @@ impl Counts {
         self.bytes_read += o.bytes_read;
         self.bytes_written += o.bytes_written;
         self.flops += o.flops;
+        self.all_reduces += o.all_reduces;
+        self.all_reduce_bytes += o.all_reduce_bytes;
+        self.all_gathers += o.all_gathers;
+        self.all_gather_bytes += o.all_gather_bytes;
     }
 
     /// Device memory traffic of the ops: bytes read plus bytes written.
@@ -263,6 +305,10 @@ impl Counts {
             bytes_read: f(|c| c.bytes_read)?,
             bytes_written: f(|c| c.bytes_written)?,
             flops: f(|c| c.flops)?,
+            all_reduces: f(|c| c.all_reduces)?,
+            all_reduce_bytes: f(|c| c.all_reduce_bytes)?,
+            all_gathers: f(|c| c.all_gathers)?,
+            all_gather_bytes: f(|c| c.all_gather_bytes)?,
         })
     }
 }
@@ -584,6 +630,22 @@ pub fn modeled_free_memory() -> Option<usize> {
 #[inline]
 pub fn cpu_route(device: &Device) -> bool {
     device.is_cpu() && !emulates_cuda()
+}
+
+/// Count collective `c` in this thread's accounted run (called by the communicators of
+/// `train::parallel` where they exchange a buffer); nothing outside an accounted run.
+pub fn record_collective(c: Collective) {
+    if !hook::on() {
+        return;
+    }
+    CURRENT.with_borrow(|cur| {
+        if let Some((tally, _)) = cur {
+            let thread = std::thread::current().id();
+            let mut t = tally.inner.lock().unwrap_or_else(|e| e.into_inner());
+            t.total.add_collective(c);
+            t.pending.entry(thread).or_default().0.add_collective(c);
+        }
+    });
 }
 
 /// Close stage `name` of this thread's accounted run (called by

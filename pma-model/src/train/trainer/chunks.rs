@@ -154,6 +154,12 @@ impl Trainer {
         }
         let k = r / n_poses;
         let per_pose = (chunk / n_poses).clamp(1, k);
+        // A rank of a data-parallel group takes its slice of each pose's block; its chunks
+        // keep the numbering of the whole batch (the first one carries the box-volume term).
+        let (lo, hi) = match &self.group {
+            Some(g) => g.share(k),
+            None => (0, k),
+        };
         let device = self.avatar.device().clone();
         let avatar = &self.avatar;
         let pose = avatar.pose_features(&batch.poses, None)?;
@@ -183,7 +189,7 @@ impl Trainer {
                 }),
                 ..opts.clone()
             };
-            let len = per_pose.min(k - start);
+            let len = per_pose.min(hi - start);
             let ids = (len < k)
                 .then(|| -> candle_core::Result<_> {
                     let rows: Vec<usize> = (0..n_poses)
@@ -245,7 +251,7 @@ impl Trainer {
         let mut grads: Vec<Option<Tensor>> = vec![None; params.len()];
         let mut stats = PassStats::default();
         let mut seen = Vec::new();
-        let starts: Vec<usize> = (0..k).step_by(per_pose).collect();
+        let starts: Vec<usize> = (lo..hi).step_by(per_pose).collect();
         // One wave of chunks per round of workers; sums are taken in chunk order, so the
         // result is the sequential loop's, bit for bit, whatever the worker count.
         let workers = crate::compute::parallel::workers_on(&device);

@@ -37,6 +37,7 @@ use rand_chacha::ChaCha8Rng;
 
 use super::adam::Adam;
 use super::batch::{BatchSource, TrainBatch};
+use super::parallel::group::{injected_failure, Group, GroupStop, Vote};
 use super::source::DatasetSource;
 use super::state::{Progress, RngState, TrainState};
 use super::TrainError;
@@ -71,6 +72,10 @@ pub struct Trainer {
     refresh_points: u64,
     /// Lines for the user ([`Self::take_notes`]).
     notes: Vec<String>,
+    /// This trainer's data-parallel group, if it is a rank of one ([`Self::join_group`]).
+    group: Option<Group>,
+    /// What this rank says about stopping, sent with its next step.
+    vote: Vote,
 }
 
 /// An error's message and its causes, on one line.
@@ -144,6 +149,8 @@ impl Trainer {
             pass_totals: PassStats::default(),
             refresh_points: 0,
             notes: Vec::new(),
+            group: None,
+            vote: Vote::default(),
         })
     }
 
@@ -293,7 +300,12 @@ impl Trainer {
 
     /// The numbers of every step done since the last read-back, oldest first (one copy).
     pub fn read_back(&mut self) -> Result<Vec<StepStats>, TrainError> {
-        self.opt.read_back()
+        let out = self.opt.read_back();
+        // Numbers exchanged by a group that broke meanwhile mean nothing.
+        if let Some(g) = &self.group {
+            g.health()?;
+        }
+        out
     }
 
     /// Read back and return the last step's numbers.
@@ -343,6 +355,9 @@ impl Trainer {
         batch: &TrainBatch,
         hook: Option<GradHook>,
     ) -> Result<(), TrainError> {
+        if let Some(g) = &self.group {
+            injected_failure(g.rank(), self.opt.iter + 1)?;
+        }
         let device = self.avatar.device().clone();
         crate::compute::profile::start(&device);
         let opts = self.run.train.pass_options(self.opt.iter);
@@ -350,7 +365,9 @@ impl Trainer {
         if let Some(h) = hook {
             h(&mut grads);
         }
-        self.opt.apply(&loss, grads)?;
+        let vote = self.vote;
+        self.opt
+            .apply_in(&loss, grads, self.group.as_ref().map(|g| (g, vote)))?;
         crate::compute::profile::mark("grad norm + Adam", &device);
         self.pass_totals.add(&stats);
         // The densities the step saw are the model's before this update: recent enough for a
@@ -371,7 +388,7 @@ impl Trainer {
         opts: &crate::render::avatar::PassOptions,
     ) -> Result<chunks::Gradients, TrainError> {
         let noise = self.noise_rng.clone();
-        let rays = batch.rays.origins.dim(0)?;
+        let rays = self.rank_rays(batch)?;
         let mut chunk = self.chunk_size(rays).min(rays);
         let first = chunk;
         loop {
@@ -399,6 +416,81 @@ impl Trainer {
             }
             self.noise_rng = noise.clone();
         }
+    }
+
+    /// Make this trainer rank `group.rank()` of a data-parallel group (see
+    /// [`super::parallel`]): from now on each step computes the gradients of the rank's
+    /// slice of the batch and sums them with the others'. Every rank must join before its
+    /// first step, with the same run; the parameters are made rank 0's (one exchange).
+    /// Refused for a run whose steps depend on more than their own rays (an occupancy grid
+    /// fed by the samples, culling that decides which parameters get a gradient) or whose
+    /// batches have fewer rays per image than ranks.
+    pub fn join_group(&mut self, group: Group) -> Result<(), TrainError> {
+        let t = &self.run.train;
+        let refuse = |what: &str| {
+            Err(TrainError::Config(format!(
+                "{what} is not supported with several devices (each rank would see only its \
+                 own rays)"
+            )))
+        };
+        if t.occupancy.is_some() {
+            return refuse("an occupancy grid ([train.occupancy], --occupancy)");
+        }
+        if !t.culling.is_off() {
+            return refuse("culling ([train.culling], --cull-rays/--cull-samples)");
+        }
+        let per_image = t.rays_per_step / t.images_per_step.max(1);
+        if per_image < group.size() {
+            return Err(TrainError::Config(format!(
+                "{per_image} rays per image cannot be split over {} devices (each takes a \
+                 slice of every image's rays)",
+                group.size()
+            )));
+        }
+        let flat: Vec<Tensor> = self
+            .params
+            .iter()
+            .map(|v| v.as_tensor().flatten_all())
+            .collect::<candle_core::Result<_>>()?;
+        if !flat.is_empty() {
+            let first = group.from_first(&Tensor::cat(&flat, 0)?)?;
+            let mut at = 0;
+            for v in &self.params {
+                let n = v.elem_count();
+                v.set(&first.narrow(0, at, n)?.reshape(v.shape())?)?;
+                at += n;
+            }
+        }
+        self.group = Some(group);
+        Ok(())
+    }
+
+    /// This trainer's data-parallel group, if any.
+    pub fn group(&self) -> Option<&Group> {
+        self.group.as_ref()
+    }
+
+    /// What this rank says about stopping; the group hears it with the next step.
+    pub fn set_vote(&mut self, vote: Vote) {
+        self.vote = vote;
+    }
+
+    /// What the group agreed on in the steps read back so far: stop after the last of them.
+    pub fn group_stop(&self) -> Option<GroupStop> {
+        self.opt.group_stop()
+    }
+
+    /// The rays of `batch` this trainer computes: its rank's slice, or all of them.
+    fn rank_rays(&self, batch: &TrainBatch) -> Result<usize, TrainError> {
+        let r = batch.rays.origins.dim(0)?;
+        let poses = batch.poses.bones.len().max(1);
+        Ok(match &self.group {
+            Some(g) => {
+                let (lo, hi) = g.share(r / poses);
+                (hi - lo) * poses
+            }
+            None => r,
+        })
     }
 
     /// Rays per chunk of this run's steps (fixed at the first step; 0 before it).

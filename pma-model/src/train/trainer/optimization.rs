@@ -5,6 +5,8 @@
 use candle_core::{DType, Device, Tensor};
 
 use crate::train::adam::Adam;
+use crate::train::parallel::error::GroupError;
+use crate::train::parallel::group::{step_numbers, Group, GroupStop, Vote, LOSS_TERMS, VOTE_SLOTS};
 use crate::train::presets::TrainConfig;
 use crate::train::state::Progress;
 use crate::train::TrainError;
@@ -96,11 +98,14 @@ impl StepLoss {
     }
 }
 
-/// A step whose numbers are still on the device: [total, fine, coarse, scale, mse, norm].
+/// A step whose numbers are still on the device: [total, fine, coarse, scale, mse, norm],
+/// and in a data-parallel group the summed votes and has-a-gradient flags after them.
 struct Pending {
     iter: u64,
     lrs: Vec<f64>,
     numbers: Tensor,
+    /// The group's size, for a step of a data-parallel group.
+    group: Option<usize>,
 }
 
 /// Clip, skip, Adam and schedule: everything of a step after the gradients exist.
@@ -112,6 +117,8 @@ pub struct Optimization {
     /// Skip counters as of the last read-back.
     pub progress: Progress,
     pending: Vec<Pending>,
+    /// What a data-parallel group agreed on in the steps read back so far.
+    group_stop: Option<GroupStop>,
 }
 
 /// 1 (u8) where `x` is finite: `0·x` is 0 for finite values, NaN for ±inf and NaN.
@@ -127,7 +134,13 @@ impl Optimization {
             iter: 0,
             progress: Progress::default(),
             pending: Vec::new(),
+            group_stop: None,
         }
+    }
+
+    /// Whether the steps read back so far carried a data-parallel group's vote to stop.
+    pub fn group_stop(&self) -> Option<GroupStop> {
+        self.group_stop
     }
 
     /// Rates of the next step, per group.
@@ -145,11 +158,35 @@ impl Optimization {
     /// the update: the update is masked, so nothing reaches the weights or the moments.
     /// Nothing is read back; the step's numbers wait for [`Self::read_back`].
     pub fn apply(&mut self, loss: &StepLoss, grads: Vec<Option<Tensor>>) -> Result<(), TrainError> {
+        self.apply_in(loss, grads, None)
+    }
+
+    /// [`Self::apply`] for a rank of a data-parallel group: the flat gradient and the loss
+    /// terms (with the rank's `vote` and has-a-gradient flags) are summed over the group
+    /// first, so the norm, the skip, the clip and the update are the same on every rank.
+    pub fn apply_in(
+        &mut self,
+        loss: &StepLoss,
+        grads: Vec<Option<Tensor>>,
+        group: Option<(&Group, Vote)>,
+    ) -> Result<(), TrainError> {
         let lrs = self.lrs();
         let iter = self.iter + 1;
-        let (g, has) = self.adam.flatten(&grads)?;
+        let (mut g, has) = self.adam.flatten(&grads)?;
+        let mut numbers = loss.stacked()?;
+        let mut tail = None;
+        if let Some((group, vote)) = group {
+            g = group.sum(&g)?;
+            let all = group.sum(&step_numbers(&numbers, vote, &has)?)?;
+            numbers = all.narrow(0, 0, LOSS_TERMS)?;
+            tail = Some(all.narrow(0, LOSS_TERMS, all.dim(0)? - LOSS_TERMS)?);
+        }
+        let total = match tail {
+            Some(_) => numbers.get(0)?,
+            None => loss.total.clone(),
+        };
         let norm = g.to_dtype(DType::F64)?.sqr()?.sum_all()?.sqrt()?;
-        let ok = (finite(&loss.total)? * finite(&norm)?)?;
+        let ok = (finite(&total)? * finite(&norm)?)?;
         let coef = if self.cfg.grad_clip > 0.0 {
             // torch's clip_grad_norm_: max_norm / (norm + 1e-6), applied below 1.
             let max = Tensor::full(self.cfg.grad_clip, (), norm.device())?;
@@ -164,8 +201,15 @@ impl Optimization {
             None
         };
         self.adam.step_clipped(&g, &has, Some(&ok), coef.as_ref())?;
-        let numbers = Tensor::cat(&[&loss.stacked()?, &norm.unsqueeze(0)?], 0)?;
-        self.pending.push(Pending { iter, lrs, numbers });
+        let mut row = vec![numbers, norm.unsqueeze(0)?];
+        row.extend(tail);
+        let numbers = Tensor::cat(&row, 0)?;
+        self.pending.push(Pending {
+            iter,
+            lrs,
+            numbers,
+            group: group.map(|(g, _)| g.size()),
+        });
         self.iter = iter;
         // The schedule follows the iteration count, skipped or not (the reference sets the
         // rates from global_iter after every step).
@@ -188,9 +232,27 @@ impl Optimization {
             .to_vec2::<f64>()?;
         let mut out = Vec::with_capacity(host.len());
         for (p, v) in std::mem::take(&mut self.pending).into_iter().zip(host) {
-            let [total, fine, coarse, scale, mse, norm] = v[..] else {
+            let [total, fine, coarse, scale, mse, norm] = v[..LOSS_TERMS + 1] else {
                 unreachable!("six numbers per step")
             };
+            if let Some(size) = p.group {
+                let (votes, has) = v[LOSS_TERMS + 1..].split_at(VOTE_SLOTS);
+                // Which parameters have a gradient is decided by the graph, the same on every
+                // rank; a rank that disagrees would apply another update than the others.
+                if let Some(i) = has.iter().position(|&c| c != 0.0 && c != size as f64) {
+                    return Err(GroupError::Disagree(format!(
+                        "at iteration {}, {} of {size} ranks have a gradient for parameter {i}",
+                        p.iter, has[i]
+                    ))
+                    .into());
+                }
+                if let Some(stop) = GroupStop::from_counts(votes) {
+                    self.group_stop = Some(match self.group_stop {
+                        Some(first) => first.or(Some(stop)),
+                        None => stop,
+                    });
+                }
+            }
             let skipped = if !total.is_finite() {
                 Some(SkipReason::NonFiniteLoss)
             } else if !norm.is_finite() {
