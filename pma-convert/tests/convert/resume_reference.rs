@@ -45,6 +45,8 @@ fn golden_batch() -> TrainBatch {
             cyls: t("cyls").narrow(0, 0, 1).unwrap().contiguous().unwrap(),
         },
         target: t("target_s"),
+        pixels: None,
+        weights: None,
     }
 }
 

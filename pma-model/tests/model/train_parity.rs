@@ -67,6 +67,8 @@ fn golden_batch(g: &HashMap<String, Tensor>) -> TrainBatch {
             cyls: t("cyls").narrow(0, 0, 1).unwrap().contiguous().unwrap(),
         },
         target: t("target_s"),
+        pixels: None,
+        weights: None,
     }
 }
 

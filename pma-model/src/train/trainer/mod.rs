@@ -71,6 +71,9 @@ pub struct Trainer {
     refresh_points: u64,
     /// Lines for the user ([`Self::take_notes`]).
     notes: Vec<String>,
+    /// For each step whose per-ray errors are still on the device, oldest first: the image
+    /// and pixel of each of its rays, in the order of its errors (the error map's input).
+    drawn: std::collections::VecDeque<(Vec<usize>, Vec<usize>)>,
 }
 
 /// An error's message and its causes, on one line.
@@ -144,6 +147,7 @@ impl Trainer {
             pass_totals: PassStats::default(),
             refresh_points: 0,
             notes: Vec::new(),
+            drawn: Default::default(),
         })
     }
 
@@ -187,14 +191,18 @@ impl Trainer {
         device: &Device,
     ) -> Result<Box<dyn BatchSource>, TrainError> {
         let t = &run.train;
-        Ok(Box::new(DatasetSource::new(
+        let source = DatasetSource::new(
             data,
             t.rays_per_step,
             t.images_per_step,
             t.perturb_bg,
             t.seed,
             device,
-        )?))
+        )?;
+        Ok(Box::new(match &t.error_map {
+            Some(cfg) => source.with_error_map(cfg.clone())?,
+            None => source,
+        }))
     }
 
     pub fn run_config(&self) -> &RunConfig {
@@ -292,8 +300,22 @@ impl Trainer {
     }
 
     /// The numbers of every step done since the last read-back, oldest first (one copy).
+    /// Per-ray errors among them go to the batch source's error map.
     pub fn read_back(&mut self) -> Result<Vec<StepStats>, TrainError> {
-        self.opt.read_back()
+        let stats = self.opt.read_back()?;
+        for s in stats.iter().filter(|s| !s.ray_errors.is_empty()) {
+            let Some((images, pixels)) = self.drawn.pop_front() else {
+                return Err(TrainError::Config(format!(
+                    "step {}: per-ray errors without the rays they belong to",
+                    s.iter
+                )));
+            };
+            if let Some(map) = self.source.error_map_mut() {
+                map.observe(&images, &pixels, &s.ray_errors)
+                    .map_err(|e| TrainError::Config(format!("error map: {e}")))?;
+            }
+        }
+        Ok(stats)
     }
 
     /// Read back and return the last step's numbers.
@@ -346,11 +368,22 @@ impl Trainer {
         let device = self.avatar.device().clone();
         crate::compute::profile::start(&device);
         let opts = self.run.train.pass_options(self.opt.iter);
-        let (loss, mut grads, stats, seen) = self.gradients_retried(batch, &opts)?;
+        // A source that keeps an error map learns from the per-ray errors of its batches.
+        let errors_wanted = self.source.error_map().is_some() && batch.pixels.is_some();
+        let (loss, mut grads, stats, seen, errors) =
+            self.gradients_retried(batch, &opts, errors_wanted)?;
         if let Some(h) = hook {
             h(&mut grads);
         }
-        self.opt.apply(&loss, grads)?;
+        self.opt
+            .apply(&loss, grads, errors.as_ref().map(|e| &e.errors))?;
+        if let (Some(e), Some(pixels)) = (&errors, &batch.pixels) {
+            let fc = &batch.rays.framecodes;
+            self.drawn.push_back((
+                e.rays.iter().map(|&r| fc[r] as usize).collect(),
+                e.rays.iter().map(|&r| pixels[r] as usize).collect(),
+            ));
+        }
         crate::compute::profile::mark("grad norm + Adam", &device);
         self.pass_totals.add(&stats);
         // The densities the step saw are the model's before this update: recent enough for a
@@ -369,6 +402,7 @@ impl Trainer {
         &mut self,
         batch: &TrainBatch,
         opts: &crate::render::avatar::PassOptions,
+        ray_errors: bool,
     ) -> Result<chunks::Gradients, TrainError> {
         let noise = self.noise_rng.clone();
         let rays = batch.rays.origins.dim(0)?;
@@ -376,7 +410,7 @@ impl Trainer {
         let first = chunk;
         loop {
             let off = crate::compute::kernel::health::switched_off();
-            let e = match self.gradients(batch, chunk, opts) {
+            let e = match self.gradients(batch, chunk, opts, ray_errors) {
                 Ok(g) => {
                     if chunk < first {
                         self.notes.push(format!(
@@ -473,6 +507,11 @@ impl Trainer {
                     .map_err(|e| TrainError::Config(format!("run config: {e}")))?,
             ),
             model_fingerprint: Some(model_fingerprint),
+            error_map: self
+                .source
+                .error_map()
+                .map(|m| Tensor::from_vec(m.values().to_vec(), m.shape().to_vec(), &Device::Cpu))
+                .transpose()?,
         })
     }
 
@@ -491,14 +530,22 @@ impl Trainer {
         }
         self.opt.adam.load_states(state.params, &lrs)?;
         self.opt.iter = state.global_iter;
-        // Rates follow from the iteration; recomputing avoids trusting JSON float parsing.
-        let c = &self.run.train;
-        self.opt
-            .adam
-            .apply_schedule(state.global_iter, c.lr_decay, c.lr_decay_steps, c.lr_floor);
         self.opt.progress = state.progress.unwrap_or_default();
+        // Rates follow from the iteration (and the run's clock); recomputing avoids trusting
+        // JSON float parsing.
+        self.opt.schedule();
         if let Some(r) = &state.rng {
             self.noise_rng = r.restore()?;
+        }
+        match (state.error_map, self.source.error_map_mut()) {
+            (Some(saved), Some(map)) => {
+                let values = saved.flatten_all()?.to_vec1::<f32>()?;
+                map.set_values(values)
+                    .map_err(|e| TrainError::State(vec![format!("sampler.error_map: {e}")]))?;
+            }
+            // A run without a map, or a state without one (a converted reference
+            // checkpoint): the map starts afresh.
+            _ => {}
         }
         self.source
             .restore(state.sampler.as_ref().unwrap_or(&serde_json::Value::Null))

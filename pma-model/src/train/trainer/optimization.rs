@@ -55,6 +55,9 @@ pub struct StepStats {
     pub lrs: Vec<f64>,
     /// `Some` when the update was not applied; the weights and optimizer are unchanged.
     pub skipped: Option<SkipReason>,
+    /// The step's per-ray errors, when it computed them for an error map (in the order the
+    /// step gave them; empty otherwise).
+    pub ray_errors: Vec<f32>,
 }
 
 /// The loss terms of a step on the device, f64 scalars: the differentiated total, the L1
@@ -96,7 +99,8 @@ impl StepLoss {
     }
 }
 
-/// A step whose numbers are still on the device: [total, fine, coarse, scale, mse, norm].
+/// A step whose numbers are still on the device: [total, fine, coarse, scale, mse, norm],
+/// then its per-ray errors if it has them.
 struct Pending {
     iter: u64,
     lrs: Vec<f64>,
@@ -143,8 +147,14 @@ impl Optimization {
     /// Finish iteration `iter + 1` on the device. `grads` is aligned with
     /// `adam.param_names()` (`None` = no gradient). A non-finite loss or gradient norm skips
     /// the update: the update is masked, so nothing reaches the weights or the moments.
-    /// Nothing is read back; the step's numbers wait for [`Self::read_back`].
-    pub fn apply(&mut self, loss: &StepLoss, grads: Vec<Option<Tensor>>) -> Result<(), TrainError> {
+    /// Nothing is read back; the step's numbers (and `ray_errors`, [R] per-ray errors for an
+    /// error map, when given) wait for [`Self::read_back`].
+    pub fn apply(
+        &mut self,
+        loss: &StepLoss,
+        grads: Vec<Option<Tensor>>,
+        ray_errors: Option<&Tensor>,
+    ) -> Result<(), TrainError> {
         let lrs = self.lrs();
         let iter = self.iter + 1;
         let (g, has) = self.adam.flatten(&grads)?;
@@ -164,15 +174,32 @@ impl Optimization {
             None
         };
         self.adam.step_clipped(&g, &has, Some(&ok), coef.as_ref())?;
-        let numbers = Tensor::cat(&[&loss.stacked()?, &norm.unsqueeze(0)?], 0)?;
+        let mut parts = vec![loss.stacked()?, norm.unsqueeze(0)?];
+        if let Some(e) = ray_errors {
+            parts.push(e.to_dtype(DType::F64)?);
+        }
+        let numbers = Tensor::cat(&parts, 0)?;
         self.pending.push(Pending { iter, lrs, numbers });
         self.iter = iter;
-        // The schedule follows the iteration count, skipped or not (the reference sets the
-        // rates from global_iter after every step).
-        let c = &self.cfg;
-        self.adam
-            .apply_schedule(iter, c.lr_decay, c.lr_decay_steps, c.lr_floor);
+        self.schedule();
         Ok(())
+    }
+
+    /// Set the rates of the next step: the reference's decay by the iteration count, skipped
+    /// steps included (it sets the rates from global_iter after every step), or with
+    /// `anneal` the share of the run's span done (iterations, or the wall clock of
+    /// `progress.wall_s`).
+    pub fn schedule(&mut self) {
+        let c = &self.cfg;
+        match &c.anneal {
+            None => self
+                .adam
+                .apply_schedule(self.iter, c.lr_decay, c.lr_decay_steps, c.lr_floor),
+            Some(a) => {
+                let factor = a.factor(self.iter, c.iters, self.progress.wall_s);
+                self.adam.apply_factor(factor, c.lr_floor);
+            }
+        }
     }
 
     /// The numbers of every step since the last read-back (one device-to-host copy), in
@@ -188,9 +215,10 @@ impl Optimization {
             .to_vec2::<f64>()?;
         let mut out = Vec::with_capacity(host.len());
         for (p, v) in std::mem::take(&mut self.pending).into_iter().zip(host) {
-            let [total, fine, coarse, scale, mse, norm] = v[..] else {
+            let [total, fine, coarse, scale, mse, norm] = v[..6] else {
                 unreachable!("six numbers per step")
             };
+            let ray_errors = v[6..].iter().map(|&e| e as f32).collect();
             let skipped = if !total.is_finite() {
                 Some(SkipReason::NonFiniteLoss)
             } else if !norm.is_finite() {
@@ -222,6 +250,7 @@ impl Optimization {
                 clip_coef,
                 lrs: p.lrs,
                 skipped,
+                ray_errors,
             });
             if self.progress.consecutive_skipped >= self.cfg.max_consecutive_skips {
                 return Err(TrainError::Diverged {
@@ -273,7 +302,7 @@ mod tests {
         l: StepLoss,
         g: Vec<Option<Tensor>>,
     ) -> Result<StepStats, TrainError> {
-        opt.apply(&l, g)?;
+        opt.apply(&l, g, None)?;
         Ok(opt.read_back()?.pop().unwrap())
     }
 
@@ -341,7 +370,7 @@ mod tests {
         }
         let (x2, mut deferred) = setup();
         for (l, v) in plan {
-            deferred.apply(&loss(l), g(v)).unwrap();
+            deferred.apply(&loss(l), g(v), None).unwrap();
         }
         assert_eq!(deferred.pending(), 5);
         assert_eq!(
@@ -362,7 +391,7 @@ mod tests {
         // A streak that ends the run is reported when its numbers arrive.
         let (_x, mut opt) = setup();
         for _ in 0..4 {
-            opt.apply(&loss(f64::NAN), g([1.0, 1.0])).unwrap();
+            opt.apply(&loss(f64::NAN), g([1.0, 1.0]), None).unwrap();
         }
         let err = opt.read_back().unwrap_err();
         assert!(
