@@ -133,6 +133,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     plot_curves(
         &curves,
         "pma ablate: held-out (novel view) PSNR vs wall-clock time",
+        "wall-clock time [min]",
         &args.out.join("error_vs_time.png"),
     )?;
     println!("{md}");

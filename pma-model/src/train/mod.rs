@@ -14,6 +14,8 @@
 //!   starting point, the one rule of what a resumed run may change
 //!   ([`RunConfig::check_resume`]).
 //! * [`lock`]: one writer per run directory.
+//! * [`recipe`]: the fast recipe, the options that reach a held-out quality sooner, in one
+//!   switch.
 //! * [`run`]: a whole training run (run directory, loop, held-out evaluation schedule,
 //!   checkpoints, interruption), reporting to a [`TrainObserver`].
 //!
@@ -28,6 +30,7 @@ pub mod lock;
 pub mod log;
 pub mod loss;
 pub mod presets;
+pub mod recipe;
 pub mod run;
 pub mod source;
 pub mod state;

@@ -263,6 +263,11 @@ impl Trainer {
         self.pass_totals
     }
 
+    /// The error map its batch source draws rays from, if it has one.
+    pub fn error_map(&self) -> Option<&pma_data::error_map::ErrorMap> {
+        self.source.error_map()
+    }
+
     /// Network points this trainer spent refreshing its occupancy grid.
     pub fn refresh_points(&self) -> u64 {
         self.refresh_points
