@@ -12,8 +12,8 @@ Sources read:
   * candle-kernels and candle-nn of the version in Cargo.lock, from cargo's registry
     (`cargo fetch` puts them there): every kernel the PTX modules define (macro calls
     expanded), with the `__CUDA_ARCH__` it needs; candle-nn's sigmoid;
-  * pma's own custom ops (every `impl CustomOpN` of pma-model/src with a `cuda_fwd`): pma's
-    kernels, which take whatever their gate lets through (f32 tensors), so any signature, and
+  * pma's own custom ops (every `impl Kernel<N>` of pma-model/src: the adapter in
+    compute/kernel/op.rs gives each one candle's CUDA forward): pma's kernels, which take whatever their gate lets through (f32 tensors), so any signature, and
     launch nothing for an empty grid.
 
 Each row: kind (`candle` or `custom`), op (the name pma's accounting hook gives it), variant,
@@ -473,12 +473,9 @@ def pma_custom_rows(t):
     seen = {}
     for path in sorted(glob.glob(os.path.join(ROOT, "pma-model", "src", "**", "*.rs"), recursive=True)):
         text = read(path)
-        for m in re.finditer(r"impl (?:candle_core::)?CustomOp[123] for (\w+)", text):
+        for m in re.finditer(r"impl Kernel<[123]> for (\w+)", text):
             i, j = block(text, m.start())
             body = text[i:j]
-            cuda = re.search(r"\bfn cuda_fwd\b", body)
-            if not cuda:
-                continue
             n = re.search(r"\bfn name\(&self\)", body)
             if not n:
                 continue

@@ -61,6 +61,32 @@ pub fn random(
     Ok(Tensor::from_vec(v, shape, device)?)
 }
 
+/// The cases `size` asks for: the first alone (a quick check), or all.
+pub fn cases<T>(size: Size, all: &[T]) -> &[T] {
+    match size {
+        Size::Quick => &all[..1.min(all.len())],
+        Size::Full => all,
+    }
+}
+
+/// [`compare`] with the launches' grid capped at `blocks` blocks (0: their own grid), said
+/// in the label: every thread then walks many elements of its grid-stride loop.
+pub fn compare_in(
+    blocks: u32,
+    module: &'static Module,
+    label: &str,
+    inputs: &[Tensor],
+    names: &[&str],
+    up: &Tensor,
+    op: impl Fn(&[Tensor]) -> crate::error::Result<Tensor>,
+) -> crate::error::Result<Vec<Case>> {
+    if blocks == 0 {
+        return compare(module, label, inputs, names, up, op);
+    }
+    let label = format!("{label} in {blocks} blocks");
+    super::launch::with_block_limit(blocks, || compare(module, &label, inputs, names, up, op))
+}
+
 /// `op` on `inputs` (each made a variable) through `module`'s kernels and through the
 /// generic ops: its output and the gradient of every input under `sum(out · up)`, compared
 /// as [`Case`]s named `label out` / `label grad <name>`.

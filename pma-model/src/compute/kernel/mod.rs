@@ -18,6 +18,7 @@
 //! | [`storage`] | a storage's values under a layout; what a forward keeps for its backward |
 //! | [`mem`] | the memory a device kernel reads and writes: a GPU's, or host memory standing in for it |
 //! | [`launch`] | one launch: the grid, NVRTC and its PTX cache on CUDA, the emulated grid on the host |
+//! | [`op`] | an op's forward and backward as candle's custom op, for the CPU and CUDA alike |
 //! | [`health`] | which kernels are on: failures, the first-use check, injected faults, `--generic-kernels` |
 //! | [`check`] | an op's kernels against its generic ops on random inputs (first use, `pma doctor`) |
 
@@ -25,6 +26,7 @@ pub mod check;
 pub mod health;
 pub mod launch;
 pub mod mem;
+pub mod op;
 pub mod storage;
 
 use candle_core::{DType, Tensor};

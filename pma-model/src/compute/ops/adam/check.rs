@@ -3,22 +3,19 @@
 use candle_core::{DType, Device, Tensor};
 
 use super::{update, Update, MODULE};
-use crate::compute::kernel::check::{random, relative_error, Case, Size, TOL};
+use crate::compute::kernel::check::{cases, random, relative_error, Case, Size, TOL};
 use crate::compute::kernel::launch::with_block_limit;
 
 /// Updates of slots of awkward sizes: all with gradients, one without and a clip factor,
 /// the skip flag off; in the full check also a grid of 2 blocks and a million elements.
 pub(super) fn check(device: &Device, size: Size) -> crate::error::Result<Vec<Case>> {
-    let cases: &[(&[usize], u32)] = match size {
-        Size::Quick => &[(&[7, 300, 1], 0)],
-        Size::Full => &[
-            (&[7, 300, 1], 0),
-            (&[1_000_003, 2_049], 0),
-            (&[513, 3, 257, 64], 2),
-        ],
-    };
+    let all: [(&[usize], u32); 3] = [
+        (&[7, 300, 1], 0),
+        (&[1_000_003, 2_049], 0),
+        (&[513, 3, 257, 64], 2),
+    ];
     let mut out = Vec::new();
-    for &(slots, blocks) in cases {
+    for &(slots, blocks) in cases(size, &all) {
         let n: usize = slots.iter().sum();
         let s = slots.len();
         let seed = n as u64;

@@ -3,17 +3,18 @@
 
 use std::sync::Mutex;
 
-use candle_core::{CpuStorage, CustomOp1, DType, Layout, Shape, Tensor};
+use candle_core::{DType, Layout, Shape, Tensor};
 
 use super::{flat_params, Update, MODULE};
 use crate::compute::kernel::launch::launch;
 use crate::compute::kernel::mem::{Arg, Buf, Src};
+use crate::compute::kernel::op::{Kernel, Op};
 use crate::compute::kernel::storage::u32_of;
 use crate::compute::kernel::Exec;
 use crate::error::Result;
 
 /// The update as one launch: new (parameters, first moments, second moments).
-pub(super) fn update(exec: &Exec, u: &Update) -> Result<(Tensor, Tensor, Tensor)> {
+pub(super) fn update(u: &Update) -> Result<(Tensor, Tensor, Tensor)> {
     let dev = u.g.device();
     let has: Vec<u8> = u.has.iter().map(|&h| h as u8).collect();
     let ok = match u.apply {
@@ -35,8 +36,7 @@ pub(super) fn update(exec: &Exec, u: &Update) -> Result<(Tensor, Tensor, Tensor)
             .map(|c| c.to_dtype(DType::F32)?.reshape(1))
             .transpose()?,
     );
-    let op = AdamOp {
-        exec: exec.clone(),
+    let op = Op(AdamOp {
         others,
         scalars: [
             (1.0 - u.b1) as f32,
@@ -45,22 +45,21 @@ pub(super) fn update(exec: &Exec, u: &Update) -> Result<(Tensor, Tensor, Tensor)
             u.eps as f32,
         ],
         moments: Mutex::new(None),
-    };
+    });
     let g = u.g.detach().contiguous()?;
     let p = g.apply_op1_no_bwd(&op)?;
-    let (m, v) = op
-        .moments
-        .into_inner()
-        .unwrap_or_else(|e| e.into_inner())
-        .ok_or_else(|| candle_core::Error::Msg("adam: the kernel did not run".into()))?;
-    let wrap = |b| g.apply_op1_no_bwd(&Wrap(Mutex::new(Some(b))));
+    let (m, v) =
+        op.0.moments
+            .into_inner()
+            .unwrap_or_else(|e| e.into_inner())
+            .ok_or_else(|| candle_core::Error::Msg("adam: the kernel did not run".into()))?;
+    let wrap = |b| g.apply_op1_no_bwd(&Op(Wrap(Mutex::new(Some(b)))));
     Ok((p, wrap(m)?, wrap(v)?))
 }
 
 /// The update as an op on the gradient, the other inputs held (custom ops take at most
 /// three); its output is the parameters, the moments are left in `moments`.
 struct AdamOp {
-    exec: Exec,
     /// p, m, v, slot_of; per slot the step size, 1/sqrt(1 − b2^t) and the has-gradient flag;
     /// the ok flag; the clip factor, if any.
     others: Vec<Tensor>,
@@ -69,8 +68,18 @@ struct AdamOp {
     moments: Mutex<Option<(Buf, Buf)>>,
 }
 
-impl AdamOp {
-    fn run(&self, g: Src, n: usize) -> candle_core::Result<Buf> {
+impl Kernel<1> for AdamOp {
+    fn name(&self) -> &'static str {
+        "pma-adam"
+    }
+
+    fn device(
+        &self,
+        exec: &Exec,
+        [g]: [Src; 1],
+        [lg]: [&Layout; 1],
+    ) -> candle_core::Result<(Buf, Shape)> {
+        let n = lg.shape().elem_count();
         candle_core::account::report_launches(1, 0);
         // g, p, m, v, slot_of, per slot the step size, 1/sqrt(1 − b2^t) and the flag, ok,
         // the clip factor; p, m and v written.
@@ -90,11 +99,7 @@ impl AdamOp {
         let guards: Vec<_> = others.iter().map(|t| t.storage_and_layout()).collect();
         let src = |i: usize| Src::of(&guards[i].0, guards[i].1, "adam");
         let clip = others.len() > 8;
-        let (mut p, mut m, mut v) = (
-            self.exec.output(n)?,
-            self.exec.output(n)?,
-            self.exec.output(n)?,
-        );
+        let (mut p, mut m, mut v) = (exec.output(n)?, exec.output(n)?, exec.output(n)?);
         let [omb1, b2, omb2, eps] = self.scalars;
         let mut args = vec![
             Arg::Src(g),
@@ -116,31 +121,10 @@ impl AdamOp {
             Arg::F32(omb2),
             Arg::F32(eps),
         ]);
-        launch(&self.exec, &MODULE, "pma_adam_f32", n, &mut args)?;
+        launch(exec, &MODULE, "pma_adam_f32", n, &mut args)?;
         drop(args);
         *self.moments.lock().unwrap_or_else(|e| e.into_inner()) = Some((m, v));
-        Ok(p)
-    }
-}
-
-impl CustomOp1 for AdamOp {
-    fn name(&self) -> &'static str {
-        "pma-adam"
-    }
-
-    fn cpu_fwd(&self, g: &CpuStorage, lg: &Layout) -> candle_core::Result<(CpuStorage, Shape)> {
-        let p = self.run(Src::cpu(g, lg, "adam: g")?, lg.shape().elem_count())?;
-        Ok((p.into_cpu()?, lg.shape().clone()))
-    }
-
-    #[cfg(feature = "cuda")]
-    fn cuda_fwd(
-        &self,
-        g: &candle_core::CudaStorage,
-        lg: &Layout,
-    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
-        let p = self.run(Src::cuda(g, lg, "adam: g")?, lg.shape().elem_count())?;
-        Ok((p.into_cuda(g)?, lg.shape().clone()))
+        Ok((p, lg.shape().clone()))
     }
 }
 
@@ -148,30 +132,21 @@ impl CustomOp1 for AdamOp {
 /// launch, nothing moved).
 struct Wrap(Mutex<Option<Buf>>);
 
-impl Wrap {
-    fn take(&self) -> candle_core::Result<Buf> {
-        candle_core::account::report_launches(0, 0);
-        candle_core::account::report_bytes(0, 0);
-        let buf = self.0.lock().unwrap_or_else(|e| e.into_inner()).take();
-        buf.ok_or_else(|| candle_core::Error::Msg("adam: buffer used twice".into()))
-    }
-}
-
-impl CustomOp1 for Wrap {
+impl Kernel<1> for Wrap {
     fn name(&self) -> &'static str {
         "pma-wrap"
     }
 
-    fn cpu_fwd(&self, _: &CpuStorage, l: &Layout) -> candle_core::Result<(CpuStorage, Shape)> {
-        Ok((self.take()?.into_cpu()?, l.shape().clone()))
-    }
-
-    #[cfg(feature = "cuda")]
-    fn cuda_fwd(
+    fn device(
         &self,
-        s: &candle_core::CudaStorage,
-        l: &Layout,
-    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
-        Ok((self.take()?.into_cuda(s)?, l.shape().clone()))
+        _: &Exec,
+        _: [Src; 1],
+        [l]: [&Layout; 1],
+    ) -> candle_core::Result<(Buf, Shape)> {
+        candle_core::account::report_launches(0, 0);
+        candle_core::account::report_bytes(0, 0);
+        let buf = self.0.lock().unwrap_or_else(|e| e.into_inner()).take();
+        let buf = buf.ok_or_else(|| candle_core::Error::Msg("adam: buffer used twice".into()))?;
+        Ok((buf, l.shape().clone()))
     }
 }

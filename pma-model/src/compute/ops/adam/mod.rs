@@ -23,26 +23,10 @@ mod device;
 
 use candle_core::{DType, Tensor};
 
-use crate::compute::kernel::{self, Module, Route};
+use crate::compute::kernel::{self, Route};
 use crate::error::Result;
 
-extern "C" {
-    fn pma_emu_adam(
-        name: *const std::ffi::c_char,
-        blocks: u32,
-        threads: u32,
-        params: *mut *mut std::ffi::c_void,
-    ) -> std::ffi::c_int;
-}
-
-/// `adam.cu`.
-pub static MODULE: Module = Module {
-    name: "adam",
-    file: "compute/ops/adam/adam.cu",
-    source: include_str!("adam.cu"),
-    emulate: pma_emu_adam,
-    check: check::check,
-};
+crate::kernel_module!("adam", "adam.cu", pma_emu_adam, check::check);
 
 /// One update's inputs: N flat elements in S slots.
 pub struct Update<'a> {
@@ -74,9 +58,7 @@ pub struct Update<'a> {
 pub fn update(u: &Update) -> Result<(Tensor, Tensor, Tensor)> {
     match kernel::route(true, &MODULE, &[u.g]) {
         Route::Cpu => kernel::or_generic(&MODULE, || cpu::update(u), || generic(u)),
-        Route::Device(exec) => {
-            kernel::or_generic(&MODULE, || device::update(&exec, u), || generic(u))
-        }
+        Route::Device(_) => kernel::or_generic(&MODULE, || device::update(u), || generic(u)),
         Route::Generic => generic(u),
     }
 }

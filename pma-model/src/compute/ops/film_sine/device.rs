@@ -3,12 +3,13 @@
 
 use std::sync::Mutex;
 
-use candle_core::{CpuStorage, CustomOp1, CustomOp3, Layout, Shape, Tensor};
+use candle_core::{Layout, Shape, Tensor};
 
 use super::cpu::Layer;
 use super::MODULE;
 use crate::compute::kernel::launch::launch;
 use crate::compute::kernel::mem::{Arg, Buf, Src};
+use crate::compute::kernel::op::{Kernel, Op};
 use crate::compute::kernel::storage::u32_of;
 use crate::compute::kernel::Exec;
 
@@ -62,20 +63,18 @@ pub(super) fn forward(exec: &Exec, pre: Src, o: Src, d: Dims) -> candle_core::Re
 /// layer's blocks written: `head`, or (the layer starts it) a zeroed [N,2KF] buffer whose
 /// bytes are held live in an accounted run.
 pub(super) fn backward(
-    exec: &Exec,
     layer: &Layer,
     grad: &Tensor,
     pre: &Tensor,
     o: &Tensor,
     head: Option<(Buf, candle_core::account::Held)>,
 ) -> candle_core::Result<(Tensor, (Buf, candle_core::account::Held))> {
-    let op = FilmGrad {
-        exec: exec.clone(),
+    let op = Op(FilmGrad {
         layer: *layer,
         head: Mutex::new(head),
-    };
+    });
     let g_pre = grad.apply_op3_no_bwd(pre, o, &op)?;
-    let head = op.head.into_inner().unwrap_or_else(|e| e.into_inner());
+    let head = op.0.head.into_inner().unwrap_or_else(|e| e.into_inner());
     let head = head.ok_or_else(|| candle_core::Error::Msg("film sine: no head gradient".into()))?;
     Ok((g_pre, head))
 }
@@ -87,22 +86,30 @@ pub(super) fn hand_over(
     head: (Buf, candle_core::account::Held),
     shape: &Shape,
 ) -> candle_core::Result<Tensor> {
-    like.apply_op1_no_bwd(&HeadOut {
+    like.apply_op1_no_bwd(&Op(HeadOut {
         buf: Mutex::new(Some(head)),
         shape: shape.clone(),
-    })
+    }))
 }
 
 /// A layer's backward on (grad, pre, o): `film_sine.cu`'s gradient kernel, writing the
 /// gradient of pre and the layer's blocks of `head` (zeroed first when `None`).
 struct FilmGrad {
-    exec: Exec,
     layer: Layer,
     head: Mutex<Option<(Buf, candle_core::account::Held)>>,
 }
 
-impl FilmGrad {
-    fn run(&self, [grad, pre, o]: [Src; 3], l: [&Layout; 3]) -> candle_core::Result<(Buf, Shape)> {
+impl Kernel<3> for FilmGrad {
+    fn name(&self) -> &'static str {
+        "pma-film-sine-grad"
+    }
+
+    fn device(
+        &self,
+        exec: &Exec,
+        [grad, pre, o]: [Src; 3],
+        l: [&Layout; 3],
+    ) -> candle_core::Result<(Buf, Shape)> {
         let (n, f) = l[1].shape().dims2()?;
         let w = 2 * self.layer.n_layers * f;
         if l[0].shape().dims2()? != (n, f) || l[2].shape().dims2()? != (n, w) {
@@ -117,13 +124,13 @@ impl FilmGrad {
         candle_core::account::report_launches(if starts { 2 } else { 1 }, 0);
         candle_core::account::report_bytes(4 * nf, 3 * nf + memset);
         if starts {
-            let buf = self.exec.zeros(n * w)?;
-            let held = candle_core::account::hold(self.exec.is_host(), buf.bytes());
+            let buf = exec.zeros(n * w)?;
+            let held = candle_core::account::hold(exec.is_host(), buf.bytes());
             *head = Some((buf, held));
         }
         let (g_o, _) = head.as_mut().expect("made above");
-        let mut g_pre = self.exec.output(n * f)?;
-        let unused = self.exec.output(1)?;
+        let mut g_pre = exec.output(n * f)?;
+        let unused = exec.output(1)?;
         // No kept cosine (have_cos 0): its pointer is never read.
         let mut args = vec![
             Arg::Src(grad),
@@ -135,59 +142,10 @@ impl FilmGrad {
         ];
         args.extend(self.layer.dims(n, f).args()?);
         args.push(Arg::I32(0));
-        launch(
-            &self.exec,
-            &MODULE,
-            "pma_film_sine_grad_f32",
-            n * f,
-            &mut args,
-        )?;
+        launch(exec, &MODULE, "pma_film_sine_grad_f32", n * f, &mut args)?;
         drop(args);
         drop(unused);
         Ok((g_pre, Shape::from((n, f))))
-    }
-}
-
-impl CustomOp3 for FilmGrad {
-    fn name(&self) -> &'static str {
-        "pma-film-sine-grad"
-    }
-
-    fn cpu_fwd(
-        &self,
-        s1: &CpuStorage,
-        l1: &Layout,
-        s2: &CpuStorage,
-        l2: &Layout,
-        s3: &CpuStorage,
-        l3: &Layout,
-    ) -> candle_core::Result<(CpuStorage, Shape)> {
-        let srcs = [
-            Src::cpu(s1, l1, "grad")?,
-            Src::cpu(s2, l2, "pre")?,
-            Src::cpu(s3, l3, "o")?,
-        ];
-        let (g, shape) = self.run(srcs, [l1, l2, l3])?;
-        Ok((g.into_cpu()?, shape))
-    }
-
-    #[cfg(feature = "cuda")]
-    fn cuda_fwd(
-        &self,
-        s1: &candle_core::CudaStorage,
-        l1: &Layout,
-        s2: &candle_core::CudaStorage,
-        l2: &Layout,
-        s3: &candle_core::CudaStorage,
-        l3: &Layout,
-    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
-        let srcs = [
-            Src::cuda(s1, l1, "grad")?,
-            Src::cuda(s2, l2, "pre")?,
-            Src::cuda(s3, l3, "o")?,
-        ];
-        let (g, shape) = self.run(srcs, [l1, l2, l3])?;
-        Ok((g.into_cuda(s1)?, shape))
     }
 }
 
@@ -197,33 +155,18 @@ struct HeadOut {
     shape: Shape,
 }
 
-impl HeadOut {
+impl Kernel<1> for HeadOut {
+    fn name(&self) -> &'static str {
+        "pma-film-head-grad"
+    }
+
     /// The buffer; its held bytes end here (the storage made of it counts from now on).
-    fn take(&self) -> candle_core::Result<Buf> {
+    fn device(&self, _: &Exec, _: [Src; 1], _: [&Layout; 1]) -> candle_core::Result<(Buf, Shape)> {
         candle_core::account::report_launches(0, 0);
         candle_core::account::report_bytes(0, 0);
         let buf = self.buf.lock().unwrap_or_else(|e| e.into_inner()).take();
         let (buf, _) = buf
             .ok_or_else(|| candle_core::Error::Msg("film sine: head gradient used twice".into()))?;
-        Ok(buf)
-    }
-}
-
-impl CustomOp1 for HeadOut {
-    fn name(&self) -> &'static str {
-        "pma-film-head-grad"
-    }
-
-    fn cpu_fwd(&self, _: &CpuStorage, _: &Layout) -> candle_core::Result<(CpuStorage, Shape)> {
-        Ok((self.take()?.into_cpu()?, self.shape.clone()))
-    }
-
-    #[cfg(feature = "cuda")]
-    fn cuda_fwd(
-        &self,
-        s: &candle_core::CudaStorage,
-        _: &Layout,
-    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
-        Ok((self.take()?.into_cuda(s)?, self.shape.clone()))
+        Ok((buf, self.shape.clone()))
     }
 }

@@ -23,31 +23,16 @@ mod device;
 
 use std::sync::{Arc, Mutex};
 
-use candle_core::{CpuStorage, CustomOp2, Layout, Shape, Tensor};
+use candle_core::{CpuStorage, Layout, Shape, Tensor};
 
 use crate::compute::kernel::mem::{Buf, Src};
+use crate::compute::kernel::op::{Kernel, Op};
 use crate::compute::kernel::storage::Kept;
-use crate::compute::kernel::{self, Exec, Module, Route};
+use crate::compute::kernel::{self, Exec, Route};
 use crate::compute::numerics::Numerics;
 use crate::error::Result;
 
-extern "C" {
-    fn pma_emu_film_sine(
-        name: *const std::ffi::c_char,
-        blocks: u32,
-        threads: u32,
-        params: *mut *mut std::ffi::c_void,
-    ) -> std::ffi::c_int;
-}
-
-/// `film_sine.cu`.
-pub static MODULE: Module = Module {
-    name: "film_sine",
-    file: "compute/ops/film_sine/film_sine.cu",
-    source: include_str!("film_sine.cu"),
-    emulate: pma_emu_film_sine,
-    check: check::check,
-};
+crate::kernel_module!("film_sine", "film_sine.cu", pma_emu_film_sine, check::check);
 
 /// The pose extractor's head `o` = [Θ_0..Θ_{K-1}, Φ_0..Φ_{K-1}] (each block `f` wide), as
 /// read by the K FiLM-SIREN layers of one forward pass (see the module docs).
@@ -154,7 +139,7 @@ impl FilmHead {
                     cos: Kept::new(keep_cos),
                     shared: chained.then(|| self.grad.clone()),
                 };
-                Ok(pre.apply_op2(&o, op)?)
+                Ok(pre.apply_op2(&o, Op(op))?)
             },
             || self.generic(pre, k),
         )
@@ -195,55 +180,47 @@ impl FilmSine {
     }
 }
 
-impl CustomOp2 for FilmSine {
+impl Kernel<2> for FilmSine {
     fn name(&self) -> &'static str {
         "pma-film-sine"
     }
 
-    fn cpu_fwd(
+    fn device(
         &self,
-        s1: &CpuStorage,
-        l1: &Layout,
-        s2: &CpuStorage,
-        l2: &Layout,
-    ) -> candle_core::Result<(CpuStorage, Shape)> {
-        let (n, f) = self.check(l1, l2)?;
-        Self::report_fwd(n, f, self.cos.wanted());
-        let out = match &self.exec {
-            Some(exec) => {
-                candle_core::account::report_launches(1, 0);
-                let (pre, o) = (Src::cpu(s1, l1, "pre")?, Src::cpu(s2, l2, "o")?);
-                device::forward(exec, pre, o, self.layer.dims(n, f))?.into_cpu()?
-            }
-            None => cpu::forward(&self.layer, s1, l1, s2, l2, f, &self.cos)?,
-        };
-        Ok((out, l1.shape().clone()))
-    }
-
-    #[cfg(feature = "cuda")]
-    fn cuda_fwd(
-        &self,
-        s1: &candle_core::CudaStorage,
-        l1: &Layout,
-        s2: &candle_core::CudaStorage,
-        l2: &Layout,
-    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
-        let (n, f) = self.check(l1, l2)?;
+        exec: &Exec,
+        [pre, o]: [Src; 2],
+        l: [&Layout; 2],
+    ) -> candle_core::Result<(Buf, Shape)> {
+        let (n, f) = self.check(l[0], l[1])?;
         candle_core::account::report_launches(1, 0);
         Self::report_fwd(n, f, false);
-        let exec = Exec::Cuda(s1.device.clone());
-        let (pre, o) = (Src::cuda(s1, l1, "pre")?, Src::cuda(s2, l2, "o")?);
-        let out = device::forward(&exec, pre, o, self.layer.dims(n, f))?.into_cuda(s1)?;
-        Ok((out, l1.shape().clone()))
+        Ok((
+            device::forward(exec, pre, o, self.layer.dims(n, f))?,
+            l[0].shape().clone(),
+        ))
     }
 
-    fn bwd(
+    fn cpu(
         &self,
-        pre: &Tensor,
-        o: &Tensor,
+        s: [&CpuStorage; 2],
+        l: [&Layout; 2],
+    ) -> Option<candle_core::Result<(CpuStorage, Shape)>> {
+        self.exec.is_none().then(|| {
+            let (n, f) = self.check(l[0], l[1])?;
+            Self::report_fwd(n, f, self.cos.wanted());
+            Ok((
+                cpu::forward(&self.layer, s[0], l[0], s[1], l[1], f, &self.cos)?,
+                l[0].shape().clone(),
+            ))
+        })
+    }
+
+    fn backward(
+        &self,
+        [pre, o]: [&Tensor; 2],
         _res: &Tensor,
         grad: &Tensor,
-    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>)> {
+    ) -> candle_core::Result<[Option<Tensor>; 2]> {
         let (pre, o, grad) = (pre.contiguous()?, o.contiguous()?, grad.contiguous()?);
         // Layers after the first write into the stack's shared head gradient and return
         // none of their own; layer 0 (run last) returns it (see [`FilmHead`]).
@@ -253,23 +230,23 @@ impl CustomOp2 for FilmSine {
             .map(|s| s.lock().unwrap_or_else(|e| e.into_inner()));
         let defer = shared.as_ref().is_some_and(|s| !s.taken);
         match &self.exec {
-            Some(exec) => {
+            Some(_) => {
                 let head = match shared.as_mut() {
                     Some(s) if defer => s.dev.take(),
                     _ => None,
                 };
-                let (g_pre, head) = device::backward(exec, &self.layer, &grad, &pre, &o, head)?;
+                let (g_pre, head) = device::backward(&self.layer, &grad, &pre, &o, head)?;
                 if let Some(s) = shared.as_mut().filter(|_| defer) {
                     if self.layer.k > 0 {
                         s.dev = Some(head);
-                        return Ok((Some(g_pre), None));
+                        return Ok([Some(g_pre), None]);
                     }
                     s.taken = true;
                 }
-                Ok((
+                Ok([
                     Some(g_pre),
                     Some(device::hand_over(&grad, head, o.shape())?),
-                ))
+                ])
             }
             None => {
                 let head = match shared.as_mut() {
@@ -281,14 +258,14 @@ impl CustomOp2 for FilmSine {
                 if let Some(s) = shared.as_mut().filter(|_| defer) {
                     if self.layer.k > 0 {
                         s.buf = Some(g_o);
-                        return Ok((Some(g_pre), None));
+                        return Ok([Some(g_pre), None]);
                     }
                     s.taken = true;
                 }
-                Ok((
+                Ok([
                     Some(g_pre),
                     Some(Tensor::from_vec(g_o, o.shape(), o.device())?),
-                ))
+                ])
             }
         }
     }

@@ -1,7 +1,10 @@
 //! The one-op linear layer and the bias add (the CPU's code, and the linear layer's cuBLAS
 //! route), and what the layers' ops share.
 
-use candle_core::{CpuStorage, CustomOp2, CustomOp3, Layout, Shape, Tensor};
+use candle_core::{CpuStorage, CustomOp2, Layout, Shape, Tensor};
+
+use crate::compute::kernel::mem::{Buf, Exec, Src};
+use crate::compute::kernel::op::{Inputs, Kernel};
 
 use crate::compute::kernel::storage::{f32_slice, with_f32};
 
@@ -66,19 +69,6 @@ pub(super) fn report_linear(
     );
 }
 
-/// The product x · Wᵀ on the CPU, exactly as `Tensor::matmul` calls it.
-pub(super) fn cpu_product(
-    (s1, l1): (&CpuStorage, &Layout),
-    (s2, l2): (&CpuStorage, &Layout),
-    (rows, inn, out): (usize, usize, usize),
-) -> candle_core::Result<Vec<f32>> {
-    use candle_core::backend::BackendStorage;
-    match s1.matmul(s2, (1, rows, out, inn), l1, &l2.transpose(0, 1)?)? {
-        CpuStorage::F32(y) => Ok(y),
-        _ => candle_core::bail!("linear: the product is not f32"),
-    }
-}
-
 /// [`super::linear`]'s op on (x, W, b).
 pub(super) struct Linear {
     /// The CPU's route: the bias gradient as [`BiasAdd`] sums it. Elsewhere (CUDA, the
@@ -86,65 +76,43 @@ pub(super) struct Linear {
     pub cpu_route: bool,
 }
 
-impl CustomOp3 for Linear {
+impl Kernel<3> for Linear {
     fn name(&self) -> &'static str {
         "matmul"
     }
 
-    fn cpu_fwd(
+    /// The product (candle's CPU product, or cuBLAS) and the bias add (the host's loop, or
+    /// candle's kernel); the product is freed on return.
+    fn storages(
         &self,
-        s1: &CpuStorage,
-        l1: &Layout,
-        s2: &CpuStorage,
-        l2: &Layout,
-        s3: &CpuStorage,
-        l3: &Layout,
-    ) -> candle_core::Result<(CpuStorage, Shape)> {
-        if self.cpu_route {
-            crate::compute::kernel::health::cpu_launch(&super::MODULE)?;
-        }
-        let d = linear_dims(l1, l2, l3)?;
-        let (rows, out) = (d.0, d.2);
-        report_linear(true, d, "add", 1);
-        let mut y = cpu_product((s1, l1), (s2, l2), d)?;
-        let b = f32_slice(s3, l3, "linear: b")?;
-        for row in y.chunks_exact_mut(out.max(1)) {
-            for (a, c) in row.iter_mut().zip(b) {
-                *a += c;
+        inputs: Inputs<'_, 3>,
+        [l1, l2, l3]: [&Layout; 3],
+    ) -> Option<candle_core::Result<(Buf, Shape)>> {
+        Some((|| {
+            if self.cpu_route {
+                crate::compute::kernel::health::cpu_launch(&super::MODULE)?;
             }
-        }
-        Ok((CpuStorage::F32(y), Shape::from((rows, out))))
+            let d = linear_dims(l1, l2, l3)?;
+            let (rows, out) = (d.0, d.2);
+            report_linear(inputs.exec().is_host(), d, "add", 1);
+            let y = inputs.product((0, l1), (1, l2), d)?;
+            Ok((
+                inputs.bias_add(y, (2, l3), (rows, out))?,
+                Shape::from((rows, out)),
+            ))
+        })())
     }
 
-    #[cfg(feature = "cuda")]
-    fn cuda_fwd(
-        &self,
-        s1: &candle_core::CudaStorage,
-        l1: &Layout,
-        s2: &candle_core::CudaStorage,
-        l2: &Layout,
-        s3: &candle_core::CudaStorage,
-        l3: &Layout,
-    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
-        use candle_core::backend::BackendStorage;
-        let (rows, inn, out) = linear_dims(l1, l2, l3)?;
-        report_linear(false, (rows, inn, out), "add", 1);
-        // cuBLAS, then candle's broadcast add kernel; the product is freed on return.
-        let y = s1.matmul(s2, (1, rows, out, inn), l1, &l2.transpose(0, 1)?)?;
-        let y_l = Layout::contiguous((rows, out));
-        let b_l = l3.broadcast_as((rows, out))?;
-        let sum = y.binary_impl::<candle_core::op::Add>(s3, &y_l, &b_l)?;
-        Ok((sum, Shape::from((rows, out))))
+    fn device(&self, _: &Exec, _: [Src; 3], _: [&Layout; 3]) -> candle_core::Result<(Buf, Shape)> {
+        candle_core::bail!("linear: the product runs on its storages")
     }
 
-    fn bwd(
+    fn backward(
         &self,
-        x: &Tensor,
-        w: &Tensor,
-        _b: &Tensor,
+        [x, w, _b]: [&Tensor; 3],
         _res: &Tensor,
         grad: &Tensor,
-    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+    ) -> candle_core::Result<[Option<Tensor>; 3]> {
         // candle's matmul backward for x · (Wᵀ), then the transpose's: the same products.
         let wt = w.t()?;
         // No product for an input that takes no gradient (the GNN's pose input).
@@ -155,7 +123,7 @@ impl CustomOp3 for Linear {
             true => row_sums(grad, out)?,
             false => grad.sum(0)?,
         };
-        Ok((gx, Some(gw), Some(gb)))
+        Ok([gx, Some(gw), Some(gb)])
     }
 }
 

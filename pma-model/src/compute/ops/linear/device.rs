@@ -3,12 +3,13 @@
 
 use std::sync::{Arc, Mutex};
 
-use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, Layout, Shape, Tensor};
+use candle_core::{Layout, Shape, Tensor};
 
-use super::cpu::{cpu_product, linear_dims, report_linear};
+use super::cpu::{linear_dims, report_linear};
 use super::{Act, MODULE};
 use crate::compute::kernel::launch::launch;
 use crate::compute::kernel::mem::{Arg, Buf, Src};
+use crate::compute::kernel::op::{Inputs, Kernel, Op};
 use crate::compute::kernel::storage::u32_of;
 use crate::compute::kernel::Exec;
 
@@ -70,54 +71,37 @@ impl LinearAct {
     }
 }
 
-impl CustomOp3 for LinearAct {
+impl Kernel<3> for LinearAct {
     fn name(&self) -> &'static str {
         "matmul"
     }
 
-    fn cpu_fwd(
+    /// The product (candle's CPU product, or cuBLAS), then the bias and activation kernel;
+    /// the product is freed on return unless the sine's backward needs it.
+    fn storages(
         &self,
-        s1: &CpuStorage,
-        l1: &Layout,
-        s2: &CpuStorage,
-        l2: &Layout,
-        s3: &CpuStorage,
-        l3: &Layout,
-    ) -> candle_core::Result<(CpuStorage, Shape)> {
-        let d = linear_dims(l1, l2, l3)?;
-        report_linear(true, d, self.epilogue(), 0);
-        let z = Buf::F32(cpu_product((s1, l1), (s2, l2), d)?);
-        let y = self.epilogue_of(z, Src::cpu(s3, l3, "b")?, [d.0, d.2])?;
-        Ok((y.into_cpu()?, Shape::from((d.0, d.2))))
+        inputs: Inputs<'_, 3>,
+        [l1, l2, l3]: [&Layout; 3],
+    ) -> Option<candle_core::Result<(Buf, Shape)>> {
+        Some((|| {
+            let d = linear_dims(l1, l2, l3)?;
+            report_linear(self.exec.is_host(), d, self.epilogue(), 0);
+            let z = inputs.product((0, l1), (1, l2), d)?;
+            let y = self.epilogue_of(z, inputs.src(2, l3, "b")?, [d.0, d.2])?;
+            Ok((y, Shape::from((d.0, d.2))))
+        })())
     }
 
-    #[cfg(feature = "cuda")]
-    fn cuda_fwd(
-        &self,
-        s1: &candle_core::CudaStorage,
-        l1: &Layout,
-        s2: &candle_core::CudaStorage,
-        l2: &Layout,
-        s3: &candle_core::CudaStorage,
-        l3: &Layout,
-    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
-        use candle_core::backend::BackendStorage;
-        let (rows, inn, out) = linear_dims(l1, l2, l3)?;
-        report_linear(false, (rows, inn, out), self.epilogue(), 0);
-        // cuBLAS; the product is freed on return unless the sine's backward needs it.
-        let z = s1.matmul(s2, (1, rows, out, inn), l1, &l2.transpose(0, 1)?)?;
-        let y = self.epilogue_of(Buf::from_cuda(z)?, Src::cuda(s3, l3, "b")?, [rows, out])?;
-        Ok((y.into_cuda(s1)?, Shape::from((rows, out))))
+    fn device(&self, _: &Exec, _: [Src; 3], _: [&Layout; 3]) -> candle_core::Result<(Buf, Shape)> {
+        candle_core::bail!("linear act: the product runs on its storages")
     }
 
-    fn bwd(
+    fn backward(
         &self,
-        x: &Tensor,
-        w: &Tensor,
-        b: &Tensor,
+        [x, w, b]: [&Tensor; 3],
         y: &Tensor,
         grad: &Tensor,
-    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+    ) -> candle_core::Result<[Option<Tensor>; 3]> {
         let z = match self.act {
             Act::Relu => None,
             Act::Sine => Some(
@@ -129,25 +113,21 @@ impl CustomOp3 for LinearAct {
             ),
         };
         let stash = Arc::new(Mutex::new(None));
-        let op = ActGrad {
-            exec: self.exec.clone(),
+        let op = Op(ActGrad {
             act: self.act,
             y,
             z,
             stash: stash.clone(),
-        };
+        });
         let gz = grad.contiguous()?.apply_op2_no_bwd(b, &op)?;
         drop(op);
-        let gb = b.apply_op1_no_bwd(&BiasSum {
-            exec: self.exec.clone(),
-            stash,
-        })?;
+        let gb = b.apply_op1_no_bwd(&Op(BiasSum { stash }))?;
         // candle's matmul backward for x · (Wᵀ), then the transpose's: the same products.
         let wt = w.t()?;
         // No product for an input that takes no gradient (the GNN's pose input).
         let gx = x.track_op().then(|| gz.matmul(&wt.t()?)).transpose()?;
         let gw = x.t()?.matmul(&gz)?.t()?;
-        Ok((gx, Some(gw), Some(gb)))
+        Ok([gx, Some(gw), Some(gb)])
     }
 }
 
@@ -158,20 +138,25 @@ type Stash = Arc<Mutex<Option<(Buf, usize)>>>;
 /// The product's gradient on (grad, b), from the ReLU's output `y` or the sine's kept
 /// product `z`, leaving the bias gradient's partial sums in the stash. One kernel.
 struct ActGrad<'a> {
-    exec: Exec,
     act: Act,
     y: &'a Tensor,
     z: Option<(Buf, candle_core::account::Held)>,
     stash: Stash,
 }
 
-impl ActGrad<'_> {
-    fn run(
+impl Kernel<2> for ActGrad<'_> {
+    fn name(&self) -> &'static str {
+        match self.act {
+            Act::Relu => "pma-relu-grad",
+            Act::Sine => "pma-sine-grad",
+        }
+    }
+
+    fn device(
         &self,
-        grad: Src,
-        b: Src,
-        lg: &Layout,
-        lb: &Layout,
+        exec: &Exec,
+        [grad, b]: [Src; 2],
+        [lg, lb]: [&Layout; 2],
     ) -> candle_core::Result<(Buf, Shape)> {
         let (rows, out) = lg.shape().dims2()?;
         if lb.shape().dims1()? != out || self.y.dims() != [rows, out] {
@@ -190,10 +175,10 @@ impl ActGrad<'_> {
             Some((z, _)) => z.src(),
             None => Src::of(&ys, yl, "linear act: y")?,
         };
-        let mut gz = self.exec.output(rows * out)?;
-        let mut part = self.exec.output(blocks * out)?;
+        let mut gz = exec.output(rows * out)?;
+        let mut part = exec.output(blocks * out)?;
         launch(
-            &self.exec,
+            exec,
             &MODULE,
             "pma_act_grad_f32",
             blocks * out,
@@ -213,58 +198,34 @@ impl ActGrad<'_> {
     }
 }
 
-impl CustomOp2 for ActGrad<'_> {
-    fn name(&self) -> &'static str {
-        match self.act {
-            Act::Relu => "pma-relu-grad",
-            Act::Sine => "pma-sine-grad",
-        }
-    }
-
-    fn cpu_fwd(
-        &self,
-        s1: &CpuStorage,
-        l1: &Layout,
-        s2: &CpuStorage,
-        l2: &Layout,
-    ) -> candle_core::Result<(CpuStorage, Shape)> {
-        let (gz, shape) = self.run(Src::cpu(s1, l1, "grad")?, Src::cpu(s2, l2, "b")?, l1, l2)?;
-        Ok((gz.into_cpu()?, shape))
-    }
-
-    #[cfg(feature = "cuda")]
-    fn cuda_fwd(
-        &self,
-        s1: &candle_core::CudaStorage,
-        l1: &Layout,
-        s2: &candle_core::CudaStorage,
-        l2: &Layout,
-    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
-        let (gz, shape) = self.run(Src::cuda(s1, l1, "grad")?, Src::cuda(s2, l2, "b")?, l1, l2)?;
-        Ok((gz.into_cuda(s1)?, shape))
-    }
-}
-
 /// The bias gradient [out] from the stash (applied to b, for its device and shape): the
 /// partial sums added in block order. One kernel.
 struct BiasSum {
-    exec: Exec,
     stash: Stash,
 }
 
-impl BiasSum {
-    fn run(&self, l: &Layout) -> candle_core::Result<(Buf, Shape)> {
+impl Kernel<1> for BiasSum {
+    fn name(&self) -> &'static str {
+        "pma-bias-grad"
+    }
+
+    fn device(
+        &self,
+        exec: &Exec,
+        _: [Src; 1],
+        [l]: [&Layout; 1],
+    ) -> candle_core::Result<(Buf, Shape)> {
         let out = l.shape().elem_count();
         let got = self.stash.lock().unwrap_or_else(|e| e.into_inner()).take();
         let (part, blocks) =
             got.ok_or_else(|| candle_core::Error::Msg("linear act: no partial sums".into()))?;
         candle_core::account::report_bytes((blocks * out * 4) as u64, (out * 4) as u64);
         if blocks == 0 || out == 0 {
-            return Ok((self.exec.zeros(out)?, Shape::from(out)));
+            return Ok((exec.zeros(out)?, Shape::from(out)));
         }
-        let mut gb = self.exec.output(out)?;
+        let mut gb = exec.output(out)?;
         launch(
-            &self.exec,
+            exec,
             &MODULE,
             "pma_bias_grad_sum_f32",
             out,
@@ -276,26 +237,5 @@ impl BiasSum {
             ],
         )?;
         Ok((gb, Shape::from(out)))
-    }
-}
-
-impl CustomOp1 for BiasSum {
-    fn name(&self) -> &'static str {
-        "pma-bias-grad"
-    }
-
-    fn cpu_fwd(&self, _: &CpuStorage, l: &Layout) -> candle_core::Result<(CpuStorage, Shape)> {
-        let (gb, shape) = self.run(l)?;
-        Ok((gb.into_cpu()?, shape))
-    }
-
-    #[cfg(feature = "cuda")]
-    fn cuda_fwd(
-        &self,
-        s: &candle_core::CudaStorage,
-        l: &Layout,
-    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
-        let (gb, shape) = self.run(l)?;
-        Ok((gb.into_cuda(s)?, shape))
     }
 }

@@ -22,29 +22,14 @@ mod device;
 
 use candle_core::{DType, Tensor};
 
-use crate::compute::kernel::{self, Module, Route};
+use crate::compute::kernel::op::Op;
+use crate::compute::kernel::{self, Route};
 use crate::compute::numerics::Numerics;
 use crate::error::Result;
 
 pub use device::ROWS_PER_BLOCK;
 
-extern "C" {
-    fn pma_emu_linear(
-        name: *const std::ffi::c_char,
-        blocks: u32,
-        threads: u32,
-        params: *mut *mut std::ffi::c_void,
-    ) -> std::ffi::c_int;
-}
-
-/// `bias_act.cu`.
-pub static MODULE: Module = Module {
-    name: "linear",
-    file: "compute/ops/linear/bias_act.cu",
-    source: include_str!("bias_act.cu"),
-    emulate: pma_emu_linear,
-    check: check::check,
-};
+crate::kernel_module!("linear", "bias_act.cu", pma_emu_linear, check::check);
 
 /// The activation after the linear layer.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -88,7 +73,7 @@ pub fn linear(x: &Tensor, w: &Tensor, b: &Tensor, k: Numerics) -> Result<Tensor>
             let (x, w, b) = (x.contiguous()?, w.contiguous()?, b.contiguous()?);
             Ok(candle_core::cuda::with_gemm_reduced_precision_f32(
                 k.tf32,
-                || x.apply_op3(&w, &b, cpu::Linear { cpu_route }),
+                || x.apply_op3(&w, &b, Op(cpu::Linear { cpu_route })),
             )?)
         },
         generic,
@@ -144,7 +129,7 @@ fn linear_act(x: &Tensor, w: &Tensor, b: &Tensor, act: Act, k: Numerics) -> Resu
             let op = device::LinearAct::new(exec.clone(), act, keep);
             Ok(candle_core::cuda::with_gemm_reduced_precision_f32(
                 k.tf32,
-                || x.apply_op3(&w, &b, op),
+                || x.apply_op3(&w, &b, Op(op)),
             )?)
         },
         generic,

@@ -3,25 +3,21 @@
 use candle_core::{Device, Tensor};
 
 use super::{gather_rows, select_rows, MODULE};
-use crate::compute::kernel::check::{compare, random, Case, Size};
-use crate::compute::kernel::launch::with_block_limit;
+use crate::compute::kernel::check::{cases, compare_in, random, Case, Size};
 use crate::compute::numerics::Numerics;
 
-/// Gathers of (B, N, C) with M picks per row, repeated indices (many rays share a frame
-/// code) and the atomic and the ordered scatter; in the full check also a grid of 2 blocks
-/// and no picks.
+/// Gathers of (B, N, C) with M picks per row and a grid cap, with repeated indices (many
+/// rays share a frame code), by the atomic and the ordered scatter: small, a frame-code
+/// lookup's size, a grid of 2 blocks, no picks.
 pub(super) fn check(device: &Device, size: Size) -> crate::error::Result<Vec<Case>> {
-    let cases: &[([usize; 4], u32)] = match size {
-        Size::Quick => &[([3, 11, 300, 5], 0)],
-        Size::Full => &[
-            ([3, 11, 300, 5], 0),
-            ([1, 780, 3072, 128], 0),
-            ([6, 72, 72, 4], 2),
-            ([2, 5, 0, 3], 0),
-        ],
-    };
+    let all = [
+        ([3, 11, 300, 5], 0),
+        ([1, 780, 3072, 128], 0),
+        ([6, 72, 72, 4], 2),
+        ([2, 5, 0, 3], 0),
+    ];
     let mut out = Vec::new();
-    for &([b, n, m, c], blocks) in cases {
+    for &([b, n, m, c], blocks) in cases(size, &all) {
         let seed = (n * 3 + m) as u64;
         let x = random(&[b, n, c], seed, (-1.0, 1.0), device)?;
         let ids: Vec<u32> = (0..b * m).map(|i| ((i * 7 + i / 5) % n) as u32).collect();
@@ -33,39 +29,30 @@ pub(super) fn check(device: &Device, size: Size) -> crate::error::Result<Vec<Cas
                 ..Numerics::PARITY
             };
             let label = format!(
-                "gather [{b},{n},{c}] by [{b},{m}]{}{}",
-                if deterministic { ", ordered" } else { "" },
-                if blocks > 0 {
-                    format!(" in {blocks} blocks")
-                } else {
-                    String::new()
-                }
+                "gather [{b},{n},{c}] by [{b},{m}]{}",
+                if deterministic { ", ordered" } else { "" }
             );
-            let run = || {
-                compare(
-                    &MODULE,
-                    &label,
-                    std::slice::from_ref(&x),
-                    &["x"],
-                    &up,
-                    |v| gather_rows(&v[0], &ids, k),
-                )
-            };
-            out.extend(if blocks > 0 {
-                with_block_limit(blocks, run)?
-            } else {
-                run()?
-            });
+            out.extend(compare_in(
+                blocks,
+                &MODULE,
+                &label,
+                std::slice::from_ref(&x),
+                &["x"],
+                &up,
+                |v| gather_rows(&v[0], &ids, k),
+            )?);
         }
         if b == 1 {
-            let (x2, ids2, up2) = (x.squeeze(0)?, ids.squeeze(0)?, up.squeeze(0)?);
-            out.extend(compare(
+            let (x, ids, up) = (x.squeeze(0)?, ids.squeeze(0)?, up.squeeze(0)?);
+            let label = format!("select [{n},{c}] by [{m}]");
+            out.extend(compare_in(
+                blocks,
                 &MODULE,
-                &format!("select [{n},{c}] by [{m}]"),
-                &[x2],
+                &label,
+                &[x],
                 &["x"],
-                &up2,
-                |v| select_rows(&v[0], &ids2, Numerics::PARITY),
+                &up,
+                |v| select_rows(&v[0], &ids, Numerics::PARITY),
             )?);
         }
     }

@@ -19,30 +19,15 @@ mod check;
 mod cpu;
 mod device;
 
-use candle_core::{CpuStorage, CustomOp2, DType, Layout, Shape, Tensor};
+use candle_core::{CpuStorage, DType, Layout, Shape, Tensor};
 
-use crate::compute::kernel::mem::Src;
-use crate::compute::kernel::{self, Exec, Module, Route};
+use crate::compute::kernel::mem::{Buf, Src};
+use crate::compute::kernel::op::{Kernel, Op};
+use crate::compute::kernel::{self, Exec, Route};
 use crate::compute::numerics::Numerics;
 use crate::error::{ModelError, Result};
 
-extern "C" {
-    fn pma_emu_rows(
-        name: *const std::ffi::c_char,
-        blocks: u32,
-        threads: u32,
-        params: *mut *mut std::ffi::c_void,
-    ) -> std::ffi::c_int;
-}
-
-/// `rows.cu`.
-pub static MODULE: Module = Module {
-    name: "rows",
-    file: "compute/ops/rows/rows.cu",
-    source: include_str!("rows.cu"),
-    emulate: pma_emu_rows,
-    check: check::check,
-};
+crate::kernel_module!("rows", "rows.cu", pma_emu_rows, check::check);
 
 /// `x.index_select(ids, 0)`: x [N,C], ids [M] (u32) -> [M,C].
 pub fn select_rows(x: &Tensor, ids: &Tensor, k: Numerics) -> Result<Tensor> {
@@ -81,7 +66,8 @@ pub fn gather_rows(x: &Tensor, ids: &Tensor, k: Numerics) -> Result<Tensor> {
                 exec: exec.clone(),
                 deterministic: k.deterministic,
             };
-            Ok(x.contiguous()?.apply_op2(&ids.detach().contiguous()?, op)?)
+            Ok(x.contiguous()?
+                .apply_op2(&ids.detach().contiguous()?, Op(op))?)
         },
         generic,
     )
@@ -112,66 +98,55 @@ struct GatherRows {
     deterministic: bool,
 }
 
-impl CustomOp2 for GatherRows {
+impl Kernel<2> for GatherRows {
     fn name(&self) -> &'static str {
         "pma-gather-rows"
     }
 
-    fn cpu_fwd(
+    fn device(
         &self,
-        s1: &CpuStorage,
-        l1: &Layout,
-        s2: &CpuStorage,
-        l2: &Layout,
-    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        exec: &Exec,
+        [x, ids]: [Src; 2],
+        [l1, l2]: [&Layout; 2],
+    ) -> candle_core::Result<(Buf, Shape)> {
         let [b, n, m, c] = dims_bmc(l1, l2, "gather rows")?;
         report_launches();
-        let out = match &self.exec {
-            Some(exec) => device::gather(
-                exec,
-                Src::cpu(s1, l1, "x")?,
-                Src::cpu(s2, l2, "ids")?,
-                [b, n, m, c],
-            )?
-            .into_cpu()?,
-            None => cpu::gather(s1, l1, s2, l2, [b, n, m, c])?,
-        };
-        Ok((out, Shape::from((b, m, c))))
+        Ok((
+            device::gather(exec, x, ids, [b, n, m, c])?,
+            Shape::from((b, m, c)),
+        ))
     }
 
-    #[cfg(feature = "cuda")]
-    fn cuda_fwd(
+    fn cpu(
         &self,
-        s1: &candle_core::CudaStorage,
-        l1: &Layout,
-        s2: &candle_core::CudaStorage,
-        l2: &Layout,
-    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
-        let [b, n, m, c] = dims_bmc(l1, l2, "gather rows")?;
-        report_launches();
-        let exec = Exec::Cuda(s1.device.clone());
-        let out = device::gather(
-            &exec,
-            Src::cuda(s1, l1, "x")?,
-            Src::cuda(s2, l2, "ids")?,
-            [b, n, m, c],
-        )?;
-        Ok((out.into_cuda(s1)?, Shape::from((b, m, c))))
+        [s1, s2]: [&CpuStorage; 2],
+        [l1, l2]: [&Layout; 2],
+    ) -> Option<candle_core::Result<(CpuStorage, Shape)>> {
+        self.exec.is_none().then(|| {
+            let [b, n, m, c] = dims_bmc(l1, l2, "gather rows")?;
+            report_launches();
+            Ok((
+                cpu::gather(s1, l1, s2, l2, [b, n, m, c])?,
+                Shape::from((b, m, c)),
+            ))
+        })
     }
 
-    fn bwd(
+    fn backward(
         &self,
-        x: &Tensor,
-        ids: &Tensor,
+        [x, ids]: [&Tensor; 2],
         _res: &Tensor,
         grad: &Tensor,
-    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>)> {
+    ) -> candle_core::Result<[Option<Tensor>; 2]> {
         let op = ScatterAddRows {
             exec: self.exec.clone(),
             n: x.dim(1)?,
             deterministic: self.deterministic,
         };
-        Ok((Some(grad.contiguous()?.apply_op2_no_bwd(ids, &op)?), None))
+        Ok([
+            Some(grad.contiguous()?.apply_op2_no_bwd(ids, &Op(op))?),
+            None,
+        ])
     }
 }
 
@@ -183,45 +158,36 @@ struct ScatterAddRows {
     deterministic: bool,
 }
 
-impl CustomOp2 for ScatterAddRows {
+impl Kernel<2> for ScatterAddRows {
     fn name(&self) -> &'static str {
         "pma-scatter-add-rows"
     }
 
-    fn cpu_fwd(
+    fn device(
         &self,
-        s1: &CpuStorage,
-        l1: &Layout,
-        s2: &CpuStorage,
-        l2: &Layout,
-    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        exec: &Exec,
+        [g, ids]: [Src; 2],
+        [l1, l2]: [&Layout; 2],
+    ) -> candle_core::Result<(Buf, Shape)> {
         let [b, m, _, c] = dims_bmc(l1, l2, "scatter-add rows")?;
         report_launches();
-        let dims = [b, self.n, m, c];
-        let out = match &self.exec {
-            Some(exec) => {
-                let (g, ids) = (Src::cpu(s1, l1, "grad")?, Src::cpu(s2, l2, "ids")?);
-                device::scatter_add(exec, g, ids, dims, self.deterministic)?.into_cpu()?
-            }
-            None => cpu::scatter_add(s1, l1, s2, l2, dims)?,
-        };
+        let out = device::scatter_add(exec, g, ids, [b, self.n, m, c], self.deterministic)?;
         Ok((out, Shape::from((b, self.n, c))))
     }
 
-    #[cfg(feature = "cuda")]
-    fn cuda_fwd(
+    fn cpu(
         &self,
-        s1: &candle_core::CudaStorage,
-        l1: &Layout,
-        s2: &candle_core::CudaStorage,
-        l2: &Layout,
-    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
-        let [b, m, _, c] = dims_bmc(l1, l2, "scatter-add rows")?;
-        report_launches();
-        let exec = Exec::Cuda(s1.device.clone());
-        let (g, ids) = (Src::cuda(s1, l1, "grad")?, Src::cuda(s2, l2, "ids")?);
-        let out = device::scatter_add(&exec, g, ids, [b, self.n, m, c], self.deterministic)?;
-        Ok((out.into_cuda(s1)?, Shape::from((b, self.n, c))))
+        [s1, s2]: [&CpuStorage; 2],
+        [l1, l2]: [&Layout; 2],
+    ) -> Option<candle_core::Result<(CpuStorage, Shape)>> {
+        self.exec.is_none().then(|| {
+            let [b, m, _, c] = dims_bmc(l1, l2, "scatter-add rows")?;
+            report_launches();
+            Ok((
+                cpu::scatter_add(s1, l1, s2, l2, [b, self.n, m, c])?,
+                Shape::from((b, self.n, c)),
+            ))
+        })
     }
 }
 

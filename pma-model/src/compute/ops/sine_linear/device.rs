@@ -1,11 +1,12 @@
 //! The point-encoder layer on a device: `sine_linear.cu`'s kernels, launched on a GPU or on
 //! the emulated grid.
 
-use candle_core::{CpuStorage, CustomOp3, Layout, Shape, Tensor};
+use candle_core::{Layout, Shape, Tensor};
 
 use super::MODULE;
 use crate::compute::kernel::launch::launch;
 use crate::compute::kernel::mem::{Arg, Buf, Src};
+use crate::compute::kernel::op::{Kernel, Op};
 use crate::compute::kernel::storage::u32_of;
 use crate::compute::kernel::Exec;
 
@@ -39,87 +40,44 @@ fn dim_args((rows, inp, out): (usize, usize, usize)) -> candle_core::Result<[Arg
 }
 
 /// The layer on (x, [W|b], s).
-pub(super) struct SineLinear {
-    pub exec: Exec,
-}
+pub(super) struct SineLinear;
 
-impl SineLinear {
-    /// `s_r sin(x Wᵀ + b)` [rows,out]. One launch.
-    fn run(&self, [x, wb, sc]: [Src; 3], l: [&Layout; 3]) -> candle_core::Result<(Buf, Shape)> {
-        let d = dims(l[0], l[1], l[2])?;
-        let (rows, inp, out) = d;
-        let f = |v: usize| 4 * v as u64;
-        candle_core::account::report_bytes(f(rows * inp + out * (inp + 1) + rows), f(rows * out));
-        let mut y = self.exec.output(rows * out)?;
-        let mut args = vec![Arg::Src(x), Arg::Src(wb), Arg::Src(sc), Arg::Dst(&mut y)];
-        args.extend(dim_args(d)?);
-        launch(
-            &self.exec,
-            &MODULE,
-            "pma_sine_linear_f32",
-            rows * out,
-            &mut args,
-        )?;
-        drop(args);
-        Ok((y, Shape::from((rows, out))))
-    }
-}
-
-impl CustomOp3 for SineLinear {
+impl Kernel<3> for SineLinear {
     fn name(&self) -> &'static str {
         "pma-sine-linear"
     }
 
-    fn cpu_fwd(
+    /// `s_r sin(x Wᵀ + b)` [rows,out]. One launch.
+    fn device(
         &self,
-        s1: &CpuStorage,
-        l1: &Layout,
-        s2: &CpuStorage,
-        l2: &Layout,
-        s3: &CpuStorage,
-        l3: &Layout,
-    ) -> candle_core::Result<(CpuStorage, Shape)> {
-        let srcs = [
-            Src::cpu(s1, l1, "x")?,
-            Src::cpu(s2, l2, "[W|b]")?,
-            Src::cpu(s3, l3, "s")?,
-        ];
-        let (y, shape) = self.run(srcs, [l1, l2, l3])?;
-        Ok((y.into_cpu()?, shape))
+        exec: &Exec,
+        [x, wb, sc]: [Src; 3],
+        l: [&Layout; 3],
+    ) -> candle_core::Result<(Buf, Shape)> {
+        let d = dims(l[0], l[1], l[2])?;
+        let (rows, inp, out) = d;
+        let f = |v: usize| 4 * v as u64;
+        candle_core::account::report_bytes(f(rows * inp + out * (inp + 1) + rows), f(rows * out));
+        let mut y = exec.output(rows * out)?;
+        let mut args = vec![Arg::Src(x), Arg::Src(wb), Arg::Src(sc), Arg::Dst(&mut y)];
+        args.extend(dim_args(d)?);
+        launch(exec, &MODULE, "pma_sine_linear_f32", rows * out, &mut args)?;
+        drop(args);
+        Ok((y, Shape::from((rows, out))))
     }
 
-    #[cfg(feature = "cuda")]
-    fn cuda_fwd(
+    fn backward(
         &self,
-        s1: &candle_core::CudaStorage,
-        l1: &Layout,
-        s2: &candle_core::CudaStorage,
-        l2: &Layout,
-        s3: &candle_core::CudaStorage,
-        l3: &Layout,
-    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
-        let srcs = [
-            Src::cuda(s1, l1, "x")?,
-            Src::cuda(s2, l2, "[W|b]")?,
-            Src::cuda(s3, l3, "s")?,
-        ];
-        let (y, shape) = self.run(srcs, [l1, l2, l3])?;
-        Ok((y.into_cuda(s1)?, shape))
-    }
-
-    fn bwd(
-        &self,
-        x: &Tensor,
-        wb: &Tensor,
-        sc: &Tensor,
+        [x, wb, sc]: [&Tensor; 3],
         _res: &Tensor,
         grad: &Tensor,
-    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+    ) -> candle_core::Result<[Option<Tensor>; 3]> {
         let grad = grad.contiguous()?;
-        let op = |of_rows| SineLinearGrad {
-            exec: self.exec.clone(),
-            x: x.clone(),
-            of_rows,
+        let op = |of_rows| {
+            Op(SineLinearGrad {
+                x: x.clone(),
+                of_rows,
+            })
         };
         let gwb = grad.apply_op3_no_bwd(wb, sc, &op(false))?;
         let (gx, gs) = match x.track_op() || sc.track_op() {
@@ -140,7 +98,7 @@ impl CustomOp3 for SineLinear {
             }
             false => (None, None),
         };
-        Ok((gx, Some(gwb), gs))
+        Ok([gx, Some(gwb), gs])
     }
 }
 
@@ -148,13 +106,24 @@ impl CustomOp3 for SineLinear {
 /// kernels: partial sums per block of rows, then their sum in block order), or, `of_rows`,
 /// [rows, in+1]: x's gradient and s's (one kernel).
 struct SineLinearGrad {
-    exec: Exec,
     x: Tensor,
     of_rows: bool,
 }
 
-impl SineLinearGrad {
-    fn run(&self, [grad, wb, sc]: [Src; 3], l: [&Layout; 3]) -> candle_core::Result<(Buf, Shape)> {
+impl Kernel<3> for SineLinearGrad {
+    fn name(&self) -> &'static str {
+        match self.of_rows {
+            true => "pma-sine-linear-grad-rows",
+            false => "pma-sine-linear-grad",
+        }
+    }
+
+    fn device(
+        &self,
+        exec: &Exec,
+        [grad, wb, sc]: [Src; 3],
+        l: [&Layout; 3],
+    ) -> candle_core::Result<(Buf, Shape)> {
         let d = dims(self.x.layout(), l[1], l[2])?;
         let (rows, inp, out) = d;
         if l[0].shape().dims2()? != (rows, out) {
@@ -192,9 +161,9 @@ impl SineLinearGrad {
         };
         if len == 0 {
             // No rows or no outputs: nothing to sum, the gradients are zero.
-            return Ok((self.exec.zeros(shape.elem_count())?, shape));
+            return Ok((exec.zeros(shape.elem_count())?, shape));
         }
-        let mut first = self.exec.output(len)?;
+        let mut first = exec.output(len)?;
         let mut args = vec![
             Arg::Src(grad),
             Arg::Src(x),
@@ -203,14 +172,14 @@ impl SineLinearGrad {
             Arg::Dst(&mut first),
         ];
         args.extend(dim_args(d)?);
-        launch(&self.exec, &MODULE, kernel, threads, &mut args)?;
+        launch(exec, &MODULE, kernel, threads, &mut args)?;
         drop(args);
         if self.of_rows {
             return Ok((first, shape));
         }
-        let mut g = self.exec.output(out * width)?;
+        let mut g = exec.output(out * width)?;
         launch(
-            &self.exec,
+            exec,
             &MODULE,
             "pma_sine_linear_grad_sum_f32",
             out * width,
@@ -223,51 +192,5 @@ impl SineLinearGrad {
             ],
         )?;
         Ok((g, shape))
-    }
-}
-
-impl CustomOp3 for SineLinearGrad {
-    fn name(&self) -> &'static str {
-        match self.of_rows {
-            true => "pma-sine-linear-grad-rows",
-            false => "pma-sine-linear-grad",
-        }
-    }
-
-    fn cpu_fwd(
-        &self,
-        s1: &CpuStorage,
-        l1: &Layout,
-        s2: &CpuStorage,
-        l2: &Layout,
-        s3: &CpuStorage,
-        l3: &Layout,
-    ) -> candle_core::Result<(CpuStorage, Shape)> {
-        let srcs = [
-            Src::cpu(s1, l1, "grad")?,
-            Src::cpu(s2, l2, "[W|b]")?,
-            Src::cpu(s3, l3, "s")?,
-        ];
-        let (g, shape) = self.run(srcs, [l1, l2, l3])?;
-        Ok((g.into_cpu()?, shape))
-    }
-
-    #[cfg(feature = "cuda")]
-    fn cuda_fwd(
-        &self,
-        s1: &candle_core::CudaStorage,
-        l1: &Layout,
-        s2: &candle_core::CudaStorage,
-        l2: &Layout,
-        s3: &candle_core::CudaStorage,
-        l3: &Layout,
-    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
-        let srcs = [
-            Src::cuda(s1, l1, "grad")?,
-            Src::cuda(s2, l2, "[W|b]")?,
-            Src::cuda(s3, l3, "s")?,
-        ];
-        let (g, shape) = self.run(srcs, [l1, l2, l3])?;
-        Ok((g.into_cuda(s1)?, shape))
     }
 }

@@ -22,29 +22,19 @@ mod device;
 
 use candle_core::Tensor;
 
-use crate::compute::kernel::{self, Module, Route};
+use crate::compute::kernel::op::Op;
+use crate::compute::kernel::{self, Route};
 use crate::compute::numerics::Numerics;
 use crate::error::Result;
 
 pub use device::{MAX_IN, ROWS_PER_BLOCK};
 
-extern "C" {
-    fn pma_emu_sine_linear(
-        name: *const std::ffi::c_char,
-        blocks: u32,
-        threads: u32,
-        params: *mut *mut std::ffi::c_void,
-    ) -> std::ffi::c_int;
-}
-
-/// `sine_linear.cu`.
-pub static MODULE: Module = Module {
-    name: "sine_linear",
-    file: "compute/ops/sine_linear/sine_linear.cu",
-    source: include_str!("sine_linear.cu"),
-    emulate: pma_emu_sine_linear,
-    check: check::check,
-};
+crate::kernel_module!(
+    "sine_linear",
+    "sine_linear.cu",
+    pma_emu_sine_linear,
+    check::check
+);
 
 /// `scale_r · sin(x Wᵀ + b)`: x [rows,in], W [out,in], b [out], scale [rows] (none: 1) ->
 /// [rows,out]; the sine is [`crate::compute::fast_sine::sin`] under `k` on candle's route.
@@ -73,10 +63,12 @@ pub fn sine_linear(
     };
     let mut on = vec![x, w, b];
     on.extend(scale);
-    let exec = match kernel::route(k.fused && fits, &MODULE, &on) {
-        Route::Device(e) => e,
-        Route::Cpu | Route::Generic => return generic(),
-    };
+    if !matches!(
+        kernel::route(k.fused && fits, &MODULE, &on),
+        Route::Device(_)
+    ) {
+        return generic();
+    }
     kernel::or_generic(
         &MODULE,
         || {
@@ -87,7 +79,7 @@ pub fn sine_linear(
                 None => Tensor::ones(rows, x.dtype(), x.device())?,
             };
             Ok(x.contiguous()?
-                .apply_op3(&wb, &scale, device::SineLinear { exec: exec.clone() })?)
+                .apply_op3(&wb, &scale, Op(device::SineLinear))?)
         },
         generic,
     )

@@ -1,9 +1,9 @@
 //! The window pool on the CPU: the same f32 operations as candle's ops, in their order.
 
-use candle_core::{CpuStorage, Layout, Tensor};
+use candle_core::Tensor;
 
 use super::QSource;
-use crate::compute::kernel::storage::{f32_slice, with_f32, Kept};
+use crate::compute::kernel::storage::{with_f32, Kept};
 
 /// One point's pooled row: `best[k] = max_j (q[j,k] + g[j,k]) · w[j]` and the first joint
 /// reaching it in `arg` (a NaN wins and stays, as PyTorch's max propagates it). Written with
@@ -26,22 +26,14 @@ fn pool_row(q: &[f32], g: &[f32], w: &[f32], best: &mut [f32], arg: &mut [u32]) 
     }
 }
 
-/// The pool of q [N,J,H], g [P,J,H], w [N,J]; every row's arg-max goes to `arg` when it is
-/// wanted (the graph tracks gradients).
+/// The pool of q [N,J,H], g [P,J,H], w [N,J] (`dims`: N, J, H, points per pose); every
+/// row's arg-max goes to `arg` when it is wanted (the graph tracks gradients).
 pub(super) fn forward(
-    s1: &CpuStorage,
-    l1: &Layout,
-    s2: &CpuStorage,
-    l2: &Layout,
-    s3: &CpuStorage,
-    l3: &Layout,
+    [q, g, w]: [&[f32]; 3],
+    [n, j, h, per_pose]: [usize; 4],
     arg: &Kept<Vec<u32>>,
-) -> candle_core::Result<CpuStorage> {
+) -> candle_core::Result<Vec<f32>> {
     crate::compute::kernel::health::cpu_launch(&super::MODULE)?;
-    let [n, j, h, per_pose] = super::dims(l1, l2, l3)?;
-    let q = f32_slice(s1, l1, "window pool: q")?;
-    let g = f32_slice(s2, l2, "window pool: g")?;
-    let w = f32_slice(s3, l3, "window pool: w_p")?;
     if j > u32::MAX as usize {
         candle_core::bail!("window pool: {j} joints")
     }
@@ -66,7 +58,7 @@ pub(super) fn forward(
     if arg.wanted() {
         arg.put(args);
     }
-    Ok(CpuStorage::F32(dst))
+    Ok(dst)
 }
 
 /// The arg-max joint of every output, pooling q again (a second backward over the same

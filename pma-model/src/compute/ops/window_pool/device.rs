@@ -3,11 +3,12 @@
 
 use std::sync::Arc;
 
-use candle_core::{CpuStorage, CustomOp2, Layout, Shape, Tensor};
+use candle_core::{Layout, Shape, Tensor};
 
 use super::{QSource, MODULE};
 use crate::compute::kernel::launch::launch;
 use crate::compute::kernel::mem::{Arg, Buf, Src};
+use crate::compute::kernel::op::{Kernel, Op};
 use crate::compute::kernel::storage::u32_of;
 use crate::compute::kernel::Exec;
 
@@ -100,13 +101,12 @@ pub(super) fn backward(
     let arg = Arc::new(arg);
     let grad = grad.contiguous()?;
     let op = |of_g| PoolGrad {
-        exec: exec.clone(),
         arg: arg.clone(),
         dims: [n, p, j, h],
         of_g,
     };
-    let gq = grad.apply_op2_no_bwd(&w, &op(false))?;
-    let gg = grad.apply_op2_no_bwd(&w, &op(true))?;
+    let gq = grad.apply_op2_no_bwd(&w, &Op(op(false)))?;
+    let gg = grad.apply_op2_no_bwd(&w, &Op(op(true)))?;
     drop(held);
     Ok((gq, gg))
 }
@@ -114,23 +114,25 @@ pub(super) fn backward(
 /// One gradient of the pool (of q, or of g when `of_g`) on (upstream gradient [N,H],
 /// window [N,J]) from the arg-max: a kernel of `window_pool.cu`.
 struct PoolGrad {
-    exec: Exec,
     arg: Arc<Buf>,
     /// N, P, J, H.
     dims: [usize; 4],
     of_g: bool,
 }
 
-impl PoolGrad {
-    fn run(
+impl Kernel<2> for PoolGrad {
+    fn name(&self) -> &'static str {
+        "pma-window-pool-grad"
+    }
+
+    fn device(
         &self,
-        grad: Src,
-        w: Src,
-        lg: &Layout,
-        lw: &Layout,
+        exec: &Exec,
+        [grad, w]: [Src; 2],
+        l: [&Layout; 2],
     ) -> candle_core::Result<(Buf, Shape)> {
         let [n, p, j, h] = self.dims;
-        if lg.shape().dims2()? != (n, h) || lw.shape().dims2()? != (n, j) {
+        if l[0].shape().dims2()? != (n, h) || l[1].shape().dims2()? != (n, j) {
             candle_core::bail!("window pool gradient: shapes do not agree with [{n},{j},{h}]")
         }
         candle_core::account::report_launches(1, 0);
@@ -138,9 +140,8 @@ impl PoolGrad {
             true => (p * j * h, Shape::from((p, j, h))),
             false => (n * j * h, Shape::from((n, j, h))),
         };
-        let out_bytes = 4 * len as u64;
-        candle_core::account::report_bytes(4 * (2 * n * h + n * j) as u64, out_bytes);
-        let mut out = self.exec.output(len)?;
+        candle_core::account::report_bytes(4 * (2 * n * h + n * j) as u64, 4 * len as u64);
+        let mut out = exec.output(len)?;
         let dims = [u32_of(n, "N")?, u32_of(j, "J")?, u32_of(h, "H")?];
         let mut args = vec![
             Arg::Src(grad),
@@ -160,42 +161,8 @@ impl PoolGrad {
                 "pma_window_pool_grad_q_f32"
             }
         };
-        launch(&self.exec, &MODULE, kernel, len, &mut args)?;
+        launch(exec, &MODULE, kernel, len, &mut args)?;
         drop(args);
         Ok((out, shape))
-    }
-}
-
-impl CustomOp2 for PoolGrad {
-    fn name(&self) -> &'static str {
-        "pma-window-pool-grad"
-    }
-
-    fn cpu_fwd(
-        &self,
-        s1: &CpuStorage,
-        l1: &Layout,
-        s2: &CpuStorage,
-        l2: &Layout,
-    ) -> candle_core::Result<(CpuStorage, Shape)> {
-        let (out, shape) = self.run(Src::cpu(s1, l1, "grad")?, Src::cpu(s2, l2, "w_p")?, l1, l2)?;
-        Ok((out.into_cpu()?, shape))
-    }
-
-    #[cfg(feature = "cuda")]
-    fn cuda_fwd(
-        &self,
-        s1: &candle_core::CudaStorage,
-        l1: &Layout,
-        s2: &candle_core::CudaStorage,
-        l2: &Layout,
-    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
-        let (out, shape) = self.run(
-            Src::cuda(s1, l1, "grad")?,
-            Src::cuda(s2, l2, "w_p")?,
-            l1,
-            l2,
-        )?;
-        Ok((out.into_cuda(s1)?, shape))
     }
 }

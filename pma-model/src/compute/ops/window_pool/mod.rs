@@ -20,31 +20,21 @@ mod check;
 mod cpu;
 mod device;
 
-use candle_core::{CpuStorage, CustomOp3, Layout, Shape, Storage, Tensor};
+use candle_core::{CpuStorage, Layout, Shape, Storage, Tensor};
 
 use crate::compute::kernel::mem::{Buf, Src};
-use crate::compute::kernel::storage::Kept;
-use crate::compute::kernel::{self, Exec, Module, Route};
+use crate::compute::kernel::op::{Inputs, Kernel, Op};
+use crate::compute::kernel::storage::{f32_slice, Kept};
+use crate::compute::kernel::{self, Exec, Route};
 use crate::compute::numerics::Numerics;
 use crate::error::Result;
 
-extern "C" {
-    fn pma_emu_window_pool(
-        name: *const std::ffi::c_char,
-        blocks: u32,
-        threads: u32,
-        params: *mut *mut std::ffi::c_void,
-    ) -> std::ffi::c_int;
-}
-
-/// `window_pool.cu`.
-pub static MODULE: Module = Module {
-    name: "window_pool",
-    file: "compute/ops/window_pool/window_pool.cu",
-    source: include_str!("window_pool.cu"),
-    emulate: pma_emu_window_pool,
-    check: check::check,
-};
+crate::kernel_module!(
+    "window_pool",
+    "window_pool.cu",
+    pma_emu_window_pool,
+    check::check
+);
 
 /// `max_j (q[n,j,:] + g[p(n),j,:]) · w_p[n,j]`: q: [N,J,H], g: [P,J,H], w_p: [N,J] -> [N,H],
 /// the N points grouped by pose in P equal blocks (point n belongs to pose `n / (N/P)`).
@@ -70,7 +60,7 @@ pub fn window_pool(q: &Tensor, g: &Tensor, w_p: &Tensor, k: Numerics) -> Result<
         || {
             let (q, g) = (q.contiguous()?, g.contiguous()?);
             let op = WindowPool::new(q.track_op() || g.track_op(), exec.clone());
-            let out = q.apply_op3(&g, &w_p.detach().contiguous()?, op)?;
+            let out = q.apply_op3(&g, &w_p.detach().contiguous()?, Op(op))?;
             if let Some(exec) = &exec {
                 device::record_arg(exec, out.elem_count());
             }
@@ -135,7 +125,7 @@ pub fn window_pool_of(
             };
             Ok(candle_core::cuda::with_gemm_reduced_precision_f32(
                 k.tf32,
-                || e.apply_op3(&w, &g, op),
+                || e.apply_op3(&w, &g, Op(op)),
             )?)
         },
         two_ops,
@@ -203,68 +193,43 @@ fn dims(lq: &Layout, lg: &Layout, lw: &Layout) -> candle_core::Result<[usize; 4]
     Ok([n, j, h, n / p])
 }
 
-impl CustomOp3 for WindowPool {
+impl Kernel<3> for WindowPool {
     fn name(&self) -> &'static str {
         "pma-window-pool"
     }
 
-    fn cpu_fwd(
+    fn device(
         &self,
-        s1: &CpuStorage,
-        l1: &Layout,
-        s2: &CpuStorage,
-        l2: &Layout,
-        s3: &CpuStorage,
-        l3: &Layout,
-    ) -> candle_core::Result<(CpuStorage, Shape)> {
-        let d = dims(l1, l2, l3)?;
-        let out = match &self.exec {
-            Some(exec) => {
-                candle_core::account::report_launches(1, 0);
-                let srcs = [
-                    Src::cpu(s1, l1, "q")?,
-                    Src::cpu(s2, l2, "g")?,
-                    Src::cpu(s3, l3, "w_p")?,
-                ];
-                self.device_fwd(exec, srcs, d)?.into_cpu()?
-            }
-            None => cpu::forward(s1, l1, s2, l2, s3, l3, &self.arg)?,
-        };
-        Ok((out, Shape::from((d[0], d[2]))))
-    }
-
-    #[cfg(feature = "cuda")]
-    fn cuda_fwd(
-        &self,
-        s1: &candle_core::CudaStorage,
-        l1: &Layout,
-        s2: &candle_core::CudaStorage,
-        l2: &Layout,
-        s3: &candle_core::CudaStorage,
-        l3: &Layout,
-    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
-        let d = dims(l1, l2, l3)?;
-        let exec = Exec::Cuda(s1.device.clone());
+        exec: &Exec,
+        srcs: [Src; 3],
+        l: [&Layout; 3],
+    ) -> candle_core::Result<(Buf, Shape)> {
+        let d = dims(l[0], l[1], l[2])?;
         candle_core::account::report_launches(1, 0);
-        let srcs = [
-            Src::cuda(s1, l1, "q")?,
-            Src::cuda(s2, l2, "g")?,
-            Src::cuda(s3, l3, "w_p")?,
-        ];
-        let out = self.device_fwd(&exec, srcs, d)?.into_cuda(s1)?;
-        Ok((out, Shape::from((d[0], d[2]))))
+        Ok((self.device_fwd(exec, srcs, d)?, Shape::from((d[0], d[2]))))
     }
 
-    fn bwd(
+    fn cpu(
         &self,
-        q: &Tensor,
-        g: &Tensor,
-        w_p: &Tensor,
+        s: [&CpuStorage; 3],
+        l: [&Layout; 3],
+    ) -> Option<candle_core::Result<(CpuStorage, Shape)>> {
+        self.exec.is_none().then(|| {
+            let d = dims(l[0], l[1], l[2])?;
+            let f = |i: usize, what| f32_slice(s[i], l[i], what);
+            let out = cpu::forward([f(0, "q")?, f(1, "g")?, f(2, "w_p")?], d, &self.arg)?;
+            Ok((CpuStorage::F32(out), Shape::from((d[0], d[2]))))
+        })
+    }
+
+    fn backward(
+        &self,
+        [q, g, w_p]: [&Tensor; 3],
         _res: &Tensor,
         grad: &Tensor,
-    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+    ) -> candle_core::Result<[Option<Tensor>; 3]> {
         let (gq, gg) = self.grads(&QSource::Tensor(q), g, w_p, grad)?;
-        Ok((Some(gq), Some(gg), None))
+        Ok([Some(gq), Some(gg), None])
     }
 }
 
@@ -306,83 +271,53 @@ impl WindowPoolOf {
     }
 }
 
-impl CustomOp3 for WindowPoolOf {
+impl Kernel<3> for WindowPoolOf {
     fn name(&self) -> &'static str {
         "matmul"
     }
 
-    fn cpu_fwd(
+    /// The product exactly as `Tensor::matmul` calls it for e · Wᵀ (freed on return), then
+    /// the pool: the CPU's code on the CPU's route, the kernel otherwise.
+    fn storages(
         &self,
-        s1: &CpuStorage,
-        l1: &Layout,
-        s2: &CpuStorage,
-        l2: &Layout,
-        s3: &CpuStorage,
-        l3: &Layout,
-    ) -> candle_core::Result<(CpuStorage, Shape)> {
-        use candle_core::backend::BackendStorage;
-        let (n, j, h, ce) = self.dims(l1, l2)?;
-        self.report(true, (n, j, h, ce), l3.shape().elem_count());
-        // The product exactly as `Tensor::matmul` calls it for e · Wᵀ; freed on return.
-        let q = s1.matmul(s2, (1, n * j, h, ce), l1, &l2.transpose(0, 1)?)?;
-        let lq = Layout::contiguous((n, j, h));
-        let (wp, wl) = self.w_p.storage_and_layout();
-        let Storage::Cpu(wp) = &*wp else {
-            candle_core::bail!("window pool: the window is not on the CPU")
-        };
-        let d = dims(&lq, l3, wl)?;
-        let out = match &self.inner.exec {
-            Some(exec) => {
-                let srcs = [
-                    Src::cpu(&q, &lq, "q")?,
-                    Src::cpu(s3, l3, "g")?,
-                    Src::cpu(wp, wl, "w_p")?,
-                ];
-                self.inner.device_fwd(exec, srcs, d)?.into_cpu()?
-            }
-            None => cpu::forward(&q, &lq, s3, l3, wp, wl, &self.inner.arg)?,
-        };
-        Ok((out, Shape::from((n, h))))
+        inputs: Inputs<'_, 3>,
+        [l1, l2, l3]: [&Layout; 3],
+    ) -> Option<candle_core::Result<(Buf, Shape)>> {
+        Some((|| {
+            let (n, j, h, ce) = self.dims(l1, l2)?;
+            let exec = inputs.exec();
+            self.report(exec.is_host(), (n, j, h, ce), l3.shape().elem_count());
+            let q = inputs.product((0, l1), (1, l2), (n * j, ce, h))?;
+            let lq = Layout::contiguous((n, j, h));
+            let (wp, wl) = self.w_p.storage_and_layout();
+            let d = dims(&lq, l3, wl)?;
+            let out = match (&self.inner.exec, q) {
+                (None, Buf::F32(q)) => match (&inputs, &*wp) {
+                    (Inputs::Cpu([_, _, g]), Storage::Cpu(wp)) => {
+                        let (g, wp) = (f32_slice(g, l3, "g")?, f32_slice(wp, wl, "w_p")?);
+                        Buf::F32(cpu::forward([&q, g, wp], d, &self.inner.arg)?)
+                    }
+                    _ => candle_core::bail!("window pool: the CPU's route on other storages"),
+                },
+                (_, q) => {
+                    let srcs = [q.src(), inputs.src(2, l3, "g")?, Src::of(&wp, wl, "w_p")?];
+                    self.inner.device_fwd(&exec, srcs, d)?
+                }
+            };
+            Ok((out, Shape::from((n, h))))
+        })())
     }
 
-    #[cfg(feature = "cuda")]
-    fn cuda_fwd(
-        &self,
-        s1: &candle_core::CudaStorage,
-        l1: &Layout,
-        s2: &candle_core::CudaStorage,
-        l2: &Layout,
-        s3: &candle_core::CudaStorage,
-        l3: &Layout,
-    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
-        use candle_core::backend::BackendStorage;
-        let (n, j, h, ce) = self.dims(l1, l2)?;
-        self.report(false, (n, j, h, ce), l3.shape().elem_count());
-        let q = s1.matmul(s2, (1, n * j, h, ce), l1, &l2.transpose(0, 1)?)?;
-        let lq = Layout::contiguous((n, j, h));
-        let (wp, wl) = self.w_p.storage_and_layout();
-        let Storage::Cuda(wp) = &*wp else {
-            candle_core::bail!("window pool: the window is not on the GPU")
-        };
-        let d = dims(&lq, l3, wl)?;
-        let exec = Exec::Cuda(s1.device.clone());
-        let srcs = [
-            Src::cuda(&q, &lq, "q")?,
-            Src::cuda(s3, l3, "g")?,
-            Src::cuda(wp, wl, "w_p")?,
-        ];
-        let out = self.inner.device_fwd(&exec, srcs, d)?.into_cuda(s1)?;
-        Ok((out, Shape::from((n, h))))
+    fn device(&self, _: &Exec, _: [Src; 3], _: [&Layout; 3]) -> candle_core::Result<(Buf, Shape)> {
+        candle_core::bail!("window pool: the product runs on its storages")
     }
 
-    fn bwd(
+    fn backward(
         &self,
-        e: &Tensor,
-        w: &Tensor,
-        g: &Tensor,
+        [e, w, g]: [&Tensor; 3],
         _res: &Tensor,
         grad: &Tensor,
-    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+    ) -> candle_core::Result<[Option<Tensor>; 3]> {
         let q = QSource::Product { e, w, j: self.j };
         let (gq, gg) = self.inner.grads(&q, g, &self.w_p, grad)?;
         // candle's matmul backward for e · (Wᵀ) on the [N·J,H] view, then the transpose's.
@@ -390,7 +325,7 @@ impl CustomOp3 for WindowPoolOf {
         let wt = w.t()?;
         let ge = gq.matmul(&wt.t()?)?;
         let gw = e.t()?.matmul(&gq)?.t()?;
-        Ok((Some(ge), Some(gw), Some(gg)))
+        Ok([Some(ge), Some(gw), Some(gg)])
     }
 }
 
