@@ -1,13 +1,12 @@
 //! `pma demo` end to end on a tiny budget: synthesises the scene, trains, evaluates both
-//! held-out splits and writes summary.json in the shape other tools read.
+//! held-out splits and writes summary.json in the shape other tools read; it trains with the
+//! fast recipe and says so, and `--parity` trains without it.
 
-use std::process::Command;
+use std::path::Path;
+use std::process::{Command, Output};
 
-#[test]
-fn demo_writes_summary_renders_and_plot() {
-    let tmp = tempfile::tempdir().unwrap();
-    let out_dir = tmp.path().join("demo");
-    let out = Command::new(env!("CARGO_BIN_EXE_pma"))
+fn demo(out_dir: &Path, extra: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_pma"))
         .args([
             "demo",
             "--out",
@@ -32,8 +31,16 @@ fn demo_writes_summary_renders_and_plot() {
             "--device",
             "cpu",
         ])
+        .args(extra)
         .output()
-        .unwrap();
+        .unwrap()
+}
+
+#[test]
+fn demo_writes_summary_renders_and_plot() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out_dir = tmp.path().join("demo");
+    let out = demo(&out_dir, &[]);
     assert!(
         out.status.success(),
         "demo failed:\n{}",
@@ -48,6 +55,21 @@ fn demo_writes_summary_renders_and_plot() {
         serde_json::from_str(&std::fs::read_to_string(out_dir.join("summary.json")).unwrap())
             .unwrap();
     assert_eq!(summary["iterations"], 3);
+    // The fast recipe, named in the output and the summary; the curve's images beside the
+    // evaluation's.
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(stdout.contains("fast recipe"), "{stdout}");
+    let options: Vec<&str> = summary["options"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|o| o.as_str().unwrap())
+        .collect();
+    assert!(options.contains(&"--error-map"), "{options:?}");
+    assert!(options.contains(&"--occupancy"), "{options:?}");
+    assert!(stdout.contains(&format!("curve scores {} novel-view", summary["curve_images"])));
+    let config = std::fs::read_to_string(out_dir.join("run/config.toml")).unwrap();
+    assert!(config.contains("[train.error_map]"), "{config}");
     assert!(summary["wall_s"].as_f64().unwrap() > 0.0);
     for key in ["model", "data"] {
         let p = summary[key].as_str().unwrap();
@@ -66,4 +88,24 @@ fn demo_writes_summary_renders_and_plot() {
         .unwrap()
         .collect();
     assert_eq!(renders.len(), 2, "one side-by-side PNG per split");
+}
+
+/// `--parity` trains the preset as it is: no recipe option in the summary or the run's
+/// configuration.
+#[test]
+fn demo_parity_trains_without_the_recipe() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out_dir = tmp.path().join("demo");
+    let out = demo(&out_dir, &["--parity"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(stdout.contains("--parity"), "{stdout}");
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out_dir.join("summary.json")).unwrap())
+            .unwrap();
+    assert_eq!(summary["options"], serde_json::json!([]));
+    let config = std::fs::read_to_string(out_dir.join("run/config.toml")).unwrap();
+    for key in ["error_map", "anneal", "occupancy", "coarse_from_grid"] {
+        assert!(!config.contains(key), "{key} in {config}");
+    }
 }

@@ -371,7 +371,8 @@ impl TrainConfig {
         }
         if self.coarse_from_grid && self.occupancy.is_none() {
             bad.push(
-                "coarse_from_grid places the coarse samples from the occupancy grid: it needs                  [train.occupancy]"
+                "coarse_from_grid places the coarse samples from the occupancy grid: it needs \
+                 [train.occupancy]"
                     .to_string(),
             );
         }
