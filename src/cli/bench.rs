@@ -165,10 +165,20 @@ pub struct Args {
     #[arg(long, conflicts_with_all = ["account", "forward_only", "shares"])]
     pub time_to_quality: bool,
     /// Scene seeds of `--time-to-quality` (not the seeds the options were tuned on: 0 and 7).
-    #[arg(long, value_delimiter = ',', default_value = "101,102,103", requires = "time_to_quality")]
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "101,102,103",
+        requires = "time_to_quality"
+    )]
     pub ttq_seeds: Vec<u64>,
     /// Minutes of training at which parity's held-out PSNR is a target (ascending).
-    #[arg(long, value_delimiter = ',', default_value = "1,2,5", requires = "time_to_quality")]
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "1,2,5",
+        requires = "time_to_quality"
+    )]
     pub ttq_marks: Vec<f64>,
     /// Held-out scores along each curve over the last mark (the marks are scored too).
     #[arg(long, default_value_t = 20, requires = "time_to_quality")]

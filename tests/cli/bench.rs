@@ -641,7 +641,14 @@ fn time_to_quality_writes_the_table_and_plot() {
             .output()
             .expect("running pma")
     };
-    let out = run(&["--ttq-seeds", "5", "--ttq-marks", "0.02,0.04", "--ttq-points", "2"]);
+    let out = run(&[
+        "--ttq-seeds",
+        "5",
+        "--ttq-marks",
+        "0.02,0.04",
+        "--ttq-points",
+        "2",
+    ]);
     assert!(
         out.status.success(),
         "{}\n{}",
@@ -651,11 +658,16 @@ fn time_to_quality_writes_the_table_and_plot() {
     let json: serde_json::Value =
         serde_json::from_slice(&std::fs::read(dir.path().join("quality.json")).unwrap()).unwrap();
     let options = json["options"].as_array().unwrap();
-    let names: Vec<&str> = options.iter().map(|o| o["name"].as_str().unwrap()).collect();
+    let names: Vec<&str> = options
+        .iter()
+        .map(|o| o["name"].as_str().unwrap())
+        .collect();
     assert_eq!(names.first(), Some(&"parity"));
     assert_eq!(names.last(), Some(&"fast recipe"));
     assert_eq!(names.len(), 6, "{names:?}");
-    let initial = options[0]["seeds"][0]["runs"][0]["curve"][0][1].as_f64().unwrap();
+    let initial = options[0]["seeds"][0]["runs"][0]["curve"][0][1]
+        .as_f64()
+        .unwrap();
     for o in options {
         let seed = &o["seeds"][0];
         let runs = seed["runs"].as_array().unwrap();

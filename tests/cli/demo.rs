@@ -67,7 +67,10 @@ fn demo_writes_summary_renders_and_plot() {
         .collect();
     assert!(options.contains(&"--error-map"), "{options:?}");
     assert!(options.contains(&"--occupancy"), "{options:?}");
-    assert!(stdout.contains(&format!("curve scores {} novel-view", summary["curve_images"])));
+    assert!(stdout.contains(&format!(
+        "curve scores {} novel-view",
+        summary["curve_images"]
+    )));
     let config = std::fs::read_to_string(out_dir.join("run/config.toml")).unwrap();
     assert!(config.contains("[train.error_map]"), "{config}");
     assert!(summary["wall_s"].as_f64().unwrap() > 0.0);
@@ -97,7 +100,11 @@ fn demo_parity_trains_without_the_recipe() {
     let tmp = tempfile::tempdir().unwrap();
     let out_dir = tmp.path().join("demo");
     let out = demo(&out_dir, &["--parity"]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(stdout.contains("--parity"), "{stdout}");
     let summary: serde_json::Value =

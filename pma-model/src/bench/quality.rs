@@ -227,10 +227,7 @@ fn psnr_at(curve: &[(f64, f64)], t: f64) -> f64 {
 }
 
 /// Measure every option on every seed (see the module docs).
-pub fn time_to_quality(
-    req: &QualityRequest,
-    obs: &mut dyn BenchObserver,
-) -> Result<QualityReport> {
+pub fn time_to_quality(req: &QualityRequest, obs: &mut dyn BenchObserver) -> Result<QualityReport> {
     let start = Instant::now();
     let last = req.marks.last().copied().unwrap_or(1.0) * 60.0;
     let step = last / req.points.max(1) as f64;
@@ -323,12 +320,11 @@ pub fn time_to_quality(
             // The quality a time buys: a budgeted option's run ends, or the one curve.
             let reached: Vec<(f64, f64)> = match opt.budgeted {
                 true => std::iter::once((0.0, initial))
-                    .chain(curves.iter().map(|c| {
-                        (
-                            c.budget_s,
-                            c.curve.last().map_or(f64::NAN, |p| p.1),
-                        )
-                    }))
+                    .chain(
+                        curves
+                            .iter()
+                            .map(|c| (c.budget_s, c.curve.last().map_or(f64::NAN, |p| p.1))),
+                    )
                     .collect(),
                 false => curves[0].curve.clone(),
             };

@@ -316,8 +316,17 @@ fn the_fast_recipe_adds_no_read_back_inside_a_step() {
     });
     let a = account_step(&mut trainer, &mut source, Route::Cuda).unwrap();
     check(&a, 1, 1_470);
-    assert_eq!(a.stats.ray_errors.len(), 64, "the errors came back with the numbers");
-    assert!(trainer.error_map().unwrap().values().iter().any(|&v| v >= 0.0));
+    assert_eq!(
+        a.stats.ray_errors.len(),
+        64,
+        "the errors came back with the numbers"
+    );
+    assert!(trainer
+        .error_map()
+        .unwrap()
+        .values()
+        .iter()
+        .any(|&v| v >= 0.0));
 
     let culled = |coarse_from_grid: bool| {
         let (_dir, mut trainer, mut source) = tiny_with(0, 64, |run| {

@@ -577,7 +577,10 @@ fn coarse_samples_placed_from_the_grid() {
         assert!(m.windows(2).all(|w| w[0] <= w[1]), "ray {r}: {m:?}");
         let (near, far) = (bounds.near[r], bounds.far[r]);
         let tol = 1e-4 * far.abs().max(1.0);
-        assert!(m[0] >= near - tol && m[sc - 1] <= far + tol, "ray {r}: {m:?} outside [{near}, {far}]");
+        assert!(
+            m[0] >= near - tol && m[sc - 1] <= far + tol,
+            "ray {r}: {m:?} outside [{near}, {far}]"
+        );
         if !bounds.ray_hits_body[r] {
             assert_eq!(e, m, "ray {r} crosses no box");
         }

@@ -304,7 +304,11 @@ fn resume_with_the_fast_recipe_equals_uninterrupted_run() {
     for _ in 0..m {
         resumed_losses.push(resumed.step_read().unwrap().loss.total.to_bits());
     }
-    assert_eq!(resumed_losses, full_losses[n..], "losses of the resumed steps");
+    assert_eq!(
+        resumed_losses,
+        full_losses[n..],
+        "losses of the resumed steps"
+    );
     let (a, b) = (full.error_map().unwrap(), resumed.error_map().unwrap());
     assert!(a == b, "the error map differs after resume");
     let visited = a.values().iter().filter(|&&v| v >= 0.0).count();

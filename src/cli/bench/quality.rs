@@ -17,7 +17,9 @@ pub fn run(args: &Args, dev: &Device) -> anyhow::Result<()> {
     let preset: Preset = args.preset.parse()?;
     let marks = &args.ttq_marks;
     if marks.is_empty()
-        || marks.iter().any(|m| !(m.is_finite() && *m > 0.0 && *m <= 1e4))
+        || marks
+            .iter()
+            .any(|m| !(m.is_finite() && *m > 0.0 && *m <= 1e4))
         || marks.windows(2).any(|w| w[0] >= w[1])
     {
         refuse!("--ttq-marks: expected ascending minutes in (0, 1e4], found {marks:?}");
@@ -26,7 +28,10 @@ pub fn run(args: &Args, dev: &Device) -> anyhow::Result<()> {
         refuse!("--ttq-seeds: name at least one scene seed");
     }
     if !(1..=1000).contains(&args.ttq_points) {
-        refuse!("--ttq-points must be in 1..=1000, found {}", args.ttq_points);
+        refuse!(
+            "--ttq-points must be in 1..=1000, found {}",
+            args.ttq_points
+        );
     }
     let mut scene = pma_data::synth::SynthConfig::default();
     if args.quick {
