@@ -47,7 +47,8 @@ pub fn coarse_in_occupied(
     let mut xs = vec![0f32; 3 * m];
     for r in 0..n_rays {
         let (near, far) = (b.near[r], b.far[r]);
-        if !b.ray_hits_body[r] || !(far > near) {
+        // A NaN bound counts as an empty interval.
+        if !b.ray_hits_body[r] || far.partial_cmp(&near) != Some(std::cmp::Ordering::Greater) {
             continue;
         }
         let t = |j: usize| near + (far - near) * (j as f32 / (m - 1) as f32);

@@ -542,15 +542,12 @@ impl Trainer {
         if let Some(r) = &state.rng {
             self.noise_rng = r.restore()?;
         }
-        match (state.error_map, self.source.error_map_mut()) {
-            (Some(saved), Some(map)) => {
-                let values = saved.flatten_all()?.to_vec1::<f32>()?;
-                map.set_values(values)
-                    .map_err(|e| TrainError::State(vec![format!("sampler.error_map: {e}")]))?;
-            }
-            // A run without a map, or a state without one (a converted reference
-            // checkpoint): the map starts afresh.
-            _ => {}
+        // A run without a map, or a state without one (a converted reference checkpoint):
+        // the map starts afresh.
+        if let (Some(saved), Some(map)) = (state.error_map, self.source.error_map_mut()) {
+            let values = saved.flatten_all()?.to_vec1::<f32>()?;
+            map.set_values(values)
+                .map_err(|e| TrainError::State(vec![format!("sampler.error_map: {e}")]))?;
         }
         self.source
             .restore(state.sampler.as_ref().unwrap_or(&serde_json::Value::Null))
