@@ -13,10 +13,6 @@ fn demo(out_dir: &Path, extra: &[&str]) -> Output {
             out_dir.to_str().unwrap(),
             "--preset",
             "tiny",
-            "--iters",
-            "3",
-            "--minutes",
-            "5",
         ])
         .args([
             "--res",
@@ -40,7 +36,7 @@ fn demo(out_dir: &Path, extra: &[&str]) -> Output {
 fn demo_writes_summary_renders_and_plot() {
     let tmp = tempfile::tempdir().unwrap();
     let out_dir = tmp.path().join("demo");
-    let out = demo(&out_dir, &[]);
+    let out = demo(&out_dir, &["--iters", "3", "--minutes", "5"]);
     assert!(
         out.status.success(),
         "demo failed:\n{}",
@@ -94,12 +90,12 @@ fn demo_writes_summary_renders_and_plot() {
 }
 
 /// `--parity` trains the preset as it is: no recipe option in the summary or the run's
-/// configuration.
+/// configuration. Without `--iters` the budget alone ends the run.
 #[test]
 fn demo_parity_trains_without_the_recipe() {
     let tmp = tempfile::tempdir().unwrap();
     let out_dir = tmp.path().join("demo");
-    let out = demo(&out_dir, &["--parity"]);
+    let out = demo(&out_dir, &["--parity", "--minutes", "0.02"]);
     assert!(
         out.status.success(),
         "{}",
@@ -111,6 +107,7 @@ fn demo_parity_trains_without_the_recipe() {
         serde_json::from_str(&std::fs::read_to_string(out_dir.join("summary.json")).unwrap())
             .unwrap();
     assert_eq!(summary["options"], serde_json::json!([]));
+    assert!(summary["iterations"].as_u64().unwrap() > 0);
     let config = std::fs::read_to_string(out_dir.join("run/config.toml")).unwrap();
     for key in ["error_map", "anneal", "occupancy", "coarse_from_grid"] {
         assert!(!config.contains(key), "{key} in {config}");
