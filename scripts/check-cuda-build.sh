@@ -5,10 +5,13 @@
 #   scripts/check-cuda-build.sh [TOOLCHAIN_DIR]   # default /tmp/cuda-tc; needs network once
 #
 #   target-cuda/gpu-check/pma            the CUDA build of the CLI (stripped)
-#   target-cuda/gpu-check/model-tests    the golden/gradient tests (PMA_TEST_DEVICE=cuda)
+#   target-cuda/gpu-check/model-tests    with MODEL_TESTS=1: the model tests (PMA_TEST_DEVICE=
+#                                        cuda); `pma doctor` already runs the golden forward,
+#                                        gradients and Adam step on the device
 #   target-cuda/gpu-kit.tar.xz           both, plus (with OFFICIAL=DIR) the official code and
 #                                        the wheels it needs beyond the GPU image's packages:
-#                                        what a GPU session carries (its limit is 64 MiB)
+#                                        what a GPU session carries (its limit is 64 MiB, the
+#                                        working tree included: scripts/gpu-session.sh)
 #
 # Steps: the nvcc toolchain from NVIDIA's wheels (scripts/cuda-toolchain-from-wheels.sh,
 # skipped when DIR/env.sh exists), nvcc on pma's own kernels (scripts/check-cuda-kernels.sh),
@@ -32,26 +35,29 @@ t scripts/check-cuda-kernels.sh "$CUDA_COMPUTE_CAP"
 echo "== pma --features cuda (release)"
 t cargo build --release --locked -p pma --features cuda
 
-echo "== pma-model model tests --features cuda (release)"
-t cargo test --release --locked -p pma-model --features cuda,train --test model --no-run
-bin=$(cargo test --release --locked -p pma-model --features cuda,train --test model --no-run \
-  --message-format json 2>/dev/null \
-  | python3 -c 'import json,sys
+kit="$CARGO_TARGET_DIR/gpu-check"
+mkdir -p "$kit"
+strip -o "$kit/pma" "$CARGO_TARGET_DIR/release/pma"
+if [ "${MODEL_TESTS:-0}" = 1 ]; then
+  echo "== pma-model model tests --features cuda (release)"
+  t cargo test --release --locked -p pma-model --features cuda,train --test model --no-run
+  bin=$(cargo test --release --locked -p pma-model --features cuda,train --test model --no-run \
+    --message-format json 2>/dev/null \
+    | python3 -c 'import json,sys
 for l in sys.stdin:
     m = json.loads(l)
     if m.get("reason") == "compiler-artifact" and m["target"]["name"] == "model" and m.get("executable"):
         print(m["executable"])' | tail -1)
-# Stripped copies in one folder: what a GPU session carries over (its carry limit is 64 MiB).
-kit="$CARGO_TARGET_DIR/gpu-check"
-mkdir -p "$kit"
-strip -o "$kit/pma" "$CARGO_TARGET_DIR/release/pma"
-strip -o "$kit/model-tests" "$bin"
+  strip -o "$kit/model-tests" "$bin"
+else
+  rm -f "$kit/model-tests"
+fi
 ls -la "$kit"
 
 echo "== kit (xz)"
 stage=$(mktemp -d)
 trap 'rm -rf "$stage"' EXIT
-cp "$kit/pma" "$kit/model-tests" "$stage/"
+cp "$kit"/* "$stage/"
 if [ -n "${OFFICIAL:-}" ]; then
   # The official code without its history, and hydra/omegaconf (pure Python; the GPU image
   # has torch, numpy, safetensors and pyyaml but not these).

@@ -22,15 +22,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let out = &args[2];
     let res: usize = args.get(3).map_or(Ok(1000), |r| r.parse())?;
     let t = Instant::now();
-    let cfg = SynthConfig {
-        res,
-        train_cams: 2,
-        test_cams: 1,
-        frames: 1,
-        novel_pose_walk: 1,
-        novel_pose_dance: 1,
-        ..Default::default()
-    };
+    let cfg = SynthConfig::small(res, 2, 1);
     let p = plan(&cfg)?;
     let mut ds = render_split(&p, &p.splits[0], &mut || {})?;
     println!(

@@ -147,6 +147,23 @@ impl Default for SynthConfig {
     }
 }
 
+impl SynthConfig {
+    /// A small scene: `train_cams` cameras over `frames` walk frames at `res` pixels, one
+    /// held-out camera, and one walk and one dance frame for the novel-pose split; the rest
+    /// as [`SynthConfig::default`].
+    pub fn small(res: usize, train_cams: usize, frames: usize) -> Self {
+        SynthConfig {
+            res,
+            train_cams,
+            test_cams: 1,
+            frames,
+            novel_pose_walk: 1,
+            novel_pose_dance: 1,
+            ..Default::default()
+        }
+    }
+}
+
 /// Where a pose row comes from.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "snake_case")]

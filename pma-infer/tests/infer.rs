@@ -1,16 +1,39 @@
 //! The inference-only binary renders a checkpoint to a PNG and fails cleanly on bad input.
 
-use std::process::Command;
+use std::path::Path;
+use std::process::{Command, Output};
 
 use candle_core::Device;
+use image::RgbImage;
 use pma_model::render::avatar::Avatar;
 use pma_model::Config;
 
-fn infer(args: &[&str]) -> std::process::Output {
+fn infer(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_pma-infer"))
         .args(args)
         .output()
         .expect("running pma-infer")
+}
+
+/// `pma-infer MODEL PNG 24 EXTRA...`, which must succeed: its output and the image written.
+fn render_24(model: &Path, png: &Path, extra: &[&str]) -> (Output, RgbImage) {
+    let args = [model.to_str().unwrap(), png.to_str().unwrap(), "24"];
+    let out = infer(&[&args[..], extra].concat());
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    (out, image::open(png).unwrap().to_rgb8())
+}
+
+/// The largest difference of any channel of any pixel, in 8-bit levels.
+fn max_level_diff(a: &RgbImage, b: &RgbImage) -> u8 {
+    a.iter()
+        .zip(b.iter())
+        .map(|(x, y)| x.abs_diff(*y))
+        .max()
+        .unwrap()
 }
 
 #[test]
@@ -36,17 +59,11 @@ fn renders_one_png_and_rejects_bad_input() {
         .save(&model)
         .unwrap();
     let png = tmp.path().join("out.png");
-    let out = infer(&[model.to_str().unwrap(), png.to_str().unwrap(), "24"]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let (out, img) = render_24(&model, &png, &[]);
     assert_eq!(image::image_dimensions(&png).unwrap(), (24, 24));
     assert!(String::from_utf8_lossy(&out.stdout).contains("render"));
     // The body is drawn over the black background: the corners stay black and the centre,
     // where the rest pose stands, does not.
-    let img = image::open(&png).unwrap().to_rgb8();
     assert_eq!(img.get_pixel(0, 0).0, [0, 0, 0], "background corner");
     let lit = img.pixels().filter(|p| p.0 != [0, 0, 0]).count();
     assert!(lit > 0 && lit < 24 * 24, "{lit} non-black pixels");
@@ -72,69 +89,23 @@ fn renders_one_png_and_rejects_bad_input() {
         .with_occupancy(Some(grid))
         .save(&gridded)
         .unwrap();
-    let png2 = tmp.path().join("grid.png");
-    let out = infer(&[
-        gridded.to_str().unwrap(),
-        png2.to_str().unwrap(),
-        "24",
-        "--occupancy",
-    ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    assert_eq!(
-        image::open(&png2).unwrap().to_rgb8().into_raw(),
-        img.clone().into_raw()
-    );
+    let (_, gridded_img) = render_24(&gridded, &tmp.path().join("grid.png"), &["--occupancy"]);
+    assert_eq!(gridded_img.into_raw(), img.clone().into_raw());
 
     // The body is opaque: stopping its rays once their transmittance is below 1e-3 leaves
     // out what is behind the surface, which the image weights by less than that.
-    let png3 = tmp.path().join("early.png");
-    let out = infer(&[
-        model.to_str().unwrap(),
-        png3.to_str().unwrap(),
-        "24",
-        "--early-stop",
-        "1e-3",
-    ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+    let (_, early) = render_24(
+        &model,
+        &tmp.path().join("early.png"),
+        &["--early-stop", "1e-3"],
     );
-    let early = image::open(&png3).unwrap().to_rgb8().into_raw();
-    let full = img.clone().into_raw();
-    let worst = early
-        .iter()
-        .zip(&full)
-        .map(|(a, b)| a.abs_diff(*b))
-        .max()
-        .unwrap();
+    let worst = max_level_diff(&early, &img);
     assert!(worst <= 1, "early stop changed a pixel by {worst} levels");
 
     // Calls grouped by the joints their samples need: the same image up to float summation
     // order.
-    let png4 = tmp.path().join("joints.png");
-    let out = infer(&[
-        model.to_str().unwrap(),
-        png4.to_str().unwrap(),
-        "24",
-        "--cull-joints",
-    ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let grouped = image::open(&png4).unwrap().to_rgb8().into_raw();
-    let worst = grouped
-        .iter()
-        .zip(&full)
-        .map(|(a, b)| a.abs_diff(*b))
-        .max()
-        .unwrap();
+    let (_, grouped) = render_24(&model, &tmp.path().join("joints.png"), &["--cull-joints"]);
+    let worst = max_level_diff(&grouped, &img);
     assert!(
         worst <= 1,
         "joint grouping changed a pixel by {worst} levels"
@@ -142,55 +113,17 @@ fn renders_one_png_and_rejects_bad_input() {
 
     // Refused input exits with 2, naming what was wrong.
     let no_dir = tmp.path().join("missing").join("out.png");
+    let (m, p) = (model.to_str().unwrap(), png.to_str().unwrap());
     for (args, needle) in [
-        (vec![model.to_str().unwrap()], "usage"),
-        (
-            vec![model.to_str().unwrap(), png.to_str().unwrap(), "--cull"],
-            "unknown flag \"--cull\"",
-        ),
-        (
-            vec![model.to_str().unwrap(), png.to_str().unwrap(), "--device"],
-            "--device needs a value",
-        ),
-        (
-            vec![
-                model.to_str().unwrap(),
-                png.to_str().unwrap(),
-                "--device",
-                "tpu",
-            ],
-            "unknown device",
-        ),
-        (
-            vec![model.to_str().unwrap(), no_dir.to_str().unwrap(), "24"],
-            "missing",
-        ),
-        (
-            vec![
-                model.to_str().unwrap(),
-                png.to_str().unwrap(),
-                "--early-stop",
-                "2",
-            ],
-            "early_stop",
-        ),
-        (
-            vec![
-                model.to_str().unwrap(),
-                png.to_str().unwrap(),
-                "--early-stop",
-                "x",
-            ],
-            "--early-stop needs",
-        ),
-        (
-            vec![model.to_str().unwrap(), png.to_str().unwrap(), "3"],
-            "SIZE must be",
-        ),
-        (
-            vec!["/nonexistent.safetensors", png.to_str().unwrap()],
-            "nonexistent",
-        ),
+        (vec![m], "usage"),
+        (vec![m, p, "--cull"], "unknown flag \"--cull\""),
+        (vec![m, p, "--device"], "--device needs a value"),
+        (vec![m, p, "--device", "tpu"], "unknown device"),
+        (vec![m, no_dir.to_str().unwrap(), "24"], "missing"),
+        (vec![m, p, "--early-stop", "2"], "early_stop"),
+        (vec![m, p, "--early-stop", "x"], "--early-stop needs"),
+        (vec![m, p, "3"], "SIZE must be"),
+        (vec!["/nonexistent.safetensors", p], "nonexistent"),
     ] {
         let out = infer(&args);
         let err = String::from_utf8_lossy(&out.stderr);

@@ -12,8 +12,6 @@
 #[path = "support/scene.rs"]
 mod scene;
 
-use std::time::Instant;
-
 use candle_core::{Device, Tensor};
 
 #[global_allocator]
@@ -42,15 +40,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     ];
     println!("{rows} rows × 256 → 256, {threads} thread(s); peak of those cores ≈ {peak_here:.0} GFLOP/s");
     for (name, product) in products {
-        product()?;
-        let times = (0..7)
-            .map(|_| {
-                let t = Instant::now();
-                product()?;
-                Ok(t.elapsed().as_secs_f64())
-            })
-            .collect::<candle_core::Result<Vec<f64>>>()?;
-        let m = scene::median(times);
+        let m = scene::median_seconds(7, || {
+            product()?;
+            Ok(())
+        })?;
         let g = flop / m / 1e9;
         println!(
             "{name:<18} {:8.3} ms  {g:6.1} GFLOP/s  {:5.1} % of peak",

@@ -35,25 +35,22 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         v.sort_by(|a, b| a.partial_cmp(b).unwrap());
         v[v.len() / 2]
     };
+    let forward = || -> Result<_, Box<dyn std::error::Error>> {
+        Ok(avatar.forward(
+            &rays,
+            &poses,
+            &mut Mode::Train(None),
+            &Default::default(),
+            None,
+        )?)
+    };
     let (mut fwd, mut bwd) = (Vec::new(), Vec::new());
     for i in 0..7 {
         let t = Instant::now();
-        let out = avatar.forward(
-            &rays,
-            &poses,
-            &mut Mode::Train(None),
-            &Default::default(),
-            None,
-        )?;
+        let out = forward()?;
         let f = t.elapsed().as_secs_f64();
         let t = Instant::now();
-        let out2 = avatar.forward(
-            &rays,
-            &poses,
-            &mut Mode::Train(None),
-            &Default::default(),
-            None,
-        )?;
+        let out2 = forward()?;
         let loss = training_loss(&out2, &target, &LossWeights::default())?;
         loss.total.backward()?;
         let b = t.elapsed().as_secs_f64();

@@ -11,8 +11,6 @@
 #[path = "support/scene.rs"]
 mod scene;
 
-use std::time::Instant;
-
 use candle_core::{Device, Tensor};
 use pma_model::network::config::Config;
 use pma_model::render::avatar::Avatar;
@@ -57,14 +55,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut all = None;
     for k in [24usize, 12, 8, 6, 4, 2, 1] {
         let joints: Vec<u32> = (0..k as u32).collect();
-        net.eval_joints(&pose, 0..1, &pts, &view, Some(&joints), None)?;
-        let mut times = Vec::with_capacity(9);
-        for _ in 0..9 {
-            let t = Instant::now();
+        let secs = scene::median_seconds(9, || {
             net.eval_joints(&pose, 0..1, &pts, &view, Some(&joints), None)?;
-            times.push(t.elapsed().as_secs_f64());
-        }
-        let us = scene::median(times) * 1e6 / n as f64;
+            Ok(())
+        })?;
+        let us = secs * 1e6 / n as f64;
         let of_all = *all.get_or_insert(us);
         println!(
             "{k:>2} joints: {us:6.2} µs/point  {:5.2} of 24 joints' cost",

@@ -14,8 +14,6 @@
 #[path = "support/scene.rs"]
 mod scene;
 
-use std::time::Instant;
-
 use candle_core::Device;
 use pma_model::train::{BatchSource, DatasetSource, Preset, RunConfig, Trainer};
 
@@ -62,15 +60,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     if train_rays > 0 {
         run.train.rays_per_step = train_rays;
         let mut trainer = Trainer::new(run.clone(), data.clone(), &Device::Cpu)?;
-        let mut times = Vec::new();
-        for i in 0..=repeats {
-            let t = Instant::now();
+        let m = scene::median_seconds(repeats, || {
             trainer.step()?;
-            if i > 0 {
-                times.push(t.elapsed().as_secs_f64());
-            }
-        }
-        let m = scene::median(times);
+            Ok(())
+        })?;
         let sps = train_rays as f64 * samples / m;
         println!(
             "training  {train_rays:>5} rays: median {m:.3} s/step, {sps:.0} samples/s, {}",
@@ -90,15 +83,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 .with_numerics(numerics);
         let mut src = DatasetSource::new(data, infer_rays, 16, false, 0, &Device::Cpu)?;
         let batch = src.next_batch()?;
-        let mut times = Vec::new();
-        for i in 0..=repeats {
-            let t = Instant::now();
+        let m = scene::median_seconds(repeats, || {
             avatar.render_rays(&batch.rays, &batch.poses, &Default::default())?;
-            if i > 0 {
-                times.push(t.elapsed().as_secs_f64());
-            }
-        }
-        let m = scene::median(times);
+            Ok(())
+        })?;
         let sps = infer_rays as f64 * samples / m;
         println!(
             "inference {infer_rays:>5} rays: median {m:.3} s, {sps:.0} samples/s, {}",

@@ -3,18 +3,15 @@
 //! parallel ray chunks give bit-identical results with 1 and with 3 workers.
 #![cfg(feature = "train")]
 
+mod common;
 mod train_support;
 
-use candle_core::{Device, Tensor};
+use candle_core::Device;
 use pma_model::compute::parallel::{set_workers, workers};
 use pma_model::render::avatar::Avatar;
 use pma_model::render::PassOptions;
-use pma_model::train::{BatchSource, DatasetSource, FixedBatch, Trainer};
-use train_support::{first_batch, tiny_run, tiny_scene};
-
-fn flat(t: &Tensor) -> Vec<f32> {
-    t.flatten_all().unwrap().to_vec1::<f32>().unwrap()
-}
+use pma_model::train::{BatchSource, DatasetSource};
+use train_support::{first_batch, fixed_batch_trainer, flat, step_grads, tiny_run, tiny_scene};
 
 // One test function: the worker count is process-wide.
 #[test]
@@ -30,18 +27,8 @@ fn worker_count_does_not_change_results() {
     let step = |w: usize| {
         set_workers(w);
         assert_eq!(workers(), w);
-        let avatar = Avatar::new(run.model.clone(), &rest, run.train.seed, &Device::Cpu).unwrap();
-        let mut trainer =
-            Trainer::with_source(run.clone(), avatar, Box::new(FixedBatch(batch.clone()))).unwrap();
-        let mut grads = Vec::new();
-        let stats = trainer
-            .step_hooked(&mut |g: &mut [Option<Tensor>]| {
-                grads = g
-                    .iter()
-                    .map(|t| t.as_ref().map(flat).unwrap_or_default())
-                    .collect::<Vec<_>>();
-            })
-            .unwrap();
+        let mut trainer = fixed_batch_trainer(run.clone(), &data, &batch);
+        let (stats, grads) = step_grads(&mut trainer);
         let params: Vec<Vec<f32>> = trainer
             .avatar()
             .trainable()

@@ -61,14 +61,8 @@ pub struct Args {
     pub train_data: Option<PathBuf>,
     #[command(flatten)]
     pub pass: PassOptions,
-    /// Compute device: cpu, cuda, cuda:N, metal (cuda/metal need a binary built with that
-    /// feature).
-    #[arg(long, default_value = "cpu")]
-    pub device: String,
-    /// TF32 matrix products on CUDA: faster, changes results (see docs/numerics.md, "Low
-    /// precision"); refused on other devices.
-    #[arg(long)]
-    pub tf32: bool,
+    #[command(flatten)]
+    pub device: super::DeviceArgs,
 }
 
 pub fn run(mut args: Args) -> anyhow::Result<()> {
@@ -83,7 +77,7 @@ pub fn run(mut args: Args) -> anyhow::Result<()> {
         super::refuse!("--pngs {}: at most 10000", args.pngs);
     }
     // Opened first: a device this build cannot use is refused before any work.
-    let device = super::device_tf32(&args.device, args.tf32)?;
+    let device = args.device.open()?;
     // A run directory: the PNGs go beside its published model.
     let run_dir = args.model.is_dir().then(|| args.model.clone());
     args.model = super::model_path(&args.model)?;

@@ -43,14 +43,8 @@ pub struct Args {
     /// instead of the inference path's detached chunks on all cores. Same outputs, slower.
     #[arg(long)]
     grad: bool,
-    /// Compute device: cpu, cuda, cuda:N, metal (cuda/metal need a binary built with that
-    /// feature).
-    #[arg(long, default_value = "cpu")]
-    device: String,
-    /// TF32 matrix products on CUDA: faster, changes results (see docs/numerics.md, "Low
-    /// precision"); refused on other devices.
-    #[arg(long)]
-    tf32: bool,
+    #[command(flatten)]
+    device: super::DeviceArgs,
     /// After the forward whose outputs are written, run this many more and print their
     /// median wall time (the first call pays one-off costs such as GPU kernel loading).
     #[arg(long, default_value_t = 0)]
@@ -69,7 +63,7 @@ pub fn run(mut args: Args) -> Result<()> {
             .input_opt("--sigma-override", args.sigma_override.as_deref())
             .output("--out", &args.out),
     )?;
-    let dev = super::device_tf32(&args.device, args.tf32)?;
+    let dev = args.device.open()?;
     let batch = RayBatchFile::read(&args.batch)?;
     let file = batch.file().to_string();
     let input = batch.input(&dev)?;
@@ -140,7 +134,7 @@ fn time_forward(
     secs.sort_by(f64::total_cmp);
     println!(
         "forward on {}: median {:.4} s, min {:.4} s over {} runs ({} rays)",
-        args.device,
+        args.device.device,
         secs[secs.len() / 2],
         secs[0],
         secs.len(),

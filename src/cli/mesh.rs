@@ -19,7 +19,7 @@ use image::RgbImage;
 use pma_data::cylinder::HeadDir;
 use pma_data::skeleton::Joints;
 use pma_model::render::avatar::Avatar;
-use pma_model::render::camera_path::{facing, framing_camera, load_avatar, ViewDirs};
+use pma_model::render::camera_path::{facing, framing_camera};
 use pma_model::tools::mesh::{
     colour_vertices, marching_cubes, render_preview, sample_grid, write_ply, AvatarField, Grid,
     Mesh, DEFAULT_THRESHOLD,
@@ -95,14 +95,8 @@ pub fn run(mut args: Args) -> anyhow::Result<()> {
             .output("--out", &args.out)
             .output_opt("--preview", args.preview.as_deref()),
     )?;
-    let dirs = if args.reference_dirs {
-        ViewDirs::Reference
-    } else {
-        ViewDirs::Normalized
-    };
-    let avatar = load_avatar(&args.model, &device, dirs)
-        .with_context(|| format!("loading model {}", args.model.display()))?
-        .with_numerics(super::numerics());
+    let dirs = super::view_dirs(args.reference_dirs);
+    let avatar = super::load_model(&args.model, &device, dirs)?;
     if args.occupancy && avatar.occupancy().is_none() {
         refuse!(
             "--occupancy: {} has no occupancy grid (train with `--occupancy` or build one with \

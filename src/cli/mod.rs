@@ -32,6 +32,7 @@ use anyhow::Context as _;
 use pma_data::dataset::{Dataset, Profile};
 use pma_data::{ErrorKind, ExitKind};
 use pma_model::compute::numerics::Numerics;
+use pma_model::render::camera_path::ViewDirs;
 
 /// Exit status of a command refused because of its input (a split the file does not hold,
 /// a corrupt file, an out-of-range flag, an output that would replace an input), as for
@@ -195,6 +196,29 @@ pub fn model_path(path: &Path) -> anyhow::Result<std::path::PathBuf> {
 }
 
 /// The most CPU workers `--workers` accepts: 4 per core.
+/// The view directions a `--reference-dirs` flag asks for: the reference's raw render-time
+/// ones, or unit ones.
+pub fn view_dirs(reference_dirs: bool) -> ViewDirs {
+    if reference_dirs {
+        ViewDirs::Reference
+    } else {
+        ViewDirs::Normalized
+    }
+}
+
+/// The avatar at `path` on `device`, rendering with `dirs`, with the process's numerics.
+pub fn load_model(
+    path: &Path,
+    device: &candle_core::Device,
+    dirs: ViewDirs,
+) -> anyhow::Result<pma_model::render::avatar::Avatar> {
+    Ok(
+        pma_model::render::camera_path::load_avatar(path, device, dirs)
+            .with_context(|| format!("loading model {}", path.display()))?
+            .with_numerics(numerics()),
+    )
+}
+
 pub fn max_workers() -> usize {
     4 * std::thread::available_parallelism().map_or(1, |n| n.get())
 }
@@ -238,6 +262,26 @@ pub fn device_tf32(spec: &str, tf32: bool) -> anyhow::Result<candle_core::Device
     pma_model::compute::device::check_tf32(tf32, &dev)?;
     NUMERICS.lock().unwrap_or_else(|e| e.into_inner()).tf32 = tf32;
     Ok(dev)
+}
+
+/// `--device` and `--tf32`, for the commands that compute on a device of the user's choice.
+#[derive(clap::Args, Debug, Clone)]
+pub struct DeviceArgs {
+    /// Compute device: cpu, cuda, cuda:N, metal (cuda/metal need a binary built with that
+    /// feature).
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
+    /// TF32 matrix products on CUDA: faster, changes results (see docs/numerics.md, "Low
+    /// precision"); refused on other devices.
+    #[arg(long)]
+    pub tf32: bool,
+}
+
+impl DeviceArgs {
+    /// The device, opened by [`device_tf32`].
+    pub fn open(&self) -> anyhow::Result<candle_core::Device> {
+        device_tf32(&self.device, self.tf32)
+    }
 }
 
 /// The numeric choices of this command line (`--fast-sine`, `--tf32`): one command runs per

@@ -17,7 +17,7 @@ use pma_data::cylinder::HeadDir;
 use pma_data::dataset::Profile;
 use pma_model::eval::{read_split, SplitData};
 use pma_model::render::avatar::Avatar;
-use pma_model::render::camera_path::{load_avatar, parse_resolution, ViewDirs};
+use pma_model::render::camera_path::parse_resolution;
 use pma_model::render::PassOptions;
 use pma_model::tools::retarget::{MotionClip, RootScale};
 use pma_model::tools::video::{
@@ -99,14 +99,8 @@ pub struct Args {
     pub quiet: bool,
     #[command(flatten)]
     pub pass: PassOptions,
-    /// Compute device: cpu, cuda, cuda:N, metal (cuda/metal need a binary built with that
-    /// feature).
-    #[arg(long, default_value = "cpu")]
-    pub device: String,
-    /// TF32 matrix products on CUDA: faster, changes results (see docs/numerics.md, "Low
-    /// precision"); refused on other devices.
-    #[arg(long)]
-    pub tf32: bool,
+    #[command(flatten)]
+    pub device: super::DeviceArgs,
     /// Output directory.
     #[arg(long)]
     pub out: PathBuf,
@@ -116,15 +110,9 @@ pub fn run(mut args: Args) -> anyhow::Result<()> {
     check_args(&args)?;
     args.model = super::model_path(&args.model)?;
     let res = args.res.as_deref().map(parse_resolution).transpose()?;
-    let device = super::device_tf32(&args.device, args.tf32)?;
-    let dirs = if args.reference_dirs {
-        ViewDirs::Reference
-    } else {
-        ViewDirs::Normalized
-    };
-    let avatar = load_avatar(&args.model, &device, dirs)
-        .with_context(|| format!("loading model {}", args.model.display()))?
-        .with_numerics(super::numerics());
+    let device = args.device.open()?;
+    let dirs = super::view_dirs(args.reference_dirs);
+    let avatar = super::load_model(&args.model, &device, dirs)?;
 
     let data = match &args.data {
         Some(d) => {

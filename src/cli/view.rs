@@ -4,7 +4,6 @@
 use std::net::{IpAddr, Ipv4Addr, SocketAddr};
 use std::path::PathBuf;
 
-use pma_model::render::camera_path::ViewDirs;
 use pma_model::tools::retarget::RootScale;
 use pma_view::{Server, ViewError, ViewOptions};
 
@@ -54,11 +53,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         root_scale,
         addr: SocketAddr::new(args.host, args.port),
         device: super::device(&args.device)?,
-        view_dirs: if args.reference_dirs {
-            ViewDirs::Reference
-        } else {
-            ViewDirs::Normalized
-        },
+        view_dirs: super::view_dirs(args.reference_dirs),
         chunk: args.chunk,
         numerics: super::numerics(),
     };

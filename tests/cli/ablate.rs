@@ -1,7 +1,7 @@
 //! `pma ablate` end to end on a tiny scene: every variant asked for trains, is scored on both
 //! held-out splits, and lands in the table, the JSON and the plot; bad input is refused.
 
-use crate::run::{fails_with, ok, pma};
+use crate::run::{exits_2_with, ok, pma, read_json};
 
 #[test]
 fn ablate_tabulates_each_variant() {
@@ -26,8 +26,7 @@ fn ablate_tabulates_each_variant() {
         "--out",
         out.to_str().unwrap(),
     ]));
-    let json: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(out.join("ablation.json")).unwrap()).unwrap();
+    let json = read_json(&out.join("ablation.json"));
     let rows = json.as_array().unwrap();
     let names: Vec<&str> = rows
         .iter()
@@ -70,8 +69,7 @@ fn ablate_tabulates_each_variant() {
 fn ablate_refuses_unknown_variants_and_missing_splits() {
     let tmp = tempfile::tempdir().unwrap();
     let out = pma(&["ablate", "--variants", "full,half", "--out", "x"]);
-    assert_eq!(out.status.code(), Some(2));
-    fails_with(out, "half");
+    exits_2_with(out, "half");
     let lone = tmp.path().join("lone");
     std::fs::create_dir_all(&lone).unwrap();
     let train = crate::run::tiny_scene(&tmp.path().join("scene"), 1);
@@ -83,6 +81,5 @@ fn ablate_refuses_unknown_variants_and_missing_splits() {
         "--out",
         tmp.path().join("o").to_str().unwrap(),
     ]);
-    assert_eq!(out.status.code(), Some(2));
-    fails_with(out, "novel_view");
+    exits_2_with(out, "novel_view");
 }

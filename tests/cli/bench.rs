@@ -1,33 +1,29 @@
 //! `pma bench --quick`: the smallest run writes bench.json with one row per option and the
 //! error-vs-time plot; bad flags fail with a message.
 
-use std::process::Command;
+use std::path::Path;
+use std::process::Output;
+
+use crate::run::{exits_2_with, fails_with, ok, pma, read_json, s};
+
+/// `pma bench --account --quiet --preset tiny`, the start of every accounting run here.
+const ACCOUNT_TINY: [&str; 5] = ["bench", "--account", "--quiet", "--preset", "tiny"];
 
 #[test]
 fn quick_bench_writes_every_field() {
     let dir = tempfile::tempdir().unwrap();
-    let out = Command::new(env!("CARGO_BIN_EXE_pma"))
-        .args([
-            "bench",
-            "--quick",
-            "--quiet",
-            "--device",
-            "cpu",
-            "--thresholds",
-            "0,1e-2",
-            "--out",
-        ])
-        .arg(dir.path())
-        .output()
-        .expect("running pma");
-    assert!(
-        out.status.success(),
-        "pma bench failed:\n{}\n{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let json: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(dir.path().join("bench.json")).unwrap()).unwrap();
+    ok(pma(&[
+        "bench",
+        "--quick",
+        "--quiet",
+        "--device",
+        "cpu",
+        "--thresholds",
+        "0,1e-2",
+        "--out",
+        s(dir.path()),
+    ]));
+    let json = read_json(&dir.path().join("bench.json"));
     for key in ["flops_per_point", "peak_gflops", "inactive_joint_fraction"] {
         let v = json[key].as_f64();
         assert!(v.is_some_and(|v| v.is_finite() && v >= 0.0), "{key}: {v:?}");
@@ -147,23 +143,32 @@ fn quick_bench_writes_every_field() {
 #[test]
 fn bad_thresholds_are_refused() {
     let dir = tempfile::tempdir().unwrap();
-    let out = Command::new(env!("CARGO_BIN_EXE_pma"))
-        .args(["bench", "--quick", "--thresholds", "2", "--out"])
-        .arg(dir.path())
-        .output()
-        .expect("running pma");
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success());
-    assert!(err.contains("--thresholds"), "{err}");
-    assert!(!err.contains("panicked"), "{err}");
-    let out = Command::new(env!("CARGO_BIN_EXE_pma"))
-        .args(["bench", "--quick", "--early-stop", "0", "--out"])
-        .arg(dir.path())
-        .output()
-        .expect("running pma");
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert_eq!(out.status.code(), Some(2), "{err}");
-    assert!(err.contains("--early-stop"), "{err}");
+    let out = s(dir.path());
+    fails_with(
+        pma(&["bench", "--quick", "--thresholds", "2", "--out", out]),
+        "--thresholds",
+    );
+    exits_2_with(
+        pma(&["bench", "--quick", "--early-stop", "0", "--out", out]),
+        "--early-stop",
+    );
+}
+
+/// `pma bench --quiet --forward-only` on `batch` with the golden model, into `out`.
+fn forward_bench(batch: &Path, out: &Path, extra: &[&str]) -> Output {
+    let model = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/golden/model.safetensors");
+    let args = [
+        "bench",
+        "--quiet",
+        "--forward-only",
+        "--forward-batch",
+        s(batch),
+        "--forward-model",
+        s(&model),
+        "--out",
+        s(out),
+    ];
+    pma(&[&args[..], extra].concat())
 }
 
 /// `--forward-only`: one warm-up and `--repeats` whole `pma forward` processes on a batch,
@@ -173,35 +178,13 @@ fn forward_only_bench_times_whole_forward_processes() {
     let dir = tempfile::tempdir().unwrap();
     let batch = dir.path().join("batch.npz");
     super::forward::write_batch(&batch, None);
-    let fixtures = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("fixtures/golden");
-    let out = Command::new(env!("CARGO_BIN_EXE_pma"))
-        .args([
-            "bench",
-            "--quiet",
-            "--forward-only",
-            "--repeats",
-            "2",
-            "--forward-batch",
-        ])
-        .arg(&batch)
-        .arg("--forward-model")
-        .arg(fixtures.join("model.safetensors"))
-        .arg("--out")
-        .arg(dir.path())
-        .output()
-        .expect("running pma");
-    assert!(
-        out.status.success(),
-        "pma bench failed:\n{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let out = ok(forward_bench(&batch, dir.path(), &["--repeats", "2"]));
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(
         stdout.contains("pma forward (whole process) 64 rays"),
         "{stdout}"
     );
-    let json: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(dir.path().join("bench.json")).unwrap()).unwrap();
+    let json = read_json(&dir.path().join("bench.json"));
     let f = &json["forward"];
     assert_eq!(f["rays"].as_u64(), Some(64));
     let runs = f["runs_s"].as_array().unwrap();
@@ -222,16 +205,7 @@ fn forward_bench_reports_a_failing_forward() {
     let dir = tempfile::tempdir().unwrap();
     let batch = dir.path().join("batch.npz");
     super::forward::write_batch(&batch, Some("skts"));
-    let fixtures = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("fixtures/golden");
-    let out = Command::new(env!("CARGO_BIN_EXE_pma"))
-        .args(["bench", "--quiet", "--forward-only", "--forward-batch"])
-        .arg(&batch)
-        .arg("--forward-model")
-        .arg(fixtures.join("model.safetensors"))
-        .arg("--out")
-        .arg(dir.path())
-        .output()
-        .expect("running pma");
+    let out = forward_bench(&batch, dir.path(), &[]);
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("skts"), "{err}");
@@ -239,7 +213,6 @@ fn forward_bench_reports_a_failing_forward() {
 
 #[test]
 fn account_writes_the_step_counts() {
-    use super::run::{ok, pma};
     let dir = tempfile::tempdir().unwrap();
     let off = dir.path().join("official.json");
     // A recorded run in count_official.py's layout (two ops).
@@ -254,23 +227,14 @@ fn account_writes_the_step_counts() {
     .unwrap();
     let out = dir.path().to_str().unwrap();
     let stdout = ok(pma(&[
-        "bench",
-        "--account",
-        "--quiet",
-        "--preset",
-        "tiny",
-        "--rays",
-        "32",
-        "--official-json",
-        off.to_str().unwrap(),
-        "--out",
-        out,
-    ]))
+        &ACCOUNT_TINY[..],
+        &["--rays", "32", "--official-json", s(&off), "--out", out],
+    ]
+    .concat()))
     .stdout;
     let text = String::from_utf8_lossy(&stdout);
     assert!(text.contains("official (32 rays)"), "{text}");
-    let json: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(dir.path().join("account.json")).unwrap()).unwrap();
+    let json = read_json(&dir.path().join("account.json"));
     // The tiny step in one pass reads nothing back inside it; its numbers come back in one
     // read (as tests/model/account.rs counts them).
     assert_eq!(json["syncs_per_step"], 0);
@@ -308,92 +272,49 @@ fn account_writes_the_step_counts() {
 
 #[test]
 fn account_refuses_bad_flags() {
-    use super::run::{fails_with, pma};
     let dir = tempfile::tempdir().unwrap();
-    let out = dir.path().to_str().unwrap();
-    let base = [
-        "bench",
-        "--account",
-        "--quiet",
-        "--preset",
-        "tiny",
-        "--out",
-        out,
+    let base = [&ACCOUNT_TINY[..], &["--out", s(dir.path())]].concat();
+    let refusals: &[(&[&str], &str)] = &[
+        (&["--account-as", "gpu"], "--account-as"),
+        (&["--rays", "31"], "--rays 31"),
+        (
+            &["--official-json", "/nonexistent/official.json"],
+            "official.json",
+        ),
+        (&["--device-memory-gb", "0"], "--device-memory-gb"),
+        (&["--device-memory-gb=-4"], "--device-memory-gb"),
+        (&["--device-memory-gb", "nan"], "--device-memory-gb"),
+        // A chunked step is not extrapolated.
+        (
+            &[
+                "--rays",
+                "32",
+                "--chunk-rays",
+                "8",
+                "--extrapolate-from",
+                "8",
+            ],
+            "one-pass",
+        ),
+        (&["--account-cull=1"], "--account-cull"),
+        (&["--account-cull=-0.5"], "--account-cull"),
+        (&["--account-cull=nan"], "--account-cull"),
+        // A culled step is not extrapolated.
+        (
+            &[
+                "--rays",
+                "96",
+                "--extrapolate-from",
+                "32",
+                "--account-cull",
+                "0.6",
+            ],
+            "--account-cull",
+        ),
     ];
-    let with = |extra: &[&str]| {
-        let mut a = base.to_vec();
-        a.extend_from_slice(extra);
-        pma(&a)
-    };
-    let o = with(&["--account-as", "gpu"]);
-    assert_eq!(o.status.code(), Some(2));
-    fails_with(o, "--account-as");
-    let o = with(&["--rays", "31"]);
-    assert_eq!(o.status.code(), Some(2));
-    fails_with(o, "--rays 31");
-    let o = with(&["--official-json", "/nonexistent/official.json"]);
-    assert_eq!(o.status.code(), Some(2));
-    fails_with(o, "official.json");
-    for bad in ["0", "--device-memory-gb=-4", "nan"] {
-        let o = match bad.starts_with("--") {
-            true => with(&[bad]),
-            false => with(&["--device-memory-gb", bad]),
-        };
-        assert_eq!(o.status.code(), Some(2), "--device-memory-gb {bad}");
-        fails_with(o, "--device-memory-gb");
+    for (extra, needle) in refusals {
+        exits_2_with(pma(&[&base[..], extra].concat()), needle);
     }
-    // A chunked step is not extrapolated.
-    let o = with(&[
-        "--rays",
-        "32",
-        "--chunk-rays",
-        "8",
-        "--extrapolate-from",
-        "8",
-    ]);
-    assert_eq!(o.status.code(), Some(2));
-    fails_with(o, "one-pass");
-    for bad in ["1", "-0.5", "nan"] {
-        let o = with(&[&format!("--account-cull={bad}")]);
-        assert_eq!(o.status.code(), Some(2), "--account-cull {bad}");
-        fails_with(o, "--account-cull");
-    }
-    // A culled step is not extrapolated.
-    let o = with(&[
-        "--rays",
-        "96",
-        "--extrapolate-from",
-        "32",
-        "--account-cull",
-        "0.6",
-    ]);
-    assert_eq!(o.status.code(), Some(2));
-    fails_with(o, "--account-cull");
-}
-
-/// A resolution-16 grid where about 30 % of each joint's cells hold density 1 (a fixed
-/// pseudo-random pattern) and the rest 0.
-fn patterned_grid() -> pma_model::network::occupancy::OccupancyGrid {
-    use pma_model::network::occupancy::{OccupancyConfig, OccupancyGrid};
-    let cfg = OccupancyConfig {
-        resolution: 16,
-        dilation: 0,
-        ..Default::default()
-    };
-    let mut grid = OccupancyGrid::new(cfg).unwrap();
-    let mut state = 5u64;
-    for j in 0..24 {
-        for c in 0..16 * 16 * 16 {
-            state = state
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            let occupied = (state >> 40) % 10 < 3;
-            grid.update_max(j, c, if occupied { 1.0 } else { 0.0 })
-                .unwrap();
-        }
-    }
-    grid.finish_refresh();
-    grid
 }
 
 fn u(v: &serde_json::Value, key: &str) -> u64 {
@@ -461,7 +382,6 @@ fn check_rows(json: &serde_json::Value, set: &str, shared_grid: bool) {
 
 #[test]
 fn shares_count_the_samples_each_pass_runs() {
-    use super::run::{fails_with, ok, pma};
     let dir = tempfile::tempdir().unwrap();
     let out = |name: &str| dir.path().join(name);
     let s = |p: &std::path::Path| p.to_str().unwrap().to_string();
@@ -481,9 +401,7 @@ fn shares_count_the_samples_each_pass_runs() {
         let refs: Vec<&str> = a.iter().map(String::as_str).collect();
         ok(pma(&refs))
     };
-    let read = |d: &std::path::Path| -> serde_json::Value {
-        serde_json::from_slice(&std::fs::read(d.join("shares.json")).unwrap()).unwrap()
-    };
+    let read = |d: &std::path::Path| -> serde_json::Value { read_json(&d.join("shares.json")) };
 
     // The preset trained in-process for --quick's 2 steps, its grid built from its density.
     let first = shares(&["--out".into(), s(&out("a"))]);
@@ -511,7 +429,7 @@ fn shares_count_the_samples_each_pass_runs() {
     let gridded = out("gridded.safetensors");
     pma_model::render::avatar::Avatar::load(&model, &candle_core::Device::Cpu)
         .unwrap()
-        .with_occupancy(Some(patterned_grid()))
+        .with_occupancy(Some(crate::run::patterned_grid(5)))
         .save(&gridded)
         .unwrap();
     for d in ["b", "c"] {
@@ -541,8 +459,7 @@ fn shares_count_the_samples_each_pass_runs() {
         "--out",
         &s(&out("d")),
     ]);
-    assert_eq!(o.status.code(), Some(2));
-    fails_with(o, "--shares-threshold");
+    exits_2_with(o, "--shares-threshold");
     let o = pma(&["bench", "--shares-steps", "3", "--out", &s(&out("d"))]);
     assert_eq!(o.status.code(), Some(2));
 }
@@ -553,27 +470,19 @@ fn shares_count_the_samples_each_pass_runs() {
 /// extrapolated.
 #[test]
 fn account_with_the_occupancy_grid() {
-    use super::run::{fails_with, ok, pma};
     let dir = tempfile::tempdir().unwrap();
     let account_printed = |name: &str, extra: &[&str]| -> (serde_json::Value, String) {
         let out = dir.path().join(name);
-        let mut a = vec![
-            "--workers",
-            "1",
-            "bench",
-            "--account",
-            "--quiet",
-            "--preset",
-            "tiny",
-            "--rays",
-            "32",
-            "--out",
-            out.to_str().unwrap(),
-        ];
-        a.extend_from_slice(extra);
+        let a = [
+            &["--workers", "1"][..],
+            &ACCOUNT_TINY,
+            &["--rays", "32", "--out", s(&out)],
+            extra,
+        ]
+        .concat();
         let stdout = ok(pma(&a)).stdout;
         (
-            serde_json::from_slice(&std::fs::read(out.join("account.json")).unwrap()).unwrap(),
+            read_json(&out.join("account.json")),
             String::from_utf8_lossy(&stdout).into_owned(),
         )
     };
@@ -608,22 +517,18 @@ fn account_with_the_occupancy_grid() {
     // Fewer samples through the network: fewer matmul FLOPs in the step.
     assert!(u(&grid, "flops_per_step") < u(&plain, "flops_per_step"));
 
-    let o = pma(&[
-        "bench",
-        "--account",
-        "--quiet",
-        "--preset",
-        "tiny",
+    let x = dir.path().join("x");
+    let flags = [
         "--rays",
         "96",
         "--extrapolate-from",
         "32",
         "--occupancy",
         "--out",
-        dir.path().join("x").to_str().unwrap(),
-    ]);
-    assert_eq!(o.status.code(), Some(2));
-    fails_with(o, "--occupancy");
+        s(&x),
+    ];
+    let o = pma(&[&ACCOUNT_TINY[..], &flags].concat());
+    exits_2_with(o, "--occupancy");
 }
 
 /// `--time-to-quality` on a few seconds of training: one row per option (parity first, the

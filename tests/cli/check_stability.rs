@@ -2,38 +2,25 @@
 //! exit when a checkpoint produces non-finite values, and the probes of a model with an
 //! occupancy grid run with the grid on.
 
-use std::process::Command;
+use std::path::Path;
 
 use candle_core::{Device, Tensor};
-use pma_model::network::occupancy::{OccupancyConfig, OccupancyGrid};
 use pma_model::render::avatar::Avatar;
 use pma_model::Config;
 
-use crate::run::fails_with;
-
-fn pma() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_pma"))
-}
+use crate::run::{number_before, ok, patterned_grid, pma, refused, s};
 
 #[test]
 fn fresh_tiny_avatar_passes_and_prints_every_case() {
-    let out = pma()
-        .args([
-            "check-stability",
-            "--preset",
-            "tiny",
-            "--quiet",
-            "--fixes",
-            "--strict",
-        ])
-        .output()
-        .unwrap();
+    let out = ok(pma(&[
+        "check-stability",
+        "--preset",
+        "tiny",
+        "--quiet",
+        "--fixes",
+        "--strict",
+    ]));
     let stdout = String::from_utf8_lossy(&out.stdout);
-    assert!(
-        out.status.success(),
-        "{stdout}\n{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
     for case in [
         "pose: every joint pi about x",
         "AIST++ frame",
@@ -60,16 +47,7 @@ fn a_poisoned_checkpoint_fails() {
     let a = Avatar::new(cfg.clone(), &pma_data::synth::rest_pose(), 0, &Device::Cpu).unwrap();
     let good = tmp.path().join("good.safetensors");
     a.save(&good).unwrap();
-    let out = pma()
-        .args(["check-stability", "--quiet", "--model"])
-        .arg(&good)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    ok(pma(&["check-stability", "--quiet", "--model", s(&good)]));
 
     // A NaN in the density head reaches every output.
     let mut t = a.tensors();
@@ -83,46 +61,10 @@ fn a_poisoned_checkpoint_fails() {
         .unwrap()
         .save(&bad)
         .unwrap();
-    let out = pma()
-        .args(["check-stability", "--quiet", "--model"])
-        .arg(&bad)
-        .output()
-        .unwrap();
+    let out = pma(&["check-stability", "--quiet", "--model", s(&bad)]);
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(!out.status.success(), "{stdout}");
     assert!(String::from_utf8_lossy(&out.stderr).contains("non-finite"));
-}
-
-/// A resolution-16 grid where about 30 % of each joint's cells hold density 1 (a fixed
-/// pseudo-random pattern) and the rest 0, so that some probe samples fall in empty cells.
-fn patterned_grid() -> OccupancyGrid {
-    let cfg = OccupancyConfig {
-        resolution: 16,
-        dilation: 0,
-        ..Default::default()
-    };
-    let mut grid = OccupancyGrid::new(cfg).unwrap();
-    let mut state = 11u64;
-    for j in 0..24 {
-        for c in 0..16 * 16 * 16 {
-            state = state
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            let occupied = (state >> 40) % 10 < 3;
-            grid.update_max(j, c, if occupied { 1.0 } else { 0.0 })
-                .unwrap();
-        }
-    }
-    grid.finish_refresh();
-    grid
-}
-
-/// The number in `line` just before `word` (e.g. "12 of" -> 12 for word "of").
-fn number_before(line: &str, word: &str) -> u64 {
-    let head = &line[..line
-        .find(word)
-        .unwrap_or_else(|| panic!("{word:?} in {line:?}"))];
-    head.split_whitespace().last().unwrap().parse().unwrap()
 }
 
 #[test]
@@ -137,31 +79,24 @@ fn a_model_with_a_grid_is_probed_with_the_grid_on() {
     plain.save(&plain_path).unwrap();
     let gridded_path = tmp.path().join("grid.safetensors");
     plain
-        .with_occupancy(Some(patterned_grid()))
+        .with_occupancy(Some(patterned_grid(11)))
         .save(&gridded_path)
         .unwrap();
-    let probe = |model: &std::path::Path, extra: &[&str]| {
-        let mut cmd = pma();
+    let probe = |model: &Path, extra: &[&str]| {
         // `--fixes` rebuilds the avatar from its tensors: the grid has to survive that too.
-        cmd.args([
+        let args = [
             "check-stability",
             "--quiet",
             "--fixes",
             "--strict",
             "--model",
-        ])
-        .arg(model);
-        cmd.args(extra).output().unwrap()
+        ];
+        pma(&[&args[..], &[s(model)], extra].concat())
     };
 
     // The grid is on without asking: every forward probe consults it and it skips samples.
-    let out = probe(&gridded_path, &[]);
+    let out = ok(probe(&gridded_path, &[]));
     let stdout = String::from_utf8_lossy(&out.stdout).to_string();
-    assert!(
-        out.status.success(),
-        "{stdout}\n{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
     assert!(stdout.contains("skipped (empty)"), "{stdout}");
     let summary = stdout
         .lines()
@@ -197,10 +132,8 @@ fn a_model_with_a_grid_is_probed_with_the_grid_on() {
     );
 
     // `--occupancy` on a model without a grid: exit 2, one line naming the flag.
-    let out = probe(&plain_path, &["--occupancy"]);
-    assert_eq!(out.status.code(), Some(2));
-    let stderr = String::from_utf8_lossy(&out.stderr).to_string();
-    assert_eq!(stderr.trim_end().lines().count(), 1, "{stderr}");
-    fails_with(out, "--occupancy");
-    assert!(stderr.contains("no occupancy grid"), "{stderr}");
+    refused(
+        &probe(&plain_path, &["--occupancy"]),
+        &["--occupancy", "no occupancy grid"],
+    );
 }

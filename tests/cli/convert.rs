@@ -2,11 +2,10 @@
 //! stderr naming the file and the key or offset when an input is refused, and
 //! no output file; 1 when the output cannot be written.
 
-use std::{
-    path::{Path, PathBuf},
-    process::{Command, Output},
-};
+use std::path::{Path, PathBuf};
+use std::process::Output;
 
+use crate::run::{ok, pma, refused, s, train_tiny};
 use pma_data::dataset::npz::{MemberData, NpzWriter};
 
 fn root() -> PathBuf {
@@ -17,40 +16,17 @@ fn fixture(name: &str) -> PathBuf {
     root().join("fixtures/convert").join(name)
 }
 
-fn pma(args: &[&str], paths: &[&Path]) -> Output {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_pma"));
-    c.arg("convert").args(args);
-    for p in paths {
-        c.arg(p);
-    }
-    c.output().unwrap()
-}
-
-/// Asserts a refusal: exit 2, exactly one non-empty stderr line holding every needle.
-fn refused(out: &Output, needles: &[&str]) -> String {
-    let err = String::from_utf8_lossy(&out.stderr).into_owned();
-    assert_eq!(out.status.code(), Some(2), "stderr: {err}");
-    let lines: Vec<&str> = err.lines().filter(|l| !l.trim().is_empty()).collect();
-    assert_eq!(lines.len(), 1, "expected one line, got:\n{err}");
-    for n in needles {
-        assert!(lines[0].contains(n), "{n:?} missing from: {}", lines[0]);
-    }
-    lines[0].to_string()
+/// `pma convert ARGS... -o OUT`.
+fn convert(args: &[&str], out: &Path) -> Output {
+    pma(&[&["convert"], args, &["-o", s(out)]].concat())
 }
 
 #[test]
 fn a_checkpoint_converts_with_exit_0() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("m.safetensors");
-    let o = pma(
-        &["checkpoint"],
-        &[
-            &root().join("fixtures/golden/ckpt.th"),
-            Path::new("-o"),
-            &out,
-        ],
-    );
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let golden = root().join("fixtures/golden/ckpt.th");
+    ok(convert(&["checkpoint", s(&golden)], &out));
     assert!(out.is_file());
 }
 
@@ -58,21 +34,13 @@ fn a_checkpoint_converts_with_exit_0() {
 fn hostile_corrupt_and_mismatched_checkpoints_exit_2_without_output() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("m.safetensors");
-    let o = pma(
-        &["checkpoint"],
-        &[&fixture("evil_global.th"), Path::new("-o"), &out],
-    );
+    let checkpoint = |input: &Path| convert(&["checkpoint", s(input)], &out);
+    let o = checkpoint(&fixture("evil_global.th"));
     refused(&o, &["evil_global.th", "byte", "posix", "system"]);
-    let o = pma(
-        &["checkpoint"],
-        &[&fixture("evil_opcode.th"), Path::new("-o"), &out],
-    );
+    let o = checkpoint(&fixture("evil_opcode.th"));
     refused(&o, &["evil_opcode.th", "byte", "NEWOBJ"]);
     // Several problems, joined into the one line.
-    let o = pma(
-        &["checkpoint"],
-        &[&fixture("bad_config.th"), Path::new("-o"), &out],
-    );
+    let o = checkpoint(&fixture("bad_config.th"));
     refused(
         &o,
         &["bad_config.th", "pts_linears.5.weight", "[256, 1000]"],
@@ -81,15 +49,9 @@ fn hostile_corrupt_and_mismatched_checkpoints_exit_2_without_output() {
     let bytes = std::fs::read(fixture("ckpt_adam.th")).unwrap();
     let cut = dir.path().join("cut.th");
     std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
-    let o = pma(
-        &["checkpoint", "--with-optimizer"],
-        &[&cut, Path::new("-o"), &out],
-    );
+    let o = convert(&["checkpoint", "--with-optimizer", s(&cut)], &out);
     refused(&o, &["cut.th"]);
-    let o = pma(
-        &["checkpoint"],
-        &[&dir.path().join("absent.th"), Path::new("-o"), &out],
-    );
+    let o = checkpoint(&dir.path().join("absent.th"));
     refused(&o, &["absent.th"]);
     assert!(!out.exists());
     assert!(!dir.path().join("m.optim.safetensors").exists());
@@ -99,14 +61,8 @@ fn hostile_corrupt_and_mismatched_checkpoints_exit_2_without_output() {
 fn an_unwritable_output_exits_1() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("no/such/dir/m.safetensors");
-    let o = pma(
-        &["checkpoint"],
-        &[
-            &root().join("fixtures/golden/ckpt.th"),
-            Path::new("-o"),
-            &out,
-        ],
-    );
+    let golden = root().join("fixtures/golden/ckpt.th");
+    let o = convert(&["checkpoint", s(&golden)], &out);
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(1), "{err}");
     assert!(err.contains("no/such/dir"), "{err}");
@@ -116,29 +72,22 @@ fn an_unwritable_output_exits_1() {
 fn bad_datasets_exit_2_naming_file_and_key() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("d.npz");
-    let o = pma(
-        &["dataset"],
-        &[&fixture("masks255.h5"), Path::new("-o"), &out],
-    );
+    let o = convert(&["dataset", s(&fixture("masks255.h5"))], &out);
     refused(&o, &["masks255.h5", "masks", "255"]);
 
     let bytes = std::fs::read(fixture("aist.h5")).unwrap();
     let cut = dir.path().join("cut.h5");
     std::fs::write(&cut, &bytes[..bytes.len() / 3]).unwrap();
-    let o = pma(&["dataset"], &[&cut, Path::new("-o"), &out]);
+    let o = convert(&["dataset", s(&cut)], &out);
     refused(&o, &["cut.h5"]);
     assert!(!out.exists());
 
     // A good conversion, then the same npz with a non-finite camera.
-    let o = pma(
-        &["dataset"],
-        &[&fixture("perfcap.h5"), Path::new("-o"), &out],
-    );
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    ok(convert(&["dataset", s(&fixture("perfcap.h5"))], &out));
     let bad = dir.path().join("nan_cam.npz");
     rewrite_npz(&out, &bad, "c2ws", |v| v[5] = f32::NAN);
     let out2 = dir.path().join("d2.npz");
-    let o = pma(&["dataset"], &[&bad, Path::new("-o"), &out2]);
+    let o = convert(&["dataset", s(&bad)], &out2);
     refused(&o, &["nan_cam.npz", "c2ws"]);
     assert!(!out2.exists());
 }
@@ -183,12 +132,12 @@ fn bad_motion_exits_2_naming_the_frame() {
         .unwrap();
     w.finish().unwrap();
     let out = dir.path().join("m.npz");
-    let o = pma(&["motion"], &[&p, Path::new("-o"), &out]);
+    let o = convert(&["motion", s(&p)], &out);
     refused(&o, &["nan.npz", "poses", "frame 2"]);
 
     let bvh = dir.path().join("broken.bvh");
     std::fs::write(&bvh, "HIERARCHY\nROOT Hips\n{\nOFFSET 0 0 zero\n").unwrap();
-    let o = pma(&["motion"], &[&bvh, Path::new("-o"), &out]);
+    let o = convert(&["motion", s(&bvh)], &out);
     refused(&o, &["broken.bvh:4", "zero"]);
     assert!(!out.exists());
 }
@@ -202,56 +151,27 @@ fn capture_converts_trains_and_evaluates() {
     let smpl = root().join("fixtures/capture/data/smplx/smpl/SMPL_NEUTRAL.pkl");
     let train = dir.path().join("train.npz");
     let novel = dir.path().join("novel_pose.npz");
-    let common = ["--frames", "0:4:2", "--smpl"];
-    let o = pma(
-        &["capture"],
-        &[
-            &cap,
-            Path::new(common[0]),
-            Path::new(common[1]),
-            Path::new(common[2]),
-            &smpl,
-            Path::new("-o"),
-            &train,
-        ],
-    );
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let capture = [s(&cap), "--frames", "0:4:2", "--smpl", s(&smpl)];
+    let o = ok(convert(&[&["capture"], &capture[..]].concat(), &train));
     let stdout = String::from_utf8_lossy(&o.stdout);
     assert!(stdout.contains("12 images of 64x64"), "{stdout}");
-    let o = pma(
-        &["capture", "--split", "novel_pose", "--eval-frames", "1"],
-        &[
-            &cap,
-            Path::new(common[0]),
-            Path::new(common[1]),
-            Path::new(common[2]),
-            &smpl,
-            Path::new("-o"),
-            &novel,
-        ],
-    );
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let novel_split = ["capture", "--split", "novel_pose", "--eval-frames", "1"];
+    ok(convert(&[&novel_split[..], &capture[..]].concat(), &novel));
 
-    let run = dir.path().join("run");
-    let s = |p: &Path| p.to_str().unwrap().to_string();
-    let (train_s, run_s, novel_s) = (s(&train), s(&run), s(&novel));
-    crate::run::ok(crate::run::pma(&[
-        "train", "--data", &train_s, "--out", &run_s, "--preset", "tiny", "--iters", "2", "--quiet",
-    ]));
-    let model = s(&run.join("model.safetensors"));
-    let out_dir = s(&dir.path().join("eval"));
-    let o = crate::run::ok(crate::run::pma(&[
+    let model = train_tiny(&train, &dir.path().join("run"), "2");
+    let out_dir = dir.path().join("eval");
+    let o = ok(pma(&[
         "eval",
         "--model",
-        &model,
+        s(&model),
         "--data",
-        &novel_s,
+        s(&novel),
         "--split",
         "novel_pose",
         "--out",
-        &out_dir,
+        s(&out_dir),
         "--train-data",
-        &train_s,
+        s(&train),
     ]));
     let stdout = String::from_utf8_lossy(&o.stdout);
     assert!(stdout.contains("PSNR"), "{stdout}");
@@ -264,19 +184,19 @@ fn bad_capture_exits_2_without_output() {
     let out = dir.path().join("c.npz");
     let bad_smpl = dir.path().join("smpl.pkl");
     std::fs::write(&bad_smpl, b"\x80\x02cbuiltins\neval\nq\x00.").unwrap();
-    let o = pma(
-        &["capture", "--smpl"],
-        &[&bad_smpl, &cap, Path::new("-o"), &out],
-    );
+    let o = convert(&["capture", "--smpl", s(&bad_smpl), s(&cap)], &out);
     refused(&o, &["smpl.pkl", "forbidden global `builtins.eval`"]);
-    let o = pma(
-        &["capture", "--train-views", "0,7", "--smpl"],
+    let smpl = root().join("fixtures/capture/data/smpl_neutral.npz");
+    let o = convert(
         &[
-            &root().join("fixtures/capture/data/smpl_neutral.npz"),
-            &cap,
-            Path::new("-o"),
-            &out,
+            "capture",
+            "--train-views",
+            "0,7",
+            "--smpl",
+            s(&smpl),
+            s(&cap),
         ],
+        &out,
     );
     refused(&o, &["view 7 does not exist", "4 cameras"]);
     assert!(!out.exists());

@@ -3,33 +3,31 @@
 //! fast recipe and says so, and `--parity` trains without it.
 
 use std::path::Path;
-use std::process::{Command, Output};
+use std::process::Output;
 
+use crate::run::{ok, pma, read_json, s};
+
+/// `pma demo` on the tiny preset and a 24-pixel scene of 2 frames, with `extra` flags.
 fn demo(out_dir: &Path, extra: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_pma"))
-        .args([
-            "demo",
-            "--out",
-            out_dir.to_str().unwrap(),
-            "--preset",
-            "tiny",
-        ])
-        .args([
-            "--res",
-            "24",
-            "--frames",
-            "2",
-            "--max-eval-images",
-            "2",
-            "--pngs",
-            "1",
-            "--quiet",
-            "--device",
-            "cpu",
-        ])
-        .args(extra)
-        .output()
-        .unwrap()
+    let base = [
+        "demo",
+        "--out",
+        s(out_dir),
+        "--preset",
+        "tiny",
+        "--res",
+        "24",
+        "--frames",
+        "2",
+        "--max-eval-images",
+        "2",
+        "--pngs",
+        "1",
+        "--quiet",
+        "--device",
+        "cpu",
+    ];
+    ok(pma(&[&base[..], extra].concat()))
 }
 
 #[test]
@@ -37,19 +35,12 @@ fn demo_writes_summary_renders_and_plot() {
     let tmp = tempfile::tempdir().unwrap();
     let out_dir = tmp.path().join("demo");
     let out = demo(&out_dir, &["--iters", "3", "--minutes", "5"]);
-    assert!(
-        out.status.success(),
-        "demo failed:\n{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
 
     // Scene, run, evaluations, renders and plots: one mode rule for all of them.
     #[cfg(unix)]
     crate::run::assert_default_modes(&out_dir);
 
-    let summary: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out_dir.join("summary.json")).unwrap())
-            .unwrap();
+    let summary = read_json(&out_dir.join("summary.json"));
     assert_eq!(summary["iterations"], 3);
     // The fast recipe, named in the output and the summary; the curve's images beside the
     // evaluation's.
@@ -96,16 +87,9 @@ fn demo_parity_trains_without_the_recipe() {
     let tmp = tempfile::tempdir().unwrap();
     let out_dir = tmp.path().join("demo");
     let out = demo(&out_dir, &["--parity", "--minutes", "0.02"]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(stdout.contains("--parity"), "{stdout}");
-    let summary: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out_dir.join("summary.json")).unwrap())
-            .unwrap();
+    let summary = read_json(&out_dir.join("summary.json"));
     assert_eq!(summary["options"], serde_json::json!([]));
     assert!(summary["iterations"].as_u64().unwrap() > 0);
     let config = std::fs::read_to_string(out_dir.join("run/config.toml")).unwrap();

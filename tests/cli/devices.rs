@@ -2,18 +2,7 @@
 //! and TF32 off CUDA are refused with exit 2 before any work (the `--device cpu` runs are in
 //! the commands' own tests).
 
-use std::process::Output;
-
-use crate::run::pma;
-
-fn refused(out: Output, needles: &[&str]) {
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert_eq!(out.status.code(), Some(2), "expected exit 2: {err}");
-    for n in needles {
-        assert!(err.contains(n), "stderr lacks {n:?}:\n{err}");
-    }
-    assert!(!err.contains("panicked"), "{err}");
-}
+use crate::run::{pma, refused};
 
 #[test]
 fn cuda_on_a_cpu_only_build_names_the_feature() {
@@ -33,7 +22,7 @@ fn cuda_on_a_cpu_only_build_names_the_feature() {
         let mut a = args.clone();
         a.extend(["--device", "cuda"]);
         let o = pma(&a);
-        refused(o, &["device `cuda`", "--features cuda"]);
+        refused(&o, &["device `cuda`", "--features cuda"]);
     }
 }
 
@@ -43,11 +32,11 @@ fn tf32_off_cuda_is_refused() {
     let out = tmp.path().join("out");
     let model = tmp.path().join("missing.safetensors");
     refused(
-        pma(&["bench", "--quick", "--tf32", "--out", out.to_str().unwrap()]),
+        &pma(&["bench", "--quick", "--tf32", "--out", out.to_str().unwrap()]),
         &["--tf32 needs a CUDA device"],
     );
     refused(
-        pma(&[
+        &pma(&[
             "eval",
             "--model",
             model.to_str().unwrap(),

@@ -4,23 +4,22 @@
 //! (`PMA_FAULT_OOM_RAYS`) halves the chunk and retries the same step.
 
 use std::collections::HashMap;
-use std::path::Path;
-use std::process::{Command, Output};
+use std::path::{Path, PathBuf};
 
-use crate::run::{ok, pma, tiny_scene};
+use crate::run::{ok, pma, pma_env, read_json, tiny_scene, train_tiny_with};
 use candle_core::{Device, Tensor};
 
-fn pma_env(args: &[&str], env: &[(&str, &str)]) -> Output {
-    let mut cmd = Command::new(env!("CARGO_BIN_EXE_pma"));
-    cmd.args(args);
-    for (k, v) in env {
-        cmd.env(k, v);
-    }
-    cmd.output().unwrap()
-}
-
-fn report(path: &Path) -> serde_json::Value {
-    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+/// [`train_tiny_with`] into `out`: the model's path and the run's stderr.
+fn trained(
+    data: &Path,
+    out: &Path,
+    iters: &str,
+    extra: &[&str],
+    env: &[(&str, &str)],
+) -> (PathBuf, String) {
+    let o = train_tiny_with(data, out, iters, extra, env);
+    let stderr = String::from_utf8_lossy(&o.stderr).to_string();
+    (out.join("model.safetensors"), stderr)
 }
 
 fn rows<'a>(r: &'a serde_json::Value, section: &str) -> Vec<&'a serde_json::Value> {
@@ -48,7 +47,7 @@ fn doctor_passes_on_the_cpu_and_writes_its_report() {
     ]));
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(stdout.contains("checks passed"), "{stdout}");
-    let r = report(&json);
+    let r = read_json(&json);
     assert_eq!(r["passed"], true);
     assert_eq!(r["device"]["spec"], "cpu");
     // Two rows per kernel module (compiled, checked), each checked case by case.
@@ -135,7 +134,7 @@ fn doctor_names_each_broken_kernel_and_exits_1() {
             .starts_with("error: doctor: 4 of 12 checks failed"),
         "{stderr}"
     );
-    let r = report(&json);
+    let r = read_json(&json);
     assert_eq!(r["passed"], false);
     let failed: Vec<String> = rows(&r, "kernels")
         .iter()
@@ -175,6 +174,13 @@ fn max_relative_diff(a: &Path, b: &Path) -> f32 {
         .fold(0f32, f32::max)
 }
 
+/// The one line of `text` that `pick` picks; the test fails on none or several.
+fn only_line(text: &str, pick: impl Fn(&str) -> bool) -> &str {
+    let picked: Vec<&str> = text.lines().filter(|l| pick(l)).collect();
+    assert_eq!(picked.len(), 1, "{text}");
+    picked[0]
+}
+
 /// 50 `tiny` steps with the window pool's kernel failing from its 7th launch on (a
 /// backward mid-step) and with every kernel off (`--generic-kernels`): both runs go on to
 /// the end, the first with one warning line naming the kernel, and end within 1e-5
@@ -185,32 +191,8 @@ fn max_relative_diff(a: &Path, b: &Path) -> f32 {
 fn a_failing_kernel_steps_aside_and_the_run_goes_on() {
     let tmp = tempfile::tempdir().unwrap();
     let data = tiny_scene(&tmp.path().join("scene"), 2);
-    let data = data.to_str().unwrap();
     let run = |name: &str, extra: &[&str], env: &[(&str, &str)]| {
-        let out_dir = tmp.path().join(name);
-        let mut args = vec![
-            "train",
-            "--data",
-            data,
-            "--out",
-            out_dir.to_str().unwrap(),
-            "--preset",
-            "tiny",
-            "--iters",
-            "50",
-            "--quiet",
-        ];
-        args.extend(extra);
-        let out = pma_env(&args, env);
-        assert!(
-            out.status.success(),
-            "{name}: {}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-        (
-            out_dir.join("model.safetensors"),
-            String::from_utf8_lossy(&out.stderr).to_string(),
-        )
+        trained(&data, &tmp.path().join(name), "50", extra, env)
     };
     let (fused, _) = run("fused", &[], &[]);
     let (stepped_aside, stderr) = run(
@@ -218,13 +200,9 @@ fn a_failing_kernel_steps_aside_and_the_run_goes_on() {
         &[],
         &[("PMA_KERNEL_FAULT", "window_pool=launch@7")],
     );
-    let warnings: Vec<&str> = stderr
-        .lines()
-        .filter(|l| l.starts_with("warning: kernel"))
-        .collect();
-    assert_eq!(warnings.len(), 1, "{stderr}");
+    let warning = only_line(&stderr, |l| l.starts_with("warning: kernel"));
     assert!(
-        warnings[0].contains("window_pool") && warnings[0].contains("launch 7"),
+        warning.contains("window_pool") && warning.contains("launch 7"),
         "{stderr}"
     );
     let (generic, _) = run("generic", &["--generic-kernels"], &[]);
@@ -242,47 +220,15 @@ fn a_failing_kernel_steps_aside_and_the_run_goes_on() {
 fn out_of_memory_halves_the_chunk_and_retries_the_same_step() {
     let tmp = tempfile::tempdir().unwrap();
     let data = tiny_scene(&tmp.path().join("scene"), 2);
-    let data = data.to_str().unwrap();
     let run = |name: &str, chunk: &str, env: &[(&str, &str)]| {
-        let out_dir = tmp.path().join(name);
-        let out = pma_env(
-            &[
-                "train",
-                "--data",
-                data,
-                "--out",
-                out_dir.to_str().unwrap(),
-                "--preset",
-                "tiny",
-                "--iters",
-                "8",
-                "--chunk-rays",
-                chunk,
-                "--quiet",
-                "--workers",
-                "2",
-            ],
-            env,
-        );
-        assert!(
-            out.status.success(),
-            "{name}: {}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-        (
-            out_dir.join("model.safetensors"),
-            String::from_utf8_lossy(&out.stderr).to_string(),
-        )
+        let extra = ["--chunk-rays", chunk, "--workers", "2"];
+        trained(&data, &tmp.path().join(name), "8", &extra, env)
     };
     let (asked, _) = run("asked", "16", &[]);
     let (halved, stderr) = run("halved", "64", &[("PMA_FAULT_OOM_RAYS", "20")]);
-    let notes: Vec<&str> = stderr
-        .lines()
-        .filter(|l| l.contains("out of device memory"))
-        .collect();
-    assert_eq!(notes.len(), 1, "{stderr}");
+    let note = only_line(&stderr, |l| l.contains("out of device memory"));
     assert!(
-        notes[0].contains("at 64 rays per chunk") && notes[0].contains("retried at 16"),
+        note.contains("at 64 rays per chunk") && note.contains("retried at 16"),
         "{stderr}"
     );
     assert_eq!(max_relative_diff(&asked, &halved), 0.0);

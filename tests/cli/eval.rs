@@ -1,45 +1,28 @@
 //! `pma eval` end to end: table on stdout, eval.json with the documented shape, side-by-side
 //! PNGs, and clear errors for a bad split or a missing model.
 
-use crate::run::{ok, pma, tiny_scene};
+use crate::run::{ok, pma, pma_eval, read_json, s, trained_scene};
 
 #[test]
 fn eval_writes_table_json_and_pngs() {
     let tmp = tempfile::tempdir().unwrap();
-    let scene = tmp.path().join("scene");
-    tiny_scene(&scene, 2);
-    let run = tmp.path().join("run");
-    let train = scene.join("train.npz");
-    ok(pma(&[
-        "train",
-        "--data",
-        train.to_str().unwrap(),
-        "--out",
-        run.to_str().unwrap(),
-        "--preset",
-        "tiny",
-        "--iters",
-        "2",
-        "--quiet",
-    ]));
-    let model = run.join("model.safetensors");
+    let (scene, model) = trained_scene(tmp.path(), 2, "2");
     let out_dir = tmp.path().join("eval");
     let freq_png = tmp.path().join("freq.png");
-    let out = ok(pma(&[
-        "eval",
-        "--model",
-        model.to_str().unwrap(),
-        "--data",
-        scene.to_str().unwrap(),
-        "--split",
-        "novel_pose",
-        "--out",
-        out_dir.to_str().unwrap(),
-        "--pngs",
-        "2",
-        "--freq-png",
-        freq_png.to_str().unwrap(),
-    ]));
+    let out = ok(pma_eval(
+        &model,
+        &scene,
+        &[
+            "--split",
+            "novel_pose",
+            "--out",
+            s(&out_dir),
+            "--pngs",
+            "2",
+            "--freq-png",
+            s(&freq_png),
+        ],
+    ));
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(
         stdout.contains("PSNR") && stdout.contains("mean"),
@@ -51,8 +34,7 @@ fn eval_writes_table_json_and_pngs() {
         "{stdout}"
     );
 
-    let json: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out_dir.join("eval.json")).unwrap()).unwrap();
+    let json = read_json(&out_dir.join("eval.json"));
     assert_eq!(json["split"], "novel_pose");
     let per_image = json["per_image"].as_array().unwrap();
     assert_eq!(
@@ -131,31 +113,9 @@ fn eval_rejects_bad_split_and_missing_model() {
     assert!(String::from_utf8_lossy(&out.stderr).contains("/nonexistent/m.safetensors"));
 
     // A real model, so that the split is what gets refused.
-    let scene = tmp.path().join("scene");
-    let train = tiny_scene(&scene, 2);
-    let run = tmp.path().join("run");
-    ok(pma(&[
-        "train",
-        "--data",
-        train.to_str().unwrap(),
-        "--out",
-        run.to_str().unwrap(),
-        "--preset",
-        "tiny",
-        "--iters",
-        "1",
-        "--quiet",
-    ]));
-    let model = run.join("model.safetensors");
-    let out = pma(&[
-        "eval",
-        "--model",
-        model.to_str().unwrap(),
-        "--data",
-        scene.to_str().unwrap(),
-        "--split",
-        "holdout",
-    ]);
+    let (scene, model) = trained_scene(tmp.path(), 2, "1");
+    let train = scene.join("train.npz");
+    let out = pma_eval(&model, &scene, &["--split", "holdout"]);
     assert!(!out.status.success());
     assert_eq!(
         out.status.code(),
@@ -167,22 +127,13 @@ fn eval_rejects_bad_split_and_missing_model() {
 
     // train.npz has no eval_tag: it does not hold the novel-pose images, and must not be
     // scored as if it did.
-    let out = pma(&[
-        "eval",
-        "--model",
-        model.to_str().unwrap(),
-        "--data",
-        train.to_str().unwrap(),
-        "--split",
-        "novel_pose",
-        "--out",
-        tmp.path().join("e").to_str().unwrap(),
-    ]);
+    let e = tmp.path().join("e");
+    let out = pma_eval(&model, &train, &["--split", "novel_pose", "--out", s(&e)]);
     let err = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(2), "{err}");
     assert!(
         err.contains("train.npz") && err.contains("novel_pose"),
         "{err}"
     );
-    assert!(!tmp.path().join("e/eval.json").exists());
+    assert!(!e.join("eval.json").exists());
 }

@@ -2,26 +2,9 @@
 //! what was wrong. One refused input per command, each refused before any real work.
 
 use std::path::Path;
-use std::process::Output;
 
 use crate::convert::rewrite_npz;
-use crate::run::{pma, tiny_scene};
-
-/// Exit status 2, no panic, and every needle in stderr.
-fn refused(out: Output, needles: &[&str]) {
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert_eq!(out.status.code(), Some(2), "expected exit 2: {err}");
-    for n in needles {
-        assert!(err.contains(n), "stderr lacks {n:?}:\n{err}");
-    }
-    assert!(!err.contains("panicked"), "{err}");
-    // One line: scripts read the message.
-    assert_eq!(err.trim_end().lines().count(), 1, "{err}");
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
-}
+use crate::run::{pma, pma_eval, refused, s, tiny_scene};
 
 #[test]
 fn refused_input_exits_2_in_every_command() {
@@ -39,13 +22,13 @@ fn refused_input_exits_2_in_every_command() {
     let cfg = dir.join("bad.toml");
     std::fs::write(&cfg, "preset = \"tiny\"\n[train]\nrays_per_stp = 4\n").unwrap();
 
-    refused(pma(&["synth", "--out", s(&out), "--res", "0"]), &["res"]);
+    refused(&pma(&["synth", "--out", s(&out), "--res", "0"]), &["res"]);
     refused(
-        pma(&["inspect", s(&nan_bones)]),
+        &pma(&["inspect", s(&nan_bones)]),
         &["nan_bones.npz", "bones"],
     );
     refused(
-        pma(&[
+        &pma(&[
             "forward",
             "--model",
             s(&garbage),
@@ -58,7 +41,7 @@ fn refused_input_exits_2_in_every_command() {
         &["train.npz", "rays_o"],
     );
     refused(
-        pma(&[
+        &pma(&[
             "convert",
             "checkpoint",
             s(&garbage),
@@ -68,7 +51,7 @@ fn refused_input_exits_2_in_every_command() {
         &["garbage.safetensors"],
     );
     refused(
-        pma(&[
+        &pma(&[
             "train",
             "--data",
             s(&train),
@@ -80,7 +63,7 @@ fn refused_input_exits_2_in_every_command() {
         &["train.rays_per_stp"],
     );
     refused(
-        pma(&[
+        &pma(&[
             "train",
             "--data",
             s(&nan_bones),
@@ -93,23 +76,15 @@ fn refused_input_exits_2_in_every_command() {
     );
     let model = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/golden/model.safetensors");
     refused(
-        pma(&[
-            "eval",
-            "--model",
-            s(&model),
-            "--data",
-            s(&scene),
-            "--split",
-            "novel_vew",
-        ]),
+        &pma_eval(&model, &scene, &["--split", "novel_vew"]),
         &["novel_vew"],
     );
     refused(
-        pma(&["demo", "--out", s(&out.join("demo")), "--preset", "huge"]),
+        &pma(&["demo", "--out", s(&out.join("demo")), "--preset", "huge"]),
         &["huge"],
     );
     refused(
-        pma(&[
+        &pma(&[
             "render",
             "--model",
             s(&garbage),
@@ -123,11 +98,11 @@ fn refused_input_exits_2_in_every_command() {
         &["0x0"],
     );
     refused(
-        pma(&["mesh", "--model", s(&garbage), "-o", s(&out.join("m.ply"))]),
+        &pma(&["mesh", "--model", s(&garbage), "-o", s(&out.join("m.ply"))]),
         &["garbage.safetensors"],
     );
     refused(
-        pma(&[
+        &pma(&[
             "bench",
             "--quick",
             "--thresholds",
@@ -138,7 +113,7 @@ fn refused_input_exits_2_in_every_command() {
         &["--thresholds"],
     );
     refused(
-        pma(&["check-stability", "--model", s(&garbage)]),
+        &pma(&["check-stability", "--model", s(&garbage)]),
         &["garbage.safetensors"],
     );
 }

@@ -12,38 +12,11 @@ use std::time::{Duration, Instant};
 
 #[cfg(unix)]
 use crate::run::mkfifo;
-use crate::run::{ok, pma_within, tiny_scene};
+use crate::run::{exits, kill, ok, pma_env, pma_within, refused, s, tiny_scene, wait_for};
 use crate::train::newest;
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
-}
-
-fn pma_env(args: &[&str], env: &[(&str, &str)]) -> Output {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_pma"));
-    c.args(args).stdin(Stdio::null());
-    for (k, v) in env {
-        c.env(k, v);
-    }
-    c.output().expect("running pma")
-}
 
 fn stderr(out: &Output) -> String {
     String::from_utf8_lossy(&out.stderr).into_owned()
-}
-
-/// Exit status `code`, exactly one stderr line holding every needle, no panic, no text of
-/// a dependency's destructor.
-fn exits(out: &Output, code: i32, needles: &[&str]) {
-    let err = stderr(out);
-    assert_eq!(out.status.code(), Some(code), "expected exit {code}: {err}");
-    assert_eq!(err.trim_end().lines().count(), 1, "not one line:\n{err}");
-    for n in needles {
-        assert!(err.contains(n), "stderr lacks {n:?}: {err}");
-    }
-    for bad in ["panicked", "ZipWriter", "backtrace"] {
-        assert!(!err.contains(bad), "{err}");
-    }
 }
 
 /// Stopped by a signal: exit status `code`, the needles in the last stderr line (the
@@ -56,10 +29,6 @@ fn interrupted(out: &Output, code: i32, needles: &[&str]) {
         assert!(last.contains(n), "last stderr line lacks {n:?}: {err}");
     }
     assert!(!err.contains("panicked"), "{err}");
-}
-
-fn refused(out: Output, needles: &[&str]) {
-    exits(&out, 2, needles);
 }
 
 /// `preset = "tiny"` with a checkpoint after every iteration.
@@ -91,7 +60,7 @@ fn train_within(data: &Path, out: &Path, extra: &[&str]) -> Output {
 
 /// [`train_within`] refused: exit 2, one line holding every needle.
 fn train_refused(data: &Path, out: &Path, extra: &[&str], needles: &[&str]) {
-    refused(train_within(data, out, extra), needles);
+    refused(&train_within(data, out, extra), needles);
 }
 
 /// A fresh run in `out` with the `cfg` from [`ck1`], up to `iters`; it must succeed.
@@ -126,22 +95,6 @@ fn spawn(args: &[String]) -> std::process::Child {
         .stderr(Stdio::piped())
         .spawn()
         .unwrap()
-}
-
-fn kill(pid: u32, sig: &str) {
-    let st = Command::new("kill")
-        .args([sig, &pid.to_string()])
-        .status()
-        .unwrap();
-    assert!(st.success());
-}
-
-fn wait_for(what: &str, secs: u64, mut ready: impl FnMut() -> bool) {
-    let deadline = Instant::now() + Duration::from_secs(secs);
-    while !ready() {
-        assert!(Instant::now() < deadline, "{what} within {secs} s");
-        std::thread::sleep(Duration::from_millis(10));
-    }
 }
 
 /// A small xorshift generator: the loops' random choices, reproducible from the printed seed.
@@ -441,9 +394,9 @@ fn one_trainer_per_run_directory() {
         ),
         &[],
     );
-    refused(second, &["in use", &format!("PID {}", first.id())]);
+    refused(&second, &["in use", &format!("PID {}", first.id())]);
     let resumed = run(&train_cmd(&data, &out, &["--resume", "--iters", "4"]), &[]);
-    refused(resumed, &[&format!("PID {}", first.id())]);
+    refused(&resumed, &[&format!("PID {}", first.id())]);
     first.kill().unwrap();
     first.wait().unwrap();
     // flock dies with its process: the killed trainer's lock is gone.
@@ -535,7 +488,7 @@ fn outputs_never_overwrite_inputs() {
         vec!["convert", "checkpoint", s(&th), "-o", s(&th)],
         vec!["convert", "motion", s(&smpl), "-o", s(&smpl)],
     ] {
-        refused(pma_env(&args, &[]), &["would overwrite the input"]);
+        refused(&pma_env(&args, &[]), &["would overwrite the input"]);
     }
     // A fresh run would write its resolved config over the TOML it was given.
     let fresh = dir.join("fresh");
@@ -641,7 +594,7 @@ fn unbounded_sizes_and_flags_are_refused_before_allocating() {
         vec!["inspect", s(&deep)],
     ] {
         refused(
-            pma_within(&args, 60),
+            &pma_within(&args, 60),
             &["deep.safetensors", "trunk_depth", "over the limit"],
         );
     }
@@ -704,7 +657,7 @@ fn unbounded_sizes_and_flags_are_refused_before_allocating() {
             "--chunk",
         ),
     ] {
-        refused(pma_within(&args, 60), &[needle]);
+        refused(&pma_within(&args, 60), &[needle]);
     }
     // Flags of a run: the value named as given, short (1e300, not 300 digits).
     for (flag, needles) in [
@@ -723,7 +676,7 @@ fn unbounded_sizes_and_flags_are_refused_before_allocating() {
         let out = train_within(&data, &r, &["--preset", "tiny", flag]);
         let err = stderr(&out);
         assert!(err.len() < 200, "{flag}: {err}");
-        refused(out, &needles);
+        refused(&out, &needles);
         assert!(!r.exists(), "{flag}: the refused run left {}", r.display());
     }
 }
@@ -774,15 +727,7 @@ fn convert_dataset_stops_on_ctrl_c_and_leaves_nothing() {
     use pma_data::dataset::{Compression, WriteOptions};
     use pma_data::synth::{plan, render_split, SynthConfig};
     let tmp = tempfile::tempdir().unwrap();
-    let cfg = SynthConfig {
-        res: 64,
-        train_cams: 2,
-        test_cams: 1,
-        frames: 1,
-        novel_pose_walk: 1,
-        novel_pose_dance: 1,
-        ..Default::default()
-    };
+    let cfg = SynthConfig::small(64, 2, 1);
     let p = plan(&cfg).unwrap();
     let mut ds = render_split(&p, &p.splits[0], &mut || {}).unwrap();
     // Tiled to many images, so that a deflated conversion takes a while.
@@ -936,7 +881,7 @@ fn fifos_are_named_as_fifos_with_what_was_expected() {
     ] {
         let out = pma_within(&args, 60);
         let err = stderr(&out);
-        refused(out, &needles);
+        refused(&out, &needles);
         for wrong in ["does not exist", "directory without", "no such"] {
             assert!(!err.contains(wrong), "{args:?}: {err}");
         }
@@ -980,7 +925,7 @@ fn failed_commands_remove_what_they_created_and_nothing_else() {
     let lock = run_dir.join(pma_model::network::run_dir::LOCK_FILE);
     assert!(lock.is_file());
     let out = train_within(&data, run_dir, &["--resume", "--chunk-rays", "100000000"]);
-    refused(out, &["chunk_rays"]);
+    refused(&out, &["chunk_rays"]);
     assert!(
         lock.is_file(),
         "a refused resume removed the run's lock file"
@@ -1086,7 +1031,7 @@ fn resume_falls_back_to_the_newest_checkpoint_that_reads_back() {
         .map(|c| c.path.file_name().unwrap().to_string_lossy().into_owned())
         .collect();
     refused(
-        resumed,
+        &resumed,
         &["no complete checkpoint reads back", &names[0], &names[1]],
     );
 }
@@ -1172,7 +1117,7 @@ fn output_paths_are_checked_before_work() {
             vec!["metrics", s(&a), s(&b)],
             vec!["mesh", "--model", s(&a), "-o", s(&dir.join("m.ply"))],
         ] {
-            refused(pma_within(&args, 60), &["loop_a"]);
+            refused(&pma_within(&args, 60), &["loop_a"]);
         }
         use std::os::unix::ffi::OsStrExt;
         let bad = dir.join(std::ffi::OsStr::from_bytes(b"mesh\xff.ply"));
@@ -1181,7 +1126,7 @@ fn output_paths_are_checked_before_work() {
             .arg(&bad)
             .output()
             .unwrap();
-        refused(out, &["not valid UTF-8"]);
+        refused(&out, &["not valid UTF-8"]);
         // Permission bits do not bind root, who runs CI: only checked as another user.
         // SAFETY: getuid has no preconditions.
         if unsafe { libc::getuid() } != 0 {
@@ -1190,10 +1135,10 @@ fn output_paths_are_checked_before_work() {
             std::fs::write(&locked, b"x").unwrap();
             std::fs::set_permissions(&locked, std::fs::Permissions::from_mode(0o000)).unwrap();
             refused(
-                pma_within(&["metrics", s(&locked), s(&locked)], 60),
+                &pma_within(&["metrics", s(&locked), s(&locked)], 60),
                 &["locked.png"],
             );
-            refused(pma_within(&["inspect", s(&locked)], 60), &["locked.png"]);
+            refused(&pma_within(&["inspect", s(&locked)], 60), &["locked.png"]);
         }
     }
 }
@@ -1212,7 +1157,7 @@ fn every_refusal_is_one_line() {
     });
     let scene = dir.join("scene");
     refused(
-        pma_within(&["eval", "--model", s(&wide), "--data", s(&scene)], 60),
+        &pma_within(&["eval", "--model", s(&wide), "--data", s(&scene)], 60),
         &["wide.safetensors", "more problem(s)"],
     );
     // The golden export has no pma metadata: its config is inferred, and a mismatch is
@@ -1279,7 +1224,7 @@ fn non_finite_weights_are_refused_and_shown_by_inspect() {
         vec!["render", "--model", s(&nan), "--out", s(&dir.join("r"))],
     ] {
         refused(
-            pma_within(&args, 60),
+            &pma_within(&args, 60),
             &["nan.safetensors", "sigma_linear.bias", "non-finite"],
         );
     }
@@ -1320,7 +1265,7 @@ fn a_run_directory_stands_for_its_newest_model() {
     let empty = dir.join("empty");
     std::fs::create_dir_all(&empty).unwrap();
     refused(
-        pma_within(
+        &pma_within(
             &[
                 "eval",
                 "--model",

@@ -1,8 +1,10 @@
 //! `pma forward` end to end: golden inputs in, golden outputs out; bad batches rejected.
 
+use std::collections::HashMap;
 use std::path::{Path, PathBuf};
-use std::process::Command;
+use std::process::Output;
 
+use crate::run::{ok, pma, s};
 use candle_core::{DType, Device, Tensor};
 use pma_data::dataset::npz::{MemberData, NpyData, NpzReader, NpzWriter};
 
@@ -10,9 +12,27 @@ fn fixtures() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("fixtures/golden")
 }
 
+/// The golden case's tensors.
+fn golden() -> HashMap<String, Tensor> {
+    candle_core::safetensors::load(fixtures().join("golden.safetensors"), &Device::Cpu).unwrap()
+}
+
+/// `pma forward --model MODEL --batch BATCH --out OUT EXTRA...`.
+fn forward(model: &Path, batch: &Path, out: &Path, extra: &[&str]) -> Output {
+    let args = [
+        "forward",
+        "--model",
+        s(model),
+        "--batch",
+        s(batch),
+        "--out",
+        s(out),
+    ];
+    pma(&[&args[..], extra].concat())
+}
+
 pub(crate) fn write_batch(path: &Path, skip: Option<&str>) {
-    let g = candle_core::safetensors::load(fixtures().join("golden.safetensors"), &Device::Cpu)
-        .unwrap();
+    let g = golden();
     let file = std::fs::File::create(path).unwrap();
     let mut w = NpzWriter::new(file, false, path.display().to_string());
     for key in [
@@ -47,18 +67,13 @@ fn forward_reproduces_golden_outputs() {
     let batch = dir.path().join("batch.npz");
     let out = dir.path().join("out.npz");
     write_batch(&batch, None);
-    let status = Command::new(env!("CARGO_BIN_EXE_pma"))
-        .args(["forward", "--model"])
-        .arg(fixtures().join("model.safetensors"))
-        .arg("--batch")
-        .arg(&batch)
-        .arg("--out")
-        .arg(&out)
-        .status()
-        .unwrap();
-    assert!(status.success());
-    let g = candle_core::safetensors::load(fixtures().join("golden.safetensors"), &Device::Cpu)
-        .unwrap();
+    ok(forward(
+        &fixtures().join("model.safetensors"),
+        &batch,
+        &out,
+        &[],
+    ));
+    let g = golden();
     let mut r = NpzReader::open(&out).unwrap();
     for (ours, reference) in [
         ("rgb_map", "out/rgb_map"),
@@ -91,15 +106,7 @@ fn forward_rejects_a_batch_without_skts() {
     let batch = dir.path().join("batch.npz");
     let out = dir.path().join("out.npz");
     write_batch(&batch, Some("skts"));
-    let o = Command::new(env!("CARGO_BIN_EXE_pma"))
-        .args(["forward", "--model"])
-        .arg(fixtures().join("model.safetensors"))
-        .arg("--batch")
-        .arg(&batch)
-        .arg("--out")
-        .arg(&out)
-        .output()
-        .unwrap();
+    let o = forward(&fixtures().join("model.safetensors"), &batch, &out, &[]);
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("skts"), "error should name the key: {err}");
@@ -109,8 +116,7 @@ fn forward_rejects_a_batch_without_skts() {
 /// The golden batch grown to `rays` rays in `poses` per-pose blocks: directions of the golden
 /// rays, nudged per copy so no two rays coincide; later blocks get slightly bent bones.
 fn write_grown_batch(path: &Path, rays: usize, poses: usize) {
-    let g = candle_core::safetensors::load(fixtures().join("golden.safetensors"), &Device::Cpu)
-        .unwrap();
+    let g = golden();
     let f = |k: &str| {
         g[&format!("input/{k}")]
             .flatten_all()
@@ -173,8 +179,7 @@ fn write_grown_batch(path: &Path, rays: usize, poses: usize) {
 
 /// A freshly initialised model of `preset` for the golden rest pose.
 fn preset_model(path: &Path, cfg: pma_model::Config) {
-    let g = candle_core::safetensors::load(fixtures().join("golden.safetensors"), &Device::Cpu)
-        .unwrap();
+    let g = golden();
     let r = g["input/rest_pose"]
         .flatten_all()
         .unwrap()
@@ -207,21 +212,7 @@ fn npz_bits(path: &Path) -> Vec<(String, Vec<usize>, Vec<u32>)> {
 }
 
 fn run_forward(model: &Path, batch: &Path, out: &Path, extra: &[&str]) {
-    let o = Command::new(env!("CARGO_BIN_EXE_pma"))
-        .args(["forward", "--model"])
-        .arg(model)
-        .arg("--batch")
-        .arg(batch)
-        .arg("--out")
-        .arg(out)
-        .args(extra)
-        .output()
-        .unwrap();
-    assert!(
-        o.status.success(),
-        "pma forward {extra:?}: {}",
-        String::from_utf8_lossy(&o.stderr)
-    );
+    ok(forward(model, batch, out, extra));
 }
 
 /// The inference path (default) and the graph path (`--grad`) write the same bytes: golden
@@ -332,17 +323,7 @@ fn forward_all_negative_codes_follow_the_mode() {
     let model = fixtures().join("model.safetensors");
     for grad in [false, true] {
         let out = dir.path().join("out.npz");
-        let mut cmd = Command::new(env!("CARGO_BIN_EXE_pma"));
-        cmd.args(["forward", "--model"])
-            .arg(&model)
-            .arg("--batch")
-            .arg(&neg)
-            .arg("--out")
-            .arg(&out);
-        if grad {
-            cmd.arg("--grad");
-        }
-        let o = cmd.output().unwrap();
+        let o = forward(&model, &neg, &out, if grad { &["--grad"] } else { &[] });
         assert!(
             !o.status.success(),
             "grad {grad}: all −1 codes accepted in training mode"

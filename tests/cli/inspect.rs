@@ -7,15 +7,7 @@ use crate::run::pma;
 use pma_data::dataset::{Dataset, Profile, ReadOptions, WriteOptions};
 
 fn tiny_scene(dir: &Path) {
-    let cfg = pma_data::synth::SynthConfig {
-        res: 16,
-        train_cams: 2,
-        test_cams: 1,
-        frames: 2,
-        novel_pose_walk: 1,
-        novel_pose_dance: 1,
-        ..Default::default()
-    };
+    let cfg = pma_data::synth::SynthConfig::small(16, 2, 2);
     pma_data::synth::generate(&cfg, dir, &mut |_, _| {}).expect("synth");
 }
 

@@ -3,15 +3,11 @@
 
 use std::path::{Path, PathBuf};
 
-use crate::run::{fails_with, ok, pma};
+use crate::run::{aist_motion, fails_with, number_before, ok, pma, read_motion, s};
 use candle_core::{Device, Tensor};
 use pma_model::render::avatar::Avatar;
 use pma_model::tools::mesh::read_ply;
 use pma_model::Config;
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
-}
 
 /// A tiny avatar with density 50 everywhere the network is asked (σ weights 0, bias 50).
 fn solid_model(dir: &Path) -> PathBuf {
@@ -131,20 +127,7 @@ fn solid_avatar_mesh_is_the_closed_union_of_its_part_boxes() {
 fn mesh_of_a_retargeted_motion_frame() {
     let tmp = tempfile::tempdir().unwrap();
     let model = solid_model(tmp.path());
-    let dance = tmp.path().join("dance.npz");
-    let src = concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/pma-data/assets/motion/aist_demo.npz"
-    );
-    ok(pma(&[
-        "convert",
-        "motion",
-        src,
-        "-o",
-        s(&dance),
-        "--frames",
-        "0:10",
-    ]));
+    let dance = aist_motion(&tmp.path().join("dance.npz"), &["--frames", "0:10"]);
     let ply = tmp.path().join("f7.ply");
     ok(pma(&[
         "mesh",
@@ -165,11 +148,7 @@ fn mesh_of_a_retargeted_motion_frame() {
     assert!(mesh.colours.is_none());
     assert!(mesh.edge_stats().is_watertight());
     // The mesh sits where frame 7's boxes are (same rest pose: root scale 1).
-    let ds = pma_data::dataset::Dataset::read(
-        &dance,
-        &pma_data::dataset::ReadOptions::new(pma_data::dataset::Profile::Motion),
-    )
-    .unwrap();
+    let ds = read_motion(&dance);
     let r = ds.root_locs.as_ref().unwrap().row(7).to_vec();
     let (lo, hi) = box_bounds(&model, &ds.pose_bones(7), [r[0], r[1], r[2]]);
     let (mlo, mhi) = mesh.bounds().unwrap();
@@ -206,20 +185,7 @@ fn mesh_errors_are_clear() {
         pma(&["mesh", "--model", s(&model), "-o", s(&ply), "--res", "1"]),
         "--res must be in 2..=1024",
     );
-    let motion = tmp.path().join("m.npz");
-    let src = concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/pma-data/assets/motion/aist_demo.npz"
-    );
-    ok(pma(&[
-        "convert",
-        "motion",
-        src,
-        "-o",
-        s(&motion),
-        "--frames",
-        "0:3",
-    ]));
+    let motion = aist_motion(&tmp.path().join("m.npz"), &["--frames", "0:3"]);
     fails_with(
         run(&["--poses", s(&motion), "--frame", "3"]),
         "--frame 3 is past the 3 pose(s)",
@@ -263,14 +229,6 @@ fn structured_model(dir: &Path) -> PathBuf {
         .save(&path)
         .unwrap();
     path
-}
-
-/// The number in `text` just before `word`.
-fn number_before(text: &str, word: &str) -> usize {
-    let head = &text[..text
-        .find(word)
-        .unwrap_or_else(|| panic!("{word:?} in {text:?}"))];
-    head.split_whitespace().last().unwrap().parse().unwrap()
 }
 
 /// `pma mesh --occupancy` on a model whose grid `pma occupancy build` made from its own

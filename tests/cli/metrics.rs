@@ -3,7 +3,7 @@
 
 use std::path::{Path, PathBuf};
 
-use crate::run::{fails_with, ok, pma};
+use crate::run::{exits_2_with, ok, pma};
 
 fn write_png(path: &Path, w: u32, h: u32, f: impl Fn(u32, u32, usize) -> u8) {
     image::RgbImage::from_fn(w, h, |x, y| image::Rgb([0, 1, 2].map(|c| f(x, y, c))))
@@ -100,8 +100,7 @@ fn metrics_refuses_mismatched_or_unreadable_input() {
     write_png(&a, 48, 40, texture);
     write_png(&b, 40, 48, texture);
     let out = pma(&["metrics", a.to_str().unwrap(), b.to_str().unwrap()]);
-    assert_eq!(out.status.code(), Some(2));
-    fails_with(out, "same size");
+    exits_2_with(out, "same size");
 
     let out = pma(&[
         "metrics",
@@ -110,17 +109,14 @@ fn metrics_refuses_mismatched_or_unreadable_input() {
         "--mask",
         b.to_str().unwrap(),
     ]);
-    assert_eq!(out.status.code(), Some(2));
-    fails_with(out, "mask");
+    exits_2_with(out, "mask");
 
     let junk = tmp.path().join("junk.png");
     std::fs::write(&junk, b"not a png").unwrap();
     let out = pma(&["metrics", junk.to_str().unwrap(), a.to_str().unwrap()]);
-    assert_eq!(out.status.code(), Some(2));
-    fails_with(out, "junk.png");
+    exits_2_with(out, "junk.png");
 
     let missing = tmp.path().join("missing.png");
     let out = pma(&["metrics", a.to_str().unwrap(), missing.to_str().unwrap()]);
-    assert_eq!(out.status.code(), Some(2));
-    fails_with(out, "missing.png");
+    exits_2_with(out, "missing.png");
 }

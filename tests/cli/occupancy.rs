@@ -4,30 +4,24 @@
 
 use std::path::{Path, PathBuf};
 
-use crate::run::{fails_with, ok, pma, tiny_scene};
+use crate::run::{exits_2_with, fails_with, ok, pma, s, tiny_scene, train_tiny_with};
 use candle_core::Device;
+use pma_model::network::occupancy::OccupancyGrid;
 use pma_model::render::avatar::Avatar;
 
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
+/// `tiny` trained on `scene` for 3 iterations with `extra` flags: the model's path.
+fn train(scene: &Path, run: &Path, extra: &[&str]) -> PathBuf {
+    train_tiny_with(scene, run, "3", extra, &[]);
+    run.join("model.safetensors")
 }
 
-fn train(scene: &Path, run: &Path, extra: &[&str]) -> PathBuf {
-    let mut args = vec![
-        "train",
-        "--data",
-        s(scene),
-        "--out",
-        s(run),
-        "--preset",
-        "tiny",
-        "--iters",
-        "3",
-        "--quiet",
-    ];
-    args.extend_from_slice(extra);
-    ok(pma(&args));
-    run.join("model.safetensors")
+/// The occupancy grid saved with the model at `path`.
+fn saved_grid(path: &Path) -> OccupancyGrid {
+    Avatar::load(path, &Device::Cpu)
+        .unwrap()
+        .occupancy()
+        .cloned()
+        .expect("a grid")
 }
 
 fn render(model: &Path, scene_dir: &Path, out: &Path, extra: &[&str]) -> std::process::Output {
@@ -140,8 +134,7 @@ fn grids_from_training_and_from_build_render_and_bad_ones_are_refused() {
         &["--occupancy", "--cull-samples", "0.6"],
     ));
     let out = build_for("1.5", &tmp.path().join("bad.safetensors"));
-    assert_eq!(out.status.code(), Some(2));
-    fails_with(out, "--cull-samples");
+    exits_2_with(out, "--cull-samples");
     ok(render(
         &built,
         &scene_dir,
@@ -153,18 +146,13 @@ fn grids_from_training_and_from_build_render_and_bad_ones_are_refused() {
     // A NaN in the grid tensor: refused with exit 2, naming the tensor.
     poison_grid(&built);
     let out = render(&built, &scene_dir, &tmp.path().join("v2"), &[]);
-    assert_eq!(out.status.code(), Some(2));
-    fails_with(out, "occupancy.density");
+    exits_2_with(out, "occupancy.density");
 
     // `pma train --occupancy`: the grid is saved with the model; a resumed run cannot
     // switch it on.
     let run = tmp.path().join("occ");
     let model = train(&scene, &run, &["--occupancy"]);
-    let grid = Avatar::load(&model, &Device::Cpu)
-        .unwrap()
-        .occupancy()
-        .cloned()
-        .expect("a grid");
+    let grid = saved_grid(&model);
     assert_eq!(grid.config().resolution, 32);
     let out = pma(&[
         "train",
@@ -188,11 +176,7 @@ fn grids_from_training_and_from_build_render_and_bad_ones_are_refused() {
     )
     .unwrap();
     let model = train(&scene, &tmp.path().join("toml"), &["--config", s(&config)]);
-    let grid = Avatar::load(&model, &Device::Cpu)
-        .unwrap()
-        .occupancy()
-        .cloned()
-        .expect("a grid");
+    let grid = saved_grid(&model);
     assert_eq!(grid.config().resolution, 8);
     assert_eq!(
         grid.refreshes(),
@@ -217,6 +201,5 @@ fn grids_from_training_and_from_build_render_and_bad_ones_are_refused() {
         "1",
         "--quiet",
     ]);
-    assert_eq!(out.status.code(), Some(2));
-    fails_with(out, "occupancy.resolution");
+    exits_2_with(out, "occupancy.resolution");
 }

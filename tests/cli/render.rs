@@ -4,46 +4,15 @@
 use std::path::{Path, PathBuf};
 use std::process::Output;
 
-use crate::run::{fails_with, ok, pma, tiny_scene};
-use candle_core::Device;
+use crate::run::{
+    aist_motion, fails_with, ok, pma, read_json, read_motion, s, tiny_scene, trained_scene,
+    untrained_tiny,
+};
 use image::AnimationDecoder;
-use pma_model::render::avatar::Avatar;
-use pma_model::Config;
 
-/// An untrained tiny avatar on the synthetic scene's rest pose.
-fn tiny_model(dir: &Path) -> PathBuf {
-    let path = dir.join("tiny.safetensors");
-    Avatar::new(
-        Config::tiny(),
-        &pma_data::synth::rest_pose(),
-        1,
-        &Device::Cpu,
-    )
-    .unwrap()
-    .save(&path)
-    .unwrap();
-    path
-}
-
-/// 12 frames of the embedded AIST++ dance at 15 fps, via `pma convert motion`.
+/// 12 frames of the embedded AIST++ dance at 15 fps.
 fn motion(dir: &Path) -> PathBuf {
-    let out = dir.join("dance.npz");
-    let src = concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/pma-data/assets/motion/aist_demo.npz"
-    );
-    ok(pma(&[
-        "convert",
-        "motion",
-        src,
-        "-o",
-        out.to_str().unwrap(),
-        "--frames",
-        "0:48",
-        "--fps",
-        "15",
-    ]));
-    out
+    aist_motion(&dir.join("dance.npz"), &["--frames", "0:48", "--fps", "15"])
 }
 
 fn png_size(path: &Path) -> (u32, u32) {
@@ -59,47 +28,37 @@ fn gif_frames(path: &Path) -> Vec<image::Frame> {
         .unwrap()
 }
 
-fn report(dir: &Path) -> serde_json::Value {
-    serde_json::from_str(&std::fs::read_to_string(dir.join("render.json")).unwrap()).unwrap()
+/// `pma render --model MODEL EXTRA... --out OUT --quiet`.
+fn render(model: &Path, out: &Path, extra: &[&str]) -> Output {
+    pma(&[
+        &["render", "--model", s(model)],
+        extra,
+        &["--out", s(out), "--quiet"],
+    ]
+    .concat())
 }
 
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
+fn report(dir: &Path) -> serde_json::Value {
+    read_json(&dir.join("render.json"))
 }
 
 #[test]
 fn dataset_views_of_a_trained_model() {
     let tmp = tempfile::tempdir().unwrap();
-    let scene = tmp.path().join("scene");
-    tiny_scene(&scene, 1);
-    let run = tmp.path().join("run");
-    ok(pma(&[
-        "train",
-        "--data",
-        s(&scene.join("train.npz")),
-        "--out",
-        s(&run),
-        "--preset",
-        "tiny",
-        "--iters",
-        "2",
-        "--quiet",
-    ]));
+    let (scene, model) = trained_scene(tmp.path(), 1, "2");
     let out = tmp.path().join("views");
-    let stdout = ok(pma(&[
-        "render",
-        "--model",
-        s(&run.join("model.safetensors")),
-        "--data",
-        s(&scene),
-        "--split",
-        "novel_view",
-        "--frames",
-        "0:2",
-        "--out",
-        s(&out),
-        "--quiet",
-    ]))
+    let stdout = ok(render(
+        &model,
+        &out,
+        &[
+            "--data",
+            s(&scene),
+            "--split",
+            "novel_view",
+            "--frames",
+            "0:2",
+        ],
+    ))
     .stdout;
     assert!(String::from_utf8_lossy(&stdout).contains("rendered 2 frame(s) of 24x24"));
     for k in 0..2 {
@@ -134,29 +93,27 @@ fn dataset_views_of_a_trained_model() {
 #[test]
 fn retargeted_dance_on_an_orbit_at_a_chosen_size() {
     let tmp = tempfile::tempdir().unwrap();
-    let model = tiny_model(tmp.path());
+    let model = untrained_tiny(tmp.path());
     let dance = motion(tmp.path());
     let out = tmp.path().join("orbit");
-    ok(pma(&[
-        "render",
-        "--model",
-        s(&model),
-        "--poses",
-        s(&dance),
-        "--res",
-        "32x20",
-        "--frames",
-        "2:6",
-        "--views",
-        "4",
-        "--background",
-        "white",
-        "--strip",
-        "2",
-        "--out",
-        s(&out),
-        "--quiet",
-    ]));
+    ok(render(
+        &model,
+        &out,
+        &[
+            "--poses",
+            s(&dance),
+            "--res",
+            "32x20",
+            "--frames",
+            "2:6",
+            "--views",
+            "4",
+            "--background",
+            "white",
+            "--strip",
+            "2",
+        ],
+    ));
     for k in 0..4 {
         assert_eq!(png_size(&out.join(format!("frame_{k:04}.png"))), (32, 20));
     }
@@ -181,11 +138,7 @@ fn retargeted_dance_on_an_orbit_at_a_chosen_size() {
     let (a, c) = (origin(0), origin(2));
     assert!((a[1] - c[1]).abs() < 0.05, "same height: {a:?} {c:?}");
     // Opposite sides of the dancer, who barely moves between frames 2 and 4.
-    let ds = pma_data::dataset::Dataset::read(
-        &dance,
-        &pma_data::dataset::ReadOptions::new(pma_data::dataset::Profile::Motion),
-    )
-    .unwrap();
+    let ds = read_motion(&dance);
     let root = ds.root_locs.as_ref().unwrap().row(2).to_vec();
     let mid = [(a[0] + c[0]) / 2.0, (a[2] + c[2]) / 2.0];
     assert!(
@@ -202,33 +155,27 @@ fn retargeted_dance_on_an_orbit_at_a_chosen_size() {
 #[test]
 fn follow_camera_moves_with_the_root_only() {
     let tmp = tempfile::tempdir().unwrap();
-    let model = tiny_model(tmp.path());
+    let model = untrained_tiny(tmp.path());
     let dance = motion(tmp.path());
     let out = tmp.path().join("follow");
-    ok(pma(&[
-        "render",
-        "--model",
-        s(&model),
-        "--poses",
-        s(&dance),
-        "--camera",
-        "follow",
-        "--res",
-        "16x16",
-        "--frames",
-        "0:12",
-        "--no-gif",
-        "--out",
-        s(&out),
-        "--quiet",
-    ]));
+    ok(render(
+        &model,
+        &out,
+        &[
+            "--poses",
+            s(&dance),
+            "--camera",
+            "follow",
+            "--res",
+            "16x16",
+            "--frames",
+            "0:12",
+            "--no-gif",
+        ],
+    ));
     let rep = report(&out);
     assert_eq!(rep["camera"], "follow");
-    let ds = pma_data::dataset::Dataset::read(
-        &dance,
-        &pma_data::dataset::ReadOptions::new(pma_data::dataset::Profile::Motion),
-    )
-    .unwrap();
+    let ds = read_motion(&dance);
     let roots = ds.root_locs.unwrap();
     let frames = rep["frames"].as_array().unwrap();
     let o = |k: usize, c: usize| frames[k]["camera_origin"][c].as_f64().unwrap();
@@ -250,28 +197,26 @@ fn bullet_time_freezes_one_pose_and_turns_the_camera() {
     let tmp = tempfile::tempdir().unwrap();
     let scene = tmp.path().join("scene");
     tiny_scene(&scene, 1);
-    let model = tiny_model(tmp.path());
+    let model = untrained_tiny(tmp.path());
     let out = tmp.path().join("bullet");
-    ok(pma(&[
-        "render",
-        "--model",
-        s(&model),
-        "--data",
-        s(&scene),
-        "--split",
-        "novel_pose",
-        "--camera",
-        "bullet",
-        "--views",
-        "3",
-        "--frames",
-        "1:2",
-        "--no-gif",
-        "--reference-dirs",
-        "--out",
-        s(&out),
-        "--quiet",
-    ]));
+    ok(render(
+        &model,
+        &out,
+        &[
+            "--data",
+            s(&scene),
+            "--split",
+            "novel_pose",
+            "--camera",
+            "bullet",
+            "--views",
+            "3",
+            "--frames",
+            "1:2",
+            "--no-gif",
+            "--reference-dirs",
+        ],
+    ));
     assert!(!out.join("render.gif").exists());
     let rep = report(&out);
     assert_eq!(rep["camera"], "bullet");
@@ -301,13 +246,9 @@ fn bad_input_gives_clear_errors() {
     let tmp = tempfile::tempdir().unwrap();
     let scene = tmp.path().join("scene");
     tiny_scene(&scene, 1);
-    let model = tiny_model(tmp.path());
+    let model = untrained_tiny(tmp.path());
     let out = tmp.path().join("o");
-    let base = |extra: &[&str]| -> Output {
-        let mut a = vec!["render", "--model", s(&model), "--out", s(&out), "--quiet"];
-        a.extend_from_slice(extra);
-        pma(&a)
-    };
+    let base = |extra: &[&str]| -> Output { render(&model, &out, extra) };
     fails_with(base(&[]), "pass --data DS and/or --poses");
     fails_with(base(&["--data", s(&scene), "--res", "0x5"]), "expected WxH");
     fails_with(

@@ -6,7 +6,7 @@ use std::path::Path;
 use std::process::Command;
 use std::time::{Duration, Instant};
 
-use crate::run::{fails_with, ok, pma, tiny_scene};
+use crate::run::{fails_with, kill, ok, pma, tiny_scene, wait_for};
 use candle_core::{Device, Tensor};
 
 /// The newest complete checkpoint directory of a run.
@@ -115,56 +115,20 @@ fn resumed_run_equals_uninterrupted_run_bit_for_bit() {
 fn bad_input_gives_clear_errors() {
     let tmp = tempfile::tempdir().unwrap();
     let out = tmp.path().join("run");
-    let out_s = out.to_str().unwrap();
-    fails_with(
-        pma(&[
-            "train",
-            "--data",
-            "/nonexistent/x.npz",
-            "--out",
-            out_s,
-            "--preset",
-            "tiny",
-        ]),
-        "/nonexistent/x.npz",
-    );
-    fails_with(
-        pma(&[
-            "train",
-            "--data",
-            "/nonexistent/x.npz",
-            "--out",
-            out_s,
-            "--preset",
-            "huge",
-        ]),
-        "unknown preset \"huge\"",
-    );
     let cfg = tmp.path().join("c.toml");
     std::fs::write(&cfg, "preset = \"tiny\"\n[train]\nrays_per_stp = 4\n").unwrap();
-    fails_with(
-        pma(&[
-            "train",
-            "--data",
-            "/nonexistent/x.npz",
-            "--out",
-            out_s,
-            "--config",
-            cfg.to_str().unwrap(),
-        ]),
-        "train.rays_per_stp",
-    );
-    fails_with(
-        pma(&[
-            "train",
-            "--data",
-            "/nonexistent/x.npz",
-            "--out",
-            out_s,
-            "--resume",
-        ]),
-        "config.toml",
-    );
+    let missing = Path::new("/nonexistent/x.npz");
+    for (extra, needle) in [
+        (&["--preset", "tiny"][..], "/nonexistent/x.npz"),
+        (&["--preset", "huge"], "unknown preset \"huge\""),
+        (&["--config", cfg.to_str().unwrap()], "train.rays_per_stp"),
+        (&["--resume"], "config.toml"),
+    ] {
+        fails_with(
+            pma(&[&train_args(missing, &out)[..], extra].concat()),
+            needle,
+        );
+    }
 }
 
 /// `pma train --data DATA --out OUT`.
@@ -219,34 +183,15 @@ fn ctrl_c_writes_a_checkpoint_that_resumes() {
     let data = tiny_scene(&tmp.path().join("scene"), 2);
     let out = tmp.path().join("run");
     let child = Command::new(env!("CARGO_BIN_EXE_pma"))
-        .args([
-            "train",
-            "--data",
-            data.to_str().unwrap(),
-            "--out",
-            out.to_str().unwrap(),
-            "--preset",
-            "tiny",
-        ])
-        .args(["--iters", "1000000", "--quiet"])
+        .args(train_args(&data, &out))
+        .args(["--preset", "tiny", "--iters", "1000000", "--quiet"])
         .stderr(std::process::Stdio::piped())
         .spawn()
         .unwrap();
     // log.csv appears at the first log row (iteration 5 of `tiny`): steps have finished, so
     // the interrupt has a checkpoint to write however slow the machine is.
-    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(300);
-    while !out.join("log.csv").exists() {
-        assert!(
-            std::time::Instant::now() < deadline,
-            "training logged no row in 300 s"
-        );
-        std::thread::sleep(std::time::Duration::from_millis(50));
-    }
-    let status = Command::new("kill")
-        .args(["-INT", &child.id().to_string()])
-        .status()
-        .unwrap();
-    assert!(status.success());
+    wait_for("a first log row", 300, || out.join("log.csv").exists());
+    kill(child.id(), "-INT");
     let output = child.wait_with_output().unwrap();
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert_eq!(output.status.code(), Some(130), "{stderr}");
@@ -258,17 +203,9 @@ fn ctrl_c_writes_a_checkpoint_that_resumes() {
     let meta = safetensors_meta(&bytes);
     let done: u64 = meta["global_iter"].parse().unwrap();
     assert!(done >= 1, "no iteration finished before the interrupt");
-    ok(pma(&[
-        "train",
-        "--data",
-        data.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-        "--resume",
-        "--iters",
-        &(done + 2).to_string(),
-        "--quiet",
-    ]));
+    let iters = (done + 2).to_string();
+    let resume = ["--resume", "--iters", &iters, "--quiet"];
+    ok(pma(&[&train_args(&data, &out)[..], &resume].concat()));
 }
 
 /// Ctrl-C in the middle of a step of the paper-size `default` network on the CPU: the step
@@ -317,18 +254,12 @@ fn ctrl_c_mid_step_on_the_default_network_resumes_bit_for_bit() {
         .unwrap();
     // config.toml appears once the trainer exists; the first step starts right after and
     // takes seconds.
-    let deadline = Instant::now() + Duration::from_secs(120);
-    while !out.join("config.toml").exists() {
-        assert!(Instant::now() < deadline, "training did not start");
-        std::thread::sleep(Duration::from_millis(20));
-    }
+    wait_for("the start of training", 120, || {
+        out.join("config.toml").exists()
+    });
     std::thread::sleep(Duration::from_millis(300));
     let sent = Instant::now();
-    let status = Command::new("kill")
-        .args(["-INT", &child.id().to_string()])
-        .status()
-        .unwrap();
-    assert!(status.success());
+    kill(child.id(), "-INT");
     let output = child.wait_with_output().unwrap();
     let latency = sent.elapsed();
     let stderr = String::from_utf8_lossy(&output.stderr);

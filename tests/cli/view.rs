@@ -15,19 +15,14 @@ use std::time::{Duration, Instant};
 
 use candle_core::{Device, Tensor};
 use pma_model::render::avatar::Avatar;
-use pma_model::Config;
 use serde_json::Value;
 
 use crate::cdp::{self, Browser};
-use crate::run::{fails_with, ok, pma, pma_within, tiny_scene};
+use crate::run::{fails_with, ok, pma, pma_within, s, tiny_scene, untrained_tiny};
 
 /// Generous bound on anything the page waits for in a debug build on a loaded machine (a
 /// hang guard, not a timing check).
 const LONG: Duration = Duration::from_secs(180);
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
-}
 
 /// Chromium, or `None` (with a loud message) when it is missing outside CI.
 fn chromium_or_skip(test: &str) -> Option<PathBuf> {
@@ -441,7 +436,7 @@ fn browser_scrubs_poses_turns_the_camera_and_follows_a_run() {
 #[test]
 fn malformed_and_oversized_requests_get_4xx_and_the_server_keeps_serving() {
     let tmp = tempfile::tempdir().unwrap();
-    let model = tiny_model(tmp.path());
+    let model = untrained_tiny(tmp.path());
     let view = Viewer::start(&[s(&model)]);
     let p = view.port;
     let host = format!("Host: 127.0.0.1:{p}\r\nConnection: close\r\n");
@@ -573,24 +568,10 @@ fn malformed_and_oversized_requests_get_4xx_and_the_server_keeps_serving() {
     eprintln!("pma view stopped {took:?} after SIGINT");
 }
 
-fn tiny_model(dir: &Path) -> PathBuf {
-    let model = dir.join("tiny.safetensors");
-    Avatar::new(
-        Config::tiny(),
-        &pma_data::synth::rest_pose(),
-        1,
-        &Device::Cpu,
-    )
-    .unwrap()
-    .save(&model)
-    .unwrap();
-    model
-}
-
 #[test]
 fn a_newer_request_stops_the_frame_in_flight() {
     let tmp = tempfile::tempdir().unwrap();
-    let model = tiny_model(tmp.path());
+    let model = untrained_tiny(tmp.path());
     let view = Viewer::start(&[s(&model), "--chunk", "256"]);
     let info: Value = serde_json::from_slice(&view.get("/api/info").body).unwrap();
     let cam = format!("{}&fov=30", start_cam(&info));
@@ -763,7 +744,7 @@ fn idle_and_slow_clients_do_not_keep_the_page_out() {
     const SOCKETS: usize = 200;
     const HOLD: Duration = Duration::from_secs(10);
     let tmp = tempfile::tempdir().unwrap();
-    let model = tiny_model(tmp.path());
+    let model = untrained_tiny(tmp.path());
     let view = Viewer::start(&[s(&model)]);
     let port = view.port;
     let info: Value = serde_json::from_slice(&view.get("/api/info").body).unwrap();
@@ -834,7 +815,7 @@ fn a_fifo_in_the_run_directory_blocks_no_request() {
     let tmp = tempfile::tempdir().unwrap();
     let run = tmp.path().join("run");
     std::fs::create_dir(&run).unwrap();
-    let model = tiny_model(tmp.path());
+    let model = untrained_tiny(tmp.path());
     std::fs::copy(&model, run.join("model.safetensors")).unwrap();
     crate::run::mkfifo(&run.join("log.csv"));
     let view = Viewer::start(&[s(&run)]);
@@ -871,7 +852,7 @@ fn a_fifo_in_the_run_directory_blocks_no_request() {
 fn client_errors_are_4xx_on_every_route() {
     let tmp = tempfile::tempdir().unwrap();
     let data = tiny_scene(&tmp.path().join("scene"), 1);
-    let model = tiny_model(tmp.path());
+    let model = untrained_tiny(tmp.path());
     let view = Viewer::start(&[s(&model), "--data", s(&data)]);
     let info: Value = serde_json::from_slice(&view.get("/api/info").body).unwrap();
     let read = pma_data::dataset::ReadOptions::new(pma_data::dataset::Profile::Render);
@@ -938,7 +919,7 @@ fn refuses_bad_input_before_serving() {
         pma(&["view", s(&tmp.path().join("missing.safetensors"))]),
         "no such model file or run directory",
     );
-    let model = tiny_model(tmp.path());
+    let model = untrained_tiny(tmp.path());
     let out = pma(&["view", s(&model), "--data", s(&tmp.path().join("none.npz"))]);
     assert_eq!(out.status.code(), Some(2), "{out:?}");
     let empty_run = tmp.path().join("run");

@@ -1,11 +1,10 @@
 //! `pma convert checkpoint`: the golden reference checkpoint and the Adam
 //! fixtures of fixtures/convert/gen_torch_fixtures.py.
 
-use std::path::{Path, PathBuf};
+use crate::support::{convert_fixture, f32s, root};
 
 use candle_core::Device;
 use pma_convert::{
-    checkpoint::{convert_checkpoint, CheckpointOptions},
     torch::read_reference_checkpoint,
     train_state::{reference_param_groups, sidecar_path, train_state_from_torch},
     ConvertError,
@@ -18,19 +17,6 @@ use pma_model::{
 };
 use safetensors::SafeTensors;
 
-fn root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .parent()
-        .unwrap()
-        .to_path_buf()
-}
-
-fn f32s(b: &[u8]) -> Vec<f32> {
-    b.chunks_exact(4)
-        .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
-        .collect()
-}
-
 /// The generator's `pattern(seed, n, scale)`: `scale * (((k + seed) % 17) - 8)` rounded to f32.
 fn pattern(seed: usize, n: usize, scale: f64) -> Vec<f32> {
     (0..n)
@@ -42,12 +28,7 @@ fn pattern(seed: usize, n: usize, scale: f64) -> Vec<f32> {
 fn golden_checkpoint_converts_to_identical_tensors_and_loads() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("ref.safetensors");
-    let rep = convert_checkpoint(
-        &root().join("fixtures/golden/ckpt.th"),
-        &out,
-        &CheckpointOptions::default(),
-    )
-    .unwrap();
+    let rep = convert_fixture("golden/ckpt.th", &out, false).unwrap();
     assert_eq!(rep.n_tensors, 71);
     assert_eq!(rep.n_parameters, 3_111_524);
     assert!(rep.train_state.is_none());
@@ -110,15 +91,7 @@ fn optimizer_ids_follow_the_reference_grouping() {
 fn adam_state_is_exported_by_parameter_name_and_loads_in_the_trainer() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("resume.safetensors");
-    let input = root().join("fixtures/convert/ckpt_adam.th");
-    let rep = convert_checkpoint(
-        &input,
-        &out,
-        &CheckpointOptions {
-            with_optimizer: true,
-        },
-    )
-    .unwrap();
+    let rep = convert_fixture("convert/ckpt_adam.th", &out, true).unwrap();
     let side = dir.path().join("resume.optim.safetensors");
     assert_eq!(rep.train_state.as_deref(), Some(side.as_path()));
     assert_eq!(sidecar_path(&out), side);
@@ -168,12 +141,7 @@ fn adam_state_is_exported_by_parameter_name_and_loads_in_the_trainer() {
 fn checkpoint_of_another_architecture_is_rejected_with_the_tensor_named() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("bad.safetensors");
-    let err = convert_checkpoint(
-        &root().join("fixtures/convert/bad_config.th"),
-        &out,
-        &CheckpointOptions::default(),
-    )
-    .unwrap_err();
+    let err = convert_fixture("convert/bad_config.th", &out, false).unwrap_err();
     let msg = err.to_string();
     assert!(
         matches!(&err, ConvertError::Model(e) if matches!(**e, ModelError::Checkpoint { .. })),
@@ -191,14 +159,7 @@ fn an_empty_adam_state_exports_zero_moments() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("x.safetensors");
     // The golden checkpoint's Adam has never stepped: every parameter starts from zero.
-    let rep = convert_checkpoint(
-        &root().join("fixtures/golden/ckpt.th"),
-        &out,
-        &CheckpointOptions {
-            with_optimizer: true,
-        },
-    )
-    .unwrap();
+    let rep = convert_fixture("golden/ckpt.th", &out, true).unwrap();
     assert_eq!(rep.n_moments, 0);
     let state = TrainState::load(rep.train_state.as_ref().unwrap(), &Device::Cpu).unwrap();
     assert_eq!((state.groups[0].lr, state.groups[1].lr), (1e-4, 5e-4));
@@ -221,35 +182,25 @@ fn an_empty_adam_state_exports_zero_moments() {
 fn optimizer_export_needs_the_optimizer_and_global_iter() {
     let mut ck = read_reference_checkpoint(&root().join("fixtures/golden/ckpt.th")).unwrap();
     let cfg = Config::paper();
+    // The export is refused with the file and the missing entry named.
+    let assert_refused = |ck: &_, missing: &str| {
+        let msg = train_state_from_torch(ck, &cfg, None)
+            .unwrap_err()
+            .to_string();
+        assert!(msg.contains("ckpt.th") && msg.contains(missing), "{msg}");
+    };
     ck.global_iter = None;
-    let msg = train_state_from_torch(&ck, &cfg, None)
-        .unwrap_err()
-        .to_string();
-    assert!(
-        msg.contains("ckpt.th") && msg.contains("global_iter"),
-        "{msg}"
-    );
+    assert_refused(&ck, "global_iter");
     ck.global_iter = Some(5);
     ck.optimizer = None;
-    let msg = train_state_from_torch(&ck, &cfg, None)
-        .unwrap_err()
-        .to_string();
-    assert!(
-        msg.contains("ckpt.th") && msg.contains("optimizer"),
-        "{msg}"
-    );
+    assert_refused(&ck, "optimizer");
 }
 
 #[test]
 fn a_pma_checkpoint_is_not_a_training_state() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("m.safetensors");
-    convert_checkpoint(
-        &root().join("fixtures/golden/ckpt.th"),
-        &out,
-        &CheckpointOptions::default(),
-    )
-    .unwrap();
+    convert_fixture("golden/ckpt.th", &out, false).unwrap();
     let msg = TrainState::load(&out, &Device::Cpu)
         .unwrap_err()
         .to_string();

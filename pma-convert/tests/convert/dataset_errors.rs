@@ -2,18 +2,10 @@
 //! Each case starts from the converted h36m_zju fixture, breaks one thing,
 //! and converts the broken pma-npz again.
 
-use std::path::{Path, PathBuf};
+use crate::support::fixture;
 
 use pma_convert::dataset::{convert_dataset, DatasetOptions};
 use pma_data::dataset::{Dataset, Profile, ReadOptions, WriteOptions};
-
-fn fixture(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .parent()
-        .unwrap()
-        .join("fixtures/convert")
-        .join(name)
-}
 
 /// Converts a copy of h36m_zju broken by `breaks` and returns the error message.
 fn error_after(breaks: impl FnOnce(&mut Dataset), profile: Profile) -> String {

@@ -1,19 +1,12 @@
 //! `.h5` → pma-npz conversion of the per-layout fixtures written by
 //! fixtures/convert/gen_h5_fixtures.py (h5py, reference writer rules).
 
-use std::path::{Path, PathBuf};
+use crate::support::fixture;
+use std::path::Path;
 
 use hdf5_reader::Hdf5File;
 use pma_convert::dataset::{convert_dataset, DatasetOptions, Layout};
 use pma_data::dataset::{Dataset, Profile, ReadOptions};
-
-fn fixture(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .parent()
-        .unwrap()
-        .join("fixtures/convert")
-        .join(name)
-}
 
 fn convert(
     name: &str,

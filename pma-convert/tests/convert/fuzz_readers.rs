@@ -9,6 +9,7 @@
 //! Claims of huge sizes are covered separately (`hostile_sizes.rs`), where
 //! peak memory can be measured without other tests running beside them.
 
+use crate::support::{fixture, root};
 use std::{
     io::Read,
     path::{Path, PathBuf},
@@ -27,17 +28,6 @@ use proptest::{
     sample::{select, Index},
     test_runner::{Config, RngSeed},
 };
-
-fn root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .parent()
-        .unwrap()
-        .to_path_buf()
-}
-
-fn fixture(name: &str) -> PathBuf {
-    root().join("fixtures/convert").join(name)
-}
 
 fn shared(rel: &str) -> PathBuf {
     root().join("../shared/data").join(rel)

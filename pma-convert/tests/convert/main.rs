@@ -1,6 +1,8 @@
 //! pma-convert integration tests (the peak-RSS tests keep their own process), linked as one test binary: each binary links candle, and one per file
 //! filled a CI disk. Files stay one module per concern; filter with `cargo test -p pma-convert --test convert motion::`.
 
+mod support;
+
 mod capture;
 mod checkpoint;
 mod dataset_errors;

@@ -5,49 +5,21 @@
 //! moments are the old ones decayed plus one gradient (m' = β₁m + (1−β₁)g,
 //! v' = β₂v + (1−β₂)g²), which fails if the moments were not loaded.
 
-use std::{collections::HashMap, path::PathBuf};
+use crate::support::{convert_fixture, root};
 
 use candle_core::{Device, Tensor};
-use pma_convert::checkpoint::{convert_checkpoint, CheckpointOptions};
 use pma_model::{
+    doctor::golden::Golden,
     network::checkpoint,
-    render::avatar::{Poses, Rays},
     train::{FixedBatch, Preset, RunConfig, TrainBatch, TrainConfig, Trainer, STATE_FILE},
 };
 
-fn root() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..")
-}
-
-/// The golden 64-ray batch (one unique pose), as the trainer's parity test builds it.
+/// The golden 64-ray batch (one unique pose).
 fn golden_batch() -> TrainBatch {
-    let g: HashMap<String, Tensor> = candle_core::safetensors::load(
-        root().join("fixtures/golden/golden.safetensors"),
-        &Device::Cpu,
-    )
-    .unwrap();
-    let t = |k: &str| g[&format!("input/{k}")].clone();
-    let bones_all = t("bones").to_vec3::<f32>().unwrap();
-    let mut bones = [[0f32; 3]; 24];
-    for (j, b) in bones.iter_mut().enumerate() {
-        b.copy_from_slice(&bones_all[0][j]);
-    }
-    TrainBatch {
-        rays: Rays {
-            origins: t("rays_o"),
-            dirs: t("rays_d"),
-            bgs: Some(t("bgs")),
-            framecodes: t("cam_idxs").to_vec1::<i64>().unwrap(),
-        },
-        poses: Poses {
-            bones: vec![bones],
-            skts: t("skts").narrow(0, 0, 1).unwrap().contiguous().unwrap(),
-            cyls: t("cyls").narrow(0, 0, 1).unwrap().contiguous().unwrap(),
-        },
-        target: t("target_s"),
-        pixels: None,
-        weights: None,
-    }
+    Golden::load(&root().join("fixtures/golden"), &Device::Cpu)
+        .unwrap()
+        .batch()
+        .unwrap()
 }
 
 fn flat(t: &Tensor) -> Vec<f32> {
@@ -58,14 +30,7 @@ fn flat(t: &Tensor) -> Vec<f32> {
 fn training_resumes_from_a_converted_reference_checkpoint() {
     let dir = tempfile::tempdir().unwrap();
     let model = dir.path().join("model.safetensors");
-    let rep = convert_checkpoint(
-        &root().join("fixtures/convert/ckpt_adam.th"),
-        &model,
-        &CheckpointOptions {
-            with_optimizer: true,
-        },
-    )
-    .unwrap();
+    let rep = convert_fixture("convert/ckpt_adam.th", &model, true).unwrap();
     std::fs::rename(rep.train_state.unwrap(), dir.path().join(STATE_FILE)).unwrap();
 
     let ck = checkpoint::load(&model, &Device::Cpu).unwrap();

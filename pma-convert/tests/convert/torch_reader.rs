@@ -1,30 +1,13 @@
 //! The restricted pickle reader against the golden checkpoint and the
 //! hand-built fixtures of fixtures/convert/gen_torch_fixtures.py.
 
-use std::path::{Path, PathBuf};
+use crate::support::{f32s, fixture, root};
 
 use pma_convert::{
     torch::{read_reference_checkpoint, TorchArchive},
     ConvertError,
 };
 use safetensors::{Dtype, SafeTensors};
-
-fn root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .parent()
-        .unwrap()
-        .to_path_buf()
-}
-
-fn fixture(name: &str) -> PathBuf {
-    root().join("fixtures/convert").join(name)
-}
-
-fn f32s(b: &[u8]) -> Vec<f32> {
-    b.chunks_exact(4)
-        .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
-        .collect()
-}
 
 #[test]
 fn golden_ckpt_tensors_are_byte_identical_to_model_safetensors() {

@@ -12,15 +12,7 @@ use pma_data::DataError;
 
 /// A 2-camera × 2-frame 8×8 training split of the synthetic scene.
 fn tiny() -> Dataset {
-    let cfg = SynthConfig {
-        res: 8,
-        train_cams: 2,
-        test_cams: 1,
-        frames: 2,
-        novel_pose_walk: 1,
-        novel_pose_dance: 1,
-        ..Default::default()
-    };
+    let cfg = SynthConfig::small(8, 2, 2);
     let p = plan(&cfg).unwrap();
     render_split(&p, &p.splits[0], &mut || {}).unwrap()
 }

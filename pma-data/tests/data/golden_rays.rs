@@ -10,35 +10,34 @@ use pma_data::cylinder::{cylinder_from_joints, CylinderParams, HeadDir};
 use pma_data::skeleton::{Joints, N_JOINTS};
 use safetensors::SafeTensors;
 
+use crate::support::max_abs_diff;
+
 fn golden() -> Vec<u8> {
     let p = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../fixtures/golden/golden.safetensors");
     std::fs::read(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()))
 }
 
 fn f32s(st: &SafeTensors, key: &str) -> Vec<f32> {
-    let t = st.tensor(key).unwrap();
-    assert_eq!(t.dtype(), safetensors::Dtype::F32, "{key}");
-    t.data()
-        .chunks_exact(4)
-        .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
-        .collect()
+    values(st, key, safetensors::Dtype::F32, f32::from_le_bytes)
 }
 
 fn i64s(st: &SafeTensors, key: &str) -> Vec<i64> {
-    let t = st.tensor(key).unwrap();
-    assert_eq!(t.dtype(), safetensors::Dtype::I64, "{key}");
-    t.data()
-        .chunks_exact(8)
-        .map(|c| i64::from_le_bytes(c.try_into().unwrap()))
-        .collect()
+    values(st, key, safetensors::Dtype::I64, i64::from_le_bytes)
 }
 
-fn max_diff(a: &[f32], b: &[f32]) -> f32 {
-    assert_eq!(a.len(), b.len());
-    a.iter()
-        .zip(b)
-        .map(|(x, y)| (x - y).abs())
-        .fold(0.0, f32::max)
+/// The values of `key`, which must be of `dtype`, each read from its `N` little-endian bytes.
+fn values<T, const N: usize>(
+    st: &SafeTensors,
+    key: &str,
+    dtype: safetensors::Dtype,
+    from_le: fn([u8; N]) -> T,
+) -> Vec<T> {
+    let t = st.tensor(key).unwrap();
+    assert_eq!(t.dtype(), dtype, "{key}");
+    t.data()
+        .chunks_exact(N)
+        .map(|c| from_le(c.try_into().unwrap()))
+        .collect()
 }
 
 #[test]
@@ -59,7 +58,7 @@ fn golden_rays_from_c2w_and_pixels() {
     let o: Vec<f32> = o.into_iter().flatten().collect();
     let d: Vec<f32> = d.into_iter().flatten().collect();
     let (want_o, want_d) = (f32s(&st, "input/rays_o"), f32s(&st, "input/rays_d"));
-    let (eo, ed) = (max_diff(&o, &want_o), max_diff(&d, &want_d));
+    let (eo, ed) = (max_abs_diff(&o, &want_o), max_abs_diff(&d, &want_d));
     assert!(eo < 1e-6, "rays_o max diff {eo}");
     assert!(ed < 1e-6, "rays_d max diff {ed}");
     // A half-pixel shift (a common convention the reference does not use) is far off.
@@ -75,7 +74,7 @@ fn golden_rays_from_c2w_and_pixels() {
             v.into_iter().map(move |x| x / n)
         })
         .collect();
-    assert!(max_diff(&shifted, &want_d) > 1e-5);
+    assert!(max_abs_diff(&shifted, &want_d) > 1e-5);
 }
 
 #[test]
@@ -89,9 +88,9 @@ fn golden_cylinder_from_kp3d() {
         r.copy_from_slice(&kp[3 * j..3 * j + 3]);
     }
     let got = cylinder_from_joints(&joints, &CylinderParams::training(HeadDir::NegY));
-    let e = max_diff(&got, &cyls[..5]);
+    let e = max_abs_diff(&got, &cyls[..5]);
     assert!(e < 1e-5, "cyls max diff {e}: {got:?} vs {:?}", &cyls[..5]);
     // Head +y would put the caps on the other side.
     let flipped = cylinder_from_joints(&joints, &CylinderParams::training(HeadDir::PosY));
-    assert!(max_diff(&flipped, &cyls[..5]) > 0.1);
+    assert!(max_abs_diff(&flipped, &cyls[..5]) > 0.1);
 }

@@ -7,4 +7,5 @@ mod metrics;
 mod motion;
 mod sampler;
 mod skeleton;
+mod support;
 mod synth;

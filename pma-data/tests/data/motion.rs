@@ -10,6 +10,18 @@ use pma_data::motion::{read_smpl_npz, HeadDir, Motion, MotionError};
 use pma_data::skeleton::{axis_angle_to_matrix, forward_kinematics, PARENTS};
 use pma_data::synth::ANERF_REST_POSE;
 
+/// `bvh` (read from `file`) retargeted by the CMU map onto the A-NeRF rest pose, with the
+/// default options.
+fn retarget_cmu(bvh: &Bvh, file: &str) -> Result<Motion, MotionError> {
+    retarget_bvh(
+        bvh,
+        file,
+        &CMU_TO_SMPL,
+        &ANERF_REST_POSE,
+        &Default::default(),
+    )
+}
+
 fn asset(name: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("assets/motion")
@@ -121,14 +133,7 @@ fn cmu_asset_has_the_documented_layout() {
 /// Retargets `bvh` and checks that every Bone-sourced SMPL bone points
 /// along its BVH segment in every frame.
 fn check_bone_directions(bvh: &Bvh) -> f64 {
-    let m = retarget_bvh(
-        bvh,
-        "cmu",
-        &CMU_TO_SMPL,
-        &ANERF_REST_POSE,
-        &Default::default(),
-    )
-    .unwrap();
+    let m = retarget_cmu(bvh, "cmu").unwrap();
     assert_eq!(m.up, HeadDir::PosY);
     let mut worst = 0.0f64;
     let mut checked = 0;
@@ -217,14 +222,7 @@ fn cmu_rest_bvh() -> Bvh {
 #[test]
 fn bvh_rest_pose_lowers_the_smpl_t_pose_arms() {
     let bvh = cmu_rest_bvh();
-    let m = retarget_bvh(
-        &bvh,
-        "rest",
-        &CMU_TO_SMPL,
-        &ANERF_REST_POSE,
-        &Default::default(),
-    )
-    .unwrap();
+    let m = retarget_cmu(&bvh, "rest").unwrap();
     let smpl = forward_kinematics(&ANERF_REST_POSE, &m.bones[0], [0.0; 3]);
     for (shoulder, elbow, wrist) in [(16, 18, 20), (17, 19, 21)] {
         let upper = v(smpl.kp3d[elbow]) - v(smpl.kp3d[shoulder]);
@@ -242,14 +240,7 @@ fn bvh_rest_pose_lowers_the_smpl_t_pose_arms() {
 fn retarget_names_a_missing_joint() {
     let text = TINY.replace("Base", "Hips");
     let bvh = Bvh::parse(&text, "tiny.bvh").unwrap();
-    let err = retarget_bvh(
-        &bvh,
-        "tiny.bvh",
-        &CMU_TO_SMPL,
-        &ANERF_REST_POSE,
-        &Default::default(),
-    )
-    .unwrap_err();
+    let err = retarget_cmu(&bvh, "tiny.bvh").unwrap_err();
     assert!(
         matches!(&err, MotionError::MissingJoint { joint, smpl_joint: 0, .. } if joint == "Chest"),
         "{err}"

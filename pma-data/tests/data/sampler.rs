@@ -7,15 +7,7 @@ use pma_data::sampler::Sampler;
 use pma_data::synth::{plan, render_split, SynthConfig};
 
 fn tiny() -> Dataset {
-    let cfg = SynthConfig {
-        res: 16,
-        train_cams: 2,
-        test_cams: 1,
-        frames: 3,
-        novel_pose_walk: 1,
-        novel_pose_dance: 1,
-        ..Default::default()
-    };
+    let cfg = SynthConfig::small(16, 2, 3);
     let p = plan(&cfg).unwrap();
     render_split(&p, &p.splits[0], &mut || {}).unwrap()
 }

@@ -13,6 +13,8 @@ use pma_data::DataError;
 use proptest::prelude::*;
 use safetensors::SafeTensors;
 
+use crate::support::max_abs_diff;
+
 fn root() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..")
 }
@@ -49,14 +51,6 @@ fn fixture_rest_pose() -> Joints {
         }
     }
     out
-}
-
-fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
-    assert_eq!(a.len(), b.len());
-    a.iter()
-        .zip(b)
-        .map(|(x, y)| (x - y).abs())
-        .fold(0.0, f32::max)
 }
 
 /// FK from `input/bones`, `input/rest_pose` and root = kp3d[0] − rest[0]

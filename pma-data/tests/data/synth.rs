@@ -7,14 +7,9 @@ use pma_data::synth::{plan, render_split, ScenePlan, SynthConfig};
 
 fn cfg(seed: u64) -> SynthConfig {
     SynthConfig {
-        res: 32,
-        train_cams: 3,
-        test_cams: 1,
-        frames: 3,
-        novel_pose_walk: 1,
         novel_pose_dance: 2,
         seed,
-        ..Default::default()
+        ..SynthConfig::small(32, 3, 3)
     }
 }
 

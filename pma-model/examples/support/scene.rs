@@ -9,14 +9,7 @@ use pma_data::dataset::{Dataset, Profile, ReadOptions};
 
 /// 4 cameras × 4 walk frames at 96×96: 16 training images, as many as the paper's step uses.
 pub fn scene(dir: &Path) -> Result<Arc<Dataset>, Box<dyn std::error::Error>> {
-    let cfg = pma_data::synth::SynthConfig {
-        train_cams: 4,
-        test_cams: 1,
-        frames: 4,
-        novel_pose_walk: 1,
-        novel_pose_dance: 1,
-        ..Default::default()
-    };
+    let cfg = pma_data::synth::SynthConfig::small(96, 4, 4);
     pma_data::synth::generate(&cfg, dir, &mut |_, _| {})?;
     Ok(Arc::new(Dataset::read(
         dir.join("train.npz"),
@@ -35,6 +28,21 @@ pub fn peak_rss_mib() -> Option<f64> {
 pub fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(|a, b| a.total_cmp(b));
     v[v.len() / 2]
+}
+
+/// Median wall seconds of `f` over `runs` calls, after one untimed warm-up call.
+pub fn median_seconds(
+    runs: usize,
+    mut f: impl FnMut() -> Result<(), Box<dyn std::error::Error>>,
+) -> Result<f64, Box<dyn std::error::Error>> {
+    f()?;
+    let mut times = Vec::with_capacity(runs);
+    for _ in 0..runs {
+        let t = std::time::Instant::now();
+        f()?;
+        times.push(t.elapsed().as_secs_f64());
+    }
+    Ok(median(times))
 }
 
 /// `--name value` from the command line, parsed, or `default`.

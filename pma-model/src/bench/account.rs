@@ -271,14 +271,7 @@ fn account_scene(
     images_per_step: usize,
     obs: &mut dyn BenchObserver,
 ) -> Result<Arc<Dataset>> {
-    let synth = pma_data::synth::SynthConfig {
-        train_cams: 4,
-        test_cams: 1,
-        frames: 4,
-        novel_pose_walk: 1,
-        novel_pose_dance: 1,
-        ..Default::default()
-    };
+    let synth = pma_data::synth::SynthConfig::small(96, 4, 4);
     if !dir.join("train.npz").is_file() {
         obs.note(&format!(
             "synthesising the accounting scene into {}",

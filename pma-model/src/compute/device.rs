@@ -151,12 +151,15 @@ fn cuda_free_memory(_device: &Device) -> Option<usize> {
     None
 }
 
-/// Bytes of device memory a network pass holds per point × joint × feature element while it
-/// runs: a training step (forward and backward) is estimated at this from the 8 GiB peak of a
-/// 512-ray chunk of the paper config on the CPU, rounded up. The step account counts about
-/// 20 (docs/gpu.md, "Limits"); the estimate stays until a GPU run measures the real peak. An
-/// inference call keeps at most its forward's share of it, so it bounds that too.
-pub const BYTES_PER_ELEMENT: usize = 80;
+/// Bytes of device memory a training step's chunk holds per point × joint × feature element
+/// (an estimate). The step account counts 19.9 on the CUDA route (the `default` step's peak of
+/// live memory at 128 and 512 rays per chunk: 0.59 and 2.28 GB); it does not see the caching
+/// allocator's slack, cuBLAS's workspace or a custom op's transient product (4 bytes per
+/// element for the widest layer's), hence 32, checked against the count by
+/// `tests/model/account.rs`. A chunk the estimate gets wrong runs out of memory and is halved
+/// and retried ([`is_out_of_memory`]). An inference call keeps at most its forward's share of
+/// it, so it bounds that too.
+pub const BYTES_PER_ELEMENT: usize = 32;
 
 /// Share of the free device memory automatic chunks are sized to; the rest is headroom for
 /// the allocator, cuBLAS's workspace and what the estimate misses.

@@ -29,14 +29,7 @@ pub struct Burst {
 /// `steps` training steps of `preset` on the embedded synthetic scene (4 cameras × 4
 /// frames, 96 px), made in memory.
 pub fn run(device: &Device, preset: Preset, steps: usize) -> Result<Burst, String> {
-    let synth = pma_data::synth::SynthConfig {
-        train_cams: 4,
-        test_cams: 1,
-        frames: 4,
-        novel_pose_walk: 1,
-        novel_pose_dance: 1,
-        ..Default::default()
-    };
+    let synth = pma_data::synth::SynthConfig::small(96, 4, 4);
     let plan = pma_data::synth::plan(&synth).map_err(|e| e.to_string())?;
     let data = pma_data::synth::render_split(&plan, &plan.splits[0], &mut || {})
         .map_err(|e| e.to_string())?;

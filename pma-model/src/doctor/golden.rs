@@ -8,7 +8,7 @@ use candle_core::{Device, Tensor};
 
 use super::Check;
 use crate::network::checkpoint;
-use crate::render::avatar::{Avatar, Mode, PassOptions, Poses, Rays, Trace};
+use crate::render::avatar::{Avatar, Mode, Outputs, PassOptions, Poses, Rays, Trace};
 use crate::train::batch::{FixedBatch, TrainBatch};
 use crate::train::presets::{RunConfig, TrainConfig};
 use crate::train::{Preset, Trainer};
@@ -45,23 +45,29 @@ impl Golden {
         let read = |name: &str| -> crate::error::Result<HashMap<String, Tensor>> {
             Ok(candle_core::safetensors::load(dir.join(name), device)?)
         };
-        let manifest = std::fs::read_to_string(dir.join("train_step.json")).map_err(|e| {
-            crate::error::ModelError::Input(format!(
-                "{}: {e}",
-                dir.join("train_step.json").display()
-            ))
-        })?;
+        let manifest_path = dir.join("train_step.json");
+        let bad_manifest = |e: &dyn std::fmt::Display| {
+            crate::error::ModelError::Input(format!("{}: {e}", manifest_path.display()))
+        };
+        let manifest = std::fs::read_to_string(&manifest_path).map_err(|e| bad_manifest(&e))?;
         Ok(Self {
             arrays: read("golden.safetensors")?,
             step: read("train_step.safetensors")?,
-            step_manifest: serde_json::from_str(&manifest).map_err(|e| {
-                crate::error::ModelError::Input(format!(
-                    "{}: {e}",
-                    dir.join("train_step.json").display()
-                ))
-            })?,
+            step_manifest: serde_json::from_str(&manifest).map_err(|e| bad_manifest(&e))?,
             model: checkpoint::load(&dir.join("model.safetensors"), device)?,
         })
+    }
+
+    /// The reference's parameter names in its order (the step manifest's `param_names`).
+    fn param_names(&self) -> Vec<String> {
+        self.step_manifest["param_names"]
+            .as_array()
+            .map(|a| {
+                a.iter()
+                    .filter_map(|v| v.as_str().map(str::to_string))
+                    .collect()
+            })
+            .unwrap_or_default()
     }
 
     fn t(&self, key: &str) -> crate::error::Result<&Tensor> {
@@ -102,6 +108,30 @@ impl Golden {
         cfg.density_noise_std = 0.0;
         Avatar::from_tensors(cfg, self.model.tensors.clone(), device)
     }
+
+    /// [`Golden::avatar`]'s training-mode pass over the golden batch in parity mode;
+    /// `trace` collects the network's stages.
+    fn forward(
+        &self,
+        device: &Device,
+        trace: Option<&mut Trace>,
+    ) -> crate::error::Result<(Avatar, TrainBatch, Outputs)> {
+        let avatar = self.avatar(device)?;
+        let batch = self.batch()?;
+        let out = avatar.forward(
+            &batch.rays,
+            &batch.poses,
+            &mut Mode::Train(None),
+            &PassOptions::parity(),
+            trace,
+        )?;
+        Ok((avatar, batch, out))
+    }
+}
+
+/// √Σ v².
+fn l2(values: impl Iterator<Item = f64>) -> f64 {
+    values.map(|v| v * v).sum::<f64>().sqrt()
 }
 
 /// max |a − b| / max(1, |b|) element-wise, NaN-safe (a NaN anywhere is infinite).
@@ -158,16 +188,8 @@ pub fn forward(
     device: &Device,
     section: &'static str,
 ) -> crate::error::Result<Vec<Check>> {
-    let avatar = g.avatar(device)?;
-    let batch = g.batch()?;
     let mut trace = Trace::default();
-    let out = avatar.forward(
-        &batch.rays,
-        &batch.poses,
-        &mut Mode::Train(None),
-        &PassOptions::parity(),
-        Some(&mut trace),
-    )?;
+    let (_, _, out) = g.forward(device, Some(&mut trace))?;
     let mut rows = Vec::new();
     let mut cmp = |what: &str, ours: &Tensor, key: &str| -> crate::error::Result<()> {
         rows.push(row(
@@ -211,15 +233,7 @@ pub fn gradients(
     device: &Device,
     section: &'static str,
 ) -> crate::error::Result<Vec<Check>> {
-    let avatar = g.avatar(device)?;
-    let batch = g.batch()?;
-    let out = avatar.forward(
-        &batch.rays,
-        &batch.poses,
-        &mut Mode::Train(None),
-        &Default::default(),
-        None,
-    )?;
+    let (avatar, batch, out) = g.forward(device, None)?;
     let loss = crate::train::loss::l1(&out.fine.rgb, &batch.target)?;
     let store = loss.backward()?;
     let grads: HashMap<String, Tensor> = avatar
@@ -257,22 +271,13 @@ pub fn gradients(
             GRADIENT_TOL,
         ));
     }
-    let names: Vec<String> = g.step_manifest["param_names"]
-        .as_array()
-        .map(|a| {
-            a.iter()
-                .filter_map(|v| v.as_str().map(str::to_string))
-                .collect()
-        })
-        .unwrap_or_default();
+    let names = g.param_names();
     let norms = flat(g.t("grad_l1fine/grad_norms")?)?;
     let ours: Vec<f64> = names
         .iter()
         .map(|n| {
             grads.get(n).map_or(Ok(0.0), |t| {
-                Ok::<_, crate::error::ModelError>(
-                    flat(t)?.iter().map(|v| v * v).sum::<f64>().sqrt(),
-                )
+                Ok::<_, crate::error::ModelError>(l2(flat(t)?.into_iter()))
             })
         })
         .collect::<crate::error::Result<_>>()?;
@@ -356,13 +361,8 @@ pub fn adam_step(
             .get(base)
             .map(|v| v[..reference.len().min(v.len())].to_vec())
             .unwrap_or_default();
-        let num: f64 = ours
-            .iter()
-            .zip(&reference)
-            .map(|(a, b)| (a - b) * (a - b))
-            .sum::<f64>()
-            .sqrt();
-        let den: f64 = reference.iter().map(|b| b * b).sum::<f64>().sqrt();
+        let num = l2(ours.iter().zip(&reference).map(|(a, b)| a - b));
+        let den = l2(reference.iter().copied());
         worst_param = worst_param.max(if ours.len() == reference.len() {
             num / den.max(1e-30)
         } else {
@@ -375,14 +375,7 @@ pub fn adam_step(
         worst_param,
         STEP_TOL,
     ));
-    let names: Vec<String> = g.step_manifest["param_names"]
-        .as_array()
-        .map(|a| {
-            a.iter()
-                .filter_map(|v| v.as_str().map(str::to_string))
-                .collect()
-        })
-        .unwrap_or_default();
+    let names = g.param_names();
     let norms =
         flat(g.step.get("train_step/param_delta_norms").ok_or_else(|| {
             crate::error::ModelError::Input("golden step: no update norms".into())
@@ -393,12 +386,7 @@ pub fn adam_step(
             worst = f64::INFINITY;
             continue;
         };
-        let delta: f64 = a
-            .iter()
-            .zip(b)
-            .map(|(x, y)| (x - y) * (x - y))
-            .sum::<f64>()
-            .sqrt();
+        let delta = l2(a.iter().zip(b).map(|(x, y)| x - y));
         worst = worst.max(rel(delta, *reference));
     }
     rows.push(row(

@@ -27,6 +27,25 @@ pub fn fixtures() -> PathBuf {
     }
 }
 
+/// The tensors of `rel` under fixtures/golden/, on the CPU.
+pub fn load_golden(rel: &str) -> HashMap<String, Tensor> {
+    let path = fixtures().join("golden").join(rel);
+    candle_core::safetensors::load(&path, &Device::Cpu)
+        .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+}
+
+/// The values of `key` in `g`, flattened, as `T`.
+pub fn golden_values<T: candle_core::WithDType>(g: &HashMap<String, Tensor>, key: &str) -> Vec<T> {
+    g.get(key)
+        .unwrap_or_else(|| panic!("golden key {key} missing"))
+        .flatten_all()
+        .unwrap()
+        .to_dtype(T::DTYPE)
+        .unwrap()
+        .to_vec1()
+        .unwrap()
+}
+
 pub struct Golden(pub HashMap<String, Tensor>);
 
 impl Golden {
@@ -59,11 +78,16 @@ impl Golden {
 }
 
 pub fn flat(t: &Tensor) -> Vec<f32> {
-    t.to_dtype(DType::F32)
+    flat_as(t)
+}
+
+/// Every value of `t`, converted to `T`, in row-major order.
+pub fn flat_as<T: candle_core::WithDType>(t: &Tensor) -> Vec<T> {
+    t.to_dtype(T::DTYPE)
         .unwrap()
         .flatten_all()
         .unwrap()
-        .to_vec1::<f32>()
+        .to_vec1::<T>()
         .unwrap()
 }
 
@@ -76,24 +100,39 @@ pub fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
         .fold(0.0, f32::max)
 }
 
+/// The largest |a_i − b_i| of two equally long slices, NaN anywhere counting as infinite.
+pub fn max_abs_err(a: &[f32], b: &[f32]) -> f32 {
+    assert_eq!(a.len(), b.len(), "length mismatch");
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| {
+            if x.is_nan() || y.is_nan() {
+                f32::INFINITY
+            } else {
+                (x - y).abs()
+            }
+        })
+        .fold(0.0, f32::max)
+}
+
 /// Rows `ray*S + s` of the subset rays from a [R*S, ...] tensor.
 pub fn subset_rows(t: &Tensor, rays: &[usize], s: usize) -> Tensor {
-    let idx: Vec<u32> = rays
-        .iter()
-        .flat_map(|&r| (0..s).map(move |k| (r * s + k) as u32))
-        .collect();
-    let idx = Tensor::from_vec(idx.clone(), idx.len(), t.device()).unwrap();
-    t.contiguous().unwrap().index_select(&idx, 0).unwrap()
+    subset_samples(t, rays, s, 0)
 }
 
 /// Same along dim 1 of a [K, R*S, F] tensor.
 pub fn subset_rows_dim1(t: &Tensor, rays: &[usize], s: usize) -> Tensor {
+    subset_samples(t, rays, s, 1)
+}
+
+/// Indices `ray*S + s` of the subset rays' samples, selected along `dim`.
+fn subset_samples(t: &Tensor, rays: &[usize], s: usize, dim: usize) -> Tensor {
     let idx: Vec<u32> = rays
         .iter()
         .flat_map(|&r| (0..s).map(move |k| (r * s + k) as u32))
         .collect();
     let idx = Tensor::from_vec(idx.clone(), idx.len(), t.device()).unwrap();
-    t.contiguous().unwrap().index_select(&idx, 1).unwrap()
+    t.contiguous().unwrap().index_select(&idx, dim).unwrap()
 }
 
 /// Per-ray features [R,F] repeated for each of the S samples of the subset rays.

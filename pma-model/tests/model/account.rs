@@ -358,3 +358,35 @@ fn the_fast_recipe_adds_no_read_back_inside_a_step() {
     assert_eq!(placed.report.total.syncs, 15);
     assert_eq!(placed.read_back.syncs, 1);
 }
+
+/// The automatic chunk rule (`compute::device::BYTES_PER_ELEMENT`) against the counted peak of
+/// live memory of the paper config's step: what a chunk's point × joint × feature element adds
+/// to the peak, from chunks of 16 and 64 rays. The rule must leave room above the count for
+/// what the count does not see (the allocator's slack, cuBLAS's workspace, a custom op's
+/// transient product), and not so much that a GPU runs several chunks where one fits.
+#[test]
+fn the_chunk_rule_leaves_room_above_the_counted_peak() {
+    let paper = RunConfig::from_preset(pma_model::train::Preset::Paper).model;
+    let m = paper.clone();
+    let per_ray = (m.n_samples + m.n_importance) * m.n_joints * m.win_hidden.max(m.point_enc_dim);
+    let peak = |chunk: usize| {
+        let model = paper.clone();
+        let (_dir, mut trainer, mut source) = tiny_with(chunk, 64, |run| run.model = model);
+        let a = account_step(&mut trainer, &mut source, Route::Cuda).unwrap();
+        assert_eq!(a.chunks, (64 / chunk) as u64);
+        a.report.peak_live_bytes
+    };
+    let (small, large) = (peak(16), peak(64));
+    let per_element = (large as f64 - small as f64) / ((64 - 16) * per_ray) as f64;
+    let rule = pma_model::compute::device::BYTES_PER_ELEMENT as f64;
+    eprintln!("counted {per_element:.2} bytes per element (peaks {small} and {large} bytes); the rule {rule}");
+    assert!(per_element > 4.0, "{per_element}");
+    assert!(
+        rule >= 1.5 * per_element,
+        "the rule {rule} is under 1.5x the counted {per_element}"
+    );
+    assert!(
+        rule <= 2.0 * per_element,
+        "the rule {rule} is over 2x the counted {per_element}"
+    );
+}

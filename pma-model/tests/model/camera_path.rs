@@ -16,6 +16,8 @@ use pma_model::render::camera_path::{
 use pma_model::render::image::{render_image, ChunkRender, ImageOptions};
 use pma_model::Config;
 
+use crate::common::max_abs_diff;
+
 fn dist(a: [f32; 3], b: [f32; 3]) -> f32 {
     (0..3).map(|k| (a[k] - b[k]).powi(2)).sum::<f32>().sqrt()
 }
@@ -214,11 +216,7 @@ fn normalised_view_directions_make_the_image_independent_of_ray_length() {
     assert!(ours.config().quirks.normalize_view_dirs);
     let a = render(&ours, &cam, false);
     let b = render(&ours, &cam, true);
-    let max_diff = a
-        .iter()
-        .zip(&b)
-        .map(|(x, y)| (x - y).abs())
-        .fold(0.0, f32::max);
+    let max_diff = max_abs_diff(&a, &b);
     assert!(
         max_diff < 1e-4,
         "normalised: raw vs unit rays differ by {max_diff}"
@@ -228,11 +226,7 @@ fn normalised_view_directions_make_the_image_independent_of_ray_length() {
     assert!(!reference.config().quirks.normalize_view_dirs);
     let c = render(&reference, &cam, false);
     let d = render(&reference, &cam, true);
-    let max_diff = c
-        .iter()
-        .zip(&d)
-        .map(|(x, y)| (x - y).abs())
-        .fold(0.0, f32::max);
+    let max_diff = max_abs_diff(&c, &d);
     assert!(
         max_diff > 1e-3,
         "the reference's raw directions must change colours ({max_diff})"

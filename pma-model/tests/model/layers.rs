@@ -136,6 +136,21 @@ impl Fixture {
         assert_eq!(actual, expected.as_slice(), "{}/{case}/{key}", self.name);
     }
 
+    /// Backpropagates the case's loss over `outs` (checked against torch's) and checks the
+    /// gradients of the parameters the case lists (read from `vm`) and of `inputs`.
+    fn check_backward(
+        &self,
+        case: &str,
+        outs: &[(&str, &Tensor)],
+        vm: &VarMap,
+        inputs: &[(&str, &Var)],
+    ) {
+        let loss = self.loss(case, outs);
+        self.check_t(case, "out/loss", &loss);
+        let grads = loss.backward().unwrap();
+        check_grads(self, case, &grads, &var_param(vm), inputs);
+    }
+
     fn option(&self, case: &str, key: &str) -> Value {
         self.cases[case]["options"][key].clone()
     }
@@ -585,10 +600,7 @@ fn gnn_matches_torch() {
         for (l, pre) in trace.iter().enumerate() {
             fx.check_t(case, &format!("out/pre_sin_{l}"), pre);
         }
-        let loss = fx.loss(case, &[("gnn_feat", &g)]);
-        fx.check_t(case, "out/loss", &loss);
-        let grads = loss.backward().unwrap();
-        check_grads(&fx, case, &grads, &var_param(&vm), &[("theta", &theta)]);
+        fx.check_backward(case, &[("gnn_feat", &g)], &vm, &[("theta", &theta)]);
     }
 }
 
@@ -656,9 +668,7 @@ fn normalised_coordinates_and_spatial_window() {
         fx.check_t(case, "out/x_bar", &x_bar);
         let w_p = spatial_window(&x_bar, cfg.window_alpha, cfg.window_beta).unwrap();
         fx.check_t(case, "out/w_p", &w_p);
-        let loss = fx.loss(case, &[("x_bar", &x_bar)]);
-        let grads = loss.backward().unwrap();
-        check_grads(&fx, case, &grads, &var_param(&vm), &[("x_hat", &x_hat)]);
+        fx.check_backward(case, &[("x_bar", &x_bar)], &vm, &[("x_hat", &x_hat)]);
     }
 }
 
@@ -738,10 +748,12 @@ fn point_encoders_match_torch() {
         let z = enc_point.forward(x_bar.as_tensor(), K).unwrap();
         fx.check_t(case, "out/pts_enc_pose", &e);
         fx.check_t(case, "out/pts_enc_point", &z);
-        let loss = fx.loss(case, &[("pts_enc_pose", &e), ("pts_enc_point", &z)]);
-        fx.check_t(case, "out/loss", &loss);
-        let grads = loss.backward().unwrap();
-        check_grads(&fx, case, &grads, &var_param(&vm), &[("x_bar", &x_bar)]);
+        fx.check_backward(
+            case,
+            &[("pts_enc_pose", &e), ("pts_enc_point", &z)],
+            &vm,
+            &[("x_bar", &x_bar)],
+        );
     }
 }
 
@@ -786,14 +798,10 @@ fn window_matches_torch() {
         fx.check_t(case, "out/w_f", &out.w_f);
         fx.check_t(case, "out/w", &w);
         fx.check_t(case, "out/f_m", &f_m);
-        let loss = fx.loss(case, &[("w", &w), ("f_m", &f_m)]);
-        fx.check_t(case, "out/loss", &loss);
-        let grads = loss.backward().unwrap();
-        check_grads(
-            &fx,
+        fx.check_backward(
             case,
-            &grads,
-            &var_param(&vm),
+            &[("w", &w), ("f_m", &f_m)],
+            &vm,
             &[("gnn_feat", &g_feat), ("pts_enc_pose", &e)],
         );
     }
@@ -818,9 +826,12 @@ fn pose_extractor_matches_torch() {
         fx.check_t(case, "out/theta", &theta);
         fx.check_t(case, "out/phi", &phi);
         fx.check_t(case, "out/gamma", &modulator.gamma(&theta).unwrap());
-        let loss = fx.loss(case, &[("theta", &theta), ("phi", &phi)]);
-        let grads = loss.backward().unwrap();
-        check_grads(&fx, case, &grads, &var_param(&vm), &[("f_m", &f_m)]);
+        fx.check_backward(
+            case,
+            &[("theta", &theta), ("phi", &phi)],
+            &vm,
+            &[("f_m", &f_m)],
+        );
     }
 }
 
@@ -865,14 +876,10 @@ fn modulator_matches_torch() {
         );
         let s = modulator.forward(x_tilde.as_tensor(), &m, None, K).unwrap();
         fx.check_t(case, "out/S", &s);
-        let loss = fx.loss(case, &[("S", &s)]);
-        fx.check_t(case, "out/loss", &loss);
-        let grads = loss.backward().unwrap();
-        check_grads(
-            &fx,
+        fx.check_backward(
             case,
-            &grads,
-            &var_param(&vm),
+            &[("S", &s)],
+            &vm,
             &[("x_tilde", &x_tilde), ("theta", &theta), ("phi", &phi)],
         );
     }
@@ -924,17 +931,16 @@ fn field_and_frame_codes_match_torch() {
         if fx.cases[case]["loss_keys"].as_array().unwrap().is_empty() {
             continue;
         }
-        let loss = fx.loss(
+        fx.check_backward(
             case,
             &[
                 ("sigma_raw", &out.sigma_raw),
                 ("density", &density),
                 ("rgb", &out.rgb),
             ],
+            &vm,
+            &[("S", &s)],
         );
-        fx.check_t(case, "out/loss", &loss);
-        let grads = loss.backward().unwrap();
-        check_grads(&fx, case, &grads, &var_param(&vm), &[("S", &s)]);
     }
 }
 

@@ -5,9 +5,9 @@
 //! coarse weights so that only the ray caster is under test.
 
 use std::collections::HashMap;
-use std::path::PathBuf;
 
-use candle_core::{DType, Device, Tensor};
+use crate::common::{flat, golden_values, load_golden, max_abs_err};
+use candle_core::Tensor;
 use pma_data::skeleton::N_JOINTS;
 use pma_model::network::config::Config;
 use pma_model::render::raycast::{merge_sorted, sample_points, RayCaster};
@@ -15,57 +15,16 @@ use pma_model::render::raycast::{merge_sorted, sample_points, RayCaster};
 /// Max abs error allowed on every float output (the reference's own float32 results).
 const TOL: f32 = 1e-4;
 
-fn golden_dir() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../fixtures/golden")
-}
-
-fn load(rel: &str) -> HashMap<String, Tensor> {
-    let path = golden_dir().join(rel);
-    candle_core::safetensors::load(&path, &Device::Cpu)
-        .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
-}
-
 fn f32s(g: &HashMap<String, Tensor>, key: &str) -> Vec<f32> {
-    let t = g
-        .get(key)
-        .unwrap_or_else(|| panic!("golden key {key} missing"));
-    t.flatten_all()
-        .unwrap()
-        .to_dtype(DType::F32)
-        .unwrap()
-        .to_vec1()
-        .unwrap()
+    golden_values(g, key)
 }
 
 fn ints(g: &HashMap<String, Tensor>, key: &str) -> Vec<i64> {
-    let t = g
-        .get(key)
-        .unwrap_or_else(|| panic!("golden key {key} missing"));
-    t.flatten_all()
-        .unwrap()
-        .to_dtype(DType::I64)
-        .unwrap()
-        .to_vec1()
-        .unwrap()
-}
-
-/// Max abs difference, NaN anywhere counting as infinite.
-fn max_abs(a: &[f32], b: &[f32]) -> f32 {
-    assert_eq!(a.len(), b.len(), "length mismatch");
-    a.iter()
-        .zip(b)
-        .map(|(x, y)| {
-            if x.is_nan() || y.is_nan() {
-                f32::INFINITY
-            } else {
-                (x - y).abs()
-            }
-        })
-        .fold(0.0, f32::max)
+    golden_values(g, key)
 }
 
 fn assert_close(what: &str, got: &[f32], want: &[f32]) {
-    let err = max_abs(got, want);
+    let err = max_abs_err(got, want);
     let exact = got
         .iter()
         .zip(want)
@@ -92,8 +51,8 @@ fn one_pose(per_ray: &[f32], n_rays: usize) -> Vec<f32> {
 }
 
 fn check_case(case: &str) {
-    let g = load(&format!("{case}golden.safetensors"));
-    let model = load("model.safetensors");
+    let g = load_golden(&format!("{case}golden.safetensors"));
+    let model = load_golden("model.safetensors");
     let cfg = Config::paper();
     let caster = RayCaster::new(&cfg, &f32s(&model, "raycast.transforms")).unwrap();
     let (sc, sf) = (cfg.n_samples, cfg.n_importance);
@@ -177,36 +136,54 @@ fn dense_case_matches_reference() {
     check_case("dense/");
 }
 
+/// A golden batch's rays, the transforms and cylinders of its one pose, and the coarse
+/// axis scales, as the tensor entry points take them.
+struct RayInputs {
+    rays_o: Tensor,
+    rays_d: Tensor,
+    skts: Tensor,
+    cyls: Tensor,
+    scales: Tensor,
+}
+
+impl RayInputs {
+    fn of(g: &HashMap<String, Tensor>) -> Self {
+        Self {
+            rays_o: g["input/rays_o"].clone(),
+            rays_d: g["input/rays_d"].clone(),
+            skts: g["input/skts"].narrow(0, 0, 1).unwrap(),
+            cyls: g["input/cyls"].narrow(0, 0, 1).unwrap(),
+            scales: g["coarse/axis_scale"].clone(),
+        }
+    }
+}
+
 #[test]
 fn tensor_entry_points_match_host_code() {
-    let g = load("dense/golden.safetensors");
-    let model = load("model.safetensors");
+    let g = load_golden("dense/golden.safetensors");
+    let model = load_golden("model.safetensors");
     let cfg = Config::paper();
     let caster = RayCaster::from_tensor(&cfg, model.get("raycast.transforms").unwrap()).unwrap();
-    let rays_o = g["input/rays_o"].clone();
-    let rays_d = g["input/rays_d"].clone();
-    let n_rays = rays_o.dims()[0];
-    let skts = g["input/skts"].narrow(0, 0, 1).unwrap();
-    let cyls = g["input/cyls"].narrow(0, 0, 1).unwrap();
-    let scales = g["coarse/axis_scale"].clone();
+    let r = RayInputs::of(&g);
+    let n_rays = r.rays_o.dims()[0];
     let coarse = caster
-        .cast(&rays_o, &rays_d, &cyls, &skts, &scales)
+        .cast(&r.rays_o, &r.rays_d, &r.cyls, &r.skts, &r.scales)
         .unwrap();
     assert_eq!(coarse.z.dims(), [n_rays, cfg.n_samples]);
     assert_eq!(coarse.pts.dims(), [n_rays, cfg.n_samples, 3]);
     let pts: Vec<f32> = coarse.pts.flatten_all().unwrap().to_vec1().unwrap();
-    assert!(max_abs(&pts, &f32s(&g, "raycast/pts_coarse")) <= TOL);
+    assert!(max_abs_err(&pts, &f32s(&g, "raycast/pts_coarse")) <= TOL);
 
     let fine = caster
         .resample(
-            &rays_o,
-            &rays_d,
+            &r.rays_o,
+            &r.rays_d,
             &g["raycast/z_vals_coarse"],
             &g["render_coarse/weights"],
         )
         .unwrap();
     let pts_is: Vec<f32> = fine.pts.flatten_all().unwrap().to_vec1().unwrap();
-    assert!(max_abs(&pts_is, &f32s(&g, "raycast/pts_is")) <= TOL);
+    assert!(max_abs_err(&pts_is, &f32s(&g, "raycast/pts_is")) <= TOL);
     let perm: Vec<u32> = fine.perm.flatten_all().unwrap().to_vec1().unwrap();
     let want: Vec<u32> = ints(&g, "raycast/sorted_idxs")
         .into_iter()
@@ -229,7 +206,7 @@ fn tensor_entry_points_match_host_code() {
     let merged: Vec<f32> = merged.flatten_all().unwrap().to_vec1().unwrap();
     let z_all: Vec<f32> = fine.z_all.flatten_all().unwrap().to_vec1().unwrap();
     assert_eq!(merged, z_all);
-    assert!(max_abs(&z_all, &f32s(&g, "raycast/z_vals_merged")) <= TOL);
+    assert!(max_abs_err(&z_all, &f32s(&g, "raycast/z_vals_merged")) <= TOL);
 }
 
 /// The tensor-op path (what a GPU runs, here on the CPU) against the reference, at the same
@@ -237,54 +214,49 @@ fn tensor_entry_points_match_host_code() {
 /// and the merge (whose permutation may differ from torch's only between equal values).
 #[test]
 fn device_path_matches_reference() {
-    let model = load("model.safetensors");
+    let model = load_golden("model.safetensors");
     let cfg = Config::paper();
     let caster = RayCaster::from_tensor(&cfg, model.get("raycast.transforms").unwrap()).unwrap();
     let m = cfg.n_samples + cfg.n_importance;
     for case in ["", "dense/"] {
-        let g = load(&format!("{case}golden.safetensors"));
-        let rays_o = g["input/rays_o"].clone();
-        let rays_d = g["input/rays_d"].clone();
-        let n_rays = rays_o.dims()[0];
-        let skts = g["input/skts"].narrow(0, 0, 1).unwrap();
-        let cyls = g["input/cyls"].narrow(0, 0, 1).unwrap();
-        let scales = g["coarse/axis_scale"].clone();
+        let g = load_golden(&format!("{case}golden.safetensors"));
+        let r = RayInputs::of(&g);
+        let n_rays = r.rays_o.dims()[0];
         let (near, far) = caster
-            .near_far_tensors(&rays_o, &rays_d, &cyls, &skts, &scales)
+            .near_far_tensors(&r.rays_o, &r.rays_d, &r.cyls, &r.skts, &r.scales)
             .unwrap();
-        let host = |t: &Tensor| -> Vec<f32> { t.flatten_all().unwrap().to_vec1().unwrap() };
         assert_close(
             &format!("{case}device near"),
-            &host(&near),
+            &flat(&near),
             &f32s(&g, "raycast/near"),
         );
         assert_close(
             &format!("{case}device far"),
-            &host(&far),
+            &flat(&far),
             &f32s(&g, "raycast/far"),
         );
         let coarse = caster
-            .cast_tensors(&rays_o, &rays_d, &cyls, &skts, &scales)
+            .cast_tensors(&r.rays_o, &r.rays_d, &r.cyls, &r.skts, &r.scales)
             .unwrap();
         assert_close(
             &format!("{case}device pts_coarse"),
-            &host(&coarse.pts),
+            &flat(&coarse.pts),
             &f32s(&g, "raycast/pts_coarse"),
         );
         let fine = caster
             .resample_tensors(
-                &rays_o,
-                &rays_d,
+                &r.rays_o,
+                &r.rays_d,
                 &g["raycast/z_vals_coarse"],
                 &g["render_coarse/weights"],
             )
             .unwrap();
         assert_close(
             &format!("{case}device pts_is"),
-            &host(&fine.pts),
+            &flat(&fine.pts),
             &f32s(&g, "raycast/pts_is"),
         );
-        let z_all = host(&fine.z_all);
+        let z_all = flat(&fine.z_all);
         assert_close(
             &format!("{case}device z_vals_merged"),
             &z_all,
@@ -293,7 +265,7 @@ fn device_path_matches_reference() {
         let perm: Vec<u32> = fine.perm.flatten_all().unwrap().to_vec1().unwrap();
         let want = ints(&g, "raycast/sorted_idxs");
         let (sc, sf) = (cfg.n_samples, cfg.n_importance);
-        let (zc, zf) = (f32s(&g, "raycast/z_vals_coarse"), host(&fine.z));
+        let (zc, zf) = (f32s(&g, "raycast/z_vals_coarse"), flat(&fine.z));
         let value = |ray: usize, idx: usize| match idx < sc {
             true => zc[ray * sc + idx],
             false => zf[ray * sf + idx - sc],

@@ -10,6 +10,8 @@ use pma_model::render::raycast::{
     fill_cylinder_misses, merge_raw, RayCaster,
 };
 
+use crate::common::flat;
+
 fn identity4() -> Vec<f32> {
     (0..16)
         .map(|i| if i % 5 == 0 { 1.0 } else { 0.0 })
@@ -333,20 +335,8 @@ fn merge_raw_routes_gradients_to_both_passes() {
         .unwrap()
         .backward()
         .unwrap();
-    let gc: Vec<f32> = grads
-        .get(coarse.as_tensor())
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .to_vec1()
-        .unwrap();
-    let gf: Vec<f32> = grads
-        .get(fine.as_tensor())
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .to_vec1()
-        .unwrap();
+    let gc = flat(grads.get(coarse.as_tensor()).unwrap());
+    let gf = flat(grads.get(fine.as_tensor()).unwrap());
     assert_eq!((gc, gf), (vec![10., 30., 50.], vec![20., 40.]));
 }
 

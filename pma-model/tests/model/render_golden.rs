@@ -3,56 +3,28 @@
 //! ray directions and backgrounds.
 
 use std::collections::HashMap;
-use std::path::PathBuf;
 
-use candle_core::{DType, Device, Tensor};
+use crate::common::{flat, load_golden, max_abs_err};
+use candle_core::Tensor;
 use pma_model::render::volume::raw2outputs;
 
 /// Max abs error allowed against the reference's float32 outputs.
 const TOL: f32 = 1e-4;
-
-fn load(rel: &str) -> HashMap<String, Tensor> {
-    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../fixtures/golden")
-        .join(rel);
-    candle_core::safetensors::load(&path, &Device::Cpu)
-        .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
-}
 
 fn get<'a>(g: &'a HashMap<String, Tensor>, key: &str) -> &'a Tensor {
     g.get(key)
         .unwrap_or_else(|| panic!("golden key {key} missing"))
 }
 
-fn host(t: &Tensor) -> Vec<f32> {
-    t.flatten_all()
-        .unwrap()
-        .to_dtype(DType::F32)
-        .unwrap()
-        .to_vec1()
-        .unwrap()
-}
-
 fn assert_close(what: &str, got: &Tensor, want: &Tensor) {
     assert_eq!(got.dims(), want.dims(), "{what}: shape");
-    let (got, want) = (host(got), host(want));
-    let err = got
-        .iter()
-        .zip(&want)
-        .map(|(x, y)| {
-            if x.is_nan() || y.is_nan() {
-                f32::INFINITY
-            } else {
-                (x - y).abs()
-            }
-        })
-        .fold(0.0, f32::max);
+    let err = max_abs_err(&flat(got), &flat(want));
     eprintln!("{what}: max abs err {err:e}");
     assert!(err <= TOL, "{what}: max abs error {err} > {TOL}");
 }
 
 fn check(case: &str, stage: &str) {
-    let g = load(&format!("{case}golden.safetensors"));
+    let g = load_golden(&format!("{case}golden.safetensors"));
     let p = |k: &str| format!("{stage}/{k}");
     let out = raw2outputs(
         get(&g, &p("raw")),
@@ -107,8 +79,8 @@ fn fine_dense() {
 /// comparisons above exercise the transmittance product and not only the last sample.
 #[test]
 fn dense_case_is_not_degenerate() {
-    let g = load("dense/golden.safetensors");
-    let w = host(get(&g, "render_fine/weights"));
+    let g = load_golden("dense/golden.safetensors");
+    let w = flat(get(&g, "render_fine/weights"));
     let m = get(&g, "render_fine/weights").dims()[1];
     let spread = w
         .chunks(m)

@@ -12,18 +12,13 @@
 use std::sync::Arc;
 
 use crate::common::max_abs_diff;
-use crate::train_support::{first_batch, tiny_run, tiny_scene};
+use crate::train_support::{
+    first_batch, fixed_batch_trainer, flat, step_grads, tiny_run, tiny_scene,
+};
 use candle_core::{Device, Tensor};
 use pma_data::dataset::Dataset;
-use pma_model::render::avatar::Avatar;
 use pma_model::render::raycast::cylinder_near_far;
-use pma_model::train::{
-    chunk_rays, FixedBatch, RunConfig, StepStats, TrainBatch, TrainConfig, Trainer,
-};
-
-fn flat(t: &Tensor) -> Vec<f32> {
-    t.flatten_all().unwrap().to_vec1::<f32>().unwrap()
-}
+use pma_model::train::{chunk_rays, RunConfig, StepStats, TrainBatch, TrainConfig};
 
 /// A training batch of the tiny scene in which ray 5 of the second image points along the
 /// cylinder's axis from the camera, so it misses the cylinder and every box.
@@ -49,23 +44,10 @@ struct Step {
 /// One step of a fresh tiny avatar on `batch` with `chunk_rays`.
 fn one_step(data: &Arc<Dataset>, batch: &TrainBatch, chunk: usize) -> Step {
     let mut run = tiny_run();
-    run.model.n_framecodes = data.n_images();
     run.train.chunk_rays = chunk;
-    let rest = data.rest_pose.unwrap();
-    let avatar = Avatar::new(run.model.clone(), &rest, run.train.seed, &Device::Cpu).unwrap();
-    let mut trainer =
-        Trainer::with_source(run, avatar, Box::new(FixedBatch(batch.clone()))).unwrap();
-    let mut grads = Vec::new();
+    let mut trainer = fixed_batch_trainer(run, data, batch);
+    let (stats, grads) = step_grads(&mut trainer);
     let names = trainer.param_names().to_vec();
-    let stats = trainer
-        .step_hooked(&mut |g: &mut [Option<Tensor>]| {
-            grads = names
-                .iter()
-                .zip(g.iter())
-                .map(|(n, t)| (n.clone(), t.as_ref().map(flat).unwrap_or_default()))
-                .collect();
-        })
-        .unwrap();
     let params = trainer
         .avatar()
         .trainable()
@@ -74,7 +56,7 @@ fn one_step(data: &Arc<Dataset>, batch: &TrainBatch, chunk: usize) -> Step {
         .collect();
     Step {
         stats,
-        grads,
+        grads: names.into_iter().zip(grads).collect(),
         params,
     }
 }

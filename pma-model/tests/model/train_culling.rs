@@ -11,16 +11,10 @@
 
 use std::sync::Arc;
 
-use crate::train_support::{first_batch, tiny_run, tiny_scene};
-use candle_core::{Device, Tensor};
+use crate::train_support::{first_batch, fixed_batch_trainer, step_grads, tiny_run, tiny_scene};
 use pma_data::dataset::Dataset;
-use pma_model::render::avatar::Avatar;
 use pma_model::render::{Culling, SampleFill};
-use pma_model::train::{FixedBatch, StepStats, TrainBatch, Trainer};
-
-fn flat(t: &Tensor) -> Vec<f32> {
-    t.flatten_all().unwrap().to_vec1::<f32>().unwrap()
-}
+use pma_model::train::{StepStats, TrainBatch};
 
 struct Step {
     stats: StepStats,
@@ -33,23 +27,11 @@ struct Step {
 
 fn one_step(data: &Arc<Dataset>, batch: &TrainBatch, chunk: usize, culling: Culling) -> Step {
     let mut run = tiny_run();
-    run.model.n_framecodes = data.n_images();
     run.train.culling = culling;
     run.train.chunk_rays = chunk;
-    let rest = data.rest_pose.unwrap();
-    let avatar = Avatar::new(run.model.clone(), &rest, run.train.seed, &Device::Cpu).unwrap();
-    let mut trainer =
-        Trainer::with_source(run, avatar, Box::new(FixedBatch(batch.clone()))).unwrap();
+    let mut trainer = fixed_batch_trainer(run, data, batch);
     let names = trainer.param_names().to_vec();
-    let mut grads = Vec::new();
-    let stats = trainer
-        .step_hooked(&mut |g: &mut [Option<Tensor>]| {
-            grads = g
-                .iter()
-                .map(|t| t.as_ref().map(flat).unwrap_or_default())
-                .collect();
-        })
-        .unwrap();
+    let (stats, grads) = step_grads(&mut trainer);
     let points = trainer.pass_totals().points_evaluated;
     Step {
         stats,

@@ -7,26 +7,29 @@
 use std::collections::HashMap;
 use std::path::PathBuf;
 
-use candle_core::{DType, Device, Tensor};
-use pma_model::network::checkpoint;
-use pma_model::render::avatar::{Avatar, Poses, Rays};
-use pma_model::train::{FixedBatch, RunConfig, TrainBatch, TrainConfig, Trainer};
+use candle_core::{Device, Tensor};
+use pma_model::doctor::golden::Golden;
+use pma_model::render::avatar::Avatar;
+use pma_model::train::{FixedBatch, RunConfig, TrainConfig, Trainer};
+
+use crate::common::flat_as;
 
 fn golden_dir() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../fixtures/golden")
 }
 
-fn load(name: &str) -> HashMap<String, Tensor> {
-    candle_core::safetensors::load(golden_dir().join(name), &Device::Cpu).unwrap()
+fn flat64(t: &Tensor) -> Vec<f64> {
+    flat_as(t)
 }
 
-fn flat64(t: &Tensor) -> Vec<f64> {
-    t.to_dtype(DType::F64)
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .to_vec1::<f64>()
-        .unwrap()
+/// The trainer's trainable parameters by name.
+fn parameters(trainer: &Trainer) -> HashMap<String, Vec<f64>> {
+    trainer
+        .avatar()
+        .trainable()
+        .into_iter()
+        .map(|(n, v)| (n, flat64(v.as_tensor())))
+        .collect()
 }
 
 fn scalar(t: &HashMap<String, Tensor>, k: &str) -> f64 {
@@ -46,41 +49,17 @@ fn rel_err(a: &[f64], b: &[f64]) -> f64 {
     num / den.max(1e-30)
 }
 
-fn golden_batch(g: &HashMap<String, Tensor>) -> TrainBatch {
-    let t = |k: &str| g[&format!("input/{k}")].clone();
-    let bones_all = t("bones").to_vec3::<f32>().unwrap();
-    let mut bones = [[0f32; 3]; 24];
-    for (j, b) in bones.iter_mut().enumerate() {
-        b.copy_from_slice(&bones_all[0][j]);
-    }
-    // The reference's 16 identical pose copies are one pose (N_unique = 1).
-    TrainBatch {
-        rays: Rays {
-            origins: t("rays_o"),
-            dirs: t("rays_d"),
-            bgs: Some(t("bgs")),
-            framecodes: t("cam_idxs").to_vec1::<i64>().unwrap(),
-        },
-        poses: Poses {
-            bones: vec![bones],
-            skts: t("skts").narrow(0, 0, 1).unwrap().contiguous().unwrap(),
-            cyls: t("cyls").narrow(0, 0, 1).unwrap().contiguous().unwrap(),
-        },
-        target: t("target_s"),
-        pixels: None,
-        weights: None,
-    }
-}
-
 #[test]
 fn one_step_on_the_golden_batch_matches_the_reference() {
     let dev = Device::Cpu;
-    let golden = load("golden.safetensors");
-    let want = load("train_step.safetensors");
-    let manifest: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(golden_dir().join("train_step.json")).unwrap(),
-    )
-    .unwrap();
+    let g = Golden::load(&golden_dir(), &dev).unwrap();
+    let batch = g.batch().unwrap();
+    let Golden {
+        step: want,
+        step_manifest: manifest,
+        model: ck,
+        ..
+    } = g;
     let ref_names: Vec<String> = manifest["param_names"]
         .as_array()
         .unwrap()
@@ -88,7 +67,6 @@ fn one_step_on_the_golden_batch_matches_the_reference() {
         .map(|v| v.as_str().unwrap().to_string())
         .collect();
 
-    let ck = checkpoint::load(&golden_dir().join("model.safetensors"), &dev).unwrap();
     let mut cfg = ck.config.clone();
     cfg.density_noise_std = 0.0;
     let avatar = Avatar::from_tensors(cfg.clone(), ck.tensors.clone(), &dev).unwrap();
@@ -98,14 +76,8 @@ fn one_step_on_the_golden_batch_matches_the_reference() {
         train: TrainConfig::paper(),
         numerics: Default::default(),
     };
-    let batch = golden_batch(&golden);
     let mut trainer = Trainer::with_source(run, avatar, Box::new(FixedBatch(batch))).unwrap();
-    let before: HashMap<String, Vec<f64>> = trainer
-        .avatar()
-        .trainable()
-        .into_iter()
-        .map(|(n, v)| (n, flat64(v.as_tensor())))
-        .collect();
+    let before = parameters(&trainer);
 
     let stats = trainer.step_read().unwrap();
     assert_eq!(stats.skipped, None);
@@ -157,12 +129,7 @@ fn one_step_on_the_golden_batch_matches_the_reference() {
         scalar(&want, "train_step/lr2"),
     );
 
-    let after: HashMap<String, Vec<f64>> = trainer
-        .avatar()
-        .trainable()
-        .into_iter()
-        .map(|(n, v)| (n, flat64(v.as_tensor())))
-        .collect();
+    let after = parameters(&trainer);
     assert_eq!(after.len(), ref_names.len());
 
     // The target is 1e-5 relative everywhere. The parameter values meet it. An update norm
@@ -250,9 +217,12 @@ fn adam_on_reference_gradients_matches_exactly() {
     use candle_core::Var;
     use pma_model::train::Adam;
     let dev = Device::Cpu;
-    let golden = load("golden.safetensors");
-    let want = load("train_step.safetensors");
-    let ck = checkpoint::load(&golden_dir().join("model.safetensors"), &dev).unwrap();
+    let Golden {
+        arrays: golden,
+        step: want,
+        model: ck,
+        ..
+    } = Golden::load(&golden_dir(), &dev).unwrap();
     let mut checked = 0;
     for (key, t) in &want {
         let Some(name) = key.strip_prefix("train_step/param_after/") else {

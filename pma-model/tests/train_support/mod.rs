@@ -4,21 +4,17 @@
 use std::path::Path;
 use std::sync::Arc;
 
-use candle_core::{DType, Device, Tensor};
+pub use crate::common::flat;
+use candle_core::{Device, Tensor};
 use pma_data::dataset::{Dataset, Profile, ReadOptions};
-use pma_model::train::{Preset, RunConfig, Trainer};
+use pma_model::render::avatar::Avatar;
+use pma_model::train::{FixedBatch, Preset, RunConfig, StepStats, TrainBatch, Trainer};
 
 /// 4 training images (2 cameras × 2 frames) of 32×32 pixels.
 pub fn tiny_scene(dir: &Path) -> Arc<Dataset> {
     let cfg = pma_data::synth::SynthConfig {
-        res: 32,
-        train_cams: 2,
-        test_cams: 1,
-        frames: 2,
         novel_view_stride: 2,
-        novel_pose_walk: 1,
-        novel_pose_dance: 1,
-        ..Default::default()
+        ..pma_data::synth::SynthConfig::small(32, 2, 2)
     };
     pma_data::synth::generate(&cfg, dir, &mut |_, _| {}).expect("synth");
     Arc::new(
@@ -48,15 +44,7 @@ pub fn param_bits(t: &Trainer) -> Vec<(String, Vec<u32>)> {
 }
 
 pub fn bits(t: &Tensor) -> Vec<u32> {
-    t.to_dtype(DType::F32)
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .to_vec1::<f32>()
-        .unwrap()
-        .into_iter()
-        .map(f32::to_bits)
-        .collect()
+    flat(t).into_iter().map(f32::to_bits).collect()
 }
 
 /// Optimizer moments and steps as raw bits, in state order.
@@ -87,4 +75,28 @@ pub fn dataset_source(data: &Arc<Dataset>, run: &RunConfig) -> pma_model::train:
 pub fn first_batch(data: &Arc<Dataset>, run: &RunConfig) -> pma_model::train::TrainBatch {
     use pma_model::train::BatchSource;
     dataset_source(data, run).next_batch().unwrap()
+}
+
+/// A fresh avatar of `run` (its frame codes sized to `data`, from the run's seed) trained on
+/// `batch` at every step.
+pub fn fixed_batch_trainer(mut run: RunConfig, data: &Dataset, batch: &TrainBatch) -> Trainer {
+    run.model.n_framecodes = data.n_images();
+    let rest = data.rest_pose.unwrap();
+    let avatar = Avatar::new(run.model.clone(), &rest, run.train.seed, &Device::Cpu).unwrap();
+    Trainer::with_source(run, avatar, Box::new(FixedBatch(batch.clone()))).unwrap()
+}
+
+/// One step of `trainer`: its stats and the gradients the optimizer saw (before clipping),
+/// in parameter order, each flattened (empty where a parameter has none).
+pub fn step_grads(trainer: &mut Trainer) -> (StepStats, Vec<Vec<f32>>) {
+    let mut grads = Vec::new();
+    let stats = trainer
+        .step_hooked(&mut |g: &mut [Option<Tensor>]| {
+            grads = g
+                .iter()
+                .map(|t| t.as_ref().map(flat).unwrap_or_default())
+                .collect();
+        })
+        .unwrap();
+    (stats, grads)
 }
