@@ -539,29 +539,26 @@ fn account_with_the_occupancy_grid() {
 fn time_to_quality_writes_the_table_and_plot() {
     let dir = tempfile::tempdir().unwrap();
     let run = |extra: &[&str]| {
-        Command::new(env!("CARGO_BIN_EXE_pma"))
-            .args(["bench", "--time-to-quality", "--quick", "--quiet", "--out"])
-            .arg(dir.path())
-            .args(extra)
-            .output()
-            .expect("running pma")
+        let out = s(dir.path());
+        let base = [
+            "bench",
+            "--time-to-quality",
+            "--quick",
+            "--quiet",
+            "--out",
+            out,
+        ];
+        pma(&[&base[..], extra].concat())
     };
-    let out = run(&[
+    ok(run(&[
         "--ttq-seeds",
         "5",
         "--ttq-marks",
         "0.02,0.04",
         "--ttq-points",
         "2",
-    ]);
-    assert!(
-        out.status.success(),
-        "{}\n{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let json: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(dir.path().join("quality.json")).unwrap()).unwrap();
+    ]));
+    let json = read_json(&dir.path().join("quality.json"));
     let options = json["options"].as_array().unwrap();
     let names: Vec<&str> = options
         .iter()
@@ -598,8 +595,5 @@ fn time_to_quality_writes_the_table_and_plot() {
     assert!(md.contains("| fast recipe (a run per mark) |"), "{md}");
     assert!(dir.path().join("time_to_quality.png").is_file());
 
-    let bad = run(&["--ttq-marks", "2,1"]);
-    assert_eq!(bad.status.code(), Some(2));
-    let err = String::from_utf8_lossy(&bad.stderr);
-    assert!(err.contains("--ttq-marks"), "{err}");
+    exits_2_with(run(&["--ttq-marks", "2,1"]), "--ttq-marks");
 }
