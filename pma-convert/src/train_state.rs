@@ -98,6 +98,7 @@ pub fn train_state_from_torch(
         progress: None,
         run_config: None,
         model_fingerprint: model_file.map(fingerprint),
+        error_map: None,
     })
 }
 

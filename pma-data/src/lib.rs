@@ -10,6 +10,7 @@ pub mod camera;
 pub mod cylinder;
 pub mod dataset;
 pub mod error;
+pub mod error_map;
 pub mod fsio;
 pub mod interrupt;
 pub mod metrics;

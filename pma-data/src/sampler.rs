@@ -18,6 +18,10 @@
 //! then per image its pixels followed by its per-ray noise), so a seed fixes
 //! the whole sequence and (rng, permutation, cursor) is a complete resume
 //! state.
+//!
+//! With an [`ErrorMap`] ([`Sampler::next_batch_with`]) step 2 draws part of an
+//! image's pixels where the map says the error is (with replacement) and gives
+//! each ray a loss weight; the map is then part of the resume state.
 
 use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};
@@ -25,6 +29,7 @@ use rand_chacha::ChaCha8Rng;
 
 use crate::dataset::Dataset;
 use crate::error::{DataError, Result};
+use crate::error_map::ErrorMap;
 
 /// The sampler's ChaCha8 stream of a run seed, distinct from the streams a
 /// trainer uses for initialisation and noise.
@@ -49,6 +54,9 @@ pub struct SampledBatch {
     pub targets: Vec<f32>,
     /// Frame-code index per ray: the image index.
     pub framecodes: Vec<i64>,
+    /// `[R]` loss weight per ray when an error map drew the pixels with its unbiased
+    /// weights (`None`: every ray weighs 1).
+    pub weights: Option<Vec<f32>>,
 }
 
 impl SampledBatch {
@@ -200,12 +208,28 @@ impl Sampler {
     /// entries of `sampling_mask` (`[H·W]` values, e.g. a column of the
     /// dataset's mask), or over all pixels when it has too few; ascending.
     pub fn pixels(&mut self, sampling_mask: impl IntoIterator<Item = u8>) -> Vec<usize> {
+        self.pixels_with(sampling_mask, None).0
+    }
+
+    /// [`Self::pixels`], with `map` = (error map, image) part of them drawn where the map's
+    /// error is (when the mask has enough pixels); returns the pixels and their loss
+    /// weights (`None`: 1 each).
+    fn pixels_with(
+        &mut self,
+        sampling_mask: impl IntoIterator<Item = u8>,
+        map: Option<(&ErrorMap, usize)>,
+    ) -> (Vec<usize>, Option<Vec<f32>>) {
         let valid: Vec<usize> = sampling_mask
             .into_iter()
             .enumerate()
             .filter(|(_, v)| *v > 0)
             .map(|(i, _)| i)
             .collect();
+        if let Some((map, image)) = map.filter(|_| valid.len() >= self.rays_per_image) {
+            let d = map.draw(&mut self.rng, image, &valid, self.rays_per_image);
+            let weights = map.config().unbiased.then_some(d.weights);
+            return (d.pixels, weights);
+        }
         let mut px: Vec<usize> = if valid.len() >= self.rays_per_image {
             rand::seq::index::sample(&mut self.rng, valid.len(), self.rays_per_image)
                 .into_iter()
@@ -216,13 +240,33 @@ impl Sampler {
                 .into_vec()
         };
         px.sort_unstable();
-        px
+        (px, None)
     }
 
     /// Steps 1–5 for one training step of `ds` (which needs images, masks
     /// and cameras; sampling masks are optional: without one every pixel is
     /// eligible).
     pub fn next_batch(&mut self, ds: &Dataset) -> Result<SampledBatch> {
+        self.next_batch_with(ds, None)
+    }
+
+    /// [`Self::next_batch`], drawing part of each image's pixels from `map` (an error map
+    /// over `ds`'s images) when given.
+    pub fn next_batch_with(
+        &mut self,
+        ds: &Dataset,
+        map: Option<&ErrorMap>,
+    ) -> Result<SampledBatch> {
+        if let Some(m) = map {
+            let [n, _, _] = m.shape();
+            if n != self.n_images {
+                return Err(DataError::arg(
+                    "error map",
+                    format!("{} images (the sampler's)", self.n_images),
+                    n,
+                ));
+            }
+        }
         if ds.n_images() != self.n_images || ds.height() * ds.width() != self.pixels_per_image {
             return Err(DataError::arg(
                 "dataset",
@@ -254,17 +298,23 @@ impl Sampler {
             bgs: Vec::with_capacity(3 * r),
             targets: Vec::with_capacity(3 * r),
             framecodes: Vec::with_capacity(r),
+            weights: None,
         };
+        let mut weights: Vec<f32> = Vec::new();
         for k in 0..b.images.len() {
             let n = b.images[k];
             let cam = ds.image_camera(n)?;
             b.pose_rows.push(ds.pose_row(n)?);
             let img = ds.image(n).ok_or_else(|| missing("imgs"))?;
             let mask = ds.mask(n).ok_or_else(|| missing("masks"))?;
-            let pixels = match ds.sampling_mask(n) {
-                Some(m) => self.pixels(m.column(0).iter().copied()),
-                None => self.pixels(std::iter::empty()),
+            let guide = map.map(|m| (m, n));
+            let (pixels, w) = match ds.sampling_mask(n) {
+                Some(m) => self.pixels_with(m.column(0).iter().copied(), guide),
+                None => self.pixels_with(std::iter::empty(), guide),
             };
+            if map.is_some_and(|m| m.config().unbiased) {
+                weights.extend(w.unwrap_or_else(|| vec![1.0; pixels.len()]));
+            }
             let (origins, dirs) = cam.rays(&pixels, true);
             for ((&px, ro), rd) in pixels.iter().zip(origins).zip(dirs) {
                 b.origins.extend_from_slice(&ro);
@@ -285,6 +335,9 @@ impl Sampler {
                 b.framecodes.push(n as i64);
             }
             b.pixels.extend_from_slice(&pixels);
+        }
+        if !weights.is_empty() {
+            b.weights = Some(weights);
         }
         Ok(b)
     }

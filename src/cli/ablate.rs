@@ -133,6 +133,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     plot_curves(
         &curves,
         "pma ablate: held-out (novel view) PSNR vs wall-clock time",
+        "wall-clock time [min]",
         &args.out.join("error_vs_time.png"),
     )?;
     println!("{md}");
@@ -154,7 +155,7 @@ fn run_variant(
     let mut run = RunConfig::from_preset(preset);
     run.model.variant = v;
     run.train.seed = args.seed;
-    run.train.iters = args.iters.unwrap_or(u64::MAX / 2);
+    run.train.iters = args.iters.unwrap_or(pma_model::train::presets::MAX_ITERS);
     let run_dir = args.out.join("runs").join(v.name());
     let req = TrainRequest {
         data: train_data.to_path_buf(),

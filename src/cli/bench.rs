@@ -22,6 +22,7 @@ use super::{refuse, write_json};
 
 mod account;
 mod forward;
+mod quality;
 mod shares;
 
 #[derive(clap::Args, Debug, Clone)]
@@ -161,6 +162,33 @@ pub struct Args {
     /// Training batches counted by `--shares` (0: held-out renders only).
     #[arg(long, default_value_t = 1, requires = "shares")]
     pub shares_batches: usize,
+    /// Time to quality instead of all of this: parity, today's options (culling at 0.6 and
+    /// the grid), each new option alone and the fast recipe train in turns on the synthetic
+    /// scenes of `--ttq-seeds`; held-out PSNR (`--eval-images` novel views) against
+    /// training time, and the minutes each needs to reach parity's PSNR at each of
+    /// `--ttq-marks`. Writes quality.json, quality.md and time_to_quality.png. The full
+    /// measurement (the defaults) trains 36 minutes per seed.
+    #[arg(long, conflicts_with_all = ["account", "forward_only", "shares"])]
+    pub time_to_quality: bool,
+    /// Scene seeds of `--time-to-quality` (not the seeds the options were tuned on: 0 and 7).
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "101,102,103",
+        requires = "time_to_quality"
+    )]
+    pub ttq_seeds: Vec<u64>,
+    /// Minutes of training at which parity's held-out PSNR is a target (ascending).
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "1,2,5",
+        requires = "time_to_quality"
+    )]
+    pub ttq_marks: Vec<f64>,
+    /// Held-out scores along each curve over the last mark (the marks are scored too).
+    #[arg(long, default_value_t = 20, requires = "time_to_quality")]
+    pub ttq_points: usize,
 }
 
 pub fn run(mut args: Args) -> anyhow::Result<()> {
@@ -176,6 +204,9 @@ pub fn run(mut args: Args) -> anyhow::Result<()> {
     }
     if args.shares {
         return shares::run(&args, &dev);
+    }
+    if args.time_to_quality {
+        return quality::run(&args, &dev);
     }
     let preset: Preset = args.preset.parse()?;
     let mut scene = pma_data::synth::SynthConfig {

@@ -21,6 +21,7 @@ fn register_font() {
 /// atomically as a PNG.
 pub fn plot_psnr_vs_time(
     eval: &[(f64, f64)],
+    eval_label: &str,
     train: &[(f64, f64)],
     title: &str,
     path: &Path,
@@ -84,7 +85,7 @@ pub fn plot_psnr_vs_time(
                     blue.stroke_width(2),
                 ))
                 .map_err(|e| anyhow::anyhow!("plot: {e}"))?
-                .label("held-out PSNR")
+                .label(eval_label)
                 .legend(move |(x, y)| {
                     PathElement::new(vec![(x, y), (x + 20, y)], blue.stroke_width(2))
                 });
@@ -212,6 +213,7 @@ pub fn plot_error_vs_time(
 pub fn plot_curves(
     series: &[(String, Vec<(f64, f64)>)],
     title: &str,
+    x_desc: &str,
     path: &Path,
 ) -> anyhow::Result<()> {
     register_font();
@@ -245,19 +247,22 @@ pub fn plot_curves(
             .map_err(|x| e(&x))?;
         chart
             .configure_mesh()
-            .x_desc("wall-clock time [min]")
+            .x_desc(x_desc)
             .y_desc("held-out PSNR [dB]")
             .label_style(("sans-serif", 15))
             .draw()
             .map_err(|x| e(&x))?;
         for (i, (label, pts)) in series.iter().enumerate() {
-            const COLOURS: [RGBColor; 6] = [
+            const COLOURS: [RGBColor; 9] = [
                 RGBColor(31, 90, 180),
                 RGBColor(214, 96, 30),
                 RGBColor(44, 150, 60),
                 RGBColor(190, 40, 50),
                 RGBColor(120, 80, 170),
                 RGBColor(110, 110, 110),
+                RGBColor(200, 160, 20),
+                RGBColor(20, 170, 190),
+                RGBColor(0, 0, 0),
             ];
             let colour = COLOURS[i % COLOURS.len()];
             chart

@@ -74,6 +74,26 @@ pub struct Args {
     /// resumed run.
     #[arg(long)]
     pub occupancy: bool,
+    /// With `--occupancy`: place each ray's coarse samples in the intervals the grid marks
+    /// occupied instead of over its whole box interval (after the grid's warm-up). Not for a
+    /// resumed run.
+    #[arg(long, requires = "occupancy")]
+    pub coarse_from_grid: bool,
+    /// Draw half of each image's rays where a running map of the training error is high
+    /// (`[train.error_map]` sets its cells, share and weighting); the map is saved with
+    /// every checkpoint. Not for a resumed run.
+    #[arg(long)]
+    pub error_map: bool,
+    /// Anneal the learning rates to a tenth over the run's budget (`--minutes`), or over its
+    /// iterations without one (`[train.anneal]`). A run annealed over a wall-clock budget
+    /// does not repeat bit for bit. Not for a resumed run.
+    #[arg(long)]
+    pub anneal: bool,
+    /// The fast recipe: culling at w^p ≤ 0.6, the occupancy grid, coarse samples from the
+    /// grid, the error map and the annealed rates together (`pma demo` trains with it).
+    /// Not for a resumed run.
+    #[arg(long)]
+    pub fast: bool,
     /// No progress bar (log lines only).
     #[arg(long)]
     pub quiet: bool,
@@ -199,6 +219,30 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             ),
         }
     }
+    let switches = [
+        ("--coarse-from-grid", args.coarse_from_grid),
+        ("--error-map", args.error_map),
+        ("--anneal", args.anneal),
+        ("--fast", args.fast),
+    ];
+    if let Some((flag, _)) = switches.iter().find(|(_, on)| *on) {
+        let Some(run) = run.as_mut() else {
+            refuse!("{flag} cannot change a resumed run (its options are in {CONFIG_FILE})");
+        };
+        run.train.coarse_from_grid |= args.coarse_from_grid;
+        if args.error_map {
+            run.train.error_map.get_or_insert_with(Default::default);
+        }
+        if args.anneal {
+            let a = run.train.anneal.get_or_insert_with(Default::default);
+            a.seconds = args.minutes.map_or(0.0, |m| m * 60.0);
+        }
+        if args.fast {
+            for c in pma_model::train::recipe::fast(run, args.minutes) {
+                println!("fast recipe: {} ({})", c.option, c.why);
+            }
+        }
+    }
     let eval_data = args.eval_data.clone().or_else(|| {
         let beside = args.data.parent()?.join("novel_view.npz");
         (beside.is_file() && beside != args.data).then_some(beside)
@@ -305,6 +349,7 @@ pub fn train(
     let mut view = Terminal {
         quiet: quiet || follower,
         title,
+        eval_label: eval_label(req),
         bar: indicatif::ProgressBar::hidden(),
     };
     let result = match ranks {
@@ -359,10 +404,30 @@ fn launched(
     ))
 }
 
+/// What the plot's held-out curve scores: the periodic evaluation renders a few images of
+/// the held-out file (`eval_images`, evenly spread), not the whole split a final `pma eval`
+/// or `pma demo` scores.
+pub fn eval_label(req: &TrainRequest) -> String {
+    let file = req
+        .eval_data
+        .as_ref()
+        .and_then(|p| p.file_name())
+        .map_or_else(String::new, |f| format!(" of {}", f.to_string_lossy()));
+    match &req.run {
+        Some(run) => format!(
+            "held-out PSNR ({} image{}{file})",
+            run.train.eval_images,
+            if run.train.eval_images == 1 { "" } else { "s" }
+        ),
+        None => format!("held-out PSNR (the run's eval_images{file})"),
+    }
+}
+
 /// The training run as the terminal shows it.
 struct Terminal<'a> {
     quiet: bool,
     title: &'a str,
+    eval_label: String,
     bar: indicatif::ProgressBar,
 }
 
@@ -393,6 +458,7 @@ impl TrainObserver for Terminal<'_> {
     fn checkpoint(&mut self, dir: &Path, log: &TrainLog) -> Result<(), ObserverError> {
         plot_psnr_vs_time(
             &log.eval_curve(),
+            &self.eval_label,
             &log.train_curve(),
             self.title,
             &dir.join(PLOT_FILE),

@@ -530,3 +530,70 @@ fn account_with_the_occupancy_grid() {
     let o = pma(&[&ACCOUNT_TINY[..], &flags].concat());
     exits_2_with(o, "--occupancy");
 }
+
+/// `--time-to-quality` on a few seconds of training: one row per option (parity first, the
+/// recipe last), a curve per run that starts from the shared initial score, parity's own
+/// minutes to its marks at most the marks, the table and the plot written; bad marks are
+/// refused.
+#[test]
+fn time_to_quality_writes_the_table_and_plot() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = |extra: &[&str]| {
+        let out = s(dir.path());
+        let base = [
+            "bench",
+            "--time-to-quality",
+            "--quick",
+            "--quiet",
+            "--out",
+            out,
+        ];
+        pma(&[&base[..], extra].concat())
+    };
+    ok(run(&[
+        "--ttq-seeds",
+        "5",
+        "--ttq-marks",
+        "0.02,0.04",
+        "--ttq-points",
+        "2",
+    ]));
+    let json = read_json(&dir.path().join("quality.json"));
+    let options = json["options"].as_array().unwrap();
+    let names: Vec<&str> = options
+        .iter()
+        .map(|o| o["name"].as_str().unwrap())
+        .collect();
+    assert_eq!(names.first(), Some(&"parity"));
+    assert_eq!(names.last(), Some(&"fast recipe"));
+    assert_eq!(names.len(), 6, "{names:?}");
+    let initial = options[0]["seeds"][0]["runs"][0]["curve"][0][1]
+        .as_f64()
+        .unwrap();
+    for o in options {
+        let seed = &o["seeds"][0];
+        let runs = seed["runs"].as_array().unwrap();
+        // A budgeted option trains one run per mark.
+        let per_mark = o["budgeted"].as_bool().unwrap();
+        assert_eq!(runs.len(), if per_mark { 2 } else { 1 }, "{}", o["name"]);
+        for r in runs {
+            assert_eq!(r["curve"][0][1].as_f64(), Some(initial), "{}", o["name"]);
+            assert!(r["iterations"].as_u64().unwrap() > 0, "{}", o["name"]);
+        }
+        assert_eq!(seed["psnr_at_marks"].as_array().unwrap().len(), 2);
+    }
+    // Parity reaches its own PSNR at each mark no later than the mark.
+    for (t, m) in options[0]["minutes_to_parity"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .zip([0.02, 0.04])
+    {
+        assert!(t.as_f64().is_some_and(|t| t <= m + 1e-9), "{t} vs {m}");
+    }
+    let md = std::fs::read_to_string(dir.path().join("quality.md")).unwrap();
+    assert!(md.contains("| fast recipe (a run per mark) |"), "{md}");
+    assert!(dir.path().join("time_to_quality.png").is_file());
+
+    exits_2_with(run(&["--ttq-marks", "2,1"]), "--ttq-marks");
+}

@@ -261,6 +261,26 @@ fn bad_device_lists_are_refused() {
         ]),
         "--group-timeout needs several devices",
     );
+    // Options whose state follows the rays a device sees: one rank sees only its slice.
+    // Refused before the run directory is made.
+    for (flag, needle) in [
+        ("--error-map", "the error map"),
+        ("--cull-rays", "culling"),
+        ("--fast", "not supported with several devices"),
+    ] {
+        let out = pma_within(
+            &[
+                "train", "--data", d, "--out", o, "--device", "cpu,cpu", "--preset", "tiny",
+                "--iters", "2", flag, "--quiet",
+            ],
+            60,
+        );
+        exits_2_with(out, needle);
+        assert!(
+            !std::path::Path::new(o).exists(),
+            "{flag}: the run directory was left"
+        );
+    }
     // --distributed needs a launcher's variables, then a CUDA device for its local rank.
     let launcher_vars = [
         "RANK",

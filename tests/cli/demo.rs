@@ -1,22 +1,20 @@
 //! `pma demo` end to end on a tiny budget: synthesises the scene, trains, evaluates both
-//! held-out splits and writes summary.json in the shape other tools read.
+//! held-out splits and writes summary.json in the shape other tools read; it trains with the
+//! fast recipe and says so, and `--parity` trains without it.
+
+use std::path::Path;
+use std::process::Output;
 
 use crate::run::{ok, pma, read_json, s};
 
-#[test]
-fn demo_writes_summary_renders_and_plot() {
-    let tmp = tempfile::tempdir().unwrap();
-    let out_dir = tmp.path().join("demo");
-    ok(pma(&[
+/// `pma demo` on the tiny preset and a 24-pixel scene of 2 frames, with `extra` flags.
+fn demo(out_dir: &Path, extra: &[&str]) -> Output {
+    let base = [
         "demo",
         "--out",
-        s(&out_dir),
+        s(out_dir),
         "--preset",
         "tiny",
-        "--iters",
-        "3",
-        "--minutes",
-        "5",
         "--res",
         "24",
         "--frames",
@@ -28,7 +26,15 @@ fn demo_writes_summary_renders_and_plot() {
         "--quiet",
         "--device",
         "cpu",
-    ]));
+    ];
+    ok(pma(&[&base[..], extra].concat()))
+}
+
+#[test]
+fn demo_writes_summary_renders_and_plot() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out_dir = tmp.path().join("demo");
+    let out = demo(&out_dir, &["--iters", "3", "--minutes", "5"]);
 
     // Scene, run, evaluations, renders and plots: one mode rule for all of them.
     #[cfg(unix)]
@@ -36,6 +42,24 @@ fn demo_writes_summary_renders_and_plot() {
 
     let summary = read_json(&out_dir.join("summary.json"));
     assert_eq!(summary["iterations"], 3);
+    // The fast recipe, named in the output and the summary; the curve's images beside the
+    // evaluation's.
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(stdout.contains("fast recipe"), "{stdout}");
+    let options: Vec<&str> = summary["options"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|o| o.as_str().unwrap())
+        .collect();
+    assert!(options.contains(&"--error-map"), "{options:?}");
+    assert!(options.contains(&"--occupancy"), "{options:?}");
+    assert!(stdout.contains(&format!(
+        "curve scores {} novel-view",
+        summary["curve_images"]
+    )));
+    let config = std::fs::read_to_string(out_dir.join("run/config.toml")).unwrap();
+    assert!(config.contains("[train.error_map]"), "{config}");
     assert!(summary["wall_s"].as_f64().unwrap() > 0.0);
     for key in ["model", "data"] {
         let p = summary[key].as_str().unwrap();
@@ -54,4 +78,22 @@ fn demo_writes_summary_renders_and_plot() {
         .unwrap()
         .collect();
     assert_eq!(renders.len(), 2, "one side-by-side PNG per split");
+}
+
+/// `--parity` trains the preset as it is: no recipe option in the summary or the run's
+/// configuration. Without `--iters` the budget alone ends the run.
+#[test]
+fn demo_parity_trains_without_the_recipe() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out_dir = tmp.path().join("demo");
+    let out = demo(&out_dir, &["--parity", "--minutes", "0.02"]);
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(stdout.contains("--parity"), "{stdout}");
+    let summary = read_json(&out_dir.join("summary.json"));
+    assert_eq!(summary["options"], serde_json::json!([]));
+    assert!(summary["iterations"].as_u64().unwrap() > 0);
+    let config = std::fs::read_to_string(out_dir.join("run/config.toml")).unwrap();
+    for key in ["error_map", "anneal", "occupancy", "coarse_from_grid"] {
+        assert!(!config.contains(key), "{key} in {config}");
+    }
 }

@@ -7,6 +7,7 @@
 //! | [`measure`] | render and training speed, memory and quality per option ([`BenchReport`]) |
 //! | [`account`] | one training step and one inference pass as a GPU would run them |
 //! | [`shares`] | the share of samples that run the network per pass, per option (counts) |
+//! | [`quality`] | time to quality: held-out PSNR against training time, per option |
 //!
 //! Everything runs for real on this machine; timings are wall times of this process, and
 //! held-out quality is scored by [`crate::eval`]'s protocol.
@@ -14,12 +15,14 @@
 pub mod account;
 pub mod measure;
 pub mod options;
+pub mod quality;
 pub mod scaling;
 pub mod shares;
 
 pub use account::{account, AccountReport, AccountRequest};
 pub use measure::{measure, BenchReport, BenchRequest, ForwardResult, OptionResult};
 pub use options::{options, BenchOption};
+pub use quality::{quality_options, time_to_quality, QualityReport, QualityRequest};
 pub use shares::{shares, PassShare, SharesReport, SharesRequest};
 
 use crate::error::ModelError;

@@ -56,6 +56,7 @@ impl BenchOption {
             culling: self.culling.clone(),
             occupancy: self.occupancy,
             occupancy_fine: self.occupancy_fine,
+            coarse_from_grid: false,
             early_stop: self.early_stop,
             cull_joints: self.cull_joints,
             grid_feed: None,

@@ -410,8 +410,13 @@ mod tests {
 
     #[test]
     fn bf16_trunk_is_refused_under_sm_80() {
-        let e = bf16_capability("cuda:0", Some((7, 5))).unwrap_err().to_string();
-        assert!(e.contains("--bf16-trunk needs a GPU of compute capability 8.0"), "{e}");
+        let e = bf16_capability("cuda:0", Some((7, 5)))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("--bf16-trunk needs a GPU of compute capability 8.0"),
+            "{e}"
+        );
         assert!(e.contains("cuda:0 is 7.5"), "{e}");
         assert!(bf16_capability("cuda:0", Some((8, 0))).is_ok());
         assert!(bf16_capability("cuda:0", Some((9, 0))).is_ok());

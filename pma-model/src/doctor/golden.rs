@@ -97,6 +97,8 @@ impl Golden {
                 cyls: self.t("input/cyls")?.narrow(0, 0, 1)?.contiguous()?,
             },
             target: self.t("input/target_s")?.clone(),
+            pixels: None,
+            weights: None,
         })
     }
 

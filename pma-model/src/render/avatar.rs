@@ -23,10 +23,12 @@ use crate::network::Network;
 pub use crate::network::PoseFeatures;
 pub use crate::render::batch::{Mode, NoiseFn, Outputs, Poses, Rays};
 use crate::render::bones::BoneFrames;
+use crate::render::cull::WindowTest;
 use crate::render::occupancy::{RefreshOptions, RefreshStats};
 pub use crate::render::options::{GridObservation, PassOptions, PassStats};
+use crate::render::placement::coarse_in_occupied;
 use crate::render::points::PointEval;
-use crate::render::raycast::{merge_raw, CoarseSamples, RayCaster};
+use crate::render::raycast::{merge_raw, CastInputs, CoarseSamples, RayCaster};
 use crate::render::volume::raw2outputs;
 
 /// A network, the ray caster of its bone boxes, and the optional occupancy grid saved with
@@ -162,15 +164,25 @@ impl Avatar {
         pose: &PoseFeatures,
         opts: &PassOptions,
     ) -> Result<CoarseSamples> {
-        self.cast_on(rays, poses, pose, self.casts_on_host(&rays.origins, opts))
+        self.cast_on(
+            rays,
+            poses,
+            pose,
+            opts,
+            self.casts_on_host(&rays.origins, opts),
+        )
     }
 
-    /// [`Self::cast`] on the host or not, as decided for the pass.
+    /// [`Self::cast`] on the host or not, as decided for the pass. With
+    /// `opts.coarse_from_grid` and a built grid the coarse samples are placed in the
+    /// intervals the grid marks occupied ([`crate::render::placement`]), from the host copies
+    /// the cast makes anyway.
     fn cast_on(
         &self,
         rays: &Rays,
         poses: &Poses,
         pose: &PoseFeatures,
+        opts: &PassOptions,
         on_host: bool,
     ) -> Result<CoarseSamples> {
         check_pose_count(poses, pose)?;
@@ -181,7 +193,27 @@ impl Avatar {
             &poses.skts,
             &pose.scales.detach(),
         );
-        if on_host {
+        let grid = self
+            .occupancy
+            .as_deref()
+            .filter(|g| opts.coarse_from_grid && g.is_built());
+        if let (true, Some(grid)) = (on_host, grid) {
+            let cfg = self.config();
+            let threshold = opts.window_threshold().unwrap_or(0.0);
+            let place = |inputs: &CastInputs, even: Vec<f32>| -> Result<Vec<f32>> {
+                let test = WindowTest::new(
+                    self.bone_align(),
+                    inputs.skts,
+                    inputs.scales,
+                    cfg.window_alpha,
+                    cfg.window_beta,
+                    threshold,
+                )?;
+                coarse_in_occupied(&test, grid, inputs, even, cfg.n_samples)
+            };
+            self.caster
+                .cast_placed(args.0, args.1, args.2, args.3, args.4, Some(&place))
+        } else if on_host {
             self.caster.cast(args.0, args.1, args.2, args.3, args.4)
         } else {
             self.caster
@@ -224,7 +256,7 @@ impl Avatar {
         trace: Option<&mut Trace>,
     ) -> Result<Outputs> {
         let on_host = self.casts_on_host(&rays.origins, opts);
-        let coarse = self.cast_on(rays, poses, pose, on_host)?;
+        let coarse = self.cast_on(rays, poses, pose, opts, on_host)?;
         crate::compute::profile::mark("cast", self.device());
         self.render(rays, poses, pose, coarse, mode, opts, on_host, trace)
     }

@@ -338,6 +338,17 @@ impl WindowTest {
         }
     }
 
+    /// For the points xs [S,3] along one ray of pose p, in depth order: whether each would
+    /// run the network with `grid` ([`Self::fate`] is [`SampleFate::Evaluate`]).
+    pub(crate) fn evaluated_along(&self, p: usize, xs: &[f32], grid: &OccupancyGrid) -> Vec<bool> {
+        let joints = self.ray_joints(p, xs);
+        xs.chunks_exact(3)
+            .map(|x| {
+                self.fate_among(p, [x[0], x[1], x[2]], Some(grid), joints) == SampleFate::Evaluate
+            })
+            .collect()
+    }
+
     /// What a training pass saw of the grid ([`crate::render::options::GridFeed`]): for each
     /// evaluated sample of one ray (xs [S,3] of pose p, `evaluated[k]`, relu σ `sigma[k]`),
     /// every joint whose window is above the threshold there, with the sample's cell in that

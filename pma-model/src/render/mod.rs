@@ -10,6 +10,7 @@
 //! | [`raycast`] | near/far from the bounding cylinder and the boxes; 48 + 24 samples |
 //! | [`options`] | what one pass may leave out ([`PassOptions`]), and what it did |
 //! | [`cull`] | which rays and samples may skip the network |
+//! | [`placement`] | coarse samples in the intervals the occupancy grid marks occupied |
 //! | [`points`] | the routes of a pass's samples through the network |
 //! | [`volume`] | volume rendering (differentiable) |
 //! | [`occupancy`] | refreshing an avatar's occupancy grid from the network's density |
@@ -30,6 +31,7 @@ pub mod cull;
 pub mod image;
 pub mod occupancy;
 pub mod options;
+pub mod placement;
 pub mod points;
 pub mod raycast;
 pub mod volume;

@@ -125,6 +125,22 @@ pub struct PassOptions {
     )]
     #[serde(skip_serializing_if = "std::ops::Not::not")]
     pub occupancy_fine: bool,
+    /// With the grid: each ray's coarse samples are placed in the intervals along it that
+    /// the grid marks occupied (each interval's ends just outside it) instead of evenly
+    /// over its whole box interval ([`crate::render::placement`]), so that the same samples
+    /// fall where the body is. Approximate: where the grid is wrong the body is sampled more
+    /// coarsely; a grid that was never refreshed leaves the samples where they were.
+    #[cfg_attr(
+        feature = "cli",
+        arg(
+            long = "coarse-from-grid",
+            requires = "occupancy",
+            help = "Place each ray's coarse samples in the intervals the occupancy grid marks \
+                    occupied instead of over its whole box interval (approximate)"
+        )
+    )]
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub coarse_from_grid: bool,
     /// In inference: the coarse samples run the network front to back in
     /// [`EARLY_STOP_SEGMENT`]-sample segments, and once a ray's transmittance is below this
     /// threshold its later samples, coarse and fine, skip the network and are filled like
@@ -227,6 +243,7 @@ impl PassOptions {
         self.culling.is_off()
             && !self.occupancy
             && !self.occupancy_fine
+            && !self.coarse_from_grid
             && self.early_stop.is_none()
             && !self.cull_joints
     }
@@ -260,6 +277,13 @@ impl PassOptions {
             return Some(
                 "occupancy: placing the fine samples from the grid (occupancy_fine) needs the \
                  grid option (occupancy)"
+                    .into(),
+            );
+        }
+        if self.coarse_from_grid && !self.occupancy {
+            return Some(
+                "occupancy: placing the coarse samples from the grid (coarse_from_grid) needs \
+                 the grid option (occupancy)"
                     .into(),
             );
         }

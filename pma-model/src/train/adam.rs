@@ -277,6 +277,13 @@ impl Adam {
         }
     }
 
+    /// Every group's rate set to `factor` × its initial rate, floored at `floor`.
+    pub fn apply_factor(&mut self, factor: f64, floor: f64) {
+        for g in &mut self.groups {
+            g.lr = (g.initial_lr * factor).max(floor);
+        }
+    }
+
     /// Replace the moments, step counts and current group rates (from a train-state file).
     /// Every parameter must be given, with its own shape; on error nothing is changed.
     pub fn load_states(

@@ -2,6 +2,7 @@
 //! The trainer and the dataset source both build on these, so they live apart from either.
 
 use candle_core::Tensor;
+use pma_data::error_map::ErrorMap;
 
 use super::TrainError;
 use crate::render::avatar::{Poses, Rays};
@@ -15,6 +16,11 @@ pub struct TrainBatch {
     pub poses: Poses,
     /// target: [R,3] pixel colour composited over the ray's background.
     pub target: Tensor,
+    /// Each ray's pixel in its image (the image is its frame code), where the source knows
+    /// it: a source with an error map learns from the step's per-ray errors there.
+    pub pixels: Option<Vec<u32>>,
+    /// [R] loss weight of each ray (an error map's unbiased draws); `None`: 1 each.
+    pub weights: Option<Tensor>,
 }
 
 /// Where training batches come from. Its state is saved with every checkpoint, so it must
@@ -24,6 +30,14 @@ pub trait BatchSource {
     /// JSON state for the train-state file (`Value::Null` if stateless).
     fn state(&self) -> serde_json::Value;
     fn restore(&mut self, state: &serde_json::Value) -> Result<(), TrainError>;
+    /// The error map the source draws its rays from, if it has one: the trainer feeds it
+    /// each step's per-ray errors, and a checkpoint saves it.
+    fn error_map(&self) -> Option<&ErrorMap> {
+        None
+    }
+    fn error_map_mut(&mut self) -> Option<&mut ErrorMap> {
+        None
+    }
 }
 
 /// The same batch every step (parity tests, overfitting a fixed batch).

@@ -62,9 +62,31 @@ pub fn loss_share(
     batch_rays: usize,
     with_scale: bool,
 ) -> Result<Loss> {
+    loss_share_weighted(out, target, None, w, batch_rays, with_scale)
+}
+
+/// [`loss_share`] with each ray's L1 terms multiplied by its weight in `ray_weights` ([R']:
+/// an error map's unbiased draws, `pma_data::error_map`); `None` is [`loss_share`] itself.
+pub fn loss_share_weighted(
+    out: &Outputs,
+    target: &Tensor,
+    ray_weights: Option<&Tensor>,
+    w: &LossWeights,
+    batch_rays: usize,
+    with_scale: bool,
+) -> Result<Loss> {
     let inv_n = 1.0 / (3 * batch_rays) as f64;
-    let share =
-        |pred: &Tensor| -> Result<Tensor> { Ok(((pred - target)?.abs()?.sum_all()? * inv_n)?) };
+    let ray_weights = ray_weights
+        .map(|rw| rw.to_dtype(target.dtype())?.unsqueeze(1))
+        .transpose()?;
+    let share = |pred: &Tensor| -> Result<Tensor> {
+        let err = (pred - target)?.abs()?;
+        let err = match &ray_weights {
+            Some(rw) => err.broadcast_mul(rw)?,
+            None => err,
+        };
+        Ok((err.sum_all()? * inv_n)?)
+    };
     let fine = share(&out.fine.rgb)?;
     let coarse = share(&out.coarse.rgb)?;
     let l1 = ((&fine * w.fine)? + (&coarse * w.coarse)?)?;

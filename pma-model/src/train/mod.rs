@@ -16,6 +16,8 @@
 //! * [`lock`]: one writer per run directory.
 //! * [`parallel`]: data-parallel training on a group of devices (NCCL on GPUs, threads on
 //!   the CPU as its test double).
+//! * [`recipe`]: the fast recipe, the options that reach a held-out quality sooner, in one
+//!   switch.
 //! * [`run`]: a whole training run (run directory, loop, held-out evaluation schedule,
 //!   checkpoints, interruption), reporting to a [`TrainObserver`].
 //!
@@ -31,6 +33,7 @@ pub mod log;
 pub mod loss;
 pub mod parallel;
 pub mod presets;
+pub mod recipe;
 pub mod run;
 pub mod source;
 pub mod state;

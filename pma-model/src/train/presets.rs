@@ -9,6 +9,7 @@ use super::error::TrainError;
 use crate::network::config::Config;
 use crate::network::occupancy::OccupancyConfig;
 use crate::render::options::{Culling, PassOptions};
+use pma_data::error_map::ErrorMapConfig;
 
 /// Limit of the rays of a training step and of a render chunk (the paper's step: 3,072).
 pub const MAX_RAYS: usize = crate::render::MAX_CHUNK_RAYS;
@@ -90,6 +91,74 @@ pub struct TrainConfig {
     /// Off (`None`) by default; omitted from the saved configuration while off.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub occupancy: Option<OccupancyConfig>,
+    /// With the grid: each ray's coarse samples are placed in the intervals the grid marks
+    /// occupied instead of over its whole box interval (`render::placement`). Off by default;
+    /// omitted from the saved configuration while off.
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub coarse_from_grid: bool,
+    /// Part of each image's rays drawn where a running map of the training error is high
+    /// (`[train.error_map]`, `pma_data::error_map`), saved with every checkpoint. Off
+    /// (`None`) by default; omitted from the saved configuration while off.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub error_map: Option<ErrorMapConfig>,
+    /// The learning rates anneal over the run's own length (its wall-clock budget or its
+    /// iterations) instead of following `lr_decay` over `lr_decay_steps` (`[train.anneal]`).
+    /// Off (`None`) by default; omitted from the saved configuration while off.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub anneal: Option<Anneal>,
+}
+
+/// Learning rates that anneal over a run's own length: at the share f of its span done
+/// every group's rate is `lr0 · final_factor^f` (floored at `lr_floor`), so a run of a few
+/// minutes ends its schedule when it ends, as the reference's 300,000 iterations end theirs
+/// (at 0.25 of the initial rates) and a short run of the reference's schedule never does.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Anneal {
+    /// The rates at the end of the span, as a share of the initial rates.
+    pub final_factor: f64,
+    /// The span in seconds of the run's wall clock (its budget, `--minutes`); 0: the run's
+    /// iterations (`iters`). A wall-clock span makes the rates depend on the machine's
+    /// speed, so such a run does not repeat bit for bit.
+    pub seconds: f64,
+}
+
+impl Default for Anneal {
+    fn default() -> Self {
+        Self {
+            final_factor: 0.1,
+            seconds: 0.0,
+        }
+    }
+}
+
+impl Anneal {
+    /// The factor of the initial rates after `iter` iterations of a run of `iters` at
+    /// `wall_s` seconds.
+    pub fn factor(&self, iter: u64, iters: u64, wall_s: f64) -> f64 {
+        let done = match self.seconds > 0.0 {
+            true => wall_s / self.seconds,
+            false => iter as f64 / iters.max(1) as f64,
+        };
+        self.final_factor.powf(done.clamp(0.0, 1.0))
+    }
+
+    fn problems(&self) -> Vec<String> {
+        let mut bad = Vec::new();
+        if !(self.final_factor.is_finite() && self.final_factor > 0.0 && self.final_factor <= 1.0) {
+            bad.push(format!(
+                "anneal.final_factor must be in (0, 1], found {}",
+                self.final_factor
+            ));
+        }
+        if !(self.seconds.is_finite() && self.seconds >= 0.0) {
+            bad.push(format!(
+                "anneal.seconds must be finite and >= 0 (0 = over the iterations), found {}",
+                self.seconds
+            ));
+        }
+        bad
+    }
 }
 
 impl Default for TrainConfig {
@@ -128,6 +197,9 @@ impl TrainConfig {
             read_every: 0,
             culling: Culling::default(),
             occupancy: None,
+            coarse_from_grid: false,
+            error_map: None,
+            anneal: None,
         }
     }
 
@@ -136,10 +208,8 @@ impl TrainConfig {
     pub fn pass_options(&self, iter: u64) -> PassOptions {
         PassOptions {
             culling: self.culling.clone(),
-            occupancy: self
-                .occupancy
-                .as_ref()
-                .is_some_and(|o| iter >= o.warmup_steps),
+            occupancy: self.grid_active(iter),
+            coarse_from_grid: self.coarse_from_grid && self.grid_active(iter),
             // Training places its fine samples from the coarse render (its coarse loss
             // needs that render anyway).
             occupancy_fine: false,
@@ -149,6 +219,14 @@ impl TrainConfig {
             // The trainer gives each chunk its own feed (probes and observations).
             grid_feed: None,
         }
+    }
+
+    /// Whether the steps after `iter` completed iterations use the occupancy grid (its
+    /// warm-up is over).
+    fn grid_active(&self, iter: u64) -> bool {
+        self.occupancy
+            .as_ref()
+            .is_some_and(|o| iter >= o.warmup_steps)
     }
 
     /// The loss weights (fine, coarse, box volume).
@@ -291,6 +369,19 @@ impl TrainConfig {
         if let Some(o) = &self.occupancy {
             bad.extend(o.problems().into_iter().map(|p| format!("occupancy.{p}")));
         }
+        if self.coarse_from_grid && self.occupancy.is_none() {
+            bad.push(
+                "coarse_from_grid places the coarse samples from the occupancy grid: it needs \
+                 [train.occupancy]"
+                    .to_string(),
+            );
+        }
+        if let Some(m) = &self.error_map {
+            bad.extend(m.problems().into_iter().map(|p| format!("error_map.{p}")));
+        }
+        if let Some(a) = &self.anneal {
+            bad.extend(a.problems());
+        }
         if bad.is_empty() {
             Ok(())
         } else {
@@ -428,7 +519,13 @@ impl RunConfig {
             "train",
             &preset.train(),
             train_over,
-            &["culling", "occupancy"],
+            &[
+                "culling",
+                "occupancy",
+                "coarse_from_grid",
+                "error_map",
+                "anneal",
+            ],
         )?;
         let run = Self {
             preset,
@@ -569,7 +666,7 @@ fn take_table(root: &mut toml::Table, key: &str) -> Result<toml::Table, TrainErr
 /// Overlay `over` on the serialised `base` (one level deep: nested tables such as
 /// `model.quirks` are merged too) and deserialise the result. `optional` names the tables of
 /// the section that the serialised base leaves out while they are off (their own types
-/// refuse unknown keys, so they are taken as given).
+/// refuse unknown keys, so they are taken as given: tables and switches).
 fn merge<T: Serialize + serde::de::DeserializeOwned>(
     section: &str,
     base: &T,
@@ -586,8 +683,8 @@ fn merge<T: Serialize + serde::de::DeserializeOwned>(
     for (k, v) in over {
         let optional = optional.contains(&k.as_str());
         match (merged.get_mut(&k), v) {
-            (None, toml::Value::Table(t)) if optional => {
-                merged.insert(k, toml::Value::Table(t));
+            (None, v) if optional => {
+                merged.insert(k, v);
             }
             (Some(toml::Value::Table(dst)), toml::Value::Table(src)) if optional => {
                 dst.extend(src);

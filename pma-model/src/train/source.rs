@@ -12,12 +12,16 @@
 //! 5. per-image pose data (bones, skts, cyls) once per image, frame code = image index.
 //!
 //! The sampling itself is `pma_data::sampler::Sampler` (one ChaCha8 stream); this module adds
-//! the tensors and the saved state (the permutation, cursor and stream position).
+//! the tensors and the saved state (the permutation, cursor and stream position). With an
+//! error map ([`DatasetSource::with_error_map`], `[train.error_map]`) step 2 draws part of
+//! each image's pixels where the map says the training error is; the trainer feeds the map
+//! each step's per-ray errors and a checkpoint saves it.
 
 use std::sync::Arc;
 
 use candle_core::{Device, Tensor};
 use pma_data::dataset::Dataset;
+use pma_data::error_map::{ErrorMap, ErrorMapConfig};
 use pma_data::sampler::Sampler;
 use serde::{Deserialize, Serialize};
 
@@ -30,6 +34,7 @@ pub struct DatasetSource {
     data: Arc<Dataset>,
     device: Device,
     sampler: Sampler,
+    map: Option<ErrorMap>,
 }
 
 #[derive(Serialize, Deserialize)]
@@ -95,14 +100,25 @@ impl DatasetSource {
             data,
             device: device.clone(),
             sampler,
+            map: None,
         })
+    }
+
+    /// The same source drawing part of its rays from a fresh error map of `cfg` over its
+    /// images.
+    pub fn with_error_map(mut self, cfg: ErrorMapConfig) -> Result<Self, TrainError> {
+        let d = &self.data;
+        let map = ErrorMap::new(cfg, d.n_images(), d.width(), d.height())
+            .map_err(|e| TrainError::Config(format!("error_map: {e}")))?;
+        self.map = Some(map);
+        Ok(self)
     }
 }
 
 impl BatchSource for DatasetSource {
     fn next_batch(&mut self) -> Result<TrainBatch, TrainError> {
         let data = self.data.clone();
-        let b = self.sampler.next_batch(&data)?;
+        let b = self.sampler.next_batch_with(&data, self.map.as_ref())?;
         let r = b.len();
         let (all_skts, all_cyls) = (
             data.skts.as_ref().expect("checked"),
@@ -138,7 +154,17 @@ impl BatchSource for DatasetSource {
                 cyls: Tensor::from_vec(cyls, (p, 5), dev)?,
             },
             target: Tensor::from_vec(b.targets, (r, 3), dev)?,
+            pixels: Some(b.pixels.iter().map(|&p| p as u32).collect()),
+            weights: b.weights.map(|w| Tensor::from_vec(w, r, dev)).transpose()?,
         })
+    }
+
+    fn error_map(&self) -> Option<&ErrorMap> {
+        self.map.as_ref()
+    }
+
+    fn error_map_mut(&mut self) -> Option<&mut ErrorMap> {
+        self.map.as_mut()
     }
 
     fn state(&self) -> serde_json::Value {

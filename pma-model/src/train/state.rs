@@ -19,6 +19,8 @@
 //!
 //! The first five keys are the format shared with `pma-convert` (which writes them from a
 //! reference `.th` checkpoint); the optional ones are what an exact resume needs beyond them.
+//! A run whose sampler keeps an error map (`pma_data::error_map`) saves it as one more f32
+//! tensor, `sampler.error_map` [images, cells_y, cells_x].
 
 use std::collections::{BTreeMap, HashMap};
 use std::path::Path;
@@ -92,7 +94,12 @@ pub struct TrainState {
     pub progress: Option<Progress>,
     pub run_config: Option<serde_json::Value>,
     pub model_fingerprint: Option<String>,
+    /// The sampler's error map, [images, cells_y, cells_x] (optional).
+    pub error_map: Option<Tensor>,
 }
+
+/// The tensor name of the sampler's error map.
+const ERROR_MAP_TENSOR: &str = "sampler.error_map";
 
 #[derive(Serialize, Deserialize)]
 struct GroupMeta {
@@ -161,6 +168,9 @@ impl TrainState {
                 format!("exp_avg_sq.{name}"),
                 st.exp_avg_sq.to_dtype(DType::F32)?,
             ));
+        }
+        if let Some(m) = &self.error_map {
+            tensors.push((ERROR_MAP_TENSOR.to_string(), m.to_dtype(DType::F32)?));
         }
         tensors.sort_by(|a, b| a.0.cmp(&b.0));
         safetensors::serialize(tensors.iter().map(|(n, t)| (n.as_str(), t)), Some(meta)).map_err(
@@ -264,6 +274,7 @@ impl TrainState {
             }
             tensors.insert(name, candle_core::safetensors::Load::load(&view, device)?);
         }
+        let error_map = tensors.remove(ERROR_MAP_TENSOR);
         let params = param_states(&groups, &steps, tensors, &mut problems);
         if !problems.is_empty() {
             return Err(TrainError::State(problems));
@@ -288,6 +299,7 @@ impl TrainState {
             progress,
             run_config,
             model_fingerprint,
+            error_map,
         })
     }
 }
@@ -425,6 +437,7 @@ mod tests {
             }),
             run_config: None,
             model_fingerprint: Some(fingerprint(b"model")),
+            error_map: None,
         }
     }
 

@@ -302,6 +302,63 @@ fn a_culled_step_reads_back_per_stage_and_the_grid_feed_once_more_per_network_st
     );
 }
 
+/// The fast recipe's options add no read-back inside a step: the error map's per-ray errors
+/// come back with the step's numbers in its one read, the annealed rates are host numbers,
+/// and the coarse samples placed from the grid are placed from the host copies a culled
+/// step's cast reads already (the same syncs per stage as without them).
+#[test]
+fn the_fast_recipe_adds_no_read_back_inside_a_step() {
+    use pma_model::network::occupancy::OccupancyConfig;
+    use pma_model::render::{Culling, SampleFill};
+    let (_dir, mut trainer, mut source) = tiny_with(0, 64, |run| {
+        run.train.error_map = Some(Default::default());
+        run.train.anneal = Some(Default::default());
+    });
+    let a = account_step(&mut trainer, &mut source, Route::Cuda).unwrap();
+    check(&a, 1, 1_470);
+    assert_eq!(
+        a.stats.ray_errors.len(),
+        64,
+        "the errors came back with the numbers"
+    );
+    assert!(trainer
+        .error_map()
+        .unwrap()
+        .values()
+        .iter()
+        .any(|&v| v >= 0.0));
+
+    let culled = |coarse_from_grid: bool| {
+        let (_dir, mut trainer, mut source) = tiny_with(0, 64, |run| {
+            run.train.culling = Culling {
+                rays: true,
+                sample_threshold: Some(0.6),
+                sample_fill: SampleFill::Network,
+            };
+            run.train.occupancy = Some(OccupancyConfig {
+                warmup_steps: 1,
+                ..OccupancyConfig::default()
+            });
+            run.train.coarse_from_grid = coarse_from_grid;
+            run.train.error_map = coarse_from_grid.then(Default::default);
+        });
+        trainer.advance(&source.next_batch().unwrap()).unwrap();
+        trainer.read_back().unwrap();
+        account_step(&mut trainer, &mut source, Route::Cuda).unwrap()
+    };
+    let (grid, placed) = (culled(false), culled(true));
+    let syncs = |a: &StepAccount| -> Vec<(String, u64)> {
+        a.report
+            .stages
+            .iter()
+            .map(|s| (s.name.clone(), s.counts.syncs))
+            .collect()
+    };
+    assert_eq!(syncs(&placed), syncs(&grid), "{}", table(&placed));
+    assert_eq!(placed.report.total.syncs, 15);
+    assert_eq!(placed.read_back.syncs, 1);
+}
+
 /// The automatic chunk rule (`compute::device::BYTES_PER_ELEMENT`) against the counted peak of
 /// live memory of the paper config's step: what a chunk's point × joint × feature element adds
 /// to the peak, from chunks of 16 and 64 rays. The rule must leave room above the count for

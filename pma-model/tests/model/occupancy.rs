@@ -547,6 +547,60 @@ fn fine_samples_placed_from_the_grid() {
     assert!(err.to_string().contains("rendering option"), "{err}");
 }
 
+/// Coarse samples placed from the grid: before the grid is built the cast is the even one bit
+/// for bit; with a patterned grid every ray's samples stay ascending inside its [near, far],
+/// rays that cross no box keep the even placement, some rays move, more coarse samples run
+/// the network than with the even placement, and the option is refused without the grid
+/// option.
+#[test]
+fn coarse_samples_placed_from_the_grid() {
+    let placed = PassOptions {
+        coarse_from_grid: true,
+        ..occupancy_only()
+    };
+    let unbuilt = with_grid(
+        GoldenCase::load("golden/dense", true),
+        Some(OccupancyGrid::new(OccupancyConfig::default()).unwrap()),
+    );
+    let even = infer(&unbuilt, &occupancy_only()).unwrap();
+    let same = infer(&unbuilt, &placed).unwrap();
+    assert_eq!(flat(&even.z_coarse), flat(&same.z_coarse));
+
+    let case = with_grid(unbuilt, Some(patterned_grid(0.3)));
+    let even = infer(&case, &occupancy_only()).unwrap();
+    let moved = infer(&case, &placed).unwrap();
+    let bounds = moved.bounds.as_ref().expect("cast on the host");
+    let sc = case.avatar.ray_caster().n_samples();
+    let (ze, zm) = (flat(&even.z_coarse), flat(&moved.z_coarse));
+    let mut rows_moved = 0;
+    for (r, (e, m)) in ze.chunks(sc).zip(zm.chunks(sc)).enumerate() {
+        assert!(m.windows(2).all(|w| w[0] <= w[1]), "ray {r}: {m:?}");
+        let (near, far) = (bounds.near[r], bounds.far[r]);
+        let tol = 1e-4 * far.abs().max(1.0);
+        assert!(
+            m[0] >= near - tol && m[sc - 1] <= far + tol,
+            "ray {r}: {m:?} outside [{near}, {far}]"
+        );
+        if !bounds.ray_hits_body[r] {
+            assert_eq!(e, m, "ray {r} crosses no box");
+        }
+        rows_moved += usize::from(e != m);
+    }
+    assert!(rows_moved > 0, "no ray moved its samples");
+    assert!(
+        moved.stats.coarse_evaluated > even.stats.coarse_evaluated,
+        "{:?} vs {:?}",
+        moved.stats,
+        even.stats
+    );
+    let no_grid_option = PassOptions {
+        occupancy: false,
+        ..placed
+    };
+    let err = infer(&case, &no_grid_option).unwrap_err();
+    assert!(err.to_string().contains("coarse_from_grid"), "{err}");
+}
+
 /// A refresh on the CPU runs each point in a call that carries only the joints whose window
 /// is not exactly 0 there (the render's joint grouping): the grid is what calls with all 24
 /// joints give, up to float summation order, for far fewer joint rows. Leaving out a live

@@ -264,6 +264,64 @@ fn resume_with_an_occupancy_grid_equals_uninterrupted_run() {
     );
 }
 
+/// The fast recipe's options together (culling, the grid, coarse samples from the grid, the
+/// error map with its unbiased weights, rates annealed over the run's iterations): a run
+/// stopped, checkpointed and resumed ends bit for bit where the uninterrupted run ends, its
+/// error map included, and the map and the schedule did move.
+#[test]
+fn resume_with_the_fast_recipe_equals_uninterrupted_run() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tiny_scene(&tmp.path().join("scene"));
+    let mut run = tiny_run();
+    pma_model::train::recipe::fast(&mut run, None);
+    let (n, m) = (3, 3);
+    run.train.iters = (n + m) as u64;
+    run.train.occupancy = Some(pma_model::network::occupancy::OccupancyConfig {
+        resolution: 8,
+        warmup_steps: 1,
+        refresh_every: 1,
+        ..Default::default()
+    });
+    let map = run.train.error_map.as_mut().unwrap();
+    (map.unbiased, map.cell) = (true, 4);
+    let trainer = || Trainer::new(run.clone(), data.clone(), &Device::Cpu).unwrap();
+    let mut full = trainer();
+    let lr0 = full.lrs();
+    let mut full_losses = Vec::new();
+    for _ in 0..n + m {
+        full_losses.push(full.step_read().unwrap().loss.total.to_bits());
+    }
+    let ckpt = tmp.path().join("run");
+    std::fs::create_dir_all(&ckpt).unwrap();
+    let mut first = trainer();
+    for _ in 0..n {
+        first.step().unwrap();
+    }
+    first.save_checkpoint(&ckpt).unwrap();
+    drop(first);
+    let mut resumed = Trainer::resume(&ckpt, run.clone(), data.clone(), &Device::Cpu).unwrap();
+    let mut resumed_losses = Vec::new();
+    for _ in 0..m {
+        resumed_losses.push(resumed.step_read().unwrap().loss.total.to_bits());
+    }
+    assert_eq!(
+        resumed_losses,
+        full_losses[n..],
+        "losses of the resumed steps"
+    );
+    let (a, b) = (full.error_map().unwrap(), resumed.error_map().unwrap());
+    assert!(a == b, "the error map differs after resume");
+    let visited = a.values().iter().filter(|&&v| v >= 0.0).count();
+    assert!(visited > 0, "no cell of the error map was visited");
+    assert_eq!(resumed.lrs(), full.lrs());
+    // Annealed over the 6 iterations: a tenth of the initial rates at the end.
+    for (end, start) in full.lrs().iter().zip(&lr0) {
+        assert!((end / start - 0.1).abs() < 1e-9, "{end} vs {start}");
+    }
+    assert!(param_bits(&full) == param_bits(&resumed), "parameters");
+    assert!(adam_bits(&full) == adam_bits(&resumed), "optimizer state");
+}
+
 /// A run with sample culling builds its grid only where the window can pass its threshold
 /// (finer cells, none spent on culled space); without culling the grid spans the whole
 /// window. Saved and resumed, the narrowed grid keeps its span.

@@ -88,6 +88,19 @@ pub struct FineSamples {
     pub perm: Tensor,
 }
 
+/// The host inputs of a cast ([`RayCaster::cast_placed`]): rays_o, rays_d [R,3], skts
+/// [P,24,4,4], scales [24,3], and the bounds cast from them.
+pub struct CastInputs<'a> {
+    pub bounds: &'a RayBounds,
+    pub rays_o: &'a [f32],
+    pub rays_d: &'a [f32],
+    pub skts: &'a [f32],
+    pub scales: &'a [f32],
+}
+
+/// Chooses a cast's coarse ray parameters [R,Sc] from its inputs and the evenly spaced ones.
+pub type CoarsePlacer<'a> = dyn Fn(&CastInputs, Vec<f32>) -> Result<Vec<f32>> + 'a;
+
 /// The ray caster: sampling configuration plus the bone-alignment transforms `A_j`.
 #[derive(Debug, Clone)]
 pub struct RayCaster {
@@ -335,6 +348,21 @@ impl RayCaster {
         skts: &Tensor,
         scales: &Tensor,
     ) -> Result<CoarseSamples> {
+        self.cast_placed(rays_o, rays_d, cyls, skts, scales, None)
+    }
+
+    /// [`Self::cast`] with the coarse ray parameters chosen by `place` when given: it gets
+    /// the host inputs (bounds, rays_o, rays_d, skts, scales, as [`Self::near_far`] takes
+    /// them) and the evenly spaced parameters [R,Sc], and returns the ones to use.
+    pub fn cast_placed(
+        &self,
+        rays_o: &Tensor,
+        rays_d: &Tensor,
+        cyls: &Tensor,
+        skts: &Tensor,
+        scales: &Tensor,
+        place: Option<&CoarsePlacer>,
+    ) -> Result<CoarseSamples> {
         let n_rays = rays_o.dims().first().copied().unwrap_or(0);
         let o = host_f32_shaped("rays_o", rays_o, &[n_rays, 3])?;
         let d = host_f32_shaped("rays_d", rays_d, &[n_rays, 3])?;
@@ -343,7 +371,19 @@ impl RayCaster {
         let cyls = host_f32_shaped("cyls", cyls, &[n_poses, 5])?;
         let scales = host_f32_shaped("scales", scales, &[N_JOINTS, 3])?;
         let bounds = self.near_far(&o, &d, &cyls, &skts, &scales)?;
-        let z = self.coarse_z(&bounds.near, &bounds.far)?;
+        let mut z = self.coarse_z(&bounds.near, &bounds.far)?;
+        if let Some(place) = place {
+            z = place(
+                &CastInputs {
+                    bounds: &bounds,
+                    rays_o: &o,
+                    rays_d: &d,
+                    skts: &skts,
+                    scales: &scales,
+                },
+                z,
+            )?;
+        }
         let pts = sample_points(&o, &d, &z, self.n_samples)?;
         let (dev, dt) = (rays_o.device(), rays_o.dtype());
         Ok(CoarseSamples {

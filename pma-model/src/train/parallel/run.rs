@@ -149,6 +149,11 @@ fn check_request(req: &TrainRequest, size: usize) -> Result<(), TrainError> {
             "a group needs at least one device".into(),
         ));
     }
+    // A new run's settings are known here: refused before anything is created (a resumed
+    // run's come from its checkpoint and are checked when the ranks join).
+    if let Some(run) = &req.run {
+        crate::train::trainer::check_group(&run.train, size)?;
+    }
     if let Some(m) = req.minutes {
         let max = crate::train::MAX_MINUTES;
         if !(m.is_finite() && m > 0.0 && m <= max) {

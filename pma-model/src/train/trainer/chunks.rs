@@ -20,14 +20,23 @@ use crate::train::TrainError;
 /// of the paper config peaked near 8 GiB, so the budget is 128 rays of it (about 2 GiB).
 pub const AUTO_CHUNK_POINT_JOINTS: usize = 128 * 72 * 24 * 128;
 
-/// The loss, the gradients (in parameter order), what the passes did, and what their
-/// evaluated samples saw of the occupancy grid, of a step or one of its chunks.
+/// The loss, the gradients (in parameter order), what the passes did, what their
+/// evaluated samples saw of the occupancy grid, and (when asked) the per-ray errors, of a
+/// step or one of its chunks.
 pub(super) type Gradients = (
     StepLoss,
     Vec<Option<Tensor>>,
     PassStats,
     Vec<GridObservation>,
+    Option<RayErrors>,
 );
+
+/// Each ray's mean |fine − target| over the channels, [R'] on the device, with the batch
+/// ray of each row.
+pub(super) struct RayErrors {
+    pub errors: Tensor,
+    pub rays: Vec<usize>,
+}
 
 /// Rays per chunk of a training step (see [`TrainConfig::chunk_rays`]). Automatic chunks are
 /// sized from the device ([`crate::compute::device::element_budget`]: a share of its free
@@ -139,11 +148,15 @@ impl Trainer {
     /// mean; the box-volume term goes with the first chunk). Shares and gradients are summed
     /// in chunk order on the device. What chunking changes is only the order of float
     /// summation.
+    ///
+    /// With `ray_errors` the result carries each ray's error for the error map, in the
+    /// order of the chunks' rows (nothing is read back here).
     pub(super) fn gradients(
         &mut self,
         batch: &TrainBatch,
         chunk: usize,
         opts: &PassOptions,
+        ray_errors: bool,
     ) -> Result<Gradients, TrainError> {
         let r = batch.rays.origins.dim(0)?;
         let n_poses = batch.poses.bones.len();
@@ -204,6 +217,7 @@ impl Trainer {
             let rows = Rows { ids, batch };
             let rays = rows.rays()?;
             let target = rows.take(&batch.target)?;
+            let ray_weights = batch.weights.as_ref().map(|w| rows.take(w)).transpose()?;
             let samples = rows.samples(&coarse)?;
             crate::compute::profile::mark("chunk rows", &device);
             let mut blocks = match &noise {
@@ -228,7 +242,24 @@ impl Trainer {
                 None => Mode::Train(None),
             };
             let out = avatar.forward_cast(&rays, &batch.poses, &pose, samples, &mut mode, opts)?;
-            let share = crate::train::loss::loss_share(&out, &target, &weights, r, start == 0)?;
+            let share = crate::train::loss::loss_share_weighted(
+                &out,
+                &target,
+                ray_weights.as_ref(),
+                &weights,
+                r,
+                start == 0,
+            )?;
+            let errors = ray_errors
+                .then(|| -> candle_core::Result<RayErrors> {
+                    let e = (out.fine.rgb.detach() - &target)?.abs()?.mean(1)?;
+                    let rays = match &rows.ids {
+                        Some((ids, _)) => ids.clone(),
+                        None => (0..r).collect(),
+                    };
+                    Ok(RayErrors { errors: e, rays })
+                })
+                .transpose()?;
             let f64_of = |t: &Tensor| t.detach().to_dtype(DType::F64);
             let mse = (&out.fine.rgb.detach() - &target)?.sqr()?.sum_all()?;
             let numbers = StepLoss {
@@ -245,12 +276,13 @@ impl Trainer {
                 .iter()
                 .map(|v| store.get(v.as_tensor()).map(|d| d.detach()))
                 .collect();
-            Ok((numbers, grads, out.stats, out.observed))
+            Ok((numbers, grads, out.stats, out.observed, errors))
         };
         let mut loss = StepLoss::zeros(&device)?;
         let mut grads: Vec<Option<Tensor>> = vec![None; params.len()];
         let mut stats = PassStats::default();
         let mut seen = Vec::new();
+        let mut errors: Vec<RayErrors> = Vec::new();
         let starts: Vec<usize> = (lo..hi).step_by(per_pose).collect();
         // One wave of chunks per round of workers; sums are taken in chunk order, so the
         // result is the sequential loop's, bit for bit, whatever the worker count.
@@ -259,9 +291,10 @@ impl Trainer {
             crate::interrupt::check()?;
             let outs =
                 crate::compute::parallel::map_ordered(workers, wave.len(), |i| run_chunk(wave[i]))?;
-            for (part, chunk_grads, chunk_stats, chunk_seen) in outs {
+            for (part, chunk_grads, chunk_stats, chunk_seen, chunk_errors) in outs {
                 stats.add(&chunk_stats);
                 seen.extend(chunk_seen);
+                errors.extend(chunk_errors);
                 loss = StepLoss {
                     total: (loss.total + part.total)?,
                     fine: (loss.fine + part.fine)?,
@@ -281,7 +314,18 @@ impl Trainer {
         }
         // With several workers this thread waits here for the others' chunks: that wait and
         // the sums are this stage's, not the optimizer's.
+        let errors = match errors.len() {
+            0 => None,
+            1 => errors.pop(),
+            _ => {
+                let parts: Vec<&Tensor> = errors.iter().map(|e| &e.errors).collect();
+                Some(RayErrors {
+                    errors: Tensor::cat(&parts, 0)?,
+                    rays: errors.iter().flat_map(|e| e.rays.iter().copied()).collect(),
+                })
+            }
+        };
         crate::compute::profile::mark("chunk sums", &device);
-        Ok((loss, grads, stats, seen))
+        Ok((loss, grads, stats, seen, errors))
     }
 }

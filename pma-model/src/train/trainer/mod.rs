@@ -76,6 +76,9 @@ pub struct Trainer {
     group: Option<Group>,
     /// What this rank says about stopping, sent with its next step.
     vote: Vote,
+    /// For each step whose per-ray errors are still on the device, oldest first: the image
+    /// and pixel of each of its rays, in the order of its errors (the error map's input).
+    drawn: std::collections::VecDeque<(Vec<usize>, Vec<usize>)>,
 }
 
 /// An error's message and its causes, on one line.
@@ -151,6 +154,7 @@ impl Trainer {
             notes: Vec::new(),
             group: None,
             vote: Vote::default(),
+            drawn: Default::default(),
         })
     }
 
@@ -194,14 +198,18 @@ impl Trainer {
         device: &Device,
     ) -> Result<Box<dyn BatchSource>, TrainError> {
         let t = &run.train;
-        Ok(Box::new(DatasetSource::new(
+        let source = DatasetSource::new(
             data,
             t.rays_per_step,
             t.images_per_step,
             t.perturb_bg,
             t.seed,
             device,
-        )?))
+        )?;
+        Ok(Box::new(match &t.error_map {
+            Some(cfg) => source.with_error_map(cfg.clone())?,
+            None => source,
+        }))
     }
 
     pub fn run_config(&self) -> &RunConfig {
@@ -262,6 +270,11 @@ impl Trainer {
         self.pass_totals
     }
 
+    /// The error map its batch source draws rays from, if it has one.
+    pub fn error_map(&self) -> Option<&pma_data::error_map::ErrorMap> {
+        self.source.error_map()
+    }
+
     /// Network points this trainer spent refreshing its occupancy grid.
     pub fn refresh_points(&self) -> u64 {
         self.refresh_points
@@ -299,13 +312,26 @@ impl Trainer {
     }
 
     /// The numbers of every step done since the last read-back, oldest first (one copy).
+    /// Per-ray errors among them go to the batch source's error map.
     pub fn read_back(&mut self) -> Result<Vec<StepStats>, TrainError> {
-        let out = self.opt.read_back();
+        let stats = self.opt.read_back()?;
         // Numbers exchanged by a group that broke meanwhile mean nothing.
         if let Some(g) = &self.group {
             g.health()?;
         }
-        out
+        for s in stats.iter().filter(|s| !s.ray_errors.is_empty()) {
+            let Some((images, pixels)) = self.drawn.pop_front() else {
+                return Err(TrainError::Config(format!(
+                    "step {}: per-ray errors without the rays they belong to",
+                    s.iter
+                )));
+            };
+            if let Some(map) = self.source.error_map_mut() {
+                map.observe(&images, &pixels, &s.ray_errors)
+                    .map_err(|e| TrainError::Config(format!("error map: {e}")))?;
+            }
+        }
+        Ok(stats)
     }
 
     /// Read back and return the last step's numbers.
@@ -361,13 +387,27 @@ impl Trainer {
         let device = self.avatar.device().clone();
         crate::compute::profile::start(&device);
         let opts = self.run.train.pass_options(self.opt.iter);
-        let (loss, mut grads, stats, seen) = self.gradients_retried(batch, &opts)?;
+        // A source that keeps an error map learns from the per-ray errors of its batches.
+        let errors_wanted = self.source.error_map().is_some() && batch.pixels.is_some();
+        let (loss, mut grads, stats, seen, errors) =
+            self.gradients_retried(batch, &opts, errors_wanted)?;
         if let Some(h) = hook {
             h(&mut grads);
         }
         let vote = self.vote;
-        self.opt
-            .apply_in(&loss, grads, self.group.as_ref().map(|g| (g, vote)))?;
+        self.opt.apply_in(
+            &loss,
+            grads,
+            errors.as_ref().map(|e| &e.errors),
+            self.group.as_ref().map(|g| (g, vote)),
+        )?;
+        if let (Some(e), Some(pixels)) = (&errors, &batch.pixels) {
+            let fc = &batch.rays.framecodes;
+            self.drawn.push_back((
+                e.rays.iter().map(|&r| fc[r] as usize).collect(),
+                e.rays.iter().map(|&r| pixels[r] as usize).collect(),
+            ));
+        }
         crate::compute::profile::mark("grad norm + Adam", &device);
         self.pass_totals.add(&stats);
         // The densities the step saw are the model's before this update: recent enough for a
@@ -386,6 +426,7 @@ impl Trainer {
         &mut self,
         batch: &TrainBatch,
         opts: &crate::render::avatar::PassOptions,
+        ray_errors: bool,
     ) -> Result<chunks::Gradients, TrainError> {
         let noise = self.noise_rng.clone();
         let rays = self.rank_rays(batch)?;
@@ -393,7 +434,7 @@ impl Trainer {
         let first = chunk;
         loop {
             let off = crate::compute::kernel::health::switched_off();
-            let e = match self.gradients(batch, chunk, opts) {
+            let e = match self.gradients(batch, chunk, opts, ray_errors) {
                 Ok(g) => {
                     if chunk < first {
                         self.notes.push(format!(
@@ -426,27 +467,7 @@ impl Trainer {
     /// fed by the samples, culling that decides which parameters get a gradient) or whose
     /// batches have fewer rays per image than ranks.
     pub fn join_group(&mut self, group: Group) -> Result<(), TrainError> {
-        let t = &self.run.train;
-        let refuse = |what: &str| {
-            Err(TrainError::Config(format!(
-                "{what} is not supported with several devices (each rank would see only its \
-                 own rays)"
-            )))
-        };
-        if t.occupancy.is_some() {
-            return refuse("an occupancy grid ([train.occupancy], --occupancy)");
-        }
-        if !t.culling.is_off() {
-            return refuse("culling ([train.culling], --cull-rays/--cull-samples)");
-        }
-        let per_image = t.rays_per_step / t.images_per_step.max(1);
-        if per_image < group.size() {
-            return Err(TrainError::Config(format!(
-                "{per_image} rays per image cannot be split over {} devices (each takes a \
-                 slice of every image's rays)",
-                group.size()
-            )));
-        }
+        check_group(&self.run.train, group.size())?;
         let flat: Vec<Tensor> = self
             .params
             .iter()
@@ -565,6 +586,11 @@ impl Trainer {
                     .map_err(|e| TrainError::Config(format!("run config: {e}")))?,
             ),
             model_fingerprint: Some(model_fingerprint),
+            error_map: self
+                .source
+                .error_map()
+                .map(|m| Tensor::from_vec(m.values().to_vec(), m.shape().to_vec(), &Device::Cpu))
+                .transpose()?,
         })
     }
 
@@ -583,16 +609,51 @@ impl Trainer {
         }
         self.opt.adam.load_states(state.params, &lrs)?;
         self.opt.iter = state.global_iter;
-        // Rates follow from the iteration; recomputing avoids trusting JSON float parsing.
-        let c = &self.run.train;
-        self.opt
-            .adam
-            .apply_schedule(state.global_iter, c.lr_decay, c.lr_decay_steps, c.lr_floor);
         self.opt.progress = state.progress.unwrap_or_default();
+        // Rates follow from the iteration (and the run's clock); recomputing avoids trusting
+        // JSON float parsing.
+        self.opt.schedule();
         if let Some(r) = &state.rng {
             self.noise_rng = r.restore()?;
+        }
+        // A run without a map, or a state without one (a converted reference checkpoint):
+        // the map starts afresh.
+        if let (Some(saved), Some(map)) = (state.error_map, self.source.error_map_mut()) {
+            let values = saved.flatten_all()?.to_vec1::<f32>()?;
+            map.set_values(values)
+                .map_err(|e| TrainError::State(vec![format!("sampler.error_map: {e}")]))?;
         }
         self.source
             .restore(state.sampler.as_ref().unwrap_or(&serde_json::Value::Null))
     }
+}
+
+/// Whether a run of `train` can train on a data-parallel group of `size` devices: options
+/// whose state follows the rays one device sees (the occupancy grid, culling, the error map)
+/// are refused, since each rank sees only its slice, and so is a batch with fewer rays per
+/// image than ranks.
+pub fn check_group(train: &crate::train::TrainConfig, size: usize) -> Result<(), TrainError> {
+    let refuse = |what: &str| {
+        Err(TrainError::Config(format!(
+            "{what} is not supported with several devices (each rank would see only its \
+             own rays)"
+        )))
+    };
+    if train.occupancy.is_some() {
+        return refuse("an occupancy grid ([train.occupancy], --occupancy)");
+    }
+    if !train.culling.is_off() {
+        return refuse("culling ([train.culling], --cull-rays/--cull-samples)");
+    }
+    if train.error_map.is_some() {
+        return refuse("the error map ([train.error_map], --error-map, --fast)");
+    }
+    let per_image = train.rays_per_step / train.images_per_step.max(1);
+    if per_image < size {
+        return Err(TrainError::Config(format!(
+            "{per_image} rays per image cannot be split over {size} devices (each takes a \
+             slice of every image's rays)"
+        )));
+    }
+    Ok(())
 }

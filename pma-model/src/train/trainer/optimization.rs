@@ -57,6 +57,9 @@ pub struct StepStats {
     pub lrs: Vec<f64>,
     /// `Some` when the update was not applied; the weights and optimizer are unchanged.
     pub skipped: Option<SkipReason>,
+    /// The step's per-ray errors, when it computed them for an error map (in the order the
+    /// step gave them; empty otherwise).
+    pub ray_errors: Vec<f32>,
 }
 
 /// The loss terms of a step on the device, f64 scalars: the differentiated total, the L1
@@ -99,13 +102,15 @@ impl StepLoss {
 }
 
 /// A step whose numbers are still on the device: [total, fine, coarse, scale, mse, norm],
-/// and in a data-parallel group the summed votes and has-a-gradient flags after them.
+/// in a data-parallel group the summed votes and has-a-gradient flags after them, then its
+/// per-ray errors if it has them.
 struct Pending {
     iter: u64,
     lrs: Vec<f64>,
     numbers: Tensor,
-    /// The group's size, for a step of a data-parallel group.
-    group: Option<usize>,
+    /// The group's size and the length of its votes and flags, for a step of a
+    /// data-parallel group.
+    group: Option<(usize, usize)>,
 }
 
 /// Clip, skip, Adam and schedule: everything of a step after the gradients exist.
@@ -156,9 +161,15 @@ impl Optimization {
     /// Finish iteration `iter + 1` on the device. `grads` is aligned with
     /// `adam.param_names()` (`None` = no gradient). A non-finite loss or gradient norm skips
     /// the update: the update is masked, so nothing reaches the weights or the moments.
-    /// Nothing is read back; the step's numbers wait for [`Self::read_back`].
-    pub fn apply(&mut self, loss: &StepLoss, grads: Vec<Option<Tensor>>) -> Result<(), TrainError> {
-        self.apply_in(loss, grads, None)
+    /// Nothing is read back; the step's numbers (and `ray_errors`, [R] per-ray errors for an
+    /// error map, when given) wait for [`Self::read_back`].
+    pub fn apply(
+        &mut self,
+        loss: &StepLoss,
+        grads: Vec<Option<Tensor>>,
+        ray_errors: Option<&Tensor>,
+    ) -> Result<(), TrainError> {
+        self.apply_in(loss, grads, ray_errors, None)
     }
 
     /// [`Self::apply`] for a rank of a data-parallel group: the flat gradient and the loss
@@ -168,6 +179,7 @@ impl Optimization {
         &mut self,
         loss: &StepLoss,
         grads: Vec<Option<Tensor>>,
+        ray_errors: Option<&Tensor>,
         group: Option<(&Group, Vote)>,
     ) -> Result<(), TrainError> {
         let lrs = self.lrs();
@@ -201,22 +213,39 @@ impl Optimization {
             None
         };
         self.adam.step_clipped(&g, &has, Some(&ok), coef.as_ref())?;
+        let tail_len = tail.as_ref().map(|t| t.dim(0)).transpose()?.unwrap_or(0);
         let mut row = vec![numbers, norm.unsqueeze(0)?];
         row.extend(tail);
+        if let Some(e) = ray_errors {
+            row.push(e.to_dtype(DType::F64)?);
+        }
         let numbers = Tensor::cat(&row, 0)?;
         self.pending.push(Pending {
             iter,
             lrs,
             numbers,
-            group: group.map(|(g, _)| g.size()),
+            group: group.map(|(g, _)| (g.size(), tail_len)),
         });
         self.iter = iter;
-        // The schedule follows the iteration count, skipped or not (the reference sets the
-        // rates from global_iter after every step).
-        let c = &self.cfg;
-        self.adam
-            .apply_schedule(iter, c.lr_decay, c.lr_decay_steps, c.lr_floor);
+        self.schedule();
         Ok(())
+    }
+
+    /// Set the rates of the next step: the reference's decay by the iteration count, skipped
+    /// steps included (it sets the rates from global_iter after every step), or with
+    /// `anneal` the share of the run's span done (iterations, or the wall clock of
+    /// `progress.wall_s`).
+    pub fn schedule(&mut self) {
+        let c = &self.cfg;
+        match &c.anneal {
+            None => self
+                .adam
+                .apply_schedule(self.iter, c.lr_decay, c.lr_decay_steps, c.lr_floor),
+            Some(a) => {
+                let factor = a.factor(self.iter, c.iters, self.progress.wall_s);
+                self.adam.apply_factor(factor, c.lr_floor);
+            }
+        }
     }
 
     /// The numbers of every step since the last read-back (one device-to-host copy), in
@@ -235,8 +264,11 @@ impl Optimization {
             let [total, fine, coarse, scale, mse, norm] = v[..LOSS_TERMS + 1] else {
                 unreachable!("six numbers per step")
             };
-            if let Some(size) = p.group {
-                let (votes, has) = v[LOSS_TERMS + 1..].split_at(VOTE_SLOTS);
+            let mut rest = &v[LOSS_TERMS + 1..];
+            if let Some((size, tail_len)) = p.group {
+                let (tail, after) = rest.split_at(tail_len);
+                rest = after;
+                let (votes, has) = tail.split_at(VOTE_SLOTS);
                 // Which parameters have a gradient is decided by the graph, the same on every
                 // rank; a rank that disagrees would apply another update than the others.
                 if let Some(i) = has.iter().position(|&c| c != 0.0 && c != size as f64) {
@@ -253,6 +285,7 @@ impl Optimization {
                     });
                 }
             }
+            let ray_errors = rest.iter().map(|&e| e as f32).collect();
             let skipped = if !total.is_finite() {
                 Some(SkipReason::NonFiniteLoss)
             } else if !norm.is_finite() {
@@ -284,6 +317,7 @@ impl Optimization {
                 clip_coef,
                 lrs: p.lrs,
                 skipped,
+                ray_errors,
             });
             if self.progress.consecutive_skipped >= self.cfg.max_consecutive_skips {
                 return Err(TrainError::Diverged {
@@ -335,7 +369,7 @@ mod tests {
         l: StepLoss,
         g: Vec<Option<Tensor>>,
     ) -> Result<StepStats, TrainError> {
-        opt.apply(&l, g)?;
+        opt.apply(&l, g, None)?;
         Ok(opt.read_back()?.pop().unwrap())
     }
 
@@ -403,7 +437,7 @@ mod tests {
         }
         let (x2, mut deferred) = setup();
         for (l, v) in plan {
-            deferred.apply(&loss(l), g(v)).unwrap();
+            deferred.apply(&loss(l), g(v), None).unwrap();
         }
         assert_eq!(deferred.pending(), 5);
         assert_eq!(
@@ -424,7 +458,7 @@ mod tests {
         // A streak that ends the run is reported when its numbers arrive.
         let (_x, mut opt) = setup();
         for _ in 0..4 {
-            opt.apply(&loss(f64::NAN), g([1.0, 1.0])).unwrap();
+            opt.apply(&loss(f64::NAN), g([1.0, 1.0]), None).unwrap();
         }
         let err = opt.read_back().unwrap_err();
         assert!(
