@@ -129,11 +129,11 @@ printf 'preset = "cpu-small"\n[train]\nrays_per_step = 3072\n' > "$OUT/cpu-small
 rm -rf "$OUT/warmup"
 phase warmup 120 "$PMA_BIN" train --data "$DATA" --out "$OUT/warmup" --preset tiny --iters 3 --device "$DEVICE" --quiet
 
-train() { # NAME ARGS...: a timed training run of MINUTES
+train() { # NAME ARGS...: a timed training run of MINUTES (on $ON when set, else $DEVICE)
   local name=$1; shift
   rm -rf "$OUT/$name"
   phase "$name" 120 "$PMA_BIN" train --data "$DATA" --out "$OUT/$name" --iters 100000 \
-    --minutes "$MINUTES" --device "$DEVICE" --quiet "$@"
+    --minutes "$MINUTES" --device "${ON:-$DEVICE}" --quiet "$@"
   say "  $name: $(grep -E '^done at' "$OUT/$name.log" | tail -1)"
   grep -iE 'warning|chunk' "$OUT/$name.log" | head -3 | sed 's/^/  /' | tee -a "$SUMMARY"
 }
@@ -144,6 +144,16 @@ train default-auto --preset default
 train default-3072 --preset default --chunk-rays 3072
 train default-3072-tf32 --preset default --chunk-rays 3072 --tf32
 train cpu-small-3072 --config "$OUT/cpu-small-3072.toml"
+
+# 4b. On a machine with several GPUs: `default` on all of them, data-parallel (one process, one
+# thread per GPU, NCCL: needs a kit built with `--features cuda,nccl`), beside the 1-GPU run above.
+gpus=$(nvidia-smi -L 2>/dev/null | grep -c '^GPU ')
+if [ "$DEVICE" = cuda ] && [ "${gpus:-0}" -gt 1 ]; then
+  all=$(seq -s, 0 $((gpus - 1)))
+  ON="cuda:$all" train "default-${gpus}gpus" --preset default
+else
+  say "  data-parallel: skipped (${gpus:-0} GPU(s) seen)"
+fi
 
 # 5. Peak GPU memory against the chunk size: 3 `default` steps at 256 and 1,024 rays per chunk
 # (3,072 is the timed run above). The slope is the bytes a chunk's point × joint × feature
