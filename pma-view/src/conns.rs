@@ -13,10 +13,13 @@
 //!   connection between requests). Closed after [`IDLE_TIMEOUT`].
 //!
 //! At most [`MAX_CONNECTIONS`] are open. A new connection at the limit closes the idle one
-//! that has been idle longest, else the one that has been reading a head longest; when every
-//! connection is answering, new ones wait in the listen backlog until one finishes. A request
-//! that arrives with its connection becomes an answering one at once (the accept loop lets it
-//! read before accepting the next), so no flood of newer connections can close it first.
+//! that has been idle longest, else the one that has been reading a head longest, else one
+//! idle for less than [`GRACE`] (longest first); when every connection is answering, new ones
+//! wait in the listen backlog until one finishes. A request that arrives with its connection
+//! becomes an answering one at once (the accept loop lets it read before accepting the next);
+//! one whose bytes come a moment after its connection opened is covered by the grace, so a
+//! flood of newer connections, which makes every other idle connection young too, does not
+//! close it before its request arrives.
 
 use std::future::Future;
 use std::pin::Pin;
@@ -38,6 +41,10 @@ pub const IDLE_TIMEOUT: Duration = Duration::from_secs(5);
 pub const HEAD_TIMEOUT: Duration = Duration::from_secs(5);
 /// How long a client has to take an answer once it is ready.
 pub const WRITE_TIMEOUT: Duration = Duration::from_secs(30);
+/// How long a connection that opened (or finished an answer) stays out of reach of new
+/// connections while other idle or reading ones can be closed instead: its request may be on
+/// its way.
+pub const GRACE: Duration = Duration::from_millis(250);
 /// Answers go out in pieces of this size: the answer counts as written once hyper asks for
 /// the last piece, by which time all but its write buffer (16 KiB, the request head limit)
 /// has gone to the socket.
@@ -174,8 +181,9 @@ impl Connections {
     pub fn make_room(&self) -> usize {
         let mut slots = self.slots();
         let mut closed = 0;
+        let now = self.now_ms();
         while slots.len() >= MAX_CONNECTIONS {
-            let Some(id) = victim(&slots) else { break };
+            let Some(id) = victim(&slots, now) else { break };
             Self::close(&mut slots, id);
             closed += 1;
         }
@@ -203,13 +211,16 @@ impl Connections {
     }
 }
 
-/// The connection to close for a new one: the longest idle, else the longest reading a head.
-fn victim(slots: &[Arc<Slot>]) -> Option<u64> {
+/// The connection to close for a new one at `now`: the longest idle, else the longest
+/// reading a head, else the longest idle of those within their [`GRACE`].
+fn victim(slots: &[Arc<Slot>], now: u64) -> Option<u64> {
+    let grace = GRACE.as_millis() as u64;
     slots
         .iter()
         .filter_map(|s| match s.state() {
-            State::Idle { since } => Some(((0, since), s.id)),
+            State::Idle { since } if now.saturating_sub(since) >= grace => Some(((0, since), s.id)),
             State::Reading { from } => Some(((1, from), s.id)),
+            State::Idle { since } => Some(((2, since), s.id)),
             State::Answering { .. } => None,
         })
         .min()
@@ -365,33 +376,43 @@ mod tests {
     }
 
     #[test]
-    fn room_is_made_from_the_longest_idle_then_the_longest_reading_never_answering() {
+    fn room_is_made_from_the_longest_idle_then_the_longest_reading_then_the_young_never_answering()
+    {
         let conns = Connections::new();
         let slots: Vec<Arc<Slot>> = (0..MAX_CONNECTIONS).map(|_| conns.open()).collect();
-        // Slot k has been idle since 1000 - k ms: the last ones the longest.
+        // At 10 s, slot k has been idle since 1000 - k ms: the last ones the longest. Slots
+        // 4 and 5 opened within the grace, 5 the earlier.
+        let now = 10_000;
         for (k, s) in slots.iter().enumerate() {
             s.since.store(1000 - k as u64, Ordering::SeqCst);
         }
+        slots[4].since.store(now - 10, Ordering::SeqCst);
+        slots[5].since.store(now - 20, Ordering::SeqCst);
         slots[0].head_from.store(5, Ordering::SeqCst);
         slots[1].head_from.store(7, Ordering::SeqCst);
         let busy: Vec<Answering> = slots[2..4].iter().map(|s| conns.answering(s)).collect();
         let mut order = Vec::new();
         loop {
             let mut slots = conns.slots();
-            let Some(id) = victim(&slots) else { break };
+            let Some(id) = victim(&slots, now) else { break };
             order.push(id);
             Connections::close(&mut slots, id);
         }
-        let idle: Vec<u64> = slots[4..].iter().rev().map(|s| s.id).collect();
+        let idle: Vec<u64> = slots[6..].iter().rev().map(|s| s.id).collect();
         assert_eq!(
             order[..idle.len()],
             idle[..],
             "idle ones, longest idle first"
         );
         assert_eq!(
-            order[idle.len()..],
+            order[idle.len()..idle.len() + 2],
             [slots[0].id, slots[1].id],
             "then reading ones"
+        );
+        assert_eq!(
+            order[idle.len() + 2..],
+            [slots[5].id, slots[4].id],
+            "then the young idle ones"
         );
         assert_eq!(
             ids(&conns),

@@ -767,12 +767,18 @@ fn idle_and_slow_clients_do_not_keep_the_page_out() {
     ready.recv().unwrap();
     let start = Instant::now();
     let (mut answered, mut failed, mut worst) = (0, Vec::new(), Duration::ZERO);
-    let mut k = 0;
+    let (mut k, mut retried) = (0, 0);
     while start.elapsed() < HOLD {
         let target = page[k % page.len()];
         k += 1;
         let t = Instant::now();
-        let a = get_within(port, target, Duration::from_secs(5));
+        let mut a = get_within(port, target, Duration::from_secs(5));
+        if a.status.is_none() && a.head.is_empty() && t.elapsed() < Duration::from_millis(100) {
+            // Closed at once without a byte: a browser sends an idempotent GET again. The
+            // retry counts in the request's time, and retries must stay rare (below).
+            retried += 1;
+            a = get_within(port, target, Duration::from_secs(5));
+        }
         let took = t.elapsed();
         worst = worst.max(took);
         if a.status == Some(200) && !a.body.is_empty() {
@@ -786,7 +792,8 @@ fn idle_and_slow_clients_do_not_keep_the_page_out() {
     let held = holder.join().unwrap();
     eprintln!(
         "hostile clients: {} sockets held at once ({SOCKETS} asked), {} closed by the server \
-         and opened again, over {:.1} s; page requests: {answered} of {k} answered, worst {:?}",
+         and opened again, over {:.1} s; page requests: {answered} of {k} answered \
+         ({retried} after a connection closed at once), worst {:?}",
         held.peak,
         held.reopened,
         start.elapsed().as_secs_f64(),
@@ -797,6 +804,10 @@ fn idle_and_slow_clients_do_not_keep_the_page_out() {
         "the hostile clients could not open their sockets"
     );
     assert!(failed.is_empty(), "page requests failed: {failed:?}");
+    assert!(
+        retried * 50 <= k,
+        "{retried} of {k} page requests found their connection closed at once"
+    );
     // A denial-of-service guarantee, not a timing: a page request takes milliseconds, and a
     // second (generous for a loaded CI machine) is what a user would call answered.
     assert!(
