@@ -2,7 +2,7 @@
 //! signature (op, input dtypes and layouts, output dtype, kernel variant, empty grid;
 //! `pma_model::compute::account::Issued`) that `tiny` issues accounted as CUDA on the CPU in
 //! training steps (one pass and chunked; parity numerics, the generic kernels, the bf16
-//! trunk, the ablation variants), inference passes, occupancy refreshes, culled passes and a
+//! trunk, the ablation variants, the fast recipe), inference passes, occupancy refreshes, culled passes and a
 //! checkpoint's save and resume, each found in the table that `scripts/cuda-coverage.py`
 //! derives from the vendored candle-core's CUDA backend and candle-kernels' sources
 //! (`fixtures/cuda-coverage.tsv`; docs/gpu.md, "What candle's CUDA backend must implement").
@@ -361,6 +361,24 @@ fn passes(model: &Config) -> BTreeMap<&'static str, Vec<Issued>> {
             .unwrap()
     });
     add("culled (every ray misses)", r);
+
+    // The fast recipe (`--fast`): culling, the grid, coarse samples placed from it, the error
+    // map's per-ray errors and the annealed rates; the warm-up's step, then two that consult
+    // and feed the grid.
+    let (mut quick, s, _) = trainer(&data, model, |r| {
+        pma_model::train::recipe::fast(r, None);
+        r.train.occupancy = Some(OccupancyConfig {
+            warmup_steps: 1,
+            refresh_every: 1,
+            ..OccupancyConfig::default()
+        });
+    });
+    let mut s = s
+        .with_error_map(pma_data::error_map::ErrorMapConfig::default())
+        .unwrap();
+    for _ in 0..3 {
+        add("fast recipe", step(&mut quick, &mut s));
+    }
     out
 }
 
