@@ -221,7 +221,7 @@ fn train_scene(
     } else {
         println!(
             "[2/4] training preset `{preset}` for {} min with the fast recipe (`pma train --fast`; \
-             --parity trains without it), which reaches a held-out quality sooner than parity:",
+             --parity trains without it), which skips work the scene does not need:",
             args.minutes
         );
         for c in pma_model::train::recipe::fast(&mut run, Some(args.minutes)) {
