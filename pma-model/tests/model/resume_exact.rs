@@ -110,15 +110,7 @@ fn checkpoints_are_directories_and_the_newest_complete_one_wins() {
     use pma_model::network::run_dir::{checkpoints, newest_model, CheckpointDir};
     use pma_model::train::checkpoint::{clean_stale, resume_point, KEEP};
 
-    let tmp = tempfile::tempdir().unwrap();
-    let data = tiny_scene(&tmp.path().join("scene"));
-    let run = tmp.path().join("run");
-    std::fs::create_dir_all(&run).unwrap();
-    let mut t = tiny_trainer(&data);
-    for _ in 0..3 {
-        t.step().unwrap();
-        t.save_checkpoint(&run).unwrap();
-    }
+    let (_tmp, data, run, t) = checkpointed_run(3);
     t.save_checkpoint(&run).unwrap();
     let names: Vec<(u64, u32)> = checkpoints(&run)
         .unwrap()
@@ -157,15 +149,7 @@ fn resume_passes_over_a_checkpoint_that_does_not_read_back() {
     use pma_model::network::run_dir::checkpoints;
     use pma_model::train::checkpoint::verified_resume_point;
 
-    let tmp = tempfile::tempdir().unwrap();
-    let data = tiny_scene(&tmp.path().join("scene"));
-    let run = tmp.path().join("run");
-    std::fs::create_dir_all(&run).unwrap();
-    let mut t = tiny_trainer(&data);
-    for _ in 0..2 {
-        t.step().unwrap();
-        t.save_checkpoint(&run).unwrap();
-    }
+    let (_tmp, data, run, _t) = checkpointed_run(2);
     let all = checkpoints(&run).unwrap();
     let (older, newest) = (&all[0], &all[1]);
     let bytes = std::fs::read(newest.model()).unwrap();
@@ -358,4 +342,26 @@ fn a_culling_run_builds_its_grid_over_the_windows_span() {
     culled.save_checkpoint(&ckpt).unwrap();
     let resumed = Trainer::resume(&ckpt, run, data, &Device::Cpu).unwrap();
     assert!(resumed.avatar().occupancy() == culled.avatar().occupancy());
+}
+
+/// A tiny run directory with a checkpoint after each of `steps` steps: the temporary
+/// directory (the scene and the run live in it), the scene, the run directory, the trainer.
+fn checkpointed_run(
+    steps: usize,
+) -> (
+    tempfile::TempDir,
+    std::sync::Arc<pma_data::dataset::Dataset>,
+    std::path::PathBuf,
+    Trainer,
+) {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tiny_scene(&tmp.path().join("scene"));
+    let run = tmp.path().join("run");
+    std::fs::create_dir_all(&run).unwrap();
+    let mut t = tiny_trainer(&data);
+    for _ in 0..steps {
+        t.step().unwrap();
+        t.save_checkpoint(&run).unwrap();
+    }
+    (tmp, data, run, t)
 }
