@@ -209,16 +209,7 @@ pub fn run(mut args: Args) -> anyhow::Result<()> {
         return quality::run(&args, &dev);
     }
     let preset: Preset = args.preset.parse()?;
-    let mut scene = pma_data::synth::SynthConfig {
-        seed: args.scene_seed,
-        ..Default::default()
-    };
-    if args.quick {
-        scene.res = 32;
-        scene.frames = 8;
-        scene.novel_pose_walk = 2;
-        scene.novel_pose_dance = 2;
-    }
+    let scene = scene(&args);
     let req = BenchRequest {
         preset,
         model: args.model.clone(),
@@ -271,6 +262,21 @@ pub fn run(mut args: Args) -> anyhow::Result<()> {
 }
 
 /// `--forward-only`: the whole-process `pma forward` row alone.
+/// The synthetic scene of `--scene-seed`, a small one under `--quick`.
+fn scene(args: &Args) -> pma_data::synth::SynthConfig {
+    let mut scene = pma_data::synth::SynthConfig {
+        seed: args.scene_seed,
+        ..Default::default()
+    };
+    if args.quick {
+        scene.res = 32;
+        scene.frames = 8;
+        scene.novel_pose_walk = 2;
+        scene.novel_pose_dance = 2;
+    }
+    scene
+}
+
 fn forward_only(args: &Args) -> anyhow::Result<()> {
     let Some(batch) = &args.forward_batch else {
         refuse!("--forward-only needs --forward-batch");

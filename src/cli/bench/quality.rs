@@ -33,13 +33,7 @@ pub fn run(args: &Args, dev: &Device) -> anyhow::Result<()> {
             args.ttq_points
         );
     }
-    let mut scene = pma_data::synth::SynthConfig::default();
-    if args.quick {
-        scene.res = 32;
-        scene.frames = 8;
-        scene.novel_pose_walk = 2;
-        scene.novel_pose_dance = 2;
-    }
+    let scene = super::scene(args);
     let req = QualityRequest {
         preset,
         out: args.out.clone(),

@@ -13,16 +13,7 @@ use super::Args;
 
 pub fn run(args: &Args, dev: &Device) -> anyhow::Result<()> {
     let preset: Preset = args.preset.parse()?;
-    let mut scene = pma_data::synth::SynthConfig {
-        seed: args.scene_seed,
-        ..Default::default()
-    };
-    if args.quick {
-        scene.res = 32;
-        scene.frames = 8;
-        scene.novel_pose_walk = 2;
-        scene.novel_pose_dance = 2;
-    }
+    let scene = super::scene(args);
     let req = SharesRequest {
         preset,
         model: args.model.clone(),

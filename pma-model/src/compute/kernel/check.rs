@@ -69,28 +69,13 @@ pub fn cases<T>(size: Size, all: &[T]) -> &[T] {
     }
 }
 
-/// [`compare`] with the launches' grid capped at `blocks` blocks (0: their own grid), said
-/// in the label: every thread then walks many elements of its grid-stride loop.
-pub fn compare_in(
-    blocks: u32,
-    module: &'static Module,
-    label: &str,
-    inputs: &[Tensor],
-    names: &[&str],
-    up: &Tensor,
-    op: impl Fn(&[Tensor]) -> crate::error::Result<Tensor>,
-) -> crate::error::Result<Vec<Case>> {
-    if blocks == 0 {
-        return compare(module, label, inputs, names, up, op);
-    }
-    let label = format!("{label} in {blocks} blocks");
-    super::launch::with_block_limit(blocks, || compare(module, &label, inputs, names, up, op))
-}
-
 /// `op` on `inputs` (each made a variable) through `module`'s kernels and through the
 /// generic ops: its output and the gradient of every input under `sum(out · up)`, compared
-/// as [`Case`]s named `label out` / `label grad <name>`.
-pub fn compare(
+/// as [`Case`]s named `label out` / `label grad <name>`. With `blocks` > 0 the kernels' grid
+/// is capped at that many blocks, said in the label: every thread then walks many elements
+/// of its grid-stride loop.
+pub fn compare_in(
+    blocks: u32,
     module: &'static Module,
     label: &str,
     inputs: &[Tensor],
@@ -115,7 +100,13 @@ pub fn compare(
         }
         Ok(values)
     };
-    let kernel = run()?;
+    let (kernel, label) = match blocks {
+        0 => (run()?, label.to_string()),
+        _ => (
+            super::launch::with_block_limit(blocks, &run)?,
+            format!("{label} in {blocks} blocks"),
+        ),
+    };
     let generic = super::health::generic_for(module, run)?;
     kernel
         .iter()
@@ -137,14 +128,12 @@ pub fn compare(
 
 /// max |a − b| / max(1, max |b|) (NaN where either holds a NaN the other does not).
 pub fn relative_error(a: &Tensor, b: &Tensor) -> crate::error::Result<f32> {
-    let a = a
-        .flatten_all()?
-        .to_dtype(candle_core::DType::F32)?
-        .to_vec1::<f32>()?;
-    let b = b
-        .flatten_all()?
-        .to_dtype(candle_core::DType::F32)?
-        .to_vec1::<f32>()?;
+    let flat = |t: &Tensor| -> candle_core::Result<Vec<f32>> {
+        t.flatten_all()?
+            .to_dtype(candle_core::DType::F32)?
+            .to_vec1::<f32>()
+    };
+    let (a, b) = (flat(a)?, flat(b)?);
     if a.len() != b.len() {
         return Ok(f32::INFINITY);
     }

@@ -88,6 +88,16 @@ pub fn route(on: bool, module: &'static Module, ts: &[&Tensor]) -> Route {
     }
 }
 
+/// [`route`] for an op with a CPU route of its own: `None` for candle's generic ops, else
+/// the kernels' executor (`None` on the CPU's route, `Some` on a device).
+pub fn fused_route(on: bool, module: &'static Module, ts: &[&Tensor]) -> Option<Option<Exec>> {
+    match route(on, module, ts) {
+        Route::Generic => None,
+        Route::Cpu => Some(None),
+        Route::Device(e) => Some(Some(e)),
+    }
+}
+
 /// Whether `module`'s kernels may run on `exec` now: before their first use on a device,
 /// their quick check runs (once per process; a failing or erroring check switches the
 /// module off).

@@ -13,13 +13,16 @@ pub trait Kernel<const N: usize>: Send + Sync {
     fn name(&self) -> &'static str;
 
     /// The forward on the device route: `exec` a GPU or the emulated grid, `srcs` the inputs
-    /// from their layouts' starts (contiguous).
+    /// from their layouts' starts (contiguous). An op whose [`Self::storages`] always
+    /// answers need not have one.
     fn device(
         &self,
-        exec: &Exec,
-        srcs: [Src; N],
-        layouts: [&Layout; N],
-    ) -> candle_core::Result<(Buf, Shape)>;
+        _exec: &Exec,
+        _srcs: [Src; N],
+        _layouts: [&Layout; N],
+    ) -> candle_core::Result<(Buf, Shape)> {
+        candle_core::bail!("{}: the op runs on its storages", self.name())
+    }
 
     /// The forward from the storages themselves, for an op that starts with work on them (a
     /// product through candle's CPU matmul or cuBLAS): taken before [`Self::device`] when
@@ -56,6 +59,7 @@ pub trait Kernel<const N: usize>: Send + Sync {
 pub struct Op<T>(pub T);
 
 /// An op's input storages on the device route: the CPU's (the emulated grid) or a GPU's.
+#[derive(Clone, Copy)]
 pub enum Inputs<'a, const N: usize> {
     Cpu([&'a CpuStorage; N]),
     #[cfg(feature = "cuda")]
@@ -79,6 +83,15 @@ impl<const N: usize> Inputs<'_, N> {
             #[cfg(feature = "cuda")]
             Inputs::Cuda(s) => Src::cuda(s[i], l, what),
         }
+    }
+
+    /// Every input from its layout's start.
+    fn srcs(&self, l: [&Layout; N], what: &str) -> candle_core::Result<[Src<'_>; N]> {
+        let srcs = (0..N)
+            .map(|i| self.src(i, l[i], what))
+            .collect::<candle_core::Result<Vec<_>>>()?;
+        srcs.try_into()
+            .map_err(|_| candle_core::Error::Msg("inputs".into()))
     }
 
     /// `x · Wᵀ` of inputs `x` [rows,in] and `w` [out,in], exactly as `Tensor::matmul` calls
@@ -137,6 +150,19 @@ impl<const N: usize> Inputs<'_, N> {
     }
 }
 
+/// The device route from either kind of storage: the op's own work on the storages, or its
+/// kernels on views of them.
+fn device_route<const N: usize, T: Kernel<N>>(
+    op: &T,
+    inputs: Inputs<'_, N>,
+    l: [&Layout; N],
+) -> candle_core::Result<(Buf, Shape)> {
+    if let Some(r) = op.storages(inputs, l) {
+        return r;
+    }
+    op.device(&inputs.exec(), inputs.srcs(l, op.name())?, l)
+}
+
 fn cpu<const N: usize, T: Kernel<N>>(
     op: &T,
     s: [&CpuStorage; N],
@@ -145,18 +171,7 @@ fn cpu<const N: usize, T: Kernel<N>>(
     if let Some(r) = op.cpu(s, l) {
         return r;
     }
-    if let Some(r) = op.storages(Inputs::Cpu(s), l) {
-        let (out, shape) = r?;
-        return Ok((out.into_cpu()?, shape));
-    }
-    let mut srcs = Vec::with_capacity(N);
-    for i in 0..N {
-        srcs.push(Src::cpu(s[i], l[i], op.name())?);
-    }
-    let srcs: [Src; N] = srcs
-        .try_into()
-        .map_err(|_| candle_core::Error::Msg("inputs".into()))?;
-    let (out, shape) = op.device(&Exec::Emulated, srcs, l)?;
+    let (out, shape) = device_route(op, Inputs::Cpu(s), l)?;
     Ok((out.into_cpu()?, shape))
 }
 
@@ -166,125 +181,64 @@ fn cuda<const N: usize, T: Kernel<N>>(
     s: [&candle_core::CudaStorage; N],
     l: [&Layout; N],
 ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
-    if let Some(r) = op.storages(Inputs::Cuda(s), l) {
-        let (out, shape) = r?;
-        return Ok((out.into_cuda(s[0])?, shape));
-    }
-    let mut srcs = Vec::with_capacity(N);
-    for i in 0..N {
-        srcs.push(Src::cuda(s[i], l[i], op.name())?);
-    }
-    let srcs: [Src; N] = srcs
-        .try_into()
-        .map_err(|_| candle_core::Error::Msg("inputs".into()))?;
-    let (out, shape) = op.device(&Exec::Cuda(s[0].device.clone()), srcs, l)?;
+    let (out, shape) = device_route(op, Inputs::Cuda(s), l)?;
     Ok((out.into_cuda(s[0])?, shape))
 }
 
-impl<T: Kernel<1>> CustomOp1 for Op<T> {
-    fn name(&self) -> &'static str {
-        self.0.name()
-    }
+/// candle's custom-op trait of `$n` inputs for [`Op`]: the storages and layouts as arrays,
+/// the gradients back as candle's tuple.
+macro_rules! custom_op {
+    ($op:ident, $n:tt, [$($s:ident $l:ident),+], [$($a:ident $g:ident),+], $grads:ty, $out:expr) => {
+        impl<T: Kernel<$n>> $op for Op<T> {
+            fn name(&self) -> &'static str {
+                self.0.name()
+            }
 
-    fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> candle_core::Result<(CpuStorage, Shape)> {
-        cpu(&self.0, [s], [l])
-    }
+            fn cpu_fwd(
+                &self,
+                $($s: &CpuStorage, $l: &Layout),+
+            ) -> candle_core::Result<(CpuStorage, Shape)> {
+                cpu(&self.0, [$($s),+], [$($l),+])
+            }
 
-    #[cfg(feature = "cuda")]
-    fn cuda_fwd(
-        &self,
-        s: &candle_core::CudaStorage,
-        l: &Layout,
-    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
-        cuda(&self.0, [s], [l])
-    }
+            #[cfg(feature = "cuda")]
+            fn cuda_fwd(
+                &self,
+                $($s: &candle_core::CudaStorage, $l: &Layout),+
+            ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
+                cuda(&self.0, [$($s),+], [$($l),+])
+            }
 
-    fn bwd(&self, a: &Tensor, res: &Tensor, grad: &Tensor) -> candle_core::Result<Option<Tensor>> {
-        let [g] = self.0.backward([a], res, grad)?;
-        Ok(g)
-    }
+            fn bwd(
+                &self,
+                $($a: &Tensor,)+
+                res: &Tensor,
+                grad: &Tensor,
+            ) -> candle_core::Result<$grads> {
+                let [$($g),+] = self.0.backward([$($a),+], res, grad)?;
+                Ok($out)
+            }
+        }
+    };
 }
 
-impl<T: Kernel<2>> CustomOp2 for Op<T> {
-    fn name(&self) -> &'static str {
-        self.0.name()
-    }
-
-    fn cpu_fwd(
-        &self,
-        s1: &CpuStorage,
-        l1: &Layout,
-        s2: &CpuStorage,
-        l2: &Layout,
-    ) -> candle_core::Result<(CpuStorage, Shape)> {
-        cpu(&self.0, [s1, s2], [l1, l2])
-    }
-
-    #[cfg(feature = "cuda")]
-    fn cuda_fwd(
-        &self,
-        s1: &candle_core::CudaStorage,
-        l1: &Layout,
-        s2: &candle_core::CudaStorage,
-        l2: &Layout,
-    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
-        cuda(&self.0, [s1, s2], [l1, l2])
-    }
-
-    fn bwd(
-        &self,
-        a: &Tensor,
-        b: &Tensor,
-        res: &Tensor,
-        grad: &Tensor,
-    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>)> {
-        let [ga, gb] = self.0.backward([a, b], res, grad)?;
-        Ok((ga, gb))
-    }
-}
-
-impl<T: Kernel<3>> CustomOp3 for Op<T> {
-    fn name(&self) -> &'static str {
-        self.0.name()
-    }
-
-    fn cpu_fwd(
-        &self,
-        s1: &CpuStorage,
-        l1: &Layout,
-        s2: &CpuStorage,
-        l2: &Layout,
-        s3: &CpuStorage,
-        l3: &Layout,
-    ) -> candle_core::Result<(CpuStorage, Shape)> {
-        cpu(&self.0, [s1, s2, s3], [l1, l2, l3])
-    }
-
-    #[cfg(feature = "cuda")]
-    fn cuda_fwd(
-        &self,
-        s1: &candle_core::CudaStorage,
-        l1: &Layout,
-        s2: &candle_core::CudaStorage,
-        l2: &Layout,
-        s3: &candle_core::CudaStorage,
-        l3: &Layout,
-    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
-        cuda(&self.0, [s1, s2, s3], [l1, l2, l3])
-    }
-
-    fn bwd(
-        &self,
-        a: &Tensor,
-        b: &Tensor,
-        c: &Tensor,
-        res: &Tensor,
-        grad: &Tensor,
-    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
-        let [ga, gb, gc] = self.0.backward([a, b, c], res, grad)?;
-        Ok((ga, gb, gc))
-    }
-}
+custom_op!(CustomOp1, 1, [s l], [a g], Option<Tensor>, g);
+custom_op!(
+    CustomOp2,
+    2,
+    [s1 l1, s2 l2],
+    [a ga, b gb],
+    (Option<Tensor>, Option<Tensor>),
+    (ga, gb)
+);
+custom_op!(
+    CustomOp3,
+    3,
+    [s1 l1, s2 l2, s3 l3],
+    [a ga, b gb, c gc],
+    (Option<Tensor>, Option<Tensor>, Option<Tensor>),
+    (ga, gb, gc)
+);
 
 /// Declare an op's kernel module: its host build (`pma_emu_<name>` of the op's `emu.c`) and
 /// its [`super::Module`] static `MODULE`.

@@ -28,7 +28,7 @@ use candle_core::{CpuStorage, Layout, Shape, Tensor};
 use crate::compute::kernel::mem::{Buf, Src};
 use crate::compute::kernel::op::{Kernel, Op};
 use crate::compute::kernel::storage::Kept;
-use crate::compute::kernel::{self, Exec, Route};
+use crate::compute::kernel::{self, Exec};
 use crate::compute::numerics::Numerics;
 use crate::error::Result;
 
@@ -116,10 +116,8 @@ impl FilmHead {
             && k < n_layers
             && o.dim(1)? == 2 * n_layers * f
             && o.dim(0)? == pre.dim(0)?;
-        let exec = match kernel::route(self.fused && fits, &MODULE, &[pre, o]) {
-            Route::Generic => return self.generic(pre, k),
-            Route::Cpu => None,
-            Route::Device(e) => Some(e),
+        let Some(exec) = kernel::fused_route(self.fused && fits, &MODULE, &[pre, o]) else {
+            return self.generic(pre, k);
         };
         kernel::or_generic(
             &MODULE,

@@ -3,7 +3,7 @@
 
 use candle_core::{CpuStorage, CustomOp2, Layout, Shape, Tensor};
 
-use crate::compute::kernel::mem::{Buf, Exec, Src};
+use crate::compute::kernel::mem::Buf;
 use crate::compute::kernel::op::{Inputs, Kernel};
 
 use crate::compute::kernel::storage::{f32_slice, with_f32};
@@ -101,10 +101,6 @@ impl Kernel<3> for Linear {
                 Shape::from((rows, out)),
             ))
         })())
-    }
-
-    fn device(&self, _: &Exec, _: [Src; 3], _: [&Layout; 3]) -> candle_core::Result<(Buf, Shape)> {
-        candle_core::bail!("linear: the product runs on its storages")
     }
 
     fn backward(

@@ -92,10 +92,6 @@ impl Kernel<3> for LinearAct {
         })())
     }
 
-    fn device(&self, _: &Exec, _: [Src; 3], _: [&Layout; 3]) -> candle_core::Result<(Buf, Shape)> {
-        candle_core::bail!("linear act: the product runs on its storages")
-    }
-
     fn backward(
         &self,
         [x, w, b]: [&Tensor; 3],

@@ -54,15 +54,14 @@ pub fn gather_rows(x: &Tensor, ids: &Tensor, k: Numerics) -> Result<Tensor> {
         let idx = ids.unsqueeze(2)?.broadcast_as((b, m, c))?.contiguous()?;
         Ok(x.gather(&idx, 1)?)
     };
-    let exec = match kernel::route(k.row_ops, &MODULE, &[x]) {
-        Route::Generic => return generic(),
-        Route::Cpu => None,
-        Route::Device(e) => Some(e),
+    let Some(exec) = kernel::fused_route(k.row_ops, &MODULE, &[x]) else {
+        return generic();
     };
     kernel::or_generic(
         &MODULE,
         || {
-            let op = GatherRows {
+            let op = RowOp {
+                way: Way::Gather,
                 exec: exec.clone(),
                 deterministic: k.deterministic,
             };
@@ -90,45 +89,76 @@ fn dims_bmc(l_vals: &Layout, l_ids: &Layout, what: &str) -> candle_core::Result<
     Ok([b, n, m, c])
 }
 
-/// Forward: x [B,N,C], ids [B,M] -> [B,M,C].
-struct GatherRows {
+/// Which way an op moves rows.
+#[derive(Clone, Copy)]
+enum Way {
+    /// Forward: x [B,N,C], ids [B,M] -> [B,M,C].
+    Gather,
+    /// Backward: grad [B,M,C], ids [B,M] -> grad_x [B,N,C], rows summed from zero.
+    ScatterAdd { n: usize },
+}
+
+struct RowOp {
+    way: Way,
     /// The device kernels' executor, or `None` on the CPU's route.
     exec: Option<Exec>,
-    /// Sum the backward's rows in index order, without atomics ([`Numerics::deterministic`]).
+    /// The device scatter sums in index order, without atomics (the CPU always does;
+    /// [`Numerics::deterministic`]).
     deterministic: bool,
 }
 
-impl Kernel<2> for GatherRows {
+impl RowOp {
+    /// (B, N, M, C) and the output's shape, checked.
+    fn dims(&self, l_vals: &Layout, l_ids: &Layout) -> candle_core::Result<([usize; 4], Shape)> {
+        Ok(match self.way {
+            Way::Gather => {
+                let [b, n, m, c] = dims_bmc(l_vals, l_ids, "gather rows")?;
+                ([b, n, m, c], Shape::from((b, m, c)))
+            }
+            Way::ScatterAdd { n } => {
+                let [b, m, _, c] = dims_bmc(l_vals, l_ids, "scatter-add rows")?;
+                ([b, n, m, c], Shape::from((b, n, c)))
+            }
+        })
+    }
+}
+
+impl Kernel<2> for RowOp {
     fn name(&self) -> &'static str {
-        "pma-gather-rows"
+        match self.way {
+            Way::Gather => "pma-gather-rows",
+            Way::ScatterAdd { .. } => "pma-scatter-add-rows",
+        }
     }
 
     fn device(
         &self,
         exec: &Exec,
-        [x, ids]: [Src; 2],
+        [vals, ids]: [Src; 2],
         [l1, l2]: [&Layout; 2],
     ) -> candle_core::Result<(Buf, Shape)> {
-        let [b, n, m, c] = dims_bmc(l1, l2, "gather rows")?;
+        let (d, shape) = self.dims(l1, l2)?;
         report_launches();
-        Ok((
-            device::gather(exec, x, ids, [b, n, m, c])?,
-            Shape::from((b, m, c)),
-        ))
+        let out = match self.way {
+            Way::Gather => device::gather(exec, vals, ids, d)?,
+            Way::ScatterAdd { .. } => device::scatter_add(exec, vals, ids, d, self.deterministic)?,
+        };
+        Ok((out, shape))
     }
 
     fn cpu(
         &self,
-        [s1, s2]: [&CpuStorage; 2],
-        [l1, l2]: [&Layout; 2],
+        s: [&CpuStorage; 2],
+        l: [&Layout; 2],
     ) -> Option<candle_core::Result<(CpuStorage, Shape)>> {
         self.exec.is_none().then(|| {
-            let [b, n, m, c] = dims_bmc(l1, l2, "gather rows")?;
+            let (d, shape) = self.dims(l[0], l[1])?;
             report_launches();
-            Ok((
-                cpu::gather(s1, l1, s2, l2, [b, n, m, c])?,
-                Shape::from((b, m, c)),
-            ))
+            let out = match self.way {
+                Way::Gather => cpu::gather(s, l, d)?,
+                Way::ScatterAdd { .. } => cpu::scatter_add(s, l, d)?,
+            };
+            Ok((out, shape))
         })
     }
 
@@ -138,56 +168,18 @@ impl Kernel<2> for GatherRows {
         _res: &Tensor,
         grad: &Tensor,
     ) -> candle_core::Result<[Option<Tensor>; 2]> {
-        let op = ScatterAddRows {
+        if let Way::ScatterAdd { .. } = self.way {
+            candle_core::bail!("{} has no backward", self.name())
+        }
+        let op = RowOp {
+            way: Way::ScatterAdd { n: x.dim(1)? },
             exec: self.exec.clone(),
-            n: x.dim(1)?,
             deterministic: self.deterministic,
         };
         Ok([
             Some(grad.contiguous()?.apply_op2_no_bwd(ids, &Op(op))?),
             None,
         ])
-    }
-}
-
-/// Backward: grad [B,M,C], ids [B,M] -> grad_x [B,N,C], rows summed from zero.
-struct ScatterAddRows {
-    exec: Option<Exec>,
-    n: usize,
-    /// The device kernel sums in index order (the CPU always does).
-    deterministic: bool,
-}
-
-impl Kernel<2> for ScatterAddRows {
-    fn name(&self) -> &'static str {
-        "pma-scatter-add-rows"
-    }
-
-    fn device(
-        &self,
-        exec: &Exec,
-        [g, ids]: [Src; 2],
-        [l1, l2]: [&Layout; 2],
-    ) -> candle_core::Result<(Buf, Shape)> {
-        let [b, m, _, c] = dims_bmc(l1, l2, "scatter-add rows")?;
-        report_launches();
-        let out = device::scatter_add(exec, g, ids, [b, self.n, m, c], self.deterministic)?;
-        Ok((out, Shape::from((b, self.n, c))))
-    }
-
-    fn cpu(
-        &self,
-        [s1, s2]: [&CpuStorage; 2],
-        [l1, l2]: [&Layout; 2],
-    ) -> Option<candle_core::Result<(CpuStorage, Shape)>> {
-        self.exec.is_none().then(|| {
-            let [b, m, _, c] = dims_bmc(l1, l2, "scatter-add rows")?;
-            report_launches();
-            Ok((
-                cpu::scatter_add(s1, l1, s2, l2, [b, self.n, m, c])?,
-                Shape::from((b, self.n, c)),
-            ))
-        })
     }
 }
 

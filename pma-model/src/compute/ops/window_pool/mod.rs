@@ -25,7 +25,7 @@ use candle_core::{CpuStorage, Layout, Shape, Storage, Tensor};
 use crate::compute::kernel::mem::{Buf, Src};
 use crate::compute::kernel::op::{Inputs, Kernel, Op};
 use crate::compute::kernel::storage::{f32_slice, Kept};
-use crate::compute::kernel::{self, Exec, Route};
+use crate::compute::kernel::{self, Exec};
 use crate::compute::numerics::Numerics;
 use crate::error::Result;
 
@@ -50,10 +50,8 @@ pub fn window_pool(q: &Tensor, g: &Tensor, w_p: &Tensor, k: Numerics) -> Result<
         ));
     }
     let generic = || generic(q, g, w_p);
-    let exec = match kernel::route(k.fused, &MODULE, &[q, g, w_p]) {
-        Route::Generic => return generic(),
-        Route::Cpu => None,
-        Route::Device(e) => Some(e),
+    let Some(exec) = kernel::fused_route(k.fused, &MODULE, &[q, g, w_p]) else {
+        return generic();
     };
     kernel::or_generic(
         &MODULE,
@@ -108,11 +106,9 @@ pub fn window_pool_of(
         let q = crate::compute::numerics::matmul(e, &w.t()?, k)?.reshape((n, j, h))?;
         window_pool(&q, g, w_p, k)
     };
-    let exec = match kernel::route(k.fused, &MODULE, &[e, w, g, w_p]) {
-        _ if p == 0 || n % p != 0 => return two_ops(),
-        Route::Generic => return two_ops(),
-        Route::Cpu => None,
-        Route::Device(x) => Some(x),
+    let route = kernel::fused_route(k.fused, &MODULE, &[e, w, g, w_p]);
+    let Some(exec) = route.filter(|_| p > 0 && n % p == 0) else {
+        return two_ops();
     };
     kernel::or_generic(
         &MODULE,
@@ -306,10 +302,6 @@ impl Kernel<3> for WindowPoolOf {
             };
             Ok((out, Shape::from((n, h))))
         })())
-    }
-
-    fn device(&self, _: &Exec, _: [Src; 3], _: [&Layout; 3]) -> candle_core::Result<(Buf, Shape)> {
-        candle_core::bail!("window pool: the product runs on its storages")
     }
 
     fn backward(
