@@ -3,6 +3,7 @@
 use std::path::Path;
 
 use anyhow::Context as _;
+use plotters::coord::Shift;
 use plotters::prelude::*;
 
 /// Bundled font for plot text: plotters has no fonts of its own without system libraries.
@@ -16,6 +17,91 @@ fn register_font() {
     });
 }
 
+fn plot_err(e: impl std::fmt::Display) -> anyhow::Error {
+    anyhow::anyhow!("plot: {e}")
+}
+
+/// A white `w`×`h` picture drawn by `draw`, written atomically as a PNG.
+fn picture(
+    (w, h): (u32, u32),
+    path: &Path,
+    draw: impl FnOnce(&DrawingArea<BitMapBackend<'_>, Shift>) -> anyhow::Result<()>,
+) -> anyhow::Result<()> {
+    register_font();
+    let mut buf = vec![0u8; (w * h * 3) as usize];
+    {
+        let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
+        root.fill(&WHITE).map_err(plot_err)?;
+        draw(&root)?;
+        root.present().map_err(plot_err)?;
+    }
+    let img = image::RgbImage::from_raw(w, h, buf).context("plot buffer has the wrong size")?;
+    super::write_png(&img, path)
+}
+
+/// The series' names in a box at `at`.
+fn legend<'a, DB: DrawingBackend + 'a, CT: CoordTranslate>(
+    chart: &mut ChartContext<'a, DB, CT>,
+    at: SeriesLabelPosition,
+) -> anyhow::Result<()> {
+    chart
+        .configure_series_labels()
+        .position(at)
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .label_font(("sans-serif", 15))
+        .draw()
+        .map_err(plot_err)
+}
+
+#[cfg(feature = "train")]
+type PsnrChart<'a, 'b> = ChartContext<
+    'a,
+    BitMapBackend<'b>,
+    Cartesian2d<plotters::coord::types::RangedCoordf64, plotters::coord::types::RangedCoordf64>,
+>;
+
+/// A chart of PSNR (dB) against wall-clock minutes on `root` whose axes hold every finite
+/// point of `pts` (seconds, dB), with `title` and the x axis's `x_desc`.
+#[cfg(feature = "train")]
+fn psnr_chart<'a, 'b>(
+    root: &'a DrawingArea<BitMapBackend<'b>, Shift>,
+    pts: &[(f64, f64)],
+    title: &str,
+    x_desc: &str,
+    y_desc: &str,
+) -> anyhow::Result<PsnrChart<'a, 'b>> {
+    let finite = pts.iter().filter(|p| p.0.is_finite() && p.1.is_finite());
+    let x_max = finite
+        .clone()
+        .map(|p| p.0 / 60.0)
+        .fold(0.0f64, f64::max)
+        .max(1e-3)
+        * 1.02;
+    let (mut y_min, mut y_max) = finite.fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| {
+        (lo.min(p.1), hi.max(p.1))
+    });
+    if !y_min.is_finite() {
+        (y_min, y_max) = (0.0, 30.0);
+    }
+    let pad = ((y_max - y_min) * 0.08).max(0.5);
+    let mut chart = ChartBuilder::on(root)
+        .caption(title, ("sans-serif", 22))
+        .margin(16)
+        .x_label_area_size(44)
+        .y_label_area_size(56)
+        .build_cartesian_2d(0.0..x_max, (y_min - pad)..(y_max + pad))
+        .map_err(plot_err)?;
+    chart
+        .configure_mesh()
+        .x_desc(x_desc)
+        .y_desc(y_desc)
+        .label_style(("sans-serif", 15))
+        .draw()
+        .map_err(plot_err)?;
+    Ok(chart)
+}
+
 #[cfg(feature = "train")]
 /// Plot held-out PSNR (and, lighter, training PSNR) against wall-clock time and write it
 /// atomically as a PNG.
@@ -26,46 +112,11 @@ pub fn plot_psnr_vs_time(
     title: &str,
     path: &Path,
 ) -> anyhow::Result<()> {
-    register_font();
-
-    let (w, h) = (900u32, 540u32);
-    let mut buf = vec![0u8; (w * h * 3) as usize];
-    {
-        let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
-        root.fill(&WHITE)
-            .map_err(|e| anyhow::anyhow!("plot: {e}"))?;
+    picture((900, 540), path, |root| {
         let finite = |v: &&(f64, f64)| v.0.is_finite() && v.1.is_finite();
-        let all: Vec<(f64, f64)> = eval.iter().chain(train).filter(finite).copied().collect();
+        let all: Vec<(f64, f64)> = eval.iter().chain(train).copied().collect();
         let minutes = |s: f64| s / 60.0;
-        let x_max = all
-            .iter()
-            .map(|p| minutes(p.0))
-            .fold(0.0f64, f64::max)
-            .max(1e-3)
-            * 1.02;
-        let (mut y_min, mut y_max) = all
-            .iter()
-            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| {
-                (lo.min(p.1), hi.max(p.1))
-            });
-        if !y_min.is_finite() {
-            (y_min, y_max) = (0.0, 30.0);
-        }
-        let pad = ((y_max - y_min) * 0.08).max(0.5);
-        let mut chart = ChartBuilder::on(&root)
-            .caption(title, ("sans-serif", 22))
-            .margin(16)
-            .x_label_area_size(44)
-            .y_label_area_size(56)
-            .build_cartesian_2d(0.0..x_max, (y_min - pad)..(y_max + pad))
-            .map_err(|e| anyhow::anyhow!("plot: {e}"))?;
-        chart
-            .configure_mesh()
-            .x_desc("wall-clock time [min]")
-            .y_desc("PSNR [dB]")
-            .label_style(("sans-serif", 15))
-            .draw()
-            .map_err(|e| anyhow::anyhow!("plot: {e}"))?;
+        let mut chart = psnr_chart(root, &all, title, "wall-clock time [min]", "PSNR [dB]")?;
         let train_colour = RGBColor(150, 150, 150);
         if !train.is_empty() {
             chart
@@ -73,7 +124,7 @@ pub fn plot_psnr_vs_time(
                     train.iter().filter(finite).map(|p| (minutes(p.0), p.1)),
                     train_colour.stroke_width(1),
                 ))
-                .map_err(|e| anyhow::anyhow!("plot: {e}"))?
+                .map_err(plot_err)?
                 .label("training batch PSNR")
                 .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], train_colour));
         }
@@ -84,7 +135,7 @@ pub fn plot_psnr_vs_time(
                     eval.iter().filter(finite).map(|p| (minutes(p.0), p.1)),
                     blue.stroke_width(2),
                 ))
-                .map_err(|e| anyhow::anyhow!("plot: {e}"))?
+                .map_err(plot_err)?
                 .label(eval_label)
                 .legend(move |(x, y)| {
                     PathElement::new(vec![(x, y), (x + 20, y)], blue.stroke_width(2))
@@ -95,20 +146,10 @@ pub fn plot_psnr_vs_time(
                         .filter(finite)
                         .map(|p| Circle::new((minutes(p.0), p.1), 3, blue.filled())),
                 )
-                .map_err(|e| anyhow::anyhow!("plot: {e}"))?;
+                .map_err(plot_err)?;
         }
-        chart
-            .configure_series_labels()
-            .position(SeriesLabelPosition::LowerRight)
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK)
-            .label_font(("sans-serif", 15))
-            .draw()
-            .map_err(|e| anyhow::anyhow!("plot: {e}"))?;
-        root.present().map_err(|e| anyhow::anyhow!("plot: {e}"))?;
-    }
-    let img = image::RgbImage::from_raw(w, h, buf).context("plot buffer has the wrong size")?;
-    super::write_png(&img, path)
+        legend(&mut chart, SeriesLabelPosition::LowerRight)
+    })
 }
 
 #[cfg(feature = "train")]
@@ -121,7 +162,6 @@ pub fn plot_error_vs_time(
     pts: &[(f64, f64, &str)],
     path: &Path,
 ) -> anyhow::Result<()> {
-    register_font();
     let finite: Vec<f64> = pts
         .iter()
         .map(|p| p.0)
@@ -141,12 +181,7 @@ pub fn plot_error_vs_time(
     };
     let y_lo = pts.iter().map(|p| p.1).fold(0.0, f64::min) - 0.05;
     let y_hi = pts.iter().map(|p| p.1).fold(0.1, f64::max) * 1.2 + 0.05;
-    let (w, h) = (1320u32, 540u32);
-    let mut buf = vec![0u8; (w * h * 3) as usize];
-    {
-        let e = |e: &dyn std::fmt::Display| anyhow::anyhow!("plot: {e}");
-        let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
-        root.fill(&WHITE).map_err(|x| e(&x))?;
+    picture((1320, 540), path, |root| {
         let (left, right) = root.split_horizontally(740);
         let mut chart = ChartBuilder::on(&left)
             .caption(title, ("sans-serif", 22))
@@ -154,7 +189,7 @@ pub fn plot_error_vs_time(
             .x_label_area_size(44)
             .y_label_area_size(60)
             .build_cartesian_2d((x_lo..x_hi).log_scale(), y_lo..y_hi)
-            .map_err(|x| e(&x))?;
+            .map_err(plot_err)?;
         chart
             .configure_mesh()
             .x_desc("seconds per image (log scale)")
@@ -162,7 +197,7 @@ pub fn plot_error_vs_time(
             .y_desc("held-out PSNR loss vs parity [dB]")
             .label_style(("sans-serif", 15))
             .draw()
-            .map_err(|x| e(&x))?;
+            .map_err(plot_err)?;
         let shown: Vec<(usize, f64, f64)> = pts
             .iter()
             .enumerate()
@@ -175,7 +210,7 @@ pub fn plot_error_vs_time(
                     .iter()
                     .map(|&(_, x, y)| Circle::new((x, y), 5, BLUE.filled())),
             )
-            .map_err(|x| e(&x))?;
+            .map_err(plot_err)?;
         // Numbers above their points, staggered so that points at the same height do not
         // print over each other.
         chart
@@ -184,7 +219,7 @@ pub fn plot_error_vs_time(
                 EmptyElement::at((x, y))
                     + Text::new(k.to_string(), (-4, -up), ("sans-serif", 14).into_font())
             }))
-            .map_err(|x| e(&x))?;
+            .map_err(plot_err)?;
         for (i, p) in pts.iter().enumerate() {
             let line = format!(
                 "{:>2}  {}  ({:.1} ms, {:+.3} dB)",
@@ -199,13 +234,10 @@ pub fn plot_error_vs_time(
                     (8, 48 + 22 * i as i32),
                     ("sans-serif", 14).into_font(),
                 ))
-                .map_err(|x| e(&x))?;
+                .map_err(plot_err)?;
         }
-        root.present().map_err(|x| e(&x))?;
-    }
-    let img = image::RgbImage::from_raw(w, h, buf)
-        .ok_or_else(|| anyhow::anyhow!("plot buffer has the wrong size"))?;
-    super::write_png(&img, path)
+        Ok(())
+    })
 }
 
 #[cfg(feature = "train")]
@@ -216,42 +248,10 @@ pub fn plot_curves(
     x_desc: &str,
     path: &Path,
 ) -> anyhow::Result<()> {
-    register_font();
-    let e = |e: &dyn std::fmt::Display| anyhow::anyhow!("plot: {e}");
-    let finite = |p: &&(f64, f64)| p.0.is_finite() && p.1.is_finite();
-    let all: Vec<(f64, f64)> = series
-        .iter()
-        .flat_map(|s| s.1.iter().filter(finite).copied())
-        .collect();
-    let x_max = all.iter().map(|p| p.0 / 60.0).fold(0.0, f64::max).max(1e-3) * 1.02;
-    let (mut y_min, mut y_max) = all
-        .iter()
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| {
-            (lo.min(p.1), hi.max(p.1))
-        });
-    if !y_min.is_finite() {
-        (y_min, y_max) = (0.0, 30.0);
-    }
-    let pad = ((y_max - y_min) * 0.08).max(0.5);
-    let (w, h) = (900u32, 540u32);
-    let mut buf = vec![0u8; (w * h * 3) as usize];
-    {
-        let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
-        root.fill(&WHITE).map_err(|x| e(&x))?;
-        let mut chart = ChartBuilder::on(&root)
-            .caption(title, ("sans-serif", 22))
-            .margin(16)
-            .x_label_area_size(44)
-            .y_label_area_size(56)
-            .build_cartesian_2d(0.0..x_max, (y_min - pad)..(y_max + pad))
-            .map_err(|x| e(&x))?;
-        chart
-            .configure_mesh()
-            .x_desc(x_desc)
-            .y_desc("held-out PSNR [dB]")
-            .label_style(("sans-serif", 15))
-            .draw()
-            .map_err(|x| e(&x))?;
+    picture((900, 540), path, |root| {
+        let finite = |p: &&(f64, f64)| p.0.is_finite() && p.1.is_finite();
+        let all: Vec<(f64, f64)> = series.iter().flat_map(|s| s.1.iter().copied()).collect();
+        let mut chart = psnr_chart(root, &all, title, x_desc, "held-out PSNR [dB]")?;
         for (i, (label, pts)) in series.iter().enumerate() {
             const COLOURS: [RGBColor; 9] = [
                 RGBColor(31, 90, 180),
@@ -270,24 +270,14 @@ pub fn plot_curves(
                     pts.iter().filter(finite).map(|p| (p.0 / 60.0, p.1)),
                     colour.stroke_width(2),
                 ))
-                .map_err(|x| e(&x))?
+                .map_err(plot_err)?
                 .label(label.as_str())
                 .legend(move |(x, y)| {
                     PathElement::new(vec![(x, y), (x + 20, y)], colour.stroke_width(2))
                 });
         }
-        chart
-            .configure_series_labels()
-            .position(SeriesLabelPosition::LowerRight)
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK)
-            .label_font(("sans-serif", 15))
-            .draw()
-            .map_err(|x| e(&x))?;
-        root.present().map_err(|x| e(&x))?;
-    }
-    let img = image::RgbImage::from_raw(w, h, buf).context("plot buffer has the wrong size")?;
-    super::write_png(&img, path)
+        legend(&mut chart, SeriesLabelPosition::LowerRight)
+    })
 }
 
 /// The mean frequency histograms of an evaluation (render against ground truth), one line
@@ -297,7 +287,6 @@ pub fn plot_freq_hist(
     title: &str,
     path: &Path,
 ) -> anyhow::Result<()> {
-    register_font();
     let centres: Vec<f64> = freq
         .bin_edges
         .windows(2)
@@ -323,19 +312,14 @@ pub fn plot_freq_hist(
         (lo, hi) = (1e-6, 1.0);
     }
     let x_max = freq.bin_edges.last().copied().unwrap_or(1.0);
-    let (w, h) = (900u32, 540u32);
-    let mut buf = vec![0u8; (w * h * 3) as usize];
-    {
-        let e = |e: &dyn std::fmt::Display| anyhow::anyhow!("plot: {e}");
-        let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
-        root.fill(&WHITE).map_err(|x| e(&x))?;
-        let mut chart = ChartBuilder::on(&root)
+    picture((900, 540), path, |root| {
+        let mut chart = ChartBuilder::on(root)
             .caption(title, ("sans-serif", 22))
             .margin(16)
             .x_label_area_size(44)
             .y_label_area_size(70)
             .build_cartesian_2d(0.0..x_max, (lo / 2.0..hi * 2.0).log_scale())
-            .map_err(|x| e(&x))?;
+            .map_err(plot_err)?;
         chart
             .configure_mesh()
             .x_desc("radial frequency [cycles/pixel]")
@@ -343,7 +327,7 @@ pub fn plot_freq_hist(
             .y_label_formatter(&|v| format!("{v:.0e}"))
             .label_style(("sans-serif", 15))
             .draw()
-            .map_err(|x| e(&x))?;
+            .map_err(plot_err)?;
         let series = [
             (&gt, RGBColor(40, 40, 40), "ground truth"),
             (&render, RGBColor(200, 60, 30), "render"),
@@ -351,25 +335,15 @@ pub fn plot_freq_hist(
         for (pts, colour, label) in series {
             chart
                 .draw_series(LineSeries::new(pts.iter().copied(), colour.stroke_width(2)))
-                .map_err(|x| e(&x))?
+                .map_err(plot_err)?
                 .label(label)
                 .legend(move |(x, y)| {
                     PathElement::new(vec![(x, y), (x + 20, y)], colour.stroke_width(2))
                 });
             chart
                 .draw_series(pts.iter().map(|&p| Circle::new(p, 3, colour.filled())))
-                .map_err(|x| e(&x))?;
+                .map_err(plot_err)?;
         }
-        chart
-            .configure_series_labels()
-            .position(SeriesLabelPosition::UpperRight)
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK)
-            .label_font(("sans-serif", 15))
-            .draw()
-            .map_err(|x| e(&x))?;
-        root.present().map_err(|x| e(&x))?;
-    }
-    let img = image::RgbImage::from_raw(w, h, buf).context("plot buffer has the wrong size")?;
-    super::write_png(&img, path)
+        legend(&mut chart, SeriesLabelPosition::UpperRight)
+    })
 }

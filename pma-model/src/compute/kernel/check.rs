@@ -103,7 +103,7 @@ pub fn compare_in(
     let (kernel, label) = match blocks {
         0 => (run()?, label.to_string()),
         _ => (
-            super::launch::with_block_limit(blocks, &run)?,
+            super::launch::with_block_limit(blocks, run)?,
             format!("{label} in {blocks} blocks"),
         ),
     };

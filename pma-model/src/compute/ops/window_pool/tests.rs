@@ -2,6 +2,7 @@ use candle_core::{DType, Device, Tensor, Var};
 
 use super::*;
 use crate::compute::account::{Account, Route as AccountRoute};
+use crate::compute::kernel::Route;
 use crate::compute::ops::testing::{bits, rand};
 
 /// The window pool of a product computed inside it gives the bits of the product followed
