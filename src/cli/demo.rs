@@ -224,7 +224,7 @@ fn train_scene(
              --parity trains without it), which skips work the scene does not need:",
             args.minutes
         );
-        for c in pma_model::train::recipe::fast(&mut run, Some(args.minutes)) {
+        for c in pma_model::train::recipe::fast(&mut run) {
             println!("      {}: {}", c.option, c.why);
             options.push(c.option.to_string());
         }

@@ -89,9 +89,8 @@ pub struct Args {
     /// does not repeat bit for bit. Not for a resumed run.
     #[arg(long)]
     pub anneal: bool,
-    /// The fast recipe: culling at w^p ≤ 0.6, the occupancy grid, coarse samples from the
-    /// grid, the error map and the annealed rates together (`pma demo` trains with it).
-    /// Not for a resumed run.
+    /// The fast recipe: ray and sample culling at w^p ≤ 0.6 with the occupancy grid
+    /// (`pma demo` trains with it). Not for a resumed run.
     #[arg(long)]
     pub fast: bool,
     /// No progress bar (log lines only).
@@ -238,7 +237,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             a.seconds = args.minutes.map_or(0.0, |m| m * 60.0);
         }
         if args.fast {
-            for c in pma_model::train::recipe::fast(run, args.minutes) {
+            for c in pma_model::train::recipe::fast(run) {
                 println!("fast recipe: {} ({})", c.option, c.why);
             }
         }

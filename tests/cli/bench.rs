@@ -565,7 +565,7 @@ fn time_to_quality_writes_the_table_and_plot() {
         .map(|o| o["name"].as_str().unwrap())
         .collect();
     assert_eq!(names.first(), Some(&"parity"));
-    assert_eq!(names.last(), Some(&"fast recipe"));
+    assert_eq!(names.last(), Some(&"all options together"));
     assert_eq!(names.len(), 6, "{names:?}");
     let initial = options[0]["seeds"][0]["runs"][0]["curve"][0][1]
         .as_f64()
@@ -592,7 +592,10 @@ fn time_to_quality_writes_the_table_and_plot() {
         assert!(t.as_f64().is_some_and(|t| t <= m + 1e-9), "{t} vs {m}");
     }
     let md = std::fs::read_to_string(dir.path().join("quality.md")).unwrap();
-    assert!(md.contains("| fast recipe (a run per mark) |"), "{md}");
+    assert!(
+        md.contains("| all options together (a run per mark) |"),
+        "{md}"
+    );
     assert!(dir.path().join("time_to_quality.png").is_file());
 
     exits_2_with(run(&["--ttq-marks", "2,1"]), "--ttq-marks");

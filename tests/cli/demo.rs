@@ -52,14 +52,18 @@ fn demo_writes_summary_renders_and_plot() {
         .iter()
         .map(|o| o.as_str().unwrap())
         .collect();
-    assert!(options.contains(&"--error-map"), "{options:?}");
-    assert!(options.contains(&"--occupancy"), "{options:?}");
+    assert_eq!(
+        options,
+        ["--cull-rays --cull-samples 0.6", "--occupancy"],
+        "{options:?}"
+    );
     assert!(stdout.contains(&format!(
         "curve scores {} novel-view",
         summary["curve_images"]
     )));
     let config = std::fs::read_to_string(out_dir.join("run/config.toml")).unwrap();
-    assert!(config.contains("[train.error_map]"), "{config}");
+    assert!(config.contains("[train.occupancy]"), "{config}");
+    assert!(!config.contains("[train.error_map]"), "{config}");
     assert!(summary["wall_s"].as_f64().unwrap() > 0.0);
     for key in ["model", "data"] {
         let p = summary[key].as_str().unwrap();

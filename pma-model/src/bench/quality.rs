@@ -1,6 +1,6 @@
 //! Time to quality (`pma bench --time-to-quality`): held-out PSNR against training time for
-//! parity, today's leave-out options, each new option alone and the fast recipe, on
-//! synthetic scenes of seeds the options were not tuned on, and the minutes each needs to
+//! parity, the fast recipe (culling with the grid), each other training option alone and
+//! all of them together, on synthetic scenes of seeds the options were not tuned on, and the minutes each needs to
 //! reach the held-out PSNR parity has after each mark (1, 2 and 5 minutes by default).
 //!
 //! For each scene seed every run trains from the same initialisation, and the runs take
@@ -27,7 +27,6 @@ use super::measure::{prepare_scene, Scene};
 use super::{BenchObserver, Result};
 use crate::eval::{evaluate, EvalOptions};
 use crate::network::occupancy::OccupancyConfig;
-use crate::render::{Culling, SampleFill};
 use crate::train::presets::Anneal;
 use crate::train::{recipe, Preset, RunConfig, Trainer};
 use pma_data::error_map::ErrorMapConfig;
@@ -47,17 +46,18 @@ pub struct QualityOption {
     pub budgeted: bool,
 }
 
-/// Parity, today's options (ray and sample culling at 0.6 with the grid), each new option
-/// alone (the error map; the annealed rates; coarse samples from the grid, which needs the
-/// grid), and the fast recipe.
+/// Parity, the fast recipe (ray and sample culling at 0.6 with the grid), each of the other
+/// options alone (the error map; the annealed rates; coarse samples from the grid, which
+/// needs the grid), and all of them together.
 pub fn quality_options() -> Vec<QualityOption> {
-    fn today(run: &mut RunConfig, _: f64) {
-        run.train.culling = Culling {
-            rays: true,
-            sample_threshold: Some(recipe::FAST_CULL_THRESHOLD),
-            sample_fill: SampleFill::Network,
-        };
-        run.train.occupancy = Some(OccupancyConfig::default());
+    fn recipe(run: &mut RunConfig, _: f64) {
+        recipe::fast(run);
+    }
+    fn anneal(run: &mut RunConfig, minutes: f64) {
+        run.train.anneal = Some(Anneal {
+            seconds: minutes * 60.0,
+            ..Anneal::default()
+        })
     }
     let option = |name: &str, setup: fn(&mut RunConfig, f64), budgeted| QualityOption {
         name: name.into(),
@@ -66,22 +66,13 @@ pub fn quality_options() -> Vec<QualityOption> {
     };
     vec![
         option("parity", |_, _| {}, false),
-        option("cull 0.6 + grid (today)", today, false),
+        option("cull 0.6 + grid (the fast recipe)", recipe, false),
         option(
             "error map",
             |run, _| run.train.error_map = Some(ErrorMapConfig::default()),
             false,
         ),
-        option(
-            "anneal over the budget",
-            |run, minutes| {
-                run.train.anneal = Some(Anneal {
-                    seconds: minutes * 60.0,
-                    ..Anneal::default()
-                })
-            },
-            true,
-        ),
+        option("anneal over the budget", anneal, true),
         option(
             "grid + coarse from grid",
             |run, _| {
@@ -91,9 +82,12 @@ pub fn quality_options() -> Vec<QualityOption> {
             false,
         ),
         option(
-            "fast recipe",
+            "all options together",
             |run, minutes| {
-                recipe::fast(run, Some(minutes));
+                recipe::fast(run);
+                run.train.coarse_from_grid = true;
+                run.train.error_map = Some(ErrorMapConfig::default());
+                anneal(run, minutes);
             },
             true,
         ),

@@ -362,11 +362,14 @@ fn passes(model: &Config) -> BTreeMap<&'static str, Vec<Issued>> {
     });
     add("culled (every ray misses)", r);
 
-    // The fast recipe (`--fast`): culling, the grid, coarse samples placed from it, the error
-    // map's per-ray errors and the annealed rates; the warm-up's step, then two that consult
-    // and feed the grid.
+    // The fast recipe (`--fast`: culling, the grid) with the other time-to-quality options:
+    // coarse samples placed from the grid, the error map's per-ray errors and the annealed
+    // rates; the warm-up's step, then two that consult and feed the grid.
     let (mut quick, s, _) = trainer(&data, model, |r| {
-        pma_model::train::recipe::fast(r, None);
+        pma_model::train::recipe::fast(r);
+        r.train.coarse_from_grid = true;
+        r.train.error_map = Some(pma_data::error_map::ErrorMapConfig::default());
+        r.train.anneal = Some(pma_model::train::presets::Anneal::default());
         r.train.occupancy = Some(OccupancyConfig {
             warmup_steps: 1,
             refresh_every: 1,

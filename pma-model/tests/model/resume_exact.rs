@@ -248,8 +248,9 @@ fn resume_with_an_occupancy_grid_equals_uninterrupted_run() {
     );
 }
 
-/// The fast recipe's options together (culling, the grid, coarse samples from the grid, the
-/// error map with its unbiased weights, rates annealed over the run's iterations): a run
+/// The fast recipe (culling, the grid) with every other time-to-quality option (coarse
+/// samples from the grid, the error map with its unbiased weights, rates annealed over the
+/// run's iterations): a run
 /// stopped, checkpointed and resumed ends bit for bit where the uninterrupted run ends, its
 /// error map included, and the map and the schedule did move.
 #[test]
@@ -257,7 +258,10 @@ fn resume_with_the_fast_recipe_equals_uninterrupted_run() {
     let tmp = tempfile::tempdir().unwrap();
     let data = tiny_scene(&tmp.path().join("scene"));
     let mut run = tiny_run();
-    pma_model::train::recipe::fast(&mut run, None);
+    pma_model::train::recipe::fast(&mut run);
+    run.train.coarse_from_grid = true;
+    run.train.error_map = Some(pma_data::error_map::ErrorMapConfig::default());
+    run.train.anneal = Some(pma_model::train::presets::Anneal::default());
     let (n, m) = (3, 3);
     run.train.iters = (n + m) as u64;
     run.train.occupancy = Some(pma_model::network::occupancy::OccupancyConfig {
