@@ -261,7 +261,6 @@ pub fn run(mut args: Args) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// `--forward-only`: the whole-process `pma forward` row alone.
 /// The synthetic scene of `--scene-seed`, a small one under `--quick`.
 fn scene(args: &Args) -> pma_data::synth::SynthConfig {
     let mut scene = pma_data::synth::SynthConfig {
@@ -277,6 +276,7 @@ fn scene(args: &Args) -> pma_data::synth::SynthConfig {
     scene
 }
 
+/// `--forward-only`: the whole-process `pma forward` row alone.
 fn forward_only(args: &Args) -> anyhow::Result<()> {
     let Some(batch) = &args.forward_batch else {
         refuse!("--forward-only needs --forward-batch");
