@@ -302,12 +302,12 @@ fn a_culled_step_reads_back_per_stage_and_the_grid_feed_once_more_per_network_st
     );
 }
 
-/// The fast recipe's options add no read-back inside a step: the error map's per-ray errors
+/// The time-to-quality options add no read-back inside a step: the error map's per-ray errors
 /// come back with the step's numbers in its one read, the annealed rates are host numbers,
 /// and the coarse samples placed from the grid are placed from the host copies a culled
 /// step's cast reads already (the same syncs per stage as without them).
 #[test]
-fn the_fast_recipe_adds_no_read_back_inside_a_step() {
+fn the_time_to_quality_options_add_no_read_back_inside_a_step() {
     use pma_model::network::occupancy::OccupancyConfig;
     use pma_model::render::{Culling, SampleFill};
     let (_dir, mut trainer, mut source) = tiny_with(0, 64, |run| {

@@ -5,17 +5,15 @@ use candle_core::{CpuStorage, Layout};
 
 use crate::compute::kernel::storage::slice;
 
-/// A row op's values and ids, once the module may run on the CPU (the fault switch).
+/// A row op's values and ids (named by `[values, ids]` in errors), once the module may run
+/// on the CPU (the fault switch).
 fn inputs<'a>(
     [s1, s2]: [&'a CpuStorage; 2],
     [l1, l2]: [&Layout; 2],
-    what: &str,
+    [values, ids]: [&str; 2],
 ) -> candle_core::Result<(&'a [f32], &'a [u32])> {
     crate::compute::kernel::health::cpu_launch(&super::MODULE)?;
-    Ok((
-        slice(s1, l1, &format!("{what}: values"))?,
-        slice(s2, l2, &format!("{what}: ids"))?,
-    ))
+    Ok((slice(s1, l1, values)?, slice(s2, l2, ids)?))
 }
 
 /// For each entry of ids [B,M] in order: its row of [B,M,C] and the start of the row of
@@ -40,7 +38,7 @@ pub(super) fn gather(
     l: [&Layout; 2],
     [b, n, m, c]: [usize; 4],
 ) -> candle_core::Result<CpuStorage> {
-    let (x, ids) = inputs(s, l, "gather rows")?;
+    let (x, ids) = inputs(s, l, ["gather rows: values", "gather rows: ids"])?;
     let mut out = Vec::with_capacity(b * m * c);
     for r in rows(ids, [n, m, c], "gather rows") {
         let (_, start) = r?;
@@ -56,7 +54,7 @@ pub(super) fn scatter_add(
     l: [&Layout; 2],
     [b, n, m, c]: [usize; 4],
 ) -> candle_core::Result<CpuStorage> {
-    let (g, ids) = inputs(s, l, "scatter-add rows")?;
+    let (g, ids) = inputs(s, l, ["scatter-add rows: values", "scatter-add rows: ids"])?;
     let mut dst = vec![0f32; b * n * c];
     for r in rows(ids, [n, m, c], "scatter-add rows") {
         let (row, d) = r?;
