@@ -175,17 +175,12 @@ impl Adam {
                 offset += len;
             }
         }
-        let slot_of: Vec<u32> = slots
-            .iter()
-            .enumerate()
-            .flat_map(|(i, s)| std::iter::repeat_n(i as u32, s.len))
-            .collect();
-        let n = slot_of.len();
-        let zeros = Tensor::zeros(n, DType::F32, &device)?;
+        let lens: Vec<usize> = slots.iter().map(|s| s.len).collect();
+        let zeros = Tensor::zeros(offset, DType::F32, &device)?;
         let mut adam = Self {
             groups,
             steps: Tensor::zeros(slots.len(), DType::F64, &device)?,
-            slot_of: Tensor::from_vec(slot_of, n, &device)?,
+            slot_of: crate::compute::ops::adam::slot_index(&lens, &device)?,
             slots,
             exp_avg: zeros.clone(),
             exp_avg_sq: zeros,

@@ -2,9 +2,47 @@
 
 use candle_core::{DType, Device, Tensor};
 
-use super::{update, Update, MODULE};
+use super::{slot_index, update, Update, MODULE};
 use crate::compute::kernel::check::{cases, random, relative_error, Case, Size, TOL};
 use crate::compute::kernel::launch::with_block_limit;
+
+/// One update's tensors, taken with torch's default betas and eps.
+pub(super) struct Inputs {
+    pub g: Tensor,
+    pub params: Vec<Tensor>,
+    pub m: Tensor,
+    pub v: Tensor,
+    pub slot_of: Tensor,
+    pub step_size: Tensor,
+    pub bias2_sqrt: Tensor,
+}
+
+impl Inputs {
+    /// The update of these tensors where `has` has a gradient, with the skip flag `apply`
+    /// and the clip factor `coef`.
+    pub(super) fn update<'a>(
+        &'a self,
+        has: &'a [bool],
+        apply: Option<&'a Tensor>,
+        coef: Option<&'a Tensor>,
+    ) -> Update<'a> {
+        Update {
+            g: &self.g,
+            params: &self.params,
+            m: &self.m,
+            v: &self.v,
+            slot_of: &self.slot_of,
+            has,
+            apply,
+            coef,
+            step_size: &self.step_size,
+            bias2_sqrt: &self.bias2_sqrt,
+            b1: 0.9,
+            b2: 0.999,
+            eps: 1e-8,
+        }
+    }
+}
 
 /// Updates of slots of awkward sizes: all with gradients, one without and a clip factor,
 /// the skip flag off; in the full check also a grid of 2 blocks and a million elements.
@@ -19,22 +57,19 @@ pub(super) fn check(device: &Device, size: Size) -> crate::error::Result<Vec<Cas
         let n: usize = slots.iter().sum();
         let s = slots.len();
         let seed = n as u64;
-        let params: Vec<Tensor> = slots
-            .iter()
-            .enumerate()
-            .map(|(i, &len)| random(&[len], seed + i as u64, (-1.0, 1.0), device))
-            .collect::<crate::error::Result<_>>()?;
-        let g = random(&[n], seed + 100, (-2.0, 2.0), device)?;
-        let m = random(&[n], seed + 101, (-0.1, 0.1), device)?;
-        let v = random(&[n], seed + 102, (0.0, 0.01), device)?;
-        let slot_of: Vec<u32> = slots
-            .iter()
-            .enumerate()
-            .flat_map(|(i, &len)| std::iter::repeat_n(i as u32, len))
-            .collect();
-        let slot_of = Tensor::from_vec(slot_of, n, device)?;
-        let step_size = random(&[s], seed + 103, (1e-4, 1e-3), device)?.to_dtype(DType::F64)?;
-        let bias2_sqrt = random(&[s], seed + 104, (0.05, 1.0), device)?.to_dtype(DType::F64)?;
+        let inputs = Inputs {
+            params: slots
+                .iter()
+                .enumerate()
+                .map(|(i, &len)| random(&[len], seed + i as u64, (-1.0, 1.0), device))
+                .collect::<crate::error::Result<_>>()?,
+            g: random(&[n], seed + 100, (-2.0, 2.0), device)?,
+            m: random(&[n], seed + 101, (-0.1, 0.1), device)?,
+            v: random(&[n], seed + 102, (0.0, 0.01), device)?,
+            slot_of: slot_index(slots, device)?,
+            step_size: random(&[s], seed + 103, (1e-4, 1e-3), device)?.to_dtype(DType::F64)?,
+            bias2_sqrt: random(&[s], seed + 104, (0.05, 1.0), device)?.to_dtype(DType::F64)?,
+        };
         let coef = Tensor::new(0.37f32, device)?;
         let (on, off) = (Tensor::new(1u8, device)?, Tensor::new(0u8, device)?);
         let mut without = vec![true; s];
@@ -52,21 +87,7 @@ pub(super) fn check(device: &Device, size: Size) -> crate::error::Result<Vec<Cas
             ("skipped", &all, Some(&off), None),
         ];
         for (what, has, apply, coef) in variants {
-            let u = Update {
-                g: &g,
-                params: &params,
-                m: &m,
-                v: &v,
-                slot_of: &slot_of,
-                has,
-                apply,
-                coef,
-                step_size: &step_size,
-                bias2_sqrt: &bias2_sqrt,
-                b1: 0.9,
-                b2: 0.999,
-                eps: 1e-8,
-            };
+            let u = inputs.update(has, apply, coef);
             let run = || update(&u);
             let kernel = if blocks > 0 {
                 with_block_limit(blocks, run)?

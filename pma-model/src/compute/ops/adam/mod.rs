@@ -21,7 +21,7 @@ mod check;
 mod cpu;
 mod device;
 
-use candle_core::{DType, Tensor};
+use candle_core::{DType, Device, Tensor};
 
 use crate::compute::kernel::{self, Route};
 use crate::error::Result;
@@ -52,6 +52,17 @@ pub struct Update<'a> {
     pub b1: f64,
     pub b2: f64,
     pub eps: f64,
+}
+
+/// [`Update::slot_of`] for slots of `lens` elements, in slot order.
+pub fn slot_index(lens: &[usize], device: &Device) -> Result<Tensor> {
+    let slot_of: Vec<u32> = lens
+        .iter()
+        .enumerate()
+        .flat_map(|(i, &len)| std::iter::repeat_n(i as u32, len))
+        .collect();
+    let n = slot_of.len();
+    Ok(Tensor::from_vec(slot_of, n, device)?)
 }
 
 /// The new (parameters, first moments, second moments), flat [N].

@@ -11,16 +11,6 @@ fn the_host_update_is_the_tensor_update_bit_for_bit() {
     let dev = Device::Cpu;
     let sizes = [12usize, 5, 4];
     let n: usize = sizes.iter().sum();
-    let params: Vec<Tensor> = sizes
-        .iter()
-        .enumerate()
-        .map(|(k, &len)| {
-            let v: Vec<f32> = (0..len)
-                .map(|i| ((i * 5 + k) % 9) as f32 * 0.3 - 1.2)
-                .collect();
-            Tensor::from_vec(v, len, &dev).unwrap()
-        })
-        .collect();
     let special = [0.0f32, -0.0, 1e-30, -3e-8, 7.5, -1e6, 2.0e-3, -0.25];
     let flat = |step: usize, scale: f32| -> Tensor {
         let v: Vec<f32> = (0..n)
@@ -28,15 +18,25 @@ fn the_host_update_is_the_tensor_update_bit_for_bit() {
             .collect();
         Tensor::from_vec(v, n, &dev).unwrap()
     };
-    let (m, v) = (flat(1, 0.01), flat(2, 0.001).abs().unwrap());
-    let slot_of: Vec<u32> = sizes
-        .iter()
-        .enumerate()
-        .flat_map(|(i, &len)| std::iter::repeat_n(i as u32, len))
-        .collect();
-    let slot_of = Tensor::from_vec(slot_of, n, &dev).unwrap();
-    let step_size = Tensor::new(&[1e-3 / (1.0 - 0.9f64.powi(4)), 5e-4, 5e-4 / 0.3], &dev).unwrap();
-    let bias2_sqrt = Tensor::new(&[0.063f64, 0.0447, 0.5], &dev).unwrap();
+    let mut inputs = check::Inputs {
+        // Each case sets its own.
+        g: flat(0, 1.0),
+        params: sizes
+            .iter()
+            .enumerate()
+            .map(|(k, &len)| {
+                let v: Vec<f32> = (0..len)
+                    .map(|i| ((i * 5 + k) % 9) as f32 * 0.3 - 1.2)
+                    .collect();
+                Tensor::from_vec(v, len, &dev).unwrap()
+            })
+            .collect(),
+        m: flat(1, 0.01),
+        v: flat(2, 0.001).abs().unwrap(),
+        slot_of: slot_index(&sizes, &dev).unwrap(),
+        step_size: Tensor::new(&[1e-3 / (1.0 - 0.9f64.powi(4)), 5e-4, 5e-4 / 0.3], &dev).unwrap(),
+        bias2_sqrt: Tensor::new(&[0.063f64, 0.0447, 0.5], &dev).unwrap(),
+    };
     let on = Tensor::new(1u8, &dev).unwrap();
     let off = Tensor::new(0u8, &dev).unwrap();
     let clip = Tensor::new(0.37f32, &dev).unwrap();
@@ -48,22 +48,8 @@ fn the_host_update_is_the_tensor_update_bit_for_bit() {
         (&[true, true, true], Some(&off), None),
     ];
     for (c, (has, apply, coef)) in cases.into_iter().enumerate() {
-        let g = flat(4 + c, 1.0 + c as f32 * 0.1);
-        let u = Update {
-            g: &g,
-            params: &params,
-            m: &m,
-            v: &v,
-            slot_of: &slot_of,
-            has,
-            apply,
-            coef,
-            step_size: &step_size,
-            bias2_sqrt: &bias2_sqrt,
-            b1: 0.9,
-            b2: 0.999,
-            eps: 1e-8,
-        };
+        inputs.g = flat(4 + c, 1.0 + c as f32 * 0.1);
+        let u = inputs.update(has, apply, coef);
         let host = cpu::update(&u).unwrap();
         let plain = generic(&u).unwrap();
         for (what, a, b) in [
