@@ -36,11 +36,7 @@ pub trait Kernel<const N: usize>: Send + Sync {
     }
 
     /// The forward on the CPU's route, for an op that takes it (then `Some`).
-    fn cpu(
-        &self,
-        _storages: [&CpuStorage; N],
-        _layouts: [&Layout; N],
-    ) -> Option<candle_core::Result<(CpuStorage, Shape)>> {
+    fn cpu(&self, _storages: [&CpuStorage; N], _layouts: [&Layout; N]) -> Option<CpuForward> {
         None
     }
 
@@ -53,6 +49,62 @@ pub trait Kernel<const N: usize>: Send + Sync {
     ) -> candle_core::Result<[Option<Tensor>; N]> {
         candle_core::bail!("{} has no backward", self.name())
     }
+}
+
+/// An op of (x, W, a third input) whose forward starts with the product x · Wᵀ on its
+/// storages ([`Inputs::product`]): a [`Kernel`] counted under candle's name for a product,
+/// "matmul".
+pub trait Product: Send + Sync {
+    /// The forward, the product included, on either kind of storage (the CPU's included:
+    /// [`Inputs::Cpu`]).
+    fn forward(&self, inputs: Inputs<'_, 3>, layouts: [&Layout; 3]) -> Forward;
+
+    /// The gradients of the inputs ([`product_grads`] gives x's and W's).
+    fn backward(
+        &self,
+        args: [&Tensor; 3],
+        res: &Tensor,
+        grad: &Tensor,
+    ) -> candle_core::Result<[Option<Tensor>; 3]>;
+}
+
+/// A device route's forward: the output buffer and its shape.
+pub type Forward = candle_core::Result<(Buf, Shape)>;
+
+/// The CPU route's forward: the output storage and its shape.
+pub type CpuForward = candle_core::Result<(CpuStorage, Shape)>;
+
+impl<T: Product> Kernel<3> for T {
+    fn name(&self) -> &'static str {
+        "matmul"
+    }
+
+    fn storages(&self, inputs: Inputs<'_, 3>, layouts: [&Layout; 3]) -> Option<Forward> {
+        Some(self.forward(inputs, layouts))
+    }
+
+    fn backward(
+        &self,
+        args: [&Tensor; 3],
+        res: &Tensor,
+        grad: &Tensor,
+    ) -> candle_core::Result<[Option<Tensor>; 3]> {
+        Product::backward(self, args, res, grad)
+    }
+}
+
+/// The gradients of x and W from the gradient `gz` of z = x · Wᵀ: candle's matmul backward
+/// for x · (Wᵀ), then the transpose's, so the same products and the same bits. None for an
+/// x that takes no gradient (the GNN's pose input): its product is skipped.
+pub fn product_grads(
+    x: &Tensor,
+    w: &Tensor,
+    gz: &Tensor,
+) -> candle_core::Result<(Option<Tensor>, Tensor)> {
+    let wt = w.t()?;
+    let gx = x.track_op().then(|| gz.matmul(&wt.t()?)).transpose()?;
+    let gw = x.t()?.matmul(gz)?.t()?;
+    Ok((gx, gw))
 }
 
 /// A [`Kernel`] as candle's custom op.

@@ -26,7 +26,7 @@ use std::sync::{Arc, Mutex};
 use candle_core::{CpuStorage, Layout, Shape, Tensor};
 
 use crate::compute::kernel::mem::{Buf, Src};
-use crate::compute::kernel::op::{Kernel, Op};
+use crate::compute::kernel::op::{CpuForward, Kernel, Op};
 use crate::compute::kernel::storage::Kept;
 use crate::compute::kernel::{self, Exec};
 use crate::compute::numerics::Numerics;
@@ -198,11 +198,7 @@ impl Kernel<2> for FilmSine {
         ))
     }
 
-    fn cpu(
-        &self,
-        s: [&CpuStorage; 2],
-        l: [&Layout; 2],
-    ) -> Option<candle_core::Result<(CpuStorage, Shape)>> {
+    fn cpu(&self, s: [&CpuStorage; 2], l: [&Layout; 2]) -> Option<CpuForward> {
         self.exec.is_none().then(|| {
             let (n, f) = self.check(l[0], l[1])?;
             Self::report_fwd(n, f, self.cos.wanted());

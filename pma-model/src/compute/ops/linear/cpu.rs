@@ -3,8 +3,7 @@
 
 use candle_core::{CpuStorage, CustomOp2, Layout, Shape, Tensor};
 
-use crate::compute::kernel::mem::Buf;
-use crate::compute::kernel::op::{Inputs, Kernel};
+use crate::compute::kernel::op::{product_grads, Forward, Inputs, Product};
 
 use crate::compute::kernel::storage::{f32_slice, with_f32};
 
@@ -76,31 +75,21 @@ pub(super) struct Linear {
     pub cpu_route: bool,
 }
 
-impl Kernel<3> for Linear {
-    fn name(&self) -> &'static str {
-        "matmul"
-    }
-
+impl Product for Linear {
     /// The product (candle's CPU product, or cuBLAS) and the bias add (the host's loop, or
     /// candle's kernel); the product is freed on return.
-    fn storages(
-        &self,
-        inputs: Inputs<'_, 3>,
-        [l1, l2, l3]: [&Layout; 3],
-    ) -> Option<candle_core::Result<(Buf, Shape)>> {
-        Some((|| {
-            if self.cpu_route {
-                crate::compute::kernel::health::cpu_launch(&super::MODULE)?;
-            }
-            let d = linear_dims(l1, l2, l3)?;
-            let (rows, out) = (d.0, d.2);
-            report_linear(inputs.exec().is_host(), d, "add", 1);
-            let y = inputs.product((0, l1), (1, l2), d)?;
-            Ok((
-                inputs.bias_add(y, (2, l3), (rows, out))?,
-                Shape::from((rows, out)),
-            ))
-        })())
+    fn forward(&self, inputs: Inputs<'_, 3>, [l1, l2, l3]: [&Layout; 3]) -> Forward {
+        if self.cpu_route {
+            crate::compute::kernel::health::cpu_launch(&super::MODULE)?;
+        }
+        let d = linear_dims(l1, l2, l3)?;
+        let (rows, out) = (d.0, d.2);
+        report_linear(inputs.exec().is_host(), d, "add", 1);
+        let y = inputs.product((0, l1), (1, l2), d)?;
+        Ok((
+            inputs.bias_add(y, (2, l3), (rows, out))?,
+            Shape::from((rows, out)),
+        ))
     }
 
     fn backward(
@@ -109,11 +98,7 @@ impl Kernel<3> for Linear {
         _res: &Tensor,
         grad: &Tensor,
     ) -> candle_core::Result<[Option<Tensor>; 3]> {
-        // candle's matmul backward for x · (Wᵀ), then the transpose's: the same products.
-        let wt = w.t()?;
-        // No product for an input that takes no gradient (the GNN's pose input).
-        let gx = x.track_op().then(|| grad.matmul(&wt.t()?)).transpose()?;
-        let gw = x.t()?.matmul(grad)?.t()?;
+        let (gx, gw) = product_grads(x, w, grad)?;
         let out = w.dim(0)?;
         let gb = match self.cpu_route {
             true => row_sums(grad, out)?,

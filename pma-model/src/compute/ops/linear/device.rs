@@ -9,7 +9,7 @@ use super::cpu::{linear_dims, report_linear};
 use super::{Act, MODULE};
 use crate::compute::kernel::launch::launch;
 use crate::compute::kernel::mem::{Arg, Buf, Src};
-use crate::compute::kernel::op::{Inputs, Kernel, Op};
+use crate::compute::kernel::op::{product_grads, Forward, Inputs, Kernel, Op, Product};
 use crate::compute::kernel::storage::u32_of;
 use crate::compute::kernel::Exec;
 
@@ -71,25 +71,15 @@ impl LinearAct {
     }
 }
 
-impl Kernel<3> for LinearAct {
-    fn name(&self) -> &'static str {
-        "matmul"
-    }
-
-    /// The product (candle's CPU product, or cuBLAS), then the bias and activation kernel;
-    /// the product is freed on return unless the sine's backward needs it.
-    fn storages(
-        &self,
-        inputs: Inputs<'_, 3>,
-        [l1, l2, l3]: [&Layout; 3],
-    ) -> Option<candle_core::Result<(Buf, Shape)>> {
-        Some((|| {
-            let d = linear_dims(l1, l2, l3)?;
-            report_linear(self.exec.is_host(), d, self.epilogue(), 0);
-            let z = inputs.product((0, l1), (1, l2), d)?;
-            let y = self.epilogue_of(z, inputs.src(2, l3, "b")?, [d.0, d.2])?;
-            Ok((y, Shape::from((d.0, d.2))))
-        })())
+impl Product for LinearAct {
+    /// The product (candle's CPU product, or cuBLAS), then the bias and activation kernel; the
+    /// product is freed on return unless the sine's backward needs it.
+    fn forward(&self, inputs: Inputs<'_, 3>, [l1, l2, l3]: [&Layout; 3]) -> Forward {
+        let d = linear_dims(l1, l2, l3)?;
+        report_linear(self.exec.is_host(), d, self.epilogue(), 0);
+        let z = inputs.product((0, l1), (1, l2), d)?;
+        let y = self.epilogue_of(z, inputs.src(2, l3, "b")?, [d.0, d.2])?;
+        Ok((y, Shape::from((d.0, d.2))))
     }
 
     fn backward(
@@ -118,11 +108,7 @@ impl Kernel<3> for LinearAct {
         let gz = grad.contiguous()?.apply_op2_no_bwd(b, &op)?;
         drop(op);
         let gb = b.apply_op1_no_bwd(&Op(BiasSum { stash }))?;
-        // candle's matmul backward for x · (Wᵀ), then the transpose's: the same products.
-        let wt = w.t()?;
-        // No product for an input that takes no gradient (the GNN's pose input).
-        let gx = x.track_op().then(|| gz.matmul(&wt.t()?)).transpose()?;
-        let gw = x.t()?.matmul(&gz)?.t()?;
+        let (gx, gw) = product_grads(x, w, &gz)?;
         Ok([gx, Some(gw), Some(gb)])
     }
 }

@@ -22,7 +22,7 @@ mod device;
 use candle_core::{CpuStorage, DType, Layout, Shape, Tensor};
 
 use crate::compute::kernel::mem::{Buf, Src};
-use crate::compute::kernel::op::{Kernel, Op};
+use crate::compute::kernel::op::{CpuForward, Kernel, Op};
 use crate::compute::kernel::{self, Exec, Route};
 use crate::compute::numerics::Numerics;
 use crate::error::{ModelError, Result};
@@ -146,11 +146,7 @@ impl Kernel<2> for RowOp {
         Ok((out, shape))
     }
 
-    fn cpu(
-        &self,
-        s: [&CpuStorage; 2],
-        l: [&Layout; 2],
-    ) -> Option<candle_core::Result<(CpuStorage, Shape)>> {
+    fn cpu(&self, s: [&CpuStorage; 2], l: [&Layout; 2]) -> Option<CpuForward> {
         self.exec.is_none().then(|| {
             let (d, shape) = self.dims(l[0], l[1])?;
             report_launches();

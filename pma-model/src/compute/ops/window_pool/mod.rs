@@ -23,7 +23,7 @@ mod device;
 use candle_core::{CpuStorage, Layout, Shape, Storage, Tensor};
 
 use crate::compute::kernel::mem::{Buf, Src};
-use crate::compute::kernel::op::{Inputs, Kernel, Op};
+use crate::compute::kernel::op::{product_grads, CpuForward, Forward, Inputs, Kernel, Op, Product};
 use crate::compute::kernel::storage::{f32_slice, Kept};
 use crate::compute::kernel::{self, Exec};
 use crate::compute::numerics::Numerics;
@@ -205,11 +205,7 @@ impl Kernel<3> for WindowPool {
         Ok((self.device_fwd(exec, srcs, d)?, Shape::from((d[0], d[2]))))
     }
 
-    fn cpu(
-        &self,
-        s: [&CpuStorage; 3],
-        l: [&Layout; 3],
-    ) -> Option<candle_core::Result<(CpuStorage, Shape)>> {
+    fn cpu(&self, s: [&CpuStorage; 3], l: [&Layout; 3]) -> Option<CpuForward> {
         self.exec.is_none().then(|| {
             let d = dims(l[0], l[1], l[2])?;
             let f = |i: usize, what| f32_slice(s[i], l[i], what);
@@ -267,41 +263,31 @@ impl WindowPoolOf {
     }
 }
 
-impl Kernel<3> for WindowPoolOf {
-    fn name(&self) -> &'static str {
-        "matmul"
-    }
-
+impl Product for WindowPoolOf {
     /// The product exactly as `Tensor::matmul` calls it for e · Wᵀ (freed on return), then
     /// the pool: the CPU's code on the CPU's route, the kernel otherwise.
-    fn storages(
-        &self,
-        inputs: Inputs<'_, 3>,
-        [l1, l2, l3]: [&Layout; 3],
-    ) -> Option<candle_core::Result<(Buf, Shape)>> {
-        Some((|| {
-            let (n, j, h, ce) = self.dims(l1, l2)?;
-            let exec = inputs.exec();
-            self.report(exec.is_host(), (n, j, h, ce), l3.shape().elem_count());
-            let q = inputs.product((0, l1), (1, l2), (n * j, ce, h))?;
-            let lq = Layout::contiguous((n, j, h));
-            let (wp, wl) = self.w_p.storage_and_layout();
-            let d = dims(&lq, l3, wl)?;
-            let out = match (&self.inner.exec, q) {
-                (None, Buf::F32(q)) => match (&inputs, &*wp) {
-                    (Inputs::Cpu([_, _, g]), Storage::Cpu(wp)) => {
-                        let (g, wp) = (f32_slice(g, l3, "g")?, f32_slice(wp, wl, "w_p")?);
-                        Buf::F32(cpu::forward([&q, g, wp], d, &self.inner.arg)?)
-                    }
-                    _ => candle_core::bail!("window pool: the CPU's route on other storages"),
-                },
-                (_, q) => {
-                    let srcs = [q.src(), inputs.src(2, l3, "g")?, Src::of(&wp, wl, "w_p")?];
-                    self.inner.device_fwd(&exec, srcs, d)?
+    fn forward(&self, inputs: Inputs<'_, 3>, [l1, l2, l3]: [&Layout; 3]) -> Forward {
+        let (n, j, h, ce) = self.dims(l1, l2)?;
+        let exec = inputs.exec();
+        self.report(exec.is_host(), (n, j, h, ce), l3.shape().elem_count());
+        let q = inputs.product((0, l1), (1, l2), (n * j, ce, h))?;
+        let lq = Layout::contiguous((n, j, h));
+        let (wp, wl) = self.w_p.storage_and_layout();
+        let d = dims(&lq, l3, wl)?;
+        let out = match (&self.inner.exec, q) {
+            (None, Buf::F32(q)) => match (&inputs, &*wp) {
+                (Inputs::Cpu([_, _, g]), Storage::Cpu(wp)) => {
+                    let (g, wp) = (f32_slice(g, l3, "g")?, f32_slice(wp, wl, "w_p")?);
+                    Buf::F32(cpu::forward([&q, g, wp], d, &self.inner.arg)?)
                 }
-            };
-            Ok((out, Shape::from((n, h))))
-        })())
+                _ => candle_core::bail!("window pool: the CPU's route on other storages"),
+            },
+            (_, q) => {
+                let srcs = [q.src(), inputs.src(2, l3, "g")?, Src::of(&wp, wl, "w_p")?];
+                self.inner.device_fwd(&exec, srcs, d)?
+            }
+        };
+        Ok((out, Shape::from((n, h))))
     }
 
     fn backward(
@@ -312,12 +298,10 @@ impl Kernel<3> for WindowPoolOf {
     ) -> candle_core::Result<[Option<Tensor>; 3]> {
         let q = QSource::Product { e, w, j: self.j };
         let (gq, gg) = self.inner.grads(&q, g, &self.w_p, grad)?;
-        // candle's matmul backward for e · (Wᵀ) on the [N·J,H] view, then the transpose's.
+        // The product's gradients on the [N·J,H] view.
         let gq = gq.reshape((e.dim(0)?, w.dim(0)?))?;
-        let wt = w.t()?;
-        let ge = gq.matmul(&wt.t()?)?;
-        let gw = e.t()?.matmul(&gq)?.t()?;
-        Ok([Some(ge), Some(gw), Some(gg)])
+        let (ge, gw) = product_grads(e, w, &gq)?;
+        Ok([ge, Some(gw), Some(gg)])
     }
 }
 
