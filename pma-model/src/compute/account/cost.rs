@@ -28,27 +28,29 @@ pub const LAUNCH_S: f64 = 5e-6;
 /// assumed figure, not a measurement.
 pub const SYNC_S: f64 = 20e-6;
 
+/// NVIDIA's H200 (SXM).
+const H200: Gpu = Gpu {
+    name: "H200",
+    mem_bandwidth: 4.8e12,
+    fp32_flops: 67e12,
+    tf32_flops: 494.5e12,
+    host_link: 64e9,
+    source: "NVIDIA H200 Tensor Core GPU datasheet (SXM): 4.8 TB/s HBM3e, FP32 67 TFLOPS, \
+             TF32 Tensor Core 989 TFLOPS with sparsity (494.5 dense), PCIe Gen5 128 GB/s \
+             (64 GB/s each way)",
+};
+
 /// The GPUs [`estimate`] knows.
 pub const GPUS: [Gpu; 3] = [
-    Gpu {
-        name: "H200",
-        mem_bandwidth: 4.8e12,
-        fp32_flops: 67e12,
-        tf32_flops: 494.5e12,
-        host_link: 64e9,
-        source: "NVIDIA H200 Tensor Core GPU datasheet (SXM): 4.8 TB/s HBM3e, FP32 67 TFLOPS, \
-                 TF32 Tensor Core 989 TFLOPS with sparsity (494.5 dense), PCIe Gen5 128 GB/s \
-                 (64 GB/s each way)",
-    },
+    H200,
+    // The H200's compute and host-link figures; only the memory differs.
     Gpu {
         name: "H100-SXM",
         mem_bandwidth: 3.35e12,
-        fp32_flops: 67e12,
-        tf32_flops: 494.5e12,
-        host_link: 64e9,
         source: "NVIDIA H100 Tensor Core GPU datasheet (SXM): 3.35 TB/s HBM3, FP32 67 TFLOPS, \
                  TF32 Tensor Core 989 TFLOPS with sparsity (494.5 dense), PCIe Gen5 128 GB/s \
                  (64 GB/s each way)",
+        ..H200
     },
     Gpu {
         name: "RTX-3090",
