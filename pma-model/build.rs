@@ -1,5 +1,6 @@
 //! Compiles pma's CUDA kernels for the host's emulated grid: each op's `emu.c` includes
-//! `compute/kernel/emulate.h` (the CUDA qualifiers defined away) and the op's `.cu` source.
+//! `compute/kernel/emulate.h` (the CUDA qualifiers defined away, then `prelude.cuh`) and the
+//! op's `.cu` source.
 //! FMA contraction is off, so every product and sum rounds as the kernels ask.
 
 use std::path::Path;
@@ -7,6 +8,7 @@ use std::path::Path;
 fn main() {
     let ops = Path::new("src/compute/ops");
     println!("cargo:rerun-if-changed=src/compute/kernel/emulate.h");
+    println!("cargo:rerun-if-changed=src/compute/kernel/prelude.cuh");
     let mut build = cc::Build::new();
     let mut dirs: Vec<_> = std::fs::read_dir(ops)
         .expect("src/compute/ops")

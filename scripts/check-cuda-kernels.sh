@@ -1,7 +1,8 @@
 #!/bin/bash
 # Compile every CUDA kernel source of pma (pma-model/src/compute/ops/*/*.cu) to PTX with nvcc,
 # so a kernel that no longer compiles is caught without a GPU. At run time the same sources
-# go through NVRTC, which accepts the same dialect (no #include).
+# go through NVRTC, which accepts the same dialect (no #include), each after
+# pma-model/src/compute/kernel/prelude.cuh: nvcc here compiles that same text.
 #
 #   scripts/check-cuda-kernels.sh [ARCH]      # ARCH: compute capability, default 90 (H100/H200)
 #
@@ -18,7 +19,9 @@ while IFS= read -r cu; do
   if grep -qE '^\s*#\s*include' "$cu"; then
     echo "FAIL $cu: #include is not available to NVRTC at run time" >&2; exit 1
   fi
-  nvcc --ptx -arch=compute_"$ARCH" -Werror all-warnings -o "$out/$(basename "$cu" .cu).ptx" "$cu"
+  cat pma-model/src/compute/kernel/prelude.cuh "$cu" > "$out/$(basename "$cu")"
+  nvcc --ptx -arch=compute_"$ARCH" -Werror all-warnings -o "$out/$(basename "$cu" .cu).ptx" \
+    "$out/$(basename "$cu")"
   # Kernels are declared `extern "C" __global__ void name` or `PMA_KERNEL void name`.
   for k in $(grep -oE '(__global__|PMA_KERNEL) void [A-Za-z0-9_]+' "$cu" | awk '{print $3}'); do
     grep -q "\.entry $k" "$out/$(basename "$cu" .cu).ptx" || { echo "FAIL $cu: no entry $k" >&2; exit 1; }

@@ -18,6 +18,8 @@ typedef struct {
 static _Thread_local pma_dim3 blockIdx, threadIdx, blockDim, gridDim;
 
 #define PMA_KERNEL static
+#define __device__
+#include "prelude.cuh"
 static inline float __fmul_rn(float a, float b) { return a * b; }
 static inline float __fadd_rn(float a, float b) { return a + b; }
 static inline float __fsub_rn(float a, float b) { return a - b; }

@@ -40,7 +40,7 @@ pub struct Module {
     pub name: &'static str,
     /// The source's path below `pma-model/src` (errors name it).
     pub file: &'static str,
-    /// The CUDA source, compiled with NVRTC at run time.
+    /// The CUDA source after `kernel/prelude.cuh`, compiled with NVRTC at run time.
     pub source: &'static str,
     /// The same source compiled for the host (`emu.c` in the op's folder): runs kernel `name`
     /// over an emulated grid with CUDA's `kernelParams` convention.

@@ -310,7 +310,13 @@ macro_rules! kernel_module {
         pub static MODULE: $crate::compute::kernel::Module = $crate::compute::kernel::Module {
             name: $name,
             file: concat!("compute/ops/", $name, "/", $cu),
-            source: include_str!($cu),
+            source: concat!(
+                include_str!(concat!(
+                    env!("CARGO_MANIFEST_DIR"),
+                    "/src/compute/kernel/prelude.cuh"
+                )),
+                include_str!($cu)
+            ),
             emulate: $emu,
             check: $check,
         };

@@ -12,9 +12,7 @@
 // result is the CPU update's bits. The gradient norm (a reduction) is not part of it: the
 // caller passes the clip factor as a device scalar.
 
-#ifndef PMA_KERNEL
-#define PMA_KERNEL extern "C" __global__
-#endif
+// PMA_KERNEL and PMA_FOR_EACH: kernel/prelude.cuh, compiled before this source.
 
 PMA_KERNEL void pma_adam_f32(
     const float *g, const float *p_old, const float *m_old, const float *v_old,
@@ -23,8 +21,7 @@ PMA_KERNEL void pma_adam_f32(
     const unsigned char *has, const unsigned char *ok, const float *coef, int clip,
     unsigned int n, float one_minus_b1, float b2, float one_minus_b2, float eps)
 {
-    for (unsigned long long i = (unsigned long long)blockIdx.x * blockDim.x + threadIdx.x;
-         i < n; i += (unsigned long long)blockDim.x * gridDim.x) {
+    PMA_FOR_EACH(i, n) {
         const unsigned int s = slot_of[i];
         const float gi = clip ? __fmul_rn(g[i], coef[0]) : g[i];
         const float mo = m_old[i];

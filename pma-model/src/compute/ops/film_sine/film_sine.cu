@@ -10,9 +10,7 @@
 // sinf/cosf are the device's (within 2 ulp of the correctly rounded value; the host build
 // takes the C library's, which the CPU op reproduces bit for bit).
 
-#ifndef PMA_KERNEL
-#define PMA_KERNEL extern "C" __global__
-#endif
+// PMA_KERNEL and PMA_FOR_EACH: kernel/prelude.cuh, compiled before this source.
 
 // out = sin(a) and, when keep_cos, cos_out = cos(a) for the backward.
 PMA_KERNEL void pma_film_sine_f32(
@@ -20,10 +18,8 @@ PMA_KERNEL void pma_film_sine_f32(
     unsigned int n, unsigned int f, unsigned int k, unsigned int n_layers,
     float mul, float add, int keep_cos)
 {
-    const unsigned long long total = (unsigned long long)n * f;
     const unsigned long long w = 2ULL * n_layers * f;
-    for (unsigned long long i = (unsigned long long)blockIdx.x * blockDim.x + threadIdx.x;
-         i < total; i += (unsigned long long)blockDim.x * gridDim.x) {
+    PMA_FOR_EACH(i, (unsigned long long)n * f) {
         const unsigned long long row = i / f;
         const unsigned int c = (unsigned int)(i % f);
         const float theta = o[row * w + (unsigned long long)k * f + c];
@@ -44,10 +40,8 @@ PMA_KERNEL void pma_film_sine_grad_f32(
     float *g_o, unsigned int n, unsigned int f, unsigned int k, unsigned int n_layers,
     float mul, float add, int have_cos)
 {
-    const unsigned long long total = (unsigned long long)n * f;
     const unsigned long long w = 2ULL * n_layers * f;
-    for (unsigned long long i = (unsigned long long)blockIdx.x * blockDim.x + threadIdx.x;
-         i < total; i += (unsigned long long)blockDim.x * gridDim.x) {
+    PMA_FOR_EACH(i, (unsigned long long)n * f) {
         const unsigned long long row = i / f;
         const unsigned int c = (unsigned int)(i % f);
         const unsigned long long t_at = row * w + (unsigned long long)k * f + c;

@@ -9,9 +9,7 @@
 // rows by one thread per column, then over the blocks in block order by a second launch, so
 // a run repeats bit for bit.
 
-#ifndef PMA_KERNEL
-#define PMA_KERNEL extern "C" __global__
-#endif
+// PMA_KERNEL and PMA_FOR_EACH: kernel/prelude.cuh, compiled before this source.
 
 #define PMA_BIAS_ACT_ROWS 256
 
@@ -19,9 +17,7 @@
 PMA_KERNEL void pma_bias_relu_f32(
     const float *z, const float *b, float *y, unsigned int rows, unsigned int outs)
 {
-    const unsigned long long total = (unsigned long long)rows * outs;
-    for (unsigned long long i = (unsigned long long)blockIdx.x * blockDim.x + threadIdx.x;
-         i < total; i += (unsigned long long)blockDim.x * gridDim.x) {
+    PMA_FOR_EACH(i, (unsigned long long)rows * outs) {
         const float a = __fadd_rn(z[i], b[i % outs]);
         y[i] = a > 0.0f ? a : 0.0f;
     }
@@ -31,9 +27,7 @@ PMA_KERNEL void pma_bias_relu_f32(
 PMA_KERNEL void pma_bias_sine_f32(
     const float *z, const float *b, float *y, unsigned int rows, unsigned int outs)
 {
-    const unsigned long long total = (unsigned long long)rows * outs;
-    for (unsigned long long i = (unsigned long long)blockIdx.x * blockDim.x + threadIdx.x;
-         i < total; i += (unsigned long long)blockDim.x * gridDim.x) {
+    PMA_FOR_EACH(i, (unsigned long long)rows * outs) {
         y[i] = sinf(__fadd_rn(z[i], b[i % outs]));
     }
 }
@@ -49,9 +43,7 @@ PMA_KERNEL void pma_act_grad_f32(
 {
     const unsigned long long blocks =
         ((unsigned long long)rows + PMA_BIAS_ACT_ROWS - 1) / PMA_BIAS_ACT_ROWS;
-    const unsigned long long total = blocks * outs;
-    for (unsigned long long i = (unsigned long long)blockIdx.x * blockDim.x + threadIdx.x;
-         i < total; i += (unsigned long long)blockDim.x * gridDim.x) {
+    PMA_FOR_EACH(i, blocks * outs) {
         const unsigned long long blk = i / outs;
         const unsigned int j = (unsigned int)(i % outs);
         const unsigned long long first = blk * PMA_BIAS_ACT_ROWS;
@@ -79,8 +71,7 @@ PMA_KERNEL void pma_act_grad_f32(
 PMA_KERNEL void pma_bias_grad_sum_f32(
     const float *part, float *gb, unsigned int blocks, unsigned int outs)
 {
-    for (unsigned long long j = (unsigned long long)blockIdx.x * blockDim.x + threadIdx.x;
-         j < outs; j += (unsigned long long)blockDim.x * gridDim.x) {
+    PMA_FOR_EACH(j, outs) {
         float s = 0.0f;
         for (unsigned int k = 0; k < blocks; ++k) {
             s = __fadd_rn(s, part[(unsigned long long)k * outs + j]);

@@ -5,25 +5,28 @@
 // Shapes: x [B,N,C], ids [B,M] (u32, indices into N), out [B,M,C].
 // One thread per output element (b, m, c): no serial loop over the indices.
 //
-// PMA_KERNEL is `extern "C" __global__` on CUDA; the host build defines it away.
-#ifndef PMA_KERNEL
-#define PMA_KERNEL extern "C" __global__
-#endif
+// PMA_KERNEL and PMA_FOR_EACH: kernel/prelude.cuh, compiled before this source.
+
+// Where element i of a [B,M,C] array (a gather's output, a scatter's gradient) stands in
+// x [B,N,C]: row ids[b, j] of batch b, the same column; -1 for an index out of range
+// (indices are checked on the host before upload; one never reaches outside the buffer).
+static __device__ inline long long pma_row_at(
+    const unsigned int *ids, unsigned long long i, unsigned int n, unsigned int m, unsigned int c)
+{
+    const unsigned long long row = i / c;  // b * m + j
+    const unsigned int col = (unsigned int)(i % c);
+    const unsigned long long b = row / m;
+    const unsigned int idx = ids[row];
+    return idx < n ? (long long)((b * n + idx) * c + col) : -1;
+}
 
 PMA_KERNEL void pma_gather_rows_f32(
     const float *x, const unsigned int *ids, float *out,
     unsigned int b_size, unsigned int n, unsigned int m, unsigned int c)
 {
-    const unsigned long long total = (unsigned long long)b_size * m * c;
-    for (unsigned long long i = (unsigned long long)blockIdx.x * blockDim.x + threadIdx.x;
-         i < total; i += (unsigned long long)blockDim.x * gridDim.x) {
-        const unsigned long long row = i / c;  // b * m + j
-        const unsigned int col = (unsigned int)(i % c);
-        const unsigned long long b = row / m;
-        const unsigned int idx = ids[row];
-        // Indices are checked on the host before upload; an out-of-range one reads as 0
-        // rather than outside the buffer.
-        out[i] = idx < n ? x[(b * n + idx) * c + col] : 0.0f;
+    PMA_FOR_EACH(i, (unsigned long long)b_size * m * c) {
+        const long long at = pma_row_at(ids, i, n, m, c);
+        out[i] = at >= 0 ? x[at] : 0.0f;
     }
 }
 
@@ -34,15 +37,10 @@ PMA_KERNEL void pma_scatter_add_rows_f32(
     const float *grad, const unsigned int *ids, float *grad_x,
     unsigned int b_size, unsigned int n, unsigned int m, unsigned int c)
 {
-    const unsigned long long total = (unsigned long long)b_size * m * c;
-    for (unsigned long long i = (unsigned long long)blockIdx.x * blockDim.x + threadIdx.x;
-         i < total; i += (unsigned long long)blockDim.x * gridDim.x) {
-        const unsigned long long row = i / c;
-        const unsigned int col = (unsigned int)(i % c);
-        const unsigned long long b = row / m;
-        const unsigned int idx = ids[row];
-        if (idx < n) {
-            atomicAdd(&grad_x[(b * n + idx) * c + col], grad[i]);
+    PMA_FOR_EACH(i, (unsigned long long)b_size * m * c) {
+        const long long at = pma_row_at(ids, i, n, m, c);
+        if (at >= 0) {
+            atomicAdd(&grad_x[at], grad[i]);
         }
     }
 }
@@ -54,9 +52,7 @@ PMA_KERNEL void pma_scatter_add_rows_ordered_f32(
     const float *grad, const unsigned int *ids, float *grad_x,
     unsigned int b_size, unsigned int n, unsigned int m, unsigned int c)
 {
-    const unsigned long long total = (unsigned long long)b_size * n * c;
-    for (unsigned long long i = (unsigned long long)blockIdx.x * blockDim.x + threadIdx.x;
-         i < total; i += (unsigned long long)blockDim.x * gridDim.x) {
+    PMA_FOR_EACH(i, (unsigned long long)b_size * n * c) {
         const unsigned long long row = i / c;  // b * n + idx
         const unsigned int col = (unsigned int)(i % c);
         const unsigned long long b = row / n;

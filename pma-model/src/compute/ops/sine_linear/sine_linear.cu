@@ -11,9 +11,7 @@
 // (__fmul_rn/__fadd_rn, never an FMA), in the CPU op's order; sinf/cosf are the device's
 // (within 2 ulp; the host build takes the C library's, which the CPU op reproduces).
 
-#ifndef PMA_KERNEL
-#define PMA_KERNEL extern "C" __global__
-#endif
+// PMA_KERNEL and PMA_FOR_EACH: kernel/prelude.cuh, compiled before this source.
 
 #define PMA_SINE_LINEAR_MAX_IN 4
 #define PMA_SINE_LINEAR_ROWS 1024
@@ -35,9 +33,7 @@ PMA_KERNEL void pma_sine_linear_f32(
     const float *x, const float *wb, const float *sc, float *y,
     unsigned int rows, unsigned int in, unsigned int outs)
 {
-    const unsigned long long total = (unsigned long long)rows * outs;
-    for (unsigned long long i = (unsigned long long)blockIdx.x * blockDim.x + threadIdx.x;
-         i < total; i += (unsigned long long)blockDim.x * gridDim.x) {
+    PMA_FOR_EACH(i, (unsigned long long)rows * outs) {
         const unsigned long long r = i / outs;
         const unsigned int j = (unsigned int)(i % outs);
         float a;
@@ -56,9 +52,7 @@ PMA_KERNEL void pma_sine_linear_grad_part_f32(
 {
     const unsigned long long blocks =
         ((unsigned long long)rows + PMA_SINE_LINEAR_ROWS - 1) / PMA_SINE_LINEAR_ROWS;
-    const unsigned long long total = blocks * outs;
-    for (unsigned long long i = (unsigned long long)blockIdx.x * blockDim.x + threadIdx.x;
-         i < total; i += (unsigned long long)blockDim.x * gridDim.x) {
+    PMA_FOR_EACH(i, blocks * outs) {
         const unsigned long long blk = i / outs;
         const unsigned int j = (unsigned int)(i % outs);
         float acc[PMA_SINE_LINEAR_MAX_IN + 1];
@@ -92,8 +86,7 @@ PMA_KERNEL void pma_sine_linear_grad_rows_f32(
     const float *grad, const float *x, const float *wb, const float *sc, float *g_rows,
     unsigned int rows, unsigned int in, unsigned int outs)
 {
-    for (unsigned long long r = (unsigned long long)blockIdx.x * blockDim.x + threadIdx.x;
-         r < rows; r += (unsigned long long)blockDim.x * gridDim.x) {
+    PMA_FOR_EACH(r, rows) {
         float acc[PMA_SINE_LINEAR_MAX_IN + 1];
         for (unsigned int c = 0; c <= in; ++c) {
             acc[c] = 0.0f;
@@ -121,8 +114,7 @@ PMA_KERNEL void pma_sine_linear_grad_sum_f32(
     const float *part, float *g, unsigned int blocks, unsigned int in, unsigned int outs)
 {
     const unsigned long long total = (unsigned long long)outs * (in + 1);
-    for (unsigned long long i = (unsigned long long)blockIdx.x * blockDim.x + threadIdx.x;
-         i < total; i += (unsigned long long)blockDim.x * gridDim.x) {
+    PMA_FOR_EACH(i, total) {
         float s = 0.0f;
         for (unsigned int k = 0; k < blocks; ++k) {
             s = __fadd_rn(s, part[(unsigned long long)k * total + i]);

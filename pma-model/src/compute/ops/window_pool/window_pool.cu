@@ -8,10 +8,7 @@
 // element, no shared memory and no atomics: any grid covers the work, and every sum runs in
 // the CPU op's order, so values and gradients are the CPU's bits.
 //
-// PMA_KERNEL is `extern "C" __global__` on CUDA; the host build defines it away.
-#ifndef PMA_KERNEL
-#define PMA_KERNEL extern "C" __global__
-#endif
+// PMA_KERNEL and PMA_FOR_EACH: kernel/prelude.cuh, compiled before this source.
 
 // Products and sums go through __fmul_rn/__fadd_rn so that the compiler never contracts
 // them into an FMA (which would round once where the CPU rounds twice).
@@ -22,9 +19,7 @@ PMA_KERNEL void pma_window_pool_f32(
     const float *q, const float *g, const float *w, float *out, unsigned int *arg,
     unsigned int n, unsigned int j, unsigned int h, unsigned int per_pose)
 {
-    const unsigned long long total = (unsigned long long)n * h;
-    for (unsigned long long i = (unsigned long long)blockIdx.x * blockDim.x + threadIdx.x;
-         i < total; i += (unsigned long long)blockDim.x * gridDim.x) {
+    PMA_FOR_EACH(i, (unsigned long long)n * h) {
         const unsigned long long row = i / h;
         const unsigned int k = (unsigned int)(i % h);
         const float *qr = q + row * j * h + k;
@@ -51,9 +46,7 @@ PMA_KERNEL void pma_window_pool_grad_q_f32(
     unsigned int n, unsigned int j, unsigned int h)
 {
     const unsigned long long jh = (unsigned long long)j * h;
-    const unsigned long long total = (unsigned long long)n * jh;
-    for (unsigned long long i = (unsigned long long)blockIdx.x * blockDim.x + threadIdx.x;
-         i < total; i += (unsigned long long)blockDim.x * gridDim.x) {
+    PMA_FOR_EACH(i, (unsigned long long)n * jh) {
         const unsigned long long row = i / jh;
         const unsigned int jj = (unsigned int)((i % jh) / h);
         const unsigned int k = (unsigned int)(i % h);
@@ -68,9 +61,7 @@ PMA_KERNEL void pma_window_pool_grad_g_f32(
     unsigned int p, unsigned int j, unsigned int h, unsigned int per_pose)
 {
     const unsigned long long jh = (unsigned long long)j * h;
-    const unsigned long long total = (unsigned long long)p * jh;
-    for (unsigned long long i = (unsigned long long)blockIdx.x * blockDim.x + threadIdx.x;
-         i < total; i += (unsigned long long)blockDim.x * gridDim.x) {
+    PMA_FOR_EACH(i, (unsigned long long)p * jh) {
         const unsigned long long pose = i / jh;
         const unsigned int jj = (unsigned int)((i % jh) / h);
         const unsigned int k = (unsigned int)(i % h);
