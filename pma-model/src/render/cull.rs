@@ -60,6 +60,27 @@ pub fn exponent_cut(threshold: f64) -> f64 {
 /// Samples per block of the parallel window test (many blocks keep the workers balanced).
 const FATE_BLOCK_SAMPLES: usize = 16_384;
 
+/// `per_block`'s outputs for blocks of the `n_rays` rays of `s` samples each, concatenated
+/// in ray order: the blocks go to the workers where there are enough samples to pay for
+/// it (the result does not depend on the split).
+fn by_ray_blocks<T: Clone + Send>(
+    n_rays: usize,
+    s: usize,
+    per_block: impl Fn(std::ops::Range<usize>) -> Result<Vec<T>> + Sync + Send,
+) -> Result<Vec<T>> {
+    let workers = crate::compute::parallel::workers();
+    let blocks = if workers > 1 && n_rays * s >= 8 * FATE_BLOCK_SAMPLES {
+        (n_rays * s).div_ceil(FATE_BLOCK_SAMPLES)
+    } else {
+        1
+    };
+    let rays_per_block = n_rays.div_ceil(blocks);
+    let parts = crate::compute::parallel::map_ordered(workers, blocks, |b| {
+        per_block((b * rays_per_block).min(n_rays)..((b + 1) * rays_per_block).min(n_rays))
+    })?;
+    Ok(parts.concat())
+}
+
 /// What the culling of one forward pass decided for each sample.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum SampleFate {
@@ -422,15 +443,7 @@ impl WindowTest {
             ));
         }
         let per_pose = n_rays / self.n_poses();
-        let workers = crate::compute::parallel::workers();
-        let blocks = if workers > 1 && n_rays * s >= 8 * FATE_BLOCK_SAMPLES {
-            (n_rays * s).div_ceil(FATE_BLOCK_SAMPLES)
-        } else {
-            1
-        };
-        let rays_per_block = n_rays.div_ceil(blocks);
-        let parts = crate::compute::parallel::map_ordered(workers, blocks, |b| {
-            let rays = (b * rays_per_block).min(n_rays)..((b + 1) * rays_per_block).min(n_rays);
+        by_ray_blocks(n_rays, s, |rays| {
             let mut out = Vec::with_capacity(rays.len() * s);
             for r in rays {
                 if !ray_alive.is_none_or(|a| a[r]) {
@@ -454,9 +467,8 @@ impl WindowTest {
                     transmittance *= 1.0 - alpha + 1e-10;
                 }
             }
-            Ok::<_, ModelError>(out)
-        })?;
-        Ok(parts.concat())
+            Ok(out)
+        })
     }
 
     /// A world point where every joint's window of pose p is exactly 0: 1 km (or further)
@@ -497,15 +509,7 @@ impl WindowTest {
         // The test is a few hundred host flops per culled sample, as much as a fifth of a
         // culled render on one core: blocks of rays go to the workers (the result does not
         // depend on the split).
-        let workers = crate::compute::parallel::workers();
-        let blocks = if workers > 1 && n_rays * s >= 8 * FATE_BLOCK_SAMPLES {
-            (n_rays * s).div_ceil(FATE_BLOCK_SAMPLES)
-        } else {
-            1
-        };
-        let rays_per_block = n_rays.div_ceil(blocks);
-        let parts = crate::compute::parallel::map_ordered(workers, blocks, |b| {
-            let rays = (b * rays_per_block).min(n_rays)..((b + 1) * rays_per_block).min(n_rays);
+        by_ray_blocks(n_rays, s, |rays| {
             let mut out = Vec::with_capacity(rays.len() * s);
             for r in rays {
                 if !ray_alive.is_none_or(|a| a[r]) {
@@ -520,9 +524,8 @@ impl WindowTest {
                     out.push(self.fate_among(p, [x[0], x[1], x[2]], grid, joints));
                 }
             }
-            Ok::<_, ModelError>(out)
-        })?;
-        Ok(parts.concat())
+            Ok(out)
+        })
     }
 
     /// For each sample `samples[i]` of pts: [R,S,3] (rays grouped by pose in equal blocks),

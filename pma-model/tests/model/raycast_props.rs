@@ -6,11 +6,21 @@ use candle_core::{Device, Tensor, Var};
 use pma_data::skeleton::N_JOINTS;
 use pma_model::network::config::Config;
 use pma_model::render::raycast::{
-    box_may_hit, box_near_far, box_near_far_robust, box_sphere_may_hit, cylinder_near_far,
-    fill_cylinder_misses, merge_raw, RayCaster,
+    box_sphere_may_hit, cylinder_near_far, fill_cylinder_misses, merge_raw, BoxRay, RayCaster,
 };
 
 use crate::common::flat;
+
+/// [`BoxRay::near_far`] of one ray against one part's box.
+fn box_near_far(
+    world_to_box: &[f32],
+    scale: [f32; 3],
+    o: [f32; 3],
+    d: [f32; 3],
+    bound: f64,
+) -> Option<(f32, f32)> {
+    BoxRay::new(world_to_box, scale, o, d).near_far(scale, bound)
+}
 
 fn identity4() -> Vec<f32> {
     (0..16)
@@ -180,12 +190,10 @@ fn the_box_pre_test_passes_every_crossing_ray() {
             (target[1] - o[1]) * len,
             (target[2] - o[2]) * len,
         ];
-        let may = box_may_hit(&m, scale, o, d, bound);
+        let ray = BoxRay::new(&m, scale, o, d);
+        let may = ray.may_hit(bound);
         let sphere = box_sphere_may_hit(&m, scale, o, d, bound);
-        let hits = [
-            box_near_far(&m, scale, o, d, bound),
-            box_near_far_robust(&m, scale, o, d, bound),
-        ];
+        let hits = [ray.near_far(scale, bound), ray.near_far_robust(bound)];
         if hits.iter().any(Option::is_some) {
             crossing += 1;
             assert!(may, "case {case}: a crossing ray was rejected ({hits:?})");

@@ -682,17 +682,6 @@ impl BoxRay {
     }
 }
 
-/// [`BoxRay::may_hit`] for one ray against one part's box (arguments as [`BoxRay::new`]).
-pub fn box_may_hit(
-    world_to_box: &[f32],
-    scale: [f32; 3],
-    o: [f32; 3],
-    d: [f32; 3],
-    bound: f64,
-) -> bool {
-    BoxRay::new(world_to_box, scale, o, d).may_hit(bound)
-}
-
 /// Whether the world-space sphere pre-test lets one ray through to the box tests of one part
 /// (arguments as [`BoxRay::new`]); `true` where the map has no sphere.
 pub fn box_sphere_may_hit(
@@ -704,29 +693,6 @@ pub fn box_sphere_may_hit(
 ) -> bool {
     let d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
     WorldSphere::around(world_to_box, scale, bound).is_none_or(|b| !b.missed_by(o, d, d2))
-}
-
-/// [`BoxRay::near_far`] for one ray against one part's box (arguments as [`BoxRay::new`]).
-pub fn box_near_far(
-    world_to_box: &[f32],
-    scale: [f32; 3],
-    o: [f32; 3],
-    d: [f32; 3],
-    bound: f64,
-) -> Option<(f32, f32)> {
-    BoxRay::new(world_to_box, scale, o, d).near_far(scale, bound)
-}
-
-/// [`BoxRay::near_far_robust`] for one ray against one part's box (arguments as
-/// [`BoxRay::new`]).
-pub fn box_near_far_robust(
-    world_to_box: &[f32],
-    scale: [f32; 3],
-    o: [f32; 3],
-    d: [f32; 3],
-    bound: f64,
-) -> Option<(f32, f32)> {
-    BoxRay::new(world_to_box, scale, o, d).near_far_robust(bound)
 }
 
 /// Sample points: rays_o, rays_d: [R,3], z: [R,S] -> [R,S,3] with `o + d·z`.
