@@ -163,14 +163,18 @@ pub fn options(thresholds: &[f64], occupancy: bool, early_stop: f64) -> Vec<Benc
 mod tests {
     use super::*;
 
-    #[test]
-    fn parity_first_then_culling_then_the_sine() {
-        let names: Vec<String> = options(&[0.0, 1e-2], false, BENCH_EARLY_STOP)
+    /// The names of the bench's options for these sample thresholds.
+    fn names(thresholds: &[f64]) -> Vec<String> {
+        options(thresholds, false, BENCH_EARLY_STOP)
             .into_iter()
             .map(|o| o.name)
-            .collect();
+            .collect()
+    }
+
+    #[test]
+    fn parity_first_then_culling_then_the_sine() {
         assert_eq!(
-            names,
+            names(&[0.0, 1e-2]),
             [
                 "parity",
                 "rays",
@@ -184,12 +188,8 @@ mod tests {
             ]
         );
         // Without thresholds the last culling option is "rays", which gets no sine twin.
-        let names: Vec<String> = options(&[], false, BENCH_EARLY_STOP)
-            .into_iter()
-            .map(|o| o.name)
-            .collect();
         assert_eq!(
-            names,
+            names(&[]),
             [
                 "parity",
                 "rays",

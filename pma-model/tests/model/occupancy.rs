@@ -99,31 +99,20 @@ fn a_grid_with_every_cell_occupied_is_parity() {
         }),
         None,
     );
-    // Never refreshed: every cell counts as occupied.
+    // Never refreshed (every cell counts as occupied), then refreshed with density
+    // everywhere.
     let fresh = OccupancyGrid::new(OccupancyConfig::default()).unwrap();
-    let case = with_grid(GoldenCase::load("golden/dense", true), Some(fresh));
-    let out = case.forward_with(&occupancy_only(), None);
-    assert_eq!(out.stats.skipped_empty, 0);
-    assert_identical(&at_zero, &out, "unbuilt grid");
-    assert_close(
-        &parity,
-        &out,
-        FAR_CALL_TOLERANCE,
-        "unbuilt grid against parity",
-    );
-    // Refreshed with density everywhere.
     let full = patterned_grid(1.1);
     assert_eq!(full.occupied_fraction(), 1.0);
-    let case = with_grid(case, Some(full));
-    let out = case.forward_with(&occupancy_only(), None);
-    assert_eq!(out.stats.skipped_empty, 0);
-    assert_identical(&at_zero, &out, "full grid");
-    assert_close(
-        &parity,
-        &out,
-        FAR_CALL_TOLERANCE,
-        "full grid against parity",
-    );
+    let mut case = GoldenCase::load("golden/dense", true);
+    for (what, grid) in [("unbuilt grid", fresh), ("full grid", full)] {
+        case = with_grid(case, Some(grid));
+        let out = case.forward_with(&occupancy_only(), None);
+        assert_eq!(out.stats.skipped_empty, 0, "{what}");
+        assert_identical(&at_zero, &out, what);
+        let against = format!("{what} against parity");
+        assert_close(&parity, &out, FAR_CALL_TOLERANCE, &against);
+    }
 }
 
 /// A pass that feeds the grid (training's `grid_feed`) reports, for every sample it
@@ -328,35 +317,33 @@ fn bad_grid_tensors_are_refused() {
     let n = 24 * 16 * 16 * 16;
     let bad = dir.path().join("bad.st");
 
-    tampered(&good, &bad, Some((vec![24, 16, 16, 8], vec![0.0; n / 2])));
-    let p = problems_of(&bad);
-    assert!(
-        p.iter()
-            .any(|l| l.contains(OCCUPANCY_TENSOR) && l.contains("[24, 16, 16, 8]")),
-        "{p:#?}"
+    // Each tampered file is refused with a problem naming what is wrong.
+    let refused = |grid: Option<(Vec<usize>, Vec<f32>)>, says: &[&str]| {
+        tampered(&good, &bad, grid);
+        let p = problems_of(&bad);
+        assert!(
+            p.iter().any(|l| says.iter().all(|s| l.contains(s))),
+            "{says:?}: {p:#?}"
+        );
+    };
+    let shape = vec![24, 16, 16, 16];
+    refused(
+        Some((vec![24, 16, 16, 8], vec![0.0; n / 2])),
+        &[OCCUPANCY_TENSOR, "[24, 16, 16, 8]"],
     );
-
     let mut nan = vec![0.0; n];
     nan[1234] = f32::NAN;
-    tampered(&good, &bad, Some((vec![24, 16, 16, 16], nan)));
-    let p = problems_of(&bad);
-    assert!(
-        p.iter()
-            .any(|l| l.contains(OCCUPANCY_TENSOR) && l.contains("flat index 1234")),
-        "{p:#?}"
+    refused(
+        Some((shape.clone(), nan)),
+        &[OCCUPANCY_TENSOR, "flat index 1234"],
     );
-
     let mut negative = vec![0.0; n];
     negative[7] = -1.0;
-    tampered(&good, &bad, Some((vec![24, 16, 16, 16], negative)));
-    assert!(problems_of(&bad).iter().any(|l| l.contains("flat index 7")));
-
-    tampered(&good, &bad, None);
-    let p = problems_of(&bad);
-    assert!(p.iter().any(|l| l.contains("without the tensor")), "{p:#?}");
+    refused(Some((shape.clone(), negative)), &["flat index 7"]);
+    refused(None, &["without the tensor"]);
 
     // The values themselves load (the tampering keeps a valid file valid).
-    tampered(&good, &bad, Some((vec![24, 16, 16, 16], vec![0.25; n])));
+    tampered(&good, &bad, Some((shape, vec![0.25; n])));
     let ck = checkpoint::load(&bad, &Device::Cpu).unwrap();
     assert_eq!(ck.occupancy.unwrap().density()[0], 0.25);
 }

@@ -15,28 +15,15 @@ fn resume_equals_uninterrupted_run() {
     let (n, m) = (3, 3);
 
     let mut full = tiny_trainer(&data);
-    let mut full_losses = Vec::new();
-    for _ in 0..n + m {
-        full_losses.push(full.step_read().unwrap().loss.total.to_bits());
-    }
+    let full_losses = losses(&mut full, n + m);
 
-    let ckpt = tmp.path().join("run");
-    std::fs::create_dir_all(&ckpt).unwrap();
     let mut first = tiny_trainer(&data);
-    for _ in 0..n {
-        first.step().unwrap();
-    }
+    losses(&mut first, n);
     first.set_wall_s(12.5);
-    first.save_checkpoint(&ckpt).unwrap();
-    drop(first);
-
-    let mut resumed = Trainer::resume(&ckpt, tiny_run(), data.clone(), &Device::Cpu).unwrap();
+    let mut resumed = save_and_resume(first, &tmp.path().join("run"), tiny_run(), &data);
     assert_eq!(resumed.iteration(), n as u64);
     assert_eq!(resumed.progress().wall_s, 12.5);
-    let mut resumed_losses = Vec::new();
-    for _ in 0..m {
-        resumed_losses.push(resumed.step_read().unwrap().loss.total.to_bits());
-    }
+    let resumed_losses = losses(&mut resumed, m);
 
     assert_eq!(
         resumed_losses,
@@ -223,22 +210,12 @@ fn resume_with_an_occupancy_grid_equals_uninterrupted_run() {
     let (n, m) = (2, 2);
     let trainer = || Trainer::new(run.clone(), data.clone(), &Device::Cpu).unwrap();
     let mut full = trainer();
-    for _ in 0..n + m {
-        full.step().unwrap();
-    }
-    let ckpt = tmp.path().join("run");
-    std::fs::create_dir_all(&ckpt).unwrap();
+    losses(&mut full, n + m);
     let mut first = trainer();
-    for _ in 0..n {
-        first.step().unwrap();
-    }
-    first.save_checkpoint(&ckpt).unwrap();
-    drop(first);
-    let mut resumed = Trainer::resume(&ckpt, run.clone(), data.clone(), &Device::Cpu).unwrap();
+    losses(&mut first, n);
+    let mut resumed = save_and_resume(first, &tmp.path().join("run"), run.clone(), &data);
     assert!(resumed.avatar().occupancy().is_some_and(|g| g.is_built()));
-    for _ in 0..m {
-        resumed.step().unwrap();
-    }
+    losses(&mut resumed, m);
     let (a, b) = (full.avatar().occupancy(), resumed.avatar().occupancy());
     assert_eq!(a.unwrap().refreshes(), (n + m) as u64);
     assert!(a == b, "the grid differs after resume");
@@ -275,23 +252,11 @@ fn resume_with_the_fast_recipe_equals_uninterrupted_run() {
     let trainer = || Trainer::new(run.clone(), data.clone(), &Device::Cpu).unwrap();
     let mut full = trainer();
     let lr0 = full.lrs();
-    let mut full_losses = Vec::new();
-    for _ in 0..n + m {
-        full_losses.push(full.step_read().unwrap().loss.total.to_bits());
-    }
-    let ckpt = tmp.path().join("run");
-    std::fs::create_dir_all(&ckpt).unwrap();
+    let full_losses = losses(&mut full, n + m);
     let mut first = trainer();
-    for _ in 0..n {
-        first.step().unwrap();
-    }
-    first.save_checkpoint(&ckpt).unwrap();
-    drop(first);
-    let mut resumed = Trainer::resume(&ckpt, run.clone(), data.clone(), &Device::Cpu).unwrap();
-    let mut resumed_losses = Vec::new();
-    for _ in 0..m {
-        resumed_losses.push(resumed.step_read().unwrap().loss.total.to_bits());
-    }
+    losses(&mut first, n);
+    let mut resumed = save_and_resume(first, &tmp.path().join("run"), run.clone(), &data);
+    let resumed_losses = losses(&mut resumed, m);
     assert_eq!(
         resumed_losses,
         full_losses[n..],
@@ -346,6 +311,26 @@ fn a_culling_run_builds_its_grid_over_the_windows_span() {
     culled.save_checkpoint(&ckpt).unwrap();
     let resumed = Trainer::resume(&ckpt, run, data, &Device::Cpu).unwrap();
     assert!(resumed.avatar().occupancy() == culled.avatar().occupancy());
+}
+
+/// `steps` steps of `t`: the bits of each one's total loss.
+fn losses(t: &mut Trainer, steps: usize) -> Vec<u64> {
+    (0..steps)
+        .map(|_| t.step_read().unwrap().loss.total.to_bits())
+        .collect()
+}
+
+/// `t` checkpointed into a new directory `dir`, dropped, and resumed from there with `run`.
+fn save_and_resume(
+    t: Trainer,
+    dir: &std::path::Path,
+    run: pma_model::train::RunConfig,
+    data: &std::sync::Arc<pma_data::dataset::Dataset>,
+) -> Trainer {
+    std::fs::create_dir_all(dir).unwrap();
+    t.save_checkpoint(dir).unwrap();
+    drop(t);
+    Trainer::resume(dir, run, data.clone(), &Device::Cpu).unwrap()
 }
 
 /// A tiny run directory with a checkpoint after each of `steps` steps: the temporary
