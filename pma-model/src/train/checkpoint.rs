@@ -351,6 +351,16 @@ impl Trainer {
         Self::resume_from(dir, &point, run, source, device)
     }
 
+    /// Continue the run in `dir` on the same `data` (see [`Self::resume_with_source`]).
+    pub fn resume(
+        dir: &Path,
+        run: RunConfig,
+        data: Arc<Dataset>,
+        device: &Device,
+    ) -> Result<Self, TrainError> {
+        Self::resume_at(dir, &verified_resume_point(dir)?, run, data, device)
+    }
+
     /// Continue the run in `dir` from `point` (see [`verified_resume_point`]) on the same
     /// `data` it was trained on.
     pub fn resume_at(

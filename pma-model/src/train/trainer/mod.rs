@@ -28,7 +28,6 @@ mod optimization;
 pub use chunks::{chunk_rays, AUTO_CHUNK_POINT_JOINTS};
 pub use optimization::{LossParts, Optimization, SkipReason, StepLoss, StepStats};
 
-use std::path::Path;
 use std::sync::Arc;
 
 use candle_core::{Device, Tensor, Var};
@@ -178,18 +177,6 @@ impl Trainer {
         let avatar = Avatar::new(run.model.clone(), &rest, run.train.seed, device)?
             .with_numerics(run.numerics);
         Self::with_source(run, avatar, source)
-    }
-
-    /// Continue the run in `dir` on the same `data` (see [`Self::resume_with_source`]).
-    pub fn resume(
-        dir: &Path,
-        mut run: RunConfig,
-        data: Arc<Dataset>,
-        device: &Device,
-    ) -> Result<Self, TrainError> {
-        run.model.n_framecodes = data.n_images();
-        let source = Self::dataset_source(&run, data, device)?;
-        Self::resume_with_source(dir, run, source, device)
     }
 
     pub(in crate::train) fn dataset_source(
