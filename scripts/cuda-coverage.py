@@ -12,7 +12,8 @@ Sources read:
   * candle-kernels and candle-nn of the version in Cargo.lock, from cargo's registry
     (`cargo fetch` puts them there): every kernel the PTX modules define (macro calls
     expanded), with the `__CUDA_ARCH__` it needs; candle-nn's sigmoid;
-  * pma's own custom ops (every `impl Kernel<N>` of pma-model/src: the adapter in
+  * pma's own custom ops (every `impl Kernel<N>` of pma-model/src, a blanket one for each op
+    of its trait: the adapter in
     compute/kernel/op.rs gives each one candle's CUDA forward): pma's kernels, which take whatever their gate lets through (f32 tensors), so any signature, and
     launch nothing for an empty grid.
 
@@ -471,18 +472,27 @@ def pma_custom_rows(t):
     against the candle rows. The file, not the line, names where: pma's own ops change more
     often than candle's release does."""
     seen = {}
+    sources = {}
     for path in sorted(glob.glob(os.path.join(ROOT, "pma-model", "src", "**", "*.rs"), recursive=True)):
-        text = read(path)
-        for m in re.finditer(r"impl Kernel<[123]> for (\w+)", text):
+        sources[path] = read(path)
+    # A blanket `impl<T: Trait> Kernel<N> for T` names the op of every `impl Trait for Op`.
+    for path, text in sources.items():
+        for m in re.finditer(r"impl Kernel<[123]> for (\w+)|impl<T: (\w+)> Kernel<[123]> for T\b", text):
             i, j = block(text, m.start())
             body = text[i:j]
             n = re.search(r"\bfn name\(&self\)", body)
             if not n:
                 continue
             ni, nj = block(body, n.end())
+            if m.group(1):
+                impls = [(m.group(1), rel(path))]
+            else:
+                impls = [(op, rel(p)) for p, t in sources.items()
+                         for op in re.findall(r"impl %s for (\w+)" % m.group(2), t)]
+                if not impls:
+                    fail(f"{rel(path)}: no op implements {m.group(2)}")
             for name in re.findall(r'"([\w-]+)"', body[ni:nj]):
-                where = rel(path)
-                seen.setdefault(name, []).append((m.group(1), where))
+                seen.setdefault(name, []).extend(impls)
     for name, impls in sorted(seen.items()):
         kernel = "pma: " + ", ".join(sorted({s for s, _ in impls}))
         t.add("custom", name, "", ["*"], "*", True, kernel, "; ".join(sorted({w for _, w in impls})))
