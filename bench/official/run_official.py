@@ -3,7 +3,8 @@ figures with pma (see compare.sh and the README's CPU speed section).
 
 The official code is not part of pma: it is imported at run time from --official DIR (a
 checkout of ChunjinSong/PM-Avatars). pytorch3d is replaced by a small stand-in
-(p3d_standin/) and the plotting modules it imports but never uses here by empty modules.
+(p3d_standin/), and the plotting modules and OpenCV, which it imports but never uses here,
+by empty modules.
 
     python bench/official/run_official.py --official DIR --what forward|train|render \
         --rays N --repeats R --device cpu|cuda [--threads 2] --json OUT \
@@ -60,7 +61,8 @@ def import_official(official):
     sys.path.insert(0, os.path.join(HERE, "p3d_standin"))
     import importlib.machinery
 
-    for name in ["plotly", "plotly.graph_objects", "matplotlib", "matplotlib.pyplot"]:
+    # cv2 is only used by mask drawing (create_kp_mask), never while training or rendering.
+    for name in ["plotly", "plotly.graph_objects", "matplotlib", "matplotlib.pyplot", "cv2"]:
         if name not in sys.modules:
             try:
                 __import__(name)
@@ -180,13 +182,19 @@ def run_forward(args, model, batch):
     return times
 
 
+def send_batches_to(device):
+    """`Trainer.train_batch` moves each batch to 'cuda' by name; send it to `device`."""
+    import core.trainer as official_trainer
+
+    to_device = official_trainer.to_device
+    official_trainer.to_device = lambda data, _dev="cuda": to_device(data, device)
+
+
 def run_train(args, cfg, ckpt, model, batch):
     import core.trainer as official_trainer
 
     model.train()
-    # train_batch moves the batch to 'cuda' by name; send it to --device instead.
-    to_device = official_trainer.to_device
-    official_trainer.to_device = lambda data, _dev="cuda": to_device(data, args.device)
+    send_batches_to(args.device)
     trainer = official_trainer.Trainer(config=cfg.trainer, loss_config=cfg.losses,
                                        full_config=cfg, model=model, ckpt=ckpt)
     tb = to_torch(batch, args.device)
