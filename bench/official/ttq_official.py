@@ -13,7 +13,8 @@ of 64 rays per step, perturbed backgrounds). Only fetching the batch and `train_
 count as training time; at each mark (minutes of training time) the state is saved with the
 official `Trainer.save_ckpt` as OUT/official_<m>min.th, untimed, and the iterations are
 logged. OUT/official.json holds per mark: iterations, training seconds, ms per step (and
-the part of it spent fetching the batch from the DataLoader). The
+the part of it spent fetching the batch from the DataLoader), and the ms per step of every
+--window seconds of training (printed as they end). The
 official code is imported at run time (run_official.import_official: pytorch3d replaced by
 p3d_standin/); the dataset wants DIR/S9_test.h5 beside the train file (export_h5.py of the
 novel-view split), as its loader reads a render frame from it.
@@ -92,6 +93,8 @@ def parse():
     t.add_argument("--threads", type=int, default=2, help="torch.set_num_threads")
     t.add_argument("--workers", type=int, default=0, help="DataLoader workers")
     t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--window", type=float, default=30.0,
+                   help="seconds of training per logged ms/step window")
     s = sub.add_parser("samples", help="set the sample counts of a converted checkpoint")
     s.add_argument("model", help="pma checkpoint (.safetensors)")
     s.add_argument("--coarse", type=int, default=16)
@@ -158,6 +161,9 @@ def train(args):
           f"{args.workers} DataLoader workers", flush=True)
     batches = iter(loader)
     trained, loading, it, rows = 0.0, 0.0, 0, []
+    # (training seconds, iterations) at each window's end: the step time over the run, as a
+    # machine shared with other work slows some windows.
+    windows, window_start = [], (0.0, 0)
     for m in marks:
         while trained < m * 60.0:
             t = time.perf_counter()
@@ -167,6 +173,12 @@ def train(args):
             stats = trainer.train_batch(batch, global_iter=it)
             trained += time.perf_counter() - t
             loading += loaded - t
+            if trained - window_start[0] >= args.window:
+                ms = 1e3 * (trained - window_start[0]) / (it - window_start[1])
+                windows.append({"train_s": trained, "iterations": it, "window_ms_per_step": ms})
+                print(f"  {trained:6.1f} s: iteration {it}, {ms:.1f} ms/step over the last "
+                      f"{it - window_start[1]} steps", flush=True)
+                window_start = (trained, it)
             if not np.isfinite(stats["total_loss"]):
                 print(f"ttq_official: loss {stats['total_loss']} at iteration {it}",
                       file=sys.stderr)
@@ -183,7 +195,7 @@ def train(args):
               f"the batch), batch PSNR {stats['psnr']:.2f} dB -> {path}", flush=True)
     with open(os.path.join(args.out, "official.json"), "w") as f:
         json.dump({"threads": args.threads, "workers": args.workers, "seed": args.seed,
-                   "torch": torch.__version__, "overrides": CPU_SMALL, "marks": rows}, f,
+                   "torch": torch.__version__, "overrides": CPU_SMALL, "marks": rows, "windows": windows}, f,
                   indent=1)
 
 
