@@ -1,7 +1,8 @@
 //! Time to quality (`pma bench --time-to-quality`): held-out PSNR against training time for
 //! parity, the fast recipe (culling with the grid), each other training option alone and
-//! all of them together, on synthetic scenes of seeds the options were not tuned on, and the minutes each needs to
-//! reach the held-out PSNR parity has after each mark (1, 2 and 5 minutes by default).
+//! all of them together, on synthetic scenes of seeds the options were not tuned on, and
+//! the minutes each needs to reach the held-out PSNR parity has after each mark (1, 2 and 5
+//! minutes by default).
 //!
 //! For each scene seed every run trains from the same initialisation, and the runs take
 //! turns of [`TURN_SECONDS`] of training until each has spent its budget, so a machine whose

@@ -507,8 +507,7 @@ impl WindowTest {
         }
         let per_pose = n_rays / self.n_poses();
         // The test is a few hundred host flops per culled sample, as much as a fifth of a
-        // culled render on one core: blocks of rays go to the workers (the result does not
-        // depend on the split).
+        // culled render on one core: worth the workers.
         by_ray_blocks(n_rays, s, |rays| {
             let mut out = Vec::with_capacity(rays.len() * s);
             for r in rays {
