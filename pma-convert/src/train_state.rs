@@ -99,6 +99,8 @@ pub fn train_state_from_torch(
         run_config: None,
         model_fingerprint: model_file.map(fingerprint),
         error_map: None,
+        occupied: None,
+        weights: Default::default(),
     })
 }
 

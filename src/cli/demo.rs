@@ -222,7 +222,7 @@ fn train_scene(
     } else {
         println!(
             "[2/4] training preset `{preset}` for {} min with the fast recipe (`pma train --fast`; \
-             --parity trains without it), which skips work the scene does not need:",
+             --parity trains without it):",
             args.minutes
         );
         for c in pma_model::train::recipe::fast(&mut run) {

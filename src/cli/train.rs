@@ -89,8 +89,13 @@ pub struct Args {
     /// does not repeat bit for bit. Not for a resumed run.
     #[arg(long)]
     pub anneal: bool,
-    /// The fast recipe: ray and sample culling at w^p ≤ 0.6 with the occupancy grid
-    /// (`pma demo` trains with it). Not for a resumed run.
+    /// Save and score the moving average of the weights over the steps instead of the last
+    /// step's weights (`[train.average]` sets its decay); the trained weights stay in the
+    /// train state. Not for a resumed run.
+    #[arg(long)]
+    pub average: bool,
+    /// The fast recipe: ray and sample culling at w^p ≤ 0.6 with the occupancy grid, and
+    /// averaged weights (`pma demo` trains with it). Not for a resumed run.
     #[arg(long)]
     pub fast: bool,
     /// No progress bar (log lines only).
@@ -222,6 +227,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         ("--coarse-from-grid", args.coarse_from_grid),
         ("--error-map", args.error_map),
         ("--anneal", args.anneal),
+        ("--average", args.average),
         ("--fast", args.fast),
     ];
     if let Some((flag, _)) = switches.iter().find(|(_, on)| *on) {
@@ -235,6 +241,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         if args.anneal {
             let a = run.train.anneal.get_or_insert_with(Default::default);
             a.seconds = args.minutes.map_or(0.0, |m| m * 60.0);
+        }
+        if args.average {
+            run.train.average.get_or_insert_with(Default::default);
         }
         if args.fast {
             for c in pma_model::train::recipe::fast(run) {

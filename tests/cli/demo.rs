@@ -54,7 +54,7 @@ fn demo_writes_summary_renders_and_plot() {
         .collect();
     assert_eq!(
         options,
-        ["--cull-rays --cull-samples 0.6", "--occupancy"],
+        ["--cull-rays --cull-samples 0.6", "--occupancy", "--average"],
         "{options:?}"
     );
     assert!(stdout.contains(&format!(
@@ -63,6 +63,7 @@ fn demo_writes_summary_renders_and_plot() {
     )));
     let config = std::fs::read_to_string(out_dir.join("run/config.toml")).unwrap();
     assert!(config.contains("[train.occupancy]"), "{config}");
+    assert!(config.contains("[train.average]"), "{config}");
     assert!(!config.contains("[train.error_map]"), "{config}");
     assert!(summary["wall_s"].as_f64().unwrap() > 0.0);
     for key in ["model", "data"] {
@@ -97,7 +98,13 @@ fn demo_parity_trains_without_the_recipe() {
     assert_eq!(summary["options"], serde_json::json!([]));
     assert!(summary["iterations"].as_u64().unwrap() > 0);
     let config = std::fs::read_to_string(out_dir.join("run/config.toml")).unwrap();
-    for key in ["error_map", "anneal", "occupancy", "coarse_from_grid"] {
+    for key in [
+        "error_map",
+        "anneal",
+        "average",
+        "occupancy",
+        "coarse_from_grid",
+    ] {
         assert!(!config.contains(key), "{key} in {config}");
     }
 }

@@ -336,7 +336,7 @@ fn bench_model(
     )?;
     obs.phase_end();
     let path = req.out.join("model.safetensors");
-    trainer.avatar().save(&path)?;
+    trainer.with_model(|a| a.save(&path).map_err(crate::train::TrainError::from))?;
     obs.note(&format!(
         "trained {} iterations of {} in-process ({:.0} s)",
         trainer.iteration(),
@@ -696,7 +696,9 @@ fn measure_training(
             res.ms_per_step,
         );
         if budget > 0.0 {
-            let (p, l) = heldout_scores(run.trainer.avatar(), scene, &opt.pass())?;
+            let (p, l) = run
+                .trainer
+                .with_model(|a| heldout_scores(a, scene, &opt.pass()))?;
             res.budget_heldout_psnr = Some(p);
             res.budget_heldout_lpips = l;
             res.budget_iterations = Some(run.trainer.iteration());

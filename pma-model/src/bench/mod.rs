@@ -22,7 +22,9 @@ pub mod shares;
 pub use account::{account, AccountReport, AccountRequest};
 pub use measure::{measure, BenchReport, BenchRequest, ForwardResult, OptionResult};
 pub use options::{options, BenchOption};
-pub use quality::{quality_options, time_to_quality, QualityReport, QualityRequest};
+pub use quality::{
+    quality_options, select_options, time_to_quality, QualityReport, QualityRequest,
+};
 pub use shares::{shares, PassShare, SharesReport, SharesRequest};
 
 use crate::error::ModelError;

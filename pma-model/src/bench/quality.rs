@@ -28,6 +28,7 @@ use super::measure::{prepare_scene, Scene};
 use super::{BenchObserver, Result};
 use crate::eval::{evaluate, EvalOptions};
 use crate::network::occupancy::OccupancyConfig;
+use crate::train::average::AverageConfig;
 use crate::train::presets::Anneal;
 use crate::train::{recipe, Preset, RunConfig, Trainer};
 use pma_data::error_map::ErrorMapConfig;
@@ -41,18 +42,21 @@ const CHUNK: usize = 4096;
 /// One configuration compared: how it changes a preset's run for a budget of `minutes`.
 #[derive(Debug, Clone)]
 pub struct QualityOption {
+    /// Its name on the command line (`pma bench --ttq-options`).
+    pub key: &'static str,
     pub name: String,
     pub setup: fn(&mut RunConfig, f64),
     /// Its schedule follows the budget: one run per mark.
     pub budgeted: bool,
 }
 
-/// Parity, the fast recipe (ray and sample culling at 0.6 with the grid), each of the other
-/// options alone (the error map; the annealed rates; coarse samples from the grid, which
-/// needs the grid), and all of them together.
+/// Parity, culling at 0.6 with the grid, each of the other options alone (the error map;
+/// the annealed rates; coarse samples from the grid, which needs the grid; averaged
+/// weights), the fast recipe and all of them together.
 pub fn quality_options() -> Vec<QualityOption> {
-    fn recipe(run: &mut RunConfig, _: f64) {
+    fn culled(run: &mut RunConfig) {
         recipe::fast(run);
+        run.train.average = None;
     }
     fn anneal(run: &mut RunConfig, minutes: f64) {
         run.train.anneal = Some(Anneal {
@@ -60,21 +64,24 @@ pub fn quality_options() -> Vec<QualityOption> {
             ..Anneal::default()
         })
     }
-    let option = |name: &str, setup: fn(&mut RunConfig, f64), budgeted| QualityOption {
+    let option = |key, name: &str, setup: fn(&mut RunConfig, f64), budgeted| QualityOption {
+        key,
         name: name.into(),
         setup,
         budgeted,
     };
     vec![
-        option("parity", |_, _| {}, false),
-        option("cull 0.6 + grid (the fast recipe)", recipe, false),
+        option("parity", "parity", |_, _| {}, false),
+        option("cull-grid", "cull 0.6 + grid", |run, _| culled(run), false),
         option(
+            "error-map",
             "error map",
             |run, _| run.train.error_map = Some(ErrorMapConfig::default()),
             false,
         ),
-        option("anneal over the budget", anneal, true),
+        option("anneal", "anneal over the budget", anneal, true),
         option(
+            "coarse-from-grid",
             "grid + coarse from grid",
             |run, _| {
                 run.train.occupancy = Some(OccupancyConfig::default());
@@ -83,16 +90,53 @@ pub fn quality_options() -> Vec<QualityOption> {
             false,
         ),
         option(
+            "average",
+            "averaged weights",
+            |run, _| run.train.average = Some(AverageConfig::default()),
+            false,
+        ),
+        option(
+            "recipe",
+            "the fast recipe",
+            |run, _| {
+                recipe::fast(run);
+            },
+            false,
+        ),
+        option(
+            "all",
             "all options together",
             |run, minutes| {
                 recipe::fast(run);
                 run.train.coarse_from_grid = true;
                 run.train.error_map = Some(ErrorMapConfig::default());
+                run.train.average = Some(AverageConfig::default());
                 anneal(run, minutes);
             },
             true,
         ),
     ]
+}
+
+/// The options named by `keys` ([`QualityOption::key`]), in the order of
+/// [`quality_options`]; parity, the target, is always the first. An unknown key is an
+/// error naming the known ones.
+pub fn select_options(keys: &[String]) -> std::result::Result<Vec<QualityOption>, String> {
+    let all = quality_options();
+    if let Some(k) = keys
+        .iter()
+        .find(|k| !all.iter().any(|o| o.key == k.as_str()))
+    {
+        let known: Vec<&str> = all.iter().map(|o| o.key).collect();
+        return Err(format!(
+            "unknown option `{k}` (expected one of {})",
+            known.join(", ")
+        ));
+    }
+    Ok(all
+        .into_iter()
+        .filter(|o| o.key == "parity" || keys.iter().any(|k| k == o.key))
+        .collect())
 }
 
 /// What to measure.
@@ -186,14 +230,17 @@ impl Run {
 
 /// Held-out PSNR of `trainer`'s avatar on the scene's images (parity render).
 fn score(trainer: &Trainer, scene: &Scene) -> Result<f64> {
-    let r = evaluate(
-        trainer.avatar(),
-        &scene.held,
-        "novel_view",
-        &scene.eval_set,
-        &EvalOptions::quick(CHUNK),
-        &mut |_, _| {},
-    )?;
+    let r = trainer.with_model(|a| {
+        evaluate(
+            a,
+            &scene.held,
+            "novel_view",
+            &scene.eval_set,
+            &EvalOptions::quick(CHUNK),
+            &mut |_, _| {},
+        )
+        .map_err(crate::train::TrainError::from)
+    })?;
     Ok(r.psnr)
 }
 
@@ -419,5 +466,23 @@ mod tests {
         let mut parity = RunConfig::from_preset(Preset::CpuSmall);
         (opts[0].setup)(&mut parity, 5.0);
         assert_eq!(parity, RunConfig::from_preset(Preset::CpuSmall));
+        // The recipe row is `recipe::fast`, whatever it holds.
+        let recipe = opts.iter().find(|o| o.key == "recipe").unwrap();
+        let (mut a, mut b) = (parity.clone(), parity.clone());
+        (recipe.setup)(&mut a, 5.0);
+        recipe::fast(&mut b);
+        assert_eq!(a, b);
+    }
+
+    #[test]
+    fn options_are_selected_by_key_with_parity_first() {
+        let keys = |k: &[&str]| -> Vec<String> { k.iter().map(|s| s.to_string()).collect() };
+        let picked = select_options(&keys(&["recipe", "average"])).unwrap();
+        let picked: Vec<&str> = picked.iter().map(|o| o.key).collect();
+        assert_eq!(picked, ["parity", "average", "recipe"]);
+        let all = select_options(&keys(&["all", "parity"])).unwrap();
+        assert_eq!(all.len(), 2);
+        let err = select_options(&keys(&["nope"])).unwrap_err();
+        assert!(err.contains("`nope`") && err.contains("cull-grid"), "{err}");
     }
 }

@@ -337,6 +337,26 @@ impl OccupancyGrid {
         &self.occupied[j * n..(j + 1) * n]
     }
 
+    /// Every cell's occupancy, [24·R³] in the layout of [`Self::density`]. It follows the
+    /// values at each refresh only, so between refreshes it is not what the values give:
+    /// a resumed training run restores it ([`Self::set_occupied`]) to continue exactly.
+    pub fn occupied_cells(&self) -> &[bool] {
+        &self.occupied
+    }
+
+    /// Replace every cell's occupancy (as [`Self::occupied_cells`] gives it).
+    pub fn set_occupied(&mut self, occupied: Vec<bool>) -> Result<()> {
+        if occupied.len() != self.occupied.len() {
+            return Err(ModelError::shape(
+                "occupancy.occupied",
+                self.shape(),
+                format!("{} values", occupied.len()),
+            ));
+        }
+        self.occupied = occupied;
+        Ok(())
+    }
+
     /// Whether cell c of joint j is occupied.
     pub fn cell_occupied(&self, j: usize, c: usize) -> bool {
         self.occupied[j * self.cfg.cells_per_joint() + c]

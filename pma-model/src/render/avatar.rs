@@ -483,6 +483,15 @@ impl Avatar {
         crate::render::occupancy::refresh(&self.net, grid, poses, pose, opts, rng)
     }
 
+    /// Restore the occupancy of every cell of the grid (a resumed training run; see
+    /// [`OccupancyGrid::occupied_cells`]).
+    pub fn set_occupied_cells(&mut self, occupied: Vec<bool>) -> Result<()> {
+        let grid = self.occupancy.as_mut().ok_or_else(|| {
+            ModelError::Input("occupancy: the model has no occupancy grid to restore".into())
+        })?;
+        Arc::make_mut(grid).set_occupied(occupied)
+    }
+
     /// Take what a training step's evaluated samples saw ([`Outputs::observed`]) into the
     /// occupancy grid: `cell = max(cell, σ)`. Their occupancy follows at the next refresh.
     pub fn observe_occupancy(&mut self, seen: &[GridObservation]) -> Result<()> {

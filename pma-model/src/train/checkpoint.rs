@@ -254,7 +254,8 @@ pub fn save(
 /// The checkpoint's files, each written atomically into the temporary directory.
 fn fill(dir: &Path, trainer: &Trainer, log: Option<&TrainLog>) -> Result<(), TrainError> {
     let model = dir.join(MODEL_FILE);
-    trainer.avatar().save(&model)?;
+    // The run's model: the averaged weights where the run averages them.
+    trainer.with_model(|a| a.save(&model).map_err(TrainError::from))?;
     let bytes = read_back(&model)?;
     trainer
         .train_state(fingerprint(&bytes))?

@@ -3,6 +3,7 @@
 //!
 //! * [`account`]: one training step under step accounting (launches, syncs, uploads, bytes).
 //! * [`adam`]: Adam with parameter groups, the lr schedule, global-norm clipping.
+//! * [`average`]: averaged weights, the model a run with `[train.average]` saves and scores.
 //! * [`batch`]: what a step consumes ([`TrainBatch`]) and where it comes from ([`BatchSource`]).
 //! * [`state`]: the train-state file (optimizer moments, RNG, sampler, iteration).
 //! * `log`: `log.csv`.
@@ -25,6 +26,7 @@
 
 pub mod account;
 pub mod adam;
+pub mod average;
 pub mod batch;
 pub mod checkpoint;
 mod error;

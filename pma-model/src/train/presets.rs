@@ -5,6 +5,7 @@ use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
+use super::average::AverageConfig;
 use super::error::TrainError;
 use crate::network::config::Config;
 use crate::network::occupancy::OccupancyConfig;
@@ -106,6 +107,12 @@ pub struct TrainConfig {
     /// Off (`None`) by default; omitted from the saved configuration while off.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub anneal: Option<Anneal>,
+    /// The run's model is the moving average of its weights over the steps
+    /// (`[train.average]`, [`crate::train::average`]): the model file of every checkpoint,
+    /// and what the held-out evaluation scores. Off (`None`) by default; omitted from the
+    /// saved configuration while off.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub average: Option<AverageConfig>,
 }
 
 /// Learning rates that anneal over a run's own length: at the share f of its span done
@@ -200,6 +207,7 @@ impl TrainConfig {
             coarse_from_grid: false,
             error_map: None,
             anneal: None,
+            average: None,
         }
     }
 
@@ -382,6 +390,9 @@ impl TrainConfig {
         if let Some(a) = &self.anneal {
             bad.extend(a.problems());
         }
+        if let Some(a) = &self.average {
+            bad.extend(a.problems());
+        }
         if bad.is_empty() {
             Ok(())
         } else {
@@ -525,6 +536,7 @@ impl RunConfig {
                 "coarse_from_grid",
                 "error_map",
                 "anneal",
+                "average",
             ],
         )?;
         let run = Self {

@@ -2,15 +2,18 @@
 //! held-out quality sooner on a CPU, switched on together over any preset; parity is the
 //! preset without them.
 //!
-//! It is ray and sample culling at w^p ≤ 0.6 with the occupancy grid: fewer network points
-//! per step, so about twice the steps per minute. The other time-to-quality options (coarse
-//! samples from the grid, the error map, rates annealed over the budget) stay options of
-//! their own: each alone, and the five together, reached parity's held-out PSNR later than
-//! culling with the grid did (`pma bench --time-to-quality`, docs/performance.md "Time to
-//! quality").
+//! It is ray and sample culling at w^p ≤ 0.6 with the occupancy grid (fewer network points
+//! per step, so about twice the steps per minute) and averaged weights (the model is the
+//! moving average of the weights over the last hundred or so steps, which scatter less
+//! than the weights of one step; the steps do not change). The other time-to-quality options
+//! (coarse samples from the grid, the error map, rates annealed over the budget) stay
+//! options of their own: each alone, and all together, reached parity's held-out PSNR later
+//! than culling with the grid did (`pma bench --time-to-quality`, docs/performance.md "Time
+//! to quality").
 
 use crate::network::occupancy::OccupancyConfig;
 use crate::render::options::{Culling, SampleFill};
+use crate::train::average::AverageConfig;
 use crate::train::presets::RunConfig;
 
 /// The w^p threshold of the recipe's sample culling.
@@ -32,6 +35,7 @@ pub fn fast(run: &mut RunConfig) -> Vec<Choice> {
         sample_fill: SampleFill::Network,
     };
     t.occupancy.get_or_insert_with(OccupancyConfig::default);
+    t.average.get_or_insert_with(AverageConfig::default);
     vec![
         Choice {
             option: "--cull-rays --cull-samples 0.6",
@@ -40,6 +44,10 @@ pub fn fast(run: &mut RunConfig) -> Vec<Choice> {
         Choice {
             option: "--occupancy",
             why: "samples in cells the grid marks empty skip the network",
+        },
+        Choice {
+            option: "--average",
+            why: "the model is the moving average of the weights, which scatter from step to step",
         },
     ]
 }
@@ -54,10 +62,12 @@ mod tests {
         for p in Preset::ALL {
             let mut run = RunConfig::from_preset(p);
             let choices = fast(&mut run);
-            assert_eq!(choices.len(), 2);
+            assert_eq!(choices.len(), 3);
             run.validate().unwrap_or_else(|e| panic!("{p}: {e}"));
             assert!(
-                run.train.culling.rays && run.train.occupancy.is_some(),
+                run.train.culling.rays
+                    && run.train.occupancy.is_some()
+                    && run.train.average.is_some(),
                 "{p}"
             );
             assert!(!run.train.coarse_from_grid, "{p}");

@@ -552,14 +552,10 @@ impl<'a> Session<'a> {
             return Ok(None);
         };
         let t = Instant::now();
-        let r = evaluate(
-            self.trainer.avatar(),
-            &h.data,
-            "held-out",
-            &h.images,
-            &h.opts,
-            &mut |_, _| {},
-        )?;
+        let r = self.trainer.with_model(|a| {
+            evaluate(a, &h.data, "held-out", &h.images, &h.opts, &mut |_, _| {})
+                .map_err(TrainError::from)
+        })?;
         for n in &r.empty_masks {
             self.observer.warning(&format!(
                 "{}: image {n} has an empty mask; skipped",

@@ -20,7 +20,10 @@
 //! The first five keys are the format shared with `pma-convert` (which writes them from a
 //! reference `.th` checkpoint); the optional ones are what an exact resume needs beyond them.
 //! A run whose sampler keeps an error map (`pma_data::error_map`) saves it as one more f32
-//! tensor, `sampler.error_map` [images, cells_y, cells_x].
+//! tensor, `sampler.error_map` [images, cells_y, cells_x]. A run whose model file holds the
+//! average of its weights ([`crate::train::average`]) saves the trained weights as
+//! `weights.<param>`; a run with an occupancy grid saves its marked cells as
+//! `occupancy.occupied` (u8).
 
 use std::collections::{BTreeMap, HashMap};
 use std::path::Path;
@@ -96,10 +99,22 @@ pub struct TrainState {
     pub model_fingerprint: Option<String>,
     /// The sampler's error map, [images, cells_y, cells_x] (optional).
     pub error_map: Option<Tensor>,
+    /// The occupancy grid's cells as the run last marked them (u8 0/1, the grid's layout):
+    /// between refreshes they differ from what the model file's values give.
+    pub occupied: Option<Tensor>,
+    /// The trained weights of a run whose model file holds their average
+    /// ([`crate::train::average`]), by parameter name; empty otherwise.
+    pub weights: HashMap<String, Tensor>,
 }
 
 /// The tensor name of the sampler's error map.
 const ERROR_MAP_TENSOR: &str = "sampler.error_map";
+
+/// The tensor name of the occupancy grid's marked cells.
+const OCCUPIED_TENSOR: &str = "occupancy.occupied";
+
+/// The prefix of the trained weights' tensors (see [`TrainState::weights`]).
+const WEIGHTS_PREFIX: &str = "weights.";
 
 #[derive(Serialize, Deserialize)]
 struct GroupMeta {
@@ -171,6 +186,12 @@ impl TrainState {
         }
         if let Some(m) = &self.error_map {
             tensors.push((ERROR_MAP_TENSOR.to_string(), m.to_dtype(DType::F32)?));
+        }
+        if let Some(o) = &self.occupied {
+            tensors.push((OCCUPIED_TENSOR.to_string(), o.to_dtype(DType::U8)?));
+        }
+        for (name, w) in &self.weights {
+            tensors.push((format!("{WEIGHTS_PREFIX}{name}"), w.to_dtype(DType::F32)?));
         }
         tensors.sort_by(|a, b| a.0.cmp(&b.0));
         safetensors::serialize(tensors.iter().map(|(n, t)| (n.as_str(), t)), Some(meta)).map_err(
@@ -264,7 +285,12 @@ impl TrainState {
 
         let st = safetensors::SafeTensors::deserialize(bytes).map_err(|e| fail(e.to_string()))?;
         let mut tensors: HashMap<String, Tensor> = HashMap::new();
+        let mut occupied = None;
         for (name, view) in st.tensors() {
+            if name == OCCUPIED_TENSOR && view.dtype() == safetensors::Dtype::U8 {
+                occupied = Some(candle_core::safetensors::Load::load(&view, device)?);
+                continue;
+            }
             if view.dtype() != safetensors::Dtype::F32 {
                 problems.push(format!(
                     "tensor `{name}`: expected f32, found {:?}",
@@ -275,6 +301,18 @@ impl TrainState {
             tensors.insert(name, candle_core::safetensors::Load::load(&view, device)?);
         }
         let error_map = tensors.remove(ERROR_MAP_TENSOR);
+        let weight_names: Vec<String> = tensors
+            .keys()
+            .filter(|n| n.starts_with(WEIGHTS_PREFIX))
+            .cloned()
+            .collect();
+        let weights = weight_names
+            .into_iter()
+            .filter_map(|n| {
+                let t = tensors.remove(&n)?;
+                Some((n[WEIGHTS_PREFIX.len()..].to_string(), t))
+            })
+            .collect();
         let params = param_states(&groups, &steps, tensors, &mut problems);
         if !problems.is_empty() {
             return Err(TrainError::State(problems));
@@ -300,6 +338,8 @@ impl TrainState {
             run_config,
             model_fingerprint,
             error_map,
+            occupied,
+            weights,
         })
     }
 }
@@ -438,6 +478,8 @@ mod tests {
             run_config: None,
             model_fingerprint: Some(fingerprint(b"model")),
             error_map: None,
+            occupied: None,
+            weights: HashMap::new(),
         }
     }
 

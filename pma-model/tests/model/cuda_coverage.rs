@@ -362,9 +362,10 @@ fn passes(model: &Config) -> BTreeMap<&'static str, Vec<Issued>> {
     });
     add("culled (every ray misses)", r);
 
-    // The fast recipe (`--fast`: culling, the grid) with the other time-to-quality options:
-    // coarse samples placed from the grid, the error map's per-ray errors and the annealed
-    // rates; the warm-up's step, then two that consult and feed the grid.
+    // The fast recipe (`--fast`: culling, the grid, averaged weights) with the other
+    // time-to-quality options: coarse samples placed from the grid, the error map's per-ray
+    // errors and the annealed rates; the warm-up's step, then two that consult and feed the
+    // grid.
     let (mut quick, s, _) = trainer(&data, model, |r| {
         pma_model::train::recipe::fast(r);
         r.train.coarse_from_grid = true;

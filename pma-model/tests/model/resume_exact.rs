@@ -227,9 +227,9 @@ fn resume_with_an_occupancy_grid_equals_uninterrupted_run() {
 
 /// The fast recipe (culling, the grid) with every other time-to-quality option (coarse
 /// samples from the grid, the error map with its unbiased weights, rates annealed over the
-/// run's iterations): a run
-/// stopped, checkpointed and resumed ends bit for bit where the uninterrupted run ends, its
-/// error map included, and the map and the schedule did move.
+/// run's iterations, averaged weights): a run stopped, checkpointed and resumed ends bit for
+/// bit where the uninterrupted run ends, its error map and its average included, and the
+/// map, the schedule and the average did move.
 #[test]
 fn resume_with_the_fast_recipe_equals_uninterrupted_run() {
     let tmp = tempfile::tempdir().unwrap();
@@ -239,12 +239,15 @@ fn resume_with_the_fast_recipe_equals_uninterrupted_run() {
     run.train.coarse_from_grid = true;
     run.train.error_map = Some(pma_data::error_map::ErrorMapConfig::default());
     run.train.anneal = Some(pma_model::train::presets::Anneal::default());
-    let (n, m) = (3, 3);
+    run.train.average = Some(pma_model::train::average::AverageConfig { decay: 0.5 });
+    // The grid refreshes after steps 1, 3, 5, ...: the checkpoint after step 4 holds values
+    // that step 4's samples raised and cells marked at step 3's refresh.
+    let (n, m) = (4, 3);
     run.train.iters = (n + m) as u64;
     run.train.occupancy = Some(pma_model::network::occupancy::OccupancyConfig {
         resolution: 8,
         warmup_steps: 1,
-        refresh_every: 1,
+        refresh_every: 2,
         ..Default::default()
     });
     let map = run.train.error_map.as_mut().unwrap();
@@ -267,12 +270,94 @@ fn resume_with_the_fast_recipe_equals_uninterrupted_run() {
     let visited = a.values().iter().filter(|&&v| v >= 0.0).count();
     assert!(visited > 0, "no cell of the error map was visited");
     assert_eq!(resumed.lrs(), full.lrs());
-    // Annealed over the 6 iterations: a tenth of the initial rates at the end.
+    // Annealed over the 7 iterations: a tenth of the initial rates at the end.
     for (end, start) in full.lrs().iter().zip(&lr0) {
         assert!((end / start - 0.1).abs() < 1e-9, "{end} vs {start}");
     }
     assert!(param_bits(&full) == param_bits(&resumed), "parameters");
     assert!(adam_bits(&full) == adam_bits(&resumed), "optimizer state");
+    assert!(
+        model_bits(&full) == model_bits(&resumed),
+        "averaged weights"
+    );
+    assert!(
+        full.avatar().occupancy() == resumed.avatar().occupancy(),
+        "the occupancy grid differs after resume"
+    );
+    assert!(
+        model_bits(&full) != param_bits(&full),
+        "the average is the last weights"
+    );
+    // Using the model leaves the trained weights as they were.
+    let before = param_bits(&full);
+    full.with_model(|_| Ok::<_, TrainError>(())).unwrap();
+    assert!(param_bits(&full) == before);
+}
+
+/// An averaged run's checkpoint holds the average as its model and the trained weights in
+/// its train state; a train state without them is refused, naming them.
+#[test]
+fn an_averaged_run_saves_the_average_as_its_model() {
+    use pma_model::train::average::AverageConfig;
+    use pma_model::train::TrainState;
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tiny_scene(&tmp.path().join("scene"));
+    let mut run = tiny_run();
+    run.train.average = Some(AverageConfig { decay: 0.5 });
+    let mut t = Trainer::new(run.clone(), data.clone(), &Device::Cpu).unwrap();
+    for _ in 0..3 {
+        t.step().unwrap();
+    }
+    let dir = tmp.path().join("run");
+    std::fs::create_dir_all(&dir).unwrap();
+    t.save_checkpoint(&dir).unwrap();
+    let saved = pma_model::render::Avatar::load(dir.join(MODEL_FILE), &Device::Cpu).unwrap();
+    let saved: Vec<(String, Vec<u32>)> = saved
+        .trainable()
+        .into_iter()
+        .map(|(n, v)| (n, bits(v.as_tensor())))
+        .collect();
+    assert!(saved == model_bits(&t), "the model file is not the average");
+    assert!(saved != param_bits(&t));
+
+    let newest = newest_checkpoint(&dir).unwrap().unwrap();
+    let mut state = TrainState::load(&newest.state(), &Device::Cpu).unwrap();
+    assert_eq!(state.weights.len(), param_bits(&t).len());
+    let gone = state.weights.keys().min().unwrap().clone();
+    state.weights.remove(&gone);
+    state.save(&newest.state()).unwrap();
+    let err = Trainer::resume_at(
+        &dir,
+        &pma_model::train::checkpoint::ResumePoint {
+            model: newest.model(),
+            state: newest.state(),
+            config: newest.config(),
+            log: None,
+            skipped: Vec::new(),
+        },
+        run,
+        data,
+        &Device::Cpu,
+    )
+    .err()
+    .unwrap();
+    assert!(
+        err.to_string().contains(&format!("weights.{gone}")),
+        "{err}"
+    );
+}
+
+/// The run's model (the averaged weights where it averages them) as raw f32 bits, by name.
+fn model_bits(t: &Trainer) -> Vec<(String, Vec<u32>)> {
+    t.with_model(|a| {
+        Ok::<_, TrainError>(
+            a.trainable()
+                .into_iter()
+                .map(|(n, v)| (n, bits(v.as_tensor())))
+                .collect(),
+        )
+    })
+    .unwrap()
 }
 
 /// A run with sample culling builds its grid only where the window can pass its threshold

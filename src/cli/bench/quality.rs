@@ -5,7 +5,7 @@
 use std::fmt::Write as _;
 
 use candle_core::Device;
-use pma_model::bench::quality::{quality_options, time_to_quality, QualityReport, QualityRequest};
+use pma_model::bench::quality::{select_options, time_to_quality, QualityReport, QualityRequest};
 use pma_model::train::Preset;
 
 use super::super::plot::plot_curves;
@@ -33,6 +33,10 @@ pub fn run(args: &Args, dev: &Device) -> anyhow::Result<()> {
             args.ttq_points
         );
     }
+    let options = match select_options(&args.ttq_options) {
+        Ok(o) => o,
+        Err(e) => refuse!("--ttq-options: {e}"),
+    };
     let scene = super::scene(args);
     let req = QualityRequest {
         preset,
@@ -42,7 +46,7 @@ pub fn run(args: &Args, dev: &Device) -> anyhow::Result<()> {
         marks: marks.clone(),
         points: args.ttq_points,
         eval_images: args.eval_images,
-        options: quality_options(),
+        options,
         device: dev.clone(),
         numerics: super::super::numerics(),
     };

@@ -35,6 +35,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
 use super::adam::Adam;
+use super::average::Average;
 use super::batch::{BatchSource, TrainBatch};
 use super::parallel::group::{injected_failure, Group, GroupStop, Vote};
 use super::source::DatasetSource;
@@ -78,6 +79,8 @@ pub struct Trainer {
     /// For each step whose per-ray errors are still on the device, oldest first: the image
     /// and pixel of each of its rays, in the order of its errors (the error map's input).
     drawn: std::collections::VecDeque<(Vec<usize>, Vec<usize>)>,
+    /// The moving average of `params` (`[train.average]`).
+    average: Option<Average>,
 }
 
 /// An error's message and its causes, on one line.
@@ -135,7 +138,12 @@ impl Trainer {
         let names: Vec<String> = adam.param_names().map(str::to_string).collect();
         let by_name: std::collections::HashMap<&str, &Var> =
             vars.iter().map(|(n, v)| (n.as_str(), v)).collect();
-        let params = names.iter().map(|n| by_name[n.as_str()].clone()).collect();
+        let params: Vec<Var> = names.iter().map(|n| by_name[n.as_str()].clone()).collect();
+        let average = t
+            .average
+            .clone()
+            .map(|cfg| Average::new(cfg, &params))
+            .transpose()?;
         let mut noise_rng = ChaCha8Rng::seed_from_u64(t.seed);
         noise_rng.set_stream(NOISE_STREAM);
         let opt = Optimization::new(adam, run.train.clone());
@@ -154,6 +162,7 @@ impl Trainer {
             group: None,
             vote: Vote::default(),
             drawn: Default::default(),
+            average,
         })
     }
 
@@ -205,6 +214,18 @@ impl Trainer {
 
     pub fn avatar(&self) -> &Avatar {
         &self.avatar
+    }
+
+    /// Run `f` on the run's model: the avatar with the averaged weights where the run
+    /// averages them (`[train.average]`), the avatar as trained otherwise.
+    pub fn with_model<R, E: From<TrainError>>(
+        &self,
+        f: impl FnOnce(&Avatar) -> Result<R, E>,
+    ) -> Result<R, E> {
+        match &self.average {
+            Some(a) => a.with_averaged(&self.params, || f(&self.avatar)),
+            None => f(&self.avatar),
+        }
     }
 
     /// Completed iterations.
@@ -395,6 +416,9 @@ impl Trainer {
                 e.rays.iter().map(|&r| pixels[r] as usize).collect(),
             ));
         }
+        if let Some(a) = &mut self.average {
+            a.update(&self.params, self.opt.iter)?;
+        }
         crate::compute::profile::mark("grad norm + Adam", &device);
         self.pass_totals.add(&stats);
         // The densities the step saw are the model's before this update: recent enough for a
@@ -578,6 +602,24 @@ impl Trainer {
                 .error_map()
                 .map(|m| Tensor::from_vec(m.values().to_vec(), m.shape().to_vec(), &Device::Cpu))
                 .transpose()?,
+            occupied: self
+                .avatar
+                .occupancy()
+                .map(|g| {
+                    let cells: Vec<u8> = g.occupied_cells().iter().map(|&o| o as u8).collect();
+                    Tensor::from_vec(cells, g.shape().to_vec(), &Device::Cpu)
+                })
+                .transpose()?,
+            // An averaged run's model file holds the average; the trained weights go here.
+            weights: match self.average {
+                Some(_) => self
+                    .names
+                    .iter()
+                    .zip(&self.params)
+                    .map(|(n, p)| Ok((n.clone(), p.as_tensor().detach().copy()?)))
+                    .collect::<Result<_, TrainError>>()?,
+                None => Default::default(),
+            },
         })
     }
 
@@ -595,6 +637,16 @@ impl Trainer {
             ]));
         }
         self.opt.adam.load_states(state.params, &lrs)?;
+        self.restore_weights(state.weights)?;
+        // The grid loaded with the model marks its cells from its values, which hold what
+        // the steps since its last refresh saw; the run marked them at that refresh. (A
+        // state without them, from before they were saved, keeps the values' marks.)
+        if let (Some(o), Some(_)) = (state.occupied, self.avatar.occupancy()) {
+            let cells = o.flatten_all()?.to_vec1::<u8>()?;
+            self.avatar
+                .set_occupied_cells(cells.into_iter().map(|c| c != 0).collect())
+                .map_err(|e| TrainError::State(vec![e.to_string()]))?;
+        }
         self.opt.iter = state.global_iter;
         self.opt.progress = state.progress.unwrap_or_default();
         // Rates follow from the iteration (and the run's clock); recomputing avoids trusting
@@ -612,6 +664,50 @@ impl Trainer {
         }
         self.source
             .restore(state.sampler.as_ref().unwrap_or(&serde_json::Value::Null))
+    }
+
+    /// An averaged run was loaded from its model file, the average: that becomes the
+    /// average again, and the trained weights come from the train state.
+    fn restore_weights(
+        &mut self,
+        mut weights: std::collections::HashMap<String, Tensor>,
+    ) -> Result<(), TrainError> {
+        let Some(cfg) = self.run.train.average.clone() else {
+            return match weights.is_empty() {
+                true => Ok(()),
+                false => Err(TrainError::State(vec![
+                    "the train state holds trained weights (`weights.*`) but the run does not \
+                     average them ([train.average])"
+                        .into(),
+                ])),
+            };
+        };
+        self.average = Some(Average::new(cfg, &self.params)?);
+        let mut problems = Vec::new();
+        for (name, p) in self.names.iter().zip(&self.params) {
+            match weights.remove(name) {
+                Some(w) if w.dims() == p.dims() => p.set(&w.to_device(p.device())?)?,
+                Some(w) => problems.push(format!(
+                    "`weights.{name}` is {:?}, the model's parameter {:?}",
+                    w.dims(),
+                    p.dims()
+                )),
+                None => problems.push(format!(
+                    "`weights.{name}` is missing (a run with [train.average] keeps its trained \
+                     weights in the train state)"
+                )),
+            }
+        }
+        let mut left: Vec<String> = weights.into_keys().collect();
+        left.sort();
+        problems.extend(
+            left.into_iter()
+                .map(|n| format!("`weights.{n}` names no parameter of the model")),
+        );
+        match problems.is_empty() {
+            true => Ok(()),
+            false => Err(TrainError::State(problems)),
+        }
     }
 }
 
