@@ -566,7 +566,7 @@ fn time_to_quality_writes_the_table_and_plot() {
         .collect();
     assert_eq!(names.first(), Some(&"parity"));
     assert_eq!(names.last(), Some(&"all options together"));
-    assert_eq!(names.len(), 6, "{names:?}");
+    assert_eq!(names.len(), 8, "{names:?}");
     let initial = options[0]["seeds"][0]["runs"][0]["curve"][0][1]
         .as_f64()
         .unwrap();
@@ -597,6 +597,26 @@ fn time_to_quality_writes_the_table_and_plot() {
         "{md}"
     );
     assert!(dir.path().join("time_to_quality.png").is_file());
+    // --ttq-options picks the rows; parity always runs; an unknown key is refused.
+    ok(run(&[
+        "--ttq-seeds",
+        "5",
+        "--ttq-marks",
+        "0.02",
+        "--ttq-points",
+        "1",
+        "--ttq-options",
+        "recipe",
+    ]));
+    let json = read_json(&dir.path().join("quality.json"));
+    let names: Vec<&str> = json["options"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|o| o["name"].as_str().unwrap())
+        .collect();
+    assert_eq!(names, ["parity", "the fast recipe"]);
+    exits_2_with(run(&["--ttq-options", "nope"]), "--ttq-options");
 
     exits_2_with(run(&["--ttq-marks", "2,1"]), "--ttq-marks");
 }
