@@ -255,13 +255,20 @@ pub(crate) fn prepare_scene(
             obs.warning(&format!("{}: {w}", dir.join(file).display()));
         }
     }
-    let k = eval_images.min(held.n_images()).max(1);
-    let eval_set: Vec<usize> = (0..k).map(|i| i * held.n_images() / k).collect();
+    let eval_set = held_out_set(held.n_images(), eval_images);
     Ok(Scene {
         train,
         held,
         eval_set,
     })
+}
+
+/// The `k` held-out images the bench scores: the ones `pma eval --max-images k` scores, so
+/// the bench's PSNR is eval's. The synthetic split interleaves its cameras, and a stride
+/// that divides their count would see one camera only.
+fn held_out_set(n_images: usize, k: usize) -> Vec<usize> {
+    let all: Vec<usize> = (0..n_images).collect();
+    crate::eval::spread(&all, k.max(1))
 }
 
 /// Train `run` for `seconds` (at least 2 steps); `elapsed` hears the seconds spent after
@@ -757,4 +764,22 @@ fn inactive_joint_fraction(avatar: &Avatar, view: &View) -> Result<f64> {
         total += 24;
     }
     Ok(inactive as f64 / total.max(1) as f64)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_held_out_set_is_evals_and_sees_both_interleaved_cameras() {
+        // `pma synth`'s novel-view split: 2 cameras interleaved over 32 poses.
+        let set = held_out_set(64, 16);
+        let all: Vec<usize> = (0..64).collect();
+        assert_eq!(set, crate::eval::spread(&all, 16));
+        assert_eq!(set.len(), 16);
+        let odd = set.iter().filter(|&&i| i % 2 == 1).count();
+        assert!((4..=12).contains(&odd), "{set:?}");
+        assert_eq!(held_out_set(5, 16), vec![0, 1, 2, 3, 4]);
+        assert_eq!(held_out_set(64, 0), vec![0]);
+    }
 }

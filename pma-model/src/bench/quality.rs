@@ -1,5 +1,5 @@
 //! Time to quality (`pma bench --time-to-quality`): held-out PSNR against training time for
-//! parity, the fast recipe (culling with the grid), each other training option alone and
+//! parity, culling with the grid, each other training option alone, the fast recipe and
 //! all of them together, on synthetic scenes of seeds the options were not tuned on, and
 //! the minutes each needs to reach the held-out PSNR parity has after each mark (1, 2 and 5
 //! minutes by default).
@@ -8,8 +8,8 @@
 //! turns of [`TURN_SECONDS`] of training until each has spent its budget, so a machine whose
 //! speed drifts slows them alike. Only training counts against a budget: at fixed points
 //! of its own training time (every `last mark / points`, and at each mark) a run is scored
-//! on the same held-out images (novel views, foreground PSNR as `pma eval` scores them, a
-//! parity render), and the scoring is not timed.
+//! on the same held-out images (the novel views `pma eval --max-images` picks, foreground
+//! PSNR as it scores them, a parity render), and the scoring is not timed.
 //!
 //! An option whose learning rates anneal over the run's budget ([`QualityOption::budgeted`])
 //! has a run per mark, each annealed over that mark; its quality at a mark is the end of
@@ -52,11 +52,10 @@ pub struct QualityOption {
 
 /// Parity, culling at 0.6 with the grid, each of the other options alone (the error map;
 /// the annealed rates; coarse samples from the grid, which needs the grid; averaged
-/// weights), the fast recipe and all of them together.
+/// weights; the pose side's rate `lr_freq` ×4), the fast recipe and all of them together.
 pub fn quality_options() -> Vec<QualityOption> {
     fn culled(run: &mut RunConfig) {
-        recipe::fast(run);
-        run.train.average = None;
+        recipe::cull_with_grid(run);
     }
     fn anneal(run: &mut RunConfig, minutes: f64) {
         run.train.anneal = Some(Anneal {
@@ -93,6 +92,12 @@ pub fn quality_options() -> Vec<QualityOption> {
             "average",
             "averaged weights",
             |run, _| run.train.average = Some(AverageConfig::default()),
+            false,
+        ),
+        option(
+            "lr-freq",
+            "pose-side rate x4",
+            |run, _| run.train.lr_freq *= 4.0,
             false,
         ),
         option(
@@ -472,6 +477,21 @@ mod tests {
         (recipe.setup)(&mut a, 5.0);
         recipe::fast(&mut b);
         assert_eq!(a, b);
+        // The culling row is the recipe's culling part alone: no average, the preset's rates.
+        let culled = opts.iter().find(|o| o.key == "cull-grid").unwrap();
+        let (mut a, mut b) = (parity.clone(), parity.clone());
+        (culled.setup)(&mut a, 5.0);
+        recipe::cull_with_grid(&mut b);
+        assert_eq!(a, b);
+        assert!(a.train.average.is_none() && a.train.occupancy.is_some());
+        assert_eq!(a.train.lr_freq, parity.train.lr_freq);
+        // The rate row changes the pose side's rate and nothing else.
+        let rate = opts.iter().find(|o| o.key == "lr-freq").unwrap();
+        let mut a = parity.clone();
+        (rate.setup)(&mut a, 5.0);
+        assert_eq!(a.train.lr_freq, 4.0 * parity.train.lr_freq);
+        a.train.lr_freq = parity.train.lr_freq;
+        assert_eq!(a, parity);
     }
 
     #[test]

@@ -8,8 +8,9 @@
 //! than the weights of one step; the steps do not change). The other time-to-quality options
 //! (coarse samples from the grid, the error map, rates annealed over the budget) stay
 //! options of their own: each alone, and all together, reached parity's held-out PSNR later
-//! than culling with the grid did (`pma bench --time-to-quality`, docs/performance.md "Time
-//! to quality").
+//! than culling with the grid did. A pose side at 4x its rate (`lr_freq`) learns faster for
+//! two minutes and is behind by five, so it stays a setting too (`pma bench
+//! --time-to-quality`, docs/performance.md "Time to quality").
 
 use crate::network::occupancy::OccupancyConfig;
 use crate::render::options::{Culling, SampleFill};
@@ -28,6 +29,17 @@ pub struct Choice {
 
 /// Switch the recipe's options on in `run`. Returns what it switched on, in order.
 pub fn fast(run: &mut RunConfig) -> Vec<Choice> {
+    let mut choices = cull_with_grid(run);
+    run.train.average.get_or_insert_with(AverageConfig::default);
+    choices.push(Choice {
+        option: "--average",
+        why: "the model is the moving average of the weights, which scatter from step to step",
+    });
+    choices
+}
+
+/// The recipe's part that leaves work out: culling at w^p ≤ 0.6 and the occupancy grid.
+pub fn cull_with_grid(run: &mut RunConfig) -> Vec<Choice> {
     let t = &mut run.train;
     t.culling = Culling {
         rays: true,
@@ -35,7 +47,6 @@ pub fn fast(run: &mut RunConfig) -> Vec<Choice> {
         sample_fill: SampleFill::Network,
     };
     t.occupancy.get_or_insert_with(OccupancyConfig::default);
-    t.average.get_or_insert_with(AverageConfig::default);
     vec![
         Choice {
             option: "--cull-rays --cull-samples 0.6",
@@ -44,10 +55,6 @@ pub fn fast(run: &mut RunConfig) -> Vec<Choice> {
         Choice {
             option: "--occupancy",
             why: "samples in cells the grid marks empty skip the network",
-        },
-        Choice {
-            option: "--average",
-            why: "the model is the moving average of the weights, which scatter from step to step",
         },
     ]
 }
@@ -61,8 +68,10 @@ mod tests {
     fn the_recipe_validates_on_every_preset_and_keeps_the_other_options_off() {
         for p in Preset::ALL {
             let mut run = RunConfig::from_preset(p);
+            let preset_rates = (run.train.lr, run.train.lr_freq);
             let choices = fast(&mut run);
             assert_eq!(choices.len(), 3);
+            assert_eq!((run.train.lr, run.train.lr_freq), preset_rates, "{p}");
             run.validate().unwrap_or_else(|e| panic!("{p}: {e}"));
             assert!(
                 run.train.culling.rays
