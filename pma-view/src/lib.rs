@@ -199,11 +199,10 @@ impl Server {
         let info = Bytes::from(
             serde_json::to_vec(&info).map_err(|e| ViewError::Failed(format!("info: {e}")))?,
         );
-        let listener =
-            std::net::TcpListener::bind(opts.addr).map_err(|source| ViewError::Bind {
-                addr: opts.addr,
-                source,
-            })?;
+        let listener = server::bind(opts.addr).map_err(|source| ViewError::Bind {
+            addr: opts.addr,
+            source,
+        })?;
         let addr = listener.local_addr().map_err(|source| ViewError::Io {
             what: "reading the bound address".into(),
             source,

@@ -124,6 +124,24 @@ pub(crate) fn render_loop(mut renderer: Renderer, shared: Arc<Shared>, jobs: mps
     }
 }
 
+/// Connections the kernel may hold for the accept loop (capped by the system's
+/// `net.core.somaxconn`). std binds with 128; with [`conns::MAX_CONNECTIONS`] open and more
+/// hostile sockets than that queued behind them, a full queue drops the page's own SYN, and
+/// the browser sends it again only after TCP's one-second retransmission timeout.
+pub const BACKLOG: i32 = 1024;
+
+/// A listening socket on `addr` with a [`BACKLOG`]-deep accept queue.
+pub(crate) fn bind(addr: SocketAddr) -> std::io::Result<std::net::TcpListener> {
+    use socket2::{Domain, Socket, Type};
+    let socket = Socket::new(Domain::for_address(addr), Type::STREAM, None)?;
+    // As std does on Unix: a restarted viewer may take its port back at once.
+    #[cfg(unix)]
+    socket.set_reuse_address(true)?;
+    socket.bind(&addr.into())?;
+    socket.listen(BACKLOG)?;
+    Ok(socket.into())
+}
+
 /// Serve `listener` until a stop flag is raised (Ctrl-C or [`crate::Stopper`]).
 pub(crate) fn serve(
     listener: std::net::TcpListener,
@@ -415,4 +433,36 @@ pub(crate) fn loopback_hosts(addr: SocketAddr) -> Option<Vec<String>> {
         format!("localhost:{p}"),
         format!("[::1]:{p}"),
     ])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// More connections than std's 128 wait, unaccepted, in the listening socket's queue:
+    /// each completes its handshake at once instead of waiting on a dropped SYN.
+    #[cfg(target_os = "linux")]
+    #[test]
+    fn the_accept_queue_holds_more_than_std_s_128() {
+        const WAITING: usize = 300;
+        let cap: usize = std::fs::read_to_string("/proc/sys/net/core/somaxconn")
+            .ok()
+            .and_then(|s| s.trim().parse().ok())
+            .unwrap_or(0);
+        if cap < WAITING {
+            eprintln!("net.core.somaxconn is {cap}: the kernel caps the queue below {WAITING}");
+            return;
+        }
+        let listener = bind("127.0.0.1:0".parse().unwrap()).unwrap();
+        let addr = listener.local_addr().unwrap();
+        let mut held = Vec::new();
+        for k in 0..WAITING {
+            // Half TCP's first SYN retransmission: a dropped SYN cannot connect in time.
+            let s = std::net::TcpStream::connect_timeout(&addr, Duration::from_millis(500))
+                .unwrap_or_else(|e| panic!("connection {k} of {WAITING} waiting: {e}"));
+            held.push(s);
+        }
+        // And the socket still serves: the first in the queue is accepted.
+        assert!(listener.accept().is_ok());
+    }
 }
