@@ -89,6 +89,11 @@ pub struct Args {
     /// does not repeat bit for bit. Not for a resumed run.
     #[arg(long)]
     pub anneal: bool,
+    /// Start the pose side's rate (`lr_freq`) at 4x and bring it down to its own over the
+    /// run's budget (`--minutes`), or over its iterations without one
+    /// (`[train.pose_boost]` sets the multiple). Not for a resumed run.
+    #[arg(long)]
+    pub pose_boost: bool,
     /// Save and score the moving average of the weights over the steps instead of the last
     /// step's weights (`[train.average]` sets its decay); the trained weights stay in the
     /// train state. Not for a resumed run.
@@ -227,6 +232,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         ("--coarse-from-grid", args.coarse_from_grid),
         ("--error-map", args.error_map),
         ("--anneal", args.anneal),
+        ("--pose-boost", args.pose_boost),
         ("--average", args.average),
         ("--fast", args.fast),
     ];
@@ -241,6 +247,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         if args.anneal {
             let a = run.train.anneal.get_or_insert_with(Default::default);
             a.seconds = args.minutes.map_or(0.0, |m| m * 60.0);
+        }
+        if args.pose_boost {
+            let b = run.train.pose_boost.get_or_insert_with(Default::default);
+            b.seconds = args.minutes.map_or(0.0, |m| m * 60.0);
         }
         if args.average {
             run.train.average.get_or_insert_with(Default::default);

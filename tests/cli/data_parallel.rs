@@ -263,22 +263,23 @@ fn bad_device_lists_are_refused() {
     );
     // Options whose state follows the rays a device sees: one rank sees only its slice.
     // Refused before the run directory is made.
-    for (flag, needle) in [
-        ("--error-map", "the error map"),
-        ("--cull-rays", "culling"),
-        ("--fast", "not supported with several devices"),
+    // So are rates that follow each rank's own clock.
+    for (flags, needle) in [
+        (&["--error-map"][..], "the error map"),
+        (&["--cull-rays"], "culling"),
+        (&["--fast"], "not supported with several devices"),
+        (&["--anneal", "--minutes", "1"], "annealing"),
+        (&["--pose-boost", "--minutes", "1"], "the pose side's boost"),
     ] {
-        let out = pma_within(
-            &[
-                "train", "--data", d, "--out", o, "--device", "cpu,cpu", "--preset", "tiny",
-                "--iters", "2", flag, "--quiet",
-            ],
-            60,
-        );
+        let base = [
+            "train", "--data", d, "--out", o, "--device", "cpu,cpu", "--preset", "tiny", "--iters",
+            "2", "--quiet",
+        ];
+        let out = pma_within(&[&base[..], flags].concat(), 60);
         exits_2_with(out, needle);
         assert!(
             !std::path::Path::new(o).exists(),
-            "{flag}: the run directory was left"
+            "{flags:?}: the run directory was left"
         );
     }
     // --distributed needs a launcher's variables, then a CUDA device for its local rank.

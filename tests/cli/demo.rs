@@ -101,6 +101,7 @@ fn demo_parity_trains_without_the_recipe() {
     for key in [
         "error_map",
         "anneal",
+        "pose_boost",
         "average",
         "occupancy",
         "coarse_from_grid",

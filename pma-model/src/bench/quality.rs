@@ -14,8 +14,9 @@
 //! An option whose learning rates anneal over the run's budget ([`QualityOption::budgeted`])
 //! has a run per mark, each annealed over that mark; its quality at a mark is the end of
 //! that run, and its time to a quality is read from those end points. Every other option
-//! has one run of the last mark and its time to a quality is read from its curve. Times
-//! between two scored points are interpolated linearly.
+//! has one run of the last mark and its time to a quality is read from its curve (the pose
+//! side's boost comes down over that run: its row is the curve of a run of the last mark's
+//! budget). Times between two scored points are interpolated linearly.
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -29,7 +30,7 @@ use super::{BenchObserver, Result};
 use crate::eval::{evaluate, EvalOptions};
 use crate::network::occupancy::OccupancyConfig;
 use crate::train::average::AverageConfig;
-use crate::train::presets::Anneal;
+use crate::train::presets::{Anneal, PoseBoost};
 use crate::train::{recipe, Preset, RunConfig, Trainer};
 use pma_data::error_map::ErrorMapConfig;
 
@@ -52,7 +53,8 @@ pub struct QualityOption {
 
 /// Parity, culling at 0.6 with the grid, each of the other options alone (the error map;
 /// the annealed rates; coarse samples from the grid, which needs the grid; averaged
-/// weights; the pose side's rate `lr_freq` ×4), the fast recipe and all of them together.
+/// weights; the pose side's rate `lr_freq` ×4, and ×4 coming down to ×1 over the run), the
+/// fast recipe, the recipe with that boost, and all of them together.
 pub fn quality_options() -> Vec<QualityOption> {
     fn culled(run: &mut RunConfig) {
         recipe::cull_with_grid(run);
@@ -61,6 +63,13 @@ pub fn quality_options() -> Vec<QualityOption> {
         run.train.anneal = Some(Anneal {
             seconds: minutes * 60.0,
             ..Anneal::default()
+        })
+    }
+    // Over the longest mark, the one run: the row is the curve of a run of that budget.
+    fn pose_boost(run: &mut RunConfig, minutes: f64) {
+        run.train.pose_boost = Some(PoseBoost {
+            seconds: minutes * 60.0,
+            ..PoseBoost::default()
         })
     }
     let option = |key, name: &str, setup: fn(&mut RunConfig, f64), budgeted| QualityOption {
@@ -100,11 +109,21 @@ pub fn quality_options() -> Vec<QualityOption> {
             |run, _| run.train.lr_freq *= 4.0,
             false,
         ),
+        option("pose-boost", "pose-side rate x4 -> x1", pose_boost, false),
         option(
             "recipe",
             "the fast recipe",
             |run, _| {
                 recipe::fast(run);
+            },
+            false,
+        ),
+        option(
+            "recipe-boost",
+            "the fast recipe + pose-side x4 -> x1",
+            |run, minutes| {
+                recipe::fast(run);
+                pose_boost(run, minutes);
             },
             false,
         ),
@@ -492,6 +511,18 @@ mod tests {
         assert_eq!(a.train.lr_freq, 4.0 * parity.train.lr_freq);
         a.train.lr_freq = parity.train.lr_freq;
         assert_eq!(a, parity);
+        // The boost rows come down over the run they are given, alone and over the recipe.
+        let boost = opts.iter().find(|o| o.key == "pose-boost").unwrap();
+        let mut a = parity.clone();
+        (boost.setup)(&mut a, 5.0);
+        assert_eq!(a.train.pose_boost.take().map(|b| b.seconds), Some(300.0));
+        assert_eq!(a, parity);
+        let both = opts.iter().find(|o| o.key == "recipe-boost").unwrap();
+        let (mut a, mut b) = (parity.clone(), parity.clone());
+        (both.setup)(&mut a, 5.0);
+        recipe::fast(&mut b);
+        assert_eq!(a.train.pose_boost.take().map(|b| b.seconds), Some(300.0));
+        assert_eq!(a, b);
     }
 
     #[test]

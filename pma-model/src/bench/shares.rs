@@ -158,7 +158,7 @@ pub fn shares(req: &SharesRequest, obs: &mut dyn BenchObserver) -> Result<Shares
             "nothing to count: no held-out views and no training batches".into(),
         ));
     }
-    let scene = prepare_scene(&req.out, &req.scene, req.eval_images.max(1), obs)?;
+    let scene = prepare_scene(&req.out, &req.scene, req.eval_images, obs)?;
     let (avatar, model, steps) = shares_model(req, &scene, obs)?;
     let options = share_options(req.threshold);
     let saved = avatar.occupancy().map(|g| {

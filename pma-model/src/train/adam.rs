@@ -37,6 +37,9 @@ pub const FREQ_GROUP_PATTERNS: [&str; 6] = [
     "pts_enc_pose",
 ];
 
+/// The reference's name of the pose side's group (rate `lr_freq`).
+pub const FREQ_GROUP: &str = "freq";
+
 /// Index of the reference group a parameter belongs to: 0 = "freq", 1 = "other".
 pub fn reference_group(name: &str) -> usize {
     if FREQ_GROUP_PATTERNS.iter().any(|p| name.contains(p)) {
@@ -211,7 +214,7 @@ impl Adam {
         };
         Self::new(
             vars,
-            vec![group("freq", lr_freq), group("other", lr)],
+            vec![group(FREQ_GROUP, lr_freq), group("other", lr)],
             reference_group,
         )
     }
@@ -276,6 +279,13 @@ impl Adam {
     pub fn apply_factor(&mut self, factor: f64, floor: f64) {
         for g in &mut self.groups {
             g.lr = (g.initial_lr * factor).max(floor);
+        }
+    }
+
+    /// The rate of group `name` (if there is one) multiplied by `by`.
+    pub fn scale_group(&mut self, name: &str, by: f64) {
+        for g in self.groups.iter_mut().filter(|g| g.name == name) {
+            g.lr *= by;
         }
     }
 

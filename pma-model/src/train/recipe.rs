@@ -8,9 +8,10 @@
 //! than the weights of one step; the steps do not change). The other time-to-quality options
 //! (coarse samples from the grid, the error map, rates annealed over the budget) stay
 //! options of their own: each alone, and all together, reached parity's held-out PSNR later
-//! than culling with the grid did. A pose side at 4x its rate (`lr_freq`) learns faster for
-//! two minutes and is behind by five, so it stays a setting too (`pma bench
-//! --time-to-quality`, docs/performance.md "Time to quality").
+//! than culling with the grid did. A pose side at 4x its rate (`lr_freq`), or starting at 4x
+//! and coming down over the run (`pose_boost`), learns faster for two minutes and is behind
+//! by five, so both stay settings (`pma bench --time-to-quality`, docs/performance.md "Time
+//! to quality").
 
 use crate::network::occupancy::OccupancyConfig;
 use crate::render::options::{Culling, SampleFill};
@@ -81,7 +82,9 @@ mod tests {
             );
             assert!(!run.train.coarse_from_grid, "{p}");
             assert!(
-                run.train.error_map.is_none() && run.train.anneal.is_none(),
+                run.train.error_map.is_none()
+                    && run.train.anneal.is_none()
+                    && run.train.pose_boost.is_none(),
                 "{p}"
             );
             // The run's TOML keeps every option.

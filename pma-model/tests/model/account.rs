@@ -303,7 +303,7 @@ fn a_culled_step_reads_back_per_stage_and_the_grid_feed_once_more_per_network_st
 }
 
 /// The time-to-quality options add no read-back inside a step: the error map's per-ray errors
-/// come back with the step's numbers in its one read, the annealed rates are host numbers,
+/// come back with the step's numbers in its one read, the annealed and boosted rates are host numbers,
 /// the averaged weights are element-wise ops on the device, and the coarse samples placed from the grid are placed from the host copies a culled
 /// step's cast reads already (the same syncs per stage as without them).
 #[test]
@@ -313,6 +313,7 @@ fn the_time_to_quality_options_add_no_read_back_inside_a_step() {
     let (_dir, mut trainer, mut source) = tiny_with(0, 64, |run| {
         run.train.error_map = Some(Default::default());
         run.train.anneal = Some(Default::default());
+        run.train.pose_boost = Some(Default::default());
         run.train.average = Some(Default::default());
     });
     let a = account_step(&mut trainer, &mut source, Route::Cuda).unwrap();

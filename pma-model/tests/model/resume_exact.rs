@@ -227,7 +227,7 @@ fn resume_with_an_occupancy_grid_equals_uninterrupted_run() {
 
 /// The fast recipe (culling, the grid) with every other time-to-quality option (coarse
 /// samples from the grid, the error map with its unbiased weights, rates annealed over the
-/// run's iterations, averaged weights): a run stopped, checkpointed and resumed ends bit for
+/// run's iterations, the pose side's boost, averaged weights): a run stopped, checkpointed and resumed ends bit for
 /// bit where the uninterrupted run ends, its error map and its average included, and the
 /// map, the schedule and the average did move.
 #[test]
@@ -239,6 +239,7 @@ fn resume_with_the_fast_recipe_equals_uninterrupted_run() {
     run.train.coarse_from_grid = true;
     run.train.error_map = Some(pma_data::error_map::ErrorMapConfig::default());
     run.train.anneal = Some(pma_model::train::presets::Anneal::default());
+    run.train.pose_boost = Some(pma_model::train::presets::PoseBoost::default());
     run.train.average = Some(pma_model::train::average::AverageConfig { decay: 0.5 });
     // The grid refreshes after steps 1, 3, 5, ...: the checkpoint after step 4 holds values
     // that step 4's samples raised and cells marked at step 3's refresh.
@@ -270,8 +271,12 @@ fn resume_with_the_fast_recipe_equals_uninterrupted_run() {
     let visited = a.values().iter().filter(|&&v| v >= 0.0).count();
     assert!(visited > 0, "no cell of the error map was visited");
     assert_eq!(resumed.lrs(), full.lrs());
-    // Annealed over the 7 iterations: a tenth of the initial rates at the end.
-    for (end, start) in full.lrs().iter().zip(&lr0) {
+    // The pose side starts at 4x its rate, the trunk at its own.
+    let (lr_freq, lr) = (run.train.lr_freq, run.train.lr);
+    assert!((lr0[0] / lr_freq - 4.0).abs() < 1e-9, "{lr0:?}");
+    assert!((lr0[1] / lr - 1.0).abs() < 1e-9, "{lr0:?}");
+    // Annealed over the 7 iterations, the boost down to 1x: a tenth of the rates at the end.
+    for (end, start) in full.lrs().iter().zip([lr_freq, lr]) {
         assert!((end / start - 0.1).abs() < 1e-9, "{end} vs {start}");
     }
     assert!(param_bits(&full) == param_bits(&resumed), "parameters");

@@ -4,7 +4,7 @@
 
 use candle_core::{DType, Device, Tensor};
 
-use crate::train::adam::Adam;
+use crate::train::adam::{Adam, FREQ_GROUP};
 use crate::train::parallel::error::GroupError;
 use crate::train::parallel::group::{step_numbers, Group, GroupStop, Vote, LOSS_TERMS, VOTE_SLOTS};
 use crate::train::presets::TrainConfig;
@@ -133,14 +133,17 @@ fn finite(x: &Tensor) -> candle_core::Result<Tensor> {
 
 impl Optimization {
     pub fn new(adam: Adam, cfg: TrainConfig) -> Self {
-        Self {
+        let mut opt = Self {
             adam,
             cfg,
             iter: 0,
             progress: Progress::default(),
             pending: Vec::new(),
             group_stop: None,
-        }
+        };
+        // The first step's rates (the initial ones, but for the pose side's boost).
+        opt.schedule();
+        opt
     }
 
     /// Whether the steps read back so far carried a data-parallel group's vote to stop.
@@ -234,7 +237,7 @@ impl Optimization {
     /// Set the rates of the next step: the reference's decay by the iteration count, skipped
     /// steps included (it sets the rates from global_iter after every step), or with
     /// `anneal` the share of the run's span done (iterations, or the wall clock of
-    /// `progress.wall_s`).
+    /// `progress.wall_s`); with `pose_boost` the pose side's rate a multiple of that.
     pub fn schedule(&mut self) {
         let c = &self.cfg;
         match &c.anneal {
@@ -245,6 +248,10 @@ impl Optimization {
                 let factor = a.factor(self.iter, c.iters, self.progress.wall_s);
                 self.adam.apply_factor(factor, c.lr_floor);
             }
+        }
+        if let Some(b) = &c.pose_boost {
+            let by = b.multiple(self.iter, c.iters, self.progress.wall_s);
+            self.adam.scale_group(FREQ_GROUP, by);
         }
     }
 
