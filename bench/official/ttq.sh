@@ -29,8 +29,8 @@
 # evaluation) and with periodic evaluation and checkpoints off (OUT/pma.toml), so their
 # `--minutes` clock holds the steps and their logging; start-up, saving and scoring are not
 # counted on either side. --fast-flags: the fast recipe's `pma train` flags (`--fast`:
-# culling at 0.6 with the occupancy grid; for a binary whose `--fast` differs, spell it out:
-# "--cull-rays --cull-samples 0.6 --occupancy"). The timings are the result: run this alone
+# culling at 0.6 with the occupancy grid and averaged weights; for a binary whose `--fast`
+# differs, spell it out: "--cull-rays --cull-samples 0.6 --occupancy --average"). The timings are the result: run this alone
 # on the machine (e.g. `flock LOCK bench/official/ttq.sh ...`). CI does not run this.
 set -euo pipefail
 

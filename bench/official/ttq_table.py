@@ -17,7 +17,7 @@ import sys
 
 RUNS = [("official", "official PM-Avatars code (PyTorch, CPU)"),
         ("parity", "pma parity (`--preset cpu-small`)"),
-        ("fast", "pma fast recipe (cull 0.6 + grid)")]
+        ("fast", "pma fast recipe (`--fast`)")]
 
 
 def load_json(path):
