@@ -17,9 +17,10 @@
 # code trained with a checkpoint at each mark; each checkpoint converted by
 # `pma convert checkpoint` with cpu-small's 16 + 8 samples set in its config (and checked
 # to hold the tensors and config of pma's parity run, `ttq_official.py same-model`); pma parity
-# and the fast recipe trained by `pma train --minutes` in one run resumed at each mark
-# (`--resume`): the first invocation trains for the first mark, each next one for the
-# difference, and the model each leaves is copied aside. Every model is scored by the same
+# trained by `pma train --minutes` in one run resumed at each mark (`--resume`): the first
+# invocation trains for the first mark, each next one for the difference, and the model each
+# leaves is copied aside; the fast recipe, whose pose-side boost spans its `--minutes`
+# budget, in a run of its own per mark. Every model is scored by the same
 # `pma eval --split novel_view --max-images K` (a parity render, PSNR under the mask) on the
 # same K evenly spread novel-view images. Prints the table (ttq_table.py) and writes
 # OUT/ttq.md and OUT/ttq.json.
@@ -29,8 +30,9 @@
 # evaluation) and with periodic evaluation and checkpoints off (OUT/pma.toml), so their
 # `--minutes` clock holds the steps and their logging; start-up, saving and scoring are not
 # counted on either side. --fast-flags: the fast recipe's `pma train` flags (`--fast`:
-# culling at 0.6 with the occupancy grid and averaged weights; for a binary whose `--fast`
-# differs, spell it out: "--cull-rays --cull-samples 0.6 --occupancy --average"). The timings are the result: run this alone
+# culling at 0.6 with the occupancy grid, averaged weights and the pose side's boost over
+# the budget; for a binary whose `--fast` differs, spell it out: "--cull-rays
+# --cull-samples 0.6 --occupancy --average --pose-boost"). The timings are the result: run this alone
 # on the machine (e.g. `flock LOCK bench/official/ttq.sh ...`). CI does not run this.
 set -euo pipefail
 
@@ -91,7 +93,7 @@ for m in "${mark_list[@]}"; do
     run "$python" "$here/ttq_official.py" samples "$out/official/official_${m}min.safetensors"
 done
 
-# 3. pma parity and the fast recipe, one run each resumed at every mark.
+# 3. pma parity, one run resumed at every mark; the fast recipe, a run per mark.
 mkdir -p "$out/pma-data"
 cp "$scene/train.npz" "$out/pma-data/train.npz"
 cat > "$out/pma.toml" <<EOF
@@ -109,7 +111,11 @@ for r in parity fast; do
     prev=0
     for m in "${mark_list[@]}"; do
         span="$(awk -v a="$m" -v b="$prev" 'BEGIN { print a - b }')"
-        if [ "$prev" = 0 ]; then
+        if [ "$r" = fast ]; then
+            rm -rf "$dir/run"
+            run "$pma" train --data "$out/pma-data/train.npz" --out "$dir/run" \
+                --config "$out/pma.toml" --minutes "$m" --quiet "${flags[@]}"
+        elif [ "$prev" = 0 ]; then
             run "$pma" train --data "$out/pma-data/train.npz" --out "$dir/run" \
                 --config "$out/pma.toml" --minutes "$span" --quiet "${flags[@]}"
         else

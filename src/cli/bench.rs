@@ -190,12 +190,12 @@ pub struct Args {
     #[arg(long, default_value_t = 20, requires = "time_to_quality")]
     pub ttq_points: usize,
     /// The options `--time-to-quality` compares (parity, the target, always runs):
-    /// cull-grid, error-map, anneal, coarse-from-grid, average, lr-freq, pose-boost, recipe,
-    /// recipe-boost, all.
+    /// cull-grid, error-map, anneal, coarse-from-grid, average, lr-freq, pose-boost,
+    /// recipe-no-boost, recipe, all.
     #[arg(
         long,
         value_delimiter = ',',
-        default_value = "cull-grid,error-map,anneal,coarse-from-grid,average,lr-freq,pose-boost,recipe,recipe-boost,all",
+        default_value = "cull-grid,error-map,anneal,coarse-from-grid,average,lr-freq,pose-boost,recipe-no-boost,recipe,all",
         requires = "time_to_quality"
     )]
     pub ttq_options: Vec<String>,

@@ -225,7 +225,7 @@ fn train_scene(
              --parity trains without it):",
             args.minutes
         );
-        for c in pma_model::train::recipe::fast(&mut run) {
+        for c in pma_model::train::recipe::fast(&mut run, Some(args.minutes * 60.0)) {
             println!("      {}: {}", c.option, c.why);
             options.push(c.option.to_string());
         }

@@ -99,8 +99,10 @@ pub struct Args {
     /// train state. Not for a resumed run.
     #[arg(long)]
     pub average: bool,
-    /// The fast recipe: ray and sample culling at w^p ≤ 0.6 with the occupancy grid, and
-    /// averaged weights (`pma demo` trains with it). Not for a resumed run.
+    /// The fast recipe: ray and sample culling at w^p ≤ 0.6 with the occupancy grid,
+    /// averaged weights and, with `--minutes`, the pose side's boost over that budget
+    /// (`--pose-boost`; a run by iterations has none). `pma demo` trains with it. Not for a
+    /// resumed run.
     #[arg(long)]
     pub fast: bool,
     /// No progress bar (log lines only).
@@ -256,7 +258,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             run.train.average.get_or_insert_with(Default::default);
         }
         if args.fast {
-            for c in pma_model::train::recipe::fast(run) {
+            let budget_s = args.minutes.map(|m| m * 60.0);
+            for c in pma_model::train::recipe::fast(run, budget_s) {
                 println!("fast recipe: {} ({})", c.option, c.why);
             }
         }

@@ -263,13 +263,10 @@ fn bad_device_lists_are_refused() {
     );
     // Options whose state follows the rays a device sees: one rank sees only its slice.
     // Refused before the run directory is made.
-    // So are rates that follow each rank's own clock.
     for (flags, needle) in [
         (&["--error-map"][..], "the error map"),
         (&["--cull-rays"], "culling"),
         (&["--fast"], "not supported with several devices"),
-        (&["--anneal", "--minutes", "1"], "annealing"),
-        (&["--pose-boost", "--minutes", "1"], "the pose side's boost"),
     ] {
         let base = [
             "train", "--data", d, "--out", o, "--device", "cpu,cpu", "--preset", "tiny", "--iters",

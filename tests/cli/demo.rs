@@ -54,7 +54,12 @@ fn demo_writes_summary_renders_and_plot() {
         .collect();
     assert_eq!(
         options,
-        ["--cull-rays --cull-samples 0.6", "--occupancy", "--average"],
+        [
+            "--cull-rays --cull-samples 0.6",
+            "--occupancy",
+            "--average",
+            "--pose-boost"
+        ],
         "{options:?}"
     );
     assert!(stdout.contains(&format!(
@@ -64,6 +69,12 @@ fn demo_writes_summary_renders_and_plot() {
     let config = std::fs::read_to_string(out_dir.join("run/config.toml")).unwrap();
     assert!(config.contains("[train.occupancy]"), "{config}");
     assert!(config.contains("[train.average]"), "{config}");
+    // The pose side's boost spans the budget (--minutes 5).
+    let boost = config
+        .split("[train.pose_boost]")
+        .nth(1)
+        .unwrap_or_default();
+    assert!(boost.contains("seconds = 300.0"), "{config}");
     assert!(!config.contains("[train.error_map]"), "{config}");
     assert!(summary["wall_s"].as_f64().unwrap() > 0.0);
     for key in ["model", "data"] {

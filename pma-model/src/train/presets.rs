@@ -154,6 +154,13 @@ fn span_done(seconds: f64, iter: u64, iters: u64, wall_s: f64) -> f64 {
     done.clamp(0.0, 1.0)
 }
 
+/// What is wrong with a span's `seconds` (`key` names it in the configuration), if anything.
+fn span_problem(key: &str, seconds: f64) -> Option<String> {
+    (!(seconds.is_finite() && seconds >= 0.0)).then(|| {
+        format!("{key} must be finite and >= 0 (0 = over the iterations), found {seconds}")
+    })
+}
+
 impl Anneal {
     /// The factor of the initial rates after `iter` iterations of a run of `iters` at
     /// `wall_s` seconds.
@@ -170,12 +177,7 @@ impl Anneal {
                 self.final_factor
             ));
         }
-        if !(self.seconds.is_finite() && self.seconds >= 0.0) {
-            bad.push(format!(
-                "anneal.seconds must be finite and >= 0 (0 = over the iterations), found {}",
-                self.seconds
-            ));
-        }
+        bad.extend(span_problem("anneal.seconds", self.seconds));
         bad
     }
 }
@@ -221,12 +223,7 @@ impl PoseBoost {
                 self.factor
             ));
         }
-        if !(self.seconds.is_finite() && self.seconds >= 0.0) {
-            bad.push(format!(
-                "pose_boost.seconds must be finite and >= 0 (0 = over the iterations), found {}",
-                self.seconds
-            ));
-        }
+        bad.extend(span_problem("pose_boost.seconds", self.seconds));
         bad
     }
 }

@@ -3,20 +3,23 @@
 //! preset without them.
 //!
 //! It is ray and sample culling at w^p ≤ 0.6 with the occupancy grid (fewer network points
-//! per step, so about twice the steps per minute) and averaged weights (the model is the
+//! per step, so about twice the steps per minute), averaged weights (the model is the
 //! moving average of the weights over the last hundred or so steps, which scatter less
-//! than the weights of one step; the steps do not change). The other time-to-quality options
-//! (coarse samples from the grid, the error map, rates annealed over the budget) stay
-//! options of their own: each alone, and all together, reached parity's held-out PSNR later
-//! than culling with the grid did. A pose side at 4x its rate (`lr_freq`), or starting at 4x
-//! and coming down over the run (`pose_boost`), learns faster for two minutes and is behind
-//! by five, so both stay settings (`pma bench --time-to-quality`, docs/performance.md "Time
-//! to quality").
+//! than the weights of one step; the steps do not change) and, in a run with a wall-clock
+//! budget (`--minutes`), the pose side's rate starting at 4x and coming down to its own over
+//! that budget (`pose_boost`: the reference's pose-side rate is made for 300,000 steps, and
+//! in a run of minutes that side lags). A run by iterations gets no boost: the presets'
+//! iteration counts are not budgets, and over a span far longer than the run the boost is a
+//! constant 4x, which was behind by five minutes. The other time-to-quality options (coarse
+//! samples from the grid, the error map, rates annealed over the budget) stay options of
+//! their own: each alone, and all together, reached parity's held-out PSNR later than
+//! culling with the grid did (`pma bench --time-to-quality`, docs/performance.md "Time to
+//! quality").
 
 use crate::network::occupancy::OccupancyConfig;
 use crate::render::options::{Culling, SampleFill};
 use crate::train::average::AverageConfig;
-use crate::train::presets::RunConfig;
+use crate::train::presets::{PoseBoost, RunConfig};
 
 /// The w^p threshold of the recipe's sample culling.
 pub const FAST_CULL_THRESHOLD: f64 = 0.6;
@@ -28,14 +31,26 @@ pub struct Choice {
     pub why: &'static str,
 }
 
-/// Switch the recipe's options on in `run`. Returns what it switched on, in order.
-pub fn fast(run: &mut RunConfig) -> Vec<Choice> {
+/// Switch the recipe's options on in `run`, a run of `budget_s` seconds of wall clock
+/// (`--minutes`), or `None` for a run by iterations. Returns what it switched on, in order.
+pub fn fast(run: &mut RunConfig, budget_s: Option<f64>) -> Vec<Choice> {
     let mut choices = cull_with_grid(run);
     run.train.average.get_or_insert_with(AverageConfig::default);
     choices.push(Choice {
         option: "--average",
         why: "the model is the moving average of the weights, which scatter from step to step",
     });
+    if let Some(seconds) = budget_s.filter(|&s| s > 0.0) {
+        run.train
+            .pose_boost
+            .get_or_insert_with(PoseBoost::default)
+            .seconds = seconds;
+        choices.push(Choice {
+            option: "--pose-boost",
+            why: "the pose side's rate starts at 4x and comes down to its own over the \
+                  --minutes budget (that side lags in a run of minutes)",
+        });
+    }
     choices
 }
 
@@ -68,10 +83,17 @@ mod tests {
     #[test]
     fn the_recipe_validates_on_every_preset_and_keeps_the_other_options_off() {
         for p in Preset::ALL {
+            // With a budget the pose side's boost spans it.
+            let mut budgeted = RunConfig::from_preset(p);
+            assert_eq!(fast(&mut budgeted, Some(90.0)).len(), 4);
+            let boost = budgeted.train.pose_boost.take().expect("a boost");
+            assert_eq!(boost.seconds, 90.0, "{p}");
+            assert_eq!(boost.factor, PoseBoost::default().factor, "{p}");
             let mut run = RunConfig::from_preset(p);
             let preset_rates = (run.train.lr, run.train.lr_freq);
-            let choices = fast(&mut run);
+            let choices = fast(&mut run, None);
             assert_eq!(choices.len(), 3);
+            assert_eq!(budgeted, run, "{p}: the budget changes only the boost");
             assert_eq!((run.train.lr, run.train.lr_freq), preset_rates, "{p}");
             run.validate().unwrap_or_else(|e| panic!("{p}: {e}"));
             assert!(

@@ -367,7 +367,7 @@ fn passes(model: &Config) -> BTreeMap<&'static str, Vec<Issued>> {
     // errors and the annealed rates; the warm-up's step, then two that consult and feed the
     // grid.
     let (mut quick, s, _) = trainer(&data, model, |r| {
-        pma_model::train::recipe::fast(r);
+        pma_model::train::recipe::fast(r, None);
         r.train.coarse_from_grid = true;
         r.train.error_map = Some(pma_data::error_map::ErrorMapConfig::default());
         r.train.anneal = Some(pma_model::train::presets::Anneal::default());

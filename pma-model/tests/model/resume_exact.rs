@@ -235,7 +235,7 @@ fn resume_with_the_fast_recipe_equals_uninterrupted_run() {
     let tmp = tempfile::tempdir().unwrap();
     let data = tiny_scene(&tmp.path().join("scene"));
     let mut run = tiny_run();
-    pma_model::train::recipe::fast(&mut run);
+    pma_model::train::recipe::fast(&mut run, None);
     run.train.coarse_from_grid = true;
     run.train.error_map = Some(pma_data::error_map::ErrorMapConfig::default());
     run.train.anneal = Some(pma_model::train::presets::Anneal::default());

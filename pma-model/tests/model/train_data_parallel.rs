@@ -76,6 +76,33 @@ fn trained(out: &TrainOutcome) {
     assert!(!out.interrupted);
 }
 
+/// `f(rank, trainer)` on each rank of a group of two CPU ranks (threads), the trainers
+/// built from `run` and `data` and joined (`ordered`: summing in rank order); by rank.
+fn on_two_ranks<R: Send>(
+    run: &pma_model::train::presets::RunConfig,
+    data: &std::sync::Arc<pma_data::dataset::Dataset>,
+    ordered: bool,
+    f: impl Fn(usize, &mut pma_model::train::Trainer) -> R + Sync,
+) -> Vec<R> {
+    use pma_model::train::parallel::{cpu, Communicator, Group};
+    let comms = cpu::group(2, std::time::Duration::from_secs(120));
+    std::thread::scope(|s| {
+        let ranks: Vec<_> = comms
+            .into_iter()
+            .map(|comm| {
+                let (run, data, f) = (run.clone(), data.clone(), &f);
+                s.spawn(move || {
+                    let rank = comm.rank();
+                    let mut t = pma_model::train::Trainer::new(run, data, &Device::Cpu).unwrap();
+                    t.join_group(Group::new(Box::new(comm), ordered)).unwrap();
+                    f(rank, &mut t)
+                })
+            })
+            .collect();
+        ranks.into_iter().map(|h| h.join().unwrap()).collect()
+    })
+}
+
 #[test]
 fn ranks_train_as_one_device_on_the_union_batch() {
     let dir = tempfile::tempdir().unwrap();
@@ -120,40 +147,23 @@ fn ranks_train_as_one_device_on_the_union_batch() {
 #[test]
 fn an_accounted_rank_step_counts_its_collectives() {
     use pma_model::compute::account::{Counts, Route};
-    use pma_model::train::parallel::{cpu, step_collectives, Communicator, Group};
-    use pma_model::train::{account::account_step, Trainer};
-    use std::time::Duration;
+    use pma_model::train::account::account_step;
+    use pma_model::train::parallel::step_collectives;
 
     let dir = tempfile::tempdir().unwrap();
     let data = tiny_scene(dir.path());
     let mut run = tiny_run();
     run.model.n_framecodes = data.n_images();
     for ordered in [false, true] {
-        let comms = cpu::group(2, Duration::from_secs(120));
-        let counted = std::thread::scope(|s| {
-            let ranks: Vec<_> = comms
-                .into_iter()
-                .map(|comm| {
-                    let (run, data) = (run.clone(), data.clone());
-                    s.spawn(move || {
-                        let rank = comm.rank();
-                        let mut source = crate::train_support::dataset_source(&data, &run);
-                        let mut t = Trainer::new(run, data, &Device::Cpu).unwrap();
-                        t.join_group(Group::new(Box::new(comm), ordered)).unwrap();
-                        let trainable = t.avatar().trainable();
-                        let model = (
-                            trainable.len(),
-                            trainable.iter().map(|(_, v)| v.elem_count()).sum::<usize>(),
-                        );
-                        let a = account_step(&mut t, &mut source, Route::Cpu).unwrap();
-                        (rank, a.report.total, model)
-                    })
-                })
-                .collect();
-            ranks
-                .into_iter()
-                .map(|h| h.join().unwrap())
-                .collect::<Vec<_>>()
+        let counted = on_two_ranks(&run, &data, ordered, |rank, t| {
+            let mut source = crate::train_support::dataset_source(&data, &run);
+            let trainable = t.avatar().trainable();
+            let model = (
+                trainable.len(),
+                trainable.iter().map(|(_, v)| v.elem_count()).sum::<usize>(),
+            );
+            let a = account_step(t, &mut source, Route::Cpu).unwrap();
+            (rank, a.report.total, model)
         });
         for (rank, total, (params, elems)) in counted {
             let mut want = Counts::default();
@@ -186,7 +196,7 @@ fn an_accounted_rank_step_counts_its_collectives() {
             assert_eq!(want.all_reduces + want.all_gathers, 2);
             assert_eq!(
                 want.all_reduce_bytes + want.all_gather_bytes,
-                4 * elems as u64 + 8 * (5 + 4 + params) as u64
+                4 * elems as u64 + 8 * (5 + 4 + 1 + params) as u64
             );
         }
     }
@@ -241,4 +251,62 @@ fn launched_ranks_meet_at_the_rendezvous_and_train_as_the_group() {
         !rendezvous.exists(),
         "rank 0 leaves no rendezvous file behind"
     );
+}
+
+/// Rates over the wall clock (annealing, the pose side's boost) follow rank 0's clock in a
+/// group: ranks whose own clocks run apart (rank 1's three times as fast) set the same
+/// rates at every step and keep the same weights. With each rank on its own clock the
+/// rates differ from the second step on.
+#[test]
+fn clocked_schedules_follow_rank_0_s_clock() {
+    use pma_model::train::presets::{Anneal, PoseBoost};
+
+    let dir = tempfile::tempdir().unwrap();
+    let data = tiny_scene(dir.path());
+    let mut run = tiny_run();
+    run.model.n_framecodes = data.n_images();
+    run.train.anneal = Some(Anneal {
+        seconds: 10.0,
+        ..Anneal::default()
+    });
+    run.train.pose_boost = Some(PoseBoost {
+        seconds: 10.0,
+        ..PoseBoost::default()
+    });
+    let ranks = on_two_ranks(&run, &data, true, |rank, t| {
+        let pace = 1.0 + 2.0 * rank as f64;
+        let lrs: Vec<Vec<f64>> = (1..=6)
+            .map(|i| {
+                t.set_wall_s(i as f64 * pace);
+                t.step_read().unwrap().lrs
+            })
+            .collect();
+        let bits: Vec<u32> = t
+            .avatar()
+            .trainable()
+            .iter()
+            .flat_map(|(_, v)| {
+                v.as_tensor()
+                    .flatten_all()
+                    .unwrap()
+                    .to_vec1::<f32>()
+                    .unwrap()
+            })
+            .map(f32::to_bits)
+            .collect();
+        (lrs, bits)
+    });
+    let (lrs0, bits0) = &ranks[0];
+    let (lrs1, bits1) = &ranks[1];
+    for (i, (a, b)) in lrs0.iter().zip(lrs1).enumerate() {
+        println!("step {}: rank 0 rates {a:?}, rank 1 {b:?}", i + 1);
+    }
+    assert_eq!(lrs0, lrs1, "the ranks set different rates");
+    // The clock moved the schedule: the last step's rates are below the first's.
+    let (first, last) = (&lrs0[0], &lrs0[lrs0.len() - 1]);
+    assert!(
+        first.iter().zip(last).all(|(f, l)| l < f),
+        "rates did not follow the clock: {first:?} then {last:?}"
+    );
+    assert!(bits0 == bits1, "the ranks' weights differ");
 }

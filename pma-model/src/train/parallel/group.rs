@@ -136,9 +136,15 @@ impl GroupStop {
     }
 }
 
+/// Slots after the votes: rank 0's training clock in seconds (the other ranks add 0), which
+/// every rank's wall-clock schedules follow (annealing, the pose side's boost), so all
+/// ranks set the same rates.
+pub const CLOCK_SLOTS: usize = 1;
+
 /// The exchanges of one rank's step in a group of `size` (none for one rank), for a model
 /// of `params` trainable tensors of `elems` elements in all: the flat f32 gradient, then the
-/// f64 step numbers ([`step_numbers`]: the loss terms, the votes, a flag per tensor).
+/// f64 step numbers ([`step_numbers`]: the loss terms, the votes, rank 0's clock, a flag per
+/// tensor).
 /// Summed by the engine's all-reduce, or with `ordered` gathered and summed in rank order.
 /// What an accounted group step counts, and what the scaling estimate prices.
 pub fn step_collectives(
@@ -150,7 +156,7 @@ pub fn step_collectives(
     if size < 2 {
         return Vec::new();
     }
-    let numbers = LOSS_TERMS + VOTE_SLOTS + params;
+    let numbers = LOSS_TERMS + VOTE_SLOTS + CLOCK_SLOTS + params;
     [elems as u64 * 4, numbers as u64 * 8]
         .into_iter()
         .map(|bytes| match ordered {
@@ -161,9 +167,16 @@ pub fn step_collectives(
 }
 
 /// The per-step numbers a group exchanges besides the gradient: the loss terms (f64), the
-/// votes and the has-a-gradient flags, one buffer.
-pub(crate) fn step_numbers(loss: &Tensor, vote: Vote, has: &[bool]) -> Result<Tensor, TrainError> {
+/// votes, `clock` (rank 0's seconds, 0 on the others) and the has-a-gradient flags, one
+/// buffer.
+pub(crate) fn step_numbers(
+    loss: &Tensor,
+    vote: Vote,
+    clock: f64,
+    has: &[bool],
+) -> Result<Tensor, TrainError> {
     let mut host: Vec<f64> = vote.counts().to_vec();
+    host.push(clock);
     host.extend(has.iter().map(|&h| f64::from(u8::from(h))));
     let n = host.len();
     let tail = Tensor::from_vec(host, n, loss.device())?;

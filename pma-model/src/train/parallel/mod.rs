@@ -41,7 +41,7 @@ mod run;
 
 pub use comm::{Communicator, Kind};
 pub use error::GroupError;
-pub use group::{share, step_collectives, Group, GroupStop, Vote, VOTE_SLOTS};
+pub use group::{share, step_collectives, Group, GroupStop, Vote, CLOCK_SLOTS, VOTE_SLOTS};
 #[cfg(feature = "nccl")]
 pub use run::NcclEngine;
 pub use run::{

@@ -494,6 +494,7 @@ impl Trainer {
             }
         }
         self.group = Some(group);
+        self.opt.join_group();
         Ok(())
     }
 
@@ -730,19 +731,6 @@ pub fn check_group(train: &crate::train::TrainConfig, size: usize) -> Result<(),
     }
     if train.error_map.is_some() {
         return refuse("the error map ([train.error_map], --error-map, --fast)");
-    }
-    // Each rank updates its own copy of the weights with the rates its own clock gives.
-    let clocked = |what: &str| {
-        Err(TrainError::Config(format!(
-            "{what} over the wall clock is not supported with several devices (each rank's \
-             clock would give it other rates); `seconds = 0` follows the iterations"
-        )))
-    };
-    if train.anneal.as_ref().is_some_and(|a| a.seconds > 0.0) {
-        return clocked("annealing ([train.anneal], --anneal with --minutes)");
-    }
-    if train.pose_boost.as_ref().is_some_and(|b| b.seconds > 0.0) {
-        return clocked("the pose side's boost ([train.pose_boost], --pose-boost with --minutes)");
     }
     let per_image = train.rays_per_step / train.images_per_step.max(1);
     if per_image < size {

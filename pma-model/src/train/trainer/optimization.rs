@@ -6,7 +6,9 @@ use candle_core::{DType, Device, Tensor};
 
 use crate::train::adam::{Adam, FREQ_GROUP};
 use crate::train::parallel::error::GroupError;
-use crate::train::parallel::group::{step_numbers, Group, GroupStop, Vote, LOSS_TERMS, VOTE_SLOTS};
+use crate::train::parallel::group::{
+    step_numbers, Group, GroupStop, Vote, CLOCK_SLOTS, LOSS_TERMS, VOTE_SLOTS,
+};
 use crate::train::presets::TrainConfig;
 use crate::train::state::Progress;
 use crate::train::TrainError;
@@ -124,6 +126,10 @@ pub struct Optimization {
     pending: Vec<Pending>,
     /// What a data-parallel group agreed on in the steps read back so far.
     group_stop: Option<GroupStop>,
+    /// In a data-parallel group, the clock the schedules follow: rank 0's, as of the last
+    /// step read back (every rank reads back at the same iterations, so every rank sets the
+    /// same rates); `None` on one device, whose schedules follow `progress.wall_s`.
+    group_clock: Option<f64>,
 }
 
 /// 1 (u8) where `x` is finite: `0·x` is 0 for finite values, NaN for ±inf and NaN.
@@ -140,10 +146,18 @@ impl Optimization {
             progress: Progress::default(),
             pending: Vec::new(),
             group_stop: None,
+            group_clock: None,
         };
         // The first step's rates (the initial ones, but for the pose side's boost).
         opt.schedule();
         opt
+    }
+
+    /// Join a data-parallel group: from now on the schedules follow rank 0's clock, which
+    /// starts at the restored run's (the same on every rank).
+    pub fn join_group(&mut self) {
+        self.group_clock = Some(self.progress.wall_s);
+        self.schedule();
     }
 
     /// Whether the steps read back so far carried a data-parallel group's vote to stop.
@@ -192,7 +206,11 @@ impl Optimization {
         let mut tail = None;
         if let Some((group, vote)) = group {
             g = group.sum(&g)?;
-            let all = group.sum(&step_numbers(&numbers, vote, &has)?)?;
+            let clock = match group.rank() {
+                0 => self.progress.wall_s,
+                _ => 0.0,
+            };
+            let all = group.sum(&step_numbers(&numbers, vote, clock, &has)?)?;
             numbers = all.narrow(0, 0, LOSS_TERMS)?;
             tail = Some(all.narrow(0, LOSS_TERMS, all.dim(0)? - LOSS_TERMS)?);
         }
@@ -236,21 +254,23 @@ impl Optimization {
 
     /// Set the rates of the next step: the reference's decay by the iteration count, skipped
     /// steps included (it sets the rates from global_iter after every step), or with
-    /// `anneal` the share of the run's span done (iterations, or the wall clock of
-    /// `progress.wall_s`); with `pose_boost` the pose side's rate a multiple of that.
+    /// `anneal` the share of the run's span done (iterations, or the wall clock: rank 0's in
+    /// a group, else `progress.wall_s`); with `pose_boost` the pose side's rate a multiple of
+    /// that.
     pub fn schedule(&mut self) {
         let c = &self.cfg;
+        let wall_s = self.group_clock.unwrap_or(self.progress.wall_s);
         match &c.anneal {
             None => self
                 .adam
                 .apply_schedule(self.iter, c.lr_decay, c.lr_decay_steps, c.lr_floor),
             Some(a) => {
-                let factor = a.factor(self.iter, c.iters, self.progress.wall_s);
+                let factor = a.factor(self.iter, c.iters, wall_s);
                 self.adam.apply_factor(factor, c.lr_floor);
             }
         }
         if let Some(b) = &c.pose_boost {
-            let by = b.multiple(self.iter, c.iters, self.progress.wall_s);
+            let by = b.multiple(self.iter, c.iters, wall_s);
             self.adam.scale_group(FREQ_GROUP, by);
         }
     }
@@ -275,7 +295,9 @@ impl Optimization {
             if let Some((size, tail_len)) = p.group {
                 let (tail, after) = rest.split_at(tail_len);
                 rest = after;
-                let (votes, has) = tail.split_at(VOTE_SLOTS);
+                let (votes, rest) = tail.split_at(VOTE_SLOTS);
+                let (clock, has) = rest.split_at(CLOCK_SLOTS);
+                self.group_clock = Some(clock[0]);
                 // Which parameters have a gradient is decided by the graph, the same on every
                 // rank; a rank that disagrees would apply another update than the others.
                 if let Some(i) = has.iter().position(|&c| c != 0.0 && c != size as f64) {
