@@ -246,19 +246,17 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         if args.error_map {
             run.train.error_map.get_or_insert_with(Default::default);
         }
+        let budget_s = args.minutes.map(|m| m * 60.0);
         if args.anneal {
-            let a = run.train.anneal.get_or_insert_with(Default::default);
-            a.seconds = args.minutes.map_or(0.0, |m| m * 60.0);
+            run.train.anneal_over(budget_s);
         }
         if args.pose_boost {
-            let b = run.train.pose_boost.get_or_insert_with(Default::default);
-            b.seconds = args.minutes.map_or(0.0, |m| m * 60.0);
+            run.train.boost_pose_over(budget_s);
         }
         if args.average {
             run.train.average.get_or_insert_with(Default::default);
         }
         if args.fast {
-            let budget_s = args.minutes.map(|m| m * 60.0);
             for c in pma_model::train::recipe::fast(run, budget_s) {
                 println!("fast recipe: {} ({})", c.option, c.why);
             }

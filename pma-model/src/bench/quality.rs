@@ -30,7 +30,6 @@ use super::{BenchObserver, Result};
 use crate::eval::{evaluate, EvalOptions};
 use crate::network::occupancy::OccupancyConfig;
 use crate::train::average::AverageConfig;
-use crate::train::presets::{Anneal, PoseBoost};
 use crate::train::{recipe, Preset, RunConfig, Trainer};
 use pma_data::error_map::ErrorMapConfig;
 
@@ -61,16 +60,10 @@ pub fn quality_options() -> Vec<QualityOption> {
         recipe::cull_with_grid(run);
     }
     fn anneal(run: &mut RunConfig, minutes: f64) {
-        run.train.anneal = Some(Anneal {
-            seconds: minutes * 60.0,
-            ..Anneal::default()
-        })
+        run.train.anneal_over(Some(minutes * 60.0))
     }
     fn pose_boost(run: &mut RunConfig, minutes: f64) {
-        run.train.pose_boost = Some(PoseBoost {
-            seconds: minutes * 60.0,
-            ..PoseBoost::default()
-        })
+        run.train.boost_pose_over(Some(minutes * 60.0))
     }
     let option = |key, name: &str, setup: fn(&mut RunConfig, f64), budgeted| QualityOption {
         key,

@@ -121,14 +121,18 @@ pub struct TrainConfig {
 }
 
 /// Learning rates that anneal over a run's own length: at the share f of its span done
-/// every group's rate is `lr0 · final_factor^f` (floored at `lr_floor`), so a run of a few
-/// minutes ends its schedule when it ends, as the reference's 300,000 iterations end theirs
-/// (at 0.25 of the initial rates) and a short run of the reference's schedule never does.
+/// every group's rate is `lr0 · final_factor^g` with g = max(0, f − hold) / (1 − hold)
+/// (floored at `lr_floor`), so a run of a few minutes ends its schedule when it ends, as the
+/// reference's 300,000 iterations end theirs (at 0.25 of the initial rates) and a short run
+/// of the reference's schedule never does. With a `hold` the rates stay at their start for
+/// that share of the span and fall only in the rest (a cool-down at the end of the budget).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct Anneal {
     /// The rates at the end of the span, as a share of the initial rates.
     pub final_factor: f64,
+    /// The share of the span at the initial rates before they start to fall, in [0, 1).
+    pub hold: f64,
     /// The span in seconds of the run's wall clock (its budget, `--minutes`); 0: the run's
     /// iterations (`iters`). A wall-clock span makes the rates depend on the machine's
     /// speed, so such a run does not repeat bit for bit.
@@ -139,6 +143,7 @@ impl Default for Anneal {
     fn default() -> Self {
         Self {
             final_factor: 0.1,
+            hold: 0.0,
             seconds: 0.0,
         }
     }
@@ -165,8 +170,9 @@ impl Anneal {
     /// The factor of the initial rates after `iter` iterations of a run of `iters` at
     /// `wall_s` seconds.
     pub fn factor(&self, iter: u64, iters: u64, wall_s: f64) -> f64 {
-        self.final_factor
-            .powf(span_done(self.seconds, iter, iters, wall_s))
+        let done = span_done(self.seconds, iter, iters, wall_s);
+        let falling = ((done - self.hold) / (1.0 - self.hold)).max(0.0);
+        self.final_factor.powf(falling)
     }
 
     fn problems(&self) -> Vec<String> {
@@ -175,6 +181,12 @@ impl Anneal {
             bad.push(format!(
                 "anneal.final_factor must be in (0, 1], found {}",
                 self.final_factor
+            ));
+        }
+        if !(self.hold.is_finite() && (0.0..1.0).contains(&self.hold)) {
+            bad.push(format!(
+                "anneal.hold must be in [0, 1), found {}",
+                self.hold
             ));
         }
         bad.extend(span_problem("anneal.seconds", self.seconds));
@@ -235,6 +247,20 @@ impl Default for TrainConfig {
 }
 
 impl TrainConfig {
+    /// Switch on the annealed rates (keeping any settings given) over a budget of `budget_s`
+    /// seconds of wall clock (`--minutes`), or over the run's iterations with `None`.
+    pub fn anneal_over(&mut self, budget_s: Option<f64>) {
+        self.anneal.get_or_insert_with(Anneal::default).seconds = budget_s.unwrap_or(0.0);
+    }
+
+    /// Switch on the pose side's boost (keeping any settings given) over a budget of
+    /// `budget_s` seconds of wall clock, or over the run's iterations with `None`.
+    pub fn boost_pose_over(&mut self, budget_s: Option<f64>) {
+        self.pose_boost
+            .get_or_insert_with(PoseBoost::default)
+            .seconds = budget_s.unwrap_or(0.0);
+    }
+
     /// The reference's training setup (`configs/basic.yaml`, `pm_avatar.yaml`).
     pub fn paper() -> Self {
         Self {
@@ -839,6 +865,39 @@ mod tests {
         // Off by default, and then absent from the saved configuration.
         let plain = RunConfig::from_preset(Preset::Tiny);
         assert!(!plain.to_toml_string().unwrap().contains("pose_boost"));
+    }
+
+    #[test]
+    fn annealed_rates_hold_then_fall_to_the_final_factor_and_refuse_bad_values() {
+        let from_start = Anneal::default();
+        assert_eq!(from_start.factor(0, 100, 0.0), 1.0);
+        assert!((from_start.factor(50, 100, 0.0) - 0.1f64.sqrt()).abs() < 1e-12);
+        assert!((from_start.factor(100, 100, 0.0) - 0.1).abs() < 1e-12);
+        let cool_down = Anneal {
+            final_factor: 0.01,
+            hold: 0.6,
+            seconds: 100.0,
+        };
+        assert_eq!(cool_down.factor(9, 10, 0.0), 1.0);
+        assert_eq!(cool_down.factor(9, 10, 60.0), 1.0);
+        assert!((cool_down.factor(9, 10, 80.0) - 0.1).abs() < 1e-12);
+        assert!((cool_down.factor(0, 10, 500.0) - 0.01).abs() < 1e-12);
+        for bad in ["hold = 1.0", "hold = -0.1", "hold = nan"] {
+            let text = format!("preset = \"tiny\"\n[train.anneal]\n{bad}\n");
+            let e = RunConfig::from_toml_str(&text).unwrap_err().to_string();
+            assert!(e.contains("anneal.hold"), "{bad}: {e}");
+        }
+        // A budget spans a schedule switched on with it and keeps the settings given.
+        let mut run = RunConfig::from_toml_str(
+            "preset = \"tiny\"\n[train.anneal]\nhold = 0.5\n[train.pose_boost]\nfactor = 8.0\n",
+        )
+        .unwrap();
+        run.train.anneal_over(Some(120.0));
+        run.train.boost_pose_over(None);
+        let a = run.train.anneal.unwrap();
+        assert_eq!((a.hold, a.seconds), (0.5, 120.0));
+        let b = run.train.pose_boost.unwrap();
+        assert_eq!((b.factor, b.seconds), (8.0, 0.0));
     }
 
     #[test]

@@ -19,7 +19,7 @@
 use crate::network::occupancy::OccupancyConfig;
 use crate::render::options::{Culling, SampleFill};
 use crate::train::average::AverageConfig;
-use crate::train::presets::{PoseBoost, RunConfig};
+use crate::train::presets::RunConfig;
 
 /// The w^p threshold of the recipe's sample culling.
 pub const FAST_CULL_THRESHOLD: f64 = 0.6;
@@ -41,10 +41,7 @@ pub fn fast(run: &mut RunConfig, budget_s: Option<f64>) -> Vec<Choice> {
         why: "the model is the moving average of the weights, which scatter from step to step",
     });
     if let Some(seconds) = budget_s.filter(|&s| s > 0.0) {
-        run.train
-            .pose_boost
-            .get_or_insert_with(PoseBoost::default)
-            .seconds = seconds;
+        run.train.boost_pose_over(Some(seconds));
         choices.push(Choice {
             option: "--pose-boost",
             why: "the pose side's rate starts at 4x and comes down to its own over the \
@@ -78,7 +75,7 @@ pub fn cull_with_grid(run: &mut RunConfig) -> Vec<Choice> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::train::presets::Preset;
+    use crate::train::presets::{PoseBoost, Preset};
 
     #[test]
     fn the_recipe_validates_on_every_preset_and_keeps_the_other_options_off() {
