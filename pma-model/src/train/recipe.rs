@@ -4,17 +4,18 @@
 //!
 //! It is ray and sample culling at w^p ≤ 0.6 with the occupancy grid (fewer network points
 //! per step, so about twice the steps per minute), averaged weights (the model is the
-//! moving average of the weights over the last hundred or so steps, which scatter less
-//! than the weights of one step; the steps do not change) and, in a run with a wall-clock
-//! budget (`--minutes`), the pose side's rate starting at 4x and coming down to its own over
-//! that budget (`pose_boost`: the reference's pose-side rate is made for 300,000 steps, and
+//! moving average of the weights over the last ninth of the steps, at most about 500, which
+//! scatter less than the weights of one step; the steps do not change) and, in a run with a
+//! wall-clock budget (`--minutes`), the pose side's rate starting at 4x and coming down to
+//! its own over that budget (`pose_boost`: the reference's pose-side rate is made for 300,000 steps, and
 //! in a run of minutes that side lags). A run by iterations gets no boost: the presets'
 //! iteration counts are not budgets, and over a span far longer than the run the boost is a
 //! constant 4x, which was behind by five minutes. The other time-to-quality options (coarse
 //! samples from the grid, the error map, rates annealed over the budget) stay options of
 //! their own: each alone, and all together, reached parity's held-out PSNR later than
 //! culling with the grid did (`pma bench --time-to-quality`, docs/performance.md "Time to
-//! quality").
+//! quality"); rates that cool down at the end of the budget gained nothing over the longer
+//! average at five minutes and lost at one.
 
 use crate::network::occupancy::OccupancyConfig;
 use crate::render::options::{Culling, SampleFill};
