@@ -141,6 +141,49 @@ fn ranks_train_as_one_device_on_the_union_batch() {
     }
 }
 
+/// With the fast recipe's culling and occupancy grid (its warm-up shortened so that 40 of
+/// the 50 steps use the grid) two ranks still train as one device in chunks of their slices,
+/// bit for bit under `deterministic`: the model, the averaged weights and the grid. The
+/// ranks' graphs differ (each culls its own samples), and their grids stay equal because
+/// every rank takes in all ranks' observations with each step.
+#[test]
+fn ranks_with_culling_and_the_grid_train_as_one_device() {
+    let dir = tempfile::tempdir().unwrap();
+    tiny_scene(dir.path());
+    let data_path = dir.path().join("train.npz");
+    let rays = tiny_run().train.rays_per_step;
+    let fast = |mut req: TrainRequest| {
+        let run = req.run.as_mut().unwrap();
+        pma_model::train::recipe::fast(run, None);
+        let grid = run.train.occupancy.as_mut().unwrap();
+        grid.warmup_steps = 10;
+        grid.refresh_every = 4;
+        req
+    };
+    let one = dir.path().join("one");
+    trained(
+        &train_run(
+            &fast(request(&data_path, one.clone(), rays / 2, true)),
+            &mut Silent,
+        )
+        .unwrap(),
+    );
+    let group = dir.path().join("group");
+    let req = fast(request(&data_path, group.clone(), 0, true));
+    let devices = vec![Device::Cpu; 2];
+    trained(&train_group(&req, &devices, &GroupOptions::default(), &mut Silent).unwrap());
+    let (a, b) = (params(&one), params(&group));
+    let grid = a
+        .get("occupancy.density")
+        .expect("the model has no occupancy grid");
+    assert!(grid.iter().any(|&d| d > 0.0), "the grid saw nothing");
+    let (d, at) = max_diff(&a, &b);
+    assert_eq!(
+        d, 0.0,
+        "{at} differs by {d:e} between one device and two ranks"
+    );
+}
+
 /// A rank's accounted step counts the group's two collectives with the bytes
 /// `step_collectives` says (what the scaling estimate prices): all-reduces, or all-gathers
 /// when summing in rank order.

@@ -2,11 +2,12 @@
 //! sums of its step's gradient and numbers over the group, and the votes that stop the group
 //! at one step.
 
-use candle_core::{DType, Tensor};
+use candle_core::{DType, Device, Tensor};
 
 use super::comm::{self, Communicator, Kind};
 use super::error::GroupError;
 use crate::compute::account::Collective;
+use crate::render::options::GridObservation;
 
 use crate::train::TrainError;
 
@@ -58,6 +59,50 @@ impl Group {
             _ => t.zeros_like()?,
         };
         self.sum(&mine)
+    }
+
+    /// What every rank's evaluated samples saw of the occupancy grid in a step
+    /// ([`GridObservation`]s), in rank order, on every rank. A grid keeps the largest density
+    /// seen per cell, so each rank taking in the union keeps the grids equal, and equal to
+    /// one device's on the whole batch. Two exchanges on `device`: the ranks' counts, then
+    /// the observations (three f64 each, exact for their u16, u32 and f32 fields) padded to
+    /// the longest list.
+    pub fn union_observations(
+        &self,
+        mine: Vec<GridObservation>,
+        device: &Device,
+    ) -> Result<Vec<GridObservation>, TrainError> {
+        if self.size() == 1 {
+            return Ok(mine);
+        }
+        let mut counts = vec![0f64; self.size()];
+        counts[self.rank()] = mine.len() as f64;
+        let counts = self
+            .sum(&Tensor::from_vec(counts, self.size(), device)?)?
+            .to_vec1::<f64>()?;
+        let longest = counts.iter().fold(0f64, |a, &b| a.max(b)) as usize;
+        if longest == 0 {
+            return Ok(Vec::new());
+        }
+        let mut buf = vec![0f64; 3 * longest];
+        for (slot, o) in buf.chunks_exact_mut(3).zip(&mine) {
+            slot.copy_from_slice(&[f64::from(o.joint), f64::from(o.cell), f64::from(o.sigma)]);
+        }
+        let buf = Tensor::from_vec(buf, 3 * longest, device)?;
+        let all = comm::Exchange::run(self.comm.as_ref(), Kind::Gather, &buf)?.to_vec2::<f64>()?;
+        let mut out = Vec::with_capacity(counts.iter().sum::<f64>() as usize);
+        for (row, &n) in all.iter().zip(&counts) {
+            out.extend(
+                row.chunks_exact(3)
+                    .take(n as usize)
+                    .map(|o| GridObservation {
+                        joint: o[0] as u16,
+                        cell: o[1] as u32,
+                        sigma: o[2] as f32,
+                    }),
+            );
+        }
+        Ok(out)
     }
 
     /// `Ok` while the group is whole.
@@ -146,7 +191,9 @@ pub const CLOCK_SLOTS: usize = 1;
 /// f64 step numbers ([`step_numbers`]: the loss terms, the votes, rank 0's clock, a flag per
 /// tensor).
 /// Summed by the engine's all-reduce, or with `ordered` gathered and summed in rank order.
-/// What an accounted group step counts, and what the scaling estimate prices.
+/// What an accounted group step counts, and what the scaling estimate prices. A step with
+/// the occupancy grid adds two ([`Group::union_observations`]: the counts, then the
+/// observations, whose size follows the step), which neither counts here.
 pub fn step_collectives(
     size: usize,
     elems: usize,

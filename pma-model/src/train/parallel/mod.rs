@@ -10,6 +10,9 @@
 //! optimizer, one exchange of the flat gradient buffer sums it over the ranks, and a second,
 //! small one the step's loss terms, the ranks' stop votes and their has-a-gradient flags.
 //! Every rank then clips, skips and updates on the same numbers: the replicas stay equal.
+//! With the occupancy grid two more exchanges follow (the ranks' counts of grid
+//! observations, then the observations), so every rank's grid takes in what all ranks'
+//! samples saw ([`Group::union_observations`]) and the grids stay equal too.
 //!
 //! The sum is the engine's all-reduce (its summation order). With
 //! [`crate::compute::numerics::Numerics::deterministic`] it is an all-gather followed by a

@@ -422,7 +422,12 @@ impl Trainer {
         crate::compute::profile::mark("grad norm + Adam", &device);
         self.pass_totals.add(&stats);
         // The densities the step saw are the model's before this update: recent enough for a
-        // grid that decays what no sample finds again.
+        // grid that decays what no sample finds again. Every rank of a group takes in all
+        // ranks' (the grids stay equal).
+        let seen = match &self.group {
+            Some(g) if opts.occupancy => g.union_observations(seen, &device)?,
+            _ => seen,
+        };
         self.avatar.observe_occupancy(&seen)?;
         self.refresh_occupancy(batch)?;
         Ok(())
@@ -474,9 +479,10 @@ impl Trainer {
     /// [`super::parallel`]): from now on each step computes the gradients of the rank's
     /// slice of the batch and sums them with the others'. Every rank must join before its
     /// first step, with the same run; the parameters are made rank 0's (one exchange).
-    /// Refused for a run whose steps depend on more than their own rays (an occupancy grid
-    /// fed by the samples, culling that decides which parameters get a gradient) or whose
-    /// batches have fewer rays per image than ranks.
+    /// Refused for a run with an error map (it draws the rays from the errors one device
+    /// saw) or whose batches have fewer rays per image than ranks. Culling and the occupancy
+    /// grid train in a group: the ranks' grid observations are exchanged with each step, and
+    /// every parameter takes the group's gradient (see [`Optimization::apply_in`]).
     pub fn join_group(&mut self, group: Group) -> Result<(), TrainError> {
         check_group(&self.run.train, group.size())?;
         let flat: Vec<Tensor> = self
@@ -712,25 +718,16 @@ impl Trainer {
     }
 }
 
-/// Whether a run of `train` can train on a data-parallel group of `size` devices: options
-/// whose state follows the rays one device sees (the occupancy grid, culling, the error map)
-/// are refused, since each rank sees only its slice, and so is a batch with fewer rays per
-/// image than ranks.
+/// Whether a run of `train` can train on a data-parallel group of `size` devices: an error
+/// map is refused (each rank would draw its rays from the errors of its own slice), and so
+/// is a batch with fewer rays per image than ranks.
 pub fn check_group(train: &crate::train::TrainConfig, size: usize) -> Result<(), TrainError> {
-    let refuse = |what: &str| {
-        Err(TrainError::Config(format!(
-            "{what} is not supported with several devices (each rank would see only its \
-             own rays)"
-        )))
-    };
-    if train.occupancy.is_some() {
-        return refuse("an occupancy grid ([train.occupancy], --occupancy)");
-    }
-    if !train.culling.is_off() {
-        return refuse("culling ([train.culling], --cull-rays/--cull-samples)");
-    }
     if train.error_map.is_some() {
-        return refuse("the error map ([train.error_map], --error-map, --fast)");
+        return Err(TrainError::Config(
+            "the error map ([train.error_map], --error-map) is not supported with several \
+             devices (each rank would see only its own rays)"
+                .into(),
+        ));
     }
     let per_image = train.rays_per_step / train.images_per_step.max(1);
     if per_image < size {

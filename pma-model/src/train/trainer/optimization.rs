@@ -201,7 +201,16 @@ impl Optimization {
     ) -> Result<(), TrainError> {
         let lrs = self.lrs();
         let iter = self.iter + 1;
-        let (mut g, has) = self.adam.flatten(&grads)?;
+        let (mut g, mut has) = self.adam.flatten(&grads)?;
+        // With culling or the grid a rank's graph follows its own rays: a parameter no
+        // sample of its slice reached has no gradient there but may have one on another
+        // rank. Every parameter then takes the group's sum (zeros from the ranks that did
+        // not reach it), so all ranks update alike without a read-back; one device skips
+        // a parameter that no sample of the whole step reached (Adam's moments of it then
+        // stand still), which the group instead updates with a zero gradient.
+        if group.is_some() && (!self.cfg.culling.is_off() || self.cfg.occupancy.is_some()) {
+            has.fill(true);
+        }
         let mut numbers = loss.stacked()?;
         let mut tail = None;
         if let Some((group, vote)) = group {
@@ -445,6 +454,53 @@ mod tests {
             "{err}"
         );
         assert_eq!(step(&opt), 2);
+    }
+
+    /// In a data-parallel group with culling a parameter can have a gradient on one rank
+    /// and none on another (no sample of the other's slice reached it): both ranks apply
+    /// the group's sum, the same update. Without culling the graph is the same on every
+    /// rank, so ranks that disagree are an error, read back on both.
+    #[test]
+    fn a_culled_group_updates_a_parameter_one_rank_reached_on_every_rank() {
+        use crate::train::parallel::{cpu, Communicator, Group, Vote};
+        let (x1, mut one) = setup();
+        let g = || Tensor::new(&[1f32, -1.0], &Device::Cpu).unwrap();
+        apply(&mut one, loss(0.5), vec![Some(g())]).unwrap();
+        let alone = x1.to_vec1::<f32>().unwrap();
+        for culling in [true, false] {
+            let comms = cpu::group(2, std::time::Duration::from_secs(60));
+            let ranks: Vec<(bool, Vec<f32>)> = std::thread::scope(|s| {
+                let handles: Vec<_> = comms
+                    .into_iter()
+                    .map(|comm| {
+                        s.spawn(move || {
+                            let (x, mut opt) = setup();
+                            opt.cfg.culling.rays = culling;
+                            opt.join_group();
+                            let rank = comm.rank();
+                            let group = Group::new(Box::new(comm), true);
+                            let grads = vec![(rank == 0).then(g)];
+                            opt.apply_in(&loss(0.5), grads, None, Some((&group, Vote::default())))
+                                .unwrap();
+                            let read = opt.read_back();
+                            (read.is_ok(), x.to_vec1::<f32>().unwrap())
+                        })
+                    })
+                    .collect();
+                handles.into_iter().map(|h| h.join().unwrap()).collect()
+            });
+            match culling {
+                true => {
+                    assert!(ranks.iter().all(|(ok, _)| *ok), "a rank failed");
+                    assert_eq!(ranks[0].1, alone, "rank 0 is not the one device");
+                    assert_eq!(ranks[1].1, alone, "rank 1 is not the one device");
+                }
+                false => assert!(
+                    ranks.iter().all(|(ok, _)| !*ok),
+                    "ranks that disagree on a gradient were accepted"
+                ),
+            }
+        }
     }
 
     /// Steps read back together count their skips and stop the run like steps read one
