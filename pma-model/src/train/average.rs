@@ -24,9 +24,9 @@ use super::TrainError;
 pub struct AverageConfig {
     /// Each step keeps this share of the average and adds the rest of the new weights, once
     /// the warm-up of [`Self::decay_at`] has reached it (0.998: about the last 500 steps
-    /// count; before step 4,500 about the last ninth of the steps done). Over five minutes
-    /// of the fast recipe 0.998 scored higher than 0.99 and the same at one minute
-    /// (docs/performance.md, "Averaged weights").
+    /// count; before step 4,500 about the last ninth of the steps done). Five-minute runs
+    /// of the fast recipe at 0.99, 0.998 and 0.999 scored alike within the scatter of
+    /// repeated runs (docs/performance.md, "Five minutes").
     pub decay: f64,
 }
 
