@@ -202,13 +202,13 @@ impl Optimization {
         let lrs = self.lrs();
         let iter = self.iter + 1;
         let (mut g, mut has) = self.adam.flatten(&grads)?;
-        // With culling or the grid a rank's graph follows its own rays: a parameter no
+        // When the step leaves work out a rank's graph follows its own rays: a parameter no
         // sample of its slice reached has no gradient there but may have one on another
         // rank. Every parameter then takes the group's sum (zeros from the ranks that did
         // not reach it), so all ranks update alike without a read-back; one device skips
         // a parameter that no sample of the whole step reached (Adam's moments of it then
         // stand still), which the group instead updates with a zero gradient.
-        if group.is_some() && (!self.cfg.culling.is_off() || self.cfg.occupancy.is_some()) {
+        if group.is_some() && self.cfg.pass_options(self.iter).leaves_out_work() {
             has.fill(true);
         }
         let mut numbers = loss.stacked()?;
