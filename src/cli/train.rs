@@ -79,6 +79,11 @@ pub struct Args {
     /// resumed run.
     #[arg(long, requires = "occupancy")]
     pub coarse_from_grid: bool,
+    /// Stratified samples: each step places the coarse samples at random in their strata and
+    /// the importance samples at random places of their distribution, instead of the
+    /// reference's fixed places. Not for a resumed run.
+    #[arg(long)]
+    pub jitter: bool,
     /// Draw half of each image's rays where a running map of the training error is high
     /// (`[train.error_map]` sets its cells, share and weighting); the map is saved with
     /// every checkpoint. Not for a resumed run.
@@ -232,6 +237,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     let switches = [
         ("--coarse-from-grid", args.coarse_from_grid),
+        ("--jitter", args.jitter),
         ("--error-map", args.error_map),
         ("--anneal", args.anneal),
         ("--pose-boost", args.pose_boost),
@@ -243,6 +249,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             refuse!("{flag} cannot change a resumed run (its options are in {CONFIG_FILE})");
         };
         run.train.coarse_from_grid |= args.coarse_from_grid;
+        run.train.jitter |= args.jitter;
         if args.error_map {
             run.train.error_map.get_or_insert_with(Default::default);
         }

@@ -60,6 +60,7 @@ impl BenchOption {
             early_stop: self.early_stop,
             cull_joints: self.cull_joints,
             grid_feed: None,
+            jitter: None,
         }
     }
 

@@ -51,10 +51,10 @@ pub struct QualityOption {
 }
 
 /// Parity, culling at 0.6 with the grid, each of the other options alone (the error map;
-/// the annealed rates; coarse samples from the grid, which needs the grid; averaged
-/// weights; the pose side's rate `lr_freq` ×4, and ×4 coming down to ×1 over the budget),
-/// the fast recipe without that boost (as a run by iterations has it), the recipe, and all
-/// of them together.
+/// the annealed rates; coarse samples from the grid, which needs the grid; stratified
+/// samples; averaged weights; the pose side's rate `lr_freq` ×4, and ×4 coming down to ×1
+/// over the budget), the fast recipe without that boost (as a run by iterations has it),
+/// the recipe, and all of them together.
 pub fn quality_options() -> Vec<QualityOption> {
     fn culled(run: &mut RunConfig) {
         recipe::cull_with_grid(run);
@@ -88,6 +88,12 @@ pub fn quality_options() -> Vec<QualityOption> {
                 run.train.occupancy = Some(OccupancyConfig::default());
                 run.train.coarse_from_grid = true;
             },
+            false,
+        ),
+        option(
+            "jitter",
+            "stratified samples",
+            |run, _| run.train.jitter = true,
             false,
         ),
         option(
@@ -125,6 +131,7 @@ pub fn quality_options() -> Vec<QualityOption> {
             |run, minutes| {
                 recipe::fast(run, Some(minutes * 60.0));
                 run.train.coarse_from_grid = true;
+                run.train.jitter = true;
                 run.train.error_map = Some(ErrorMapConfig::default());
                 run.train.average = Some(AverageConfig::default());
                 anneal(run, minutes);

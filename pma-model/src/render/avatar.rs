@@ -197,6 +197,7 @@ impl Avatar {
             .occupancy
             .as_deref()
             .filter(|g| opts.coarse_from_grid && g.is_built());
+        let jitter = opts.jitter;
         if let (true, Some(grid)) = (on_host, grid) {
             let cfg = self.config();
             let threshold = opts.window_threshold().unwrap_or(0.0);
@@ -212,12 +213,13 @@ impl Avatar {
                 coarse_in_occupied(&test, grid, inputs, even, cfg.n_samples)
             };
             self.caster
-                .cast_placed(args.0, args.1, args.2, args.3, args.4, Some(&place))
+                .cast_placed(args.0, args.1, args.2, args.3, args.4, Some(&place), jitter)
         } else if on_host {
-            self.caster.cast(args.0, args.1, args.2, args.3, args.4)
+            self.caster
+                .cast_placed(args.0, args.1, args.2, args.3, args.4, None, jitter)
         } else {
             self.caster
-                .cast_tensors(args.0, args.1, args.2, args.3, args.4)
+                .cast_tensors_jittered(args.0, args.1, args.2, args.3, args.4, jitter)
         }
     }
 
@@ -319,13 +321,20 @@ impl Avatar {
             None => points.grid_weights(&coarse, &rays.dirs)?,
         };
         let fine = match on_host {
-            true => self
-                .caster
-                .resample(&rays.origins, &rays.dirs, &coarse.z, &weights)?,
-            false => {
-                self.caster
-                    .resample_tensors(&rays.origins, &rays.dirs, &coarse.z, &weights)?
-            }
+            true => self.caster.resample_at(
+                &rays.origins,
+                &rays.dirs,
+                &coarse.z,
+                &weights,
+                coarse.fine_u.as_deref(),
+            )?,
+            false => self.caster.resample_tensors_at(
+                &rays.origins,
+                &rays.dirs,
+                &coarse.z,
+                &weights,
+                coarse.fine_u.as_deref(),
+            )?,
         };
         prof("resample");
         // 5. The fine samples through the network (with the coarse ones that waited).

@@ -339,6 +339,7 @@ impl Avatar {
                 bounds: Some(bounds.select(&alive)),
                 z: pick(&coarse.z)?,
                 pts: pick(&coarse.pts)?,
+                fine_u: coarse.fine_u_of(&alive),
             };
             let out = self.forward_cast(&sub, poses, pose, samples, &mut Mode::Infer, opts)?;
             let m = alive.len();

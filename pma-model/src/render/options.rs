@@ -178,6 +178,12 @@ pub struct PassOptions {
     #[cfg_attr(feature = "cli", arg(skip))]
     #[serde(skip)]
     pub grid_feed: Option<GridFeed>,
+    /// Training with stratified samples: where in its stratum each sample of the step lies
+    /// (set per step by the trainer, never by a user or a run file; `None` is the
+    /// reference's evenly spaced samples).
+    #[cfg_attr(feature = "cli", arg(skip))]
+    #[serde(skip)]
+    pub jitter: Option<crate::render::raycast::Jitter>,
 }
 
 /// How a training pass feeds the occupancy grid it consults: every sample it evaluates is
@@ -199,16 +205,20 @@ impl GridFeed {
         if self.probe_share <= 0.0 {
             return false;
         }
-        // splitmix64 of the seed, the call and the index: uniform in [0, 1).
-        let mut z = self
-            .seed
-            .wrapping_add(call.wrapping_mul(0xd1b5_4a32_d192_ed03))
-            .wrapping_add(index.wrapping_mul(0x9e37_79b9_7f4a_7c15));
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        z ^= z >> 31;
-        ((z >> 11) as f64) * (1.0 / (1u64 << 53) as f64) < self.probe_share
+        unit_hash(self.seed, call, index) < self.probe_share
     }
+}
+
+/// A uniform number in [0, 1) that depends only on a seed and two places (splitmix64 of
+/// them): draws that repeat bit for bit whatever the thread or chunk that makes them.
+pub fn unit_hash(seed: u64, a: u64, b: u64) -> f64 {
+    let mut z = seed
+        .wrapping_add(a.wrapping_mul(0xd1b5_4a32_d192_ed03))
+        .wrapping_add(b.wrapping_mul(0x9e37_79b9_7f4a_7c15));
+    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    z ^= z >> 31;
+    ((z >> 11) as f64) * (1.0 / (1u64 << 53) as f64)
 }
 
 /// One cell a training pass saw: relu(σ) of the network (no noise) at a sample that lies in

@@ -97,6 +97,13 @@ pub struct TrainConfig {
     /// omitted from the saved configuration while off.
     #[serde(skip_serializing_if = "std::ops::Not::not")]
     pub coarse_from_grid: bool,
+    /// Stratified samples: each step moves every coarse sample to a random place in its
+    /// stratum and draws the importance samples at random places of their CDF
+    /// ([`crate::render::raycast::Jitter`], the `perturb` of the original NeRF; the
+    /// reference trains on evenly spaced samples). Off by default; omitted from the saved
+    /// configuration while off.
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub jitter: bool,
     /// Part of each image's rays drawn where a running map of the training error is high
     /// (`[train.error_map]`, `pma_data::error_map`), saved with every checkpoint. Off
     /// (`None`) by default; omitted from the saved configuration while off.
@@ -291,6 +298,7 @@ impl TrainConfig {
             culling: Culling::default(),
             occupancy: None,
             coarse_from_grid: false,
+            jitter: false,
             error_map: None,
             anneal: None,
             pose_boost: None,
@@ -313,6 +321,10 @@ impl TrainConfig {
             cull_joints: false,
             // The trainer gives each chunk its own feed (probes and observations).
             grid_feed: None,
+            // Each step its own places, from the seed and the step.
+            jitter: self.jitter.then(|| crate::render::raycast::Jitter {
+                seed: self.seed ^ (iter + 1).wrapping_mul(0xa076_1d64_78bd_642f),
+            }),
         }
     }
 
@@ -624,6 +636,7 @@ impl RunConfig {
                 "culling",
                 "occupancy",
                 "coarse_from_grid",
+                "jitter",
                 "error_map",
                 "anneal",
                 "pose_boost",

@@ -304,8 +304,10 @@ fn a_culled_step_reads_back_per_stage_and_the_grid_feed_once_more_per_network_st
 
 /// The time-to-quality options add no read-back inside a step: the error map's per-ray errors
 /// come back with the step's numbers in its one read, the annealed and boosted rates are host numbers,
-/// the averaged weights are element-wise ops on the device, and the coarse samples placed from the grid are placed from the host copies a culled
-/// step's cast reads already (the same syncs per stage as without them).
+/// the averaged weights are element-wise ops on the device, the stratified samples' places
+/// are drawn on the host and copied up, and the coarse samples placed from the grid are
+/// placed from the host copies a culled step's cast reads already (the same syncs per stage
+/// as without them).
 #[test]
 fn the_time_to_quality_options_add_no_read_back_inside_a_step() {
     use pma_model::network::occupancy::OccupancyConfig;
@@ -315,6 +317,7 @@ fn the_time_to_quality_options_add_no_read_back_inside_a_step() {
         run.train.anneal = Some(Default::default());
         run.train.pose_boost = Some(Default::default());
         run.train.average = Some(Default::default());
+        run.train.jitter = true;
     });
     let a = account_step(&mut trainer, &mut source, Route::Cuda).unwrap();
     check(&a, 1, 1_470);
@@ -342,6 +345,7 @@ fn the_time_to_quality_options_add_no_read_back_inside_a_step() {
                 ..OccupancyConfig::default()
             });
             run.train.coarse_from_grid = coarse_from_grid;
+            run.train.jitter = coarse_from_grid;
             run.train.error_map = coarse_from_grid.then(Default::default);
         });
         trainer.advance(&source.next_batch().unwrap()).unwrap();

@@ -248,3 +248,137 @@ fn tensor_ops_resample_and_merge_like_the_host_code() {
         vec![0, 1, 3, 4, 2, 5]
     );
 }
+
+/// Stratified samples ([`Jitter`]): the device route draws the host's places and casts the
+/// host's samples (bit for bit but for a cylinder miss's batch mean, as above); every
+/// coarse sample stays in its stratum between the midpoints to its even neighbours, the
+/// samples stay ascending, and nearly all of them move; the importance samples' CDF places
+/// lie one in each of Sf equal parts of [0, 1] and resample like the host's; a seed repeats
+/// its places and another seed draws others.
+#[test]
+fn stratified_samples_stay_in_their_strata_on_both_routes() {
+    use pma_model::render::raycast::Jitter;
+    let dev = Device::Cpu;
+    let poses = stability::extreme_poses().unwrap();
+    let cfg = Config::paper();
+    let (sc, sf) = (cfg.n_samples, cfg.n_importance);
+    let a = Avatar::new(cfg, &synth::rest_pose(), 0, &dev).unwrap();
+    let (n_poses, per_pose) = (2, 50);
+    let (mut skts, mut cyls, mut kp) = (Vec::new(), Vec::new(), Vec::new());
+    for (_, bones) in poses.iter().take(n_poses) {
+        let (p, kp3d) = a.pose_from_bones(bones, [0.0; 3]).unwrap();
+        skts.push(p.skts);
+        cyls.push(p.cyls);
+        kp.extend_from_slice(&kp3d);
+    }
+    let skts = Tensor::cat(&skts, 0).unwrap();
+    let cyls = Tensor::cat(&cyls, 0).unwrap();
+    let (o, d) = rays(&mut Lcg(5), n_poses, per_pose, &kp);
+    let r = n_poses * per_pose;
+    let rays_o = Tensor::from_vec(o, (r, 3), &dev).unwrap();
+    let rays_d = Tensor::from_vec(d, (r, 3), &dev).unwrap();
+    let scales = a.axis_scale().unwrap();
+    let caster = a.ray_caster();
+    let args = (&rays_o, &rays_d, &cyls, &skts, &scales);
+    let cast = |j: Option<Jitter>| {
+        caster
+            .cast_placed(args.0, args.1, args.2, args.3, args.4, None, j)
+            .unwrap()
+    };
+    let j = Jitter { seed: 42 };
+    let even = host(&cast(None).z);
+    let jittered = cast(Some(j));
+    let z = host(&jittered.z);
+
+    // Device route: the same samples and places.
+    let on_device = caster
+        .cast_tensors_jittered(args.0, args.1, args.2, args.3, args.4, Some(j))
+        .unwrap();
+    let ulp_of_mean = 1e-6 * z.iter().fold(1f32, |m, v| m.max(v.abs()));
+    for (what, x, y) in [
+        ("z", host(&on_device.z), z.clone()),
+        ("pts", host(&on_device.pts), host(&jittered.pts)),
+    ] {
+        let (err, _) = compare(&x, &y);
+        assert!(err <= ulp_of_mean, "jittered {what} differs by {err:e}");
+    }
+    let u_host = jittered.fine_u.clone().expect("no fine places");
+    assert_eq!(on_device.fine_u.as_ref(), Some(&u_host));
+    assert!(cast(None).fine_u.is_none());
+
+    // In their strata, in the order of the even samples (a ray that misses the cylinder
+    // can have its bounds the other way round), and moved.
+    let mut moved = 0;
+    for (ray, (e, z)) in even.chunks_exact(sc).zip(z.chunks_exact(sc)).enumerate() {
+        let up = e[0] <= e[sc - 1];
+        for k in 0..sc {
+            let a = if k == 0 {
+                e[0]
+            } else {
+                0.5 * (e[k - 1] + e[k])
+            };
+            let b = if k + 1 == sc {
+                e[sc - 1]
+            } else {
+                0.5 * (e[k] + e[k + 1])
+            };
+            let (lo, hi) = (a.min(b), a.max(b));
+            assert!(
+                lo <= z[k] && z[k] <= hi,
+                "ray {ray} sample {k}: {} outside its stratum [{lo}, {hi}]",
+                z[k]
+            );
+            assert!(
+                k == 0 || (z[k - 1] <= z[k]) == up || z[k - 1] == z[k],
+                "ray {ray}: out of order at {k}"
+            );
+            moved += (z[k] != e[k]) as usize;
+        }
+    }
+    assert!(
+        moved * 10 > r * sc * 9,
+        "only {moved} of {} samples moved",
+        r * sc
+    );
+    for (i, &u) in u_host.iter().enumerate() {
+        let m = (i % sf) as f32;
+        assert!(
+            m / sf as f32 <= u && u <= (m + 1.0) / sf as f32,
+            "fine place {i}: {u} outside part {m} of {sf}"
+        );
+    }
+
+    // The importance samples at those places, on both routes, and not at linspace's.
+    let weights = Tensor::from_vec(
+        (0..r * sc)
+            .map(|i| ((i * 7919) % 13) as f32 / 13.0)
+            .collect::<Vec<_>>(),
+        (r, sc),
+        &dev,
+    )
+    .unwrap();
+    let u = jittered.fine_u.as_deref();
+    let fine = caster
+        .resample_at(&rays_o, &rays_d, &jittered.z, &weights, u)
+        .unwrap();
+    let fine_dev = caster
+        .resample_tensors_at(&rays_o, &rays_d, &jittered.z, &weights, u)
+        .unwrap();
+    let (err, _) = compare(&host(&fine_dev.z), &host(&fine.z));
+    assert!(
+        err <= IMPORTANCE_TOL,
+        "jittered importance samples differ by {err:e}"
+    );
+    let at_even = caster
+        .resample(&rays_o, &rays_d, &jittered.z, &weights)
+        .unwrap();
+    let (shift, _) = compare(&host(&fine.z), &host(&at_even.z));
+    assert!(
+        shift > 1e-3,
+        "the fine places did not move the importance samples"
+    );
+
+    // A seed repeats; another draws other places.
+    assert_eq!(host(&cast(Some(j)).z), z);
+    assert_ne!(host(&cast(Some(Jitter { seed: 43 })).z), z);
+}

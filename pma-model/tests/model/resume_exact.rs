@@ -226,8 +226,8 @@ fn resume_with_an_occupancy_grid_equals_uninterrupted_run() {
 }
 
 /// The fast recipe (culling, the grid) with every other time-to-quality option (coarse
-/// samples from the grid, the error map with its unbiased weights, rates annealed over the
-/// run's iterations, the pose side's boost, averaged weights): a run stopped, checkpointed and resumed ends bit for
+/// samples from the grid, stratified samples, the error map with its unbiased weights, rates
+/// annealed over the run's iterations, the pose side's boost, averaged weights): a run stopped, checkpointed and resumed ends bit for
 /// bit where the uninterrupted run ends, its error map and its average included, and the
 /// map, the schedule and the average did move.
 #[test]
@@ -237,6 +237,7 @@ fn resume_with_the_fast_recipe_equals_uninterrupted_run() {
     let mut run = tiny_run();
     pma_model::train::recipe::fast(&mut run, None);
     run.train.coarse_from_grid = true;
+    run.train.jitter = true;
     run.train.error_map = Some(pma_data::error_map::ErrorMapConfig::default());
     run.train.anneal = Some(pma_model::train::presets::Anneal::default());
     run.train.pose_boost = Some(pma_model::train::presets::PoseBoost::default());

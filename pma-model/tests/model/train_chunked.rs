@@ -41,10 +41,11 @@ struct Step {
     params: Vec<(String, Vec<f32>)>,
 }
 
-/// One step of a fresh tiny avatar on `batch` with `chunk_rays`.
-fn one_step(data: &Arc<Dataset>, batch: &TrainBatch, chunk: usize) -> Step {
+/// One step of a fresh tiny avatar on `batch` with `chunk_rays` (and stratified samples).
+fn one_step(data: &Arc<Dataset>, batch: &TrainBatch, chunk: usize, jitter: bool) -> Step {
     let mut run = tiny_run();
     run.train.chunk_rays = chunk;
+    run.train.jitter = jitter;
     let mut trainer = fixed_batch_trainer(run, data, batch);
     let (stats, grads) = step_grads(&mut trainer);
     let names = trainer.param_names().to_vec();
@@ -68,6 +69,17 @@ fn run_eps() -> f64 {
 
 #[test]
 fn chunked_step_equals_the_unchunked_step() {
+    chunked_equals_unchunked(false);
+}
+
+/// With stratified samples too: a sample's place belongs to its ray's row in the whole
+/// batch, not in its chunk.
+#[test]
+fn a_jittered_step_is_the_same_in_chunks() {
+    chunked_equals_unchunked(true);
+}
+
+fn chunked_equals_unchunked(jitter: bool) {
     let dir = tempfile::tempdir().unwrap();
     let data = tiny_scene(dir.path());
     let run = tiny_run();
@@ -96,14 +108,14 @@ fn chunked_step_equals_the_unchunked_step() {
         stats: s_one,
         grads: g_one,
         params: p_one,
-    } = one_step(&data, &batch, r);
+    } = one_step(&data, &batch, r, jitter);
     // 64 rays of 2 images: 12 + 12 + 8 rays per image, the last chunk smaller.
     for chunk in [24, 2] {
         let Step {
             stats: s_chunked,
             grads: g_chunked,
             params: p_chunked,
-        } = one_step(&data, &batch, chunk);
+        } = one_step(&data, &batch, chunk, jitter);
         assert_eq!(s_chunked.skipped, None);
         assert!(
             (s_chunked.loss.total - s_one.loss.total).abs() <= 1e-6,

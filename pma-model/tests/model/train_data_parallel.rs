@@ -142,10 +142,11 @@ fn ranks_train_as_one_device_on_the_union_batch() {
 }
 
 /// With the fast recipe's culling and occupancy grid (its warm-up shortened so that 40 of
-/// the 50 steps use the grid) two ranks still train as one device in chunks of their slices,
-/// bit for bit under `deterministic`: the model, the averaged weights and the grid. The
-/// ranks' graphs differ (each culls its own samples), and their grids stay equal because
-/// every rank takes in all ranks' observations with each step.
+/// the 50 steps use the grid) and stratified samples, two ranks still train as one device
+/// in chunks of their slices, bit for bit under `deterministic`: the model, the averaged
+/// weights and the grid. The ranks' graphs differ (each culls its own samples), their grids
+/// stay equal because every rank takes in all ranks' observations with each step, and a
+/// sample's place in its stratum belongs to its ray's row in the whole batch.
 #[test]
 fn ranks_with_culling_and_the_grid_train_as_one_device() {
     let dir = tempfile::tempdir().unwrap();
@@ -158,6 +159,7 @@ fn ranks_with_culling_and_the_grid_train_as_one_device() {
         let grid = run.train.occupancy.as_mut().unwrap();
         grid.warmup_steps = 10;
         grid.refresh_every = 4;
+        run.train.jitter = true;
         req
     };
     let one = dir.path().join("one");

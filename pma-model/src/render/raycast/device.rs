@@ -15,7 +15,7 @@
 use candle_core::{DType, Device, Tensor, D};
 use pma_data::skeleton::N_JOINTS;
 
-use super::{linspace01, CoarseSamples, FineSamples, RayCaster, BOX_EPS};
+use super::{linspace01, CoarseSamples, FineSamples, Jitter, RayCaster, BOX_EPS};
 use crate::error::{ModelError, Result};
 
 /// `v` (f32) shaped like `like`, made on the device without a host copy.
@@ -203,25 +203,62 @@ impl RayCaster {
         skts: &Tensor,
         scales: &Tensor,
     ) -> Result<CoarseSamples> {
+        self.cast_tensors_jittered(rays_o, rays_d, cyls, skts, scales, None)
+    }
+
+    /// [`Self::cast_tensors`] with stratified samples ([`Jitter`]): the places are drawn on
+    /// the host and copied to the device (no read-back), so the samples are the host
+    /// cast's.
+    pub fn cast_tensors_jittered(
+        &self,
+        rays_o: &Tensor,
+        rays_d: &Tensor,
+        cyls: &Tensor,
+        skts: &Tensor,
+        scales: &Tensor,
+        jitter: Option<Jitter>,
+    ) -> Result<CoarseSamples> {
         let (near, far) = self.near_far_tensors(rays_o, rays_d, cyls, skts, scales)?;
         let dev = rays_o.device();
-        let t = linspace01(self.n_samples);
+        let s = self.n_samples;
+        let t = linspace01(s);
         let one_minus_t: Vec<f32> = t.iter().map(|&t| 1.0 - t).collect();
-        let z = near
+        let mut z = near
             .unsqueeze(1)?
             .broadcast_mul(&row(one_minus_t, dev)?)?
             .add(&far.unsqueeze(1)?.broadcast_mul(&row(t, dev)?)?)?;
+        let r = z.dim(0)?;
+        if let Some(j) = jitter.filter(|_| s > 1) {
+            let u = Tensor::from_vec(j.coarse_u(r, s), (r, s), dev)?;
+            let mids = ((z.narrow(1, 1, s - 1)? + z.narrow(1, 0, s - 1)?)? * 0.5)?;
+            let lo = Tensor::cat(&[&z.narrow(1, 0, 1)?, &mids], 1)?;
+            let hi = Tensor::cat(&[&mids, &z.narrow(1, s - 1, 1)?], 1)?;
+            z = (&lo + ((&hi - &lo)? * u)?)?;
+        }
+        let fine_u = jitter.map(|j| j.fine_u(r, self.n_importance));
         let pts = points(rays_o, rays_d, &z)?;
         let dt = rays_o.dtype();
         Ok(CoarseSamples {
             bounds: None,
             z: z.to_dtype(dt)?,
             pts: pts.to_dtype(dt)?,
+            fine_u,
         })
     }
 
     /// [`RayCaster::importance_z`] as tensor ops: z_coarse, weights: [R,Sc] -> [R,Sf] (f32).
     pub fn importance_z_tensors(&self, z_coarse: &Tensor, weights: &Tensor) -> Result<Tensor> {
+        self.importance_z_tensors_at(z_coarse, weights, None)
+    }
+
+    /// [`RayCaster::importance_z_at`] as tensor ops: `fine_u` [R,Sf] (copied to the device)
+    /// or linspace(0, 1, Sf).
+    pub fn importance_z_tensors_at(
+        &self,
+        z_coarse: &Tensor,
+        weights: &Tensor,
+        fine_u: Option<&[f32]>,
+    ) -> Result<Tensor> {
         let (r, sc) = z_coarse.dims2()?;
         if sc != self.n_samples || weights.dims() != [r, sc] {
             return Err(ModelError::shape(
@@ -252,7 +289,11 @@ impl RayCaster {
         let last = (sc - 2) as f64;
         // searchsorted(right): how many cdf entries are <= u.
         let sf = self.n_importance;
-        let u = row(linspace01(sf), dev)?; // [1,Sf]
+        let u = match fine_u {
+            Some(u) if u.len() == r * sf => Tensor::from_slice(u, (r, sf), dev)?,
+            Some(u) => return Err(ModelError::shape("fine_u", [r, sf], u.len())),
+            None => row(linspace01(sf), dev)?, // [1,Sf]
+        };
         let idx = cdf
             .unsqueeze(1)?
             .broadcast_le(&u.unsqueeze(2)?)?
@@ -279,8 +320,20 @@ impl RayCaster {
         z_coarse: &Tensor,
         weights: &Tensor,
     ) -> Result<FineSamples> {
+        self.resample_tensors_at(rays_o, rays_d, z_coarse, weights, None)
+    }
+
+    /// [`RayCaster::resample_at`] as tensor ops.
+    pub fn resample_tensors_at(
+        &self,
+        rays_o: &Tensor,
+        rays_d: &Tensor,
+        z_coarse: &Tensor,
+        weights: &Tensor,
+        fine_u: Option<&[f32]>,
+    ) -> Result<FineSamples> {
         let zc = z_coarse.to_dtype(DType::F32)?;
-        let zf = self.importance_z_tensors(&zc, weights)?;
+        let zf = self.importance_z_tensors_at(&zc, weights, fine_u)?;
         let pts = points(rays_o, rays_d, &zf)?;
         let (z_all, perm) = merge_sorted_tensors(&zc, &zf)?;
         let dt = rays_o.dtype();

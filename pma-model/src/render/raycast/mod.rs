@@ -72,6 +72,79 @@ pub struct CoarseSamples {
     pub z: Tensor,
     /// pts: [R,Sc,3] world points o + z·d.
     pub pts: Tensor,
+    /// fine_u: [R,Sf] on the host, where each ray's importance samples invert the CDF when
+    /// the pass is jittered ([`Jitter`]); `None`: at linspace(0, 1, Sf) like the reference.
+    /// The host copy is what the host resample reads and the device resample uploads, so
+    /// neither reads it back.
+    pub fine_u: Option<Vec<f32>>,
+}
+
+impl CoarseSamples {
+    /// The fine places of rows `rows` of these samples ([`Self::fine_u`]).
+    pub fn fine_u_of(&self, rows: &[usize]) -> Option<Vec<f32>> {
+        let u = self.fine_u.as_ref()?;
+        let sf = u.len() / self.z.dims().first().copied().unwrap_or(1).max(1);
+        Some(
+            rows.iter()
+                .flat_map(|&r| u[r * sf..(r + 1) * sf].iter().copied())
+                .collect(),
+        )
+    }
+}
+
+/// Stratified samples in training (`[train] jitter`, the `perturb` of the original NeRF;
+/// the reference trains on evenly spaced samples): each coarse sample moves to a uniform
+/// place in its stratum, the interval between the midpoints to its neighbours (the first
+/// and last stay inside the ray's interval), and each ray's importance samples invert the
+/// CDF at one uniform place in each of Sf equal parts of [0, 1] instead of at
+/// linspace(0, 1, Sf). So the network sees every depth of a ray over the steps, not the
+/// same Sc + Sf. The places depend only on the seed and the ray's row in the whole batch:
+/// chunks, threads and data-parallel ranks draw the same ones.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Jitter {
+    pub seed: u64,
+}
+
+impl Jitter {
+    /// Uniform in [0, 1): a 24-bit draw, exact in f32.
+    fn unit(&self, stage: u64, index: usize) -> f32 {
+        let u = crate::render::options::unit_hash(self.seed, stage, index as u64);
+        (u * (1u32 << 24) as f64).floor() as f32 / (1u32 << 24) as f32
+    }
+
+    /// The coarse samples' places in their strata: [R,S], uniform in [0, 1).
+    pub fn coarse_u(&self, n_rays: usize, s: usize) -> Vec<f32> {
+        (0..n_rays * s).map(|i| self.unit(0, i)).collect()
+    }
+
+    /// The importance samples' CDF places: [R,Sf], (m + ξ)/Sf for sample m.
+    pub fn fine_u(&self, n_rays: usize, sf: usize) -> Vec<f32> {
+        (0..n_rays * sf)
+            .map(|i| ((i % sf) as f32 + self.unit(1, i)) / sf as f32)
+            .collect()
+    }
+
+    /// Evenly spaced z [R,S] moved by u [R,S] within their strata: sample k to
+    /// lo + (hi − lo)·u between lo, hi, the midpoints to its neighbours (or the ray's ends).
+    pub fn stratify(z: &[f32], u: &[f32], s: usize) -> Vec<f32> {
+        let mut out = Vec::with_capacity(z.len());
+        for (z, u) in z.chunks_exact(s).zip(u.chunks_exact(s)) {
+            for k in 0..s {
+                let lo = if k == 0 {
+                    z[0]
+                } else {
+                    (z[k - 1] + z[k]) * 0.5
+                };
+                let hi = if k + 1 == s {
+                    z[s - 1]
+                } else {
+                    (z[k] + z[k + 1]) * 0.5
+                };
+                out.push(lo + (hi - lo) * u[k]);
+            }
+        }
+        out
+    }
 }
 
 /// Importance samples and their merge with the coarse samples.
@@ -304,6 +377,17 @@ impl RayCaster {
     /// Importance ray parameters: z_coarse: [R,Sc] ascending, weights: [R,Sc] coarse
     /// render weights -> [R,Sf], ascending per ray.
     pub fn importance_z(&self, z_coarse: &[f32], weights: &[f32]) -> Result<Vec<f32>> {
+        self.importance_z_at(z_coarse, weights, None)
+    }
+
+    /// [`Self::importance_z`] inverting each ray's CDF at its own places `u`: [R,Sf]
+    /// ascending per ray in [0, 1] ([`Jitter::fine_u`]); `None`: linspace(0, 1, Sf).
+    pub fn importance_z_at(
+        &self,
+        z_coarse: &[f32],
+        weights: &[f32],
+        u: Option<&[f32]>,
+    ) -> Result<Vec<f32>> {
         let sc = self.n_samples;
         if z_coarse.len() % sc != 0 {
             return Err(ModelError::shape(
@@ -319,8 +403,14 @@ impl RayCaster {
                 weights.len(),
             ));
         }
-        let u = linspace01(self.n_importance);
-        let mut out = Vec::with_capacity(z_coarse.len() / sc * u.len());
+        let sf = self.n_importance;
+        let even = linspace01(sf);
+        if let Some(u) = u {
+            if u.len() != z_coarse.len() / sc * sf {
+                return Err(ModelError::shape("fine_u", format!("[R,{sf}]"), u.len()));
+            }
+        }
+        let mut out = Vec::with_capacity(z_coarse.len() / sc * sf);
         for (r, (z, w)) in z_coarse
             .chunks_exact(sc)
             .zip(weights.chunks_exact(sc))
@@ -332,7 +422,8 @@ impl RayCaster {
                     w[k]
                 )));
             }
-            sample_pdf_det(z, w, &u, &mut out);
+            let u = u.map_or(&even[..], |u| &u[r * sf..(r + 1) * sf]);
+            sample_pdf_det(z, w, u, &mut out);
         }
         Ok(out)
     }
@@ -348,12 +439,14 @@ impl RayCaster {
         skts: &Tensor,
         scales: &Tensor,
     ) -> Result<CoarseSamples> {
-        self.cast_placed(rays_o, rays_d, cyls, skts, scales, None)
+        self.cast_placed(rays_o, rays_d, cyls, skts, scales, None, None)
     }
 
     /// [`Self::cast`] with the coarse ray parameters chosen by `place` when given: it gets
     /// the host inputs (bounds, rays_o, rays_d, skts, scales, as [`Self::near_far`] takes
-    /// them) and the evenly spaced parameters [R,Sc], and returns the ones to use.
+    /// them) and the evenly spaced (or, with `jitter`, stratified) parameters [R,Sc], and
+    /// returns the ones to use.
+    #[allow(clippy::too_many_arguments)]
     pub fn cast_placed(
         &self,
         rays_o: &Tensor,
@@ -362,6 +455,7 @@ impl RayCaster {
         skts: &Tensor,
         scales: &Tensor,
         place: Option<&CoarsePlacer>,
+        jitter: Option<Jitter>,
     ) -> Result<CoarseSamples> {
         let n_rays = rays_o.dims().first().copied().unwrap_or(0);
         let o = host_f32_shaped("rays_o", rays_o, &[n_rays, 3])?;
@@ -372,6 +466,9 @@ impl RayCaster {
         let scales = host_f32_shaped("scales", scales, &[N_JOINTS, 3])?;
         let bounds = self.near_far(&o, &d, &cyls, &skts, &scales)?;
         let mut z = self.coarse_z(&bounds.near, &bounds.far)?;
+        if let Some(j) = jitter {
+            z = Jitter::stratify(&z, &j.coarse_u(n_rays, self.n_samples), self.n_samples);
+        }
         if let Some(place) = place {
             z = place(
                 &CastInputs {
@@ -386,10 +483,12 @@ impl RayCaster {
         }
         let pts = sample_points(&o, &d, &z, self.n_samples)?;
         let (dev, dt) = (rays_o.device(), rays_o.dtype());
+        let fine_u = jitter.map(|j| j.fine_u(n_rays, self.n_importance));
         Ok(CoarseSamples {
             bounds: Some(bounds),
             z: Tensor::from_vec(z, (n_rays, self.n_samples), dev)?.to_dtype(dt)?,
             pts: Tensor::from_vec(pts, (n_rays, self.n_samples, 3), dev)?.to_dtype(dt)?,
+            fine_u,
         })
     }
 
@@ -403,13 +502,26 @@ impl RayCaster {
         z_coarse: &Tensor,
         weights: &Tensor,
     ) -> Result<FineSamples> {
+        self.resample_at(rays_o, rays_d, z_coarse, weights, None)
+    }
+
+    /// [`Self::resample`] inverting each ray's CDF at its own places `fine_u`: [R,Sf]
+    /// ([`CoarseSamples::fine_u`]).
+    pub fn resample_at(
+        &self,
+        rays_o: &Tensor,
+        rays_d: &Tensor,
+        z_coarse: &Tensor,
+        weights: &Tensor,
+        fine_u: Option<&[f32]>,
+    ) -> Result<FineSamples> {
         let n_rays = rays_o.dims().first().copied().unwrap_or(0);
         let (sc, sf) = (self.n_samples, self.n_importance);
         let o = host_f32_shaped("rays_o", rays_o, &[n_rays, 3])?;
         let d = host_f32_shaped("rays_d", rays_d, &[n_rays, 3])?;
         let zc = host_f32_shaped("z_coarse", z_coarse, &[n_rays, sc])?;
         let w = host_f32_shaped("weights", weights, &[n_rays, sc])?;
-        let zf = self.importance_z(&zc, &w)?;
+        let zf = self.importance_z_at(&zc, &w, fine_u)?;
         let pts = sample_points(&o, &d, &zf, sf)?;
         let (z_all, perm) = merge_sorted(&zc, sc, &zf, sf)?;
         let (dev, dt) = (rays_o.device(), rays_o.dtype());

@@ -117,6 +117,10 @@ impl Rows<'_> {
             },
             z: self.take(&c.z)?,
             pts: self.take(&c.pts)?,
+            fine_u: match &self.ids {
+                Some((rows, _)) => c.fine_u_of(rows),
+                None => c.fine_u.clone(),
+            },
         })
     }
 }
