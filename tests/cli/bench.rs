@@ -566,7 +566,7 @@ fn time_to_quality_writes_the_table_and_plot() {
         .collect();
     assert_eq!(names.first(), Some(&"parity"));
     assert_eq!(names.last(), Some(&"all options together"));
-    assert_eq!(names.len(), 11, "{names:?}");
+    assert_eq!(names.len(), 12, "{names:?}");
     let initial = options[0]["seeds"][0]["runs"][0]["curve"][0][1]
         .as_f64()
         .unwrap();
