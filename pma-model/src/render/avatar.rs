@@ -219,7 +219,7 @@ impl Avatar {
                 .cast_placed(args.0, args.1, args.2, args.3, args.4, None, jitter)
         } else {
             self.caster
-                .cast_tensors_jittered(args.0, args.1, args.2, args.3, args.4, jitter)
+                .cast_tensors(args.0, args.1, args.2, args.3, args.4, jitter)
         }
     }
 
@@ -320,22 +320,18 @@ impl Avatar {
             Some((_, render)) => render.weights.detach(),
             None => points.grid_weights(&coarse, &rays.dirs)?,
         };
-        let fine = match on_host {
-            true => self.caster.resample_at(
-                &rays.origins,
-                &rays.dirs,
-                &coarse.z,
-                &weights,
-                coarse.fine_u.as_deref(),
-            )?,
-            false => self.caster.resample_tensors_at(
-                &rays.origins,
-                &rays.dirs,
-                &coarse.z,
-                &weights,
-                coarse.fine_u.as_deref(),
-            )?,
+        let resample = match on_host {
+            true => RayCaster::resample,
+            false => RayCaster::resample_tensors,
         };
+        let fine = resample(
+            &self.caster,
+            &rays.origins,
+            &rays.dirs,
+            &coarse.z,
+            &weights,
+            coarse.fine_u.as_deref(),
+        )?;
         prof("resample");
         // 5. The fine samples through the network (with the coarse ones that waited).
         let (raw_coarse, render_coarse, raw_fine) = match coarse_done {

@@ -561,7 +561,7 @@ pub fn probe_compositing(cfg: &Config) -> Result<Vec<ProbeRow>> {
         }
         // Importance sampling on these weights: sorted, inside the coarse span, finite.
         let w = out.weights.flatten_all()?.to_vec1::<f32>()?;
-        let zi = caster.importance_z(&z, &w)?;
+        let zi = caster.importance_z(&z, &w, None)?;
         let sf = caster.n_importance();
         let mut is_bad = 0usize;
         for (zr, zc) in zi.chunks_exact(sf).zip(z.chunks_exact(m)) {

@@ -466,7 +466,7 @@ fn importance_sampling_and_merge() {
         let rc = ray_caster(&cfg);
         let z = flat_f32(&fx.input(case, "z_vals"));
         let w = flat_f32(&fx.input(case, "weights"));
-        let zi = rc.importance_z(&z, &w).expect("importance_z");
+        let zi = rc.importance_z(&z, &w, None).expect("importance_z");
         fx.check(case, "out/z_samples", &zi);
         let (z_all, perm) = merge_sorted(&z, sc, &zi, sf).expect("merge");
         fx.check(case, "out/z_vals_merged", &z_all);
@@ -559,7 +559,7 @@ fn forward_sampling_and_render_stages() {
         }
 
         let fine = rc
-            .resample(&o, &d, &coarse.z, &r0.weights)
+            .resample(&o, &d, &coarse.z, &r0.weights, None)
             .expect("resample");
         fx.check_t(case, "out/raycast/z_is", &fine.z);
         fx.check_t(case, "out/raycast/z_vals_merged", &fine.z_all);

@@ -502,7 +502,9 @@ fn fine_samples_placed_from_the_grid() {
     let out = infer(&case, &grid_fine).unwrap();
     let caster = case.avatar.ray_caster();
     let zc = flat(&out.z_coarse);
-    let expected = caster.importance_z(&zc, &vec![0.0; zc.len()]).unwrap();
+    let expected = caster
+        .importance_z(&zc, &vec![0.0; zc.len()], None)
+        .unwrap();
     let mut placed: Vec<f32> = Vec::new();
     let (sc, all) = (caster.n_samples(), out.z_vals.dim(1).unwrap());
     let (zc_rows, z_rows) = (zc.chunks(sc), flat(&out.z_vals));

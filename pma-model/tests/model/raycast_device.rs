@@ -151,7 +151,7 @@ fn tensor_ops_cast_like_the_host_code() {
             .near_far_tensors(&rays_o, &rays_d, &cyls, &skts, &scales)
             .unwrap();
         let on_device = caster
-            .cast_tensors(&rays_o, &rays_d, &cyls, &skts, &scales)
+            .cast_tensors(&rays_o, &rays_d, &cyls, &skts, &scales, None)
             .unwrap();
         assert!(on_device.bounds.is_none());
         let case = format!("robust {robust}, per-ray fallback {per_ray}");
@@ -196,8 +196,8 @@ fn tensor_ops_resample_and_merge_like_the_host_code() {
     }
     let z_t = Tensor::from_vec(zc.clone(), (r, sc), &dev).unwrap();
     let w_t = Tensor::from_vec(w.clone(), (r, sc), &dev).unwrap();
-    let zf_host = caster.importance_z(&zc, &w).unwrap();
-    let zf_dev = caster.importance_z_tensors(&z_t, &w_t).unwrap();
+    let zf_host = caster.importance_z(&zc, &w, None).unwrap();
+    let zf_dev = caster.importance_z_tensors(&z_t, &w_t, None).unwrap();
     let (err, same) = compare(&host(&zf_dev), &zf_host);
     eprintln!(
         "importance z: max abs diff {err:e}, bit-exact {same}/{}",
@@ -292,7 +292,7 @@ fn stratified_samples_stay_in_their_strata_on_both_routes() {
 
     // Device route: the same samples and places.
     let on_device = caster
-        .cast_tensors_jittered(args.0, args.1, args.2, args.3, args.4, Some(j))
+        .cast_tensors(args.0, args.1, args.2, args.3, args.4, Some(j))
         .unwrap();
     let ulp_of_mean = 1e-6 * z.iter().fold(1f32, |m, v| m.max(v.abs()));
     for (what, x, y) in [
@@ -359,10 +359,10 @@ fn stratified_samples_stay_in_their_strata_on_both_routes() {
     .unwrap();
     let u = jittered.fine_u.as_deref();
     let fine = caster
-        .resample_at(&rays_o, &rays_d, &jittered.z, &weights, u)
+        .resample(&rays_o, &rays_d, &jittered.z, &weights, u)
         .unwrap();
     let fine_dev = caster
-        .resample_tensors_at(&rays_o, &rays_d, &jittered.z, &weights, u)
+        .resample_tensors(&rays_o, &rays_d, &jittered.z, &weights, u)
         .unwrap();
     let (err, _) = compare(&host(&fine_dev.z), &host(&fine.z));
     assert!(
@@ -370,7 +370,7 @@ fn stratified_samples_stay_in_their_strata_on_both_routes() {
         "jittered importance samples differ by {err:e}"
     );
     let at_even = caster
-        .resample(&rays_o, &rays_d, &jittered.z, &weights)
+        .resample(&rays_o, &rays_d, &jittered.z, &weights, None)
         .unwrap();
     let (shift, _) = compare(&host(&fine.z), &host(&at_even.z));
     assert!(

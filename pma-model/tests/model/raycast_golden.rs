@@ -103,7 +103,7 @@ fn check_case(case: &str) {
     // Importance sampling from the reference's own coarse z and weights.
     let z_ref = f32s(&g, "raycast/z_vals_coarse");
     let w_ref = f32s(&g, "render_coarse/weights");
-    let z_is = caster.importance_z(&z_ref, &w_ref).unwrap();
+    let z_is = caster.importance_z(&z_ref, &w_ref, None).unwrap();
     let pts_is = sample_points(&rays_o, &rays_d, &z_is, sf).unwrap();
     assert_close(
         &format!("{case}pts_is"),
@@ -180,6 +180,7 @@ fn tensor_entry_points_match_host_code() {
             &r.rays_d,
             &g["raycast/z_vals_coarse"],
             &g["render_coarse/weights"],
+            None,
         )
         .unwrap();
     let pts_is: Vec<f32> = fine.pts.flatten_all().unwrap().to_vec1().unwrap();
@@ -236,7 +237,7 @@ fn device_path_matches_reference() {
             &f32s(&g, "raycast/far"),
         );
         let coarse = caster
-            .cast_tensors(&r.rays_o, &r.rays_d, &r.cyls, &r.skts, &r.scales)
+            .cast_tensors(&r.rays_o, &r.rays_d, &r.cyls, &r.skts, &r.scales, None)
             .unwrap();
         assert_close(
             &format!("{case}device pts_coarse"),
@@ -249,6 +250,7 @@ fn device_path_matches_reference() {
                 &r.rays_d,
                 &g["raycast/z_vals_coarse"],
                 &g["render_coarse/weights"],
+                None,
             )
             .unwrap();
         assert_close(

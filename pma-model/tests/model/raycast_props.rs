@@ -295,7 +295,7 @@ fn importance_samples_follow_the_pdf() {
     // bin midpoint. Ray 1: all weight on sample 20 -> samples crowd around z[20].
     let mut w = vec![0.0f32; 2 * sc];
     w[sc + 20] = 1.0;
-    let zf = rc.importance_z(&zc, &w).unwrap();
+    let zf = rc.importance_z(&zc, &w, None).unwrap();
     assert_eq!(zf.len(), 2 * sf);
     let step = 4.0 / (sc - 1) as f32;
     let (lo, hi) = (2.0 + 0.5 * step, 6.0 - 0.5 * step);
@@ -379,8 +379,8 @@ fn bad_inputs_are_errors() {
     assert!(err(rc.near_far(&o, &zero_d, &cyls, &skts, &scales)).contains("ray 1"));
     let w_nan = vec![f32::NAN; cfg.n_samples];
     let zc = rc.coarse_z(&[1.0], &[2.0]).unwrap();
-    assert!(rc.importance_z(&zc, &w_nan).is_err());
-    assert!(rc.importance_z(&zc, &w_nan[1..]).is_err());
+    assert!(rc.importance_z(&zc, &w_nan, None).is_err());
+    assert!(rc.importance_z(&zc, &w_nan[1..], None).is_err());
     assert!(RayCaster::new(&cfg, &identities(23)).is_err());
     let few = Config {
         n_samples: 2,

@@ -89,7 +89,7 @@ proptest! {
         prop_assert!(g.iter().all(|x| x.is_finite()), "gradient {g:?}");
 
         let cfg = Config { n_samples: m, n_importance: 9, ..Config::tiny() };
-        let zi = caster(&cfg).importance_z(&z, &w).unwrap();
+        let zi = caster(&cfg).importance_z(&z, &w, None).unwrap();
         for p in zi.windows(2) {
             prop_assert!(p[0] <= p[1], "unsorted importance samples {zi:?}");
         }

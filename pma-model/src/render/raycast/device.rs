@@ -194,22 +194,10 @@ impl RayCaster {
         Ok((near, far))
     }
 
-    /// [`RayCaster::cast`] as tensor ops (no host bounds: `bounds` is `None`).
+    /// [`RayCaster::cast`] as tensor ops (no host bounds: `bounds` is `None`). With
+    /// `jitter` the samples are stratified ([`Jitter`]): the places are drawn on the host
+    /// and copied to the device (no read-back), so the samples are the host cast's.
     pub fn cast_tensors(
-        &self,
-        rays_o: &Tensor,
-        rays_d: &Tensor,
-        cyls: &Tensor,
-        skts: &Tensor,
-        scales: &Tensor,
-    ) -> Result<CoarseSamples> {
-        self.cast_tensors_jittered(rays_o, rays_d, cyls, skts, scales, None)
-    }
-
-    /// [`Self::cast_tensors`] with stratified samples ([`Jitter`]): the places are drawn on
-    /// the host and copied to the device (no read-back), so the samples are the host
-    /// cast's.
-    pub fn cast_tensors_jittered(
         &self,
         rays_o: &Tensor,
         rays_d: &Tensor,
@@ -246,14 +234,9 @@ impl RayCaster {
         })
     }
 
-    /// [`RayCaster::importance_z`] as tensor ops: z_coarse, weights: [R,Sc] -> [R,Sf] (f32).
-    pub fn importance_z_tensors(&self, z_coarse: &Tensor, weights: &Tensor) -> Result<Tensor> {
-        self.importance_z_tensors_at(z_coarse, weights, None)
-    }
-
-    /// [`RayCaster::importance_z_at`] as tensor ops: `fine_u` [R,Sf] (copied to the device)
-    /// or linspace(0, 1, Sf).
-    pub fn importance_z_tensors_at(
+    /// [`RayCaster::importance_z`] as tensor ops: z_coarse, weights: [R,Sc] -> [R,Sf] (f32);
+    /// `fine_u` [R,Sf] (copied to the device) or linspace(0, 1, Sf).
+    pub fn importance_z_tensors(
         &self,
         z_coarse: &Tensor,
         weights: &Tensor,
@@ -319,21 +302,10 @@ impl RayCaster {
         rays_d: &Tensor,
         z_coarse: &Tensor,
         weights: &Tensor,
-    ) -> Result<FineSamples> {
-        self.resample_tensors_at(rays_o, rays_d, z_coarse, weights, None)
-    }
-
-    /// [`RayCaster::resample_at`] as tensor ops.
-    pub fn resample_tensors_at(
-        &self,
-        rays_o: &Tensor,
-        rays_d: &Tensor,
-        z_coarse: &Tensor,
-        weights: &Tensor,
         fine_u: Option<&[f32]>,
     ) -> Result<FineSamples> {
         let zc = z_coarse.to_dtype(DType::F32)?;
-        let zf = self.importance_z_tensors_at(&zc, weights, fine_u)?;
+        let zf = self.importance_z_tensors(&zc, weights, fine_u)?;
         let pts = points(rays_o, rays_d, &zf)?;
         let (z_all, perm) = merge_sorted_tensors(&zc, &zf)?;
         let dt = rays_o.dtype();

@@ -375,14 +375,10 @@ impl RayCaster {
     }
 
     /// Importance ray parameters: z_coarse: [R,Sc] ascending, weights: [R,Sc] coarse
-    /// render weights -> [R,Sf], ascending per ray.
-    pub fn importance_z(&self, z_coarse: &[f32], weights: &[f32]) -> Result<Vec<f32>> {
-        self.importance_z_at(z_coarse, weights, None)
-    }
-
-    /// [`Self::importance_z`] inverting each ray's CDF at its own places `u`: [R,Sf]
-    /// ascending per ray in [0, 1] ([`Jitter::fine_u`]); `None`: linspace(0, 1, Sf).
-    pub fn importance_z_at(
+    /// render weights -> [R,Sf], ascending per ray. Each ray's CDF is inverted at its own
+    /// places `u`: [R,Sf] ascending per ray in [0, 1] ([`Jitter::fine_u`]), or with `None`
+    /// at linspace(0, 1, Sf) as the reference does.
+    pub fn importance_z(
         &self,
         z_coarse: &[f32],
         weights: &[f32],
@@ -494,20 +490,9 @@ impl RayCaster {
 
     /// Tensor entry point for the fine pass. rays_o, rays_d: [R,3]; z_coarse: [R,Sc];
     /// weights: [R,Sc] coarse render weights (read as constants, like the reference's
-    /// detached samples). Outputs live on `rays_o`'s device.
+    /// detached samples); `fine_u`: each ray's CDF places ([`CoarseSamples::fine_u`], see
+    /// [`Self::importance_z`]). Outputs live on `rays_o`'s device.
     pub fn resample(
-        &self,
-        rays_o: &Tensor,
-        rays_d: &Tensor,
-        z_coarse: &Tensor,
-        weights: &Tensor,
-    ) -> Result<FineSamples> {
-        self.resample_at(rays_o, rays_d, z_coarse, weights, None)
-    }
-
-    /// [`Self::resample`] inverting each ray's CDF at its own places `fine_u`: [R,Sf]
-    /// ([`CoarseSamples::fine_u`]).
-    pub fn resample_at(
         &self,
         rays_o: &Tensor,
         rays_d: &Tensor,
@@ -521,7 +506,7 @@ impl RayCaster {
         let d = host_f32_shaped("rays_d", rays_d, &[n_rays, 3])?;
         let zc = host_f32_shaped("z_coarse", z_coarse, &[n_rays, sc])?;
         let w = host_f32_shaped("weights", weights, &[n_rays, sc])?;
-        let zf = self.importance_z_at(&zc, &w, fine_u)?;
+        let zf = self.importance_z(&zc, &w, fine_u)?;
         let pts = sample_points(&o, &d, &zf, sf)?;
         let (z_all, perm) = merge_sorted(&zc, sc, &zf, sf)?;
         let (dev, dt) = (rays_o.device(), rays_o.dtype());
