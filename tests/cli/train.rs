@@ -131,6 +131,44 @@ fn bad_input_gives_clear_errors() {
     }
 }
 
+/// Without the density noise a network whose initial densities are all zero never trains
+/// (ReLU(raw) passes no gradient where raw ≤ 0): such a run is refused before it writes
+/// anything, naming the setting; a seed whose network starts open trains without noise.
+#[test]
+fn a_run_that_cannot_open_its_density_is_refused() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tiny_scene(&tmp.path().join("scene"), 2);
+    let cfg = tmp.path().join("c.toml");
+    let config = |seed: u64| {
+        let text = format!(
+            "preset = \"tiny\"\n[model]\ndensity_noise_std = 0.0\n[train]\nseed = {seed}\n"
+        );
+        std::fs::write(&cfg, text).unwrap();
+    };
+    let run = |name: &str| {
+        let out = tmp.path().join(name);
+        let args = [
+            &train_args(&data, &out)[..],
+            &["--config", cfg.to_str().unwrap()],
+        ]
+        .concat();
+        (
+            pma(&[&args[..], &["--iters", "2", "--quiet"]].concat()),
+            out,
+        )
+    };
+    // Seed 0 of the tiny network starts with every density closed on this scene.
+    config(0);
+    let (refused, out) = run("closed");
+    assert_eq!(refused.status.code(), Some(2));
+    fails_with(refused, "density_noise_std = 0");
+    assert!(!out.exists(), "a refused run leaves {}", out.display());
+    config(1);
+    let (trained, out) = run("open");
+    ok(trained);
+    assert!(out.join("model.safetensors").is_file());
+}
+
 /// `pma train --data DATA --out OUT`.
 fn train_args<'a>(data: &'a Path, out: &'a Path) -> [&'a str; 5] {
     let s = |p: &'a Path| p.to_str().unwrap();

@@ -304,7 +304,15 @@ impl Prepared {
                 device,
             );
         }
-        let t = Trainer::new(self.run.clone(), self.data.clone(), device)?;
+        let mut t = Trainer::new(self.run.clone(), self.data.clone(), device)?;
+        let noise = self.run.model.density_noise_std;
+        if noise == 0.0 && t.density_closed()? {
+            return Err(TrainError::Config(format!(
+                "[model] density_noise_std = {noise}: the initial network gives every sample of \
+                 the first batch zero density, so no gradient can reach it and the run would \
+                 stay empty; keep the density noise (the reference trains with 1.0)"
+            )));
+        }
         if self.role == Role::Writer {
             checkpoint::write_config(t.run_config(), &req.out.join(CONFIG_FILE))?;
         }

@@ -212,6 +212,32 @@ impl Trainer {
         &self.run
     }
 
+    /// Whether the network gives every sample of the next batch zero density (no noise, the
+    /// full pass). The density is ReLU(raw) as in the reference; where every raw value is
+    /// ≤ 0 no gradient reaches the density, and only the density noise can open it. The
+    /// source is put back, so the run's batches are as if this was never asked.
+    pub fn density_closed(&mut self) -> Result<bool, TrainError> {
+        let state = self.source.state();
+        let batch = self.source.next_batch();
+        self.source.restore(&state)?;
+        let batch = batch?;
+        let opts = crate::render::avatar::PassOptions::default();
+        let out = self.avatar.forward(
+            &batch.rays,
+            &batch.poses,
+            &mut crate::render::batch::Mode::Infer,
+            &opts,
+            None,
+        )?;
+        let largest = |t: &Tensor| -> Result<f32, TrainError> {
+            Ok(t.flatten_all()?
+                .max(0)?
+                .to_dtype(candle_core::DType::F32)?
+                .to_scalar::<f32>()?)
+        };
+        Ok(largest(&out.coarse.alpha)? <= 0.0 && largest(&out.fine.alpha)? <= 0.0)
+    }
+
     pub fn avatar(&self) -> &Avatar {
         &self.avatar
     }
