@@ -7,9 +7,12 @@
 #                         [--marks 1,2,5] [--eval-images 16] [--threads 2] [--workers 0]
 #                         [--fast-flags "--fast"]
 #
-# Needs a pma release binary (--pma; default target/release/pma) and a Python with torch,
-# numpy, scipy, h5py, hydra-core and omegaconf (--python); DIR is a checkout of the official
-# code, imported at run time and never copied (run_official.import_official).
+# Needs a pma release binary (--pma; default target/release/pma) and a Python (--python)
+# with what the official code imports: torch, numpy, scipy, h5py, hydra-core, omegaconf,
+# pillow, imageio, smplx, lpips, scikit-image, tensorboard, pytorch-msssim, safetensors, tqdm,
+# six and configargparse (the set its last table ran with; pytorch3d, plotly, matplotlib and
+# cv2 are stood in for). DIR is a checkout of the official code, imported at run time and
+# never copied (run_official.import_official).
 #
 # Steps: `pma synth --seed S` (the scene `pma bench --time-to-quality` trains on for that
 # seed: SynthConfig's defaults); its train and novel-view splits as h36m_zju .h5
