@@ -159,3 +159,56 @@ fn stress_run_from_env() {
     );
     assert_eq!(skipped, 0);
 }
+
+/// Without density noise a network whose initial densities are all zero passes no gradient
+/// to its density head (ReLU), which is why `pma train` refuses such a run:
+/// `Trainer::density_closed` tells the seeds apart, a closed one's first step leaves
+/// `sigma_linear` without a gradient, and asking moves no batch (an open seed's steps after
+/// the question are bit for bit those of a trainer never asked).
+#[test]
+fn a_closed_density_is_seen_and_asking_moves_no_batch() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = train_support::tiny_scene(tmp.path());
+    let trainer = |seed: u64| {
+        let mut run = train_support::tiny_run();
+        run.model.density_noise_std = 0.0;
+        run.train.seed = seed;
+        Trainer::new(run, data.clone(), &Device::Cpu).unwrap()
+    };
+    let closed: Vec<bool> = (0..8)
+        .map(|s| trainer(s).density_closed().unwrap())
+        .collect();
+    let closed_seed = closed
+        .iter()
+        .position(|&c| c)
+        .expect("a closed seed in 0..8");
+    let open_seed = closed
+        .iter()
+        .position(|&c| !c)
+        .expect("an open seed in 0..8");
+
+    let mut t = trainer(closed_seed as u64);
+    let names = t.param_names().to_vec();
+    let (_, grads) = train_support::step_grads(&mut t);
+    let sigma: Vec<_> = names
+        .iter()
+        .zip(&grads)
+        .filter(|(n, _)| n.contains("sigma_linear"))
+        .collect();
+    assert!(!sigma.is_empty(), "no sigma_linear among {names:?}");
+    for (name, g) in sigma {
+        assert!(g.iter().all(|&v| v == 0.0), "{name} has a gradient");
+    }
+
+    let mut asked = trainer(open_seed as u64);
+    assert!(!asked.density_closed().unwrap());
+    let mut fresh = trainer(open_seed as u64);
+    for _ in 0..3 {
+        let (a, b) = (asked.step_read().unwrap(), fresh.step_read().unwrap());
+        assert_eq!(a.loss.total.to_bits(), b.loss.total.to_bits());
+    }
+    assert_eq!(
+        train_support::param_bits(&asked),
+        train_support::param_bits(&fresh)
+    );
+}
